@@ -1,0 +1,1 @@
+"""SlotFormer in JAX/Flax."""
