@@ -1,0 +1,58 @@
+"""Builds the linen modules from a config (the only place that reads both)."""
+
+from __future__ import annotations
+
+import ml_collections
+
+from slotformer_jax.modules.decoders import SpatialBroadcastDecoder
+from slotformer_jax.modules.savi import SAVi
+from slotformer_jax.modules.slotformer import SlotFormer
+
+
+def build_savi(config: ml_collections.ConfigDict) -> SAVi:
+  """SAVi (or stochastic SAVi when `config.savi.stochastic`)."""
+  savi = config.savi
+  return SAVi(
+      resolution=tuple(config.data.resolution),
+      num_slots=savi.num_slots,
+      slot_size=savi.slot_size,
+      encoder_features=tuple(savi.encoder.features),
+      encoder_kernel_size=savi.encoder.kernel_size,
+      encoder_strides=tuple(savi.encoder.strides),
+      encoder_size=savi.encoder.output_size,
+      num_iterations=savi.slot_attention.num_iterations,
+      slot_mlp_size=savi.slot_attention.mlp_size,
+      predictor_layers=savi.predictor.num_layers,
+      predictor_heads=savi.predictor.num_heads,
+      predictor_mlp_size=savi.predictor.mlp_size,
+      predictor_lstm_size=savi.predictor.lstm_size,
+      decoder_broadcast_resolution=tuple(savi.decoder.broadcast_resolution),
+      decoder_features=tuple(savi.decoder.features),
+      decoder_kernel_size=savi.decoder.kernel_size,
+      stochastic=savi.stochastic,
+      prior_sigma=savi.prior_sigma,
+  )
+
+
+def build_decoder(config: ml_collections.ConfigDict) -> SpatialBroadcastDecoder:
+  """SAVi's decoder alone; its parameters are `savi_params['decoder']`."""
+  decoder = config.savi.decoder
+  return SpatialBroadcastDecoder(
+      output_resolution=tuple(config.data.resolution),
+      broadcast_resolution=tuple(decoder.broadcast_resolution),
+      features=tuple(decoder.features),
+      kernel_size=decoder.kernel_size)
+
+
+def build_slotformer(config: ml_collections.ConfigDict) -> SlotFormer:
+  dynamics = config.slotformer
+  return SlotFormer(
+      burn_in=dynamics.burn_in,
+      embed_dim=dynamics.embed_dim,
+      num_layers=dynamics.num_layers,
+      num_heads=dynamics.num_heads,
+      mlp_size=dynamics.mlp_ratio * dynamics.embed_dim,
+      dropout_rate=dynamics.dropout_rate,
+      positional_encoding=dynamics.positional_encoding,
+      residual=dynamics.residual,
+  )

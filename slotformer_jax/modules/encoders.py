@@ -1,0 +1,67 @@
+"""CNN frame encoder with a soft position embedding (SAVi / Slot Attention)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+
+
+def coordinate_grid(height: int, width: int) -> jax.Array:
+  """[height, width, 4] grid of (y, x, 1 - y, 1 - x), each in [0, 1]."""
+  ys = jnp.linspace(0.0, 1.0, height)
+  xs = jnp.linspace(0.0, 1.0, width)
+  grid = jnp.stack(jnp.meshgrid(ys, xs, indexing='ij'), axis=-1)
+  return jnp.concatenate([grid, 1.0 - grid], axis=-1)
+
+
+class SoftPositionEmbedding(nn.Module):
+  """Adds a learned linear projection of the coordinate grid to a feature map.
+
+  Input and output [..., height, width, channels].
+  """
+
+  @nn.compact
+  def __call__(self, features: jax.Array) -> jax.Array:
+    height, width, channels = features.shape[-3:]
+    embedding = nn.Dense(channels, name='dense')(coordinate_grid(height, width))
+    return features + embedding
+
+
+class CNNEncoder(nn.Module):
+  """Per-frame CNN -> position embedding -> flatten -> LayerNorm + MLP.
+
+  Attributes:
+    features: channels of each conv layer; ReLU after all but the last.
+    kernel_size: square kernel of every conv layer.
+    strides: stride of each conv layer (2 on the first layer for 128x128
+      inputs in the paper's Physion / PHYRE settings).
+    output_size: D_enc, the size of each output feature vector.
+  """
+
+  features: Sequence[int] = (64, 64, 64, 64)
+  kernel_size: int = 5
+  strides: Sequence[int] = (1, 1, 1, 1)
+  output_size: int = 128
+
+  @nn.compact
+  def __call__(self, images: jax.Array) -> jax.Array:
+    """images [B, H, W, 3] -> features [B, H' * W', output_size]."""
+    if len(self.strides) != len(self.features):
+      raise ValueError(
+          f'encoder strides {tuple(self.strides)} and features '
+          f'{tuple(self.features)} must have the same length')
+    x = images
+    for i, (channels, stride) in enumerate(zip(self.features, self.strides)):
+      x = nn.Conv(channels, (self.kernel_size, self.kernel_size),
+                  strides=(stride, stride), padding='SAME', name=f'conv_{i}')(x)
+      if i < len(self.features) - 1:
+        x = nn.relu(x)
+    x = SoftPositionEmbedding(name='position_embedding')(x)
+    x = x.reshape(x.shape[0], -1, x.shape[-1])
+    x = nn.LayerNorm(name='norm')(x)
+    x = nn.Dense(self.output_size, name='mlp_hidden')(x)
+    x = nn.relu(x)
+    return nn.Dense(self.output_size, name='mlp_out')(x)

@@ -1,0 +1,78 @@
+"""Slot Attention (Locatello et al., 2020) as used by SAVi's corrector.
+
+Shapes: slots [batch, num_slots, slot_size], inputs [batch, num_inputs, input_size].
+"""
+
+from __future__ import annotations
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+
+
+def inverted_attention_weights(
+    queries: jax.Array, keys: jax.Array, epsilon: float
+) -> jax.Array:
+  """Softmax over the *slot* axis, then a weighted mean over the inputs.
+
+  Args:
+    queries: [batch, num_slots, dim].
+    keys: [batch, num_inputs, dim].
+    epsilon: added before the renormalisation over inputs, so a slot that wins
+      no input still gets a well-defined (uniform-ish) mean.
+
+  Returns:
+    (attention [batch, num_slots, num_inputs] summing to 1 over inputs,
+     competition [batch, num_slots, num_inputs] summing to 1 over slots).
+  """
+  scale = queries.shape[-1] ** -0.5
+  logits = jnp.einsum('bnd,bmd->bnm', queries, keys) * scale
+  # Slots compete for every input: normalise over the slot axis.
+  competition = jax.nn.softmax(logits, axis=1)
+  weights = competition + epsilon
+  weights = weights / jnp.sum(weights, axis=-1, keepdims=True)
+  return weights, competition
+
+
+class SlotAttention(nn.Module):
+  """Iterative slot update by inverted dot-product attention + GRU + MLP.
+
+  Attributes:
+    num_iterations: attention rounds per call (2 in SlotFormer's SAVi).
+    mlp_size: hidden size of the residual MLP after the GRU.
+    epsilon: see `inverted_attention_weights`.
+  """
+
+  num_iterations: int = 2
+  mlp_size: int = 256
+  epsilon: float = 1e-6
+
+  @nn.compact
+  def __call__(self, slots: jax.Array, inputs: jax.Array) -> jax.Array:
+    """slots [B, N, D], inputs [B, M, C] -> updated slots [B, N, D]."""
+    slot_size = slots.shape[-1]
+    inputs = nn.LayerNorm(name='norm_inputs')(inputs)
+    keys = nn.Dense(slot_size, use_bias=False, name='key')(inputs)
+    values = nn.Dense(slot_size, use_bias=False, name='value')(inputs)
+
+    norm_slots = nn.LayerNorm(name='norm_slots')
+    to_query = nn.Dense(slot_size, use_bias=False, name='query')
+    gru = nn.GRUCell(slot_size, name='gru')
+    mlp = nn.Sequential([
+        nn.LayerNorm(),
+        nn.Dense(self.mlp_size),
+        nn.relu,
+        nn.Dense(slot_size),
+    ], name='mlp')
+
+    for _ in range(self.num_iterations):
+      queries = to_query(norm_slots(slots))
+      weights, competition = inverted_attention_weights(
+          queries, keys, self.epsilon)
+      # Kept for visualisation: the per-input slot assignment of the last
+      # iteration, [B, N, M].
+      self.sow('intermediates', 'attention', competition)
+      updates = jnp.einsum('bnm,bmd->bnd', weights, values)
+      slots, _ = gru(slots, updates)
+      slots = slots + mlp(slots)
+    return slots
