@@ -386,6 +386,17 @@ def adjusted_rand_index(true_ids: ArrayLike, pred_ids: ArrayLike,
   """
   table = contingency_table(true_ids, pred_ids, num_true_classes,
                             num_pred_classes)
+  return ari_from_contingency(table, ignore_background=ignore_background)
+
+
+def ari_from_contingency(table: ArrayLike, *,
+                         ignore_background: bool = False) -> MaskedScore:
+  """(FG-)ARI from a contingency table ``[..., C, K]`` (row 0: background).
+
+  Tables of several chunks of one video can be summed first, which gives the
+  video-level score without holding all frames at once.
+  """
+  table = jnp.asarray(table)
   if ignore_background:
     table = table[..., 1:, :]
   valid = jnp.sum(table, axis=(-2, -1)) > 0

@@ -101,9 +101,12 @@ def slotformer_loss(params: Any, batch: Batch, decoder_params: Any,
   return loss, metrics
 
 
-def savi_encode(params: Any, video: jax.Array, rng: jax.Array, *,
-                model: SAVi, carry: Any = None):
-  """uint8 video [B, T, H, W, 3] -> (slots [B, T, N, D], carry)."""
+def savi_encode(params: Any, video: jax.Array, rng: jax.Array, carry: Any,
+                *, model: SAVi):
+  """uint8 video [B, T, H, W, 3] -> (slots [B, T, N, D], carry).
+
+  `carry` continues SAVi's state from the previous chunk (None: fresh).
+  """
   slots, _, carry = model.apply(
       {'params': params}, frames_to_model(video), carry,
       method=SAVi.encode, rngs={'sample': rng})

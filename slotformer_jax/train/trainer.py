@@ -12,13 +12,13 @@ from collections.abc import Callable, Iterator
 import dataclasses
 import functools
 import json
+import logging
 import math
 import os
 import time
 from typing import Any
 import warnings
 
-from absl import logging
 import jax
 from jax.sharding import Mesh
 import ml_collections
@@ -32,6 +32,8 @@ from slotformer_jax.train.checkpoint import abstract_like
 from slotformer_jax.train.state import TrainState
 from slotformer_jax.train.steps import LossFn
 from slotformer_jax.train.steps import train_step
+
+logger = logging.getLogger(__name__)
 
 # XLA:CPU cannot reuse donated buffers and says so on every call.
 warnings.filterwarnings('ignore', message='Some donated buffers were not usable')
@@ -88,7 +90,7 @@ def fit(stage: Stage, *, mesh: Mesh, seed: int) -> TrainState:
   if checkpointer.latest_step() is not None:
     state = checkpointer.restore(
         abstract_train_state(stage.init_params, config, mesh))
-    logging.info('%s: resumed from step %d', stage.name, int(state.step))
+    logger.info('%s: resumed from step %d', stage.name, int(state.step))
   else:
     init_rng = jax.random.key(seed)
     state = jax.jit(
@@ -96,12 +98,12 @@ def fit(stage: Stage, *, mesh: Mesh, seed: int) -> TrainState:
         out_shardings=replicated)()
   start_step = int(state.step)
   if start_step >= num_steps:
-    logging.info('%s: already trained (%d steps)', stage.name, start_step)
+    logger.info('%s: already trained (%d steps)', stage.name, start_step)
     checkpointer.close()
     return state
 
   num_params = sum(x.size for x in jax.tree.leaves(state.params))
-  logging.info('%s: %s parameters, training steps %d -> %d on %d devices',
+  logger.info('%s: %s parameters, training steps %d -> %d on %d devices',
                stage.name, f'{num_params:,}', start_step, num_steps,
                mesh.devices.size)
   update = jax.jit(
@@ -136,7 +138,7 @@ def fit(stage: Stage, *, mesh: Mesh, seed: int) -> TrainState:
             now - last_log_time, 1e-9)
         last_log_time, last_log_step = now, done
         progress.set_postfix(loss=f'{metrics["loss"]:.4g}')
-        logging.info('%s step %d: %s', stage.name, done, ', '.join(
+        logger.info('%s step %d: %s', stage.name, done, ', '.join(
             f'{k}={v:.4g}' for k, v in sorted(metrics.items())))
         if is_lead_host:
           with open(log_path, 'a') as log_file:

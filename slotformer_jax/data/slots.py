@@ -1,0 +1,119 @@
+"""Extracted slots on disk, and a source that serves them with the frames.
+
+One folder per split::
+
+    slots.f32        float32 rows of [num_slots * slot_size], all videos
+                     concatenated along time (read back as a memmap)
+    video_index.npy  int64 [num_videos, 2]: (first row, number of frames)
+    meta.json        num_videos, num_slots, slot_size, savi_step, complete
+
+A raw file + index (rather than one .npy) lets extraction append batch after
+batch without knowing the total length in advance, and serves videos of
+different lengths.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from typing import Any
+
+import numpy as np
+
+SLOTS_FILE = 'slots.f32'
+INDEX_FILE = 'video_index.npy'
+META_FILE = 'meta.json'
+
+
+def read_meta(directory: str) -> dict[str, Any] | None:
+  """The split's meta.json, or None if the folder holds no slots yet."""
+  path = os.path.join(directory, META_FILE)
+  if not os.path.exists(path):
+    return None
+  with open(path) as f:
+    return json.load(f)
+
+
+class SlotWriter:
+  """Writes the slots of one split, video by video, in any index order."""
+
+  def __init__(self, directory: str, num_videos: int, num_slots: int,
+               slot_size: int, savi_step: int):
+    os.makedirs(directory, exist_ok=True)
+    self._directory = directory
+    self._meta = dict(num_videos=num_videos, num_slots=num_slots,
+                      slot_size=slot_size, savi_step=savi_step,
+                      complete=False)
+    self._write_meta()
+    self._index = np.full((num_videos, 2), -1, np.int64)
+    self._file = open(os.path.join(directory, SLOTS_FILE), 'wb')
+    self._rows = 0
+
+  def _write_meta(self):
+    with open(os.path.join(self._directory, META_FILE), 'w') as f:
+      json.dump(self._meta, f, indent=1)
+
+  def add(self, video_index: int, slots: np.ndarray) -> None:
+    """slots: float32 [num_frames, num_slots, slot_size] of one video."""
+    expected = (self._meta['num_slots'], self._meta['slot_size'])
+    if slots.ndim != 3 or slots.shape[1:] != expected:
+      raise ValueError(f'slots {slots.shape} do not match [T, *{expected}]')
+    self._file.write(np.ascontiguousarray(slots, np.float32).tobytes())
+    self._index[video_index] = (self._rows, len(slots))
+    self._rows += len(slots)
+
+  def close(self) -> None:
+    """Marks the split complete; fails if a video was never added."""
+    self._file.close()
+    missing = np.flatnonzero(self._index[:, 0] < 0)
+    if missing.size:
+      raise RuntimeError(
+          f'slot extraction missed {missing.size} videos, e.g. {missing[:5]}')
+    np.save(os.path.join(self._directory, INDEX_FILE), self._index)
+    self._meta['complete'] = True
+    self._write_meta()
+
+
+class SlotSource:
+  """Random access to extracted slots, optionally with the video's frames.
+
+  Items: {'slots': float32 [T, N, D]} plus the requested fields of
+  `video_source[i]` (e.g. 'video' uint8 [T, H, W, 3]), which must have the
+  same number of frames.
+  """
+
+  def __init__(self, directory: str, video_source: Any = None,
+               video_fields: tuple[str, ...] = ('video',)):
+    meta = read_meta(directory)
+    if meta is None or not meta.get('complete'):
+      raise FileNotFoundError(
+          f'no complete slot extraction in {directory}; run '
+          '`--mode=extract_slots` first')
+    self.meta = meta
+    self._index = np.load(os.path.join(directory, INDEX_FILE))
+    self._slots = np.memmap(
+        os.path.join(directory, SLOTS_FILE), dtype=np.float32, mode='r'
+    ).reshape(-1, meta['num_slots'], meta['slot_size'])
+    self._video_source = video_source
+    self._video_fields = tuple(video_fields)
+    if video_source is not None and len(video_source) != len(self):
+      raise ValueError(
+          f'{directory} holds slots of {len(self)} videos but the video '
+          f'source has {len(video_source)}')
+
+  def __len__(self) -> int:
+    return len(self._index)
+
+  def __getitem__(self, index: int) -> dict[str, np.ndarray]:
+    start, length = self._index[index]
+    item = {'slots': np.array(self._slots[start:start + length])}
+    if self._video_source is not None and self._video_fields:
+      video_item = self._video_source[index]
+      for field in self._video_fields:
+        value = video_item[field]
+        if len(value) != length:
+          raise ValueError(
+              f'video {index}: {field} has {len(value)} frames but '
+              f'{length} slots were extracted')
+        item[field] = value
+    return item

@@ -1,0 +1,402 @@
+"""Video-prediction evaluation on held-out videos.
+
+Protocol (the paper's): observe the slots of the first `burn_in` frames,
+roll the dynamics model out for `rollout_steps` frames, decode the predicted
+slots with the frozen SAVi decoder and compare every decoded frame and its
+slot masks with the ground truth. Metrics are computed per rollout step,
+averaged over videos per step, then averaged over steps.
+
+Methods in one table:
+* `slotformer`: the trained model.
+* `copy_last`: the last observed slots repeated (no dynamics at all).
+* `savi_reconstruction`: SAVi's own slots of the future frames decoded: the
+  best any dynamics model can do through this decoder (a reference, not a
+  prediction).
+
+Also reported: SAVi's segmentation quality on the held-out videos (all
+frames, ARI / FG-ARI pooled over each whole video as SAVi reports them, and
+the per-frame mean).
+"""
+
+from __future__ import annotations
+
+import csv
+import functools
+import json
+import logging
+import math
+import os
+import time
+from collections.abc import Callable
+from typing import Any
+
+import jax
+from jax.sharding import Mesh
+import jax.numpy as jnp
+import ml_collections
+import numpy as np
+import tqdm
+
+from slotformer_jax import models
+from slotformer_jax import stages
+from slotformer_jax.data import pipeline
+from slotformer_jax.evaluation import metrics as metrics_lib
+from slotformer_jax.train import sharding
+from slotformer_jax.train import steps
+
+logger = logging.getLogger(__name__)
+
+FRAME_METRICS = ('psnr', 'ssim', 'lpips')
+OBJECT_METRICS = ('ari', 'fg_ari', 'fg_miou', 'ar')
+SEGMENTATION_FIELD = 'segmentations'
+
+
+def eval_dir(workdir: str) -> str:
+  return os.path.join(workdir, 'eval')
+
+
+def num_true_ids(data_config: ml_collections.ConfigDict) -> int:
+  """Ground-truth segmentation ids, background (0) included."""
+  return int(data_config.max_instances) + 1
+
+
+def _frame_step_metrics(decoded, frames: jax.Array, segmentation: jax.Array,
+                        *, names: tuple[str, ...], num_true: int,
+                        num_slots: int, lpips_fn: Callable | None,
+                        background_threshold: float | None):
+  """Metrics of one rollout step for a batch.
+
+  decoded: DecodedSlots with leading [B] (recon in [0, 1]);
+  frames: float [B, H, W, 3] in [0, 1]; segmentation: int [B, H, W].
+  Returns {name: (value [B], valid [B])}, and for 'fg_miou' the IoU
+  matrix [B, C-1, K] with 'present' [B, C-1] (matched on the host).
+  """
+  out = {}
+  ones = jnp.ones(frames.shape[0], bool)
+  if 'psnr' in names:
+    out['psnr'] = (metrics_lib.psnr(decoded.recon, frames), ones)
+  if 'ssim' in names:
+    out['ssim'] = (metrics_lib.ssim(decoded.recon, frames), ones)
+  if 'lpips' in names and lpips_fn is not None:
+    out['lpips'] = (lpips_fn(decoded.recon, frames), ones)
+  object_names = [n for n in names if n in OBJECT_METRICS]
+  if not object_names:
+    return out
+  pred_ids = metrics_lib.segmentation_from_alpha_masks(
+      decoded.alpha_masks[..., 0], bg_threshold=background_threshold)
+  true_ids = segmentation.astype(jnp.int32)
+  table = metrics_lib.contingency_table(
+      true_ids[:, None], pred_ids[:, None], num_true, num_slots)
+  if 'ari' in names:
+    out['ari'] = tuple(metrics_lib.ari_from_contingency(table))
+  if 'fg_ari' in names:
+    out['fg_ari'] = tuple(
+        metrics_lib.ari_from_contingency(table, ignore_background=True))
+  if 'fg_miou' in names:
+    out['fg_miou'] = metrics_lib.fg_iou_matrix(
+        true_ids[:, None], pred_ids[:, None], num_true, num_slots)
+  if 'ar' in names:
+    gt_boxes, gt_valid = metrics_lib.segmentation_to_boxes(true_ids, num_true)
+    pred_boxes, pred_valid = metrics_lib.segmentation_to_boxes(
+        pred_ids, num_slots)
+    # Row 0 of the ground truth is the background, not an object.
+    out['ar'] = tuple(metrics_lib.average_recall(
+        gt_boxes[:, 1:], gt_valid[:, 1:], pred_boxes, pred_valid))
+  return out
+
+
+def make_rollout_evaluator(config: ml_collections.ConfigDict, mesh: Mesh,
+                           names: tuple[str, ...],
+                           lpips_fn: Callable | None):
+  """Jitted (slotformer_params, decoder_params, batch) -> per-step metrics.
+
+  batch: 'slots' [B, burn_in + R, N, D], 'video' uint8 [B, burn_in + R, H,
+  W, 3], 'segmentations' [B, burn_in + R, H, W]. Returns {method: {name:
+  (value [R, B], valid [R, B])}} (fg_miou: (iou, present)).
+  """
+  model = models.build_slotformer(config)
+  decoder = models.build_decoder(config)
+  burn_in = config.slotformer.burn_in
+  rollout = config.evaluation.rollout_steps
+  step_metrics = functools.partial(
+      _frame_step_metrics, names=names,
+      num_true=num_true_ids(config.data), num_slots=config.savi.num_slots,
+      lpips_fn=lpips_fn,
+      background_threshold=config.evaluation.get('background_threshold'))
+
+  def evaluate_batch(params, decoder_params, batch):
+    history = batch['slots'][:, :burn_in]
+    predictions = {
+        'slotformer': steps.rollout_slots(params, history, model=model,
+                                          num_steps=rollout),
+        'copy_last': steps.copy_last_rollout(history, rollout),
+        'savi_reconstruction': batch['slots'][:, burn_in:burn_in + rollout],
+    }
+    frames = batch['video'][:, burn_in:burn_in + rollout]
+    segmentation = batch[SEGMENTATION_FIELD][:, burn_in:burn_in + rollout]
+    time_major = lambda x: jnp.swapaxes(x, 0, 1)
+
+    def one_step(inputs):
+      slots, frame, seg = inputs
+      decoded = steps.decode_slots(decoder_params, slots, decoder=decoder)
+      return step_metrics(decoded, steps.model_to_unit(
+          steps.frames_to_model(frame)), seg)
+
+    # lax.map keeps one step's decoded frames in memory at a time.
+    return {method: jax.lax.map(one_step, (time_major(slots),
+                                           time_major(frames),
+                                           time_major(segmentation)))
+            for method, slots in predictions.items()}
+
+  replicated = sharding.replicated_sharding(mesh)
+  return jax.jit(evaluate_batch,
+                 in_shardings=(replicated, replicated,
+                               sharding.batch_sharding(mesh)))
+
+
+def make_savi_evaluator(config: ml_collections.ConfigDict, mesh: Mesh):
+  """Jitted SAVi quality of a chunk of frames.
+
+  (decoder_params, slots [B, T, N, D], video uint8 [B, T, H, W, 3],
+  segmentations [B, T, H, W], frame_valid bool [B, T]) -> per-video
+  contingency tables [B, C, K] summed over the valid frames (chunks of one
+  video add up), the sum of per-frame PSNR [B], per-frame FG-ARI sums and
+  counts [B].
+  """
+  decoder = models.build_decoder(config)
+  num_true, num_slots = num_true_ids(config.data), config.savi.num_slots
+
+  def evaluate_chunk(decoder_params, slots, video, segmentation, frame_valid):
+    decoded = steps.decode_slots(decoder_params, slots, decoder=decoder)
+    frames = steps.model_to_unit(steps.frames_to_model(video))
+    pred_ids = jnp.argmax(decoded.alpha_masks[..., 0], axis=-3)
+    # Ids outside [0, C) are not counted: that drops the padded frames.
+    true_ids = jnp.where(frame_valid[..., None, None],
+                         segmentation.astype(jnp.int32), -1)
+    per_frame = metrics_lib.contingency_table(
+        true_ids[..., None, :, :], pred_ids[..., None, :, :], num_true,
+        num_slots)  # [B, T, C, K]
+    fg_ari = metrics_lib.ari_from_contingency(per_frame,
+                                              ignore_background=True)
+    psnr = metrics_lib.psnr(decoded.recon, frames)
+    return {
+        'table': jnp.sum(per_frame, axis=1),
+        'psnr_sum': jnp.sum(jnp.where(frame_valid, psnr, 0.0), axis=1),
+        'fg_ari_frame_sum': jnp.sum(
+            jnp.where(fg_ari.valid, fg_ari.value, 0.0), axis=1),
+        'fg_ari_frame_count': jnp.sum(fg_ari.valid, axis=1),
+    }
+
+  replicated = sharding.replicated_sharding(mesh)
+  batched = sharding.batch_sharding(mesh)
+  return jax.jit(evaluate_chunk,
+                 in_shardings=(replicated,) + (batched,) * 4)
+
+
+def evaluate_savi(config: ml_collections.ConfigDict, mesh: Mesh,
+                  decoder_params: Any, source: Any, num_frames: int,
+                  **batch_args) -> dict[str, Any]:
+  """SAVi's reconstruction and segmentation of the first `num_frames` frames
+  of every held-out video, processed in chunks of `chunk_length` frames."""
+  evaluator = make_savi_evaluator(config, mesh)
+  chunk = config.evaluation.chunk_length
+  fg_ari_video, ari_video = [], []
+  psnr_sum, fg_ari_sum, fg_ari_count, num_valid_frames = 0.0, 0.0, 0, 0
+  for batch in tqdm.tqdm(
+      pipeline.eval_batches(source, num_frames=num_frames, **batch_args),
+      desc='evaluate SAVi', leave=False, disable=jax.process_index() != 0):
+    mask = stages.gather_to_host(
+        sharding.to_global_batch({'mask': batch['mask']}, mesh))['mask']
+    table, totals = 0, {}
+    for start in range(0, num_frames, chunk):
+      pieces = {field: _padded_time_slice(batch[field], start, chunk)
+                for field in ('slots', 'video', SEGMENTATION_FIELD)}
+      frame_valid = np.arange(start, start + chunk) < num_frames
+      pieces['frame_valid'] = np.broadcast_to(
+          frame_valid, (len(batch['mask']), chunk)).copy()
+      pieces = sharding.to_global_batch(pieces, mesh)
+      out = stages.gather_to_host(evaluator(
+          decoder_params, pieces['slots'], pieces['video'],
+          pieces[SEGMENTATION_FIELD], pieces['frame_valid']))
+      table = table + out.pop('table')
+      for key, value in out.items():
+        totals[key] = totals.get(key, 0) + value
+    fg_ari_video += list(np.asarray(metrics_lib.ari_from_contingency(
+        table[mask], ignore_background=True).value))
+    ari_video += list(np.asarray(
+        metrics_lib.ari_from_contingency(table[mask]).value))
+    psnr_sum += float(totals['psnr_sum'][mask].sum())
+    fg_ari_sum += float(totals['fg_ari_frame_sum'][mask].sum())
+    fg_ari_count += int(totals['fg_ari_frame_count'][mask].sum())
+    num_valid_frames += int(mask.sum()) * num_frames
+  return {
+      'fg_ari': float(np.mean(fg_ari_video)),
+      'ari': float(np.mean(ari_video)),
+      'fg_ari_per_frame': fg_ari_sum / max(fg_ari_count, 1),
+      'psnr': psnr_sum / max(num_valid_frames, 1),
+      'num_videos': len(fg_ari_video),
+      'num_frames': num_frames,
+  }
+
+
+def _padded_time_slice(x: np.ndarray, start: int, length: int) -> np.ndarray:
+  """x[:, start:start + length], padded along time by repeating the end."""
+  piece = x[:, start:start + length]
+  missing = length - piece.shape[1]
+  if missing:
+    piece = np.concatenate(
+        [piece, np.repeat(piece[:, -1:], missing, axis=1)], axis=1)
+  return piece
+
+
+class _StepAverager:
+  """Sums of valid per-step values and their counts, per method and metric."""
+
+  def __init__(self):
+    self.sums: dict[str, dict[str, np.ndarray]] = {}
+    self.counts: dict[str, dict[str, np.ndarray]] = {}
+
+  def add(self, method: str, name: str, values: np.ndarray,
+          valid: np.ndarray) -> None:
+    """values, valid: [R, B]."""
+    valid = valid & np.isfinite(values)
+    sums = self.sums.setdefault(method, {})
+    counts = self.counts.setdefault(method, {})
+    sums[name] = sums.get(name, 0) + np.where(valid, values, 0.0).sum(axis=1)
+    counts[name] = counts.get(name, 0) + valid.sum(axis=1)
+
+  def results(self) -> dict[str, dict[str, dict[str, Any]]]:
+    out = {}
+    for method, sums in self.sums.items():
+      out[method] = {}
+      for name, total in sums.items():
+        count = self.counts[method][name]
+        per_step = np.where(count > 0, total / np.maximum(count, 1), np.nan)
+        out[method][name] = {
+            'mean': float(np.nanmean(per_step)) if np.any(count) else None,
+            'per_step': [None if math.isnan(v) else float(v)
+                         for v in per_step],
+        }
+    return out
+
+
+def _lpips_or_none(names: tuple[str, ...]) -> Callable | None:
+  if 'lpips' not in names:
+    return None
+  try:
+    return metrics_lib.make_lpips_vgg()
+  except ImportError as error:
+    logger.warning('LPIPS skipped: %s', error)
+    print(f'LPIPS skipped: {error}')
+    return None
+
+
+def evaluate(config: ml_collections.ConfigDict, workdir: str,
+             mesh: Mesh) -> dict[str, Any]:
+  """Evaluates SAVi and the rollouts; writes eval/metrics.json + per_step.csv."""
+  started = time.time()
+  eval_config = config.evaluation
+  names = tuple(eval_config.metrics)
+  lpips_fn = _lpips_or_none(names)
+  savi_params, savi_step = stages.load_savi_params(config, workdir, mesh)
+  params, slotformer_step = stages.load_slotformer_params(config, workdir,
+                                                          mesh)
+  decoder_params = savi_params['decoder']
+  burn_in = config.slotformer.burn_in
+  rollout = eval_config.rollout_steps
+  stride = config.slotformer.frame_stride
+  source = stages.slot_source_for(config, workdir, eval_config.split,
+                                  ('video', SEGMENTATION_FIELD))
+  local_batch_size = sharding.per_host_batch_size(eval_config.batch_size, mesh)
+  num_videos = min(len(source), eval_config.num_videos or len(source))
+  shared = dict(batch_size=local_batch_size,
+                fields=('slots', 'video', SEGMENTATION_FIELD),
+                process_index=jax.process_index(),
+                process_count=jax.process_count(), max_videos=num_videos)
+
+  needed = (burn_in + rollout - 1) * stride + 1
+  savi_results = evaluate_savi(config, mesh, decoder_params, source, needed,
+                               **shared)
+
+  # Rollouts.
+  evaluator = make_rollout_evaluator(config, mesh, names, lpips_fn)
+  averager = _StepAverager()
+  for batch in tqdm.tqdm(
+      pipeline.eval_batches(source, num_frames=needed, **shared),
+      desc='evaluate rollouts', disable=jax.process_index() != 0):
+    mask = batch.pop('mask')
+    batch.pop('index')
+    for field in batch:
+      batch[field] = batch[field][:, ::stride]
+    if batch['slots'].shape[1] < burn_in + rollout:
+      raise ValueError(
+          f'evaluation needs {needed} frames per video (burn-in {burn_in} + '
+          f'{rollout} rollout steps, stride {stride}), the videos have '
+          f'{batch["video"].shape[1]}; lower evaluation.rollout_steps')
+    out = stages.gather_to_host(
+        evaluator(params, decoder_params, sharding.to_global_batch(batch, mesh)))
+    mask = stages.gather_to_host(
+        sharding.to_global_batch({'mask': mask}, mesh))['mask']
+    for method, per_metric in out.items():
+      for name, (values, valid) in per_metric.items():
+        if name == 'fg_miou':
+          score = metrics_lib.hungarian_mean_iou(values, valid)
+          values, valid = score.value, score.valid
+        averager.add(method, name, np.asarray(values),
+                     np.asarray(valid) & mask[None, :])
+  rollout_results = averager.results()
+
+  results = {
+      'savi': savi_results,
+      'rollout': rollout_results,
+      'protocol': {'split': eval_config.split, 'num_videos': num_videos,
+                   'burn_in': burn_in, 'rollout_steps': rollout,
+                   'frame_stride': stride,
+                   'background_threshold': eval_config.get(
+                       'background_threshold')},
+      'checkpoints': {'savi_step': savi_step,
+                      'slotformer_step': slotformer_step},
+      'seconds': time.time() - started,
+  }
+  if jax.process_index() == 0:
+    _write_results(eval_dir(workdir), results)
+    print(format_table(results))
+  return results
+
+
+def _write_results(directory: str, results: dict[str, Any]) -> None:
+  os.makedirs(directory, exist_ok=True)
+  with open(os.path.join(directory, 'metrics.json'), 'w') as f:
+    json.dump(results, f, indent=1)
+  with open(os.path.join(directory, 'per_step.csv'), 'w', newline='') as f:
+    writer = csv.writer(f)
+    writer.writerow(['method', 'metric', 'step', 'value'])
+    for method, per_metric in results['rollout'].items():
+      for name, result in per_metric.items():
+        for step, value in enumerate(result['per_step'], start=1):
+          writer.writerow([method, name, step, value])
+
+
+def format_table(results: dict[str, Any]) -> str:
+  """A method x metric table of the step-averaged rollout metrics."""
+  rollout = results['rollout']
+  names = [n for n in (*FRAME_METRICS, *OBJECT_METRICS)
+           if any(n in m for m in rollout.values())]
+  protocol = results['protocol']
+  lines = [f'Rollout of {protocol["rollout_steps"]} steps after '
+           f'{protocol["burn_in"]} burn-in frames, {protocol["num_videos"]} '
+           f'{protocol["split"]} videos (mean over steps):']
+  header = f'{"method":<22}' + ''.join(f'{n:>10}' for n in names)
+  lines += [header, '-' * len(header)]
+  for method, per_metric in rollout.items():
+    cells = []
+    for name in names:
+      value = per_metric.get(name, {}).get('mean')
+      cells.append(f'{"-" if value is None else f"{value:.4f}":>10}')
+    lines.append(f'{method:<22}' + ''.join(cells))
+  savi = results['savi']
+  lines.append(
+      f'SAVi on the whole videos: FG-ARI {savi["fg_ari"]:.4f} (per frame '
+      f'{savi["fg_ari_per_frame"]:.4f}), ARI {savi["ari"]:.4f}, '
+      f'PSNR {savi["psnr"]:.2f} dB')
+  return '\n'.join(lines)
