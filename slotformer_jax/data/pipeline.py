@@ -1,0 +1,327 @@
+"""Host-side batching of video sources (numpy only; no jax arrays here).
+
+A *source* is anything with ``__len__`` and ``__getitem__(i) -> dict`` of
+numpy arrays whose first axis is time (e.g. a :class:`sources.VideoSource`,
+or extracted slots ``{'slots': float32 [T, N, D], ...}``); 0-d entries
+(per-video scalars such as ``num_objects``) are passed through unsliced.
+Videos may have different lengths.
+
+* :func:`train_batches`: an infinite stream of random clips; the batch of
+  global step ``s`` is a pure function of ``(seed, s, process_index)``, so a
+  run resumed at ``start_step=k`` sees exactly the batches an uninterrupted
+  run sees from step ``k``. Batches are built in a background thread.
+* :func:`eval_batches`: every video of the host's shard once, in order, in
+  fixed-shape batches padded at the end and marked by a ``mask``.
+
+Multi-host: host ``p`` of ``P`` owns videos ``p, p + P, p + 2P, ...``; batch
+sizes are per host.
+
+Dtypes are kept as stored (videos stay uint8); convert on device.
+"""
+
+from __future__ import annotations
+
+import math
+import queue
+import threading
+import warnings
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from typing import Any, Protocol
+
+import numpy as np
+
+# Seed-sequence tags that keep the random streams of a run independent.
+_TAG_ORDER = 0    # which videos, per epoch
+_TAG_START = 1    # which start frames, per step
+_JOIN_TIMEOUT_S = 30.0
+
+
+class Source(Protocol):
+  """Random access to items (dicts of arrays, time first)."""
+
+  def __len__(self) -> int:
+    ...
+
+  def __getitem__(self, index: int) -> Mapping[str, Any]:
+    ...
+
+
+def shard_indices(num_items: int, process_index: int,
+                  process_count: int) -> np.ndarray:
+  """int64 [ceil((num_items - p) / P)]: the items of host ``p``: p, p+P, ..."""
+  if process_count < 1 or not 0 <= process_index < process_count:
+    raise ValueError(f'need 0 <= process_index < process_count, got '
+                     f'{process_index} / {process_count}')
+  return np.arange(process_index, num_items, process_count, dtype=np.int64)
+
+
+def _num_frames(item: Mapping[str, Any], fields: Sequence[str],
+                index: int) -> int:
+  """T of an item: the leading axis of its first non-scalar requested field."""
+  for field in fields:
+    value = _get(item, field, index)
+    if np.ndim(value) > 0:
+      return int(np.shape(value)[0])
+  raise ValueError(f'fields {tuple(fields)} of item {index} are all scalars; '
+                   'need at least one array with a time axis')
+
+
+def _get(item: Mapping[str, Any], field: str, index: int) -> Any:
+  try:
+    return item[field]
+  except KeyError:
+    raise KeyError(f'item {index} has no field {field!r}; it has '
+                   f'{sorted(item)}') from None
+
+
+def _slice_item(item: Mapping[str, Any], fields: Sequence[str], index: int,
+                start: int, length: int, stride: int
+                ) -> dict[str, np.ndarray]:
+  """Frames ``start, start + stride, ...`` (``length`` of them) of each field.
+
+  Raises ValueError if a field's time axis disagrees with the first field's,
+  since slicing it would silently pair frames that do not belong together.
+  """
+  num_frames = _num_frames(item, fields, index)
+  out = {}
+  for field in fields:
+    value = np.asarray(_get(item, field, index))
+    if value.ndim == 0:
+      out[field] = value
+      continue
+    if value.shape[0] != num_frames:
+      raise ValueError(
+          f'item {index}: field {field!r} has {value.shape[0]} steps on its '
+          f'first axis but {fields[0]!r} has {num_frames}; every requested '
+          'non-scalar field must have time first')
+    out[field] = value[start:start + (length - 1) * stride + 1:stride]
+  return out
+
+
+def _stack(parts: Sequence[Mapping[str, np.ndarray]], fields: Sequence[str]
+           ) -> dict[str, np.ndarray]:
+  return {field: np.stack([p[field] for p in parts]) for field in fields}
+
+
+def _epoch_order(seed: int, process_index: int, epoch: int,
+                 size: int) -> np.ndarray:
+  rng = np.random.default_rng([seed, _TAG_ORDER, process_index, epoch])
+  return rng.permutation(size)
+
+
+def _train_plan(seed: int, step: int, batch_size: int, process_index: int,
+                shard: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+  """Video indices int64 [B] and start-frame fractions float64 [B] of a step.
+
+  Videos are drawn without replacement within an epoch (a fresh permutation
+  of the shard per epoch), so every video is seen once per epoch; position
+  ``q`` of the stream lies in epoch ``q // len(shard)``, which makes step
+  ``s`` computable without replaying steps ``< s``.
+  """
+  size = len(shard)
+  positions = np.arange(step * batch_size, (step + 1) * batch_size,
+                        dtype=np.int64)
+  epochs, offsets = np.divmod(positions, size)
+  videos = np.empty(batch_size, np.int64)
+  for epoch in np.unique(epochs):
+    selected = epochs == epoch
+    order = _epoch_order(seed, process_index, int(epoch), size)
+    videos[selected] = shard[order[offsets[selected]]]
+  # Fractions, not frame numbers: each video maps them to its own length.
+  rng = np.random.default_rng([seed, _TAG_START, process_index, step])
+  return videos, rng.random(batch_size)
+
+
+def make_train_batch(source: Source, step: int, *, batch_size: int,
+                     clip_length: int, seed: int,
+                     fields: Sequence[str] = ('video',), frame_stride: int = 1,
+                     process_index: int = 0, process_count: int = 1
+                     ) -> dict[str, np.ndarray]:
+  """The batch of global step ``step`` (see :func:`train_batches`)."""
+  shard = shard_indices(len(source), process_index, process_count)
+  if len(shard) == 0:
+    raise ValueError(f'host {process_index}/{process_count} has no videos '
+                     f'(source has {len(source)})')
+  videos, fractions = _train_plan(seed, step, batch_size, process_index, shard)
+  span = (clip_length - 1) * frame_stride + 1
+  parts = []
+  for video, fraction in zip(videos, fractions):
+    item = source[int(video)]
+    num_frames = _num_frames(item, fields, int(video))
+    if num_frames < span:
+      raise ValueError(
+          f'video {video} has {num_frames} frames, shorter than a clip of '
+          f'{clip_length} frames with stride {frame_stride} ({span} frames)')
+    start = int(fraction * (num_frames - span + 1))
+    parts.append(_slice_item(item, fields, int(video), start, clip_length,
+                             frame_stride))
+  return _stack(parts, fields)
+
+
+def train_batches(source: Source, *, batch_size: int, clip_length: int,
+                  seed: int, start_step: int = 0,
+                  fields: Sequence[str] = ('video',), frame_stride: int = 1,
+                  process_index: int = 0, process_count: int = 1,
+                  prefetch: int = 2) -> Iterator[dict[str, np.ndarray]]:
+  """Infinite random training clips, one batch per global step.
+
+  Args:
+    source: the videos (see the module docstring).
+    batch_size: B, clips per batch on this host.
+    clip_length: L, frames per clip.
+    seed: seed of the whole stream.
+    start_step: global step of the first batch (for resuming).
+    fields: item keys to return; non-scalar ones must have time first.
+    frame_stride: take every ``frame_stride``-th frame.
+    process_index, process_count: this host and the number of hosts.
+    prefetch: batches built ahead in a background thread (0: no thread).
+
+  Yields:
+    ``{field: [B, L, ...]}`` (scalar fields: ``[B]``), dtypes as stored. The
+    batch of step ``s`` depends only on ``(seed, s, process_index)`` and the
+    data.
+
+  Raises:
+    ValueError: bad arguments, or a video shorter than a clip.
+  """
+  if batch_size < 1 or clip_length < 1 or frame_stride < 1:
+    raise ValueError('batch_size, clip_length and frame_stride must be >= 1, '
+                     f'got {batch_size}, {clip_length}, {frame_stride}')
+  if start_step < 0:
+    raise ValueError(f'start_step must be >= 0, got {start_step}')
+  fields = tuple(fields)
+  shard_indices(len(source), process_index, process_count)  # validate early
+
+  def make(step: int) -> dict[str, np.ndarray]:
+    return make_train_batch(
+        source, step, batch_size=batch_size, clip_length=clip_length,
+        seed=seed, fields=fields, frame_stride=frame_stride,
+        process_index=process_index, process_count=process_count)
+
+  return _prefetched(make, start_step, prefetch)
+
+
+def _prefetched(make: Callable[[int], dict[str, np.ndarray]], start_step: int,
+                prefetch: int) -> Iterator[dict[str, np.ndarray]]:
+  """Yields make(start_step), make(start_step + 1), ... built ahead.
+
+  The producer thread starts on the first ``next`` and is stopped and joined
+  when the generator is closed or garbage collected, so abandoning the
+  iterator does not leak a thread. Errors in ``make`` re-raise in the
+  consumer.
+  """
+  if prefetch <= 0:
+    step = start_step
+    while True:
+      yield make(step)
+      step += 1
+  buffer: queue.Queue[tuple[bool, Any]] = queue.Queue(maxsize=prefetch)
+  stop = threading.Event()
+
+  def put(entry: tuple[bool, Any]) -> bool:
+    # Timed puts so the producer notices `stop` even when the buffer is full.
+    while not stop.is_set():
+      try:
+        buffer.put(entry, timeout=0.05)
+        return True
+      except queue.Full:
+        continue
+    return False
+
+  def produce() -> None:
+    step = start_step
+    try:
+      while not stop.is_set():
+        if not put((True, make(step))):
+          return
+        step += 1
+    except BaseException as error:  # pylint: disable=broad-except
+      put((False, error))
+
+  thread = threading.Thread(target=produce, name='slotformer-data-prefetch',
+                            daemon=True)
+  thread.start()
+  try:
+    while True:
+      ok, value = buffer.get()
+      if not ok:
+        raise value
+      yield value
+  finally:
+    stop.set()
+    # The producer finishes at most the batch it is building; the timeout
+    # only guards against a read that never returns (the thread is a daemon).
+    thread.join(timeout=_JOIN_TIMEOUT_S)
+    if thread.is_alive():
+      warnings.warn('data prefetch thread did not stop within '
+                    f'{_JOIN_TIMEOUT_S} s; leaving it behind (daemon)')
+
+
+def eval_batches(source: Source, *, batch_size: int,
+                 fields: Sequence[str] = ('video',),
+                 num_frames: int | None = None, process_index: int = 0,
+                 process_count: int = 1, max_videos: int | None = None
+                 ) -> Iterator[dict[str, np.ndarray]]:
+  """Every video of this host's shard once, in order, in fixed-shape batches.
+
+  Args:
+    source: the videos (see the module docstring).
+    batch_size: B, videos per batch on this host.
+    fields: item keys to return; non-scalar ones must have time first.
+    num_frames: keep the first ``num_frames`` frames (None: all frames; then
+      all videos must have the same length).
+    process_index, process_count: this host and the number of hosts.
+    max_videos: only use the first ``max_videos`` videos of the source
+      (before sharding, so the evaluated set does not depend on the number of
+      hosts).
+
+  Yields:
+    ``{field: [B, num_frames, ...], 'index': int32 [B], 'mask': bool [B]}``.
+    The last batch is padded to B by repeating the last video, with
+    ``mask`` False on the padding. Every host yields the same number of
+    batches, ``ceil(ceil(N / P) / B)`` for N videos, so collective eval steps
+    stay in lockstep; a host with fewer videos gets extra padded entries.
+  """
+  if batch_size < 1:
+    raise ValueError(f'batch_size must be >= 1, got {batch_size}')
+  if num_frames is not None and num_frames < 1:
+    raise ValueError(f'num_frames must be >= 1, got {num_frames}')
+  fields = tuple(fields)
+  total = len(source) if max_videos is None else min(len(source), max_videos)
+  shard = shard_indices(total, process_index, process_count)
+  if total == 0:
+    return
+  num_batches = math.ceil(math.ceil(total / process_count) / batch_size)
+  # A host without videos (N < P) pads with video 0; all entries are masked.
+  pad_video = int(shard[-1]) if len(shard) else 0
+  for b in range(num_batches):
+    real = shard[b * batch_size:(b + 1) * batch_size]
+    indices = np.full(batch_size, pad_video, np.int64)
+    indices[:len(real)] = real
+    mask = np.arange(batch_size) < len(real)
+    parts = []
+    cache: dict[int, dict[str, np.ndarray]] = {}  # padding repeats one video
+    for index in indices:
+      index = int(index)
+      if index not in cache:
+        cache[index] = _eval_item(source, index, fields, num_frames)
+      parts.append(cache[index])
+    lengths = {len(p[f]) for p in parts for f in fields if p[f].ndim}
+    if len(lengths) > 1:
+      raise ValueError(f'videos {indices.tolist()} have different lengths '
+                       f'{sorted(lengths)}; pass num_frames to cut them')
+    batch = _stack(parts, fields)
+    batch['index'] = indices.astype(np.int32)
+    batch['mask'] = mask
+    yield batch
+
+
+def _eval_item(source: Source, index: int, fields: Sequence[str],
+               num_frames: int | None) -> dict[str, np.ndarray]:
+  item = source[index]
+  length = _num_frames(item, fields, index)
+  if num_frames is not None and length < num_frames:
+    raise ValueError(f'video {index} has {length} frames, fewer than '
+                     f'num_frames={num_frames}')
+  return _slice_item(item, fields, index, 0,
+                     length if num_frames is None else num_frames, 1)

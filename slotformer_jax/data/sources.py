@@ -1,0 +1,251 @@
+"""Random-access video sources: the reader interface every dataset shares.
+
+A *source* is the videos of one split, indexable like a list::
+
+    source = get_video_source(data_config, 'train')
+    len(source)            # number of videos
+    source[i]['video']     # uint8 [T, H, W, 3]
+
+Every dataset is stored as an ``array_record`` TFDS folder (one example per
+video, examples in index order) and read through :class:`TfdsVideoSource`;
+:func:`open_prepared_dataset` opens any such folder, so the converted real
+datasets and the embedded synthetic one share one reader.
+
+Data config fields (``ml_collections.ConfigDict``; all but ``name`` optional):
+
+* ``name``: ``'synthetic'`` (generated on first use, see ``synthetic.py``) or
+  one of ``'obj3d' | 'clevrer' | 'physion' | 'phyre'`` (must have been converted
+  with ``python -m slotformer_jax.data.prepare`` into ``<data_dir>/<name>``).
+* ``data_dir``: root of the cache / converted data. Default:
+  ``$SLOTFORMER_DATA_DIR``, else ``~/.cache/slotformer_jax``.
+* ``resolution``: (H, W) of the frames. Default (64, 64). For a real dataset
+  it selects between several converted versions and is checked.
+* ``num_frames``: synthetic only, frames per video. Default 40.
+* ``min_objects``, ``max_objects``: synthetic only, static objects per video
+  (plus the launched sphere). Default 3, 5.
+* ``seed``: synthetic only, generation seed. Default 0.
+* ``num_train``, ``num_val``, ``num_test``: synthetic only, videos per split.
+  Default 1000, 100, 100.
+* ``supersample``: synthetic only, anti-aliasing factor. Default 2.
+* ``num_workers``: synthetic only, generator processes. Default: all cores.
+
+Items are dicts of numpy arrays whose first axis is time (plus per-video
+scalars / metadata); arrays may be read-only views of the decoded record.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any, Protocol
+
+import ml_collections
+import numpy as np
+import tensorflow_datasets as tfds
+
+from slotformer_jax.data import synthetic
+
+DATA_DIR_ENV = 'SLOTFORMER_DATA_DIR'
+REAL_DATASETS: tuple[str, ...] = ('obj3d', 'clevrer', 'physion', 'phyre')
+_DATASET_INFO = 'dataset_info.json'
+
+
+class VideoSource(Protocol):
+  """Random access over the videos of one split.
+
+  ``__getitem__`` returns ``'video'``: uint8 [T, H, W, 3] always, and
+  optionally ``'segmentations'``: uint8 [T, H, W], ``'boxes'``: float32
+  [T, O, 4], ``'visible'``: bool [T, O], and dataset-specific extras.
+  """
+
+  def __len__(self) -> int:
+    ...
+
+  def __getitem__(self, index: int) -> dict[str, np.ndarray]:
+    ...
+
+
+def default_data_dir() -> Path:
+  """``$SLOTFORMER_DATA_DIR`` if set, else ``~/.cache/slotformer_jax``."""
+  env = os.environ.get(DATA_DIR_ENV)
+  if env:
+    return Path(env).expanduser()
+  return Path('~/.cache/slotformer_jax').expanduser()
+
+
+def resolve_data_dir(data_dir: str | os.PathLike[str] | None) -> Path:
+  """``data_dir`` as a Path, or the default when it is None / empty."""
+  if data_dir is None or not os.fspath(data_dir):
+    return default_data_dir()
+  return Path(data_dir).expanduser()
+
+
+class TfdsVideoSource:
+  """A split of an ``array_record`` TFDS folder as a :class:`VideoSource`.
+
+  Thin wrapper over ``tfds.builder_from_directory(dir).as_data_source(split)``
+  (which needs neither TensorFlow nor the builder class) that returns plain
+  dicts of numpy arrays (scalars become 0-d arrays).
+  """
+
+  def __init__(self, dataset_dir: str | os.PathLike[str], split: str):
+    self.dataset_dir = Path(dataset_dir)
+    self.split = split
+    builder = tfds.builder_from_directory(os.fspath(self.dataset_dir))
+    if split not in builder.info.splits:
+      raise ValueError(f'{self.dataset_dir} has no split {split!r}; it has '
+                       f'{sorted(builder.info.splits)}')
+    self.info = builder.info
+    self._source = builder.as_data_source(split)
+    # The numpy decoder returns scalars as Python ints; restore stored dtypes.
+    self._dtypes = {}
+    for key, feature in builder.info.features.items():
+      dtype = getattr(feature, 'np_dtype', None)
+      if isinstance(dtype, np.dtype):
+        self._dtypes[key] = dtype
+
+  def __len__(self) -> int:
+    return len(self._source)
+
+  def __getitem__(self, index: int) -> dict[str, np.ndarray]:
+    # Python-style negative indices, and a clear error past the end (the
+    # underlying reader would raise a less obvious one).
+    n = len(self._source)
+    index = int(index)
+    if not -n <= index < n:
+      raise IndexError(f'index {index} out of range for {n} videos')
+    example = self._source[index % n]
+    return {key: _as_numpy(value, self._dtypes.get(key))
+            for key, value in example.items()}
+
+  def __repr__(self) -> str:
+    return (f'TfdsVideoSource({os.fspath(self.dataset_dir)!r}, '
+            f'split={self.split!r}, len={len(self)})')
+
+
+def _as_numpy(value: Any, dtype: np.dtype | None) -> Any:
+  """Leaves as numpy arrays (nested feature dicts of real datasets kept)."""
+  if isinstance(value, Mapping):
+    return {key: _as_numpy(leaf, None) for key, leaf in value.items()}
+  return np.asarray(value, dtype=dtype)
+
+
+def _find_dataset_dirs(root: Path) -> list[Path]:
+  """TFDS version folders (holding dataset_info.json) at or below ``root``."""
+  if (root / _DATASET_INFO).is_file():
+    return [root]
+  # <root>/<builder>/<config>/<version>/ at most three levels down; skip the
+  # temporary folders of unfinished tfds builds ('incomplete.*').
+  found = []
+  for depth in range(1, 4):
+    pattern = '/'.join(['*'] * depth) + '/' + _DATASET_INFO
+    found += sorted(
+        p.parent for p in root.glob(pattern)
+        if not any(part.startswith('incomplete.')
+                   for part in p.relative_to(root).parts))
+  return found
+
+
+def _video_resolution(dataset_dir: Path) -> tuple[int, int] | None:
+  builder = tfds.builder_from_directory(os.fspath(dataset_dir))
+  video = builder.info.features['video']
+  shape = getattr(video, 'shape', None)
+  if shape is None or len(shape) < 3 or None in shape[-3:-1]:
+    return None
+  return int(shape[-3]), int(shape[-2])
+
+
+def open_prepared_dataset(
+    path: str | os.PathLike[str], split: str, *,
+    resolution: Sequence[int] | None = None) -> TfdsVideoSource:
+  """Opens one split of a converted (array_record TFDS) dataset.
+
+  Args:
+    path: a TFDS version folder (holding ``dataset_info.json``) or a folder
+      containing exactly one such folder up to three levels down (e.g.
+      ``<data_dir>/clevrer`` holding ``clevrer/<config>/<version>``).
+    split: split name, e.g. 'train'.
+    resolution: optional (H, W): picks among several prepared versions, and
+      is checked against the frames.
+
+  Raises:
+    FileNotFoundError: nothing prepared under ``path``.
+    ValueError: ambiguous folder, or wrong resolution / split.
+  """
+  root = Path(path).expanduser()
+  candidates = _find_dataset_dirs(root) if root.is_dir() else []
+  if not candidates:
+    raise FileNotFoundError(
+        f'No prepared TFDS dataset (no {_DATASET_INFO}) under {root}.')
+  want = tuple(int(r) for r in resolution) if resolution is not None else None
+  if want is not None and len(candidates) > 1:
+    candidates = [c for c in candidates if _video_resolution(c) == want] or (
+        candidates)
+  if len(candidates) > 1:
+    listing = '\n  '.join(os.fspath(c) for c in candidates)
+    raise ValueError(f'Several prepared datasets under {root}; pass one of '
+                     f'them (or set resolution):\n  {listing}')
+  dataset_dir = candidates[0]
+  if want is not None:
+    have = _video_resolution(dataset_dir)
+    if have is not None and have != want:
+      raise ValueError(f'{dataset_dir} holds {have[0]}x{have[1]} frames but '
+                       f'resolution {want[0]}x{want[1]} was requested.')
+  return TfdsVideoSource(dataset_dir, split)
+
+
+def synthetic_config_from_data_config(
+    data_config: ml_collections.ConfigDict) -> synthetic.SyntheticConfig:
+  """The generation parameters named by a data config (defaults filled in)."""
+  defaults = synthetic.SyntheticConfig()
+  return synthetic.SyntheticConfig(
+      resolution=tuple(data_config.get('resolution', defaults.resolution)),
+      num_frames=int(data_config.get('num_frames', defaults.num_frames)),
+      min_objects=int(data_config.get('min_objects', defaults.min_objects)),
+      max_objects=int(data_config.get('max_objects', defaults.max_objects)),
+      seed=int(data_config.get('seed', defaults.seed)),
+      num_train=int(data_config.get('num_train', defaults.num_train)),
+      num_val=int(data_config.get('num_val', defaults.num_val)),
+      num_test=int(data_config.get('num_test', defaults.num_test)),
+      supersample=int(data_config.get('supersample', defaults.supersample)),
+  )
+
+
+def prepared_dataset_path(data_dir: str | os.PathLike[str] | None,
+                          name: str) -> Path:
+  """Where ``python -m slotformer_jax.data.prepare`` puts dataset ``name``."""
+  return resolve_data_dir(data_dir) / name
+
+
+def get_video_source(data_config: ml_collections.ConfigDict,
+                     split: str) -> VideoSource:
+  """The videos of ``split`` for the dataset described by ``data_config``.
+
+  'synthetic' is generated into the cache on first use (later calls with the
+  same parameters reuse it); real datasets must have been converted first.
+  """
+  name = data_config.get('name')
+  data_dir = data_config.get('data_dir', None)
+  if name == 'synthetic':
+    config = synthetic_config_from_data_config(data_config)
+    if split not in synthetic.SPLITS or config.num_videos(split) == 0:
+      raise ValueError(f'synthetic split {split!r} is empty or unknown; '
+                       f'splits are {synthetic.SPLITS} with sizes '
+                       f'{[config.num_videos(s) for s in synthetic.SPLITS]}')
+    dataset_dir = synthetic.build_synthetic_dataset(
+        config, resolve_data_dir(data_dir),
+        num_workers=data_config.get('num_workers', None))
+    return TfdsVideoSource(dataset_dir, split)
+  if name in REAL_DATASETS:
+    path = prepared_dataset_path(data_dir, name)
+    if not path.is_dir() or not _find_dataset_dirs(path):
+      raise FileNotFoundError(
+          f'Dataset {name!r} is not prepared: expected an array_record TFDS '
+          f'folder under {path}. Convert it first with\n'
+          f'  python -m slotformer_jax.data.prepare --dataset={name} '
+          f'--source=/path/to/download --data_dir={path.parent}')
+    return open_prepared_dataset(path, split,
+                                 resolution=data_config.get('resolution', None))
+  raise ValueError(f'Unknown dataset name {name!r}; expected "synthetic" or '
+                   f'one of {REAL_DATASETS}.')

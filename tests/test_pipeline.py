@@ -1,0 +1,312 @@
+"""Tests of the host-side batching and of the shared source interface."""
+
+from __future__ import annotations
+
+import gc
+import itertools
+import shutil
+import threading
+from pathlib import Path
+
+import ml_collections
+import numpy as np
+import pytest
+
+from slotformer_jax.data import pipeline
+from slotformer_jax.data import sources
+from slotformer_jax.data import synthetic
+
+
+class FakeSource:
+  """Videos whose pixels encode (video, frame): video[t] == 10 * i + t.
+
+  Lengths vary per video (``lengths[i]``); each item also carries slots-like
+  float32 [T, 2, 3] features and a scalar.
+  """
+
+  def __init__(self, lengths: list[int], fail_at: int | None = None):
+    self.lengths = lengths
+    self.fail_at = fail_at
+    self.reads = 0
+
+  def __len__(self) -> int:
+    return len(self.lengths)
+
+  def __getitem__(self, index: int) -> dict[str, np.ndarray]:
+    if index == self.fail_at:
+      raise RuntimeError(f'broken record {index}')
+    self.reads += 1
+    t = np.arange(self.lengths[index])
+    code = (100 * index + t).astype(np.int32)
+    return {
+        'video': np.broadcast_to(code[:, None, None, None] % 256,
+                                 (len(t), 2, 2, 3)).astype(np.uint8),
+        'code': code,
+        'slots': np.broadcast_to(code[:, None, None],
+                                 (len(t), 2, 3)).astype(np.float32),
+        'num_objects': np.int32(index % 3),
+    }
+
+
+def _decode(codes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+  return codes // 100, codes % 100
+
+
+def _take(iterator, n: int) -> list[dict[str, np.ndarray]]:
+  batches = list(itertools.islice(iterator, n))
+  iterator.close()
+  return batches
+
+
+def _assert_batches_equal(a, b):
+  assert len(a) == len(b)
+  for x, y in zip(a, b):
+    assert x.keys() == y.keys()
+    for key in x:
+      np.testing.assert_array_equal(x[key], y[key])
+
+
+def test_train_batches_shapes_dtypes_and_clip_content():
+  source = FakeSource([12, 9, 20, 7, 15])
+  it = pipeline.train_batches(source, batch_size=4, clip_length=3, seed=0,
+                              fields=('video', 'code', 'slots', 'num_objects'),
+                              frame_stride=2)
+  for batch in _take(it, 6):
+    assert batch['video'].shape == (4, 3, 2, 2, 3)
+    assert batch['video'].dtype == np.uint8
+    assert batch['slots'].shape == (4, 3, 2, 3)
+    assert batch['slots'].dtype == np.float32
+    assert batch['num_objects'].shape == (4,)
+    videos, frames = _decode(batch['code'])
+    # One video per clip, frames every `frame_stride`, inside the video.
+    assert (videos == videos[:, :1]).all()
+    assert (np.diff(frames, axis=1) == 2).all()
+    lengths = np.array(source.lengths)[videos[:, 0]]
+    assert (frames[:, 0] >= 0).all() and (frames[:, -1] < lengths).all()
+    np.testing.assert_array_equal(batch['num_objects'], videos[:, 0] % 3)
+    np.testing.assert_array_equal(batch['video'][:, :, 0, 0, 0],
+                                  batch['code'] % 256)
+
+
+def test_train_batches_deterministic_and_seeded():
+  source = FakeSource([10] * 7)
+  kwargs = dict(batch_size=3, clip_length=4, fields=('code',))
+  a = _take(pipeline.train_batches(source, seed=5, **kwargs), 8)
+  b = _take(pipeline.train_batches(source, seed=5, prefetch=0, **kwargs), 8)
+  c = _take(pipeline.train_batches(source, seed=6, **kwargs), 8)
+  _assert_batches_equal(a, b)
+  assert any((x['code'] != y['code']).any() for x, y in zip(a, c))
+
+
+def test_resume_equals_uninterrupted_run():
+  source = FakeSource([8, 11, 9, 30, 6, 10])
+  kwargs = dict(batch_size=4, clip_length=5, seed=1, fields=('code',))
+  full = _take(pipeline.train_batches(source, **kwargs), 12)
+  resumed = _take(pipeline.train_batches(source, start_step=7, **kwargs), 5)
+  _assert_batches_equal(full[7:], resumed)
+
+
+def test_every_video_once_per_epoch():
+  source = FakeSource([6] * 12)
+  batches = _take(pipeline.train_batches(source, batch_size=4, clip_length=2,
+                                         seed=3, fields=('code',)), 6)
+  videos = np.concatenate([_decode(b['code'])[0][:, 0] for b in batches])
+  assert sorted(videos[:12]) == list(range(12))  # epoch 0
+  assert sorted(videos[12:]) == list(range(12))  # epoch 1
+  assert (videos[:12] != videos[12:]).any()      # reshuffled
+
+
+def test_train_sharding_per_host():
+  source = FakeSource([6] * 10)
+  seen = []
+  for p in range(3):
+    batches = _take(pipeline.train_batches(
+        source, batch_size=2, clip_length=2, seed=0, fields=('code',),
+        process_index=p, process_count=3), 4)
+    videos = {int(v) for b in batches for v in _decode(b['code'])[0][:, 0]}
+    assert videos == set(range(p, 10, 3))
+    seen.append(videos)
+  assert set.union(*seen) == set(range(10))
+
+
+def test_short_video_raises():
+  source = FakeSource([10, 3, 10])
+  it = pipeline.train_batches(source, batch_size=3, clip_length=4, seed=0,
+                              fields=('code',))
+  with pytest.raises(ValueError, match='video 1 has 3 frames'):
+    for _ in range(5):
+      next(it)
+
+
+def test_mismatched_time_axis_raises():
+  class Bad(FakeSource):
+
+    def __getitem__(self, index):
+      item = super().__getitem__(index)
+      item['slots'] = item['slots'][:-1]
+      return item
+
+  with pytest.raises(ValueError, match='time first'):
+    next(pipeline.train_batches(Bad([5, 5]), batch_size=1, clip_length=2,
+                                seed=0, fields=('code', 'slots')))
+
+
+def _prefetch_threads() -> list[threading.Thread]:
+  return [t for t in threading.enumerate()
+          if t.name == 'slotformer-data-prefetch' and t.is_alive()]
+
+
+def test_prefetch_thread_stops_when_consumer_stops():
+  assert not _prefetch_threads()
+  source = FakeSource([10] * 4)
+  it = pipeline.train_batches(source, batch_size=2, clip_length=2, seed=0,
+                              prefetch=2)
+  next(it)
+  next(it)
+  assert len(_prefetch_threads()) == 1
+  it.close()
+  assert not _prefetch_threads()
+  reads = source.reads
+  # Dropping the iterator without close() also stops the thread.
+  it = pipeline.train_batches(source, batch_size=2, clip_length=2, seed=0)
+  next(it)
+  del it
+  gc.collect()
+  assert not _prefetch_threads()
+  # The producer stays at most `prefetch` + 1 batches ahead.
+  assert source.reads - reads <= (2 + 1 + 1) * 2
+
+
+def test_prefetch_error_reaches_consumer():
+  source = FakeSource([10] * 3, fail_at=2)
+  it = pipeline.train_batches(source, batch_size=3, clip_length=2, seed=0)
+  with pytest.raises(RuntimeError, match='broken record 2'):
+    next(it)
+  assert not _prefetch_threads()
+
+
+def test_eval_batches_padding_and_mask():
+  source = FakeSource([9, 8, 10, 12, 9, 8, 11, 9, 10, 8])
+  batches = list(pipeline.eval_batches(source, batch_size=4, num_frames=8,
+                                       fields=('video', 'code')))
+  assert len(batches) == 3
+  for batch in batches:
+    assert batch['video'].shape == (4, 8, 2, 2, 3)
+    assert batch['mask'].dtype == np.bool_ and batch['index'].shape == (4,)
+  np.testing.assert_array_equal(batches[-1]['mask'], [True, True, False, False])
+  np.testing.assert_array_equal(batches[-1]['index'], [8, 9, 9, 9])
+  index = np.concatenate([b['index'][b['mask']] for b in batches])
+  np.testing.assert_array_equal(index, np.arange(10))
+  for batch in batches:
+    videos, frames = _decode(batch['code'])
+    np.testing.assert_array_equal(videos[:, 0], batch['index'])
+    assert (frames == np.arange(8)).all()
+
+
+def test_eval_batches_all_frames_and_errors():
+  same = FakeSource([6] * 5)
+  batch = next(pipeline.eval_batches(same, batch_size=2, fields=('code',)))
+  assert batch['code'].shape == (2, 6)
+  mixed = FakeSource([6, 7])
+  with pytest.raises(ValueError, match='num_frames'):
+    next(pipeline.eval_batches(mixed, batch_size=2, fields=('code',)))
+  with pytest.raises(ValueError, match='fewer than num_frames'):
+    next(pipeline.eval_batches(mixed, batch_size=2, num_frames=7,
+                               fields=('code',)))
+
+
+def test_eval_sharding_disjoint_complete_and_lockstep():
+  source = FakeSource([5] * 11)
+  per_host, counts = [], []
+  for p in range(4):
+    batches = list(pipeline.eval_batches(source, batch_size=2,
+                                         fields=('code',), process_index=p,
+                                         process_count=4, max_videos=10))
+    counts.append(len(batches))
+    per_host.append([int(i) for b in batches for i in b['index'][b['mask']]])
+    assert all(i % 4 == p for i in per_host[-1])
+  assert len(set(counts)) == 1  # same number of steps on every host
+  flat = sorted(itertools.chain(*per_host))
+  assert flat == list(range(10))  # disjoint and complete (max_videos=10)
+
+
+# --- sources -----------------------------------------------------------------
+
+TINY = synthetic.SyntheticConfig(resolution=(32, 32), num_frames=8,
+                                 num_train=4, num_val=2, num_test=2)
+
+
+def _data_config(root: Path, **overrides) -> ml_collections.ConfigDict:
+  config = ml_collections.ConfigDict(dict(
+      name='synthetic', data_dir=str(root), resolution=(32, 32), num_frames=8,
+      min_objects=3, max_objects=5, seed=0, num_train=4, num_val=2,
+      num_test=2, num_workers=1))
+  config.update(overrides)
+  return config
+
+
+@pytest.fixture(scope='module')
+def data_root(tmp_path_factory: pytest.TempPathFactory) -> Path:
+  root = tmp_path_factory.mktemp('data')
+  sources.get_video_source(_data_config(root), 'train')  # builds the cache
+  return root
+
+
+def test_synthetic_source_through_the_pipeline(data_root):
+  source = sources.get_video_source(_data_config(data_root), 'train')
+  assert len(source) == 4
+  item = source[3]
+  assert item['video'].shape == (8, 32, 32, 3) and item['video'].dtype == np.uint8
+  assert item['num_objects'].dtype == np.int32
+  np.testing.assert_array_equal(item['video'],
+                                synthetic.generate_video(TINY, 'train', 3)['video'])
+  with pytest.raises(IndexError):
+    source[4]
+  fields = ('video', 'segmentations', 'boxes', 'visible')
+  batch = next(pipeline.train_batches(source, batch_size=3, clip_length=4,
+                                      seed=0, fields=fields, prefetch=0))
+  assert batch['video'].shape == (3, 4, 32, 32, 3)
+  assert batch['segmentations'].shape == (3, 4, 32, 32)
+  assert batch['boxes'].shape == (3, 4, 6, 4) and batch['visible'].dtype == bool
+  val = sources.get_video_source(_data_config(data_root), 'val')
+  batches = list(pipeline.eval_batches(val, batch_size=3, num_frames=5))
+  assert len(batches) == 1
+  np.testing.assert_array_equal(batches[0]['mask'], [True, True, False])
+  assert batches[0]['video'].shape == (3, 5, 32, 32, 3)
+
+
+@pytest.mark.parametrize('name', sources.REAL_DATASETS)
+def test_missing_real_dataset_error_names_the_path(tmp_path, name):
+  config = _data_config(tmp_path, name=name)
+  with pytest.raises(FileNotFoundError) as error:
+    sources.get_video_source(config, 'train')
+  message = str(error.value)
+  assert str(tmp_path / name) in message
+  assert f'python -m slotformer_jax.data.prepare --dataset={name}' in message
+
+
+def test_prepared_real_dataset_is_opened(data_root, tmp_path):
+  # Stand-in for a converted dataset: any array_record TFDS folder.
+  built = next((data_root / 'synthetic_obj3d').glob('*/1.0.0'))
+  target = tmp_path / 'clevrer' / 'clevrer' / 'default' / '1.0.0'
+  shutil.copytree(built, target)
+  source = sources.get_video_source(_data_config(tmp_path, name='clevrer'),
+                                    'test')
+  assert len(source) == 2 and source[1]['video'].shape == (8, 32, 32, 3)
+  with pytest.raises(ValueError, match='64x64'):
+    sources.get_video_source(
+        _data_config(tmp_path, name='clevrer', resolution=(64, 64)), 'test')
+  with pytest.raises(ValueError, match='no split'):
+    sources.get_video_source(_data_config(tmp_path, name='clevrer'), 'dev')
+
+
+def test_unknown_dataset_name(tmp_path):
+  with pytest.raises(ValueError, match='Unknown dataset'):
+    sources.get_video_source(_data_config(tmp_path, name='mnist'), 'train')
+
+
+def test_default_data_dir(monkeypatch, tmp_path):
+  monkeypatch.setenv(sources.DATA_DIR_ENV, str(tmp_path))
+  assert sources.default_data_dir() == tmp_path
+  monkeypatch.delenv(sources.DATA_DIR_ENV)
+  assert sources.default_data_dir() == Path.home() / '.cache' / 'slotformer_jax'
