@@ -32,6 +32,9 @@ def base_config() -> ml_collections.ConfigDict:
   savi.kl_weight = 1e-4
   savi.num_slots = 6
   savi.slot_size = 128
+  # 'learned': a learned vector per slot (SlotFormer's SAVi); 'gaussian':
+  # slots sampled from one learned Gaussian (the original Slot Attention).
+  savi.initial_slots = 'learned'
   savi.encoder = ml_collections.ConfigDict(dict(
       features=(64, 64, 64, 64), kernel_size=5, strides=(1, 1, 1, 1),
       output_size=128))

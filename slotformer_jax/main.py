@@ -24,6 +24,7 @@ from ml_collections import config_flags
 import tqdm
 
 from slotformer_jax import stages
+from slotformer_jax.data.sources import default_data_dir
 from slotformer_jax.evaluation import evaluate
 from slotformer_jax.evaluation import visualize
 from slotformer_jax.train import sharding
@@ -65,6 +66,15 @@ def _configure_logging() -> None:
   logger.propagate = False
 
 
+def _enable_compilation_cache() -> None:
+  """Re-runs (and resumed runs) reuse compiled steps instead of recompiling;
+  $JAX_COMPILATION_CACHE_DIR, when set, wins."""
+  if not os.environ.get('JAX_COMPILATION_CACHE_DIR'):
+    jax.config.update('jax_compilation_cache_dir',
+                      str(default_data_dir() / 'xla_cache'))
+  jax.config.update('jax_persistent_cache_min_compile_time_secs', 1.0)
+
+
 def _save_config(config, workdir: str) -> None:
   if jax.process_index() == 0:
     os.makedirs(workdir, exist_ok=True)
@@ -77,6 +87,7 @@ def main(argv):
   if _DISTRIBUTED.value:
     jax.distributed.initialize()
   _configure_logging()
+  _enable_compilation_cache()
   config, workdir, mode = _CONFIG.value, _WORKDIR.value, _MODE.value
   if config is None:
     raise app.UsageError('--config is required, e.g. configs/synthetic.py')

@@ -31,6 +31,7 @@ def build_savi(config: ml_collections.ConfigDict) -> SAVi:
       decoder_kernel_size=savi.decoder.kernel_size,
       stochastic=savi.stochastic,
       prior_sigma=savi.prior_sigma,
+      initial_slots=savi.initial_slots,
   )
 
 

@@ -62,7 +62,7 @@ def savi_model_fields(config: ml_collections.ConfigDict) -> dict[str, Any]:
   savi = config.savi.to_dict()
   fields = {key: savi[key] for key in (
       'num_slots', 'slot_size', 'encoder', 'slot_attention', 'predictor',
-      'decoder', 'stochastic')}
+      'decoder', 'stochastic', 'initial_slots')}
   fields['resolution'] = list(config.data.resolution)
   return json.loads(json.dumps(fields))  # tuples -> lists, for comparison
 
@@ -196,9 +196,6 @@ def extract_slots(config: ml_collections.ConfigDict, workdir: str,
       functools.partial(steps.savi_encode, model=model),
       in_shardings=(replicated, batched, replicated, batched),
       out_shardings=(batched, batched))
-  initial_carry = jax.jit(
-      lambda p, n: model.apply({'params': p}, n, method=model.initial_carry),
-      static_argnums=1, out_shardings=batched)
   chunk_length = config.extraction.chunk_length
   local_batch_size = sharding.per_host_batch_size(
       config.extraction.batch_size, mesh)
@@ -236,7 +233,7 @@ def extract_slots(config: ml_collections.ConfigDict, workdir: str,
           np.array(num_chunks)).max()) if process_count > 1 else num_chunks
       padded = np.stack([_padded_clip(v, num_chunks * chunk_length)
                          for v in videos])
-      carry = initial_carry(params, local_batch_size * process_count)
+      carry = None  # SAVi starts from its initial slots
       chunks = []
       for chunk in range(num_chunks):
         frames = padded[:, chunk * chunk_length:(chunk + 1) * chunk_length]

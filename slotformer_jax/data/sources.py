@@ -27,7 +27,18 @@ Data config fields (``ml_collections.ConfigDict``; all but ``name`` optional):
 * ``num_train``, ``num_val``, ``num_test``: synthetic only, videos per split.
   Default 1000, 100, 100.
 * ``supersample``: synthetic only, anti-aliasing factor. Default 2.
+* ``object_scale``: synthetic only, multiplies object sizes. Default 1.
+* ``distinct_colors``: synthetic only, no repeated colour in a video.
+  Default False.
 * ``num_workers``: synthetic only, generator processes. Default: all cores.
+* ``channel_order``: real datasets only, ``'rgb'`` (default) or ``'bgr'``:
+  the channel order of the ``video`` frames handed out. Conversions store
+  RGB; ``'bgr'`` reverses the channels at read time (see
+  :class:`ChannelOrderSource`), e.g. for models trained on OpenCV-decoded
+  frames like the official CLEVRER ones.
+* ``prepared_config``: real datasets only, the config folder under
+  ``<data_dir>/<name>`` to read (e.g. ``'ball_within_template_fold0_...'``)
+  when several conversions exist that ``resolution`` does not tell apart.
 
 Items are dicts of numpy arrays whose first axis is time (plus per-video
 scalars / metadata); arrays may be read-only views of the decoded record.
@@ -209,6 +220,10 @@ def synthetic_config_from_data_config(
       num_val=int(data_config.get('num_val', defaults.num_val)),
       num_test=int(data_config.get('num_test', defaults.num_test)),
       supersample=int(data_config.get('supersample', defaults.supersample)),
+      object_scale=float(data_config.get('object_scale',
+                                         defaults.object_scale)),
+      distinct_colors=bool(data_config.get('distinct_colors',
+                                           defaults.distinct_colors)),
   )
 
 
@@ -245,7 +260,50 @@ def get_video_source(data_config: ml_collections.ConfigDict,
           f'folder under {path}. Convert it first with\n'
           f'  python -m slotformer_jax.data.prepare --dataset={name} '
           f'--source=/path/to/download --data_dir={path.parent}')
-    return open_prepared_dataset(path, split,
-                                 resolution=data_config.get('resolution', None))
+    if data_config.get('prepared_config', None):
+      path = path / data_config.prepared_config
+    source = open_prepared_dataset(
+        path, split, resolution=data_config.get('resolution', None))
+    return with_channel_order(source, data_config.get('channel_order', 'rgb'))
   raise ValueError(f'Unknown dataset name {name!r}; expected "synthetic" or '
                    f'one of {REAL_DATASETS}.')
+
+
+# ----------------------------------------------------------------------------
+# Channel order (real datasets)
+# ----------------------------------------------------------------------------
+
+CHANNEL_ORDERS: tuple[str, ...] = ('rgb', 'bgr')
+
+
+class ChannelOrderSource:
+  """A source whose ``video`` frames have their channels reversed (RGB<->BGR).
+
+  The official SlotFormer CLEVRER models were trained on frames decoded by
+  OpenCV, i.e. BGR; converted datasets store RGB, and this wrapper hands out
+  BGR instead when the data config says ``channel_order='bgr'``. Costs one
+  copy of the frames per item; other fields pass through.
+  """
+
+  def __init__(self, source: VideoSource):
+    self.source = source
+
+  def __len__(self) -> int:
+    return len(self.source)
+
+  def __getitem__(self, index: int) -> dict[str, np.ndarray]:
+    item = dict(self.source[index])
+    item['video'] = np.ascontiguousarray(item['video'][..., ::-1])
+    return item
+
+  def __repr__(self) -> str:
+    return f'ChannelOrderSource({self.source!r}, order=bgr)'
+
+
+def with_channel_order(source: VideoSource, channel_order: str) -> VideoSource:
+  """``source`` handing out ``channel_order`` frames (stored frames: RGB)."""
+  order = str(channel_order).lower()
+  if order not in CHANNEL_ORDERS:
+    raise ValueError(f'channel_order must be one of {CHANNEL_ORDERS}, got '
+                     f'{channel_order!r}')
+  return source if order == 'rgb' else ChannelOrderSource(source)

@@ -122,6 +122,10 @@ class SyntheticConfig:
     num_train, num_val, num_test: videos per split (0 skips a split).
     supersample: render at ``supersample`` x the resolution and area-average
       (anti-aliasing); masks are downsampled by majority vote.
+    object_scale: multiplies every object's size (larger objects cover more
+      pixels, which matters at low resolution).
+    distinct_colors: no two objects of a video share a colour (at most
+      len(COLORS) objects).
   """
 
   resolution: tuple[int, int] = (64, 64)
@@ -133,6 +137,8 @@ class SyntheticConfig:
   num_val: int = 100
   num_test: int = 100
   supersample: int = 2
+  object_scale: float = 1.0
+  distinct_colors: bool = False
 
   def __post_init__(self):
     # Accept lists (e.g. from ml_collections) but store a hashable tuple.
@@ -152,6 +158,12 @@ class SyntheticConfig:
       raise ValueError(f'seed must be >= 0, got {self.seed}')
     if self.supersample < 1:
       raise ValueError(f'supersample must be >= 1, got {self.supersample}')
+    if self.distinct_colors and self.max_objects + 1 > len(COLORS):
+      raise ValueError(f'distinct_colors allows at most {len(COLORS) - 1} '
+                       f'static objects, got max_objects={self.max_objects}')
+    if not 0.25 <= self.object_scale <= 2.0:
+      raise ValueError(
+          f'object_scale must be in [0.25, 2], got {self.object_scale}')
 
   @property
   def max_objects_total(self) -> int:
@@ -228,7 +240,8 @@ def sample_scene(rng: np.random.Generator, config: SyntheticConfig) -> Scene:
     sizes = rng.integers(0, len(SIZES), num_static)
     placed: list[tuple[float, float, float]] = []   # (x, y, footprint radius)
     for shape, size in zip(shapes, sizes):
-      footprint = _footprint_radius(int(shape), SIZE_RADII[size])
+      footprint = _footprint_radius(
+          int(shape), SIZE_RADII[size] * config.object_scale)
       for _ in range(200):
         x = rng.uniform(*STATIC_X_RANGE)
         y = rng.uniform(*STATIC_Y_RANGE)
@@ -243,7 +256,10 @@ def sample_scene(rng: np.random.Generator, config: SyntheticConfig) -> Scene:
   else:
     raise ValueError(f'could not place {num_static} static objects without '
                      'overlap; use a smaller max_objects')
-  colors = rng.integers(0, len(COLORS), num_static + 1)
+  if config.distinct_colors:
+    colors = rng.permutation(len(COLORS))[:num_static + 1]
+  else:
+    colors = rng.integers(0, len(COLORS), num_static + 1)
   yaw = rng.uniform(0.0, 2.0 * np.pi, num_static + 1)
   launch_size = rng.integers(0, len(SIZES))
   start = np.array([rng.uniform(*LAUNCH_X_RANGE), LAUNCH_Y])
@@ -428,12 +444,13 @@ def simulate_and_render(scene: Scene, config: SyntheticConfig
     floor = _create_floor(client)
     bodies = [
         _create_object(client, int(scene.shapes[i]),
-                       SIZE_RADII[scene.sizes[i]], int(scene.colors[i]),
+                       SIZE_RADII[scene.sizes[i]] * config.object_scale,
+                       int(scene.colors[i]),
                        scene.xy[i], float(scene.yaw[i])) for i in range(n)
     ]
     # Launch the sphere already rolling (w = z x v / r) so it does not skid.
     vx, vy = (float(v) for v in scene.launch_velocity)
-    radius = SIZE_RADII[scene.sizes[-1]]
+    radius = SIZE_RADII[scene.sizes[-1]] * config.object_scale
     pybullet.resetBaseVelocity(
         bodies[-1], linearVelocity=[vx, vy, 0.0],
         angularVelocity=[-vy / radius, vx / radius, 0.0],

@@ -124,6 +124,7 @@ class SAVi(nn.Module):
     predictor_*: f_trans (see SlotTransition).
     decoder_*: the spatial-broadcast decoder.
     stochastic, prior_sigma: stochastic SAVi.
+    initial_slots: 'learned' or 'gaussian' (see `initial_carry`).
   """
 
   resolution: tuple[int, int] = (64, 64)
@@ -144,14 +145,26 @@ class SAVi(nn.Module):
   decoder_kernel_size: int = 5
   stochastic: bool = False
   prior_sigma: float = 0.1
+  initial_slots: str = 'learned'
 
   def setup(self):
     self.encoder = CNNEncoder(
         features=self.encoder_features, kernel_size=self.encoder_kernel_size,
         strides=self.encoder_strides, output_size=self.encoder_size)
-    self.initial_slots = self.param(
-        'initial_slots', nn.initializers.normal(stddev=1.0),
-        (self.num_slots, self.slot_size))
+    if self.initial_slots == 'learned':
+      self.slot_init = self.param(
+          'initial_slots', nn.initializers.normal(stddev=1.0),
+          (self.num_slots, self.slot_size))
+    elif self.initial_slots == 'gaussian':
+      self.slot_init_mean = self.param(
+          'initial_slots_mean', nn.initializers.normal(stddev=1.0),
+          (self.slot_size,))
+      self.slot_init_log_sigma = self.param(
+          'initial_slots_log_sigma', nn.initializers.zeros_init(),
+          (self.slot_size,))
+    else:
+      raise ValueError("initial_slots must be 'learned' or 'gaussian', got "
+                       f'{self.initial_slots!r}')
     self.frame_step = nn.scan(
         SAViStep, variable_broadcast='params',
         split_rngs={'params': False, 'sample': True},
@@ -169,8 +182,19 @@ class SAVi(nn.Module):
         features=self.decoder_features, kernel_size=self.decoder_kernel_size)
 
   def initial_carry(self, batch_size: int) -> SAViCarry:
-    slots = jnp.broadcast_to(self.initial_slots,
-                             (batch_size, self.num_slots, self.slot_size))
+    """The first frame's initial slots (+ zero LSTM state).
+
+    'learned': one learned vector per slot (SlotFormer's SAVi), so slot n
+    starts the same way in every video. 'gaussian': every slot drawn from one
+    learned Gaussian (the original Slot Attention; draws from the 'sample'
+    RNG), so slots are exchangeable and cannot specialise by position.
+    """
+    shape = (batch_size, self.num_slots, self.slot_size)
+    if self.initial_slots == 'learned':
+      slots = jnp.broadcast_to(self.slot_init, shape)
+    else:
+      noise = jax.random.normal(self.make_rng('sample'), shape)
+      slots = self.slot_init_mean + jnp.exp(self.slot_init_log_sigma) * noise
     return slots, initial_lstm_state(slots, self.predictor_lstm_size)
 
   def encode(self, video: jax.Array, carry: SAViCarry | None = None):

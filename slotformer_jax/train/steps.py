@@ -45,8 +45,8 @@ def train_step(state: TrainState, batch: Batch, frozen_params: Any, *,
   (loss, metrics), grads = grad_fn(state.params, batch, frozen_params, rng)
   updates, opt_state = optimizer.update(grads, state.opt_state, state.params)
   params = optax.apply_updates(state.params, updates)
-  metrics = dict(metrics, loss=loss, grad_norm=optax.global_norm(grads),
-                 param_norm=optax.global_norm(params))
+  metrics = dict(metrics, loss=loss, grad_norm=optax.tree.norm(grads),
+                 param_norm=optax.tree.norm(params))
   return TrainState(step=state.step + 1, params=params,
                     opt_state=opt_state), metrics
 

@@ -117,34 +117,43 @@ def fit(stage: Stage, *, mesh: Mesh, seed: int) -> TrainState:
   log_path = os.path.join(stage.directory, 'train_log.jsonl')
   batches = stage.batches(start_step)
   last_log_time, last_log_step = time.time(), start_step
-  with tqdm.tqdm(total=num_steps, initial=start_step, desc=stage.name,
-                 disable=not is_lead_host, dynamic_ncols=True) as progress:
-    for step in range(start_step, num_steps):
-      batch = sharding.to_global_batch(next(batches), mesh)
-      state, metrics = update(state, batch, frozen_params)
-      progress.update(1)
-      done = step + 1
-      if done % config.log_every == 0 or done == num_steps:
-        metrics = {k: float(v) for k, v in sharding.to_host(metrics).items()}
-        if not math.isfinite(metrics['loss']):
-          raise FloatingPointError(
-              f'{stage.name}: the loss became {metrics["loss"]} at step '
-              f'{done}; the last checkpoint is step '
-              f'{checkpointer.latest_step()}. Lower the learning rate or '
-              'check the data; re-running resumes from that checkpoint.')
-        now = time.time()
-        metrics['learning_rate'] = float(schedule(step))
-        metrics['steps_per_second'] = (done - last_log_step) / max(
-            now - last_log_time, 1e-9)
-        last_log_time, last_log_step = now, done
-        progress.set_postfix(loss=f'{metrics["loss"]:.4g}')
-        logger.info('%s step %d: %s', stage.name, done, ', '.join(
-            f'{k}={v:.4g}' for k, v in sorted(metrics.items())))
-        if is_lead_host:
-          with open(log_path, 'a') as log_file:
-            log_file.write(json.dumps({'step': done, **metrics}) + '\n')
-      if done % config.checkpoint_every == 0 or done == num_steps:
-        checkpointer.save(done, state, force=done == num_steps)
-  checkpointer.wait_until_finished()
-  checkpointer.close()
+  try:
+    with tqdm.tqdm(total=num_steps, initial=start_step, desc=stage.name,
+                   disable=not is_lead_host, dynamic_ncols=True) as progress:
+      for step in range(start_step, num_steps):
+        batch = sharding.to_global_batch(next(batches), mesh)
+        state, metrics = update(state, batch, frozen_params)
+        progress.update(1)
+        done = step + 1
+        should_save = (done % config.checkpoint_every == 0
+                       or done == num_steps)
+        should_log = done % config.log_every == 0 or done == num_steps
+        if should_log or should_save:
+          # Never checkpoint a diverged state.
+          metrics = {k: float(v) for k, v in sharding.to_host(metrics).items()}
+          if not math.isfinite(metrics['loss']):
+            raise FloatingPointError(
+                f'{stage.name}: the loss became {metrics["loss"]} at step '
+                f'{done}; the last checkpoint is step '
+                f'{checkpointer.latest_step()}. Lower the learning rate or '
+                'check the data; re-running resumes from that checkpoint.')
+        if should_log:
+          now = time.time()
+          metrics['learning_rate'] = float(schedule(step))
+          metrics['steps_per_second'] = (done - last_log_step) / max(
+              now - last_log_time, 1e-9)
+          last_log_time, last_log_step = now, done
+          progress.set_postfix(loss=f'{metrics["loss"]:.4g}')
+          logger.info('%s step %d: %s', stage.name, done, ', '.join(
+              f'{k}={v:.4g}' for k, v in sorted(metrics.items())))
+          if is_lead_host:
+            with open(log_path, 'a') as log_file:
+              log_file.write(json.dumps({'step': done, **metrics}) + '\n')
+        if should_save:
+          checkpointer.save(done, state, force=done == num_steps)
+  finally:
+    # Also on an exception or Ctrl-C: finish the save in flight so the next
+    # run resumes from it.
+    checkpointer.wait_until_finished()
+    checkpointer.close()
   return state
