@@ -13,7 +13,9 @@ def get_config():
   config = base_config()
   config.data.name = 'clevrer'
   config.data.resolution = (64, 64)
-  config.data.max_instances = 6
+  # Up to 6 annotated objects + 1 other proposal per frame (the instance
+  # labels of slotformer_jax/data/clevrer.py; the official boxes pad to 7).
+  config.data.max_instances = 7
 
   # Slot model: stochastic SAVi (KL weight 1e-4 toward sigma_hat = 0.1).
   config.savi.stochastic = True

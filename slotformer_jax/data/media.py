@@ -1,0 +1,192 @@
+"""Decoding and resizing helpers shared by the real-dataset converters.
+
+Every failure that is a property of one input video (unreadable or truncated
+file, inconsistent frame sizes, broken per-video annotation) is raised as
+:class:`SkipVideo`, which the writer logs, counts and reports at the end of a
+conversion instead of aborting it. Anything else (a bug) propagates.
+
+Videos are decoded with the ffmpeg binary shipped by ``imageio-ffmpeg`` (no
+system ffmpeg needed): it is a plain subprocess per video that streams raw
+RGB frames through a pipe, and the container's declared duration lets us
+detect truncated files (ffmpeg itself just stops early on them).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import re
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from PIL import Image
+
+
+class SkipVideo(Exception):
+  """One video cannot be converted; it is skipped, counted and reported.
+
+  Attributes:
+    reason: short machine-readable category, e.g. 'truncated_video'; the
+      conversion report counts skips per reason.
+    message: human-readable detail naming the offending file.
+  """
+
+  def __init__(self, reason: str, message: str):
+    super().__init__(f'{reason}: {message}')
+    self.reason = reason
+    self.message = message
+
+
+def natural_key(name: str) -> tuple[Any, ...]:
+  """Sort key that orders embedded numbers numerically ('v2' < 'v10')."""
+  return tuple(int(part) if part.isdigit() else part
+               for part in re.split(r'(\d+)', name))
+
+
+def resize_frames(frames: np.ndarray, size: Sequence[int]) -> np.ndarray:
+  """Resizes uint8 [T, h, w, 3] frames to uint8 [T, H, W, 3].
+
+  The whole frame is resized (no crop; the aspect ratio changes when it
+  differs, as in the official SlotFormer preprocessing). PIL's bilinear
+  filter widens its support when downsampling, i.e. it is antialiased, so
+  thin edges do not alias at 64x64. Identity when the size already matches.
+  """
+  height, width = int(size[0]), int(size[1])
+  if frames.shape[1:3] == (height, width):
+    return np.ascontiguousarray(frames)
+  out = np.empty((frames.shape[0], height, width, 3), np.uint8)
+  for t, frame in enumerate(frames):
+    image = Image.fromarray(np.ascontiguousarray(frame))
+    out[t] = np.asarray(image.resize((width, height), Image.BILINEAR))
+  return out
+
+
+def nearest_indices(in_size: int, out_size: int) -> np.ndarray:
+  """int64 [out_size]: source index of each output pixel for nearest resizing.
+
+  PyTorch's 'nearest' convention, ``floor(i * in / out)``, which the
+  official code uses for masks (``torchvision.transforms.functional.resize``
+  with NEAREST); exact integer arithmetic avoids float rounding at edges.
+  """
+  return (np.arange(out_size, dtype=np.int64) * in_size) // out_size
+
+
+def resize_labels(labels: np.ndarray, size: Sequence[int]) -> np.ndarray:
+  """Nearest-neighbour resize of integer maps [..., h, w] -> [..., H, W]."""
+  rows = nearest_indices(labels.shape[-2], int(size[0]))
+  cols = nearest_indices(labels.shape[-1], int(size[1]))
+  return labels[..., rows[:, None], cols[None, :]]
+
+
+def read_image(path: Path) -> np.ndarray:
+  """uint8 [h, w, 3] RGB of an image file; alpha is dropped.
+
+  Raises:
+    SkipVideo('unreadable_frame'): missing, truncated or not an image.
+  """
+  try:
+    with Image.open(path) as image:
+      # convert('RGB') drops an alpha channel without compositing, like the
+      # official OBJ3D loader; load() forces the full decode here, so a
+      # truncated file fails now rather than later.
+      image.load()
+      return np.asarray(image.convert('RGB'))
+  except (OSError, ValueError, SyntaxError) as error:
+    raise SkipVideo('unreadable_frame', f'{path}: {error}') from None
+
+
+def load_json(path: Path, what: str) -> Any:
+  """Parses a per-video JSON file.
+
+  Raises:
+    SkipVideo('missing_<what>' or 'bad_<what>'): absent or unparsable.
+  """
+  try:
+    with open(path, 'rb') as f:
+      return json.load(f)
+  except FileNotFoundError:
+    raise SkipVideo(f'missing_{what}', f'{path} does not exist') from None
+  except (OSError, ValueError) as error:
+    raise SkipVideo(f'bad_{what}', f'{path}: {error}') from None
+
+
+# A truncated file decodes to fewer frames than its container declares; the
+# declared count (duration x fps) can be off by a frame or two for valid
+# files, so we only flag a shortfall beyond this tolerance.
+_MIN_FRAME_TOLERANCE = 2
+_REL_FRAME_TOLERANCE = 0.02
+
+
+def declared_frame_tolerance(declared: int) -> int:
+  """Frames a valid video may fall short of its container's declared count."""
+  return max(_MIN_FRAME_TOLERANCE, math.ceil(_REL_FRAME_TOLERANCE * declared))
+
+
+def decode_video(path: Path, *, max_frames: int | None = None,
+                 threads: int = 1) -> tuple[np.ndarray, int | None]:
+  """Decodes an mp4 (or any ffmpeg-readable video) to RGB frames.
+
+  Args:
+    path: the video file.
+    max_frames: decode only the first ``max_frames`` frames (None: all).
+    threads: ffmpeg decoding threads; 1 by default because conversions run
+      one worker process per core.
+
+  Returns:
+    frames: uint8 [T, h, w, 3] RGB.
+    declared: frames the container declares (round(duration * fps)), or
+      None if it does not say.
+
+  Raises:
+    SkipVideo('unreadable_video'): ffmpeg cannot open or decode the file.
+    SkipVideo('truncated_video'): fewer frames than the container declares
+      (beyond :func:`declared_frame_tolerance`), or than ``max_frames`` when
+      the container declares at least that many.
+  """
+  # Imported here: only the video datasets need it, and the error message
+  # below is clearer than an ImportError at package import time.
+  try:
+    import imageio_ffmpeg  # pylint: disable=g-import-not-at-top
+  except ImportError as error:
+    raise ImportError('Decoding videos needs imageio-ffmpeg (it ships its '
+                      'own ffmpeg): pip install imageio-ffmpeg') from error
+  if not path.is_file():
+    raise SkipVideo('unreadable_video', f'{path} does not exist')
+  output_params = ['-frames:v', str(int(max_frames))] if max_frames else []
+  frames = []
+  reader = imageio_ffmpeg.read_frames(
+      os.fspath(path), input_params=['-threads', str(int(threads))],
+      output_params=output_params)
+  try:
+    meta = next(reader)
+    width, height = (int(v) for v in meta['size'])
+    for raw in reader:
+      if len(raw) != width * height * 3:
+        raise SkipVideo('frame_size_mismatch',
+                        f'{path}: a frame of {len(raw)} bytes, expected '
+                        f'{height}x{width}x3')
+      frames.append(np.frombuffer(raw, np.uint8).reshape(height, width, 3))
+  except (OSError, RuntimeError, StopIteration, ValueError) as error:
+    first_line = str(error).strip().splitlines()[0] if str(error) else ''
+    raise SkipVideo('unreadable_video', f'{path}: {first_line}') from None
+  finally:
+    reader.close()  # also stops ffmpeg when we leave early
+  duration, fps = float(meta.get('duration') or 0), float(meta.get('fps') or 0)
+  declared = round(duration * fps) if duration > 0 and fps > 0 else None
+  if not frames:
+    raise SkipVideo('unreadable_video', f'{path}: no frame could be decoded')
+  if declared is not None:
+    tolerance = declared_frame_tolerance(declared)
+    if max_frames is not None and declared >= max_frames + tolerance:
+      # The file surely holds max_frames frames, so all must decode.
+      required = max_frames
+    else:
+      required = min(declared, max_frames or declared) - tolerance
+    if len(frames) < required:
+      raise SkipVideo('truncated_video',
+                      f'{path}: decoded {len(frames)} frames but the file '
+                      f'declares {declared}')
+  return np.stack(frames), declared

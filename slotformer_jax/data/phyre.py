@@ -1,0 +1,277 @@
+"""PHYRE: pre-rendered rollouts (documented layout) and their conversion.
+
+The ``phyre`` simulator has no wheel for Python 3.11, so the project does not
+simulate; ``scripts/render_phyre.py`` (run where ``pip install phyre`` works)
+renders the rollouts once into this layout::
+
+    <source>/
+      meta.json                  # how the rollouts were made, e.g.
+          {"format": "slotformer-phyre-rollouts", "format_version": 1,
+           "tier": "ball", "eval_setup": "ball_within_template", "fold": 0,
+           "fps": 1, "max_frames": 15, "background": "black",
+           "frame_size": [256, 256], "splits": ["train", "val"], ...}
+      train/rollouts.jsonl       # one JSON object per line and rollout:
+          {"id": "000000", "task": "00000:012", "action": [x, y, r],
+           "success": true, "num_frames": 9}
+      train/frames/000000.png    # that rollout's frames, RGB, stacked top to
+                                 # bottom: [num_frames * 256, 256, 3]
+      val/...
+
+``train`` holds rollouts of the fold's train + dev tasks and ``val`` those of
+its test tasks (the official SlotFormer split); frames are 1 simulated second
+apart (1 FPS) on a black background (the paper's choice), as many as the
+simulation produced up to ``max_frames``.
+
+Stored item (rollouts in id order): ``video`` uint8 [T, H, W, 3] with
+T = ``Options.num_frames`` (15): shorter rollouts are padded by repeating
+their last frame and longer ones cut, as the official loader does (128x128
+in the paper); ``num_frames`` int32 (frames before padding);
+``num_moving_frames`` int32 (frames up to the first one identical to its
+successor, i.e. before everything stopped; the official training clips only
+use moving frames); ``label`` int32 (1: the action solves the task);
+``action`` float32 [3] (x, y, radius in PHYRE's [0, 1] action space);
+``task`` ('TTTTT:VVV'), ``template`` int32, ``rollout_id``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import json
+import logging
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import tensorflow_datasets as tfds
+
+from slotformer_jax.data import media
+from slotformer_jax.data import writer
+
+logger = logging.getLogger(__name__)
+
+NAME = 'phyre'
+SPLITS: tuple[str, ...] = ('train', 'val')
+DEFAULT_RESOLUTION = (128, 128)
+FORMAT = 'slotformer-phyre-rollouts'
+FORMAT_VERSION = 1
+META_FILE = 'meta.json'
+INDEX_FILE = 'rollouts.jsonl'
+FRAMES_DIR = 'frames'
+CONVERTER_VERSION = 1
+# meta.json fields that change the stored content (part of the folder name).
+_META_KEYS = ('tier', 'eval_setup', 'fold', 'fps', 'max_frames', 'background',
+              'frame_size', 'data_ratio', 'pos_ratio', 'seed')
+
+LAYOUT = """\
+<source>/meta.json
+<source>/{train,val}/rollouts.jsonl   (one {"id", "task", "action",
+                                        "success", "num_frames"} per line)
+<source>/{train,val}/frames/<id>.png  (frames stacked vertically, RGB)
+(written by scripts/render_phyre.py; see docs/datasets.md)"""
+
+
+@dataclasses.dataclass(frozen=True)
+class Options:
+  """Conversion parameters.
+
+  Attributes:
+    resolution: (H, W) of the stored frames.
+    num_frames: stored frames per rollout (padded / cut).
+  """
+
+  resolution: tuple[int, int] = DEFAULT_RESOLUTION
+  num_frames: int = 15
+
+  def __post_init__(self):
+    object.__setattr__(self, 'resolution',
+                       tuple(int(r) for r in self.resolution))
+    if len(self.resolution) != 2 or min(self.resolution) < 8:
+      raise ValueError(f'resolution must be (H, W) >= 8, got {self.resolution}')
+    if self.num_frames < 1:
+      raise ValueError(f'num_frames must be >= 1, got {self.num_frames}')
+
+
+@dataclasses.dataclass(frozen=True)
+class RolloutJob:
+  """One rollout.
+
+  Attributes:
+    key: the rollout id.
+    frames: its PNG.
+    task: 'TTTTT:VVV'.
+    action: (x, y, r).
+    success: simulation outcome.
+    num_frames: frames the PNG holds.
+    frame_size: (h, w) of one frame, from meta.json.
+    problem: why the index line is unusable (the rollout is skipped), or
+      None.
+  """
+
+  key: str
+  frames: Path
+  task: str = ''
+  action: tuple[float, float, float] = (0.0, 0.0, 0.0)
+  success: bool = False
+  num_frames: int = 0
+  frame_size: tuple[int, int] = (256, 256)
+  problem: str | None = None
+
+
+def layout_error(source: Path, missing: Path,
+                 detail: str = '') -> FileNotFoundError:
+  """The error for a missing part of the documented layout."""
+  return FileNotFoundError(
+      f'PHYRE: {missing} not found{detail}. Expected the layout written by '
+      f'scripts/render_phyre.py under --source={source}:\n{LAYOUT}')
+
+
+def read_meta(source: Path) -> dict[str, Any]:
+  """meta.json, checked.
+
+  Raises:
+    FileNotFoundError: no meta.json.
+    ValueError: not this format, or a field is missing.
+  """
+  path = source / META_FILE
+  if not path.is_file():
+    raise layout_error(source, path)
+  with open(path) as f:
+    meta = json.load(f)
+  if meta.get('format') != FORMAT:
+    raise ValueError(f'{path}: "format" is {meta.get("format")!r}, expected '
+                     f'{FORMAT!r}')
+  if int(meta.get('format_version', -1)) != FORMAT_VERSION:
+    raise ValueError(f'{path}: format_version {meta.get("format_version")} '
+                     f'is not supported (expected {FORMAT_VERSION})')
+  missing = [k for k in ('frame_size', 'fps', 'eval_setup', 'fold')
+             if k not in meta]
+  if missing:
+    raise ValueError(f'{path}: missing fields {missing}')
+  return meta
+
+
+def _job_from_line(line: str, number: int, split_dir: Path,
+                   frame_size: tuple[int, int]) -> RolloutJob:
+  try:
+    entry = json.loads(line)
+    key = str(entry['id'])
+    action = tuple(float(a) for a in entry['action'])
+    if len(action) != 3:
+      raise ValueError(f'action has {len(action)} values, expected 3')
+    return RolloutJob(
+        key=key, frames=split_dir / FRAMES_DIR / f'{key}.png',
+        task=str(entry['task']), action=action,
+        success=bool(entry['success']), num_frames=int(entry['num_frames']),
+        frame_size=frame_size)
+  except (KeyError, TypeError, ValueError) as error:
+    return RolloutJob(key=f'line_{number}', frames=split_dir / FRAMES_DIR,
+                      problem=f'{split_dir / INDEX_FILE}:{number}: '
+                      f'{type(error).__name__}: {error}')
+
+
+def discover(source: Path, split: str, options: Options) -> list[RolloutJob]:
+  """The rollouts of ``split``, in id order.
+
+  Raises:
+    FileNotFoundError: meta.json, the split folder or its index is missing.
+  """
+  del options
+  meta = read_meta(source)
+  frame_size = tuple(int(v) for v in meta['frame_size'])
+  split_dir = source / split
+  index = split_dir / INDEX_FILE
+  if not index.is_file():
+    raise layout_error(source, index)
+  if not (split_dir / FRAMES_DIR).is_dir():
+    raise layout_error(source, split_dir / FRAMES_DIR)
+  jobs = []
+  with open(index) as f:
+    for number, line in enumerate(f, start=1):
+      if line.strip():
+        jobs.append(_job_from_line(line, number, split_dir, frame_size))
+  if not jobs:
+    raise layout_error(source, index, ' (it lists no rollout)')
+  return sorted(jobs, key=lambda job: media.natural_key(job.key))
+
+
+def num_moving_frames(frames: np.ndarray) -> int:
+  """Frames up to the first one identical to its successor (all if none)."""
+  same = (frames[1:] == frames[:-1]).reshape(len(frames) - 1, -1).all(axis=1)
+  return int(same.argmax()) + 1 if same.any() else len(frames)
+
+
+def convert_rollout(job: RolloutJob, options: Options) -> dict[str, Any]:
+  """Splits a rollout's PNG into frames, pads / cuts them and resizes.
+
+  Raises:
+    media.SkipVideo: broken index line, unreadable PNG, wrong size / count.
+  """
+  if job.problem is not None:
+    raise media.SkipVideo('bad_annotation', job.problem)
+  strip = media.read_image(job.frames)
+  height, width = job.frame_size
+  if strip.shape[1] != width or strip.shape[0] % height:
+    raise media.SkipVideo(
+        'frame_size_mismatch',
+        f'{job.frames} is {strip.shape[1]}x{strip.shape[0]} (WxH); expected '
+        f'frames of {width}x{height} stacked vertically')
+  count = strip.shape[0] // height
+  if count != job.num_frames or count < 1:
+    raise media.SkipVideo(
+        'frame_count_mismatch',
+        f'{job.frames} holds {count} frames, its index line says '
+        f'{job.num_frames}')
+  frames = strip.reshape(count, height, width, 3)[:options.num_frames]
+  moving = num_moving_frames(frames)
+  real = len(frames)
+  if real < options.num_frames:
+    frames = np.concatenate(
+        [frames, np.repeat(frames[-1:], options.num_frames - real, axis=0)])
+  template = job.task.split(':')[0]
+  return {
+      'video': media.resize_frames(frames, options.resolution),
+      'num_frames': real,
+      'num_moving_frames': moving,
+      'label': int(job.success),
+      'action': np.asarray(job.action, np.float32),
+      'task': job.task,
+      'template': int(template) if template.isdigit() else -1,
+      'rollout_id': job.key,
+  }
+
+
+def features(options: Options) -> tfds.features.FeaturesDict:
+  h, w = options.resolution
+  return tfds.features.FeaturesDict({
+      'video': writer.tensor((options.num_frames, h, w, 3), np.uint8),
+      'num_frames': tfds.features.Scalar(np.int32),
+      'num_moving_frames': tfds.features.Scalar(np.int32),
+      'label': tfds.features.Scalar(np.int32),
+      'action': writer.tensor((3,), np.float32),
+      'task': tfds.features.Text(),
+      'template': tfds.features.Scalar(np.int32),
+      'rollout_id': tfds.features.Text(),
+  })
+
+
+def _meta_params(meta: Mapping[str, Any]) -> dict[str, Any]:
+  return {k: meta[k] for k in _META_KEYS if k in meta}
+
+
+def dataset_spec(options: Options, source: Path) -> writer.DatasetSpec:
+  """Reads meta.json: the rollouts' parameters are part of the folder name."""
+  meta = _meta_params(read_meta(source))
+  params = {**dataclasses.asdict(options), 'rollouts': meta,
+            'converter_version': CONVERTER_VERSION}
+  h, w = options.resolution
+  readable = (f'{meta.get("eval_setup", "unknown")}_fold{meta.get("fold")}'
+              f'_r{h}x{w}_t{options.num_frames}')
+  return writer.DatasetSpec(
+      name=NAME, config_name=writer.config_name(readable, params),
+      description=(f'PHYRE rollouts ({json.dumps(meta, sort_keys=True)}), '
+                   f'{options.num_frames} frames at {h}x{w}, success labels.'),
+      params=params,
+      features_fn=functools.partial(features, options),
+      convert_fn=functools.partial(convert_rollout, options=options))

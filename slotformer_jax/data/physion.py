@@ -1,0 +1,372 @@
+"""Physion (NeurIPS 2021 benchmark): published layout and conversion.
+
+Published layout (the two mp4 archives and the readout labels, unpacked as
+the official SlotFormer instructions describe)::
+
+    <source>/
+      PhysionTrainMP4s/                     # PhysionTrainMP4s.tar.gz
+        Collide_training_MP4s/*.mp4         # "Training": 8 scenarios
+        Collide_readout_MP4s/*.mp4          # "Readout Fitting"
+        ... (Contain, Dominoes, Drape, Drop, Link, Roll, Support)
+        readout_labels.csv                  # from the benchmark repository
+      PhysionTestMP4s/                      # Physion.zip ("PhysionTest-Core")
+        Collide/mp4s-redyellow/*.mp4        # "Testing" (agent red, patient
+        ...                                 #  yellow)
+        labels.csv
+
+Label files: first column the stimulus name, column ``ground truth
+outcome`` True / False (whether the red agent touches the yellow patient).
+Names are matched after removing a trailing ``_img`` and ``-redyellow``.
+
+Splits written:
+
+* ``train`` / ``val``: the Training videos (dynamics training), split per
+  scenario by a hash of the file name (``Options.val_fraction``), or by the
+  official lists when ``Options.split_files`` names a folder holding
+  ``training_train.json``, ``training_val.json``, ``readout_train.json``,
+  ``readout_val.json``, ``test_test.json`` ({scenario: [relative mp4 path]}).
+* ``readout_train`` / ``readout_val``: the Readout Fitting videos, likewise.
+* ``test``: the Testing videos.
+
+Stored item: ``video`` uint8 [T, H, W, 3] with the first T = min(150, length)
+frames (the paper truncates at 150; the x3 subsampling is a training-time
+``frame_stride``), the whole frame resized to H x W (128x128 in the paper);
+``label`` int32 (1 contact, 0 none, -1 for the unlabelled Training
+subset); ``scenario`` int32 (index into SCENARIOS); ``bad_stimulus`` bool
+(the Testing stimuli the official evaluation leaves out); ``video_name``.
+Frames are RGB (see the data config field ``channel_order``).
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import functools
+import hashlib
+import json
+import logging
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import tensorflow_datasets as tfds
+
+from slotformer_jax.data import media
+from slotformer_jax.data import writer
+
+logger = logging.getLogger(__name__)
+
+NAME = 'physion'
+SCENARIOS: tuple[str, ...] = ('Collide', 'Contain', 'Dominoes', 'Drape',
+                              'Drop', 'Link', 'Roll', 'Support')
+SPLITS: tuple[str, ...] = ('train', 'val', 'readout_train', 'readout_val',
+                           'test')
+DEFAULT_RESOLUTION = (128, 128)
+TRAIN_DIR = 'PhysionTrainMP4s'
+TEST_DIR = 'PhysionTestMP4s'
+READOUT_LABELS = f'{TRAIN_DIR}/readout_labels.csv'
+TEST_LABELS = f'{TEST_DIR}/labels.csv'
+LABEL_COLUMN = 'ground truth outcome'
+CONVERTER_VERSION = 1
+# Testing stimuli that the official SlotFormer readout evaluation means to
+# leave out (its splits/Physion/bad_stimuli.txt), normalised with
+# stimulus_name(); a video is flagged (``bad_stimulus``) when its normalised
+# name contains one. Three entries there keep '-redyellow_..._img' and so
+# never match the official check (which strips '-redyellow' from the file
+# name first); normalised here, they are flagged.
+BAD_TEST_STIMULI: tuple[str, ...] = (
+    'pilot_towers_nb4_fr015_SJ000_gr-01_mono1_dis1_occ1_boxroom_0001',
+    'pilot_towers_nb4_fr015_SJ000_gr015sph_mono1_dis0_occ0_tdwroom_0000',
+    'pilot_it2_collision_yeet_box_1_dis_1_occ_0005',
+    'pilot_it2_collision_yeet_tdw_1_dis_1_occ_0006',
+    'pilot_linking_nl1-8_mg000_aCylcap_bCyl_tdwroom_0013',
+    'pilot_linking_nl1-8_mg000_aCylcap_bCyl_tdwroom_0022',
+    'pilot-containment-box_0004',
+    'pilot-containment-box_0012',
+    'pilot-containment-box_0016',
+    'pilot-containment-cone-plate_0003',
+    'pilot-containment-cone-plate_0008',
+    'pilot-containment-cone-plate_0013',
+    'pilot-containment-cylinder-bowl_0003',
+    'pilot-containment-cylinder-bowl_0006',
+    'pilot-containment-cylinder-bowl_0008',
+    'pilot-containment-cylinder-bowl_0010',
+    'pilot-containment-cylinder-bowl_0016',
+    'pilot-containment-cylinder-bowl_0018',
+    'pilot-containment-cylinder-bowl_0024',
+    'pilot_it2_drop_sizes_box_1_dis_1_occ_0007',
+    'test10_0014',
+    'test11_0015',
+    'test13_0001',
+    'test13_0010',
+    'test14_0016',
+    'test17_0004',
+    'pilot_it2_rollingSliding_simple_ledge_box_1_dis_1_occ_0000',
+    'pilot_it2_rollingSliding_simple_ledge_box_1_dis_1_occ_0001',
+    'pilot_it2_rollingSliding_simple_ledge_box_1_dis_1_occ_0002',
+)
+
+LAYOUT = """\
+<source>/PhysionTrainMP4s/<Scenario>_training_MP4s/*.mp4
+<source>/PhysionTrainMP4s/<Scenario>_readout_MP4s/*.mp4
+<source>/PhysionTrainMP4s/readout_labels.csv
+<source>/PhysionTestMP4s/<Scenario>/mp4s-redyellow/*.mp4
+<source>/PhysionTestMP4s/labels.csv
+<Scenario>: Collide Contain Dominoes Drape Drop Link Roll Support
+(PhysionTrainMP4s.tar.gz and Physion.zip from
+https://github.com/cogtoolslab/physics-benchmarking-neurips2021, unpacked;
+readout_labels.csv from that repository's data/ folder)"""
+
+# split -> (subset, official split-file name)
+_SUBSETS: Mapping[str, tuple[str, str]] = {
+    'train': ('training', 'training_train.json'),
+    'val': ('training', 'training_val.json'),
+    'readout_train': ('readout', 'readout_train.json'),
+    'readout_val': ('readout', 'readout_val.json'),
+    'test': ('test', 'test_test.json'),
+}
+
+
+@dataclasses.dataclass(frozen=True)
+class Options:
+  """Conversion parameters.
+
+  Attributes:
+    resolution: (H, W) of the stored frames.
+    num_frames: leading frames kept per video (150 in the paper).
+    val_fraction: share of Training / Readout videos put in the *_val
+      splits (by file-name hash) when no split files are given.
+    split_files: folder with the official split lists (see module doc), or
+      None.
+  """
+
+  resolution: tuple[int, int] = DEFAULT_RESOLUTION
+  num_frames: int = 150
+  val_fraction: float = 0.05
+  split_files: str | None = None
+
+  def __post_init__(self):
+    object.__setattr__(self, 'resolution',
+                       tuple(int(r) for r in self.resolution))
+    if len(self.resolution) != 2 or min(self.resolution) < 8:
+      raise ValueError(f'resolution must be (H, W) >= 8, got {self.resolution}')
+    if self.num_frames < 1:
+      raise ValueError(f'num_frames must be >= 1, got {self.num_frames}')
+    if not 0.0 <= self.val_fraction < 1.0:
+      raise ValueError(f'val_fraction must be in [0, 1), got '
+                       f'{self.val_fraction}')
+
+  @property
+  def params(self) -> dict[str, Any]:
+    params = {**dataclasses.asdict(self),
+              'converter_version': CONVERTER_VERSION}
+    if self.split_files is not None:
+      # The lists' content, not their location, decides the splits.
+      params['split_files'] = _split_files_digest(Path(self.split_files))
+    return params
+
+  @property
+  def config_name(self) -> str:
+    h, w = self.resolution
+    return writer.config_name(f'r{h}x{w}_t{self.num_frames}', self.params)
+
+
+@dataclasses.dataclass(frozen=True)
+class VideoJob:
+  """One Physion video.
+
+  Attributes:
+    key: path relative to the source folder.
+    video: the mp4.
+    scenario: index into SCENARIOS.
+    label: 1 / 0, -1 for the unlabelled Training subset, None when the
+      label file has no entry for this labelled video (skipped).
+    bad_stimulus: listed in BAD_TEST_STIMULI.
+  """
+
+  key: str
+  video: Path
+  scenario: int
+  label: int | None
+  bad_stimulus: bool
+
+
+def _split_files_digest(folder: Path) -> str:
+  digest = hashlib.sha256()
+  for _, name in sorted(_SUBSETS.values()):
+    path = folder / name
+    digest.update(name.encode())
+    digest.update(path.read_bytes() if path.is_file() else b'<missing>')
+  return digest.hexdigest()[:16]
+
+
+def layout_error(source: Path, missing: Path,
+                 detail: str = '') -> FileNotFoundError:
+  """The error for a missing part of the published layout."""
+  return FileNotFoundError(
+      f'Physion: {missing} not found{detail}. Expected the published layout '
+      f'under --source={source}:\n{LAYOUT}')
+
+
+def stimulus_name(file_name: str) -> str:
+  """Label-file key of a video file name: no '.mp4', '_img', '-redyellow'."""
+  name = file_name[:-4] if file_name.endswith('.mp4') else file_name
+  name = name.replace('-redyellow', '')
+  return name[:-4] if name.endswith('_img') else name
+
+
+def read_labels(path: Path) -> dict[str, int]:
+  """{stimulus name: 1 / 0} from a Physion label CSV.
+
+  Raises:
+    FileNotFoundError / ValueError: missing or malformed file.
+  """
+  labels = {}
+  with open(path, newline='') as f:
+    rows = csv.reader(f)
+    header = next(rows, None)
+    if not header or LABEL_COLUMN not in header:
+      raise ValueError(f'{path}: expected a header with a "{LABEL_COLUMN}" '
+                       f'column, got {header}')
+    column = header.index(LABEL_COLUMN)
+    for line, row in enumerate(rows, start=2):
+      if not row:
+        continue
+      value = row[column].strip().lower()
+      if value not in ('true', 'false', '1', '0'):
+        raise ValueError(f'{path}:{line}: label {row[column]!r} is not '
+                         'True/False')
+      labels[stimulus_name(row[0].strip())] = int(value in ('true', '1'))
+  return labels
+
+
+def _scenario_dir(source: Path, subset: str, scenario: str) -> Path:
+  if subset == 'test':
+    return source / TEST_DIR / scenario / 'mp4s-redyellow'
+  return source / TRAIN_DIR / f'{scenario}_{subset}_MP4s'
+
+
+def _is_val(relative: str, val_fraction: float) -> bool:
+  # A hash of the name (not a random draw) keeps the split independent of
+  # the listing order and of which other files are present.
+  digest = hashlib.sha256(Path(relative).name.encode()).digest()
+  return int.from_bytes(digest[:8], 'big') / 2.0**64 < val_fraction
+
+
+def _listed_files(source: Path, split: str,
+                  options: Options) -> list[tuple[int, Path]]:
+  """(scenario index, mp4 path) of a split, in scenario then name order."""
+  subset, list_name = _SUBSETS[split]
+  if options.split_files is not None:
+    list_path = Path(options.split_files) / list_name
+    if not list_path.is_file():
+      raise FileNotFoundError(f'Physion: split list {list_path} not found '
+                              '(--split_files)')
+    with open(list_path) as f:
+      listed = json.load(f)
+    unknown = sorted(set(listed) - set(SCENARIOS))
+    if unknown:
+      raise ValueError(f'{list_path}: unknown scenarios {unknown}')
+    return [(SCENARIOS.index(s), source / rel) for s in SCENARIOS
+            for rel in sorted(listed.get(s, []), key=media.natural_key)]
+  files = []
+  missing = []
+  for index, scenario in enumerate(SCENARIOS):
+    folder = _scenario_dir(source, subset, scenario)
+    if not folder.is_dir():
+      missing.append(folder)
+      continue
+    videos = sorted((p for p in folder.iterdir()
+                     if p.suffix == '.mp4' and not p.name.startswith('.')),
+                    key=lambda p: media.natural_key(p.name))
+    if split == 'test':
+      chosen = videos
+    else:
+      want_val = split.endswith('val')
+      chosen = [p for p in videos
+                if _is_val(p.name, options.val_fraction) == want_val]
+    files += [(index, p) for p in chosen]
+  if missing:
+    names = ', '.join(p.relative_to(source).as_posix() for p in missing)
+    raise layout_error(source, missing[0],
+                       f' ({len(missing)} scenario folders missing: {names})')
+  return files
+
+
+def discover(source: Path, split: str, options: Options) -> list[VideoJob]:
+  """The videos of ``split`` with their labels.
+
+  Raises:
+    FileNotFoundError: a folder or label file of the published layout is
+      missing, or the split has no video.
+    ValueError: malformed label file or split list.
+  """
+  subset, _ = _SUBSETS[split]
+  top = source / (TEST_DIR if subset == 'test' else TRAIN_DIR)
+  if not top.is_dir():
+    raise layout_error(source, top)
+  labels: dict[str, int] | None = None
+  if subset != 'training':
+    label_path = source / (TEST_LABELS if subset == 'test' else READOUT_LABELS)
+    if not label_path.is_file():
+      raise layout_error(source, label_path)
+    labels = read_labels(label_path)
+  files = _listed_files(source, split, options)
+  if not files:
+    raise layout_error(source, _scenario_dir(source, subset, '<Scenario>'),
+                       f' (no video for split {split!r})')
+  jobs = []
+  for scenario, path in files:
+    name = stimulus_name(path.name)
+    jobs.append(VideoJob(
+        key=path.relative_to(source).as_posix(), video=path,
+        scenario=scenario,
+        label=-1 if labels is None else labels.get(name),
+        bad_stimulus=subset == 'test' and any(
+            bad in name for bad in BAD_TEST_STIMULI)))
+  return jobs
+
+
+def convert_video(job: VideoJob, options: Options) -> dict[str, Any]:
+  """Decodes the first ``num_frames`` frames of one video and resizes them.
+
+  Raises:
+    media.SkipVideo: missing label, unreadable or truncated video.
+  """
+  if job.label is None:
+    raise media.SkipVideo('missing_label',
+                          f'{job.video}: no "{stimulus_name(job.video.name)}"'
+                          ' row in the label file')
+  frames, _ = media.decode_video(job.video, max_frames=options.num_frames)
+  return {
+      'video': media.resize_frames(frames, options.resolution),
+      'label': job.label,
+      'scenario': job.scenario,
+      'bad_stimulus': job.bad_stimulus,
+      'video_name': stimulus_name(job.video.name),
+  }
+
+
+def features(options: Options) -> tfds.features.FeaturesDict:
+  h, w = options.resolution
+  return tfds.features.FeaturesDict({
+      'video': writer.tensor((None, h, w, 3), np.uint8),
+      'label': tfds.features.Scalar(np.int32),
+      'scenario': tfds.features.Scalar(np.int32),
+      'bad_stimulus': tfds.features.Scalar(np.bool_),
+      'video_name': tfds.features.Text(),
+  })
+
+
+def dataset_spec(options: Options, source: Path) -> writer.DatasetSpec:
+  del source
+  h, w = options.resolution
+  return writer.DatasetSpec(
+      name=NAME, config_name=options.config_name,
+      description=(f'Physion: first {options.num_frames} frames per video at '
+                   f'{h}x{w} (RGB), contact labels for the Readout Fitting '
+                   'and Testing subsets.'),
+      params=options.params,
+      features_fn=functools.partial(features, options),
+      convert_fn=functools.partial(convert_video, options=options))

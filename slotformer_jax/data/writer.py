@@ -1,0 +1,562 @@
+"""Per-video conversion jobs -> a resumable ``array_record`` TFDS folder.
+
+The real-dataset converters (``obj3d.py``, ``clevrer.py``, ``physion.py``,
+``phyre.py``) each describe their output with a :class:`DatasetSpec` (feature
+spec + a per-video ``convert_fn``) and list their inputs as *jobs* (any
+picklable object with a unique ``key``); :func:`convert` does the rest:
+
+* the jobs of a split are cut into fixed chunks of ``videos_per_shard``; chunk
+  ``i`` becomes shard file ``<name>-<split>.array_record-<i>-of-<n>``
+  (records in job order, skipped videos left out), written to a temporary
+  name and renamed when complete, then marked done by a small JSON sidecar.
+  An interrupted conversion therefore resumes at shard granularity, and a
+  manifest of the job keys guards against resuming with a different input.
+* shards are converted in parallel worker processes ('spawn'), with a
+  progress bar; with ``process_count > 1`` host ``p`` converts only shards
+  ``p, p + P, ...`` (each host reads only its share of the source files).
+* :class:`media.SkipVideo` from ``convert_fn`` skips that video: it is logged
+  when its shard finishes, counted per reason, listed in
+  ``conversion_report.json`` and summarised at the end. If more than
+  ``max_skip_fraction`` of a split is skipped the conversion fails before
+  the metadata is written, so a broken download never becomes a dataset.
+* when every shard exists, ``dataset_info.json`` / ``features.json`` are
+  written with ``tfds.folder_dataset.write_metadata`` (no TensorFlow, no
+  builder class), after which ``tfds.builder_from_directory`` (hence
+  ``sources.open_prepared_dataset``) reads the folder. ``dataset_info.json``
+  is written last, so it doubles as the completion marker.
+
+Output folder: ``<data_dir>/<name>/<config_name>/<VERSION>/``; the config
+name encodes the conversion parameters (e.g. the resolution), so several
+conversions of one dataset coexist.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import dataclasses
+import hashlib
+import json
+import logging
+import math
+import multiprocessing
+import os
+import shutil
+import time
+from collections import Counter
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+import tensorflow_datasets as tfds
+import tqdm
+
+from slotformer_jax.data import media
+
+logger = logging.getLogger(__name__)
+
+VERSION = '1.0.0'
+# One record per compression group (as TFDS writes array_record): random
+# access to a video decompresses that video only.
+RECORD_OPTIONS = 'group_size:1'
+# Raw bytes, as in synthetic.py: the fastest numpy round trip, and the files
+# are no larger since array_record compresses every record anyway.
+TENSOR_ENCODING = tfds.features.Encoding.BYTES
+
+_DATASET_INFO = 'dataset_info.json'
+_PROGRESS_DIR = '_progress'
+REPORT_FILE = 'conversion_report.json'
+
+
+class Job(Protocol):
+  """One input video; ``key`` is unique within its split and stable."""
+
+  key: str
+
+
+class ConversionError(RuntimeError):
+  """The conversion cannot (yet) produce a trustworthy dataset."""
+
+
+@dataclasses.dataclass(frozen=True)
+class DatasetSpec:
+  """What to write and how to make one example.
+
+  Attributes:
+    name: dataset name; the top folder and the shard-file prefix.
+    config_name: sub-folder encoding the conversion parameters.
+    description: free text stored in ``dataset_info.json``.
+    params: JSON-serialisable conversion parameters; recorded in the
+      manifest (a resumed run must use the same) and in the report.
+    features_fn: picklable ``() -> tfds.features.FeaturesDict``.
+    convert_fn: picklable ``job -> example dict`` (numpy arrays / scalars /
+      str matching the features); raises :class:`media.SkipVideo`.
+  """
+
+  name: str
+  config_name: str
+  description: str
+  params: Mapping[str, Any]
+  features_fn: Callable[[], tfds.features.FeaturesDict]
+  convert_fn: Callable[[Any], dict[str, Any]]
+
+  def dataset_dir(self, data_dir: str | os.PathLike[str]) -> Path:
+    """``<data_dir>/<name>/<config_name>/<VERSION>``."""
+    return Path(data_dir) / self.name / self.config_name / VERSION
+
+
+def config_name(readable: str, params: Mapping[str, Any]) -> str:
+  """``<readable>_<8 hex digits of a hash of params>``: a folder name.
+
+  ``readable`` shows the main parameters (e.g. 'r64x64_t50'); the hash makes
+  any other parameter (and the converter version, when it is in ``params``)
+  part of the name, so conversions that differ never share a folder.
+  """
+  payload = json.dumps(dict(params), sort_keys=True, default=str)
+  return f'{readable}_{hashlib.sha256(payload.encode()).hexdigest()[:8]}'
+
+
+def tensor(shape: Sequence[int | None], dtype: Any) -> tfds.features.Tensor:
+  """A raw-bytes Tensor feature (None in ``shape``: variable length)."""
+  return tfds.features.Tensor(shape=tuple(shape), dtype=dtype,
+                              encoding=TENSOR_ENCODING)
+
+
+@dataclasses.dataclass(frozen=True)
+class SkipRecord:
+  """A video left out of the dataset, and why."""
+
+  split: str
+  key: str
+  reason: str
+  message: str
+
+
+@dataclasses.dataclass(frozen=True)
+class ConversionResult:
+  """Outcome of :func:`convert`.
+
+  Attributes:
+    dataset_dir: the TFDS version folder.
+    complete: whether the metadata is written (False while other hosts still
+      have shards to convert).
+    num_examples: {split: videos written}.
+    skipped: every skipped video (all shards, including earlier runs).
+    videos_processed: videos converted by this call (0 when resumed from a
+      finished state).
+    seconds: wall time of this call.
+  """
+
+  dataset_dir: Path
+  complete: bool
+  num_examples: dict[str, int]
+  skipped: tuple[SkipRecord, ...]
+  videos_processed: int
+  seconds: float
+
+  def skip_counts(self) -> dict[str, dict[str, int]]:
+    """{split: {reason: count}}."""
+    counts: dict[str, Counter[str]] = {}
+    for record in self.skipped:
+      counts.setdefault(record.split, Counter())[record.reason] += 1
+    return {split: dict(c) for split, c in counts.items()}
+
+
+@dataclasses.dataclass(frozen=True)
+class _ShardTask:
+  spec: DatasetSpec
+  split: str
+  index: int
+  num_shards: int
+  jobs: tuple[Any, ...]
+  dataset_dir: Path
+
+
+def shard_filename(name: str, split: str, index: int, num_shards: int) -> str:
+  """TFDS's default shard naming, which ``write_metadata`` parses back."""
+  return f'{name}-{split}.array_record-{index:05d}-of-{num_shards:05d}'
+
+
+def _progress_dir(dataset_dir: Path) -> Path:
+  return dataset_dir / _PROGRESS_DIR
+
+
+def _sidecar_path(dataset_dir: Path, split: str, index: int) -> Path:
+  return _progress_dir(dataset_dir) / f'{split}-{index:05d}.json'
+
+
+def _manifest_path(dataset_dir: Path, split: str) -> Path:
+  return _progress_dir(dataset_dir) / f'{split}-manifest.json'
+
+
+def _write_json_atomic(path: Path, payload: Any) -> None:
+  tmp = path.with_name(path.name + '.tmp')
+  with open(tmp, 'w') as f:
+    json.dump(payload, f, indent=1, sort_keys=True)
+  os.replace(tmp, path)
+
+
+def _convert_shard(task: _ShardTask) -> dict[str, Any]:
+  """Converts one chunk of videos into one shard file (runs in a worker).
+
+  Returns the sidecar payload: {'keys': written keys, 'skipped': [...],
+  'num_bytes': file size}.
+  """
+  # Imported here: workers are spawned and only need it in this function.
+  from array_record.python import array_record_module  # pylint: disable=g-import-not-at-top
+  from tensorflow_datasets.core import example_serializer  # pylint: disable=g-import-not-at-top
+
+  features = task.spec.features_fn()
+  serializer = example_serializer.ExampleSerializer(
+      features.get_serialized_info())
+  final = task.dataset_dir / shard_filename(
+      task.spec.name, task.split, task.index, task.num_shards)
+  # Written inside _progress/ so a half-written file never matches the
+  # shard-name pattern that write_metadata scans for.
+  tmp = _progress_dir(task.dataset_dir) / (final.name + '.tmp')
+  keys, skipped = [], []
+  writer = array_record_module.ArrayRecordWriter(os.fspath(tmp),
+                                                 RECORD_OPTIONS)
+  try:
+    for job in task.jobs:
+      try:
+        example = task.spec.convert_fn(job)
+      except media.SkipVideo as skip:
+        skipped.append({'key': job.key, 'reason': skip.reason,
+                        'message': skip.message})
+        continue
+      except Exception as error:
+        # Not an input problem we know how to classify: stop, naming the
+        # video, rather than silently dropping it.
+        raise RuntimeError(f'converting {task.split}/{job.key} failed: '
+                           f'{type(error).__name__}: {error}') from error
+      writer.write(serializer.serialize_example(
+          features.encode_example(example)))
+      keys.append(job.key)
+  finally:
+    writer.close()
+  os.replace(tmp, final)
+  payload = {'keys': keys, 'skipped': skipped,
+             'num_bytes': final.stat().st_size}
+  _write_json_atomic(_sidecar_path(task.dataset_dir, task.split, task.index),
+                     payload)
+  return payload
+
+
+def _check_manifest(dataset_dir: Path, split: str, keys: list[str],
+                    spec: DatasetSpec, videos_per_shard: int) -> None:
+  """Records the split's job list, or checks it against an earlier run's."""
+  path = _manifest_path(dataset_dir, split)
+  manifest = {'keys': keys, 'videos_per_shard': videos_per_shard,
+              'params': json.loads(json.dumps(dict(spec.params)))}
+  if path.is_file():
+    with open(path) as f:
+      previous = json.load(f)
+    if previous != manifest:
+      what = ('videos_per_shard' if previous.get('videos_per_shard')
+              != videos_per_shard else 'list of input videos'
+              if previous.get('keys') != keys else 'conversion parameters')
+      raise ConversionError(
+          f'{dataset_dir} holds an unfinished conversion of split {split!r} '
+          f'with a different {what}; finishing it would mix inputs. Re-run '
+          'with the same inputs and options, or pass --overwrite to start '
+          'over.')
+    return
+  _write_json_atomic(path, manifest)
+
+
+def _load_sidecars(dataset_dir: Path, name: str, split: str,
+                   num_shards: int) -> list[dict[str, Any] | None]:
+  """The sidecar of every finished shard of a split (None: not finished)."""
+  out = []
+  for index in range(num_shards):
+    path = _sidecar_path(dataset_dir, split, index)
+    shard = dataset_dir / shard_filename(name, split, index, num_shards)
+    if path.is_file() and shard.is_file():
+      with open(path) as f:
+        out.append(json.load(f))
+    else:
+      out.append(None)
+  return out
+
+
+def _run_tasks(tasks: list[_ShardTask], num_workers: int, progress: bool,
+               total_videos: int, desc: str) -> Iterator[tuple[_ShardTask,
+                                                               dict[str, Any]]]:
+  """Runs shard tasks (in worker processes if num_workers > 1)."""
+  bar = tqdm.tqdm(total=total_videos, unit='video', desc=desc,
+                  disable=not progress, dynamic_ncols=True)
+  skipped = 0
+  try:
+    if num_workers <= 1:
+      for task in tasks:
+        payload = _convert_shard(task)
+        skipped += len(payload['skipped'])
+        bar.update(len(task.jobs))
+        bar.set_postfix(skipped=skipped)
+        yield task, payload
+      return
+    # 'spawn': the parent may hold threads (JAX, tfds) that make fork unsafe.
+    pool = concurrent.futures.ProcessPoolExecutor(
+        num_workers, mp_context=multiprocessing.get_context('spawn'))
+    try:
+      futures = {pool.submit(_convert_shard, task): task for task in tasks}
+      for future in concurrent.futures.as_completed(futures):
+        task = futures[future]
+        try:
+          payload = future.result()
+        except concurrent.futures.process.BrokenProcessPool as error:
+          raise RuntimeError(
+              'Conversion worker processes died (out of memory?). With the '
+              '"spawn" start method they re-import the main script, so a '
+              'script that converts data must do so under '
+              "`if __name__ == '__main__':`; or use --num_workers=1.") from error
+        skipped += len(payload['skipped'])
+        bar.update(len(task.jobs))
+        bar.set_postfix(skipped=skipped)
+        yield task, payload
+    finally:
+      # On an error or Ctrl-C, drop queued shards instead of converting them.
+      pool.shutdown(wait=True, cancel_futures=True)
+  finally:
+    bar.close()
+
+
+def _finished_splits(dataset_dir: Path) -> set[str]:
+  """Splits listed in an existing dataset_info.json."""
+  path = dataset_dir / _DATASET_INFO
+  if not path.is_file():
+    return set()
+  with open(path) as f:
+    info = json.load(f)
+  return {split['name'] for split in info.get('splits', [])}
+
+
+def _manifest_splits(dataset_dir: Path) -> list[str]:
+  progress = _progress_dir(dataset_dir)
+  if not progress.is_dir():
+    return []
+  return sorted(p.name[:-len('-manifest.json')]
+                for p in progress.glob('*-manifest.json'))
+
+
+def convert(spec: DatasetSpec, jobs: Mapping[str, Sequence[Job]],
+            data_dir: str | os.PathLike[str], *,
+            num_workers: int | None = None, videos_per_shard: int = 32,
+            process_index: int = 0, process_count: int = 1,
+            max_skip_fraction: float = 0.05, overwrite: bool = False,
+            progress: bool = True) -> ConversionResult:
+  """Converts the jobs of every split into ``spec.dataset_dir(data_dir)``.
+
+  Args:
+    spec: the output description.
+    jobs: {split: jobs in the order the records should have}.
+    data_dir: root of the converted datasets.
+    num_workers: worker processes (default: available cores; 1 converts in
+      this process).
+    videos_per_shard: videos per shard file = resume granularity.
+    process_index, process_count: multi-host conversion; this host converts
+      shards ``process_index, process_index + process_count, ...``.
+    max_skip_fraction: fail (before writing the metadata) if a split skips
+      more than this fraction of its videos.
+    overwrite: delete an existing (finished or partial) conversion with the
+      same parameters first.
+    progress: show a progress bar.
+
+  Raises:
+    ConversionError: too many skipped videos, or an unfinished conversion
+      with different inputs.
+    ValueError: bad arguments (empty split, duplicate keys).
+  """
+  started = time.time()
+  if videos_per_shard < 1:
+    raise ValueError(f'videos_per_shard must be >= 1, got {videos_per_shard}')
+  if process_count < 1 or not 0 <= process_index < process_count:
+    raise ValueError(f'need 0 <= process_index < process_count, got '
+                     f'{process_index} / {process_count}')
+  dataset_dir = spec.dataset_dir(data_dir)
+  if overwrite and dataset_dir.exists():
+    logger.info('Deleting %s (--overwrite)', dataset_dir)
+    shutil.rmtree(dataset_dir)
+  finished = _finished_splits(dataset_dir)
+  todo = {split: list(split_jobs) for split, split_jobs in jobs.items()
+          if split not in finished}
+  if finished and not todo:
+    logger.info('%s is already prepared (splits %s); pass --overwrite to '
+                'convert again.', dataset_dir, sorted(finished))
+    return _result_from_report(dataset_dir, started)
+  _progress_dir(dataset_dir).mkdir(parents=True, exist_ok=True)
+
+  plans: dict[str, int] = {}
+  tasks: list[_ShardTask] = []
+  for split, split_jobs in todo.items():
+    keys = [job.key for job in split_jobs]
+    if not keys:
+      raise ValueError(f'split {split!r} has no videos')
+    duplicates = [k for k, n in Counter(keys).items() if n > 1]
+    if duplicates:
+      raise ValueError(f'split {split!r} has duplicate video keys, e.g. '
+                       f'{duplicates[:3]}')
+    _check_manifest(dataset_dir, split, keys, spec, videos_per_shard)
+    num_shards = math.ceil(len(keys) / videos_per_shard)
+    plans[split] = num_shards
+    done = _load_sidecars(dataset_dir, spec.name, split, num_shards)
+    for index in range(process_index, num_shards, process_count):
+      if done[index] is None:
+        tasks.append(_ShardTask(
+            spec=spec, split=split, index=index, num_shards=num_shards,
+            jobs=tuple(split_jobs[index * videos_per_shard:
+                                  (index + 1) * videos_per_shard]),
+            dataset_dir=dataset_dir))
+
+  processed = sum(len(t.jobs) for t in tasks)
+  if tasks:
+    workers = num_workers or len(os.sched_getaffinity(0))
+    workers = max(1, min(workers, len(tasks)))
+    logger.info('Converting %d videos (%d shards) into %s with %d worker(s)',
+                processed, len(tasks), dataset_dir, workers)
+    for task, payload in _run_tasks(tasks, workers, progress, processed,
+                                    f'{spec.name} {",".join(sorted(todo))}'):
+      for skip in payload['skipped']:
+        logger.warning('Skipped %s/%s: %s', task.split, skip['key'],
+                       skip['message'])
+
+  # Every split this folder has a manifest for (earlier runs included).
+  incomplete = []
+  split_payloads: dict[str, list[dict[str, Any]]] = {}
+  for split in sorted(set(_manifest_splits(dataset_dir)) | set(plans)):
+    with open(_manifest_path(dataset_dir, split)) as f:
+      manifest = json.load(f)
+    num_shards = math.ceil(len(manifest['keys'])
+                           / manifest['videos_per_shard'])
+    sidecars = _load_sidecars(dataset_dir, spec.name, split, num_shards)
+    missing = sum(s is None for s in sidecars)
+    if missing:
+      incomplete.append(f'{split}: {missing} of {num_shards} shards')
+    else:
+      split_payloads[split] = sidecars
+  if incomplete:
+    message = (f'{dataset_dir}: shards still missing ({"; ".join(incomplete)})'
+               '; other hosts are converting them, or an earlier run was '
+               'interrupted. Re-run the same command to finish; the metadata '
+               'is written once every shard exists.')
+    logger.warning(message)
+    print(message)
+    return ConversionResult(
+        dataset_dir=dataset_dir, complete=False, num_examples={},
+        skipped=_skips(split_payloads), videos_processed=processed,
+        seconds=time.time() - started)
+
+  skipped = _skips(split_payloads)
+  _check_skip_fraction(split_payloads, skipped, max_skip_fraction,
+                       dataset_dir)
+  _write_metadata(spec, dataset_dir, split_payloads)
+  result = ConversionResult(
+      dataset_dir=dataset_dir, complete=True,
+      num_examples={split: sum(len(p['keys']) for p in payloads)
+                    for split, payloads in split_payloads.items()},
+      skipped=skipped, videos_processed=processed,
+      seconds=time.time() - started)
+  _write_report(spec, result)
+  return result
+
+
+def _skips(split_payloads: Mapping[str, list[dict[str, Any]]]
+           ) -> tuple[SkipRecord, ...]:
+  return tuple(
+      SkipRecord(split=split, key=s['key'], reason=s['reason'],
+                 message=s['message'])
+      for split, payloads in split_payloads.items()
+      for payload in payloads for s in payload['skipped'])
+
+
+def _check_skip_fraction(split_payloads: Mapping[str, list[dict[str, Any]]],
+                         skipped: Sequence[SkipRecord],
+                         max_skip_fraction: float, dataset_dir: Path) -> None:
+  problems = []
+  for split, payloads in split_payloads.items():
+    written = sum(len(p['keys']) for p in payloads)
+    reasons = Counter(s.reason for s in skipped if s.split == split)
+    total = written + sum(reasons.values())
+    if written == 0 or sum(reasons.values()) > max_skip_fraction * total:
+      problems.append(f'{split}: skipped {sum(reasons.values())} of {total} '
+                      f'videos ({dict(reasons)})')
+  if problems:
+    examples = '\n  '.join(s.message for s in skipped[:5])
+    raise ConversionError(
+        'Too many videos could not be converted (limit --max_skip_fraction='
+        f'{max_skip_fraction}):\n  ' + '\n  '.join(problems) +
+        f'\nFirst problems:\n  {examples}\nFix the download (the converted '
+        f'shards in {dataset_dir} are kept; re-running only converts what '
+        'is missing), or raise --max_skip_fraction to accept the skips.')
+
+
+def _write_metadata(spec: DatasetSpec, dataset_dir: Path,
+                    split_payloads: Mapping[str, list[dict[str, Any]]]) -> None:
+  split_infos = [
+      tfds.core.SplitInfo(name=split,
+                          shard_lengths=[len(p['keys']) for p in payloads],
+                          num_bytes=sum(p['num_bytes'] for p in payloads))
+      for split, payloads in sorted(split_payloads.items())]
+  tfds.folder_dataset.write_metadata(
+      data_dir=os.fspath(dataset_dir), features=spec.features_fn(),
+      split_infos=split_infos, version=VERSION,
+      # check_data reads an example through tf.data, which needs TensorFlow.
+      check_data=False, description=spec.description,
+      metadata=tfds.core.MetadataDict(
+          conversion=json.loads(json.dumps(dict(spec.params)))))
+
+
+def _write_report(spec: DatasetSpec, result: ConversionResult) -> None:
+  report = {
+      'dataset': spec.name, 'config': spec.config_name,
+      'params': json.loads(json.dumps(dict(spec.params))),
+      'num_examples': result.num_examples,
+      'skip_counts': result.skip_counts(),
+      'skipped': [dataclasses.asdict(s) for s in result.skipped],
+  }
+  _write_json_atomic(result.dataset_dir / REPORT_FILE, report)
+
+
+def _result_from_report(dataset_dir: Path, started: float) -> ConversionResult:
+  path = dataset_dir / REPORT_FILE
+  report = {}
+  if path.is_file():
+    with open(path) as f:
+      report = json.load(f)
+  return ConversionResult(
+      dataset_dir=dataset_dir, complete=True,
+      num_examples=dict(report.get('num_examples', {})),
+      skipped=tuple(SkipRecord(**s) for s in report.get('skipped', [])),
+      videos_processed=0, seconds=time.time() - started)
+
+
+def summary(result: ConversionResult) -> str:
+  """A few human-readable lines about a conversion."""
+  lines = [f'Dataset folder: {result.dataset_dir}']
+  if not result.complete:
+    lines.append('Not finished: shards are missing (see the message above).')
+  for split, count in sorted(result.num_examples.items()):
+    lines.append(f'  {split}: {count} videos')
+  counts = result.skip_counts()
+  if counts:
+    lines.append(f'Skipped {len(result.skipped)} videos (listed in '
+                 f'{result.dataset_dir / REPORT_FILE}):')
+    for split, reasons in sorted(counts.items()):
+      lines.append(f'  {split}: ' + ', '.join(
+          f'{reason} x{n}' for reason, n in sorted(reasons.items())))
+  else:
+    lines.append('No video was skipped.')
+  if result.videos_processed:
+    lines.append(f'Converted {result.videos_processed} videos in '
+                 f'{result.seconds:.1f} s '
+                 f'({result.videos_processed / max(result.seconds, 1e-9):.1f}'
+                 ' videos/s).')
+  return '\n'.join(lines)
+
+
+def pad_rows(values: Sequence[int], rows: int, fill: int = -1) -> np.ndarray:
+  """int32 [rows]: ``values`` then ``fill``."""
+  out = np.full((rows,), fill, np.int32)
+  out[:len(values)] = np.asarray(values, np.int32)
+  return out
