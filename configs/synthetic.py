@@ -24,6 +24,8 @@ def get_config(variant: str = ''):
   data.num_val = 50
   data.num_test = 100
   data.seed = 0
+  data.object_scale = 1.4  # larger objects than CLEVR's at 32x32
+  data.distinct_colors = True
   data.max_instances = data.max_objects + 1  # + the launched sphere
 
   savi = config.savi
@@ -39,10 +41,10 @@ def get_config(variant: str = ''):
   savi.decoder.broadcast_resolution = (8, 8)
   savi.decoder.features = (32, 32)
   savi.decoder.kernel_size = 3
-  savi.batch_size = 16
-  savi.clip_length = 3
-  savi.num_train_steps = 2500
-  savi.learning_rate = 4e-4
+  savi.batch_size = 8
+  savi.clip_length = 2
+  savi.num_train_steps = 4500
+  savi.learning_rate = 1e-3
   savi.log_every = 50
   savi.checkpoint_every = 500
 

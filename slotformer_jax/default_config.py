@@ -85,6 +85,17 @@ def base_config() -> ml_collections.ConfigDict:
   dyn.log_every = 100
   dyn.checkpoint_every = 1000
 
+  # ---- baseline: Slot-LSTM (the paper's appendix) --------------------------
+  # The same per-frame Transformer followed by a per-slot LSTM, trained on the
+  # same slots with the same losses and schedule as SlotFormer: every field of
+  # `slotformer` applies unless set here (e.g. num_train_steps, batch_size).
+  config.slot_lstm = sl = ml_collections.ConfigDict()
+  sl.train = False  # True: `--mode=all` trains it and evaluation compares
+  for field, kind in (('num_train_steps', int), ('batch_size', int),
+                      ('learning_rate', float), ('embed_dim', int),
+                      ('num_layers', int)):
+    sl[field] = ml_collections.config_dict.placeholder(kind)
+
   # ---- evaluation ---------------------------------------------------------
   config.evaluation = ev = ml_collections.ConfigDict()
   ev.split = 'test'

@@ -29,8 +29,8 @@ from slotformer_jax.evaluation import evaluate
 from slotformer_jax.evaluation import visualize
 from slotformer_jax.train import sharding
 
-MODES = ('all', 'train_savi', 'extract_slots', 'train_slotformer', 'evaluate',
-         'render')
+MODES = ('all', 'train_savi', 'extract_slots', 'train_slotformer',
+         'train_slot_lstm', 'evaluate', 'render')
 
 _CONFIG = config_flags.DEFINE_config_file(
     'config', None, 'Config file, e.g. configs/obj3d.py or '
@@ -105,11 +105,18 @@ def main(argv):
       'train_savi': stages.train_savi,
       'extract_slots': stages.extract_slots,
       'train_slotformer': stages.train_slotformer,
+      'train_slot_lstm': stages.train_slot_lstm,
       'evaluate': evaluate.evaluate,
       'render': visualize.render,
   }
   wall_times = {}
-  for stage in (MODES[1:] if mode == 'all' else (mode,)):
+  if mode == 'all':
+    # The Slot-LSTM baseline only when the config asks for it.
+    selected = tuple(m for m in MODES[1:]
+                     if m != 'train_slot_lstm' or config.slot_lstm.train)
+  else:
+    selected = (mode,)
+  for stage in selected:
     started = time.time()
     logger.info('=== %s ===', stage)
     run[stage](config, workdir, mesh)

@@ -6,7 +6,12 @@ import ml_collections
 
 from slotformer_jax.modules.decoders import SpatialBroadcastDecoder
 from slotformer_jax.modules.savi import SAVi
+from slotformer_jax.modules.slot_lstm import SlotLSTM
 from slotformer_jax.modules.slotformer import SlotFormer
+
+SLOTFORMER = 'slotformer'
+SLOT_LSTM = 'slot_lstm'
+DYNAMICS_MODELS = (SLOTFORMER, SLOT_LSTM)
 
 
 def build_savi(config: ml_collections.ConfigDict) -> SAVi:
@@ -57,3 +62,47 @@ def build_slotformer(config: ml_collections.ConfigDict) -> SlotFormer:
       positional_encoding=dynamics.positional_encoding,
       residual=dynamics.residual,
   )
+
+
+def dynamics_config(config: ml_collections.ConfigDict,
+                    name: str) -> ml_collections.ConfigDict:
+  """The stage-2 hyper-parameters of dynamics model `name`.
+
+  SlotFormer reads `config.slotformer`. Slot-LSTM is trained "with the same
+  setup": `config.slotformer` with the fields set in `config.slot_lstm`
+  (all but `train`) overriding it.
+  """
+  if name == SLOTFORMER:
+    return config.slotformer
+  if name != SLOT_LSTM:
+    raise ValueError(f'unknown dynamics model {name!r}; one of '
+                     f'{DYNAMICS_MODELS}')
+  merged = ml_collections.ConfigDict(config.slotformer.to_dict())
+  for key, value in config.slot_lstm.items():
+    if key != 'train' and value is not None:
+      merged[key] = value
+  return merged
+
+
+def build_slot_lstm(config: ml_collections.ConfigDict) -> SlotLSTM:
+  dynamics = dynamics_config(config, SLOT_LSTM)
+  return SlotLSTM(
+      burn_in=dynamics.burn_in,
+      embed_dim=dynamics.embed_dim,
+      num_layers=dynamics.num_layers,
+      num_heads=dynamics.num_heads,
+      mlp_size=dynamics.mlp_ratio * dynamics.embed_dim,
+      dropout_rate=dynamics.dropout_rate,
+      residual=dynamics.residual,
+  )
+
+
+def build_dynamics(config: ml_collections.ConfigDict,
+                   name: str) -> SlotFormer | SlotLSTM:
+  """The stage-2 model `name` ('slotformer' or 'slot_lstm')."""
+  if name == SLOTFORMER:
+    return build_slotformer(config)
+  if name == SLOT_LSTM:
+    return build_slot_lstm(config)
+  raise ValueError(f'unknown dynamics model {name!r}; one of '
+                   f'{DYNAMICS_MODELS}')

@@ -49,10 +49,6 @@ def savi_dir(workdir: str) -> str:
   return os.path.join(workdir, 'savi')
 
 
-def slotformer_dir(workdir: str) -> str:
-  return os.path.join(workdir, 'slotformer')
-
-
 def slots_dir(workdir: str, split: str) -> str:
   return os.path.join(workdir, 'slots', split)
 
@@ -67,12 +63,15 @@ def savi_model_fields(config: ml_collections.ConfigDict) -> dict[str, Any]:
   return json.loads(json.dumps(fields))  # tuples -> lists, for comparison
 
 
-def slotformer_model_fields(config: ml_collections.ConfigDict
-                            ) -> dict[str, Any]:
-  dynamics = config.slotformer.to_dict()
-  return json.loads(json.dumps({key: dynamics[key] for key in (
-      'burn_in', 'embed_dim', 'num_layers', 'num_heads', 'mlp_ratio',
-      'positional_encoding', 'residual')}))
+def dynamics_model_fields(config: ml_collections.ConfigDict,
+                          name: str = models.SLOTFORMER) -> dict[str, Any]:
+  """The config values that determine a stage-2 model's parameters."""
+  dynamics = models.dynamics_config(config, name).to_dict()
+  keys = ['burn_in', 'embed_dim', 'num_layers', 'num_heads', 'mlp_ratio',
+          'residual']
+  if name == models.SLOTFORMER:
+    keys.append('positional_encoding')
+  return json.loads(json.dumps({key: dynamics[key] for key in keys}))
 
 
 def _write_model_config(directory: str, fields: dict[str, Any]) -> None:
@@ -272,24 +271,30 @@ def slot_source_for(config: ml_collections.ConfigDict, workdir: str,
   return SlotSource(slots_dir(workdir, split), video_source, video_fields)
 
 
-def train_slotformer(config: ml_collections.ConfigDict, workdir: str,
-                     mesh: Mesh) -> None:
+def dynamics_dir(workdir: str, name: str = models.SLOTFORMER) -> str:
+  """Where stage-2 model `name` keeps checkpoints and logs."""
+  return os.path.join(workdir, name)
+
+
+def train_dynamics(config: ml_collections.ConfigDict, workdir: str,
+                   mesh: Mesh, name: str = models.SLOTFORMER) -> None:
+  """Stage 2: trains dynamics model `name` on the extracted train slots."""
   savi_params, _ = load_savi_params(config, workdir, mesh)
   decoder = models.build_decoder(config)
-  model = models.build_slotformer(config)
-  stage_config = config.slotformer
+  model = models.build_dynamics(config, name)
+  stage_config = models.dynamics_config(config, name)
   burn_in, rollout = stage_config.burn_in, stage_config.rollout
   use_image_loss = stage_config.image_loss_weight > 0
   video_fields = ('video',) if use_image_loss else ()
   source = slot_source_for(config, workdir, 'train', video_fields)
   local_batch_size = sharding.per_host_batch_size(stage_config.batch_size, mesh)
   history_shape = (1, burn_in, config.savi.num_slots, config.savi.slot_size)
-  directory = slotformer_dir(workdir)
-  fields = slotformer_model_fields(config)
-  _check_model_config(directory, fields, 'SlotFormer')
+  directory = dynamics_dir(workdir, name)
+  fields = dynamics_model_fields(config, name)
+  _check_model_config(directory, fields, name)
   _write_model_config(directory, fields)
   stage = Stage(
-      name='slotformer',
+      name=name,
       directory=directory,
       config=stage_config,
       loss_fn=functools.partial(
@@ -310,23 +315,41 @@ def train_slotformer(config: ml_collections.ConfigDict, workdir: str,
   fit(stage, mesh=mesh, seed=config.seed + 1)
 
 
-def load_slotformer_params(config: ml_collections.ConfigDict, workdir: str,
-                           mesh: Mesh) -> tuple[Any, int]:
-  directory = slotformer_dir(workdir)
+def train_slotformer(config: ml_collections.ConfigDict, workdir: str,
+                     mesh: Mesh) -> None:
+  train_dynamics(config, workdir, mesh, models.SLOTFORMER)
+
+
+def train_slot_lstm(config: ml_collections.ConfigDict, workdir: str,
+                    mesh: Mesh) -> None:
+  """The Slot-LSTM baseline, with SlotFormer's data, losses and schedule."""
+  train_dynamics(config, workdir, mesh, models.SLOT_LSTM)
+
+
+def load_dynamics_params(config: ml_collections.ConfigDict, workdir: str,
+                         mesh: Mesh, name: str = models.SLOTFORMER
+                         ) -> tuple[Any, int]:
+  """The newest parameters of stage-2 model `name` and their step."""
+  directory = dynamics_dir(workdir, name)
   checkpointer = checkpointer_for(directory, read_only=True)
   if checkpointer.latest_step() is None:
     raise FileNotFoundError(
-        f'no SlotFormer checkpoint under {directory}/checkpoints. Train '
-        'stage 2 first: python -m slotformer_jax.main --config=<config> '
-        f'--workdir={workdir} --mode=train_slotformer')
-  _check_model_config(directory, slotformer_model_fields(config),
-                      'SlotFormer')
-  model = models.build_slotformer(config)
-  history_shape = (1, config.slotformer.burn_in, config.savi.num_slots,
+        f'no {name} checkpoint under {directory}/checkpoints. Train it '
+        'first: python -m slotformer_jax.main --config=<config> '
+        f'--workdir={workdir} --mode=train_{name}')
+  _check_model_config(directory, dynamics_model_fields(config, name), name)
+  model = models.build_dynamics(config, name)
+  stage_config = models.dynamics_config(config, name)
+  history_shape = (1, stage_config.burn_in, config.savi.num_slots,
                    config.savi.slot_size)
   abstract = abstract_train_state(
       lambda rng: steps.init_params(model, rng, jnp.zeros(history_shape),
-                                    config.slotformer.rollout),
-      config.slotformer, mesh)
+                                    stage_config.rollout),
+      stage_config, mesh)
   state = checkpointer.restore(abstract)
   return state.params, int(state.step)
+
+
+def load_slotformer_params(config: ml_collections.ConfigDict, workdir: str,
+                           mesh: Mesh) -> tuple[Any, int]:
+  return load_dynamics_params(config, workdir, mesh, models.SLOTFORMER)

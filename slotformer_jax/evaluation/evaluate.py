@@ -107,14 +107,19 @@ def _frame_step_metrics(decoded, frames: jax.Array, segmentation: jax.Array,
 
 def make_rollout_evaluator(config: ml_collections.ConfigDict, mesh: Mesh,
                            names: tuple[str, ...],
-                           lpips_fn: Callable | None):
-  """Jitted (slotformer_params, decoder_params, batch) -> per-step metrics.
+                           lpips_fn: Callable | None,
+                           dynamics_names: tuple[str, ...] = (
+                               models.SLOTFORMER,)):
+  """Jitted (dynamics_params, decoder_params, batch) -> per-step metrics.
 
+  dynamics_params: {name: params} for every name in `dynamics_names`.
   batch: 'slots' [B, burn_in + R, N, D], 'video' uint8 [B, burn_in + R, H,
-  W, 3], 'segmentations' [B, burn_in + R, H, W]. Returns {method: {name:
-  (value [R, B], valid [R, B])}} (fg_miou: (iou, present)).
+  W, 3] and, when an object metric is asked for, 'segmentations' [B,
+  burn_in + R, H, W]. Returns {method: {name: (value [R, B], valid [R, B])}}
+  (fg_miou: (iou, present)).
   """
-  model = models.build_slotformer(config)
+  models_by_name = {name: models.build_dynamics(config, name)
+                    for name in dynamics_names}
   decoder = models.build_decoder(config)
   burn_in = config.slotformer.burn_in
   rollout = config.evaluation.rollout_steps
@@ -123,17 +128,22 @@ def make_rollout_evaluator(config: ml_collections.ConfigDict, mesh: Mesh,
       num_true=num_true_ids(config.data), num_slots=config.savi.num_slots,
       lpips_fn=lpips_fn,
       background_threshold=config.evaluation.get('background_threshold'))
+  needs_segmentation = any(name in OBJECT_METRICS for name in names)
 
-  def evaluate_batch(params, decoder_params, batch):
+  def evaluate_batch(dynamics_params, decoder_params, batch):
     history = batch['slots'][:, :burn_in]
     predictions = {
-        'slotformer': steps.rollout_slots(params, history, model=model,
-                                          num_steps=rollout),
-        'copy_last': steps.copy_last_rollout(history, rollout),
-        'savi_reconstruction': batch['slots'][:, burn_in:burn_in + rollout],
-    }
+        name: steps.rollout_slots(dynamics_params[name], history,
+                                  model=model, num_steps=rollout)
+        for name, model in models_by_name.items()}
+    predictions['copy_last'] = steps.copy_last_rollout(history, rollout)
+    predictions['savi_reconstruction'] = batch['slots'][
+        :, burn_in:burn_in + rollout]
     frames = batch['video'][:, burn_in:burn_in + rollout]
-    segmentation = batch[SEGMENTATION_FIELD][:, burn_in:burn_in + rollout]
+    if needs_segmentation:
+      segmentation = batch[SEGMENTATION_FIELD][:, burn_in:burn_in + rollout]
+    else:  # unused placeholder of the right leading shape
+      segmentation = jnp.zeros(frames.shape[:2], jnp.int32)
     time_major = lambda x: jnp.swapaxes(x, 0, 1)
 
     def one_step(inputs):
@@ -154,14 +164,16 @@ def make_rollout_evaluator(config: ml_collections.ConfigDict, mesh: Mesh,
                                sharding.batch_sharding(mesh)))
 
 
-def make_savi_evaluator(config: ml_collections.ConfigDict, mesh: Mesh):
+def make_savi_evaluator(config: ml_collections.ConfigDict, mesh: Mesh,
+                        with_segmentation: bool = True):
   """Jitted SAVi quality of a chunk of frames.
 
   (decoder_params, slots [B, T, N, D], video uint8 [B, T, H, W, 3],
-  segmentations [B, T, H, W], frame_valid bool [B, T]) -> per-video
-  contingency tables [B, C, K] summed over the valid frames (chunks of one
-  video add up), the sum of per-frame PSNR [B], per-frame FG-ARI sums and
-  counts [B].
+  segmentations [B, T, H, W] (ignored without `with_segmentation`),
+  frame_valid bool [B, T]) -> the sum of per-frame PSNR [B] and, with
+  segmentation, per-video contingency tables [B, C, K] summed over the valid
+  frames (chunks of one video add up) and per-frame FG-ARI sums and counts
+  [B].
   """
   decoder = models.build_decoder(config)
   num_true, num_slots = num_true_ids(config.data), config.savi.num_slots
@@ -169,6 +181,10 @@ def make_savi_evaluator(config: ml_collections.ConfigDict, mesh: Mesh):
   def evaluate_chunk(decoder_params, slots, video, segmentation, frame_valid):
     decoded = steps.decode_slots(decoder_params, slots, decoder=decoder)
     frames = steps.model_to_unit(steps.frames_to_model(video))
+    psnr = metrics_lib.psnr(decoded.recon, frames)
+    out = {'psnr_sum': jnp.sum(jnp.where(frame_valid, psnr, 0.0), axis=1)}
+    if not with_segmentation:
+      return out
     pred_ids = jnp.argmax(decoded.alpha_masks[..., 0], axis=-3)
     # Ids outside [0, C) are not counted: that drops the padded frames.
     true_ids = jnp.where(frame_valid[..., None, None],
@@ -178,14 +194,12 @@ def make_savi_evaluator(config: ml_collections.ConfigDict, mesh: Mesh):
         num_slots)  # [B, T, C, K]
     fg_ari = metrics_lib.ari_from_contingency(per_frame,
                                               ignore_background=True)
-    psnr = metrics_lib.psnr(decoded.recon, frames)
-    return {
-        'table': jnp.sum(per_frame, axis=1),
-        'psnr_sum': jnp.sum(jnp.where(frame_valid, psnr, 0.0), axis=1),
-        'fg_ari_frame_sum': jnp.sum(
+    out.update(
+        table=jnp.sum(per_frame, axis=1),
+        fg_ari_frame_sum=jnp.sum(
             jnp.where(fg_ari.valid, fg_ari.value, 0.0), axis=1),
-        'fg_ari_frame_count': jnp.sum(fg_ari.valid, axis=1),
-    }
+        fg_ari_frame_count=jnp.sum(fg_ari.valid, axis=1))
+    return out
 
   replicated = sharding.replicated_sharding(mesh)
   batched = sharding.batch_sharding(mesh)
@@ -195,11 +209,14 @@ def make_savi_evaluator(config: ml_collections.ConfigDict, mesh: Mesh):
 
 def evaluate_savi(config: ml_collections.ConfigDict, mesh: Mesh,
                   decoder_params: Any, source: Any, num_frames: int,
+                  with_segmentation: bool = True,
                   **batch_args) -> dict[str, Any]:
-  """SAVi's reconstruction and segmentation of the first `num_frames` frames
-  of every held-out video, processed in chunks of `chunk_length` frames."""
-  evaluator = make_savi_evaluator(config, mesh)
+  """SAVi's reconstruction (and segmentation) of the first `num_frames`
+  frames of every held-out video, processed in chunks of `chunk_length`."""
+  evaluator = make_savi_evaluator(config, mesh, with_segmentation)
   chunk = config.evaluation.chunk_length
+  fields = ('slots', 'video') + ((SEGMENTATION_FIELD,) if with_segmentation
+                                 else ())
   fg_ari_video, ari_video = [], []
   psnr_sum, fg_ari_sum, fg_ari_count, num_valid_frames = 0.0, 0.0, 0, 0
   for batch in tqdm.tqdm(
@@ -207,10 +224,13 @@ def evaluate_savi(config: ml_collections.ConfigDict, mesh: Mesh,
       desc='evaluate SAVi', leave=False, disable=jax.process_index() != 0):
     mask = stages.gather_to_host(
         sharding.to_global_batch({'mask': batch['mask']}, mesh))['mask']
-    table, totals = 0, {}
+    totals = {}
     for start in range(0, num_frames, chunk):
       pieces = {field: _padded_time_slice(batch[field], start, chunk)
-                for field in ('slots', 'video', SEGMENTATION_FIELD)}
+                for field in fields}
+      if not with_segmentation:
+        pieces[SEGMENTATION_FIELD] = np.zeros(pieces['video'].shape[:2],
+                                              np.uint8)
       frame_valid = np.arange(start, start + chunk) < num_frames
       pieces['frame_valid'] = np.broadcast_to(
           frame_valid, (len(batch['mask']), chunk)).copy()
@@ -218,25 +238,29 @@ def evaluate_savi(config: ml_collections.ConfigDict, mesh: Mesh,
       out = stages.gather_to_host(evaluator(
           decoder_params, pieces['slots'], pieces['video'],
           pieces[SEGMENTATION_FIELD], pieces['frame_valid']))
-      table = table + out.pop('table')
       for key, value in out.items():
         totals[key] = totals.get(key, 0) + value
-    fg_ari_video += list(np.asarray(metrics_lib.ari_from_contingency(
-        table[mask], ignore_background=True).value))
-    ari_video += list(np.asarray(
-        metrics_lib.ari_from_contingency(table[mask]).value))
     psnr_sum += float(totals['psnr_sum'][mask].sum())
-    fg_ari_sum += float(totals['fg_ari_frame_sum'][mask].sum())
-    fg_ari_count += int(totals['fg_ari_frame_count'][mask].sum())
     num_valid_frames += int(mask.sum()) * num_frames
-  return {
-      'fg_ari': float(np.mean(fg_ari_video)),
-      'ari': float(np.mean(ari_video)),
-      'fg_ari_per_frame': fg_ari_sum / max(fg_ari_count, 1),
+    if with_segmentation:
+      table = totals['table'][mask]
+      fg_ari_video += list(np.asarray(metrics_lib.ari_from_contingency(
+          table, ignore_background=True).value))
+      ari_video += list(np.asarray(
+          metrics_lib.ari_from_contingency(table).value))
+      fg_ari_sum += float(totals['fg_ari_frame_sum'][mask].sum())
+      fg_ari_count += int(totals['fg_ari_frame_count'][mask].sum())
+  results = {
       'psnr': psnr_sum / max(num_valid_frames, 1),
-      'num_videos': len(fg_ari_video),
+      'num_videos': num_valid_frames // max(num_frames, 1),
       'num_frames': num_frames,
   }
+  if with_segmentation:
+    results.update(
+        fg_ari=float(np.mean(fg_ari_video)),
+        ari=float(np.mean(ari_video)),
+        fg_ari_per_frame=fg_ari_sum / max(fg_ari_count, 1))
+  return results
 
 
 def _padded_time_slice(x: np.ndarray, start: int, length: int) -> np.ndarray:
@@ -247,6 +271,17 @@ def _padded_time_slice(x: np.ndarray, start: int, length: int) -> np.ndarray:
     piece = np.concatenate(
         [piece, np.repeat(piece[:, -1:], missing, axis=1)], axis=1)
   return piece
+
+
+_METHOD_ORDER = (models.SLOTFORMER, models.SLOT_LSTM, 'copy_last',
+                 'savi_reconstruction')
+
+
+def _method_rank(method: str) -> tuple[int, str]:
+  """Table order: the models, the baselines, then the reference."""
+  order = _METHOD_ORDER.index(method) if method in _METHOD_ORDER else len(
+      _METHOD_ORDER)
+  return order, method
 
 
 class _StepAverager:
@@ -267,7 +302,8 @@ class _StepAverager:
 
   def results(self) -> dict[str, dict[str, dict[str, Any]]]:
     out = {}
-    for method, sums in self.sums.items():
+    for method in sorted(self.sums, key=_method_rank):
+      sums = self.sums[method]
       out[method] = {}
       for name, total in sums.items():
         count = self.counts[method][name]
@@ -291,35 +327,56 @@ def _lpips_or_none(names: tuple[str, ...]) -> Callable | None:
     return None
 
 
+def dynamics_to_evaluate(config: ml_collections.ConfigDict
+                         ) -> tuple[str, ...]:
+  """SlotFormer, plus Slot-LSTM when the config trains it."""
+  names = (models.SLOTFORMER,)
+  if config.slot_lstm.train:
+    names += (models.SLOT_LSTM,)
+  return names
+
+
 def evaluate(config: ml_collections.ConfigDict, workdir: str,
              mesh: Mesh) -> dict[str, Any]:
   """Evaluates SAVi and the rollouts; writes eval/metrics.json + per_step.csv."""
   started = time.time()
   eval_config = config.evaluation
   names = tuple(eval_config.metrics)
+  with_segmentation = any(name in OBJECT_METRICS for name in names)
   lpips_fn = _lpips_or_none(names)
   savi_params, savi_step = stages.load_savi_params(config, workdir, mesh)
-  params, slotformer_step = stages.load_slotformer_params(config, workdir,
-                                                          mesh)
+  dynamics_names = dynamics_to_evaluate(config)
+  dynamics_params, dynamics_steps = {}, {}
+  for name in dynamics_names:
+    dynamics_params[name], dynamics_steps[name] = stages.load_dynamics_params(
+        config, workdir, mesh, name)
   decoder_params = savi_params['decoder']
   burn_in = config.slotformer.burn_in
   rollout = eval_config.rollout_steps
   stride = config.slotformer.frame_stride
+  video_fields = ('video',) + ((SEGMENTATION_FIELD,) if with_segmentation
+                               else ())
   source = stages.slot_source_for(config, workdir, eval_config.split,
-                                  ('video', SEGMENTATION_FIELD))
+                                  video_fields)
+  if with_segmentation:
+    _check_has_segmentations(source, names)
   local_batch_size = sharding.per_host_batch_size(eval_config.batch_size, mesh)
   num_videos = min(len(source), eval_config.num_videos or len(source))
   shared = dict(batch_size=local_batch_size,
-                fields=('slots', 'video', SEGMENTATION_FIELD),
+                fields=('slots',) + video_fields,
                 process_index=jax.process_index(),
                 process_count=jax.process_count(), max_videos=num_videos)
 
   needed = (burn_in + rollout - 1) * stride + 1
+  savi_started = time.time()
   savi_results = evaluate_savi(config, mesh, decoder_params, source, needed,
-                               **shared)
+                               with_segmentation, **shared)
+  savi_results['seconds'] = time.time() - savi_started
 
   # Rollouts.
-  evaluator = make_rollout_evaluator(config, mesh, names, lpips_fn)
+  rollout_started = time.time()
+  evaluator = make_rollout_evaluator(config, mesh, names, lpips_fn,
+                                     dynamics_names)
   averager = _StepAverager()
   for batch in tqdm.tqdm(
       pipeline.eval_batches(source, num_frames=needed, **shared),
@@ -333,8 +390,9 @@ def evaluate(config: ml_collections.ConfigDict, workdir: str,
           f'evaluation needs {needed} frames per video (burn-in {burn_in} + '
           f'{rollout} rollout steps, stride {stride}), the videos have '
           f'{batch["video"].shape[1]}; lower evaluation.rollout_steps')
-    out = stages.gather_to_host(
-        evaluator(params, decoder_params, sharding.to_global_batch(batch, mesh)))
+    out = stages.gather_to_host(evaluator(
+        dynamics_params, decoder_params,
+        sharding.to_global_batch(batch, mesh)))
     mask = stages.gather_to_host(
         sharding.to_global_batch({'mask': mask}, mesh))['mask']
     for method, per_metric in out.items():
@@ -354,14 +412,31 @@ def evaluate(config: ml_collections.ConfigDict, workdir: str,
                    'frame_stride': stride,
                    'background_threshold': eval_config.get(
                        'background_threshold')},
-      'checkpoints': {'savi_step': savi_step,
-                      'slotformer_step': slotformer_step},
-      'seconds': time.time() - started,
+      'checkpoints': {'savi_step': savi_step, **{
+          f'{name}_step': step for name, step in dynamics_steps.items()}},
+      'seconds': {'savi': savi_results.pop('seconds'),
+                  'rollout': time.time() - rollout_started,
+                  'total': time.time() - started},
   }
   if jax.process_index() == 0:
     _write_results(eval_dir(workdir), results)
     print(format_table(results))
   return results
+
+
+def _check_has_segmentations(source: Any, names: tuple[str, ...]) -> None:
+  """Object metrics need ground-truth masks; say so before any compute."""
+  if not len(source):
+    return
+  try:
+    source[0]
+  except KeyError:
+    asked = [name for name in names if name in OBJECT_METRICS]
+    frame_only = ','.join(name for name in names if name in FRAME_METRICS)
+    raise ValueError(
+        f'evaluation.metrics asks for {asked}, which need ground-truth '
+        f"'{SEGMENTATION_FIELD}', but this dataset has none. Evaluate frame "
+        f'metrics only: --config.evaluation.metrics={frame_only or "psnr"}')
 
 
 def _write_results(directory: str, results: dict[str, Any]) -> None:
@@ -395,8 +470,11 @@ def format_table(results: dict[str, Any]) -> str:
       cells.append(f'{"-" if value is None else f"{value:.4f}":>10}')
     lines.append(f'{method:<22}' + ''.join(cells))
   savi = results['savi']
-  lines.append(
-      f'SAVi on the whole videos: FG-ARI {savi["fg_ari"]:.4f} (per frame '
-      f'{savi["fg_ari_per_frame"]:.4f}), ARI {savi["ari"]:.4f}, '
-      f'PSNR {savi["psnr"]:.2f} dB')
+  if 'fg_ari' in savi:
+    lines.append(
+        f'SAVi on the whole videos: FG-ARI {savi["fg_ari"]:.4f} (per frame '
+        f'{savi["fg_ari_per_frame"]:.4f}), ARI {savi["ari"]:.4f}, '
+        f'PSNR {savi["psnr"]:.2f} dB')
+  else:
+    lines.append(f'SAVi on the whole videos: PSNR {savi["psnr"]:.2f} dB')
   return '\n'.join(lines)

@@ -1,15 +1,23 @@
-"""Pictures of rollouts: GIFs and PNG strips.
+"""Pictures of rollouts: GIFs, PNG strips, metric curves, attention maps.
 
-For each rendered held-out video, every frame shows side by side: the ground
-truth, SlotFormer's frame (SAVi's reconstruction during burn-in, the decoded
-prediction afterwards), the copy-last baseline, and each slot's
-reconstruction weighted by its alpha mask. A red border marks predicted
-(rollout) frames.
+Written by `--mode=render` under `<workdir>/render/`:
+
+* `rollout_<i>.gif` / `.png`: for a few held-out videos, side by side over
+  time: the ground truth, SlotFormer's frame (SAVi's reconstruction during
+  burn-in, the decoded prediction afterwards), the baselines (copy-last, and
+  Slot-LSTM when trained), and each SlotFormer slot's reconstruction weighted
+  by its alpha mask. A red border marks predicted (rollout) frames.
+* `per_step.png`: every per-step rollout metric of `eval/metrics.json`
+  against the rollout step, methods overlaid (the paper's per-step figure).
+* `attention_<i>.png`: the paper's appendix attention analysis (see
+  `attention_maps`).
 """
 
 from __future__ import annotations
 
 import functools
+import json
+import logging
 import os
 from typing import Any
 
@@ -24,7 +32,11 @@ from PIL import ImageDraw
 
 from slotformer_jax import models
 from slotformer_jax import stages
+from slotformer_jax.evaluation import evaluate
+from slotformer_jax.modules.slotformer import SlotFormer
 from slotformer_jax.train import steps
+
+logger = logging.getLogger(__name__)
 
 _BORDER = 2
 _ROLLOUT_COLOUR = (220, 40, 40)
@@ -67,30 +79,99 @@ def compose_frame(columns: list[np.ndarray], labels: list[str], *,
   return np.asarray(canvas)
 
 
-def make_renderer(config: ml_collections.ConfigDict):
-  """Jitted (params, decoder_params, slots [B, T, N, D]) -> picture arrays."""
-  model = models.build_slotformer(config)
+_METHOD_LABELS = {'slotformer': 'SlotFormer', 'copy_last': 'copy-last',
+                  'slot_lstm': 'Slot-LSTM',
+                  'savi_reconstruction': 'SAVi recon.'}
+
+
+def make_renderer(config: ml_collections.ConfigDict,
+                  dynamics_names: tuple[str, ...] = (models.SLOTFORMER,)):
+  """Jitted (dynamics_params, decoder_params, slots [B, T, N, D]) -> pictures.
+
+  Returns {method: recon [B, T, H, W, 3]} for every dynamics model and
+  copy-last (burn-in frames: SAVi's reconstruction), and 'slot_views' [B, T,
+  N, H, W, 3], SlotFormer's per-slot reconstructions on white.
+  """
+  dynamics = {name: models.build_dynamics(config, name)
+              for name in dynamics_names}
   decoder = models.build_decoder(config)
   burn_in = config.slotformer.burn_in
   rollout = config.evaluation.rollout_steps
 
   @jax.jit
-  def render(params, decoder_params, slots):
+  def render(dynamics_params, decoder_params, slots):
     history = slots[:, :burn_in]
-    predicted = steps.rollout_slots(params, history, model=model,
-                                    num_steps=rollout)
-    copy_last = steps.copy_last_rollout(history, rollout)
+    futures = {name: steps.rollout_slots(dynamics_params[name], history,
+                                         model=model, num_steps=rollout)
+               for name, model in dynamics.items()}
+    futures['copy_last'] = steps.copy_last_rollout(history, rollout)
     with_history = lambda future: jnp.concatenate([history, future], axis=1)
     decode = functools.partial(steps.decode_slots, decoder_params,
                                decoder=decoder)
-    slotformer = decode(with_history(predicted))
-    baseline = decode(with_history(copy_last))
+    decoded = {name: decode(with_history(future))
+               for name, future in futures.items()}
+    out = {name: value.recon for name, value in decoded.items()}
+    slotformer = decoded[models.SLOTFORMER]
+    # Each slot's content where it is visible: rgb * alpha (+ white).
+    out['slot_views'] = (slotformer.rgb * slotformer.alpha_masks
+                         + (1.0 - slotformer.alpha_masks))
+    return out
+
+  return render
+
+
+def last_layer_attention(params: Any, history: jax.Array, *,
+                         model: SlotFormer) -> jax.Array:
+  """SlotFormer's last-layer attention from the predicted slots.
+
+  history [B, T, N, D] -> a [B, N, T, N]: a[b, i, t, j] is the attention
+  (averaged over heads) of the token predicting slot i of frame T + 1 to
+  slot j of input frame t; it sums to 1 over (t, j).
+  """
+  _, variables = model.apply({'params': params}, history,
+                             method=model.predict_next,
+                             mutable=['intermediates'])
+  blocks = variables['intermediates']['predictor']['transformer']
+  last = blocks[f'block_{model.num_layers - 1}']
+  weights = last['attention']['attention_weights'][0]  # [B, H, Q, K]
+  batch, num_frames, num_slots, _ = history.shape
+  from_predicted = jnp.mean(weights[:, :, -num_slots:], axis=1)  # [B, N, TN]
+  return from_predicted.reshape(batch, num_slots, num_frames, num_slots)
+
+
+def attention_maps(attention: jax.Array, slot_rgb: jax.Array,
+                   slot_alpha: jax.Array) -> jax.Array:
+  """The paper's spatial attention maps o^i_t = sum_j a^i_{t,j} m^j_t y^j_t.
+
+  attention [B, N, T, N]; slot_rgb [B, T, N, H, W, 3] and slot_alpha
+  [B, T, N, H, W, 1]: SAVi's per-slot reconstructions of the input frames.
+  Returns o [B, N, T, H, W, 3].
+  """
+  views = slot_alpha * slot_rgb  # [B, T, N, H, W, 3]
+  return jnp.einsum('bitj,btjhwc->bithwc', attention, views)
+
+
+def make_attention_renderer(config: ml_collections.ConfigDict):
+  """Jitted (params, decoder_params, history [B, T, N, D]) -> arrays of the
+  attention figure: 'maps' [B, N, T, H, W, 3], 'frames_recon' [B, T, H, W,
+  3], 'predicted_views' [B, N, H, W, 3] (each predicted slot's
+  reconstruction on black) and 'predicted_recon' [B, H, W, 3]."""
+  model = models.build_slotformer(config)
+  decoder = models.build_decoder(config)
+
+  @jax.jit
+  def render(params, decoder_params, history):
+    attention = last_layer_attention(params, history, model=model)
+    inputs = steps.decode_slots(decoder_params, history, decoder=decoder)
+    predicted = steps.decode_slots(
+        decoder_params, model.apply({'params': params}, history,
+                                    method=model.predict_next),
+        decoder=decoder)
     return {
-        'slotformer': slotformer.recon,
-        'copy_last': baseline.recon,
-        # Each slot's content where it is visible: rgb * alpha (+ white).
-        'slot_views': slotformer.rgb * slotformer.alpha_masks
-                      + (1.0 - slotformer.alpha_masks),
+        'maps': attention_maps(attention, inputs.rgb, inputs.alpha_masks),
+        'frames_recon': inputs.recon,
+        'predicted_views': predicted.rgb * predicted.alpha_masks,
+        'predicted_recon': predicted.recon,
     }
 
   return render
@@ -98,13 +179,15 @@ def make_renderer(config: ml_collections.ConfigDict):
 
 def render(config: ml_collections.ConfigDict, workdir: str,
            mesh: Mesh) -> list[str]:
-  """Writes GIFs and PNG strips of a few held-out rollouts; returns paths.
-
-  The handful of videos is rendered on one device of the lead host.
-  """
+  """Writes GIFs, PNG strips, attention maps and the per-step curves of a few
+  held-out rollouts; returns the paths. Rendered on one device of the lead
+  host."""
   render_config = config.render
   savi_params, _ = stages.load_savi_params(config, workdir, mesh)
-  params, _ = stages.load_slotformer_params(config, workdir, mesh)
+  dynamics_names = evaluate.dynamics_to_evaluate(config)
+  dynamics_params = {
+      name: stages.load_dynamics_params(config, workdir, mesh, name)[0]
+      for name in dynamics_names}
   if jax.process_index() != 0:
     return []
   burn_in = config.slotformer.burn_in
@@ -117,21 +200,29 @@ def render(config: ml_collections.ConfigDict, workdir: str,
   items = [source[i] for i in range(count)]
   slots = np.stack([item['slots'][:frames_needed:stride] for item in items])
   videos = np.stack([item['video'][:frames_needed:stride] for item in items])
-  out = jax.device_get(make_renderer(config)(
-      jax.device_get(params), jax.device_get(savi_params['decoder']), slots))
+  if slots.shape[1] < burn_in + rollout:
+    raise ValueError(
+        f'rendering needs {frames_needed} frames per video, the videos have '
+        f'{len(items[0]["slots"])}; lower evaluation.rollout_steps')
+  dynamics_params = jax.device_get(dynamics_params)
+  decoder_params = jax.device_get(savi_params['decoder'])
+  out = jax.device_get(make_renderer(config, dynamics_names)(
+      dynamics_params, decoder_params, slots))
+  attention = jax.device_get(make_attention_renderer(config)(
+      dynamics_params[models.SLOTFORMER], decoder_params, slots[:, :burn_in]))
 
   directory = render_dir(workdir)
   os.makedirs(directory, exist_ok=True)
   written = []
+  methods = [name for name in (*dynamics_names, 'copy_last')]
   num_slots = config.savi.num_slots
-  labels = ['truth', 'SlotFormer', 'copy-last'] + [
+  labels = ['truth'] + [_METHOD_LABELS[m] for m in methods] + [
       f'slot {n}' for n in range(num_slots)]
   for video_index in range(count):
     gif_frames = []
     for t in range(burn_in + rollout):
-      columns = [videos[video_index, t],
-                 _to_uint8(out['slotformer'][video_index, t]),
-                 _to_uint8(out['copy_last'][video_index, t])]
+      columns = [videos[video_index, t]]
+      columns += [_to_uint8(out[m][video_index, t]) for m in methods]
       columns += [_to_uint8(out['slot_views'][video_index, t, n])
                   for n in range(num_slots)]
       is_rollout = t >= burn_in
@@ -144,29 +235,100 @@ def render(config: ml_collections.ConfigDict, workdir: str,
     imageio.mimsave(gif_path, gif_frames, duration=1.0 / render_config.fps,
                     loop=0)
     png_path = os.path.join(directory, f'rollout_{video_index:03d}.png')
-    _write_strip(png_path, videos[video_index], out, video_index, burn_in,
-                 render_config)
-    written += [gif_path, png_path]
+    rows = [videos[video_index]] + [
+        _to_uint8(out[m][video_index]) for m in methods] + [
+            _to_uint8(out['slot_views'][video_index, :, n])
+            for n in range(num_slots)]
+    _write_strip(png_path, rows, burn_in, render_config)
+    attention_path = os.path.join(directory,
+                                  f'attention_{video_index:03d}.png')
+    _write_attention_figure(attention_path, videos[video_index, :burn_in + 1],
+                            jax.tree.map(lambda x: x[video_index], attention),
+                            render_config.scale)
+    written += [gif_path, png_path, attention_path]
+  curves = write_per_step_figure(workdir)
+  if curves:
+    written.append(curves)
   print(f'wrote {len(written)} pictures to {directory}')
   return written
 
 
-def _write_strip(path: str, video: np.ndarray, out: dict[str, Any],
-                 video_index: int, burn_in: int,
+def _write_strip(path: str, rows: list[np.ndarray], burn_in: int,
                  render_config: ml_collections.ConfigDict) -> None:
-  """Rows: truth, SlotFormer, copy-last, then each slot; columns: time."""
-  num_frames = video.shape[0]
+  """rows: uint8 [T, H, W, 3] each (truth, methods, slots); columns: time."""
+  num_frames = rows[0].shape[0]
   columns = list(range(0, num_frames, max(1, render_config.strip_every)))
-  rows = [[video[t] for t in columns],
-          [_to_uint8(out['slotformer'][video_index, t]) for t in columns],
-          [_to_uint8(out['copy_last'][video_index, t]) for t in columns]]
-  for n in range(out['slot_views'].shape[2]):
-    rows.append([_to_uint8(out['slot_views'][video_index, t, n])
-                 for t in columns])
   grid = np.concatenate([
       np.concatenate([
-          _tile(image, _ROLLOUT_COLOUR if t >= burn_in else _BURN_IN_COLOUR,
+          _tile(row[t], _ROLLOUT_COLOUR if t >= burn_in else _BURN_IN_COLOUR,
                 render_config.scale)
-          for image, t in zip(row, columns)], axis=1)
+          for t in columns], axis=1)
       for row in rows], axis=0)
   Image.fromarray(grid).save(path)
+
+
+def _write_attention_figure(path: str, frames: np.ndarray,
+                            attention: dict[str, np.ndarray],
+                            scale: int) -> None:
+  """The appendix figure for one video.
+
+  Top row: the T input frames and the predicted frame T + 1. Row i: the
+  spatial attention maps o^i_t of predicted slot i over the input frames,
+  then slot i's predicted reconstruction. Each row's maps are scaled by that
+  row's maximum so weak and strong rows are both visible.
+  """
+  maps = attention['maps']  # [N, T, H, W, 3]
+  num_slots, num_frames = maps.shape[:2]
+  white = (255, 255, 255)
+  top = [_tile(frames[t], _BURN_IN_COLOUR, scale) for t in range(num_frames)]
+  top.append(_tile(_to_uint8(attention['predicted_recon']), _ROLLOUT_COLOUR,
+                   scale))
+  rows = [np.concatenate(top, axis=1)]
+  for i in range(num_slots):
+    row_maps = maps[i] / max(float(maps[i].max()), 1e-8)
+    tiles = [_tile(_to_uint8(row_maps[t]), white, scale)
+             for t in range(num_frames)]
+    tiles.append(_tile(_to_uint8(attention['predicted_views'][i]),
+                       _ROLLOUT_COLOUR, scale))
+    rows.append(np.concatenate(tiles, axis=1))
+  Image.fromarray(np.concatenate(rows, axis=0)).save(path)
+
+
+def write_per_step_figure(workdir: str) -> str | None:
+  """`render/per_step.png` from `eval/metrics.json`: one panel per metric,
+  value against rollout step, methods overlaid. None (and a log line) when
+  the evaluation has not been run."""
+  metrics_path = os.path.join(evaluate.eval_dir(workdir), 'metrics.json')
+  if not os.path.exists(metrics_path):
+    logger.warning('no %s: run --mode=evaluate first for the per-step '
+                   'figure', metrics_path)
+    return None
+  import matplotlib  # pylint: disable=g-import-not-at-top
+  matplotlib.use('Agg')
+  from matplotlib import pyplot as plt  # pylint: disable=g-import-not-at-top
+
+  with open(metrics_path) as f:
+    rollout = json.load(f)['rollout']
+  names = [n for n in (*evaluate.FRAME_METRICS, *evaluate.OBJECT_METRICS)
+           if any(n in per_metric for per_metric in rollout.values())]
+  figure, axes = plt.subplots(1, len(names), figsize=(3.2 * len(names), 2.8),
+                              squeeze=False)
+  for axis, name in zip(axes[0], names):
+    for method, per_metric in rollout.items():
+      if name not in per_metric:
+        continue
+      values = [np.nan if v is None else v
+                for v in per_metric[name]['per_step']]
+      axis.plot(np.arange(1, len(values) + 1), values,
+                label=_METHOD_LABELS.get(method, method),
+                linestyle='--' if method == 'savi_reconstruction' else '-')
+    axis.set_title(name.upper().replace('_', '-'))
+    axis.set_xlabel('rollout step')
+    axis.grid(alpha=0.3)
+  axes[0][0].legend(fontsize=7)
+  figure.tight_layout()
+  path = os.path.join(render_dir(workdir), 'per_step.png')
+  os.makedirs(render_dir(workdir), exist_ok=True)
+  figure.savefig(path, dpi=120)
+  plt.close(figure)
+  return path

@@ -18,6 +18,7 @@ import optax
 from slotformer_jax.modules.decoders import SpatialBroadcastDecoder
 from slotformer_jax.modules.savi import SAVi
 from slotformer_jax.modules.slotformer import SlotFormer
+from slotformer_jax.modules.slot_lstm import SlotLSTM
 from slotformer_jax.train.state import TrainState
 
 Batch = dict[str, jax.Array]
@@ -68,7 +69,7 @@ def savi_loss(params: Any, batch: Batch, frozen_params: Any, rng: jax.Array,
 
 
 def slotformer_loss(params: Any, batch: Batch, decoder_params: Any,
-                    rng: jax.Array, *, model: SlotFormer,
+                    rng: jax.Array, *, model: SlotFormer | SlotLSTM,
                     decoder: SpatialBroadcastDecoder, rollout: int,
                     image_loss_weight: float, teacher_forcing: bool
                     ) -> tuple[jax.Array, Metrics]:
@@ -122,7 +123,8 @@ def decode_slots(decoder_params: Any, slots: jax.Array, *,
 
 
 def rollout_slots(params: Any, burn_in_slots: jax.Array, *,
-                  model: SlotFormer, num_steps: int) -> jax.Array:
+                  model: SlotFormer | SlotLSTM,
+                  num_steps: int) -> jax.Array:
   """[B, burn_in, N, D] -> [B, num_steps, N, D] (deterministic)."""
   return model.apply({'params': params}, burn_in_slots, num_steps)
 
