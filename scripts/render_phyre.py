@@ -1,9 +1,9 @@
 """Renders PHYRE rollouts into the layout ``slotformer_jax.data.phyre`` reads.
 
 The ``phyre`` simulator has no wheel for the Python this project uses, so run
-this script once in an environment where ``pip install phyre`` works (its
-wheels target older CPython versions on Linux / macOS), then convert its
-output anywhere::
+this script once in an environment where ``pip install phyre`` works (phyre
+0.2.2 has Linux wheels for CPython 3.6-3.9; this script needs 3.7+ and only
+numpy, Pillow and phyre), then convert its output anywhere::
 
     python scripts/render_phyre.py --out=/data/phyre_rollouts --fold=0
     python -m slotformer_jax.data.prepare --dataset=phyre \\

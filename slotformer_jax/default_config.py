@@ -21,6 +21,12 @@ def base_config() -> ml_collections.ConfigDict:
   config.data = ml_collections.ConfigDict()
   config.data.name = 'synthetic'
   config.data.data_dir = None  # None: $SLOTFORMER_DATA_DIR or ~/.cache/...
+  # Real datasets: 'rgb' (as converted) or 'bgr' (the official CLEVRER /
+  # Physion models saw OpenCV's BGR frames).
+  config.data.channel_order = 'rgb'
+  # Real datasets: which conversion under <data_dir>/<name> to read when
+  # `resolution` does not single one out (None: the only / matching one).
+  config.data.prepared_config = None
   config.data.resolution = (64, 64)
   # Largest ground-truth instance id in the segmentations (0 = background).
   config.data.max_instances = 6

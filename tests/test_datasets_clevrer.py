@@ -17,6 +17,11 @@ from slotformer_jax.data import prepare
 from slotformer_jax.data import sources
 from slotformer_jax.data import writer
 
+# ffmpeg runs as a subprocess (fork + exec at once), which JAX's fork warning
+# does not tell apart from a bare fork when JAX was imported by another test.
+pytestmark = pytest.mark.filterwarnings(
+    r'ignore:os\.fork\(\) was called:RuntimeWarning')
+
 T = 16            # frames per fixture video (CLEVRER: 128)
 SRC_H, SRC_W = 32, 48   # fixture frame size (CLEVRER: 320 x 480, same ratio)
 RES = 16          # converted resolution

@@ -274,6 +274,28 @@ def tiny_obj3d_config(data_dir: Path) -> ml_collections.ConfigDict:
   return config
 
 
+def test_config_fields_select_conversion_and_channel_order(converted,
+                                                           tmp_path):
+  root, _ = converted
+  data_dir = tmp_path / 'data'
+  # Two conversions of the same videos at the same resolution.
+  assert prepare.main(convert_args(root, data_dir, '--splits=train')) == 0
+  assert prepare.main(convert_args(root, data_dir, '--splits=train',
+                                   '--limit=2')) == 0
+  config = tiny_obj3d_config(data_dir)
+  config.lock()   # as main.py's --config flag: only existing fields
+  with pytest.raises(ValueError, match='data.prepared_config'):
+    sources.get_video_source(config.data, 'train')
+  config.data.prepared_config = obj3d.Options(
+      resolution=(RES, RES), num_frames=KEEP).config_name
+  config.data.channel_order = 'bgr'
+  source = sources.get_video_source(config.data, 'train')
+  assert len(source) == len(TRAIN_VIDEOS)
+  np.testing.assert_array_equal(source[0]['video'][0, 0, 0], [0, 0, 255])
+  config.data.prepared_config += '_first2'
+  assert len(sources.get_video_source(config.data, 'train')) == 2
+
+
 def test_obj3d_config_runs_the_pipeline_on_converted_data(converted, tmp_path):
   # Imported here: the other tests need no JAX.
   from slotformer_jax import stages  # pylint: disable=g-import-not-at-top

@@ -15,6 +15,11 @@ from slotformer_jax.data import pipeline
 from slotformer_jax.data import prepare
 from slotformer_jax.data import sources
 
+# ffmpeg runs as a subprocess (fork + exec at once), which JAX's fork warning
+# does not tell apart from a bare fork when JAX was imported by another test.
+pytestmark = pytest.mark.filterwarnings(
+    r'ignore:os\.fork\(\) was called:RuntimeWarning')
+
 LONG, SHORT = 20, 8     # frames of the two template videos
 KEEP = 12               # --num_frames (the paper: 150)
 RES = 16

@@ -197,7 +197,13 @@ def discover(source: Path, split: str, options: Options) -> list[RolloutJob]:
 
 
 def num_moving_frames(frames: np.ndarray) -> int:
-  """Frames up to the first one identical to its successor (all if none)."""
+  """Frames up to the first one identical to its successor (all if none).
+
+  Counted within the stored frames (the rollout cut to ``num_frames``), so
+  it is ``min(moving frames of the whole simulation, num_frames)``. The
+  official helper has one quirk we do not copy: when frames 0 and 1 are
+  already identical it reports every frame as moving; here that gives 1.
+  """
   same = (frames[1:] == frames[:-1]).reshape(len(frames) - 1, -1).all(axis=1)
   return int(same.argmax()) + 1 if same.any() else len(frames)
 

@@ -196,7 +196,9 @@ def open_prepared_dataset(
   if len(candidates) > 1:
     listing = '\n  '.join(os.fspath(c) for c in candidates)
     raise ValueError(f'Several prepared datasets under {root}; pass one of '
-                     f'them (or set resolution):\n  {listing}')
+                     'them (or set resolution; for a config: set '
+                     'data.prepared_config to the folder name between '
+                     f'{root.name}/ and the version):\n  {listing}')
   dataset_dir = candidates[0]
   if want is not None:
     have = _video_resolution(dataset_dir)

@@ -42,6 +42,7 @@ import multiprocessing
 import os
 import shutil
 import time
+import uuid
 from collections import Counter
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from pathlib import Path
@@ -190,7 +191,9 @@ def _manifest_path(dataset_dir: Path, split: str) -> Path:
 
 
 def _write_json_atomic(path: Path, payload: Any) -> None:
-  tmp = path.with_name(path.name + '.tmp')
+  # A name of its own per writer: hosts sharing data_dir may write the same
+  # file (e.g. the manifest) at once.
+  tmp = path.with_name(f'{path.name}.{uuid.uuid4().hex}.tmp')
   with open(tmp, 'w') as f:
     json.dump(payload, f, indent=1, sort_keys=True)
   os.replace(tmp, path)

@@ -1,0 +1,119 @@
+r"""Frames per second of the training reader over a converted dataset.
+
+  python benchmarks/reader_speed.py [--videos=64] [--seconds=10]
+
+Writes OBJ3D-layout PNG videos (64x64, 50 frames of smooth backgrounds with
+moving squares, like rendered scenes: they compress as real frames do),
+converts them with ``python -m slotformer_jax.data.prepare``, then times:
+
+* random access: whole videos read from array_record and decoded to numpy
+  (``source[i]``), in frames/s;
+* ``pipeline.train_batches`` (the training reader, background prefetch as in
+  training) for the clip shapes the stages use, in delivered clip frames/s
+  (batch x clip length x batches / s). Each clip reads its whole video, so
+  delivered frames/s = decoded frames/s x clip length / video length.
+
+Run it on an otherwise idle machine for numbers you compare.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import tempfile
+import time
+from pathlib import Path
+
+import ml_collections
+import numpy as np
+from PIL import Image
+
+from slotformer_jax.data import pipeline
+from slotformer_jax.data import prepare
+from slotformer_jax.data import sources
+
+RES = 64
+FRAMES = 50
+
+
+def write_obj3d_like(root: Path, num_videos: int, seed: int = 0) -> None:
+  """``<root>/train/<n>/test_<t>.png``: 50 frames of moving squares."""
+  rng = np.random.default_rng(seed)
+  ys, xs = np.mgrid[:RES, :RES]
+  for video in range(num_videos):
+    folder = root / 'train' / str(video)
+    folder.mkdir(parents=True, exist_ok=True)
+    background = (60 + 40 * ys / RES + 20 * xs / RES)[..., None] * np.ones(3)
+    squares = [(rng.integers(0, RES - 12, 2), rng.integers(-2, 3, 2),
+                rng.integers(40, 255, 3)) for _ in range(4)]
+    for t in range(FRAMES):
+      frame = background.copy()
+      for position, velocity, color in squares:
+        y, x = np.clip(position + t * velocity, 0, RES - 12)
+        frame[y:y + 12, x:x + 12] = color
+      frame += rng.normal(0, 1.5, frame.shape)   # renderer noise
+      Image.fromarray(np.clip(frame, 0, 255).astype(np.uint8)).save(
+          folder / f'test_{t + 1}.png')
+
+
+def time_random_access(source, seconds: float) -> float:
+  """Decoded frames/s of whole-video reads in a random order."""
+  rng = np.random.default_rng(0)
+  frames, started = 0, time.perf_counter()
+  while time.perf_counter() - started < seconds:
+    frames += len(source[int(rng.integers(len(source)))]['video'])
+  return frames / (time.perf_counter() - started)
+
+
+def time_train_batches(source, batch_size: int, clip_length: int,
+                       frame_stride: int, seconds: float) -> float:
+  """Delivered clip frames/s of pipeline.train_batches."""
+  batches = pipeline.train_batches(
+      source, batch_size=batch_size, clip_length=clip_length, seed=0,
+      frame_stride=frame_stride)
+  next(batches)  # start the prefetch thread
+  count, started = 0, time.perf_counter()
+  while time.perf_counter() - started < seconds:
+    batch = next(batches)
+    count += batch['video'].shape[0] * batch['video'].shape[1]
+  elapsed = time.perf_counter() - started
+  batches.close()
+  return count / elapsed
+
+
+def main() -> None:
+  parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+  parser.add_argument('--videos', type=int, default=64)
+  parser.add_argument('--seconds', type=float, default=10.0)
+  parser.add_argument('--workdir', default=None,
+                      help='keep the fixture and conversion here')
+  args = parser.parse_args()
+  with tempfile.TemporaryDirectory() as tmp:
+    work = Path(args.workdir or tmp)
+    if not (work / 'OBJ3D' / 'train').is_dir():
+      write_obj3d_like(work / 'OBJ3D', args.videos)
+    prepare.main(['--dataset=obj3d', f'--source={work / "OBJ3D"}',
+                  f'--data_dir={work / "data"}', '--splits=train',
+                  '--no_progress', '--num_workers=2'])
+    source = sources.get_video_source(ml_collections.ConfigDict(
+        {'name': 'obj3d', 'data_dir': str(work / 'data'),
+         'resolution': (RES, RES)}), 'train')
+    shards = sorted(source.dataset_dir.glob('*.array_record-*'))
+    size = sum(p.stat().st_size for p in shards)
+    print(f'{len(source)} videos of {FRAMES}x{RES}x{RES}: {size / 2**20:.1f} '
+          f'MiB on disk ({size / (len(source) * FRAMES * RES * RES * 3):.0%}'
+          ' of raw); cores available: '
+          f'{len(os.sched_getaffinity(0))}')
+    print(f'random access (whole videos): '
+          f'{time_random_access(source, args.seconds):8.0f} frames/s decoded')
+    for batch_size, clip, stride, what in (
+        (64, 6, 1, 'SAVi clips (OBJ3D: batch 64 x 6 frames)'),
+        (64, 16, 1, 'SlotFormer clips with L_I (batch 64 x 16 frames)'),
+        (64, 16, 2, 'CLEVRER-style stride 2 (batch 64 x 16 frames)')):
+      rate = time_train_batches(source, batch_size, clip, stride,
+                                args.seconds)
+      print(f'train_batches {what}: {rate:8.0f} frames/s delivered')
+
+
+if __name__ == '__main__':
+  main()
