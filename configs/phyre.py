@@ -32,5 +32,8 @@ def get_config():
 
   config.extraction.chunk_length = 16
   config.evaluation.rollout_steps = 10
+  # The rendered layout has train / val folds only (no test split).
+  config.extraction.splits = ('train', 'val')
+  config.evaluation.split = 'val'
   config.evaluation.metrics = ('psnr', 'ssim', 'lpips')
   return config

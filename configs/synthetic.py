@@ -58,12 +58,25 @@ def get_config(variant: str = ''):
   dyn.num_layers = 2
   dyn.num_heads = 4
   dyn.dropout_rate = 0.0
-  dyn.image_loss_weight = 1.0
+  # The paper's remark: predict a refinement of the last slots. With a
+  # zero-initialised refinement the model starts as copy-last and only has to
+  # learn the motion, which a CPU budget of steps can afford (trained from
+  # scratch, 2000 steps did not even learn to copy: slot MSE 0.049 vs 0.011).
+  dyn.residual = True
+  # L_I decodes every predicted frame through SAVi's decoder: on a 2-core CPU
+  # that makes a step 12x slower (measured 0.42 vs 4.9 steps/s at batch 32),
+  # so the CPU demo trains on L_S alone (the paper's "no L_I" ablation row).
+  # Set it to 1.0 (the paper's value, kept by the real-dataset configs) on an
+  # accelerator.
+  dyn.image_loss_weight = 0.0
   dyn.batch_size = 32
-  dyn.num_train_steps = 1500
+  dyn.num_train_steps = 2000
   dyn.learning_rate = 5e-4
   dyn.log_every = 50
   dyn.checkpoint_every = 500
+
+  # The Slot-LSTM baseline, trained like SlotFormer, for the comparison table.
+  config.slot_lstm.train = True
 
   ev = config.evaluation
   ev.rollout_steps = 18  # 3x the training rollout
@@ -84,6 +97,7 @@ def get_config(variant: str = ''):
     dyn.burn_in, dyn.rollout = 3, 3
     dyn.batch_size = 4
     dyn.num_train_steps = 20
+    config.slot_lstm.train = False
     dyn.log_every = 10
     dyn.checkpoint_every = 10
     config.extraction.batch_size = 8

@@ -16,6 +16,9 @@ def base_config() -> ml_collections.ConfigDict:
   config.seed = 0
   # Which stage-1 model extracts the slots: 'savi' (incl. stochastic SAVi).
   config.slot_model = 'savi'
+  # Another run's workdir whose SAVi checkpoint and extracted slots this run
+  # uses (e.g. for stage-2 ablations); None: this run's own --workdir.
+  config.stage1_workdir = ml_collections.config_dict.placeholder(str)
 
   # ---- data (see slotformer_jax/data/sources.py for every field) ----------
   config.data = ml_collections.ConfigDict()
@@ -65,6 +68,7 @@ def base_config() -> ml_collections.ConfigDict:
   config.extraction = ml_collections.ConfigDict(dict(
       batch_size=16,  # videos per batch (global)
       chunk_length=16,  # frames per SAVi call; the state carries over
+      splits=('train', 'val', 'test'),  # the dataset's splits to extract
   ))
 
   # ---- stage 2: SlotFormer ------------------------------------------------
@@ -108,6 +112,9 @@ def base_config() -> ml_collections.ConfigDict:
   ev.num_videos = 0  # 0: all videos of the split
   ev.batch_size = 16
   ev.rollout_steps = 44
+  # 'first': each video from frame 0; 'clevrer': the official CLEVRER clips
+  # (no object entering during the rollout).
+  ev.clips = 'first'
   ev.chunk_length = 16  # frames per call in SAVi's whole-video evaluation
   ev.metrics = ('psnr', 'ssim', 'lpips', 'ari', 'fg_ari', 'fg_miou', 'ar')
   # None: a plain argmax over the alpha masks gives the predicted segments.

@@ -41,8 +41,13 @@ from slotformer_jax.train import steps
 
 logger = logging.getLogger(__name__)
 
-SPLITS = ('train', 'val', 'test')
 _MODEL_CONFIG_FILE = 'model_config.json'
+
+
+def stage1_workdir(config: ml_collections.ConfigDict, workdir: str) -> str:
+  """Where SAVi and the extracted slots live: `config.stage1_workdir` when
+  set (stage-2 ablations reuse one stage 1), else the run's own workdir."""
+  return config.get('stage1_workdir') or workdir
 
 
 def savi_dir(workdir: str) -> str:
@@ -119,7 +124,7 @@ def train_savi(config: ml_collections.ConfigDict, workdir: str,
   stage_config = config.savi
   clip_shape = (1, stage_config.clip_length, *config.data.resolution, 3)
   local_batch_size = sharding.per_host_batch_size(stage_config.batch_size, mesh)
-  directory = savi_dir(workdir)
+  directory = savi_dir(stage1_workdir(config, workdir))
   fields = savi_model_fields(config)
   _check_model_config(directory, fields, 'SAVi')
   _write_model_config(directory, fields)
@@ -145,7 +150,7 @@ def train_savi(config: ml_collections.ConfigDict, workdir: str,
 def load_savi_params(config: ml_collections.ConfigDict, workdir: str,
                      mesh: Mesh) -> tuple[Any, int]:
   """SAVi's trained parameters (replicated) and the step they are from."""
-  directory = savi_dir(workdir)
+  directory = savi_dir(stage1_workdir(config, workdir))
   checkpointer = checkpointer_for(directory, read_only=True)
   if checkpointer.latest_step() is None:
     raise FileNotFoundError(
@@ -200,8 +205,8 @@ def extract_slots(config: ml_collections.ConfigDict, workdir: str,
       config.extraction.batch_size, mesh)
   process_index, process_count = jax.process_index(), jax.process_count()
 
-  for split in SPLITS:
-    directory = slots_dir(workdir, split)
+  for split in config.extraction.splits:
+    directory = slots_dir(stage1_workdir(config, workdir), split)
     meta = read_meta(directory)
     if meta and meta.get('complete') and meta.get('savi_step') == savi_step:
       logger.info('slots of %s already extracted (SAVi step %d)', split,
@@ -268,7 +273,8 @@ def slot_source_for(config: ml_collections.ConfigDict, workdir: str,
                     split: str, video_fields: tuple[str, ...]) -> SlotSource:
   """Extracted slots of `split` served together with `video_fields`."""
   video_source = get_video_source(config.data, split) if video_fields else None
-  return SlotSource(slots_dir(workdir, split), video_source, video_fields)
+  return SlotSource(slots_dir(stage1_workdir(config, workdir), split),
+                    video_source, video_fields)
 
 
 def dynamics_dir(workdir: str, name: str = models.SLOTFORMER) -> str:

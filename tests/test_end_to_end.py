@@ -38,6 +38,8 @@ def _micro_config(data_dir):
   config.slotformer.burn_in, config.slotformer.rollout = 2, 2
   config.slotformer.num_train_steps = 4
   config.slotformer.log_every = config.slotformer.checkpoint_every = 2
+  config.slot_lstm.train = True  # the baseline runs through every stage too
+  config.slot_lstm.num_train_steps = 2
   config.extraction.chunk_length = 4  # two chunks per video carry the state
   config.evaluation.rollout_steps = 6
   config.evaluation.batch_size = 4
@@ -50,6 +52,7 @@ def _run_all(config, workdir, mesh):
   stages.train_savi(config, workdir, mesh)
   stages.extract_slots(config, workdir, mesh)
   stages.train_slotformer(config, workdir, mesh)
+  stages.train_slot_lstm(config, workdir, mesh)
   results = evaluate.evaluate(config, workdir, mesh)
   pictures = visualize.render(config, workdir, mesh)
   return results, pictures
@@ -61,7 +64,7 @@ def test_pipeline_runs_end_to_end_and_resumes(tmp_path):
   mesh = sharding.make_mesh()  # 4 fake devices: every stage runs sharded
   results, pictures = _run_all(config, workdir, mesh)
 
-  for stage in ('savi', 'slotformer'):
+  for stage in ('savi', 'slotformer', 'slot_lstm'):
     assert os.listdir(os.path.join(workdir, stage, 'checkpoints'))
   for split in ('train', 'val', 'test'):
     meta = json.load(open(os.path.join(workdir, 'slots', split,
@@ -71,14 +74,19 @@ def test_pipeline_runs_end_to_end_and_resumes(tmp_path):
   assert source[0]['slots'].shape == (8, config.savi.num_slots,
                                       config.savi.slot_size)
   saved = json.load(open(os.path.join(workdir, 'eval', 'metrics.json')))
-  assert saved['checkpoints'] == {'savi_step': 4, 'slotformer_step': 4}
-  for method in ('slotformer', 'copy_last', 'savi_reconstruction'):
+  assert saved['checkpoints'] == {'savi_step': 4, 'slotformer_step': 4,
+                                  'slot_lstm_step': 2}
+  assert list(saved['rollout']) == ['slotformer', 'slot_lstm', 'copy_last',
+                                    'savi_reconstruction']
+  for method in saved['rollout']:
     per_step = saved['rollout'][method]['psnr']['per_step']
     assert len(per_step) == 6 and all(v is not None for v in per_step)
   assert 0.0 <= saved['rollout']['slotformer']['ssim']['mean'] <= 1.0
   assert saved['savi']['num_videos'] == 4
   assert os.path.exists(os.path.join(workdir, 'eval', 'per_step.csv'))
   assert any(p.endswith('.gif') for p in pictures)
+  assert any(os.path.basename(p).startswith('attention_') for p in pictures)
+  assert os.path.join(workdir, 'render', 'per_step.png') in pictures
   assert all(os.path.getsize(p) > 0 for p in pictures)
 
   # Re-running resumes: nothing is retrained or re-extracted.
@@ -87,6 +95,13 @@ def test_pipeline_runs_end_to_end_and_resumes(tmp_path):
   results_again, _ = _run_all(config, workdir, mesh)
   assert os.path.getmtime(slots_file) == before
   assert results_again['rollout'] == results['rollout']
+
+  # Datasets without instance masks (e.g. OBJ3D) evaluate frame metrics only.
+  config.evaluation.metrics = ('psnr',)
+  frame_only = evaluate.evaluate(config, workdir, mesh)
+  assert set(frame_only['savi']) == {'psnr', 'num_videos', 'num_frames'}
+  assert frame_only['rollout']['slotformer']['psnr'] == (
+      results['rollout']['slotformer']['psnr'])
 
 
 def test_stage_two_explains_a_missing_stage_one(tmp_path):

@@ -130,6 +130,12 @@ def test_scan_rollout_equals_python_loop(residual):
   model = _slotformer(residual=residual)
   history = jax.random.normal(jax.random.key(0), (2, 3, 4, 8))
   params = model.init(jax.random.key(1), history, 6)
+  # Perturb every weight (the residual variant's output layer starts at 0).
+  leaves, treedef = jax.tree.flatten(params)
+  noise = jax.random.split(jax.random.key(2), len(leaves))
+  params = jax.tree.unflatten(treedef, [
+      leaf + 0.1 * jax.random.normal(key, leaf.shape)
+      for leaf, key in zip(leaves, noise)])
   rolled = model.apply(params, history, 6)
   window, expected = history, []
   for _ in range(6):
@@ -158,10 +164,16 @@ def test_teacher_forcing_feeds_the_given_slots():
 def test_residual_prediction_starts_from_the_last_slots():
   model = _slotformer(residual=True)
   history = jax.random.normal(jax.random.key(0), (1, 3, 4, 8))
-  params = model.init(jax.random.key(1), history, 1)
-  zeroed = jax.tree.map(jnp.zeros_like, params)  # the transformer adds 0
-  np.testing.assert_allclose(model.apply(zeroed, history, 1)[:, 0],
-                             history[:, -1], atol=1e-6)
+  params = model.init(jax.random.key(1), history, 4)
+  # Freshly initialised, the refinement is 0: the copy-last baseline.
+  np.testing.assert_allclose(model.apply(params, history, 4),
+                             jnp.repeat(history[:, -1:], 4, axis=1),
+                             atol=1e-6)
+  # The plain variant predicts from scratch.
+  plain = _slotformer(residual=False)
+  plain_params = plain.init(jax.random.key(1), history, 1)
+  assert not np.allclose(plain.apply(plain_params, history, 1)[:, 0],
+                         history[:, -1], atol=1e-2)
 
 
 def test_kl_matches_hand_computation():

@@ -310,3 +310,47 @@ def test_default_data_dir(monkeypatch, tmp_path):
   assert sources.default_data_dir() == tmp_path
   monkeypatch.delenv(sources.DATA_DIR_ENV)
   assert sources.default_data_dir() == Path.home() / '.cache' / 'slotformer_jax'
+
+
+def test_clip_source_starts_each_clip_at_its_frame():
+  source = FakeSource([10, 12])
+  clips = pipeline.ClipSource(source, [(1, 3), (0, 0), (1, 5)],
+                              time_fields=('code', 'slots'))
+  assert len(clips) == 3
+  batch = next(iter(pipeline.eval_batches(
+      clips, batch_size=3, fields=('code', 'slots'), num_frames=4)))
+  videos, frames = _decode(batch['code'])
+  np.testing.assert_array_equal(videos[:, 0], [1, 0, 1])
+  np.testing.assert_array_equal(frames, [[3, 4, 5, 6], [0, 1, 2, 3],
+                                         [5, 6, 7, 8]])
+  np.testing.assert_array_equal(batch['slots'][..., 0, 0], batch['code'])
+  assert clips[0]['num_objects'] == 1  # non-time entries pass through
+
+
+def test_clevrer_evaluation_clips_skip_entering_objects():
+  from slotformer_jax.data import clevrer  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.evaluation import evaluate  # pylint: disable=g-import-not-at-top
+  burn_in, rollout, stride, length = 4, 3, 2, 40
+  span = (burn_in + rollout - 1) * stride  # 12 full-rate frames
+  seen = clevrer.MIN_BURN_IN_FRAMES_VISIBLE
+  # Video 0: every object visible from the start -> the first start of each
+  # half-span block. Video 1: an object enters at frame 5, so the clips in
+  # which it would be seen in fewer than `seen` burn-in frames are dropped.
+  calm = np.ones((length, 2), bool)
+  entering = calm.copy()
+  entering[:5, 1] = False
+  videos = [{'in_view': calm, 'has_annotations': np.bool_(True)},
+            {'in_view': entering, 'has_annotations': np.bool_(True)}]
+  clips = evaluate.clevrer_clips(videos, 2, burn_in, rollout, stride)
+  assert [s for v, s in clips if v == 0] == list(
+      range(0, length - span, span // 2))
+  late_entry = lambda start: (start + (burn_in - seen) * stride < 5
+                              <= start + span)
+  entering_starts = [s for v, s in clips if v == 1]
+  assert entering_starts and not any(map(late_entry, entering_starts))
+  assert late_entry(0) and entering_starts[0] == min(
+      s for s in range(length - span) if not late_entry(s))
+  with pytest.raises(ValueError, match="'val' split"):
+    evaluate.clevrer_clips(
+        [{'in_view': calm, 'has_annotations': np.bool_(False)}], 1, burn_in,
+        rollout, stride)

@@ -66,3 +66,12 @@ def test_only_the_last_frame_is_not_enough():
   changed = history.at[:, 0].add(1.0)
   assert not np.allclose(model.apply(params, history, 1),
                          model.apply(params, changed, 1), atol=1e-4)
+
+
+def test_residual_variant_starts_as_copy_last():
+  model = SlotLSTM(burn_in=3, residual=True, **_SIZES)
+  history = jax.random.normal(jax.random.key(0), (2, 3, 4, 8))
+  params = model.init(jax.random.key(1), history, 3)
+  np.testing.assert_allclose(model.apply(params, history, 3),
+                             jnp.repeat(history[:, -1:], 3, axis=1),
+                             atol=1e-6)

@@ -325,3 +325,33 @@ def _eval_item(source: Source, index: int, fields: Sequence[str],
                      f'num_frames={num_frames}')
   return _slice_item(item, fields, index, 0,
                      length if num_frames is None else num_frames, 1)
+
+
+class ClipSource:
+  """Clips of a source's videos, each served as an item of its own.
+
+  ``clips[i] = (video, start)``: item ``i`` is ``source[video]`` with the
+  ``time_fields`` cut to begin at frame ``start`` (other entries unchanged).
+  Used for evaluation protocols that pick specific clips per video (e.g.
+  CLEVRER's clips without entering objects).
+  """
+
+  def __init__(self, source: Source, clips: Sequence[tuple[int, int]],
+               time_fields: Sequence[str]):
+    self._source = source
+    self._clips = [(int(video), int(start)) for video, start in clips]
+    self._time_fields = tuple(time_fields)
+
+  def __len__(self) -> int:
+    return len(self._clips)
+
+  def __getitem__(self, index: int) -> dict[str, Any]:
+    video, start = self._clips[index]
+    item = dict(self._source[video])
+    for field in self._time_fields:
+      item[field] = item[field][start:]
+    return item
+
+  @property
+  def clips(self) -> list[tuple[int, int]]:
+    return list(self._clips)

@@ -39,7 +39,10 @@ import tqdm
 
 from slotformer_jax import models
 from slotformer_jax import stages
+from slotformer_jax.data import clevrer
 from slotformer_jax.data import pipeline
+from slotformer_jax.data.pipeline import ClipSource
+from slotformer_jax.data.sources import get_video_source
 from slotformer_jax.evaluation import metrics as metrics_lib
 from slotformer_jax.train import sharding
 from slotformer_jax.train import steps
@@ -360,12 +363,14 @@ def evaluate(config: ml_collections.ConfigDict, workdir: str,
                                   video_fields)
   if with_segmentation:
     _check_has_segmentations(source, names)
-  local_batch_size = sharding.per_host_batch_size(eval_config.batch_size, mesh)
   num_videos = min(len(source), eval_config.num_videos or len(source))
+  source = evaluation_clips(config, source, ('slots',) + video_fields,
+                            num_videos)
+  local_batch_size = sharding.per_host_batch_size(eval_config.batch_size, mesh)
   shared = dict(batch_size=local_batch_size,
                 fields=('slots',) + video_fields,
                 process_index=jax.process_index(),
-                process_count=jax.process_count(), max_videos=num_videos)
+                process_count=jax.process_count(), max_videos=len(source))
 
   needed = (burn_in + rollout - 1) * stride + 1
   savi_started = time.time()
@@ -408,6 +413,7 @@ def evaluate(config: ml_collections.ConfigDict, workdir: str,
       'savi': savi_results,
       'rollout': rollout_results,
       'protocol': {'split': eval_config.split, 'num_videos': num_videos,
+                   'num_clips': len(source), 'clips': eval_config.clips,
                    'burn_in': burn_in, 'rollout_steps': rollout,
                    'frame_stride': stride,
                    'background_threshold': eval_config.get(
@@ -422,6 +428,50 @@ def evaluate(config: ml_collections.ConfigDict, workdir: str,
     _write_results(eval_dir(workdir), results)
     print(format_table(results))
   return results
+
+
+def evaluation_clips(config: ml_collections.ConfigDict, source: Any,
+                     time_fields: tuple[str, ...], num_videos: int) -> Any:
+  """The evaluated clips of the first `num_videos` videos.
+
+  `evaluation.clips`: 'first' evaluates each video from its first frame;
+  'clevrer' takes the official CLEVRER clips (per half-clip block of the
+  video, the first start where no object enters late; see
+  `data.clevrer.eval_clip_starts`), which needs the stored `in_view`.
+  """
+  kind = config.evaluation.clips
+  if kind == 'first':
+    return ClipSource(source, [(i, 0) for i in range(num_videos)],
+                      time_fields)
+  if kind != 'clevrer':
+    raise ValueError(f"evaluation.clips must be 'first' or 'clevrer', got "
+                     f'{kind!r}')
+  videos = get_video_source(config.data, config.evaluation.split)
+  clips = clevrer_clips(videos, num_videos, config.slotformer.burn_in,
+                        config.evaluation.rollout_steps,
+                        config.slotformer.frame_stride)
+  return ClipSource(source, clips, time_fields)
+
+
+def clevrer_clips(videos: Any, num_videos: int, burn_in: int, rollout: int,
+                  frame_stride: int) -> list[tuple[int, int]]:
+  """(video, start) of the official CLEVRER evaluation clips of the first
+  `num_videos` videos (items with `in_view` [T, O] and `has_annotations`)."""
+  clips = []
+  for video in tqdm.trange(num_videos, desc='find evaluation clips',
+                           leave=False, disable=jax.process_index() != 0):
+    item = videos[video]
+    if not bool(np.asarray(item.get('has_annotations', True))):
+      raise ValueError(
+          f'video {video} has no CLEVRER annotations (the test split has '
+          "none); evaluate on the 'val' split")
+    starts = clevrer.eval_clip_starts(item['in_view'], burn_in, rollout,
+                                      frame_stride)
+    clips += [(video, int(start)) for start in starts]
+  if not clips:
+    raise ValueError('no CLEVRER evaluation clip without entering objects '
+                     f'in the first {num_videos} videos')
+  return clips
 
 
 def _check_has_segmentations(source: Any, names: tuple[str, ...]) -> None:

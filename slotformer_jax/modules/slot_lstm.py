@@ -44,11 +44,14 @@ class SlotLSTMStep(nn.Module):
     # Slots are independent samples of the LSTM: fold them into the batch.
     state, hidden = nn.OptimizedLSTMCell(self.embed_dim, name='lstm')(
         state, tokens.reshape(batch * num_slots, self.embed_dim))
-    prediction = nn.Dense(slot_size, name='out_proj')(
-        hidden.reshape(batch, num_slots, self.embed_dim))
+    hidden = hidden.reshape(batch, num_slots, self.embed_dim)
     if self.residual:
-      prediction = prediction + slots
-    return state, prediction
+      # As SlotFormer's residual variant: a zero-initialised refinement of
+      # the input slots.
+      refinement = nn.Dense(slot_size, kernel_init=nn.initializers.zeros,
+                            name='out_proj')(hidden)
+      return state, slots + refinement
+    return state, nn.Dense(slot_size, name='out_proj')(hidden)
 
 
 class SlotLSTM(nn.Module):

@@ -75,11 +75,14 @@ class NextSlotPredictor(nn.Module):
         num_layers=self.num_layers, num_heads=self.num_heads,
         mlp_size=self.mlp_size, dropout_rate=self.dropout_rate,
         pre_norm=True, name='transformer')(tokens, deterministic=deterministic)
-    prediction = nn.Dense(slot_size, name='out_proj')(tokens[:, -num_slots:])
     if self.residual:
       # The paper's remark: refine the last input slots rather than predict
-      # from scratch, which also keeps the slot order.
-      prediction = prediction + history[:, -1]
+      # from scratch, which also keeps the slot order. The refinement starts
+      # at zero, so an untrained model is the copy-last-slots baseline.
+      refinement = nn.Dense(slot_size, kernel_init=nn.initializers.zeros,
+                            name='out_proj')(tokens[:, -num_slots:])
+      return history[:, -1] + refinement
+    prediction = nn.Dense(slot_size, name='out_proj')(tokens[:, -num_slots:])
     return prediction
 
 
