@@ -5,6 +5,7 @@ import json
 import os
 
 import jax
+import numpy as np
 import pytest
 
 from slotformer_jax import stages
@@ -100,8 +101,10 @@ def test_pipeline_runs_end_to_end_and_resumes(tmp_path):
   config.evaluation.metrics = ('psnr',)
   frame_only = evaluate.evaluate(config, workdir, mesh)
   assert set(frame_only['savi']) == {'psnr', 'num_videos', 'num_frames'}
-  assert frame_only['rollout']['slotformer']['psnr'] == (
-      results['rollout']['slotformer']['psnr'])
+  # Another compiled program: equal up to float32 rounding.
+  np.testing.assert_allclose(
+      frame_only['rollout']['slotformer']['psnr']['per_step'],
+      results['rollout']['slotformer']['psnr']['per_step'], rtol=1e-5)
 
 
 def test_stage_two_explains_a_missing_stage_one(tmp_path):
