@@ -7,7 +7,8 @@
 #   bash benchmarks/eval_time.sh [workdir] [extra --config overrides...]
 #
 # Prints the evaluation table; `<workdir>/eval/metrics.json` has the seconds
-# ('seconds': savi / rollout / total). Add
+# ('seconds': savi / rollout / total). Add --config.evaluation.savi_metrics=False
+# to time the rollouts alone, and
 # "--config.evaluation.metrics=('psnr','ssim','lpips')" to time LPIPS too.
 set -euo pipefail
 workdir="${1:-/tmp/slotformer_jax_eval_time}"

@@ -374,8 +374,11 @@ def evaluate(config: ml_collections.ConfigDict, workdir: str,
 
   needed = (burn_in + rollout - 1) * stride + 1
   savi_started = time.time()
-  savi_results = evaluate_savi(config, mesh, decoder_params, source, needed,
-                               with_segmentation, **shared)
+  if eval_config.savi_metrics:
+    savi_results = evaluate_savi(config, mesh, decoder_params, source, needed,
+                                 with_segmentation, **shared)
+  else:
+    savi_results = {}
   savi_results['seconds'] = time.time() - savi_started
 
   # Rollouts.
@@ -520,7 +523,10 @@ def format_table(results: dict[str, Any]) -> str:
       cells.append(f'{"-" if value is None else f"{value:.4f}":>10}')
     lines.append(f'{method:<22}' + ''.join(cells))
   savi = results['savi']
-  if 'fg_ari' in savi:
+  if not savi:
+    lines.append('SAVi on the whole videos: not evaluated '
+                 '(evaluation.savi_metrics=False)')
+  elif 'fg_ari' in savi:
     lines.append(
         f'SAVi on the whole videos: FG-ARI {savi["fg_ari"]:.4f} (per frame '
         f'{savi["fg_ari_per_frame"]:.4f}), ARI {savi["ari"]:.4f}, '

@@ -311,9 +311,14 @@ def write_per_step_figure(workdir: str) -> str | None:
     rollout = json.load(f)['rollout']
   names = [n for n in (*evaluate.FRAME_METRICS, *evaluate.OBJECT_METRICS)
            if any(n in per_metric for per_metric in rollout.values())]
-  figure, axes = plt.subplots(1, len(names), figsize=(3.2 * len(names), 2.8),
+  columns = min(3, len(names))
+  rows = -(-len(names) // columns)
+  figure, axes = plt.subplots(rows, columns,
+                              figsize=(3.4 * columns, 2.8 * rows),
                               squeeze=False)
-  for axis, name in zip(axes[0], names):
+  for axis in axes.flat[len(names):]:
+    axis.set_visible(False)
+  for axis, name in zip(axes.flat, names):
     for method, per_metric in rollout.items():
       if name not in per_metric:
         continue
