@@ -191,6 +191,51 @@ def test_killed_run_resumes_to_identical_parameters(tmp_path):
       1, 2, 3, 3, 4, 5]
 
 
+def _slotformer_stage(directory, num_steps, source, decoder_params,
+                      interrupt_after=None):
+  model = _slotformer()  # dropout on: the resumed RNG stream must match
+
+  def batches(start_step):
+    stream = pipeline.train_batches(
+        source, batch_size=4, clip_length=4, seed=0, start_step=start_step,
+        fields=('slots', 'video'), prefetch=0)
+    for count, batch in enumerate(stream):
+      if interrupt_after is not None and count == interrupt_after:
+        raise _Interrupted()
+      yield batch
+
+  return Stage(
+      name='slotformer', directory=str(directory),
+      config=_stage_config(num_steps),
+      loss_fn=functools.partial(
+          steps.slotformer_loss, model=model, decoder=_decoder(), rollout=2,
+          image_loss_weight=1.0, teacher_forcing=False),
+      init_params=lambda rng: steps.init_params(
+          model, rng, jnp.zeros((1, 2, 3, 16)), 2),
+      batches=batches, frozen_params=decoder_params)
+
+
+def test_killed_slotformer_run_resumes_to_identical_parameters(tmp_path):
+  rng = np.random.default_rng(0)
+  source = [{'slots': rng.normal(size=(6, 3, 16)).astype(np.float32),
+             'video': _video(1, 6, seed=i)[0]} for i in range(6)]
+  decoder_params = _decoder().init(jax.random.key(1),
+                                   jnp.zeros((1, 3, 16)))['params']
+  mesh = Mesh(np.asarray(jax.devices()[:1]), ('data',))
+  uninterrupted = fit(_slotformer_stage(tmp_path / 'a', 5, source,
+                                        decoder_params), mesh=mesh, seed=0)
+  with pytest.raises(_Interrupted):
+    fit(_slotformer_stage(tmp_path / 'b', 5, source, decoder_params,
+                          interrupt_after=3), mesh=mesh, seed=0)
+  resumed = fit(_slotformer_stage(tmp_path / 'b', 5, source, decoder_params),
+                mesh=mesh, seed=0)
+  assert int(resumed.step) == 5
+  chex.assert_trees_all_close(resumed.params, uninterrupted.params, atol=0,
+                              rtol=0)
+  # The frozen decoder is an input of the step, never trained or saved.
+  assert 'decoder' not in resumed.params
+
+
 def test_nan_loss_stops_with_a_clear_message(tmp_path):
   source = [{'video': _video(1, 3, seed=i)[0]} for i in range(4)]
   stage = _savi_stage(tmp_path, 3, source)
