@@ -3,7 +3,7 @@ r"""Times the jitted steps at the paper's model sizes (median after warm-up).
   python benchmarks/step_time.py [--repeats=5]
 
 Prints one line per case with the reference time of the official PyTorch
-implementation measured on the same 2-core CPU (from the project's issue).
+implementation measured on the same 2-core CPU.
 """
 
 import argparse
