@@ -50,18 +50,23 @@ def build_decoder(config: ml_collections.ConfigDict) -> SpatialBroadcastDecoder:
       kernel_size=decoder.kernel_size)
 
 
-def build_slotformer(config: ml_collections.ConfigDict) -> SlotFormer:
-  dynamics = config.slotformer
-  return SlotFormer(
+def _transformer_fields(dynamics: ml_collections.ConfigDict) -> dict:
+  """The constructor fields SlotFormer and Slot-LSTM share."""
+  return dict(
       burn_in=dynamics.burn_in,
       embed_dim=dynamics.embed_dim,
       num_layers=dynamics.num_layers,
       num_heads=dynamics.num_heads,
       mlp_size=dynamics.mlp_ratio * dynamics.embed_dim,
       dropout_rate=dynamics.dropout_rate,
-      positional_encoding=dynamics.positional_encoding,
       residual=dynamics.residual,
   )
+
+
+def build_slotformer(config: ml_collections.ConfigDict) -> SlotFormer:
+  dynamics = config.slotformer
+  return SlotFormer(positional_encoding=dynamics.positional_encoding,
+                    **_transformer_fields(dynamics))
 
 
 def dynamics_config(config: ml_collections.ConfigDict,
@@ -85,16 +90,7 @@ def dynamics_config(config: ml_collections.ConfigDict,
 
 
 def build_slot_lstm(config: ml_collections.ConfigDict) -> SlotLSTM:
-  dynamics = dynamics_config(config, SLOT_LSTM)
-  return SlotLSTM(
-      burn_in=dynamics.burn_in,
-      embed_dim=dynamics.embed_dim,
-      num_layers=dynamics.num_layers,
-      num_heads=dynamics.num_heads,
-      mlp_size=dynamics.mlp_ratio * dynamics.embed_dim,
-      dropout_rate=dynamics.dropout_rate,
-      residual=dynamics.residual,
-  )
+  return SlotLSTM(**_transformer_fields(dynamics_config(config, SLOT_LSTM)))
 
 
 def build_dynamics(config: ml_collections.ConfigDict,
