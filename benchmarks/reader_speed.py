@@ -29,7 +29,7 @@ import numpy as np
 from PIL import Image
 
 from slotformer_jax.data import pipeline
-from slotformer_jax.data import prepare
+from slotformer_jax.data.convert import prepare
 from slotformer_jax.data import sources
 
 RES = 64

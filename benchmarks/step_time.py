@@ -23,6 +23,8 @@ import clevrer  # noqa: E402  (configs/clevrer.py)
 import obj3d  # noqa: E402  (configs/obj3d.py)
 from slotformer_jax import models  # noqa: E402
 from slotformer_jax.train import optim  # noqa: E402
+from slotformer_jax import inference  # noqa: E402
+from slotformer_jax import losses  # noqa: E402
 from slotformer_jax.train import steps  # noqa: E402
 from slotformer_jax.train.state import TrainState  # noqa: E402
 
@@ -68,7 +70,7 @@ def savi_case(batch_size=4, clip_length=6):
   params = steps.init_params(model, jax.random.key(0),
                              jnp.zeros((1, clip_length,
                                         *config.data.resolution, 3)))
-  loss_fn = functools.partial(steps.savi_loss, model=model,
+  loss_fn = functools.partial(losses.savi_loss, model=model,
                               kl_weight=config.savi.kl_weight)
   return train_step_runner(loss_fn, params, {'video': video}, None,
                            config.savi)
@@ -93,7 +95,7 @@ def slotformer_case(batch_size, image_loss_weight):
   decoder_params = decoder.init(jax.random.key(1),
                                 jnp.asarray(batch['slots'][:1, 0]))['params']
   loss_fn = functools.partial(
-      steps.slotformer_loss, model=model, decoder=decoder,
+      losses.slotformer_loss, model=model, decoder=decoder,
       rollout=dyn.rollout, image_loss_weight=image_loss_weight,
       teacher_forcing=False)
   return train_step_runner(loss_fn, params, batch, decoder_params, dyn)
@@ -106,7 +108,7 @@ def rollout_case(batch_size=8, num_steps=44):
       batch_size, config.slotformer.burn_in, config.savi.num_slots,
       config.savi.slot_size)), jnp.float32)
   params = steps.init_params(model, jax.random.key(0), history[:1], 1)
-  rollout = jax.jit(functools.partial(steps.rollout_slots, model=model,
+  rollout = jax.jit(functools.partial(inference.rollout_slots, model=model,
                                       num_steps=num_steps))
   return lambda: rollout(params, history)
 

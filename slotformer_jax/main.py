@@ -5,7 +5,12 @@ r"""Runs the SlotFormer pipeline: SAVi -> slots -> SlotFormer -> eval -> render.
       --workdir=runs/tiny --mode=train_savi --config.savi.num_train_steps=50
 
 Re-running the same command resumes: finished stages are skipped, training
-continues from the newest checkpoint.
+continues from the newest checkpoint. One run writes a workdir at a time (a
+lock), changed settings on an existing workdir are refused unless
+--allow_config_change, and every config problem is reported before any work.
+A problem the user can fix ends the run with one line on stderr and exit
+status 1 (2 for a bad command line); SIGTERM during training saves a
+checkpoint first (exit status 143). See docs/reliability.md.
 """
 
 from __future__ import annotations
@@ -23,11 +28,16 @@ import jax
 from ml_collections import config_flags
 import tqdm
 
+from slotformer_jax import config_checks
 from slotformer_jax import stages
-from slotformer_jax.data.sources import default_data_dir
+from slotformer_jax import workdir as workdir_lib
+from slotformer_jax.data.data_dir import default_data_dir
+from slotformer_jax.errors import UserError
+from slotformer_jax.files import append_line_atomic
 from slotformer_jax.evaluation import evaluate
 from slotformer_jax.evaluation import visualize
 from slotformer_jax.train import sharding
+from slotformer_jax.train.trainer import Preempted
 
 MODES = ('all', 'train_savi', 'extract_slots', 'train_slotformer',
          'train_slot_lstm', 'evaluate', 'render')
@@ -42,6 +52,11 @@ _MODE = flags.DEFINE_enum('mode', 'all', MODES, 'Which stage(s) to run.')
 _DISTRIBUTED = flags.DEFINE_bool(
     'distributed', False, 'Call jax.distributed.initialize() first (one '
     'process per host on a TPU pod or multi-node GPU cluster).')
+_ALLOW_CONFIG_CHANGE = flags.DEFINE_bool(
+    'allow_config_change', False, 'Accept settings that differ from the ones '
+    'this workdir was run with: the stages they affect are retrained or '
+    're-extracted (old checkpoints are kept as <stage>.stale-<run id>) and '
+    'the old settings go to config_history.jsonl.')
 
 
 logger = logging.getLogger('slotformer_jax')
@@ -75,11 +90,12 @@ def _enable_compilation_cache() -> None:
   jax.config.update('jax_persistent_cache_min_compile_time_secs', 1.0)
 
 
-def _save_config(config, workdir: str) -> None:
-  if jax.process_index() == 0:
-    os.makedirs(workdir, exist_ok=True)
-    with open(os.path.join(workdir, 'config.json'), 'w') as f:
-      f.write(config.to_json_best_effort(indent=1))
+def selected_stages(config, mode: str) -> tuple[str, ...]:
+  if mode == 'all':
+    # The Slot-LSTM baseline only when the config asks for it.
+    return tuple(m for m in MODES[1:]
+                 if m != 'train_slot_lstm' or config.slot_lstm.train)
+  return (mode,)
 
 
 def main(argv):
@@ -91,12 +107,28 @@ def main(argv):
   config, workdir, mode = _CONFIG.value, _WORKDIR.value, _MODE.value
   if config is None:
     raise app.UsageError('--config is required, e.g. configs/synthetic.py')
-  if config.slot_model != 'savi':
-    raise NotImplementedError(
-        f'slot_model={config.slot_model!r} is not implemented yet; only '
-        "'savi' (incl. stochastic SAVi) is. Override it with "
-        '--config.slot_model=savi to use SAVi on this dataset.')
-  _save_config(config, workdir)
+  selected = selected_stages(config, mode)
+  # Every check before any work: a bad value costs seconds, not a stage.
+  config_checks.validate(config, selected, num_devices=jax.device_count(),
+                         num_processes=jax.process_count())
+  lock = workdir_lib.WorkdirLock(workdir)
+  if jax.process_index() == 0:
+    lock.acquire()
+  try:
+    _run(config, workdir, selected)
+  finally:
+    lock.release()
+
+
+def _run(config, workdir: str, selected: tuple[str, ...]) -> None:
+  changes = workdir_lib.accept_config(
+      config, workdir, allow_change=_ALLOW_CONFIG_CHANGE.value)
+  if changes:
+    logger.warning('accepted changed settings (--allow_config_change): %s',
+                   '; '.join(changes))
+  if workdir_lib.uses_foreign_stage1(config, workdir):
+    # Before any data is generated: the read-only stage 1 must fit.
+    workdir_lib.savi_identity(config, workdir)
   mesh = sharding.make_mesh()
   logger.info('%d processes, %d devices (%s)', jax.process_count(),
                jax.device_count(), jax.devices()[0].platform)
@@ -110,12 +142,6 @@ def main(argv):
       'render': visualize.render,
   }
   wall_times = {}
-  if mode == 'all':
-    # The Slot-LSTM baseline only when the config asks for it.
-    selected = tuple(m for m in MODES[1:]
-                     if m != 'train_slot_lstm' or config.slot_lstm.train)
-  else:
-    selected = (mode,)
   for stage in selected:
     started = time.time()
     logger.info('=== %s ===', stage)
@@ -123,9 +149,27 @@ def main(argv):
     wall_times[stage] = round(time.time() - started, 1)
     logger.info('%s took %.1f s', stage, wall_times[stage])
   if jax.process_index() == 0:
-    with open(os.path.join(workdir, 'wall_times.json'), 'a') as f:
-      f.write(json.dumps(wall_times) + '\n')
+    append_line_atomic(os.path.join(workdir, 'wall_times.json'),
+                       json.dumps(wall_times))
+
+
+def run_main(argv: list[str] | None = None) -> None:
+  """The entry point: anticipated errors become one line and a non-zero
+  exit; unexpected ones keep their traceback."""
+  argv = sys.argv if argv is None else argv
+  problem = config_checks.check_overrides(argv[1:])
+  if problem:
+    print(f'error: {problem}', file=sys.stderr)
+    sys.exit(2)
+  try:
+    app.run(main, argv=argv)
+  except Preempted as error:
+    print(f'preempted: {error}', file=sys.stderr)
+    sys.exit(128 + 15)
+  except UserError as error:
+    print(f'error: {error}', file=sys.stderr)
+    sys.exit(1)
 
 
 if __name__ == '__main__':
-  app.run(main)
+  run_main()

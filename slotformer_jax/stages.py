@@ -1,12 +1,7 @@
 """The two-stage pipeline: train SAVi -> extract slots -> train SlotFormer.
 
-Workdir layout (shared by all stages; each stage resumes from it)::
-
-    savi/checkpoints/<step>/   savi/model_config.json   savi/train_log.jsonl
-    slots/<split>/             extracted slots (see data/slots.py)
-    slotformer/checkpoints/    slotformer/train_log.jsonl
-    eval/metrics.json          eval/per_step.csv
-    render/*.gif, *.png
+The workdir layout and the checks of what each artifact was made from are in
+`workdir.py`; reading trained parameters is in `inference.py`.
 """
 
 from __future__ import annotations
@@ -26,114 +21,90 @@ import ml_collections
 import numpy as np
 import tqdm
 
+from slotformer_jax import inference
+from slotformer_jax import losses
 from slotformer_jax import models
+from slotformer_jax import workdir as workdir_lib
 from slotformer_jax.data import pipeline
-from slotformer_jax.data.slots import SlotSource
 from slotformer_jax.data.slots import SlotWriter
 from slotformer_jax.data.slots import read_meta
 from slotformer_jax.data.sources import get_video_source
+from slotformer_jax.errors import UserError
 from slotformer_jax.train import sharding
 from slotformer_jax.train.trainer import Stage
-from slotformer_jax.train.trainer import abstract_train_state
-from slotformer_jax.train.trainer import checkpointer_for
 from slotformer_jax.train.trainer import fit
 from slotformer_jax.train import steps
 
 logger = logging.getLogger(__name__)
-
-_MODEL_CONFIG_FILE = 'model_config.json'
-
-
-def stage1_workdir(config: ml_collections.ConfigDict, workdir: str) -> str:
-  """Where SAVi and the extracted slots live: `config.stage1_workdir` when
-  set (stage-2 ablations reuse one stage 1), else the run's own workdir."""
-  return config.get('stage1_workdir') or workdir
-
-
-def savi_dir(workdir: str) -> str:
-  return os.path.join(workdir, 'savi')
-
-
-def slots_dir(workdir: str, split: str) -> str:
-  return os.path.join(workdir, 'slots', split)
-
-
-def savi_model_fields(config: ml_collections.ConfigDict) -> dict[str, Any]:
-  """The config values that determine SAVi's parameter shapes / behaviour."""
-  savi = config.savi.to_dict()
-  fields = {key: savi[key] for key in (
-      'num_slots', 'slot_size', 'encoder', 'slot_attention', 'predictor',
-      'decoder', 'stochastic', 'initial_slots')}
-  fields['resolution'] = list(config.data.resolution)
-  return json.loads(json.dumps(fields))  # tuples -> lists, for comparison
-
-
-def dynamics_model_fields(config: ml_collections.ConfigDict,
-                          name: str = models.SLOTFORMER) -> dict[str, Any]:
-  """The config values that determine a stage-2 model's parameters."""
-  dynamics = models.dynamics_config(config, name).to_dict()
-  keys = ['burn_in', 'embed_dim', 'num_layers', 'num_heads', 'mlp_ratio',
-          'residual']
-  if name == models.SLOTFORMER:
-    keys.append('positional_encoding')
-  return json.loads(json.dumps({key: dynamics[key] for key in keys}))
-
-
-def _write_model_config(directory: str, fields: dict[str, Any]) -> None:
-  if jax.process_index() == 0:
-    os.makedirs(directory, exist_ok=True)
-    with open(os.path.join(directory, _MODEL_CONFIG_FILE), 'w') as f:
-      json.dump(fields, f, indent=1, sort_keys=True)
-
-
-def _check_model_config(directory: str, fields: dict[str, Any],
-                        what: str) -> None:
-  """Fails clearly when a checkpoint was trained with another architecture."""
-  path = os.path.join(directory, _MODEL_CONFIG_FILE)
-  if not os.path.exists(path):
-    return
-  with open(path) as f:
-    saved = json.load(f)
-  differences = [
-      f'{key}: checkpoint {saved.get(key)!r} vs config {fields.get(key)!r}'
-      for key in sorted(set(saved) | set(fields))
-      if saved.get(key) != fields.get(key)]
-  if differences:
-    raise ValueError(
-        f'the {what} checkpoint in {directory} was trained with a different '
-        'model configuration:\n  ' + '\n  '.join(differences) +
-        '\nUse the config it was trained with, or another --workdir.')
-
-
-def gather_to_host(tree: Any) -> Any:
-  """Global batch-sharded arrays -> numpy on every host."""
-  if jax.process_count() == 1:
-    return jax.tree.map(np.asarray, tree)
-  return multihost_utils.process_allgather(tree, tiled=True)
-
 
 # --------------------------------------------------------------------------
 # Stage 1: SAVi
 # --------------------------------------------------------------------------
 
 
+def check_foreign_stage1(config: ml_collections.ConfigDict, workdir: str,
+                         mesh: Mesh) -> None:
+  """`stage1_workdir` is read-only: its SAVi must be complete and made with
+  this config's stage-1 settings, its slots complete and made by that SAVi.
+
+  Raises:
+    UserError: what is missing or different, and where to fix it.
+  """
+  other = workdir_lib.stage1_workdir(config, workdir)
+  identity = workdir_lib.savi_identity(config, workdir)
+  _, step = inference.load_savi_params(config, workdir, mesh)
+  if step < config.savi.num_train_steps:
+    raise UserError(
+        f'stage 1 in stage1_workdir={other} is incomplete (SAVi step {step} '
+        f'of {config.savi.num_train_steps}); this run never trains there. '
+        'Finish it with its own run: python -m slotformer_jax.main '
+        f'--config=<its config> --workdir={other}')
+  for split in config.extraction.splits:
+    _check_slots_from(config, workdir, split, identity, step)
+
+
+def _check_slots_from(config, workdir, split, identity, step) -> None:
+  directory = workdir_lib.slots_dir(workdir_lib.stage1_workdir(config, workdir),
+                                    split)
+  meta = read_meta(directory)
+  expected = workdir_lib.slots_parent(identity, step)
+  if not (meta and meta.get('complete')):
+    raise UserError(
+        f'no complete slots in {directory} (stage1_workdir is read-only: '
+        'extract them with a run on that workdir, --mode=extract_slots)')
+  if (meta.get('parent') != expected
+      or meta.get('fields') != workdir_lib.slots_identity_fields(config)):
+    raise UserError(
+        f'the slots in {directory} were made by SAVi {meta.get("parent")} '
+        f'with {meta.get("fields")}, not by the current SAVi {expected} with '
+        f'{workdir_lib.slots_identity_fields(config)}. Re-extract them there '
+        '(--mode=extract_slots on that workdir).')
+
+
 def train_savi(config: ml_collections.ConfigDict, workdir: str,
                mesh: Mesh) -> None:
+  if workdir_lib.uses_foreign_stage1(config, workdir):
+    check_foreign_stage1(config, workdir, mesh)
+    logger.info('SAVi: using the read-only stage 1 in %s',
+                workdir_lib.stage1_workdir(config, workdir))
+    return
   model = models.build_savi(config)
   source = get_video_source(config.data, 'train')
   stage_config = config.savi
   clip_shape = (1, stage_config.clip_length, *config.data.resolution, 3)
   local_batch_size = sharding.per_host_batch_size(stage_config.batch_size, mesh)
-  directory = savi_dir(stage1_workdir(config, workdir))
-  fields = savi_model_fields(config)
-  _check_model_config(directory, fields, 'SAVi')
-  _write_model_config(directory, fields)
+  directory = workdir_lib.savi_dir(workdir)
+  fields = workdir_lib.savi_model_fields(config)
+  _start_stage(directory, workdir_lib.savi_identity_fields(config), None,
+               'SAVi')
+  workdir_lib.check_model_config(directory, fields, 'SAVi')
+  workdir_lib.write_model_config(directory, fields)
   stage = Stage(
       name='savi',
       directory=directory,
       config=stage_config,
       loss_fn=functools.partial(
-          steps.savi_loss, model=model,
+          losses.savi_loss, model=model,
           kl_weight=stage_config.kl_weight if stage_config.stochastic else 0.0),
       init_params=lambda rng: steps.init_params(
           model, rng, jnp.zeros(clip_shape, jnp.float32)),
@@ -147,28 +118,32 @@ def train_savi(config: ml_collections.ConfigDict, workdir: str,
   fit(stage, mesh=mesh, seed=config.seed)
 
 
-def load_savi_params(config: ml_collections.ConfigDict, workdir: str,
-                     mesh: Mesh) -> tuple[Any, int]:
-  """SAVi's trained parameters (replicated) and the step they are from."""
-  directory = savi_dir(stage1_workdir(config, workdir))
-  checkpointer = checkpointer_for(directory, read_only=True)
-  if checkpointer.latest_step() is None:
-    raise FileNotFoundError(
-        f'no SAVi checkpoint under {directory}/checkpoints. Train stage 1 '
-        'first: python -m slotformer_jax.main --config=<config> '
-        f'--workdir={workdir} --mode=train_savi')
-  _check_model_config(directory, savi_model_fields(config), 'SAVi')
-  model = models.build_savi(config)
-  clip_shape = (1, config.savi.clip_length, *config.data.resolution, 3)
-  abstract = abstract_train_state(
-      lambda rng: steps.init_params(model, rng, jnp.zeros(clip_shape)),
-      config.savi, mesh)
-  state = checkpointer.restore(abstract)
-  step = int(state.step)
-  if step < config.savi.num_train_steps:
-    logger.warning('SAVi was trained for %d of %d steps only', step,
-                    config.savi.num_train_steps)
-  return state.params, step
+def _start_stage(directory: str, fields: dict[str, Any],
+                 parent: dict[str, Any] | None, what: str) -> dict[str, Any]:
+  """The stage's identity, stamped before training starts. A stage made with
+  other settings or from another parent is stale: set aside, then retrained
+  from scratch (so nothing mixes)."""
+  identity = workdir_lib.read_identity(directory)
+  has_checkpoints = os.path.isdir(os.path.join(directory, 'checkpoints')) and (
+      os.listdir(os.path.join(directory, 'checkpoints')))
+  if identity is None and has_checkpoints:
+    # A workdir from before identities: its checkpoints are the ones it was
+    # trained with under config.json (which accept_config checked).
+    logger.warning('%s in %s has no identity.json (older version); '
+                   'stamping one for the current settings', what, directory)
+  elif identity is not None:
+    changes = workdir_lib.flat_differences(identity['fields'], fields)
+    if identity.get('parent') != parent:
+      changes.append(f'trained on {identity.get("parent")}, stage 1 is now '
+                     f'{parent}')
+    if not changes:
+      return identity
+    moved = workdir_lib.set_aside(directory, identity)
+    logger.warning('%s in %s is stale (%s): set aside as %s and retrained',
+                   what, directory, '; '.join(changes), moved)
+  identity = workdir_lib.new_identity(fields, parent)
+  workdir_lib.write_identity(directory, identity)
+  return identity
 
 
 # --------------------------------------------------------------------------
@@ -192,12 +167,18 @@ def extract_slots(config: ml_collections.ConfigDict, workdir: str,
   carry SAVi's state, so memory does not grow with the video length. A split
   whose slots came from the current SAVi checkpoint is skipped.
   """
-  params, savi_step = load_savi_params(config, workdir, mesh)
+  if workdir_lib.uses_foreign_stage1(config, workdir):
+    check_foreign_stage1(config, workdir, mesh)
+    return
+  identity = workdir_lib.savi_identity(config, workdir)
+  params, savi_step = inference.load_savi_params(config, workdir, mesh)
+  parent = workdir_lib.slots_parent(identity, savi_step)
+  slot_fields = workdir_lib.slots_identity_fields(config)
   model = models.build_savi(config)
   replicated = sharding.replicated_sharding(mesh)
   batched = sharding.batch_sharding(mesh)
   encode = jax.jit(
-      functools.partial(steps.savi_encode, model=model),
+      functools.partial(inference.savi_encode, model=model),
       in_shardings=(replicated, batched, replicated, batched),
       out_shardings=(batched, batched))
   chunk_length = config.extraction.chunk_length
@@ -206,12 +187,15 @@ def extract_slots(config: ml_collections.ConfigDict, workdir: str,
   process_index, process_count = jax.process_index(), jax.process_count()
 
   for split in config.extraction.splits:
-    directory = slots_dir(stage1_workdir(config, workdir), split)
+    directory = workdir_lib.slots_dir(workdir_lib.stage1_workdir(config, workdir), split)
     meta = read_meta(directory)
-    if meta and meta.get('complete') and meta.get('savi_step') == savi_step:
-      logger.info('slots of %s already extracted (SAVi step %d)', split,
-                   savi_step)
+    if (meta and meta.get('complete') and meta.get('parent') == parent
+        and meta.get('fields') == slot_fields):
+      logger.info('slots of %s already extracted (SAVi %s)', split, parent)
       continue
+    if meta and meta.get('complete'):
+      logger.info('slots of %s are stale (from SAVi %s, now %s): '
+                  're-extracting', split, meta.get('parent'), parent)
     source = get_video_source(config.data, split)
     num_videos = len(source)
     shard = list(range(process_index, num_videos, process_count))
@@ -220,7 +204,8 @@ def extract_slots(config: ml_collections.ConfigDict, workdir: str,
     writer = None
     if process_index == 0:
       writer = SlotWriter(directory, num_videos, config.savi.num_slots,
-                          config.savi.slot_size, savi_step)
+                          config.savi.slot_size, savi_step,
+                          parent=parent, fields=slot_fields)
     for batch_index in tqdm.trange(num_batches, desc=f'extract {split}',
                                    disable=process_index != 0):
       indices = shard[batch_index * local_batch_size:
@@ -246,7 +231,7 @@ def extract_slots(config: ml_collections.ConfigDict, workdir: str,
         slots, carry = encode(params, sharding.to_global_batch(
             {'video': frames}, mesh)['video'], rng, carry)
         chunks.append(slots)
-      gathered = gather_to_host({
+      gathered = sharding.gather_to_host({
           'slots': jnp.concatenate(chunks, axis=1),
           **sharding.to_global_batch(
               {'index': np.asarray(indices), 'length': lengths,
@@ -269,42 +254,34 @@ def extract_slots(config: ml_collections.ConfigDict, workdir: str,
 # --------------------------------------------------------------------------
 
 
-def slot_source_for(config: ml_collections.ConfigDict, workdir: str,
-                    split: str, video_fields: tuple[str, ...]) -> SlotSource:
-  """Extracted slots of `split` served together with `video_fields`."""
-  video_source = get_video_source(config.data, split) if video_fields else None
-  return SlotSource(slots_dir(stage1_workdir(config, workdir), split),
-                    video_source, video_fields)
-
-
-def dynamics_dir(workdir: str, name: str = models.SLOTFORMER) -> str:
-  """Where stage-2 model `name` keeps checkpoints and logs."""
-  return os.path.join(workdir, name)
-
-
 def train_dynamics(config: ml_collections.ConfigDict, workdir: str,
                    mesh: Mesh, name: str = models.SLOTFORMER) -> None:
   """Stage 2: trains dynamics model `name` on the extracted train slots."""
-  savi_params, _ = load_savi_params(config, workdir, mesh)
+  savi_identity = workdir_lib.savi_identity(config, workdir)
+  savi_params, savi_step = inference.load_savi_params(config, workdir, mesh)
+  parent = workdir_lib.check_slots_current(config, workdir, 'train',
+                                           savi_identity, savi_step)
   decoder = models.build_decoder(config)
   model = models.build_dynamics(config, name)
   stage_config = models.dynamics_config(config, name)
   burn_in, rollout = stage_config.burn_in, stage_config.rollout
   use_image_loss = stage_config.image_loss_weight > 0
   video_fields = ('video',) if use_image_loss else ()
-  source = slot_source_for(config, workdir, 'train', video_fields)
+  source = workdir_lib.slot_source_for(config, workdir, 'train', video_fields)
   local_batch_size = sharding.per_host_batch_size(stage_config.batch_size, mesh)
   history_shape = (1, burn_in, config.savi.num_slots, config.savi.slot_size)
-  directory = dynamics_dir(workdir, name)
-  fields = dynamics_model_fields(config, name)
-  _check_model_config(directory, fields, name)
-  _write_model_config(directory, fields)
+  directory = workdir_lib.dynamics_dir(workdir, name)
+  fields = workdir_lib.dynamics_model_fields(config, name)
+  _start_stage(directory, workdir_lib.dynamics_identity_fields(config, name),
+               parent, name)
+  workdir_lib.check_model_config(directory, fields, name)
+  workdir_lib.write_model_config(directory, fields)
   stage = Stage(
       name=name,
       directory=directory,
       config=stage_config,
       loss_fn=functools.partial(
-          steps.slotformer_loss, model=model, decoder=decoder,
+          losses.slotformer_loss, model=model, decoder=decoder,
           rollout=rollout, image_loss_weight=stage_config.image_loss_weight,
           teacher_forcing=stage_config.teacher_forcing),
       init_params=lambda rng: steps.init_params(
@@ -332,30 +309,7 @@ def train_slot_lstm(config: ml_collections.ConfigDict, workdir: str,
   train_dynamics(config, workdir, mesh, models.SLOT_LSTM)
 
 
-def load_dynamics_params(config: ml_collections.ConfigDict, workdir: str,
-                         mesh: Mesh, name: str = models.SLOTFORMER
-                         ) -> tuple[Any, int]:
-  """The newest parameters of stage-2 model `name` and their step."""
-  directory = dynamics_dir(workdir, name)
-  checkpointer = checkpointer_for(directory, read_only=True)
-  if checkpointer.latest_step() is None:
-    raise FileNotFoundError(
-        f'no {name} checkpoint under {directory}/checkpoints. Train it '
-        'first: python -m slotformer_jax.main --config=<config> '
-        f'--workdir={workdir} --mode=train_{name}')
-  _check_model_config(directory, dynamics_model_fields(config, name), name)
-  model = models.build_dynamics(config, name)
-  stage_config = models.dynamics_config(config, name)
-  history_shape = (1, stage_config.burn_in, config.savi.num_slots,
-                   config.savi.slot_size)
-  abstract = abstract_train_state(
-      lambda rng: steps.init_params(model, rng, jnp.zeros(history_shape),
-                                    stage_config.rollout),
-      stage_config, mesh)
-  state = checkpointer.restore(abstract)
-  return state.params, int(state.step)
-
-
 def load_slotformer_params(config: ml_collections.ConfigDict, workdir: str,
                            mesh: Mesh) -> tuple[Any, int]:
-  return load_dynamics_params(config, workdir, mesh, models.SLOTFORMER)
+  return inference.load_dynamics_params(config, workdir, mesh,
+                                        models.SLOTFORMER)

@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 
 import dataset_fixtures as fx
-from slotformer_jax.data import clevrer
-from slotformer_jax.data import media
+from slotformer_jax.data.convert import clevrer
+from slotformer_jax.data.convert import media
 from slotformer_jax.data import pipeline
-from slotformer_jax.data import prepare
+from slotformer_jax.data.convert import prepare
 from slotformer_jax.data import sources
-from slotformer_jax.data import writer
+from slotformer_jax.data.convert import writer
 
 # ffmpeg runs as a subprocess (fork + exec at once), which JAX's fork warning
 # does not tell apart from a bare fork when JAX was imported by another test.

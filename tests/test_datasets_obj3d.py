@@ -18,11 +18,11 @@ import numpy as np
 import pytest
 
 import dataset_fixtures as fx
-from slotformer_jax.data import obj3d
+from slotformer_jax.data.convert import obj3d
 from slotformer_jax.data import pipeline
-from slotformer_jax.data import prepare
+from slotformer_jax.data.convert import prepare
 from slotformer_jax.data import sources
-from slotformer_jax.data import writer
+from slotformer_jax.data.convert import writer
 
 FRAMES = 10   # frames per fixture video (OBJ3D: 100)
 KEEP = 6      # --num_frames (OBJ3D: the first 50)
@@ -299,6 +299,7 @@ def test_config_fields_select_conversion_and_channel_order(converted,
 def test_obj3d_config_runs_the_pipeline_on_converted_data(converted, tmp_path):
   # Imported here: the other tests need no JAX.
   from slotformer_jax import stages  # pylint: disable=g-import-not-at-top
+  from slotformer_jax import workdir as workdir_lib  # pylint: disable=g-import-not-at-top
   from slotformer_jax.train import sharding  # pylint: disable=g-import-not-at-top
   _, data_dir = converted
   config = tiny_obj3d_config(data_dir)
@@ -307,7 +308,7 @@ def test_obj3d_config_runs_the_pipeline_on_converted_data(converted, tmp_path):
   stages.train_savi(config, workdir, mesh)
   stages.extract_slots(config, workdir, mesh)
   for split, count in (('train', 4), ('val', 2), ('test', 1)):
-    source = stages.slot_source_for(config, workdir, split, ('video',))
+    source = workdir_lib.slot_source_for(config, workdir, split, ('video',))
     assert len(source) == count
     item = source[0]
     assert item['slots'].shape == (KEEP, 3, 16)

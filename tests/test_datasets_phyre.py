@@ -19,8 +19,8 @@ import numpy as np
 import pytest
 
 import dataset_fixtures as fx
-from slotformer_jax.data import phyre
-from slotformer_jax.data import prepare
+from slotformer_jax.data.convert import phyre
+from slotformer_jax.data.convert import prepare
 from slotformer_jax.data import sources
 
 SCENE = 16          # stand-in scene size (PHYRE: 256)

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 import dataset_fixtures as fx
-from slotformer_jax.data import physion
+from slotformer_jax.data.convert import physion
 from slotformer_jax.data import pipeline
-from slotformer_jax.data import prepare
+from slotformer_jax.data.convert import prepare
 from slotformer_jax.data import sources
 
 # ffmpeg runs as a subprocess (fork + exec at once), which JAX's fork warning

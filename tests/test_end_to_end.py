@@ -8,7 +8,10 @@ import jax
 import numpy as np
 import pytest
 
+from slotformer_jax import inference
 from slotformer_jax import stages
+from slotformer_jax import workdir as workdir_lib
+from slotformer_jax.errors import UserError
 from slotformer_jax.evaluation import evaluate
 from slotformer_jax.evaluation import visualize
 from slotformer_jax.train import sharding
@@ -71,7 +74,7 @@ def test_pipeline_runs_end_to_end_and_resumes(tmp_path):
     meta = json.load(open(os.path.join(workdir, 'slots', split,
                                        'meta.json')))
     assert meta['complete'] and meta['savi_step'] == 4
-  source = stages.slot_source_for(config, workdir, 'test', ('video',))
+  source = workdir_lib.slot_source_for(config, workdir, 'test', ('video',))
   assert source[0]['slots'].shape == (8, config.savi.num_slots,
                                       config.savi.slot_size)
   saved = json.load(open(os.path.join(workdir, 'eval', 'metrics.json')))
@@ -109,7 +112,7 @@ def test_pipeline_runs_end_to_end_and_resumes(tmp_path):
 
 def test_stage_two_explains_a_missing_stage_one(tmp_path):
   config = _micro_config(tmp_path / 'data')
-  with pytest.raises(FileNotFoundError, match='--mode=train_savi'):
+  with pytest.raises(UserError, match='--mode=train_savi'):
     stages.train_slotformer(config, str(tmp_path / 'run'),
                             sharding.make_mesh())
 
@@ -120,8 +123,8 @@ def test_stage_two_rejects_a_checkpoint_of_another_model(tmp_path):
   mesh = sharding.make_mesh()
   stages.train_savi(config, workdir, mesh)
   config.savi.slot_size = 24
-  with pytest.raises(ValueError, match='slot_size'):
-    stages.load_savi_params(config, workdir, mesh)
+  with pytest.raises(UserError, match='slot_size'):
+    inference.load_savi_params(config, workdir, mesh)
 
 
 def test_real_dataset_configs_name_the_missing_data(tmp_path):

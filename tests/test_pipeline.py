@@ -14,7 +14,7 @@ import pytest
 
 from slotformer_jax.data import pipeline
 from slotformer_jax.data import sources
-from slotformer_jax.data import synthetic
+from slotformer_jax.data.convert import synthetic
 
 
 class FakeSource:
@@ -328,7 +328,7 @@ def test_clip_source_starts_each_clip_at_its_frame():
 
 
 def test_clevrer_evaluation_clips_skip_entering_objects():
-  from slotformer_jax.data import clevrer  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.data.convert import clevrer  # pylint: disable=g-import-not-at-top
   from slotformer_jax.evaluation import evaluate  # pylint: disable=g-import-not-at-top
   burn_in, rollout, stride, length = 4, 3, 2, 40
   span = (burn_in + rollout - 1) * stride  # 12 full-rate frames

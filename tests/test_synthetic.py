@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from slotformer_jax.data import sources
-from slotformer_jax.data import synthetic
+from slotformer_jax.data.convert import synthetic
 
 TINY = synthetic.SyntheticConfig(resolution=(32, 32), num_frames=8,
                                  num_train=4, num_val=2, num_test=2, seed=0)

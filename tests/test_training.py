@@ -16,6 +16,7 @@ from slotformer_jax.modules.decoders import SpatialBroadcastDecoder
 from slotformer_jax.modules.savi import SAVi
 from slotformer_jax.modules.slotformer import SlotFormer
 from slotformer_jax.train import sharding
+from slotformer_jax import losses
 from slotformer_jax.train import steps
 from slotformer_jax.train.state import TrainState
 from slotformer_jax.train.trainer import Stage
@@ -54,7 +55,7 @@ def _savi_setup(stochastic=False):
   model = _savi(stochastic)
   params = steps.init_params(model, jax.random.key(0),
                              jnp.zeros((1, 2, *RESOLUTION, 3)))
-  loss_fn = functools.partial(steps.savi_loss, model=model, kl_weight=1e-4)
+  loss_fn = functools.partial(losses.savi_loss, model=model, kl_weight=1e-4)
   return params, loss_fn, {'video': _video(4, 2)}
 
 
@@ -64,7 +65,7 @@ def _slotformer_setup():
                              jnp.zeros((1, 2, 3, 16)), 2)
   decoder_params = _decoder().init(jax.random.key(1), jnp.zeros((1, 3, 16)))
   loss_fn = functools.partial(
-      steps.slotformer_loss, model=model, decoder=_decoder(), rollout=2,
+      losses.slotformer_loss, model=model, decoder=_decoder(), rollout=2,
       image_loss_weight=1.0, teacher_forcing=False)
   batch = {'slots': np.random.default_rng(2).normal(
       size=(4, 4, 3, 16)).astype(np.float32), 'video': _video(4, 4)}
@@ -148,7 +149,7 @@ def _savi_stage(directory, num_steps, source, interrupt_after=None,
   def loss_fn(*args):
     if trace_counter is not None:
       trace_counter.append(1)  # runs once per trace, not per step
-    return steps.savi_loss(*args, model=model, kl_weight=0.0)
+    return losses.savi_loss(*args, model=model, kl_weight=0.0)
 
   def batches(start_step):
     stream = pipeline.train_batches(source, batch_size=4, clip_length=2,
@@ -208,7 +209,7 @@ def _slotformer_stage(directory, num_steps, source, decoder_params,
       name='slotformer', directory=str(directory),
       config=_stage_config(num_steps),
       loss_fn=functools.partial(
-          steps.slotformer_loss, model=model, decoder=_decoder(), rollout=2,
+          losses.slotformer_loss, model=model, decoder=_decoder(), rollout=2,
           image_loss_weight=1.0, teacher_forcing=False),
       init_params=lambda rng: steps.init_params(
           model, rng, jnp.zeros((1, 2, 3, 16)), 2),

@@ -55,9 +55,11 @@ import ml_collections
 import numpy as np
 import tensorflow_datasets as tfds
 
-from slotformer_jax.data import synthetic
+from slotformer_jax.data.convert import synthetic
+from slotformer_jax.data.data_dir import DATA_DIR_ENV  # noqa: F401 (re-export)
+from slotformer_jax.data.data_dir import default_data_dir
+from slotformer_jax.data.data_dir import resolve_data_dir
 
-DATA_DIR_ENV = 'SLOTFORMER_DATA_DIR'
 REAL_DATASETS: tuple[str, ...] = ('obj3d', 'clevrer', 'physion', 'phyre')
 _DATASET_INFO = 'dataset_info.json'
 
@@ -75,21 +77,6 @@ class VideoSource(Protocol):
 
   def __getitem__(self, index: int) -> dict[str, np.ndarray]:
     ...
-
-
-def default_data_dir() -> Path:
-  """``$SLOTFORMER_DATA_DIR`` if set, else ``~/.cache/slotformer_jax``."""
-  env = os.environ.get(DATA_DIR_ENV)
-  if env:
-    return Path(env).expanduser()
-  return Path('~/.cache/slotformer_jax').expanduser()
-
-
-def resolve_data_dir(data_dir: str | os.PathLike[str] | None) -> Path:
-  """``data_dir`` as a Path, or the default when it is None / empty."""
-  if data_dir is None or not os.fspath(data_dir):
-    return default_data_dir()
-  return Path(data_dir).expanduser()
 
 
 class TfdsVideoSource:

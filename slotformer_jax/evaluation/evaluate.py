@@ -37,25 +37,29 @@ import ml_collections
 import numpy as np
 import tqdm
 
+from slotformer_jax import config_checks
 from slotformer_jax import models
-from slotformer_jax import stages
-from slotformer_jax.data import clevrer
+from slotformer_jax import inference
+from slotformer_jax import workdir as workdir_lib
+from slotformer_jax.data.convert import clevrer
 from slotformer_jax.data import pipeline
 from slotformer_jax.data.pipeline import ClipSource
 from slotformer_jax.data.sources import get_video_source
 from slotformer_jax.evaluation import metrics as metrics_lib
+from slotformer_jax.files import atomic_text
+from slotformer_jax.files import write_json_atomic
 from slotformer_jax.train import sharding
-from slotformer_jax.train import steps
+from slotformer_jax.frames import frames_to_model
+from slotformer_jax.frames import model_to_unit
 
 logger = logging.getLogger(__name__)
 
-FRAME_METRICS = ('psnr', 'ssim', 'lpips')
-OBJECT_METRICS = ('ari', 'fg_ari', 'fg_miou', 'ar')
+FRAME_METRICS = config_checks.FRAME_METRICS
+OBJECT_METRICS = config_checks.OBJECT_METRICS
 SEGMENTATION_FIELD = 'segmentations'
 
 
-def eval_dir(workdir: str) -> str:
-  return os.path.join(workdir, 'eval')
+eval_dir = workdir_lib.eval_dir
 
 
 def num_true_ids(data_config: ml_collections.ConfigDict) -> int:
@@ -85,8 +89,8 @@ def _frame_step_metrics(decoded, frames: jax.Array, segmentation: jax.Array,
   object_names = [n for n in names if n in OBJECT_METRICS]
   if not object_names:
     return out
-  pred_ids = metrics_lib.segmentation_from_alpha_masks(
-      decoded.alpha_masks[..., 0], bg_threshold=background_threshold)
+  pred_ids = inference.predicted_segmentation(
+      decoded, bg_threshold=background_threshold)
   true_ids = segmentation.astype(jnp.int32)
   table = metrics_lib.contingency_table(
       true_ids[:, None], pred_ids[:, None], num_true, num_slots)
@@ -135,10 +139,8 @@ def make_rollout_evaluator(config: ml_collections.ConfigDict, mesh: Mesh,
 
   def evaluate_batch(dynamics_params, decoder_params, batch):
     history = batch['slots'][:, :burn_in]
-    predictions = {
-        name: steps.rollout_slots(dynamics_params[name], history,
-                                  model=model, num_steps=rollout)
-        for name, model in models_by_name.items()}
+    predictions = inference.rollouts(dynamics_params, models_by_name, history,
+                                     rollout, copy_last=False)
     predictions['savi_reconstruction'] = batch['slots'][
         :, burn_in:burn_in + rollout]
     frames = batch['video'][:, burn_in:burn_in + rollout]
@@ -147,10 +149,10 @@ def make_rollout_evaluator(config: ml_collections.ConfigDict, mesh: Mesh,
     else:  # unused placeholder of the right leading shape
       segmentation = jnp.zeros(frames.shape[:2], jnp.int32)
     time_major = lambda x: jnp.swapaxes(x, 0, 1)
-    decode = functools.partial(steps.decode_slots, decoder_params,
+    decode = functools.partial(inference.decode_slots, decoder_params,
                                decoder=decoder)
     score = lambda decoded, frame, seg: step_metrics(
-        decoded, steps.model_to_unit(steps.frames_to_model(frame)), seg)
+        decoded, model_to_unit(frames_to_model(frame)), seg)
 
     def one_step(inputs):
       slots, frame, seg = inputs
@@ -162,7 +164,7 @@ def make_rollout_evaluator(config: ml_collections.ConfigDict, mesh: Mesh,
                                           time_major(segmentation)))
            for method, slots in predictions.items()}
     # Copy-last predicts the same slots at every step: decode them once.
-    copied = decode(steps.copy_last_rollout(history, 1)[:, 0])
+    copied = decode(inference.copy_last_rollout(history, 1)[:, 0])
     out['copy_last'] = jax.lax.map(
         lambda inputs: score(copied, *inputs),
         (time_major(frames), time_major(segmentation)))
@@ -190,13 +192,13 @@ def make_savi_evaluator(config: ml_collections.ConfigDict, mesh: Mesh,
 
   def evaluate_frame(decoder_params, slots, video, segmentation, valid):
     """One frame of every video: slots [B, N, D] ... valid [B]."""
-    decoded = steps.decode_slots(decoder_params, slots, decoder=decoder)
-    frames = steps.model_to_unit(steps.frames_to_model(video))
+    decoded = inference.decode_slots(decoder_params, slots, decoder=decoder)
+    frames = model_to_unit(frames_to_model(video))
     psnr = metrics_lib.psnr(decoded.recon, frames)
     out = {'psnr_sum': jnp.where(valid, psnr, 0.0)}
     if not with_segmentation:
       return out
-    pred_ids = jnp.argmax(decoded.alpha_masks[..., 0], axis=-3)
+    pred_ids = inference.predicted_segmentation(decoded)
     # Ids outside [0, C) are not counted: that drops the padded frames.
     true_ids = jnp.where(valid[:, None, None],
                          segmentation.astype(jnp.int32), -1)
@@ -239,7 +241,7 @@ def evaluate_savi(config: ml_collections.ConfigDict, mesh: Mesh,
   for batch in tqdm.tqdm(
       pipeline.eval_batches(source, num_frames=num_frames, **batch_args),
       desc='evaluate SAVi', leave=False, disable=jax.process_index() != 0):
-    mask = stages.gather_to_host(
+    mask = sharding.gather_to_host(
         sharding.to_global_batch({'mask': batch['mask']}, mesh))['mask']
     totals = {}
     for start in range(0, num_frames, chunk):
@@ -252,7 +254,7 @@ def evaluate_savi(config: ml_collections.ConfigDict, mesh: Mesh,
       pieces['frame_valid'] = np.broadcast_to(
           frame_valid, (len(batch['mask']), chunk)).copy()
       pieces = sharding.to_global_batch(pieces, mesh)
-      out = stages.gather_to_host(evaluator(
+      out = sharding.gather_to_host(evaluator(
           decoder_params, pieces['slots'], pieces['video'],
           pieces[SEGMENTATION_FIELD], pieces['frame_valid']))
       for key, value in out.items():
@@ -361,19 +363,23 @@ def evaluate(config: ml_collections.ConfigDict, workdir: str,
   names = tuple(eval_config.metrics)
   with_segmentation = any(name in OBJECT_METRICS for name in names)
   lpips_fn = _lpips_or_none(names)
-  savi_params, savi_step = stages.load_savi_params(config, workdir, mesh)
+  savi_params, savi_step = inference.load_savi_params(config, workdir, mesh)
   dynamics_names = dynamics_to_evaluate(config)
   dynamics_params, dynamics_steps = {}, {}
   for name in dynamics_names:
-    dynamics_params[name], dynamics_steps[name] = stages.load_dynamics_params(
+    dynamics_params[name], dynamics_steps[name] = inference.load_dynamics_params(
         config, workdir, mesh, name)
+  # Never mix: SAVi, the slots and every dynamics model descend from each
+  # other, and the metrics record which ones they are.
+  identity = workdir_lib.evaluation_identity(
+      config, workdir, eval_config.split, savi_step, dynamics_steps)
   decoder_params = savi_params['decoder']
   burn_in = config.slotformer.burn_in
   rollout = eval_config.rollout_steps
   stride = config.slotformer.frame_stride
   video_fields = ('video',) + ((SEGMENTATION_FIELD,) if with_segmentation
                                else ())
-  source = stages.slot_source_for(config, workdir, eval_config.split,
+  source = workdir_lib.slot_source_for(config, workdir, eval_config.split,
                                   video_fields)
   if with_segmentation:
     _check_has_segmentations(source, names)
@@ -412,10 +418,10 @@ def evaluate(config: ml_collections.ConfigDict, workdir: str,
           f'evaluation needs {needed} frames per video (burn-in {burn_in} + '
           f'{rollout} rollout steps, stride {stride}), the videos have '
           f'{batch["video"].shape[1]}; lower evaluation.rollout_steps')
-    out = stages.gather_to_host(evaluator(
+    out = sharding.gather_to_host(evaluator(
         dynamics_params, decoder_params,
         sharding.to_global_batch(batch, mesh)))
-    mask = stages.gather_to_host(
+    mask = sharding.gather_to_host(
         sharding.to_global_batch({'mask': mask}, mesh))['mask']
     for method, per_metric in out.items():
       for name, (values, valid) in per_metric.items():
@@ -437,6 +443,7 @@ def evaluate(config: ml_collections.ConfigDict, workdir: str,
                        'background_threshold')},
       'checkpoints': {'savi_step': savi_step, **{
           f'{name}_step': step for name, step in dynamics_steps.items()}},
+      'identity': identity,
       'seconds': {'savi': savi_results.pop('seconds'),
                   'rollout': time.time() - rollout_started,
                   'total': time.time() - started},
@@ -507,10 +514,10 @@ def _check_has_segmentations(source: Any, names: tuple[str, ...]) -> None:
 
 
 def _write_results(directory: str, results: dict[str, Any]) -> None:
-  os.makedirs(directory, exist_ok=True)
-  with open(os.path.join(directory, 'metrics.json'), 'w') as f:
-    json.dump(results, f, indent=1)
-  with open(os.path.join(directory, 'per_step.csv'), 'w', newline='') as f:
+  # Atomic: a crash or a full disk leaves the old files, never torn ones.
+  write_json_atomic(os.path.join(directory, 'metrics.json'), results,
+                    sort_keys=False)
+  with atomic_text(os.path.join(directory, 'per_step.csv'), newline='') as f:
     writer = csv.writer(f)
     writer.writerow(['method', 'metric', 'step', 'value'])
     for method, per_metric in results['rollout'].items():

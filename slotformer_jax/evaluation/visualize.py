@@ -16,7 +16,6 @@ Written by `--mode=render` under `<workdir>/render/`:
 from __future__ import annotations
 
 import functools
-import json
 import logging
 import os
 from typing import Any
@@ -31,10 +30,14 @@ from PIL import Image
 from PIL import ImageDraw
 
 from slotformer_jax import models
-from slotformer_jax import stages
+from slotformer_jax import inference
+from slotformer_jax import workdir as workdir_lib
 from slotformer_jax.evaluation import evaluate
+from slotformer_jax.files import read_json
+from slotformer_jax.files import write_json_atomic
 from slotformer_jax.modules.slotformer import SlotFormer
-from slotformer_jax.train import steps
+from slotformer_jax.frames import frames_to_model
+from slotformer_jax.frames import model_to_unit
 
 logger = logging.getLogger(__name__)
 
@@ -43,8 +46,7 @@ _ROLLOUT_COLOUR = (220, 40, 40)
 _BURN_IN_COLOUR = (60, 160, 60)
 
 
-def render_dir(workdir: str) -> str:
-  return os.path.join(workdir, 'render')
+render_dir = workdir_lib.render_dir
 
 
 def _to_uint8(frames: np.ndarray) -> np.ndarray:
@@ -101,12 +103,9 @@ def make_renderer(config: ml_collections.ConfigDict,
   @jax.jit
   def render(dynamics_params, decoder_params, slots):
     history = slots[:, :burn_in]
-    futures = {name: steps.rollout_slots(dynamics_params[name], history,
-                                         model=model, num_steps=rollout)
-               for name, model in dynamics.items()}
-    futures['copy_last'] = steps.copy_last_rollout(history, rollout)
+    futures = inference.rollouts(dynamics_params, dynamics, history, rollout)
     with_history = lambda future: jnp.concatenate([history, future], axis=1)
-    decode = functools.partial(steps.decode_slots, decoder_params,
+    decode = functools.partial(inference.decode_slots, decoder_params,
                                decoder=decoder)
     decoded = {name: decode(with_history(future))
                for name, future in futures.items()}
@@ -162,8 +161,8 @@ def make_attention_renderer(config: ml_collections.ConfigDict):
   @jax.jit
   def render(params, decoder_params, history):
     attention = last_layer_attention(params, history, model=model)
-    inputs = steps.decode_slots(decoder_params, history, decoder=decoder)
-    predicted = steps.decode_slots(
+    inputs = inference.decode_slots(decoder_params, history, decoder=decoder)
+    predicted = inference.decode_slots(
         decoder_params, model.apply({'params': params}, history,
                                     method=model.predict_next),
         decoder=decoder)
@@ -183,17 +182,20 @@ def render(config: ml_collections.ConfigDict, workdir: str,
   held-out rollouts; returns the paths. Rendered on one device of the lead
   host."""
   render_config = config.render
-  savi_params, _ = stages.load_savi_params(config, workdir, mesh)
+  savi_params, savi_step = inference.load_savi_params(config, workdir, mesh)
   dynamics_names = evaluate.dynamics_to_evaluate(config)
-  dynamics_params = {
-      name: stages.load_dynamics_params(config, workdir, mesh, name)[0]
-      for name in dynamics_names}
+  loaded = {name: inference.load_dynamics_params(config, workdir, mesh, name)
+            for name in dynamics_names}
+  dynamics_params = {name: params for name, (params, _) in loaded.items()}
+  identity = workdir_lib.evaluation_identity(
+      config, workdir, config.evaluation.split, savi_step,
+      {name: step for name, (_, step) in loaded.items()})
   if jax.process_index() != 0:
     return []
   burn_in = config.slotformer.burn_in
   rollout = config.evaluation.rollout_steps
   stride = config.slotformer.frame_stride
-  source = stages.slot_source_for(config, workdir, config.evaluation.split,
+  source = workdir_lib.slot_source_for(config, workdir, config.evaluation.split,
                                   ('video',))
   count = min(render_config.num_videos, len(source))
   frames_needed = (burn_in + rollout - 1) * stride + 1
@@ -246,9 +248,12 @@ def render(config: ml_collections.ConfigDict, workdir: str,
                             jax.tree.map(lambda x: x[video_index], attention),
                             render_config.scale)
     written += [gif_path, png_path, attention_path]
-  curves = write_per_step_figure(workdir)
+  curves = write_per_step_figure(workdir, identity)
   if curves:
     written.append(curves)
+  write_json_atomic(os.path.join(directory, 'identity.json'),
+                    {'identity': identity, 'pictures': sorted(
+                        os.path.basename(p) for p in written)})
   print(f'wrote {len(written)} pictures to {directory}')
   return written
 
@@ -294,10 +299,13 @@ def _write_attention_figure(path: str, frames: np.ndarray,
   Image.fromarray(np.concatenate(rows, axis=0)).save(path)
 
 
-def write_per_step_figure(workdir: str) -> str | None:
+def write_per_step_figure(workdir: str,
+                          identity: dict[str, Any] | None = None
+                          ) -> str | None:
   """`render/per_step.png` from `eval/metrics.json`: one panel per metric,
   value against rollout step, methods overlaid. None (and a log line) when
-  the evaluation has not been run."""
+  the evaluation has not been run, or (given `identity`, what the other
+  pictures were made from) was made from other models."""
   metrics_path = os.path.join(evaluate.eval_dir(workdir), 'metrics.json')
   if not os.path.exists(metrics_path):
     logger.warning('no %s: run --mode=evaluate first for the per-step '
@@ -307,8 +315,13 @@ def write_per_step_figure(workdir: str) -> str | None:
   matplotlib.use('Agg')
   from matplotlib import pyplot as plt  # pylint: disable=g-import-not-at-top
 
-  with open(metrics_path) as f:
-    rollout = json.load(f)['rollout']
+  metrics = read_json(metrics_path, fix='Re-run --mode=evaluate.')
+  if identity is not None and metrics.get('identity') != identity:
+    logger.warning('%s is from other models than the ones rendered (%s vs '
+                   '%s): re-run --mode=evaluate for the per-step figure',
+                   metrics_path, metrics.get('identity'), identity)
+    return None
+  rollout = metrics['rollout']
   names = [n for n in (*evaluate.FRAME_METRICS, *evaluate.OBJECT_METRICS)
            if any(n in per_metric for per_metric in rollout.values())]
   columns = min(3, len(names))

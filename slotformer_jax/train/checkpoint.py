@@ -1,11 +1,14 @@
 """A thin wrapper over orbax's CheckpointManager for one training stage.
 
 Saves are asynchronous; a run killed mid-save leaves only a temporary folder
-that orbax ignores, so the next run resumes from the last complete step.
+that orbax ignores, so the next run resumes from the last complete step. A
+checkpoint that is complete but damaged (disk fault, truncated file) is
+skipped with a warning and the newest intact one is used.
 """
 
 from __future__ import annotations
 
+import logging
 import os
 from typing import Any
 
@@ -13,12 +16,26 @@ import jax
 from jax.sharding import Sharding
 import orbax.checkpoint as ocp
 
+from slotformer_jax.errors import UserError
+
+logger = logging.getLogger(__name__)
+
+
+class CheckpointSaveError(UserError):
+  """Writing a checkpoint failed (disk full, permissions): training stops."""
+
 
 def abstract_like(tree: Any, sharding: Sharding) -> Any:
   """ShapeDtypeStructs of `tree` (arrays or structs) placed on `sharding`."""
   return jax.tree.map(
       lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=sharding),
       tree)
+
+
+def _one_line(error: BaseException) -> str:
+  text = str(error).strip().splitlines()
+  first = text[0] if text else ''
+  return f'{type(error).__name__}: {first[:300]}'
 
 
 class Checkpointer:
@@ -36,30 +53,119 @@ class Checkpointer:
   def latest_step(self) -> int | None:
     return self._manager.latest_step()
 
-  def save(self, step: int, state: Any, *, force: bool = False) -> None:
-    self._manager.save(step, args=ocp.args.StandardSave(state), force=force)
+  def all_steps(self) -> list[int]:
+    return sorted(self._manager.all_steps())
 
-  def restore(self, abstract_state: Any, step: int | None = None) -> Any:
-    """Restores `step` (default: the latest) into the given structure.
+  def save(self, step: int, state: Any, *, force: bool = False) -> None:
+    """Starts an async save; an earlier save's failure is raised here.
+
+    Raises:
+      CheckpointSaveError: this or the previous save failed.
+    """
+    try:
+      self._manager.save(step, args=ocp.args.StandardSave(state),
+                         force=force)
+      self._manager.check_for_errors()
+    except Exception as error:  # pylint: disable=broad-except
+      raise CheckpointSaveError(
+          f'saving the checkpoint of step {step} to {self.directory} failed '
+          f'({_one_line(error)}); training stopped. Free disk space (or fix '
+          'the folder) and re-run: it resumes from the last saved step '
+          f'({self.last_saved_step()}).') from None
+
+  def last_saved_step(self) -> int | str:
+    steps = self.all_steps()
+    return steps[-1] if steps else 'none'
+
+  def _restore_newest_intact(self, restore_step, what: str,
+                             step: int | None) -> tuple[Any, int]:
+    """Tries `step` (default: newest first, then older ones)."""
+    candidates = [step] if step is not None else self.all_steps()[::-1]
+    if not candidates:
+      raise FileNotFoundError(f'no checkpoint in {self.directory}')
+    failures = []
+    for candidate in candidates:
+      try:
+        restored = restore_step(candidate)
+      except Exception as error:  # pylint: disable=broad-except
+        failures.append((candidate, error))
+        continue
+      if failures:
+        logger.warning(
+            '%s: checkpoint step(s) %s in %s could not be read (%s); using '
+            'the newest intact checkpoint, step %d', what,
+            [s for s, _ in failures], self.directory,
+            _one_line(failures[0][1]), candidate)
+      return restored, candidate
+    newest, error = failures[0]
+    raise UserError(
+        f'no checkpoint in {self.directory} can be restored into the {what} '
+        f'model built from the current config (tried steps '
+        f'{[s for s, _ in failures]}; step {newest}: {_one_line(error)}). '
+        'Either the config differs from the one it was trained with, or the '
+        'checkpoints are damaged: use the training config, or delete the '
+        'folder to retrain.') from None
+
+  def restore(self, abstract_state: Any, step: int | None = None,
+              what: str = 'training') -> Any:
+    """Restores `step` (default: the newest intact one) into the structure.
 
     Raises:
       FileNotFoundError: there is no checkpoint.
-      ValueError: the checkpoint does not fit `abstract_state` (another
-        model configuration).
+      UserError: no checkpoint fits `abstract_state` (another model
+        configuration, or every checkpoint damaged).
     """
-    step = self.latest_step() if step is None else step
-    if step is None:
-      raise FileNotFoundError(f'no checkpoint in {self.directory}')
-    try:
-      return self._manager.restore(
-          step, args=ocp.args.StandardRestore(abstract_state))
-    except (ValueError, KeyError, TypeError) as error:
-      raise ValueError(
-          f'the checkpoint at {self.directory} (step {step}) does not fit the '
-          f'model built from the current config: {error}') from error
+    restored, _ = self._restore_newest_intact(
+        lambda s: self._manager.restore(
+            s, args=ocp.args.StandardRestore(abstract_state)), what, step)
+    return restored
+
+  def restore_params(self, abstract_params: Any, step: int | None = None,
+                     what: str = 'model') -> tuple[Any, int]:
+    """Only `params` (and the step) of a saved TrainState: no optimizer is
+    needed to read a model. Returns (params, step)."""
+    item = {'params': abstract_params}
+    restore_args = ocp.checkpoint_utils.construct_restore_args(item)
+
+    def restore_step(s):
+      restored = self._manager.restore(s, args=ocp.args.PyTreeRestore(
+          item=item, restore_args=restore_args, partial_restore=True))
+      return restored['params']
+    return self._restore_newest_intact(restore_step, what, step)
 
   def wait_until_finished(self) -> None:
     self._manager.wait_until_finished()
 
+  def reached_preemption(self, step: int) -> bool:
+    return self._manager.reached_preemption(step)
+
+  def check_for_errors(self) -> None:
+    self._manager.check_for_errors()
+
   def close(self) -> None:
     self._manager.close()
+
+
+def restore_params(stage_directory: str, param_shapes: Any,
+                   sharding: Sharding, *, what: str,
+                   train_command: str) -> tuple[Any, int]:
+  """The newest intact parameters of a stage folder (`<dir>/checkpoints`),
+  placed on `sharding`, and their step; reading never builds an optimizer.
+
+  Raises:
+    UserError: no checkpoint (the message names `train_command`), or none
+      fits `param_shapes`.
+  """
+  directory = os.path.join(stage_directory, 'checkpoints')
+  if not os.path.isdir(directory):
+    raise UserError(f'no {what} checkpoint under {directory}. Train it '
+                    f'first: {train_command}')
+  checkpointer = Checkpointer(directory, read_only=True)
+  try:
+    if checkpointer.latest_step() is None:
+      raise UserError(f'no {what} checkpoint under {directory}. Train it '
+                      f'first: {train_command}')
+    return checkpointer.restore_params(
+        abstract_like(param_shapes, sharding), what=what)
+  finally:
+    checkpointer.close()

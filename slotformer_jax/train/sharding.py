@@ -60,3 +60,12 @@ def replicate(tree: Any, mesh: Mesh) -> Any:
 def to_host(tree: Any) -> Any:
   """Fetches (fully addressable or replicated) arrays as numpy."""
   return jax.tree.map(np.asarray, jax.device_get(tree))
+
+
+def gather_to_host(tree: Any) -> Any:
+  """Global batch-sharded arrays -> numpy on every host."""
+  if jax.process_count() == 1:
+    return jax.tree.map(np.asarray, tree)
+  # Imported here: multihost_utils is only needed with several processes.
+  from jax.experimental import multihost_utils  # pylint: disable=g-import-not-at-top
+  return multihost_utils.process_allgather(tree, tiled=True)

@@ -4,6 +4,11 @@ mesh -> optimiser -> restore or initialise the state -> jit the update step
 -> loop: host batch -> global batch -> update -> log / NaN check ->
 checkpoint. Re-running resumes from the newest checkpoint, and the data
 stream resumes at the same step (batches are a function of the step).
+
+Failures stop the loop at once with one line: a non-finite loss or updated
+state (never saved; the message names the last good checkpoint), a failed
+checkpoint save. SIGTERM (how SLURM and TPU pods preempt) saves a checkpoint
+at the current step and raises `Preempted`; the rerun resumes bit-exact.
 """
 
 from __future__ import annotations
@@ -15,6 +20,8 @@ import json
 import logging
 import math
 import os
+import signal
+import threading
 import time
 from typing import Any
 import warnings
@@ -25,6 +32,8 @@ import ml_collections
 import numpy as np
 import tqdm
 
+from slotformer_jax.errors import UserError
+from slotformer_jax.files import append_line_atomic
 from slotformer_jax.train import optim
 from slotformer_jax.train import sharding
 from slotformer_jax.train.checkpoint import Checkpointer
@@ -62,6 +71,35 @@ class Stage:
   init_params: Callable[[jax.Array], Any]
   batches: Callable[[int], Iterator[dict[str, np.ndarray]]]
   frozen_params: Any = None
+
+
+class Preempted(UserError):
+  """SIGTERM arrived; the state of the current step was saved."""
+
+
+class Diverged(UserError):
+  """The loss or the updated parameters became non-finite."""
+
+
+class _TermFlag:
+  """Notes SIGTERM instead of dying, while installed (main thread only)."""
+
+  def __init__(self):
+    self.received = False
+    self._previous = None
+
+  def __enter__(self) -> _TermFlag:
+    if threading.current_thread() is threading.main_thread():
+      self._previous = signal.signal(signal.SIGTERM, self._note)
+    return self
+
+  def _note(self, signum, frame) -> None:
+    del signum, frame
+    self.received = True
+
+  def __exit__(self, *exc) -> None:
+    if self._previous is not None:
+      signal.signal(signal.SIGTERM, self._previous)
 
 
 def checkpointer_for(stage_directory: str, **kwargs) -> Checkpointer:
@@ -117,26 +155,28 @@ def fit(stage: Stage, *, mesh: Mesh, seed: int) -> TrainState:
   log_path = os.path.join(stage.directory, 'train_log.jsonl')
   batches = stage.batches(start_step)
   last_log_time, last_log_step = time.time(), start_step
+  failed = False
   try:
     with tqdm.tqdm(total=num_steps, initial=start_step, desc=stage.name,
-                   disable=not is_lead_host, dynamic_ncols=True) as progress:
+                   disable=not is_lead_host, dynamic_ncols=True) as progress, \
+         _TermFlag() as term:
       for step in range(start_step, num_steps):
         batch = sharding.to_global_batch(next(batches), mesh)
         state, metrics = update(state, batch, frozen_params)
         progress.update(1)
         done = step + 1
+        preempted = _preempted(term, checkpointer, done)
         should_save = (done % config.checkpoint_every == 0
-                       or done == num_steps)
+                       or done == num_steps or preempted)
         should_log = done % config.log_every == 0 or done == num_steps
         if should_log or should_save:
-          # Never checkpoint a diverged state.
           metrics = {k: float(v) for k, v in sharding.to_host(metrics).items()}
-          if not math.isfinite(metrics['loss']):
-            raise FloatingPointError(
-                f'{stage.name}: the loss became {metrics["loss"]} at step '
-                f'{done}; the last checkpoint is step '
-                f'{checkpointer.latest_step()}. Lower the learning rate or '
-                'check the data; re-running resumes from that checkpoint.')
+          # Never checkpoint a diverged state: the loss is the one before
+          # the update, param_norm is of the updated parameters.
+          if not (math.isfinite(metrics['loss'])
+                  and math.isfinite(metrics['param_norm'])):
+            failed = True
+            raise _diverged(stage.name, metrics, done, checkpointer)
         if should_log:
           now = time.time()
           metrics['learning_rate'] = float(schedule(step))
@@ -147,13 +187,55 @@ def fit(stage: Stage, *, mesh: Mesh, seed: int) -> TrainState:
           logger.info('%s step %d: %s', stage.name, done, ', '.join(
               f'{k}={v:.4g}' for k, v in sorted(metrics.items())))
           if is_lead_host:
-            with open(log_path, 'a') as log_file:
-              log_file.write(json.dumps({'step': done, **metrics}) + '\n')
+            append_line_atomic(log_path, json.dumps({'step': done, **metrics}))
         if should_save:
-          checkpointer.save(done, state, force=done == num_steps)
+          failed = True  # until the save is handed over without error
+          checkpointer.save(done, state, force=done == num_steps or preempted)
+          failed = False
+        if preempted:
+          checkpointer.wait_until_finished()
+          raise Preempted(
+              f'{stage.name}: stopped by SIGTERM after step {done}; its '
+              'checkpoint is saved. Re-run the same command to resume.')
   finally:
     # Also on an exception or Ctrl-C: finish the save in flight so the next
-    # run resumes from it.
-    checkpointer.wait_until_finished()
-    checkpointer.close()
+    # run resumes from it (after a failed save, report that one failure).
+    try:
+      checkpointer.wait_until_finished()
+    except Exception as error:  # pylint: disable=broad-except
+      if not failed:
+        raise UserError(
+            f'{stage.name}: saving a checkpoint to {checkpointer.directory} '
+            f'failed ({type(error).__name__}: '
+            f'{str(error).strip().splitlines()[0][:300] if str(error).strip() else ""}).'
+            ' Free disk space and re-run: it resumes from the last saved '
+            f'step ({checkpointer.last_saved_step()}).') from None
+    finally:
+      checkpointer.close()
   return state
+
+
+def _preempted(term: _TermFlag, checkpointer: Checkpointer, step: int
+               ) -> bool:
+  """Whether to save and stop after `step`. With several processes they must
+  agree on the step: orbax's preemption sync (jax.distributed) does that."""
+  if jax.process_count() > 1:
+    return bool(checkpointer.reached_preemption(step))
+  return term.received
+
+
+def _diverged(name: str, metrics: dict[str, float], step: int,
+              checkpointer: Checkpointer) -> Diverged:
+  checkpointer.wait_until_finished()
+  steps = checkpointer.all_steps()
+  if steps:
+    resume = (f'the last good checkpoint is step {steps[-1]} (saved before '
+              'any non-finite value); re-running resumes from it and, with '
+              'the same settings, diverges again.')
+  else:
+    resume = 'there is no checkpoint yet.'
+  return Diverged(
+      f'{name}: training diverged at step {step} (loss {metrics["loss"]}, '
+      f'norm of the updated parameters {metrics["param_norm"]}); nothing '
+      f'non-finite was saved and {resume} Lower the learning rate (a new '
+      '--workdir, or --allow_config_change) or check the data.')

@@ -42,6 +42,8 @@ import numpy as np
 import pybullet
 import tensorflow_datasets as tfds
 
+from slotformer_jax.data.data_dir import resolve_data_dir
+
 # Bump whenever the generator's output changes for identical parameters: it is
 # part of the cache folder name, so stale caches are never reused.
 GENERATOR_VERSION = 1
@@ -647,15 +649,13 @@ def build_synthetic_dataset(config: SyntheticConfig,
   Args:
     config: generation parameters; they determine the folder
       ``<data_dir>/synthetic_obj3d/<config.slug>/1.0.0``.
-    data_dir: cache root; default :func:`sources.default_data_dir`.
+    data_dir: cache root; default :func:`data_dir.default_data_dir`.
     num_workers: generator processes (default: all cores).
 
   Returns:
     The TFDS version folder, readable with ``tfds.builder_from_directory``.
   """
-  # Imported here: sources.py imports this module.
-  from slotformer_jax.data import sources  # pylint: disable=g-import-not-at-top
-  root = sources.resolve_data_dir(data_dir)
+  root = resolve_data_dir(data_dir)
   path = dataset_dir(config, root)
   # tfds writes into a temporary folder and renames it when complete, so the
   # info file only exists for finished builds. Checking it here (rather than

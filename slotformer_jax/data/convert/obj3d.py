@@ -31,8 +31,8 @@ from pathlib import Path
 import numpy as np
 import tensorflow_datasets as tfds
 
-from slotformer_jax.data import media
-from slotformer_jax.data import writer
+from slotformer_jax.data.convert import media
+from slotformer_jax.data.convert import writer
 
 NAME = 'obj3d'
 SPLITS: tuple[str, ...] = ('train', 'val', 'test')

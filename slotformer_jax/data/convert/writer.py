@@ -52,7 +52,7 @@ import numpy as np
 import tensorflow_datasets as tfds
 import tqdm
 
-from slotformer_jax.data import media
+from slotformer_jax.data.convert import media
 
 logger = logging.getLogger(__name__)
 

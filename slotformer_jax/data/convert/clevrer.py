@@ -68,8 +68,8 @@ from typing import Any
 import numpy as np
 import tensorflow_datasets as tfds
 
-from slotformer_jax.data import media
-from slotformer_jax.data import writer
+from slotformer_jax.data.convert import media
+from slotformer_jax.data.convert import writer
 
 logger = logging.getLogger(__name__)
 

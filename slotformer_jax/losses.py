@@ -1,0 +1,74 @@
+"""The paper's losses, as pure functions of (params, batch, frozen, rng).
+
+* SAVi: frame reconstruction MSE (+ kl_weight * KL for stochastic SAVi).
+* SlotFormer / Slot-LSTM: L = L_S + lambda * L_I (slot MSE + image MSE of
+  the frames decoded by the frozen SAVi decoder).
+
+Both are in the [-1, 1] pixel range of `frames.frames_to_model`.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+
+from slotformer_jax.frames import frames_to_model
+from slotformer_jax.modules.decoders import SpatialBroadcastDecoder
+from slotformer_jax.modules.savi import SAVi
+from slotformer_jax.modules.slot_lstm import SlotLSTM
+from slotformer_jax.modules.slotformer import SlotFormer
+
+Batch = dict[str, jax.Array]
+Metrics = dict[str, jax.Array]
+
+
+def savi_loss(params: Any, batch: Batch, frozen_params: Any, rng: jax.Array,
+              *, model: SAVi, kl_weight: float) -> tuple[jax.Array, Metrics]:
+  """Frame reconstruction MSE (+ kl_weight * KL for stochastic SAVi).
+
+  batch['video']: uint8 [B, T, H, W, 3]. The KL is summed over the slot
+  dimensions and averaged over batch, frames and slots.
+  """
+  del frozen_params
+  video = frames_to_model(batch['video'])
+  output = model.apply({'params': params}, video, rngs={'sample': rng})
+  recon_loss = jnp.mean(jnp.square(output.decoded.recon - video))
+  kl = jnp.mean(output.kl)
+  loss = recon_loss + kl_weight * kl
+  return loss, {'recon_loss': recon_loss, 'kl': kl}
+
+
+def slotformer_loss(params: Any, batch: Batch, decoder_params: Any,
+                    rng: jax.Array, *, model: SlotFormer | SlotLSTM,
+                    decoder: SpatialBroadcastDecoder, rollout: int,
+                    image_loss_weight: float, teacher_forcing: bool
+                    ) -> tuple[jax.Array, Metrics]:
+  """L = L_S + lambda * L_I on the model's own rollout.
+
+  batch['slots']: float32 [B, burn_in + rollout, N, D];
+  batch['video']: uint8 [B, burn_in + rollout, H, W, 3] (needed when
+  lambda > 0). L_S is the MSE between predicted and extracted slots, L_I
+  the MSE between frames decoded from the predicted slots by the *frozen*
+  SAVi decoder and the real frames (both averaged over every element, as the
+  official implementation).
+  """
+  burn_in = model.burn_in
+  history = batch['slots'][:, :burn_in]
+  target_slots = batch['slots'][:, burn_in:burn_in + rollout]
+  predicted = model.apply(
+      {'params': params}, history, rollout,
+      teacher_slots=target_slots if teacher_forcing else None,
+      deterministic=False, rngs={'dropout': rng})
+  slot_loss = jnp.mean(jnp.square(predicted - target_slots))
+  metrics = {'slot_loss': slot_loss}
+  loss = slot_loss
+  if image_loss_weight > 0:
+    frames = frames_to_model(batch['video'][:, burn_in:burn_in + rollout])
+    decoded = decoder.apply({'params': jax.lax.stop_gradient(decoder_params)},
+                            predicted)
+    image_loss = jnp.mean(jnp.square(decoded.recon - frames))
+    metrics['image_loss'] = image_loss
+    loss = loss + image_loss_weight * image_loss
+  return loss, metrics

@@ -1,0 +1,460 @@
+"""Paths of a run and what each artifact was made from.
+
+Workdir layout (shared by all stages; each stage resumes from it)::
+
+    config.json                 the settings this workdir was trained with
+    config_history.jsonl        every accepted settings change
+    savi/checkpoints/<step>/    savi/model_config.json  savi/train_log.jsonl
+    slots/<split>/              extracted slots (see data/slots.py)
+    slotformer/checkpoints/     slotformer/train_log.jsonl
+    eval/metrics.json           eval/per_step.csv
+    render/*.gif, *.png
+
+Only paths and checks live here (no training code), so evaluation can use it.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import json
+import logging
+import os
+import socket
+import time
+from typing import Any
+import uuid
+
+import jax
+import ml_collections
+
+from slotformer_jax import models
+from slotformer_jax.data.slots import SlotSource
+from slotformer_jax.data.slots import read_meta
+from slotformer_jax.data.sources import get_video_source
+from slotformer_jax.errors import UserError
+from slotformer_jax.files import append_line_atomic
+from slotformer_jax.files import read_json
+from slotformer_jax.files import write_json_atomic
+
+logger = logging.getLogger(__name__)
+
+MODEL_CONFIG_FILE = 'model_config.json'
+
+
+def stage1_workdir(config: ml_collections.ConfigDict, workdir: str) -> str:
+  """Where SAVi and the extracted slots live: `config.stage1_workdir` when
+  set (stage-2 ablations reuse one stage 1, read-only), else the run's own
+  workdir."""
+  return config.get('stage1_workdir') or workdir
+
+
+def uses_foreign_stage1(config: ml_collections.ConfigDict,
+                        workdir: str) -> bool:
+  """True when stage 1 is read from another workdir (never written there)."""
+  other = config.get('stage1_workdir')
+  return bool(other) and (os.path.realpath(other)
+                          != os.path.realpath(workdir))
+
+
+def savi_dir(workdir: str) -> str:
+  return os.path.join(workdir, 'savi')
+
+
+def slots_dir(workdir: str, split: str) -> str:
+  return os.path.join(workdir, 'slots', split)
+
+
+def dynamics_dir(workdir: str, name: str = models.SLOTFORMER) -> str:
+  """Where stage-2 model `name` keeps checkpoints and logs."""
+  return os.path.join(workdir, name)
+
+
+def eval_dir(workdir: str) -> str:
+  return os.path.join(workdir, 'eval')
+
+
+def render_dir(workdir: str) -> str:
+  return os.path.join(workdir, 'render')
+
+
+def savi_model_fields(config: ml_collections.ConfigDict) -> dict[str, Any]:
+  """The config values that determine SAVi's parameter shapes / behaviour."""
+  savi = config.savi.to_dict()
+  fields = {key: savi[key] for key in (
+      'num_slots', 'slot_size', 'encoder', 'slot_attention', 'predictor',
+      'decoder', 'stochastic', 'initial_slots')}
+  fields['resolution'] = list(config.data.resolution)
+  return json.loads(json.dumps(fields))  # tuples -> lists, for comparison
+
+
+def dynamics_model_fields(config: ml_collections.ConfigDict,
+                          name: str = models.SLOTFORMER) -> dict[str, Any]:
+  """The config values that determine a stage-2 model's parameters."""
+  dynamics = models.dynamics_config(config, name).to_dict()
+  keys = ['burn_in', 'embed_dim', 'num_layers', 'num_heads', 'mlp_ratio',
+          'residual']
+  if name == models.SLOTFORMER:
+    keys.append('positional_encoding')
+  return json.loads(json.dumps({key: dynamics[key] for key in keys}))
+
+
+def write_model_config(directory: str, fields: dict[str, Any]) -> None:
+  if jax.process_index() == 0:
+    write_json_atomic(os.path.join(directory, MODEL_CONFIG_FILE), fields)
+
+
+def check_model_config(directory: str, fields: dict[str, Any],
+                       what: str) -> None:
+  """Fails clearly when a checkpoint was trained with another architecture."""
+  path = os.path.join(directory, MODEL_CONFIG_FILE)
+  if not os.path.exists(path):
+    return
+  saved = read_json(path)
+  differences = [
+      f'{key}: checkpoint {saved.get(key)!r} vs config {fields.get(key)!r}'
+      for key in sorted(set(saved) | set(fields))
+      if saved.get(key) != fields.get(key)]
+  if differences:
+    raise UserError(
+        f'the {what} checkpoint in {directory} was trained with a different '
+        'model configuration: ' + '; '.join(differences) +
+        '. Use the config it was trained with, or another --workdir.')
+
+
+def slot_source_for(config: ml_collections.ConfigDict, workdir: str,
+                    split: str, video_fields: tuple[str, ...]) -> SlotSource:
+  """Extracted slots of `split` served together with `video_fields`."""
+  video_source = get_video_source(config.data, split) if video_fields else None
+  return SlotSource(slots_dir(stage1_workdir(config, workdir), split),
+                    video_source, video_fields)
+
+
+# --------------------------------------------------------------------------
+# Run identity: what each artifact was made from
+# --------------------------------------------------------------------------
+#
+# Every stage folder (savi/, slotformer/, slot_lstm/) holds identity.json:
+#   run_id       random, stamped when the stage starts training from scratch
+#   fields       the config values that shaped it (`*_identity_fields`)
+#   parent       the identity of what it was trained on (dynamics: the SAVi
+#                run_id + step whose slots it read), or null
+# The slots record the SAVi run_id + step they were extracted with, the
+# metrics and pictures record every identity they used. A child whose parent
+# changed is rebuilt (slots) or refused (dynamics, evaluation): nothing mixes.
+
+IDENTITY_FILE = 'identity.json'
+CONFIG_FILE = 'config.json'
+CONFIG_HISTORY_FILE = 'config_history.jsonl'
+
+# Settings that change how a run is observed, not what it computes.
+_NOT_SHAPING = ('log_every', 'checkpoint_every', 'num_workers', 'data_dir')
+
+
+def _plain(value: Any) -> Any:
+  """Tuples -> lists (as JSON stores them), for comparisons."""
+  return json.loads(json.dumps(value))
+
+
+def _shaping(section: dict[str, Any]) -> dict[str, Any]:
+  return {key: value for key, value in section.items()
+          if key not in _NOT_SHAPING}
+
+
+def savi_identity_fields(config: ml_collections.ConfigDict) -> dict[str, Any]:
+  """Everything that shapes SAVi's parameters: data, the savi section, seed."""
+  return _plain({'seed': config.seed, 'data': _shaping(config.data.to_dict()),
+                 'savi': _shaping(config.savi.to_dict())})
+
+
+def slots_identity_fields(config: ml_collections.ConfigDict
+                          ) -> dict[str, Any]:
+  """Besides the SAVi that made them: extraction settings and the seed
+  (stochastic SAVi samples with it)."""
+  extraction = config.extraction.to_dict()
+  extraction.pop('splits', None)
+  return _plain({'seed': config.seed, 'extraction': extraction})
+
+
+def dynamics_identity_fields(config: ml_collections.ConfigDict,
+                             name: str = models.SLOTFORMER
+                             ) -> dict[str, Any]:
+  return _plain({'seed': config.seed, name: _shaping(
+      models.dynamics_config(config, name).to_dict())})
+
+
+def fingerprint(fields: dict[str, Any]) -> str:
+  return hashlib.sha256(json.dumps(fields, sort_keys=True).encode()
+                        ).hexdigest()[:16]
+
+
+def flat_differences(old: Any, new: Any, prefix: str = '') -> list[str]:
+  """['savi.learning_rate: 0.0002 -> 0.001', ...] between nested dicts."""
+  if isinstance(old, dict) and isinstance(new, dict):
+    out = []
+    for key in sorted(set(old) | set(new)):
+      name = f'{prefix}.{key}' if prefix else key
+      if key not in old:
+        out.append(f'{name}: (absent) -> {new[key]!r}')
+      elif key not in new:
+        out.append(f'{name}: {old[key]!r} -> (absent)')
+      else:
+        out += flat_differences(old[key], new[key], name)
+    return out
+  return [] if old == new else [f'{prefix}: {old!r} -> {new!r}']
+
+
+def read_identity(stage_directory: str) -> dict[str, Any] | None:
+  path = os.path.join(stage_directory, IDENTITY_FILE)
+  if not os.path.exists(path):
+    return None
+  return read_json(path, fix=f'Delete {os.path.dirname(path)} to retrain '
+                   'that stage.')
+
+
+def new_identity(fields: dict[str, Any],
+                 parent: dict[str, Any] | None = None) -> dict[str, Any]:
+  return {'run_id': uuid.uuid4().hex[:12], 'fingerprint': fingerprint(fields),
+          'fields': fields, 'parent': parent,
+          'created': time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime())}
+
+
+def write_identity(stage_directory: str, identity: dict[str, Any]) -> None:
+  if jax.process_index() == 0:
+    write_json_atomic(os.path.join(stage_directory, IDENTITY_FILE), identity)
+
+
+def savi_identity(config: ml_collections.ConfigDict, workdir: str
+                  ) -> dict[str, Any]:
+  """{'run_id', 'fingerprint'} of the SAVi stage 1 of this run.
+
+  Raises:
+    UserError: SAVi there was trained with other settings (the fields are
+      listed), or has no identity yet.
+  """
+  directory = savi_dir(stage1_workdir(config, workdir))
+  identity = read_identity(directory)
+  if identity is None:
+    raise UserError(
+        f'no trained SAVi in {directory}. Train stage 1 first: python -m '
+        'slotformer_jax.main --config=<config> '
+        f'--workdir={stage1_workdir(config, workdir)} --mode=train_savi')
+  check_identity_fields(identity, savi_identity_fields(config), 'SAVi',
+                        directory)
+  return identity
+
+
+def slots_parent(identity: dict[str, Any], savi_step: int) -> dict[str, Any]:
+  """What slots (and the dynamics trained on them) descend from."""
+  return {'savi_run_id': identity['run_id'], 'savi_step': int(savi_step)}
+
+
+def check_slots_current(config: ml_collections.ConfigDict, workdir: str,
+                        split: str, identity: dict[str, Any],
+                        savi_step: int) -> dict[str, Any]:
+  """The slots of `split` must come from the current SAVi; returns their
+  parent.
+
+  Raises:
+    UserError: missing or stale slots, with the command that rebuilds them.
+  """
+  directory = slots_dir(stage1_workdir(config, workdir), split)
+  meta = read_meta(directory)
+  expected = slots_parent(identity, savi_step)
+  rebuild = ('python -m slotformer_jax.main --config=<config> '
+             f'--workdir={stage1_workdir(config, workdir)} '
+             '--mode=extract_slots')
+  if not (meta and meta.get('complete')):
+    raise UserError(f'no complete slots in {directory}; extract them: '
+                    f'{rebuild}')
+  if (meta.get('parent') != expected
+      or meta.get('fields') != slots_identity_fields(config)):
+    raise UserError(
+        f'the slots in {directory} are stale: made by SAVi '
+        f'{meta.get("parent")}, the current SAVi is {expected}. Re-extract '
+        f'them: {rebuild}')
+  return expected
+
+
+def check_identity_fields(identity: dict[str, Any], fields: dict[str, Any],
+                          what: str, directory: str) -> None:
+  changes = flat_differences(identity['fields'], fields)
+  if changes:
+    raise UserError(
+        f'the {what} in {directory} was made with other settings '
+        f'({"; ".join(changes[:8])}'
+        f'{f"; and {len(changes) - 8} more" if len(changes) > 8 else ""}). '
+        'Use the settings it was made with, or another --workdir.')
+
+
+# --------------------------------------------------------------------------
+# The settings of a workdir
+# --------------------------------------------------------------------------
+
+
+def accept_config(config: ml_collections.ConfigDict, workdir: str, *,
+                  allow_change: bool = False) -> list[str]:
+  """Checks `config` against the settings the workdir was run with; records
+  them in config.json (the old ones go to config_history.jsonl).
+
+  Returns the changed fields (empty for a new workdir or the same settings).
+
+  Raises:
+    UserError: settings changed and `allow_change` is False.
+  """
+  path = os.path.join(workdir, CONFIG_FILE)
+  current = _plain(config.to_dict())
+  changes = []
+  if os.path.exists(path):
+    saved = read_json(path, fix=f'Restore it from {CONFIG_HISTORY_FILE} or '
+                      'delete it to accept the current settings.')
+    changes = [c for c in flat_differences(saved, current)
+               if not _only_observation(c)]
+    if changes and not allow_change:
+      raise UserError(
+          f'{workdir} was run with other settings: {"; ".join(changes)}. '
+          'Use a new --workdir for new settings, or pass '
+          '--allow_config_change to accept them here (stages they affect '
+          'are then retrained or re-extracted; old checkpoints are kept as '
+          '<stage>.stale-<run id>).')
+  if jax.process_index() == 0 and (changes or not os.path.exists(path)):
+    if changes:
+      append_line_atomic(
+          os.path.join(workdir, CONFIG_HISTORY_FILE), json.dumps(
+              {'replaced': time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime()),
+               'changes': changes, 'config': saved}))
+    write_json_atomic(path, current)
+  return changes
+
+
+def _only_observation(change: str) -> bool:
+  name = change.split(':', 1)[0]
+  last = name.rsplit('.', 1)[-1]
+  return last in _NOT_SHAPING or name.startswith('render.')
+
+
+def set_aside(stage_directory: str, identity: dict[str, Any] | None) -> str:
+  """Renames a stale stage folder out of the way (never deletes results)."""
+  tag = identity['run_id'] if identity else uuid.uuid4().hex[:12]
+  target = f'{stage_directory}.stale-{tag}'
+  if jax.process_index() == 0:
+    os.replace(stage_directory, target)
+  return target
+
+
+# --------------------------------------------------------------------------
+# The workdir lock: one writer at a time
+# --------------------------------------------------------------------------
+
+LOCK_FILE = '.lock'
+
+
+def _pid_alive(pid: int) -> bool:
+  try:
+    os.kill(pid, 0)
+  except ProcessLookupError:
+    return False
+  except PermissionError:
+    return True
+  return True
+
+
+class WorkdirLock:
+  """An exclusive lock file `<workdir>/.lock` holding pid, host and start.
+
+  A lock left by a dead process on this host is taken over (with a
+  warning); a live holder, or one on another host, is an error naming it.
+  """
+
+  def __init__(self, workdir: str):
+    self.path = os.path.join(workdir, LOCK_FILE)
+    self._held = False
+
+  def acquire(self) -> None:
+    os.makedirs(os.path.dirname(self.path) or '.', exist_ok=True)
+    me = {'pid': os.getpid(), 'host': socket.gethostname(),
+          'started': time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime())}
+    for _ in range(3):
+      try:
+        fd = os.open(self.path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+      except FileExistsError:
+        holder = self._holder()
+        if holder is None:  # torn / being written: look again
+          time.sleep(0.2)
+          holder = self._holder()
+        if (holder is not None and holder.get('host') == me['host']
+            and not _pid_alive(int(holder.get('pid', -1)))) or (
+                holder is None):
+          logger.warning('taking over the stale lock %s (%s)', self.path,
+                         holder or 'unreadable')
+          with contextlib.suppress(FileNotFoundError):
+            os.unlink(self.path)
+          continue
+        raise UserError(
+            f'{os.path.dirname(self.path)} is in use by process '
+            f'{holder.get("pid")} on {holder.get("host")} (since '
+            f'{holder.get("started")}). Wait for it, stop it, or use another '
+            f'--workdir; if that process is gone, delete {self.path}.')
+      with os.fdopen(fd, 'w') as f:
+        json.dump(me, f)
+        f.flush()
+        os.fsync(f.fileno())
+      self._held = True
+      return
+    raise UserError(f'could not take the lock {self.path}; delete it if no '
+                    'run uses this workdir')
+
+  def _holder(self) -> dict[str, Any] | None:
+    try:
+      with open(self.path) as f:
+        return json.load(f)
+    except (OSError, ValueError):
+      return None
+
+  def release(self) -> None:
+    if self._held:
+      with contextlib.suppress(FileNotFoundError):
+        os.unlink(self.path)
+      self._held = False
+
+  def __enter__(self) -> WorkdirLock:
+    self.acquire()
+    return self
+
+  def __exit__(self, *exc) -> None:
+    self.release()
+
+
+def evaluation_identity(config: ml_collections.ConfigDict, workdir: str,
+                        split: str, savi_step: int,
+                        dynamics_steps: dict[str, int]) -> dict[str, Any]:
+  """What an evaluation (metrics, pictures) is made from; checks that SAVi,
+  the slots of `split` and every dynamics model descend from each other.
+
+  Raises:
+    UserError: something is stale; the message names the stage to rerun.
+  """
+  savi = savi_identity(config, workdir)
+  parent = check_slots_current(config, workdir, split, savi, savi_step)
+  out = {'savi': {'run_id': savi['run_id'], 'step': int(savi_step),
+                  'fingerprint': savi['fingerprint']},
+         'slots': parent}
+  for name, step in dynamics_steps.items():
+    directory = dynamics_dir(workdir, name)
+    identity = read_identity(directory)
+    retrain = ('python -m slotformer_jax.main --config=<config> '
+               f'--workdir={workdir} --mode=train_{name}')
+    if identity is None:
+      raise UserError(f'{directory} has no identity.json: it is from an '
+                      f'older version or incomplete; retrain it: {retrain}')
+    check_identity_fields(identity, dynamics_identity_fields(config, name),
+                          name, directory)
+    if identity.get('parent') != parent:
+      raise UserError(
+          f'{name} in {directory} was trained on the slots of SAVi '
+          f'{identity.get("parent")}, but stage 1 is now {parent}; '
+          f'evaluating would mix them. Retrain it (it is set aside and '
+          f'retrained): {retrain}')
+    out[name] = {'run_id': identity['run_id'], 'step': int(step),
+                 'fingerprint': identity['fingerprint'], 'parent': parent}
+  return out
