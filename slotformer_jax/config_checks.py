@@ -16,7 +16,7 @@ from collections.abc import Sequence
 import ml_collections
 
 from slotformer_jax import models
-from slotformer_jax.errors import UserError
+from slotformer_jax.errors import ConfigError
 
 FRAME_METRICS = ('psnr', 'ssim', 'lpips')
 OBJECT_METRICS = ('ari', 'fg_ari', 'fg_miou', 'ar')
@@ -166,7 +166,7 @@ def validate(config: ml_collections.ConfigDict, stages: Sequence[str], *,
   if not problems:  # lengths need the integers above to be sane
     _check_lengths(config, stages, dynamics, problems)
   if problems:
-    raise UserError('config: ' + '; '.join(problems))
+    raise ConfigError('config: ' + '; '.join(problems))
 
 
 def _check_lengths(config, stages, dynamics, problems) -> None:

@@ -1,7 +1,19 @@
-"""The error a user can fix: main prints its message as one line on stderr
-and exits non-zero, without a traceback (unexpected errors keep theirs)."""
+"""Errors a user can fix: main prints the message as one line on stderr and
+exits non-zero, without a traceback (unexpected errors keep theirs).
+
+The subclasses are also the built-in error a caller may already catch
+(`except FileNotFoundError` keeps working for missing inputs).
+"""
 
 
 class UserError(Exception):
   """Missing data or checkpoint, a bad config, a workdir in use, ...: the
   message says what is wrong and what to run or change."""
+
+
+class MissingInputError(UserError, FileNotFoundError):
+  """A dataset, checkpoint or extraction that must exist first."""
+
+
+class ConfigError(UserError, ValueError):
+  """A config value that cannot work."""

@@ -111,7 +111,7 @@ def main(argv):
   # Every check before any work: a bad value costs seconds, not a stage.
   config_checks.validate(config, selected, num_devices=jax.device_count(),
                          num_processes=jax.process_count())
-  lock = workdir_lib.WorkdirLock(workdir)
+  lock = workdir_lib.workdir_lock(workdir)
   if jax.process_index() == 0:
     lock.acquire()
   try:
@@ -164,11 +164,16 @@ def run_main(argv: list[str] | None = None) -> None:
   try:
     app.run(main, argv=argv)
   except Preempted as error:
-    print(f'preempted: {error}', file=sys.stderr)
+    print(f'preempted: {_one_line(error)}', file=sys.stderr)
     sys.exit(128 + 15)
   except UserError as error:
-    print(f'error: {error}', file=sys.stderr)
+    print(f'error: {_one_line(error)}', file=sys.stderr)
     sys.exit(1)
+
+
+def _one_line(error: BaseException) -> str:
+  return ' '.join(line.strip() for line in str(error).splitlines()
+                  if line.strip())
 
 
 if __name__ == '__main__':

@@ -15,12 +15,10 @@ Only paths and checks live here (no training code), so evaluation can use it.
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
 import json
 import logging
 import os
-import socket
 import time
 from typing import Any
 import uuid
@@ -32,8 +30,11 @@ from slotformer_jax import models
 from slotformer_jax.data.slots import SlotSource
 from slotformer_jax.data.slots import read_meta
 from slotformer_jax.data.sources import get_video_source
+from slotformer_jax.errors import ConfigError
+from slotformer_jax.errors import MissingInputError
 from slotformer_jax.errors import UserError
 from slotformer_jax.files import append_line_atomic
+from slotformer_jax.lock import FileLock
 from slotformer_jax.files import read_json
 from slotformer_jax.files import write_json_atomic
 
@@ -116,7 +117,7 @@ def check_model_config(directory: str, fields: dict[str, Any],
       for key in sorted(set(saved) | set(fields))
       if saved.get(key) != fields.get(key)]
   if differences:
-    raise UserError(
+    raise ConfigError(
         f'the {what} checkpoint in {directory} was trained with a different '
         'model configuration: ' + '; '.join(differences) +
         '. Use the config it was trained with, or another --workdir.')
@@ -144,6 +145,7 @@ def slot_source_for(config: ml_collections.ConfigDict, workdir: str,
 # changed is rebuilt (slots) or refused (dynamics, evaluation): nothing mixes.
 
 IDENTITY_FILE = 'identity.json'
+LOCK_FILE = '.lock'
 CONFIG_FILE = 'config.json'
 CONFIG_HISTORY_FILE = 'config_history.jsonl'
 
@@ -235,7 +237,7 @@ def savi_identity(config: ml_collections.ConfigDict, workdir: str
   directory = savi_dir(stage1_workdir(config, workdir))
   identity = read_identity(directory)
   if identity is None:
-    raise UserError(
+    raise MissingInputError(
         f'no trained SAVi in {directory}. Train stage 1 first: python -m '
         'slotformer_jax.main --config=<config> '
         f'--workdir={stage1_workdir(config, workdir)} --mode=train_savi')
@@ -265,7 +267,7 @@ def check_slots_current(config: ml_collections.ConfigDict, workdir: str,
              f'--workdir={stage1_workdir(config, workdir)} '
              '--mode=extract_slots')
   if not (meta and meta.get('complete')):
-    raise UserError(f'no complete slots in {directory}; extract them: '
+    raise MissingInputError(f'no complete slots in {directory}; extract them: '
                     f'{rebuild}')
   if (meta.get('parent') != expected
       or meta.get('fields') != slots_identity_fields(config)):
@@ -343,86 +345,12 @@ def set_aside(stage_directory: str, identity: dict[str, Any] | None) -> str:
 
 
 # --------------------------------------------------------------------------
-# The workdir lock: one writer at a time
+# The workdir lock: one writer at a time (see lock.py)
 # --------------------------------------------------------------------------
 
-LOCK_FILE = '.lock'
 
-
-def _pid_alive(pid: int) -> bool:
-  try:
-    os.kill(pid, 0)
-  except ProcessLookupError:
-    return False
-  except PermissionError:
-    return True
-  return True
-
-
-class WorkdirLock:
-  """An exclusive lock file `<workdir>/.lock` holding pid, host and start.
-
-  A lock left by a dead process on this host is taken over (with a
-  warning); a live holder, or one on another host, is an error naming it.
-  """
-
-  def __init__(self, workdir: str):
-    self.path = os.path.join(workdir, LOCK_FILE)
-    self._held = False
-
-  def acquire(self) -> None:
-    os.makedirs(os.path.dirname(self.path) or '.', exist_ok=True)
-    me = {'pid': os.getpid(), 'host': socket.gethostname(),
-          'started': time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime())}
-    for _ in range(3):
-      try:
-        fd = os.open(self.path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
-      except FileExistsError:
-        holder = self._holder()
-        if holder is None:  # torn / being written: look again
-          time.sleep(0.2)
-          holder = self._holder()
-        if (holder is not None and holder.get('host') == me['host']
-            and not _pid_alive(int(holder.get('pid', -1)))) or (
-                holder is None):
-          logger.warning('taking over the stale lock %s (%s)', self.path,
-                         holder or 'unreadable')
-          with contextlib.suppress(FileNotFoundError):
-            os.unlink(self.path)
-          continue
-        raise UserError(
-            f'{os.path.dirname(self.path)} is in use by process '
-            f'{holder.get("pid")} on {holder.get("host")} (since '
-            f'{holder.get("started")}). Wait for it, stop it, or use another '
-            f'--workdir; if that process is gone, delete {self.path}.')
-      with os.fdopen(fd, 'w') as f:
-        json.dump(me, f)
-        f.flush()
-        os.fsync(f.fileno())
-      self._held = True
-      return
-    raise UserError(f'could not take the lock {self.path}; delete it if no '
-                    'run uses this workdir')
-
-  def _holder(self) -> dict[str, Any] | None:
-    try:
-      with open(self.path) as f:
-        return json.load(f)
-    except (OSError, ValueError):
-      return None
-
-  def release(self) -> None:
-    if self._held:
-      with contextlib.suppress(FileNotFoundError):
-        os.unlink(self.path)
-      self._held = False
-
-  def __enter__(self) -> WorkdirLock:
-    self.acquire()
-    return self
-
-  def __exit__(self, *exc) -> None:
-    self.release()
+def workdir_lock(workdir: str) -> FileLock:
+  return FileLock(os.path.join(workdir, LOCK_FILE), what=workdir)
 
 
 def evaluation_identity(config: ml_collections.ConfigDict, workdir: str,

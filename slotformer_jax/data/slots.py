@@ -18,10 +18,11 @@ from __future__ import annotations
 
 import os
 from typing import Any
-import zlib
 
 import numpy as np
 
+from slotformer_jax.data.integrity import file_crc32
+from slotformer_jax.errors import MissingInputError
 from slotformer_jax.errors import UserError
 from slotformer_jax.files import read_json
 from slotformer_jax.files import write_json_atomic
@@ -38,15 +39,6 @@ def read_meta(directory: str) -> dict[str, Any] | None:
     return None
   return read_json(path, fix=f'Delete {directory} and re-run '
                    '--mode=extract_slots.')
-
-
-def file_crc32(path: str, chunk: int = 1 << 24) -> str:
-  """crc32 of a file, read in 16 MiB pieces (about 1 GB/s)."""
-  value = 0
-  with open(path, 'rb') as f:
-    while block := f.read(chunk):
-      value = zlib.crc32(block, value)
-  return f'{value:08x}'
 
 
 class SlotWriter:
@@ -112,7 +104,7 @@ class SlotSource:
                verify: bool = True):
     meta = read_meta(directory)
     if meta is None or not meta.get('complete'):
-      raise UserError(
+      raise MissingInputError(
           f'no complete slot extraction in {directory}; run '
           '`--mode=extract_slots` first')
     if verify:

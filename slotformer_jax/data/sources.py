@@ -46,6 +46,7 @@ scalars / metadata); arrays may be read-only views of the decoded record.
 
 from __future__ import annotations
 
+import logging
 import os
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -55,10 +56,16 @@ import ml_collections
 import numpy as np
 import tensorflow_datasets as tfds
 
+from slotformer_jax.data import integrity
 from slotformer_jax.data.convert import synthetic
 from slotformer_jax.data.data_dir import DATA_DIR_ENV  # noqa: F401 (re-export)
 from slotformer_jax.data.data_dir import default_data_dir
 from slotformer_jax.data.data_dir import resolve_data_dir
+from slotformer_jax.errors import ConfigError
+from slotformer_jax.errors import MissingInputError
+from slotformer_jax.errors import UserError
+
+logger = logging.getLogger(__name__)
 
 REAL_DATASETS: tuple[str, ...] = ('obj3d', 'clevrer', 'physion', 'phyre')
 _DATASET_INFO = 'dataset_info.json'
@@ -87,9 +94,12 @@ class TfdsVideoSource:
   dicts of numpy arrays (scalars become 0-d arrays).
   """
 
-  def __init__(self, dataset_dir: str | os.PathLike[str], split: str):
+  def __init__(self, dataset_dir: str | os.PathLike[str], split: str, *,
+               fix: str = ''):
     self.dataset_dir = Path(dataset_dir)
     self.split = split
+    # What to do when a record cannot be read (named in the error).
+    self.fix = fix or f'Delete {self.dataset_dir} and prepare it again.'
     builder = tfds.builder_from_directory(os.fspath(self.dataset_dir))
     if split not in builder.info.splits:
       raise ValueError(f'{self.dataset_dir} has no split {split!r}; it has '
@@ -113,7 +123,16 @@ class TfdsVideoSource:
     index = int(index)
     if not -n <= index < n:
       raise IndexError(f'index {index} out of range for {n} videos')
-    example = self._source[index % n]
+    try:
+      example = self._source[index % n]
+    except Exception as error:  # pylint: disable=broad-except
+      # The reader's own message ('Invalid Riegeli/records file') names no
+      # file; this one names the folder and the fix.
+      raise UserError(
+          f'{self.dataset_dir}: reading video {index} of split '
+          f'{self.split!r} failed ({type(error).__name__}: '
+          f'{str(error).splitlines()[0][:200] if str(error) else ""}); the '
+          f'dataset cache is damaged. {self.fix}') from None
     return {key: _as_numpy(value, self._dtypes.get(key))
             for key, value in example.items()}
 
@@ -240,11 +259,23 @@ def get_video_source(data_config: ml_collections.ConfigDict,
     dataset_dir = synthetic.build_synthetic_dataset(
         config, resolve_data_dir(data_dir),
         num_workers=data_config.get('num_workers', None))
-    return TfdsVideoSource(dataset_dir, split)
+    try:
+      if not integrity.verify_checksums(dataset_dir, split):
+        integrity.record_checksums(dataset_dir)  # built by an older version
+    except integrity.DamagedDataset as error:
+      # A cache is regenerable: say so, set it aside, build it again.
+      logger.warning('the synthetic dataset cache is damaged (%s); '
+                     'regenerating it', error)
+      synthetic.discard_dataset(dataset_dir)
+      dataset_dir = synthetic.build_synthetic_dataset(
+          config, resolve_data_dir(data_dir),
+          num_workers=data_config.get('num_workers', None))
+    return TfdsVideoSource(dataset_dir, split, fix=(
+        f'Delete {dataset_dir}: it is regenerated on the next run.'))
   if name in REAL_DATASETS:
     path = prepared_dataset_path(data_dir, name)
     if not path.is_dir() or not _find_dataset_dirs(path):
-      raise FileNotFoundError(
+      raise MissingInputError(
           f'Dataset {name!r} is not prepared: expected an array_record TFDS '
           f'folder under {path}. Convert it first with\n'
           f'  python -m slotformer_jax.data.prepare --dataset={name} '
@@ -253,8 +284,21 @@ def get_video_source(data_config: ml_collections.ConfigDict,
       path = path / data_config.prepared_config
     source = open_prepared_dataset(
         path, split, resolution=data_config.get('resolution', None))
+    reconvert = (
+        f'python -m slotformer_jax.data.prepare --dataset={name} '
+        f'--source=/path/to/download --data_dir={resolve_data_dir(data_dir)} '
+        '--overwrite (with the options it was converted with)')
+    source.fix = f'Convert it again: {reconvert}'
+    try:
+      if not integrity.verify_checksums(source.dataset_dir, split):
+        # Converted by an older version: trust it once, check from now on.
+        logger.info('recording checksums of %s', source.dataset_dir)
+        integrity.record_checksums(source.dataset_dir)
+    except integrity.DamagedDataset as error:
+      raise UserError(f'the converted {name} dataset is damaged: {error}. '
+                      f'Convert it again: {reconvert}') from None
     return with_channel_order(source, data_config.get('channel_order', 'rgb'))
-  raise ValueError(f'Unknown dataset name {name!r}; expected "synthetic" or '
+  raise ConfigError(f'Unknown dataset name {name!r}; expected "synthetic" or '
                    f'one of {REAL_DATASETS}.')
 
 

@@ -45,6 +45,7 @@ from slotformer_jax.data.convert import clevrer
 from slotformer_jax.data import pipeline
 from slotformer_jax.data.pipeline import ClipSource
 from slotformer_jax.data.sources import get_video_source
+from slotformer_jax.errors import ConfigError
 from slotformer_jax.evaluation import metrics as metrics_lib
 from slotformer_jax.files import atomic_text
 from slotformer_jax.files import write_json_atomic
@@ -507,7 +508,7 @@ def _check_has_segmentations(source: Any, names: tuple[str, ...]) -> None:
   except KeyError:
     asked = [name for name in names if name in OBJECT_METRICS]
     frame_only = ','.join(name for name in names if name in FRAME_METRICS)
-    raise ValueError(
+    raise ConfigError(
         f'evaluation.metrics asks for {asked}, which need ground-truth '
         f"'{SEGMENTATION_FIELD}', but this dataset has none. Evaluate frame "
         f'metrics only: --config.evaluation.metrics={frame_only or "psnr"}')

@@ -20,6 +20,7 @@ import logging
 import os
 from typing import Any
 
+import einops
 import imageio.v2 as imageio
 import jax
 from jax.sharding import Mesh
@@ -133,9 +134,11 @@ def last_layer_attention(params: Any, history: jax.Array, *,
   blocks = variables['intermediates']['predictor']['transformer']
   last = blocks[f'block_{model.num_layers - 1}']
   weights = last['attention']['attention_weights'][0]  # [B, H, Q, K]
-  batch, num_frames, num_slots, _ = history.shape
+  num_frames, num_slots = history.shape[1:3]
   from_predicted = jnp.mean(weights[:, :, -num_slots:], axis=1)  # [B, N, TN]
-  return from_predicted.reshape(batch, num_slots, num_frames, num_slots)
+  # Keys are the input tokens, frame-major: (frame t, slot j).
+  return einops.rearrange(from_predicted, 'b i (t j) -> b i t j',
+                          t=num_frames, j=num_slots)
 
 
 def attention_maps(attention: jax.Array, slot_rgb: jax.Array,

@@ -16,6 +16,7 @@ import jax
 from jax.sharding import Sharding
 import orbax.checkpoint as ocp
 
+from slotformer_jax.errors import MissingInputError
 from slotformer_jax.errors import UserError
 
 logger = logging.getLogger(__name__)
@@ -158,13 +159,13 @@ def restore_params(stage_directory: str, param_shapes: Any,
   """
   directory = os.path.join(stage_directory, 'checkpoints')
   if not os.path.isdir(directory):
-    raise UserError(f'no {what} checkpoint under {directory}. Train it '
-                    f'first: {train_command}')
+    raise MissingInputError(f'no {what} checkpoint under {directory}. Train '
+                            f'it first: {train_command}')
   checkpointer = Checkpointer(directory, read_only=True)
   try:
     if checkpointer.latest_step() is None:
-      raise UserError(f'no {what} checkpoint under {directory}. Train it '
-                      f'first: {train_command}')
+      raise MissingInputError(f'no {what} checkpoint under {directory}. '
+                              f'Train it first: {train_command}')
     return checkpointer.restore_params(
         abstract_like(param_shapes, sharding), what=what)
   finally:

@@ -77,7 +77,7 @@ class Preempted(UserError):
   """SIGTERM arrived; the state of the current step was saved."""
 
 
-class Diverged(UserError):
+class Diverged(UserError, FloatingPointError):
   """The loss or the updated parameters became non-finite."""
 
 
@@ -234,8 +234,12 @@ def _diverged(name: str, metrics: dict[str, float], step: int,
               'the same settings, diverges again.')
   else:
     resume = 'there is no checkpoint yet.'
+  if not math.isfinite(metrics['loss']):
+    what = f'the loss became {metrics["loss"]} at step {step}'
+  else:
+    what = (f'the parameters became non-finite in update {step} (norm '
+            f'{metrics["param_norm"]}, loss before it {metrics["loss"]:.4g})')
   return Diverged(
-      f'{name}: training diverged at step {step} (loss {metrics["loss"]}, '
-      f'norm of the updated parameters {metrics["param_norm"]}); nothing '
-      f'non-finite was saved and {resume} Lower the learning rate (a new '
-      '--workdir, or --allow_config_change) or check the data.')
+      f'{name}: {what}; nothing non-finite was saved and {resume} Lower the '
+      'learning rate (a new --workdir, or --allow_config_change) or check '
+      'the data.')

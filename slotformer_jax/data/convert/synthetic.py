@@ -32,8 +32,8 @@ import dataclasses
 import functools
 import hashlib
 import json
-import multiprocessing
 import os
+import shutil
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
@@ -42,7 +42,10 @@ import numpy as np
 import pybullet
 import tensorflow_datasets as tfds
 
+from slotformer_jax.data import integrity
+from slotformer_jax.data.convert.pool import process_pool
 from slotformer_jax.data.data_dir import resolve_data_dir
+from slotformer_jax.lock import FileLock
 
 # Bump whenever the generator's output changes for identical parameters: it is
 # part of the cache folder name, so stale caches are never reused.
@@ -620,13 +623,9 @@ class SyntheticObj3d(tfds.core.GeneratorBasedBuilder, skip_registration=True):
       for index in range(count):
         yield index, make(index)
       return
-    # 'spawn': the parent may hold threads (JAX, tfds) that make fork unsafe.
     # map() keeps the index order, and every video only depends on its index,
-    # so the output is identical to the serial path. Unlike
-    # multiprocessing.Pool (which respawns dying workers forever), the
-    # executor fails fast if workers cannot start.
-    pool = concurrent.futures.ProcessPoolExecutor(
-        workers, mp_context=multiprocessing.get_context('spawn'))
+    # so the output is identical to the serial path.
+    pool = process_pool(workers)
     try:
       yield from enumerate(pool.map(make, range(count), chunksize=4))
     except concurrent.futures.process.BrokenProcessPool as error:
@@ -662,13 +661,27 @@ def build_synthetic_dataset(config: SyntheticConfig,
   # letting tfds do it) avoids constructing the builder, which logs a warning.
   if (path / 'dataset_info.json').is_file():
     return path
-  builder = SyntheticObj3d(generation=config, data_dir=os.fspath(root),
-                           num_workers=num_workers)
-  builder.download_and_prepare(
-      download_config=tfds.download.DownloadConfig(try_download_gcs=False))
-  if Path(builder.data_dir) != path:
-    raise RuntimeError(f'tfds wrote to {builder.data_dir}, expected {path}')
+  # One generator per dataset; a generator killed earlier left its
+  # temporary folder behind, which the lock holder may remove.
+  with FileLock(os.fspath(path.parent / f'.{path.name}.lock'),
+                what=f'the synthetic dataset {path}', wait=True):
+    if (path / 'dataset_info.json').is_file():  # built while we waited
+      return path
+    for leftover in path.parent.glob(f'incomplete.*_{path.name}'):
+      shutil.rmtree(leftover, ignore_errors=True)
+    builder = SyntheticObj3d(generation=config, data_dir=os.fspath(root),
+                             num_workers=num_workers)
+    builder.download_and_prepare(
+        download_config=tfds.download.DownloadConfig(try_download_gcs=False))
+    if Path(builder.data_dir) != path:
+      raise RuntimeError(f'tfds wrote to {builder.data_dir}, expected {path}')
+    integrity.record_checksums(path)
   return path
+
+
+def discard_dataset(path: str | os.PathLike[str]) -> None:
+  """Removes a (damaged) generated dataset folder so it is built again."""
+  shutil.rmtree(path, ignore_errors=True)
 
 
 def dataset_dir(config: SyntheticConfig,

@@ -38,11 +38,9 @@ import hashlib
 import json
 import logging
 import math
-import multiprocessing
 import os
 import shutil
 import time
-import uuid
 from collections import Counter
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from pathlib import Path
@@ -52,7 +50,10 @@ import numpy as np
 import tensorflow_datasets as tfds
 import tqdm
 
+from slotformer_jax.data import integrity
 from slotformer_jax.data.convert import media
+from slotformer_jax.data.convert.pool import process_pool
+from slotformer_jax.files import write_json_atomic
 
 logger = logging.getLogger(__name__)
 
@@ -191,12 +192,9 @@ def _manifest_path(dataset_dir: Path, split: str) -> Path:
 
 
 def _write_json_atomic(path: Path, payload: Any) -> None:
-  # A name of its own per writer: hosts sharing data_dir may write the same
-  # file (e.g. the manifest) at once.
-  tmp = path.with_name(f'{path.name}.{uuid.uuid4().hex}.tmp')
-  with open(tmp, 'w') as f:
-    json.dump(payload, f, indent=1, sort_keys=True)
-  os.replace(tmp, path)
+  # A temporary name of its own per writer (hosts sharing data_dir may write
+  # the same file, e.g. the manifest, at once), fsynced, then renamed.
+  write_json_atomic(path, payload)
 
 
 def _convert_shard(task: _ShardTask) -> dict[str, Any]:
@@ -299,9 +297,7 @@ def _run_tasks(tasks: list[_ShardTask], num_workers: int, progress: bool,
         bar.set_postfix(skipped=skipped)
         yield task, payload
       return
-    # 'spawn': the parent may hold threads (JAX, tfds) that make fork unsafe.
-    pool = concurrent.futures.ProcessPoolExecutor(
-        num_workers, mp_context=multiprocessing.get_context('spawn'))
+    pool = process_pool(num_workers)
     try:
       futures = {pool.submit(_convert_shard, task): task for task in tasks}
       for future in concurrent.futures.as_completed(futures):
@@ -508,6 +504,8 @@ def _write_metadata(spec: DatasetSpec, dataset_dir: Path,
       check_data=False, description=spec.description,
       metadata=tfds.core.MetadataDict(
           conversion=json.loads(json.dumps(dict(spec.params)))))
+  # Verified whenever the dataset is opened (see data/integrity.py).
+  integrity.record_checksums(dataset_dir)
 
 
 def _write_report(spec: DatasetSpec, result: ConversionResult) -> None:

@@ -1,0 +1,112 @@
+"""An exclusive lock file holding its owner's pid, host and start time.
+
+Used for a workdir (one writing run at a time) and for a dataset being
+generated. A lock left by a dead process on this host is taken over (with a
+warning); a live holder, or one on another host, is an error naming it.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import os
+import socket
+import time
+from typing import Any
+
+from slotformer_jax.errors import UserError
+
+logger = logging.getLogger(__name__)
+
+
+def pid_alive(pid: int) -> bool:
+  try:
+    os.kill(pid, 0)
+  except ProcessLookupError:
+    return False
+  except PermissionError:
+    return True
+  return True
+
+
+class FileLock:
+  """`with FileLock(path, what=folder):` one holder at a time.
+
+  Attributes:
+    took_over: whether acquiring replaced a stale lock (a dead holder's work
+      may be left half done).
+  """
+
+  def __init__(self, path: str, *, what: str, wait: bool = False):
+    self.path = path
+    self.what = what
+    self.wait = wait  # True: wait for a live holder instead of failing
+    self.took_over = False
+    self._held = False
+
+  def acquire(self) -> None:
+    os.makedirs(os.path.dirname(os.path.abspath(self.path)), exist_ok=True)
+    me = {'pid': os.getpid(), 'host': socket.gethostname(),
+          'started': time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime())}
+    attempts = 0
+    while True:
+      attempts += 1
+      if attempts > 5 and not self.wait:
+        break
+      try:
+        fd = os.open(self.path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+      except FileExistsError:
+        holder = self._holder()
+        if holder is None:  # being written right now: look again
+          time.sleep(0.5)
+          holder = self._holder()
+        stale = holder is None or (
+            holder.get('host') == me['host']
+            and not pid_alive(int(holder.get('pid', -1))))
+        if not stale and self.wait:
+          if attempts == 1:
+            logger.info('waiting for process %s on %s to finish %s',
+                        holder.get('pid'), holder.get('host'), self.what)
+          time.sleep(2.0)
+          continue
+        if not stale:
+          raise UserError(
+            f'{self.what} is in use by process {holder.get("pid")} on '
+            f'{holder.get("host")} (since {holder.get("started")}). Wait for '
+            'it, stop it, or use another folder; if that process is gone, '
+            f'delete {self.path}.')
+        logger.warning('taking over the stale lock %s (holder %s is gone)',
+                       self.path, holder or 'unknown')
+        with contextlib.suppress(FileNotFoundError):
+          os.unlink(self.path)
+        self.took_over = True
+        continue
+      with os.fdopen(fd, 'w') as f:
+        json.dump(me, f)
+        f.flush()
+        os.fsync(f.fileno())
+      self._held = True
+      return
+    raise UserError(f'could not take the lock {self.path}; delete it if no '
+                    'process uses it')
+
+  def _holder(self) -> dict[str, Any] | None:
+    try:
+      with open(self.path) as f:
+        return json.load(f)
+    except (OSError, ValueError):
+      return None
+
+  def release(self) -> None:
+    if self._held:
+      with contextlib.suppress(FileNotFoundError):
+        os.unlink(self.path)
+      self._held = False
+
+  def __enter__(self) -> FileLock:
+    self.acquire()
+    return self
+
+  def __exit__(self, *exc) -> None:
+    self.release()

@@ -1,0 +1,517 @@
+"""Runs you can trust (issue 8): one test (or more) per reproduced defect.
+
+1. a foreign `stage1_workdir` is read-only;
+2. artifacts record what they were made from, nothing mixes; workdir lock;
+3. changed settings on an existing workdir are refused (or recorded);
+4. config problems are found before any work, unknown fields in one line;
+5. atomic files, verified dataset caches, checkpoint fallback, slot checksums;
+6. the NaN guard checks the updated state;
+7. failed saves stop at once (SIGTERM and worker cleanup: the slow tests in
+   test_reliability_slow.py);
+8. anticipated errors are one line on stderr.
+
+The trained micro workdir is built once per module (~1 min on 2 cores) and
+copied by the tests that change it.
+"""
+
+import errno
+import itertools
+import json
+import logging
+import os
+import shutil
+import subprocess
+import sys
+
+import jax
+from jax.sharding import Mesh
+import jax.numpy as jnp
+import ml_collections
+import numpy as np
+import pytest
+
+from slotformer_jax import config_checks
+from slotformer_jax import files
+from slotformer_jax import inference
+from slotformer_jax import stages
+from slotformer_jax import workdir as workdir_lib
+from slotformer_jax.data import integrity
+from slotformer_jax.data import sources
+from slotformer_jax.data.slots import SlotSource
+from slotformer_jax.errors import UserError
+from slotformer_jax.evaluation import evaluate
+from slotformer_jax.lock import FileLock
+from slotformer_jax.train import checkpoint as checkpoint_lib
+from slotformer_jax.train import sharding
+from slotformer_jax.train.trainer import Diverged
+from slotformer_jax.train.trainer import Stage
+from slotformer_jax.train.trainer import fit
+
+import test_end_to_end
+
+ROOT = os.path.join(os.path.dirname(__file__), '..')
+
+
+def _config(data_dir):
+  config = test_end_to_end._micro_config(data_dir)
+  config.slot_lstm.train = False
+  config.evaluation.metrics = ('psnr', 'ari')
+  config.evaluation.savi_metrics = False
+  return config
+
+
+def _snapshot(directory):
+  """{relative path: (size, mtime_ns)} of every file below `directory`."""
+  out = {}
+  for root, _, names in os.walk(directory):
+    for name in names:
+      path = os.path.join(root, name)
+      stat = os.stat(path)
+      out[os.path.relpath(path, directory)] = (stat.st_size,
+                                               stat.st_mtime_ns)
+  return out
+
+
+@pytest.fixture(scope='module')
+def trained(tmp_path_factory):
+  """(config, workdir) with SAVi, slots and SlotFormer trained."""
+  base = tmp_path_factory.mktemp('reliability')
+  config = _config(base / 'data')
+  workdir = str(base / 'run')
+  mesh = sharding.make_mesh()
+  stages.train_savi(config, workdir, mesh)
+  stages.extract_slots(config, workdir, mesh)
+  stages.train_slotformer(config, workdir, mesh)
+  return config, workdir
+
+
+@pytest.fixture
+def copied(trained, tmp_path):
+  config, workdir = trained
+  copy = str(tmp_path / 'copy')
+  shutil.copytree(workdir, copy)
+  return _config(config.data.data_dir), copy
+
+
+# --------------------------------------------------------------------------
+# 1. stage1_workdir is read-only
+# --------------------------------------------------------------------------
+
+
+def test_foreign_stage1_with_other_settings_is_refused_untouched(
+    trained, tmp_path):
+  _, other = trained
+  before = _snapshot(other)
+  config = _config(trained[0].data.data_dir)
+  config.stage1_workdir = other
+  config.savi.num_train_steps = 6  # OTHER was trained for 4
+  mesh = sharding.make_mesh()
+  workdir = str(tmp_path / 'ablation')
+  for stage in (stages.train_savi, stages.extract_slots):
+    with pytest.raises(UserError, match='num_train_steps: 4 -> 6'):
+      stage(config, workdir, mesh)
+  # main checks this before any data is generated.
+  with pytest.raises(UserError, match='num_train_steps'):
+    workdir_lib.savi_identity(config, workdir)
+  assert _snapshot(other) == before
+
+
+@pytest.mark.slow  # trains SlotFormer (~35 s on 2 busy cores)
+def test_foreign_stage1_is_used_without_writing_there(trained, tmp_path):
+  _, other = trained
+  before = _snapshot(other)
+  config = _config(trained[0].data.data_dir)
+  config.stage1_workdir = other
+  config.slotformer.num_train_steps = 2
+  workdir = str(tmp_path / 'ablation')
+  mesh = sharding.make_mesh()
+  stages.train_savi(config, workdir, mesh)  # checks, trains nothing
+  stages.extract_slots(config, workdir, mesh)
+  stages.train_slotformer(config, workdir, mesh)
+  assert _snapshot(other) == before
+  assert not os.path.exists(os.path.join(workdir, 'savi'))
+  assert os.listdir(os.path.join(workdir, 'slotformer', 'checkpoints'))
+
+
+# --------------------------------------------------------------------------
+# 2. run identity: nothing mixes; the workdir lock
+# --------------------------------------------------------------------------
+
+
+def test_slots_and_dynamics_of_another_savi_are_refused(copied):
+  """SAVi retrained to the same step count (here: a new run id stamped on
+  it) must not be combined with the slots or SlotFormer of the old one."""
+  config, workdir = copied
+  mesh = sharding.make_mesh()
+  savi = os.path.join(workdir, 'savi')
+  identity = workdir_lib.read_identity(savi)
+  workdir_lib.write_identity(savi, dict(identity, run_id='retrained'))
+  with pytest.raises(UserError, match='stale'):
+    stages.train_slotformer(config, workdir, mesh)
+  with pytest.raises(UserError, match='stale'):
+    evaluate.evaluate(config, workdir, mesh)
+  # Fresh slots of the new SAVi, but the SlotFormer of the old one.
+  meta_path = os.path.join(workdir_lib.slots_dir(workdir, 'test'), 'meta.json')
+  meta = files.read_json(meta_path)
+  meta['parent']['savi_run_id'] = 'retrained'
+  files.write_json_atomic(meta_path, meta)
+  with pytest.raises(UserError, match='would mix'):
+    evaluate.evaluate(config, workdir, mesh)
+
+
+@pytest.mark.slow  # retrains SAVi and SlotFormer (~60 s on 2 busy cores)
+def test_retrained_savi_rebuilds_slots_and_refuses_stale_dynamics(copied):
+  config, workdir = copied
+  mesh = sharding.make_mesh()
+  old_parent = workdir_lib.read_meta(
+      workdir_lib.slots_dir(workdir, 'train'))['parent']
+  # Retrain SAVi to the same step count (another learning rate).
+  shutil.rmtree(os.path.join(workdir, 'savi'))
+  config.savi.learning_rate = 5e-4
+  stages.train_savi(config, workdir, mesh)
+  _, step = inference.load_savi_params(config, workdir, mesh)
+  assert step == 4
+  # The slots of the old SAVi are not used for anything.
+  with pytest.raises(UserError, match='stale'):
+    stages.train_slotformer(config, workdir, mesh)
+  stages.extract_slots(config, workdir, mesh)  # re-extracts: new parent
+  new_parent = workdir_lib.read_meta(
+      workdir_lib.slots_dir(workdir, 'train'))['parent']
+  assert new_parent != old_parent and new_parent['savi_step'] == 4
+  # SlotFormer trained on the old slots must not be evaluated with them.
+  with pytest.raises(UserError, match='would mix'):
+    evaluate.evaluate(config, workdir, mesh)
+  stages.train_slotformer(config, workdir, mesh)  # set aside and retrained
+  assert any('.stale-' in name for name in os.listdir(workdir))
+  results = evaluate.evaluate(config, workdir, mesh)
+  assert results['identity']['slotformer']['parent'] == new_parent
+  saved = files.read_json(os.path.join(workdir, 'eval', 'metrics.json'))
+  assert saved['identity']['savi']['run_id'] == new_parent['savi_run_id']
+
+
+def test_a_second_writer_is_refused_and_a_dead_ones_lock_taken_over(
+    tmp_path):
+  workdir = str(tmp_path / 'run')
+  holder = subprocess.Popen(
+      [sys.executable, '-c', 'import time; time.sleep(60)'])
+  try:
+    os.makedirs(workdir)
+    with open(os.path.join(workdir, '.lock'), 'w') as f:
+      json.dump({'pid': holder.pid, 'host': os.uname().nodename,
+                 'started': 'then'}, f)
+    with pytest.raises(UserError, match=f'in use by process {holder.pid}'):
+      workdir_lib.workdir_lock(workdir).acquire()
+  finally:
+    holder.kill()
+    holder.wait()
+  lock = workdir_lib.workdir_lock(workdir)
+  lock.acquire()  # the holder is dead now
+  assert lock.took_over
+  assert json.load(open(lock.path))['pid'] == os.getpid()
+  with pytest.raises(UserError, match=f'in use by process {os.getpid()}'):
+    FileLock(lock.path, what=workdir).acquire()
+  lock.release()
+  assert not os.path.exists(lock.path)
+
+
+# --------------------------------------------------------------------------
+# 3. changed settings on an existing workdir
+# --------------------------------------------------------------------------
+
+
+def test_changed_settings_are_refused_and_config_json_kept(tmp_path):
+  config = _config(tmp_path / 'data')
+  workdir = str(tmp_path / 'run')
+  assert workdir_lib.accept_config(config, workdir) == []
+  saved = open(os.path.join(workdir, 'config.json')).read()
+  config.seed = 1
+  config.slotformer.learning_rate = 1e-3
+  with pytest.raises(UserError) as error:
+    workdir_lib.accept_config(config, workdir)
+  message = str(error.value)
+  assert 'seed: 0 -> 1' in message and 'slotformer.learning_rate' in message
+  assert '--allow_config_change' in message and '\n' not in message
+  assert open(os.path.join(workdir, 'config.json')).read() == saved
+  # Observation-only settings are not changes.
+  config.seed, config.slotformer.learning_rate = 0, 5e-4
+  config.savi.log_every = 1
+  assert workdir_lib.accept_config(config, workdir) == []
+  # The override records the new settings and keeps the old ones.
+  config.seed = 1
+  assert workdir_lib.accept_config(config, workdir, allow_change=True) == [
+      'seed: 0 -> 1']
+  assert files.read_json(os.path.join(workdir, 'config.json'))['seed'] == 1
+  history = open(os.path.join(workdir, 'config_history.jsonl')).readlines()
+  assert json.loads(history[-1])['config'] == json.loads(saved)
+
+
+def test_a_stage_made_with_other_settings_is_set_aside(copied):
+  config, workdir = copied
+  config.seed = 1  # accepted with --allow_config_change
+  savi = os.path.join(workdir, 'savi')
+  old = workdir_lib.read_identity(savi)
+  identity = stages._start_stage(
+      savi, workdir_lib.savi_identity_fields(config), None, 'SAVi')
+  assert identity['run_id'] != old['run_id']
+  assert os.path.isdir(f'{savi}.stale-{old["run_id"]}')
+  assert not os.path.exists(os.path.join(savi, 'checkpoints'))
+
+
+# --------------------------------------------------------------------------
+# 4. every check before any work
+# --------------------------------------------------------------------------
+
+
+def test_shipped_config_fails_before_work_on_four_devices():
+  config = test_end_to_end.load_config('synthetic')
+  with pytest.raises(UserError, match='evaluation.batch_size=50'):
+    config_checks.validate(config, ('train_savi', 'evaluate'),
+                           num_devices=4)
+  # Only the stages that run are checked.
+  config_checks.validate(config, ('train_savi',), num_devices=4)
+
+
+@pytest.mark.parametrize('field, value, expected', [
+    ('evaluation.rollout_steps', 30, 'lower evaluation.rollout_steps to at '
+     'most 6'),
+    ('evaluation.metrics', ('psnr', 'fg_aru'), "unknown evaluation.metrics "
+     "['fg_aru']"),
+    ('savi.checkpoint_every', 0, 'savi.checkpoint_every must be an integer'),
+    ('slotformer.log_every', -1, 'slotformer.log_every must be an integer'),
+    ('savi.clip_length', 20, 'savi.clip_length=20 is longer'),
+])
+def test_config_problems_are_found_before_work(tmp_path, field, value,
+                                               expected):
+  config = _config(tmp_path / 'data')
+  section, name = field.split('.')
+  config[section][name] = value
+  with pytest.raises(UserError, match=expected.replace('[', r'\[')):
+    config_checks.validate(config, ('train_savi', 'train_slotformer',
+                                    'evaluate'), num_devices=4)
+  assert not os.path.exists(tmp_path / 'data')  # no data was generated
+
+
+def test_unknown_field_is_one_line_with_the_nearest_names():
+  spec = os.path.join(ROOT, 'configs', 'synthetic.py') + ':tiny'
+  problem = config_checks.check_overrides(
+      [f'--config={spec}', '--config.savi.num_slot=3'])
+  assert 'savi.num_slot' in problem and 'savi.num_slots' in problem
+  problem = config_checks.check_overrides(
+      [f'--config={spec}', '--config.savi.foo=1'])
+  assert "'savi.foo'" in problem and '\n' not in problem
+  assert config_checks.check_overrides(
+      [f'--config={spec}', '--config.savi.num_slots=3']) is None
+
+
+# --------------------------------------------------------------------------
+# 5. atomic files, verified caches, checkpoint fallback, slot checksums
+# --------------------------------------------------------------------------
+
+
+def test_a_failed_write_leaves_the_old_file(tmp_path, monkeypatch):
+  path = tmp_path / 'metrics.json'
+  files.write_json_atomic(path, {'psnr': 30})
+
+  def disk_full(fd):
+    raise OSError(errno.ENOSPC, 'No space left on device')
+  monkeypatch.setattr(os, 'fsync', disk_full)
+  with pytest.raises(OSError):
+    files.write_json_atomic(path, {'psnr': 31})
+  monkeypatch.undo()
+  assert files.read_json(path) == {'psnr': 30}
+  assert os.listdir(tmp_path) == ['metrics.json']  # no temporary left
+
+
+def test_a_torn_file_is_named_with_the_fix(tmp_path):
+  path = tmp_path / 'meta.json'
+  path.write_text('')
+  with pytest.raises(UserError, match=f'{path} is empty.*re-run'):
+    files.read_json(path)
+  path.write_text('{"complete": tr')
+  with pytest.raises(UserError, match='not valid JSON'):
+    files.read_json(path)
+
+
+def _record_file(dataset_dir, split='train'):
+  [path] = [p for p in os.listdir(dataset_dir)
+            if f'-{split}.array_record' in p]
+  return os.path.join(dataset_dir, path)
+
+
+@pytest.mark.parametrize('damage', ['truncate', 'garble'])
+def test_damaged_synthetic_cache_is_regenerated(trained, tmp_path, damage):
+  config = _config(tmp_path / 'data')
+  source = sources.get_video_source(config.data, 'train')
+  expected = source[3]['video']
+  record = _record_file(source.dataset_dir)
+  data = bytearray(open(record, 'rb').read())
+  if damage == 'truncate':
+    data = data[:len(data) // 2]
+  else:  # same size, plausible bytes
+    data[len(data) // 2:len(data) // 2 + 64] = bytes(64)
+  open(record, 'wb').write(bytes(data))
+  regenerated = sources.get_video_source(config.data, 'train')
+  np.testing.assert_array_equal(regenerated[3]['video'], expected)
+
+
+def test_damaged_real_dataset_names_the_conversion_command(trained, tmp_path):
+  synthetic_dir = sources.get_video_source(trained[0].data, 'train'
+                                           ).dataset_dir
+  real = tmp_path / 'data' / 'obj3d' / 'cfg' / '1.0.0'
+  shutil.copytree(synthetic_dir, real)
+  config = _config(tmp_path / 'data')
+  config.data.name = 'obj3d'
+  assert len(sources.get_video_source(config.data, 'train')) == 8
+  record = _record_file(real)
+  with open(record, 'r+b') as f:
+    f.truncate(os.path.getsize(record) - 100)
+  with pytest.raises(UserError, match=r'damaged.*slotformer_jax\.data\.prepare '
+                     '--dataset=obj3d'):
+    sources.get_video_source(config.data, 'train')
+  # Without checksums the reader's own error still names the folder.
+  os.remove(real / integrity.CHECKSUMS_FILE)
+  source = sources.TfdsVideoSource(real, 'train')
+  with pytest.raises(UserError, match=f'{real}: reading video'):
+    for index in range(len(source)):
+      source[index]
+
+
+def test_damaged_newest_checkpoint_falls_back_with_a_warning(copied, caplog):
+  config, workdir = copied
+  mesh = sharding.make_mesh()
+  newest = os.path.join(workdir, 'slotformer', 'checkpoints', '4')
+  for root, _, names in os.walk(os.path.join(newest, 'default')):
+    for name in names:  # a disk fault: every file of step 4 cut short
+      path = os.path.join(root, name)
+      with open(path, 'r+b') as f:
+        f.truncate(os.path.getsize(path) // 3)
+  with caplog.at_level(logging.WARNING):
+    _, step = inference.load_dynamics_params(config, workdir, mesh)
+  assert step == 2
+  assert 'newest intact checkpoint, step 2' in caplog.text
+
+
+def test_garbled_slots_are_detected(copied):
+  config, workdir = copied
+  path = os.path.join(workdir_lib.slots_dir(workdir, 'train'), 'slots.f32')
+  slots = np.fromfile(path, np.float32)
+  slots[100:110] += 0.5  # plausible values, wrong ones
+  slots.tofile(path)
+  with pytest.raises(UserError, match='slots.f32 is damaged'):
+    SlotSource(workdir_lib.slots_dir(workdir, 'train'), None, ())
+
+
+# --------------------------------------------------------------------------
+# 6. the NaN guard checks the updated state; 7. a failed save stops at once
+# --------------------------------------------------------------------------
+
+
+def _linear_stage(directory, **config_changes):
+  """A one-parameter-vector stage: the loop's logic without a model's
+  compile time."""
+  config = ml_collections.ConfigDict(dict(
+      num_train_steps=3, learning_rate=1e-2, warmup_fraction=0.0,
+      grad_clip=0.0, batch_size=4, log_every=1, checkpoint_every=2))
+  config.update(config_changes)
+
+  def loss_fn(params, batch, frozen_params, rng):
+    del frozen_params, rng
+    loss = jnp.mean(jnp.square(params['w'] - batch['x']))
+    return loss, {}
+
+  def batches(start_step):
+    for step in itertools.count(start_step):
+      yield {'x': np.full((4, 3), float(step), np.float32)}
+
+  return Stage(name='linear', directory=str(directory), config=config,
+               loss_fn=loss_fn,
+               init_params=lambda rng: {'w': jnp.zeros(3, jnp.float32)},
+               batches=batches)
+
+
+def test_diverged_parameters_are_never_saved(tmp_path):
+  mesh = Mesh(np.asarray(jax.devices()[:1]), ('data',))
+  # The loss before the first update is finite; the updated state is not.
+  stage = _linear_stage(tmp_path / 'linear', learning_rate=1e39,
+                        checkpoint_every=1)
+  with pytest.raises(Diverged, match='there is no checkpoint yet') as error:
+    fit(stage, mesh=mesh, seed=0)
+  assert 'non-finite in update 1' in str(error.value)
+  checkpointer = checkpoint_lib.Checkpointer(
+      str(tmp_path / 'linear' / 'checkpoints'), read_only=True)
+  assert checkpointer.all_steps() == []
+  # With a good checkpoint first, the message names it.
+  stage = _linear_stage(tmp_path / 'late', checkpoint_every=1,
+                        num_train_steps=2)
+  fit(stage, mesh=mesh, seed=0)
+  stage = _linear_stage(tmp_path / 'late', learning_rate=1e39,
+                        num_train_steps=4, checkpoint_every=1)
+  with pytest.raises(Diverged, match='last good checkpoint is step 2'):
+    fit(stage, mesh=mesh, seed=0)
+  assert checkpoint_lib.Checkpointer(
+      str(tmp_path / 'late' / 'checkpoints'), read_only=True
+  ).all_steps() == [1, 2]
+
+
+def test_a_failed_save_stops_training_with_one_line(tmp_path, monkeypatch):
+  mesh = Mesh(np.asarray(jax.devices()[:1]), ('data',))
+  saved = []
+
+  def failing_save(self, step, state, force=False):
+    saved.append(step)
+    raise checkpoint_lib.CheckpointSaveError(
+        f'saving the checkpoint of step {step} failed (OSError: [Errno 28] '
+        'No space left on device); training stopped.')
+  monkeypatch.setattr(checkpoint_lib.Checkpointer, 'save', failing_save)
+  stage = _linear_stage(tmp_path / 'linear', checkpoint_every=1)
+  with pytest.raises(checkpoint_lib.CheckpointSaveError) as error:
+    fit(stage, mesh=mesh, seed=0)
+  assert saved == [1]  # stopped at the first failure
+  assert '\n' not in str(error.value)
+
+
+def test_an_orbax_save_error_becomes_one_line(tmp_path, monkeypatch):
+  checkpointer = checkpoint_lib.Checkpointer(str(tmp_path / 'checkpoints'))
+
+  def disk_full(*args, **kwargs):
+    raise OSError(errno.ENOSPC, 'No space left on device\n' + 'detail\n' * 50)
+  monkeypatch.setattr(checkpointer._manager, 'save', disk_full)
+  with pytest.raises(checkpoint_lib.CheckpointSaveError) as error:
+    checkpointer.save(3, {'x': np.zeros(2)})
+  message = str(error.value)
+  assert '\n' not in message and 'step 3' in message
+  assert 'last saved step (none)' in message
+
+
+# --------------------------------------------------------------------------
+# 8. anticipated errors: one line on stderr, no traceback
+# --------------------------------------------------------------------------
+
+
+def _main(*args, cwd):
+  env = dict(os.environ, PYTHONPATH=os.path.abspath(ROOT),
+             JAX_PLATFORMS='cpu',
+             SLOTFORMER_DATA_DIR=os.path.join(cwd, '.test_cache'))
+  env.pop('XLA_FLAGS', None)
+  return subprocess.run(
+      [sys.executable, '-m', 'slotformer_jax.main', *args], cwd=cwd, env=env,
+      capture_output=True, text=True, timeout=300)
+
+
+def test_anticipated_errors_are_one_line(tmp_path):
+  config = os.path.join(ROOT, 'configs', 'obj3d.py')
+  missing_data = _main(f'--config={config}', f'--workdir={tmp_path / "a"}',
+                       '--mode=train_savi', cwd=str(tmp_path))
+  missing_checkpoint = _main(
+      f'--config={os.path.join(ROOT, "configs", "synthetic.py")}:tiny',
+      f'--workdir={tmp_path / "b"}', '--mode=evaluate', cwd=str(tmp_path))
+  unknown_field = _main(f'--config={config}', f'--workdir={tmp_path / "c"}',
+                        '--config.savi.foo=1', cwd=str(tmp_path))
+  for result, needle in ((missing_data, 'slotformer_jax.data.prepare'),
+                         (missing_checkpoint, '--mode=train_savi'),
+                         (unknown_field, "'savi.foo'")):
+    lines = [line for line in result.stderr.splitlines()
+             if line.startswith('error:')]
+    assert result.returncode != 0, result.stderr
+    assert 'Traceback' not in result.stderr, result.stderr
+    assert len(lines) == 1 and needle in lines[0], result.stderr
