@@ -69,10 +69,27 @@ class _TqdmHandler(logging.Handler):
     tqdm.tqdm.write(self.format(record), file=sys.stderr)
 
 
+class _OneLineErrors(logging.Filter):
+  """Library errors as one line each, no traceback: e.g. a full disk makes
+  orbax's background threads log one traceback per file they could not
+  write, while the training loop already stops with its own one line."""
+
+  def filter(self, record: logging.LogRecord) -> bool:
+    message = record.getMessage().strip().splitlines()
+    record.msg = (message[0][:300] if message else '')
+    record.args = ()
+    record.exc_info = record.exc_text = record.stack_info = None
+    return True
+
+
 def _configure_logging() -> None:
   """INFO lines of this package on stderr; chatty libraries (orbax, tfds log
-  through absl) only report errors."""
+  through absl) only report errors, one line each."""
   absl_logging.set_verbosity(absl_logging.ERROR)
+  for name in ('absl', 'asyncio'):
+    library_logger = logging.getLogger(name)
+    if not any(isinstance(f, _OneLineErrors) for f in library_logger.filters):
+      library_logger.addFilter(_OneLineErrors())
   handler = _TqdmHandler()
   handler.setFormatter(logging.Formatter(
       '%(asctime)s %(levelname).1s %(name)s] %(message)s', '%H:%M:%S'))

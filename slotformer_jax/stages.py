@@ -7,7 +7,6 @@ The workdir layout and the checks of what each artifact was made from are in
 from __future__ import annotations
 
 import functools
-import json
 import logging
 import math
 import os
@@ -60,25 +59,7 @@ def check_foreign_stage1(config: ml_collections.ConfigDict, workdir: str,
         'Finish it with its own run: python -m slotformer_jax.main '
         f'--config=<its config> --workdir={other}')
   for split in config.extraction.splits:
-    _check_slots_from(config, workdir, split, identity, step)
-
-
-def _check_slots_from(config, workdir, split, identity, step) -> None:
-  directory = workdir_lib.slots_dir(workdir_lib.stage1_workdir(config, workdir),
-                                    split)
-  meta = read_meta(directory)
-  expected = workdir_lib.slots_parent(identity, step)
-  if not (meta and meta.get('complete')):
-    raise UserError(
-        f'no complete slots in {directory} (stage1_workdir is read-only: '
-        'extract them with a run on that workdir, --mode=extract_slots)')
-  if (meta.get('parent') != expected
-      or meta.get('fields') != workdir_lib.slots_identity_fields(config)):
-    raise UserError(
-        f'the slots in {directory} were made by SAVi {meta.get("parent")} '
-        f'with {meta.get("fields")}, not by the current SAVi {expected} with '
-        f'{workdir_lib.slots_identity_fields(config)}. Re-extract them there '
-        '(--mode=extract_slots on that workdir).')
+    workdir_lib.check_slots_current(config, workdir, split, identity, step)
 
 
 def train_savi(config: ml_collections.ConfigDict, workdir: str,

@@ -479,7 +479,7 @@ def test_an_orbax_save_error_becomes_one_line(tmp_path, monkeypatch):
   with pytest.raises(checkpoint_lib.CheckpointSaveError) as error:
     checkpointer.save(3, {'x': np.zeros(2)})
   message = str(error.value)
-  assert '\n' not in message and 'step 3' in message
+  assert '\n' not in message and 'by step 3' in message
   assert 'last saved step (none)' in message
 
 

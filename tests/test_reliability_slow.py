@@ -33,7 +33,7 @@ pytestmark = pytest.mark.slow
 MICRO = [
     '--config.data.resolution=(16,16)', '--config.data.num_frames=8',
     '--config.data.num_train=8', '--config.data.num_val=4',
-    '--config.data.num_test=4', '--config.data.num_workers=1',
+    '--config.data.num_test=4',
     '--config.savi.decoder.features=(8,8)',
     '--config.savi.encoder.features=(8,8)',
     '--config.savi.encoder.strides=(1,1)',
@@ -49,10 +49,9 @@ def _env(data_dir):
   return env
 
 
-def _command(workdir, data_dir):
+def _command(workdir):
   return [sys.executable, '-m', 'slotformer_jax.main', f'--config={SYNTHETIC}',
-          f'--workdir={workdir}', '--mode=train_savi',
-          f'--config.data.data_dir={data_dir}', *MICRO]
+          f'--workdir={workdir}', '--mode=train_savi', *MICRO]
 
 
 def _micro_config(data_dir):
@@ -65,11 +64,11 @@ def test_sigterm_saves_the_current_step_and_the_rerun_is_bit_exact(tmp_path):
   data_dir = tmp_path / 'data'
   env = _env(data_dir)
   uninterrupted = tmp_path / 'uninterrupted'
-  subprocess.run(_command(uninterrupted, data_dir), env=env, check=True,
+  subprocess.run(_command(uninterrupted), env=env, check=True,
                  capture_output=True, timeout=900)
 
   preempted = tmp_path / 'preempted'
-  process = subprocess.Popen(_command(preempted, data_dir), env=env,
+  process = subprocess.Popen(_command(preempted), env=env,
                              stderr=subprocess.PIPE, text=True)
   for line in process.stderr:  # wait until a few steps have run
     if 'savi step 5:' in line:
@@ -82,7 +81,7 @@ def test_sigterm_saves_the_current_step_and_the_rerun_is_bit_exact(tmp_path):
                        read_only=True).all_steps()
   assert len(steps) == 1 and 5 <= steps[0] < 30, steps  # saved at SIGTERM
 
-  subprocess.run(_command(preempted, data_dir), env=env, check=True,
+  subprocess.run(_command(preempted), env=env, check=True,
                  capture_output=True, timeout=900)
   config = _micro_config(data_dir)
   mesh = sharding.make_mesh()
@@ -120,10 +119,11 @@ def _alive(pid):
 GENERATE = '''
 import sys
 from slotformer_jax.data.convert import synthetic
-config = synthetic.SyntheticConfig(resolution=(32, 32), num_frames=12,
-                                   num_train=64, num_val=2, num_test=2)
-synthetic.build_synthetic_dataset(config, sys.argv[1], num_workers=2)
-print('done')
+if __name__ == '__main__':  # spawn workers re-import this script
+  config = synthetic.SyntheticConfig(resolution=(32, 32), num_frames=12,
+                                     num_train=64, num_val=2, num_test=2)
+  synthetic.build_synthetic_dataset(config, sys.argv[1], num_workers=2)
+  print('done')
 '''
 
 

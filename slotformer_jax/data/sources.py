@@ -59,7 +59,7 @@ import tensorflow_datasets as tfds
 from slotformer_jax.data import integrity
 from slotformer_jax.data.convert import synthetic
 from slotformer_jax.data.data_dir import DATA_DIR_ENV  # noqa: F401 (re-export)
-from slotformer_jax.data.data_dir import default_data_dir
+from slotformer_jax.data.data_dir import default_data_dir  # noqa: F401 (re-export)
 from slotformer_jax.data.data_dir import resolve_data_dir
 from slotformer_jax.errors import ConfigError
 from slotformer_jax.errors import MissingInputError

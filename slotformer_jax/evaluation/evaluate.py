@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import csv
 import functools
-import json
 import logging
 import math
 import os
@@ -38,20 +37,20 @@ import numpy as np
 import tqdm
 
 from slotformer_jax import config_checks
-from slotformer_jax import models
 from slotformer_jax import inference
+from slotformer_jax import models
 from slotformer_jax import workdir as workdir_lib
-from slotformer_jax.data.convert import clevrer
 from slotformer_jax.data import pipeline
+from slotformer_jax.data.convert import clevrer
 from slotformer_jax.data.pipeline import ClipSource
 from slotformer_jax.data.sources import get_video_source
 from slotformer_jax.errors import ConfigError
 from slotformer_jax.evaluation import metrics as metrics_lib
 from slotformer_jax.files import atomic_text
 from slotformer_jax.files import write_json_atomic
-from slotformer_jax.train import sharding
 from slotformer_jax.frames import frames_to_model
 from slotformer_jax.frames import model_to_unit
+from slotformer_jax.train import sharding
 
 logger = logging.getLogger(__name__)
 

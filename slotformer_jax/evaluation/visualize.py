@@ -37,8 +37,6 @@ from slotformer_jax.evaluation import evaluate
 from slotformer_jax.files import read_json
 from slotformer_jax.files import write_json_atomic
 from slotformer_jax.modules.slotformer import SlotFormer
-from slotformer_jax.frames import frames_to_model
-from slotformer_jax.frames import model_to_unit
 
 logger = logging.getLogger(__name__)
 

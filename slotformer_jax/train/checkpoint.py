@@ -68,8 +68,9 @@ class Checkpointer:
                          force=force)
       self._manager.check_for_errors()
     except Exception as error:  # pylint: disable=broad-except
+      # Async: the failure may be this save's or an earlier one's.
       raise CheckpointSaveError(
-          f'saving the checkpoint of step {step} to {self.directory} failed '
+          f'saving checkpoints to {self.directory} failed by step {step} '
           f'({_one_line(error)}); training stopped. Free disk space (or fix '
           'the folder) and re-run: it resumes from the last saved step '
           f'({self.last_saved_step()}).') from None
