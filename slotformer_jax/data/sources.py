@@ -13,7 +13,7 @@ datasets and the embedded synthetic one share one reader.
 
 Data config fields (``ml_collections.ConfigDict``; all but ``name`` optional):
 
-* ``name``: ``'synthetic'`` (generated on first use, see ``synthetic.py``) or
+* ``name``: ``'synthetic'`` (generated on first use, see ``convert/synthetic.py``) or
   one of ``'obj3d' | 'clevrer' | 'physion' | 'phyre'`` (must have been converted
   with ``python -m slotformer_jax.data.prepare`` into ``<data_dir>/<name>``).
 * ``data_dir``: root of the cache / converted data. Default:
