@@ -65,6 +65,11 @@ def savi_model_fields(config: ml_collections.ConfigDict) -> dict[str, Any]:
       'num_slots', 'slot_size', 'encoder', 'slot_attention', 'predictor',
       'decoder', 'stochastic', 'initial_slots')}
   fields['resolution'] = list(config.data.resolution)
+  # A SAVi that saw BGR frames (the official CLEVRER / Physion ones) needs
+  # BGR frames; recorded only when not RGB, so older workdirs still match.
+  channel_order = config.data.get('channel_order', 'rgb')
+  if channel_order != 'rgb':
+    fields['channel_order'] = channel_order
   return json.loads(json.dumps(fields))  # tuples -> lists, for comparison
 
 
