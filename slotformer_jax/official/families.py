@@ -257,7 +257,9 @@ def _map_savi_predictor(m: StateDictMapper, config: ml_collections.ConfigDict,
                         target: str):
   predictor = config.savi.predictor
   field = 'config.savi.predictor (num_layers / mlp_size / lstm_size)'
-  if m.has_prefix('predictor.base_predictor.'):  # wrapped in an LSTM
+  # The config decides which parts to read, so a checkpoint part the config
+  # lacks is reported as unknown keys with the field to change.
+  if predictor.lstm_size:  # the official RNNPredictorWrapper
     transformer = 'predictor.base_predictor.transformer_encoder'
     layers.lstm(m, 'predictor.rnn', f'{target}/lstm', field)
     layers.linear(m, 'predictor.out_projector', f'{target}/lstm_out', field)
