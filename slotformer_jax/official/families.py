@@ -371,10 +371,12 @@ def convert_slotformer(state_dict: dict[str, np.ndarray],
   params = assemble(m, slotformer_abstract_params(config), hints={
       'rollouter.transformer_encoder': 'config.slotformer.num_layers',
   })
-  savi_abstract = savi_abstract_params(config)
+  decoder_model = models.build_decoder(config)
+  decoder_abstract = jax.eval_shape(lambda: decoder_model.init(
+      jax.random.key(0), jnp.zeros((1, config.savi.num_slots,
+                                    config.savi.slot_size))))['params']
   decoder_params = assemble(
-      _only(decoder, 'decoder/'), {'decoder': savi_abstract['decoder']},
-      hints={})
+      _only(decoder, 'decoder/'), {'decoder': decoder_abstract}, hints={})
   return Converted('slotformer', SLOTFORMER_STAGE, params,
                    extras={'decoder': decoder_params['decoder']})
 
