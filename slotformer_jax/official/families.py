@@ -20,7 +20,10 @@ import ml_collections
 import numpy as np
 
 from slotformer_jax import models
+from slotformer_jax.modules import savi as savi_module
 from slotformer_jax.modules import slotformer as slotformer_module
+from slotformer_jax.modules.stochastic_savi import LINEAR_HEAD
+from slotformer_jax.modules.stochastic_savi import MLP_HEAD
 from slotformer_jax.official import layers
 from slotformer_jax.official.layers import StateDictMapper
 
@@ -29,6 +32,10 @@ SLOTFORMER_STAGE = models.SLOTFORMER
 
 # Datasets whose official models saw OpenCV's BGR frames.
 BGR_DATASETS = ('clevrer', 'physion')
+
+
+# nn.LayerNorm's default in PyTorch, in every official model.
+PYTORCH_LN_EPSILON = 1e-5
 
 
 class ConversionError(ValueError):
@@ -131,6 +138,8 @@ def require(config: ml_collections.ConfigDict, field: str, expected: Any,
   node = config
   for key in field.split('.'):
     node = node[key]
+  if isinstance(node, (list, tuple)):
+    node = tuple(node)
   if node != expected:
     raise ConversionError(
         f'config.{field} is {node!r}, but the official model {why}: set '
@@ -255,11 +264,19 @@ def _map_slot_attention(m: StateDictMapper, target: str):
 
 def _map_savi_predictor(m: StateDictMapper, config: ml_collections.ConfigDict,
                         target: str):
+  """The official predictors (slotformer/base_slots/models/predictor.py).
+
+  The config decides which parts to read, so a checkpoint part the config
+  lacks is reported as unknown keys with the field to change.
+  """
   predictor = config.savi.predictor
-  field = 'config.savi.predictor (num_layers / mlp_size / lstm_size)'
-  # The config decides which parts to read, so a checkpoint part the config
-  # lacks is reported as unknown keys with the field to change.
-  if predictor.lstm_size:  # the official RNNPredictorWrapper
+  field = 'config.savi.predictor (kind / num_layers / mlp_size / lstm_size)'
+  if predictor.kind == savi_module.RESIDUAL_MLP:  # ResidualMLPPredictor
+    layers.layer_norm(m, 'predictor.ln', f'{target}/norm', field)
+    layers.linear(m, 'predictor.mlp.0', f'{target}/hidden', field)
+    layers.linear(m, 'predictor.mlp.2', f'{target}/out', field)
+    return
+  if predictor.kind == savi_module.TRANSFORMER_LSTM:  # RNNPredictorWrapper
     transformer = 'predictor.base_predictor.transformer_encoder'
     layers.lstm(m, 'predictor.rnn', f'{target}/lstm', field)
     layers.linear(m, 'predictor.out_projector', f'{target}/lstm_out', field)
@@ -272,35 +289,58 @@ def _map_savi_predictor(m: StateDictMapper, config: ml_collections.ConfigDict,
         field, num_heads=predictor.num_heads)
 
 
+def _map_posterior_head(m: StateDictMapper, config: ml_collections.ConfigDict,
+                        target: str):
+  """`kernel_dist_layer`: (mean, log-variance) of the initial slots, applied
+  before Slot Attention in every official SAVi (the deterministic ones keep
+  the mean)."""
+  head = config.savi.posterior_head
+  field = 'config.savi.posterior_head'
+  if head == MLP_HEAD:  # kernel_mlp=True
+    layers.linear(m, 'kernel_dist_layer.0', f'{target}/hidden', field)
+    layers.layer_norm(m, 'kernel_dist_layer.1', f'{target}/norm', field)
+    layers.linear(m, 'kernel_dist_layer.3', f'{target}/statistics', field)
+  elif head == LINEAR_HEAD:  # kernel_mlp=False
+    layers.linear(m, 'kernel_dist_layer.0', f'{target}/statistics', field)
+  # 'none': the head's keys stay unknown, naming the field.
+
+
+def _official_encoder_strides(config: ml_collections.ConfigDict):
+  """The official encoder halves 128x128 frames in its first layer only."""
+  num_layers = len(config.savi.encoder.features)
+  first = 2 if config.data.resolution[0] == 128 else 1
+  return (first,) + (1,) * (num_layers - 1)
+
+
 def convert_savi(state_dict: dict[str, np.ndarray],
                  config: ml_collections.ConfigDict) -> Converted:
   """Official StoSAVi (deterministic when trained with kld_method='none')."""
   require(config, 'savi.initial_slots', 'learned',
           'starts from one learned vector per slot (init_latents)')
+  require(config, 'savi.layer_norm_epsilon', PYTORCH_LN_EPSILON,
+          "uses PyTorch's LayerNorm epsilon")
+  require(config, 'savi.encoder.strides', _official_encoder_strides(config),
+          f'strides its encoder so at {tuple(config.data.resolution)}')
+  if max(config.savi.encoder.strides) > 1:
+    require(config, 'savi.encoder.padding', 'pytorch',
+            'pads its strided convolution by K // 2 on every side')
   m = StateDictMapper(state_dict)
   latents = m.take('init_latents')  # [1, N, D]
   if latents is not None:
     m.put('initial_slots', latents[0], 'init_latents', latents.shape,
           'config.savi.num_slots / slot_size')
   _map_encoder(m, config)
+  _map_posterior_head(m, config, 'frame_step/posterior_head')
   _map_slot_attention(m, 'frame_step/corrector')
   _map_savi_predictor(m, config, 'frame_step/predictor')
   map_spatial_broadcast_decoder(m, config)
   # The official code builds it "just for compatibility" and never uses it.
   m.skip_prefix('prior_slot_layer.')
-  head_field = 'config.savi.stochastic'
-  if config.savi.stochastic:
-    layers.linear(m, 'kernel_dist_layer.0', 'frame_step/sampler/hidden',
-                  head_field)
-    layers.layer_norm(m, 'kernel_dist_layer.1', 'frame_step/sampler/norm',
-                      head_field)
-    layers.linear(m, 'kernel_dist_layer.3', 'frame_step/sampler/statistics',
-                  head_field)
   params = assemble(m, savi_abstract_params(config), hints={
-      'predictor.rnn': 'config.savi.predictor.lstm_size',
-      'predictor.out_projector': 'config.savi.predictor.lstm_size',
-      'predictor.': 'config.savi.predictor',
-      'kernel_dist_layer': 'config.savi.stochastic (the posterior head)',
+      'predictor.rnn': 'config.savi.predictor.kind / lstm_size',
+      'predictor.out_projector': 'config.savi.predictor.kind / lstm_size',
+      'predictor.': 'config.savi.predictor.kind',
+      'kernel_dist_layer': 'config.savi.posterior_head',
       'encoder': 'config.savi.encoder.features',
       'decoder': 'config.savi.decoder.features',
   })
@@ -336,6 +376,8 @@ def convert_slotformer(state_dict: dict[str, np.ndarray],
           'predicts the next slots directly (no residual)')
   require(config, 'slotformer.positional_encoding', 'temporal',
           'adds a sinusoidal temporal encoding')
+  require(config, 'slotformer.layer_norm_epsilon', PYTORCH_LN_EPSILON,
+          "uses PyTorch's LayerNorm epsilon")
   m = StateDictMapper(state_dict)
   field = 'config.slotformer (embed_dim / num_layers / mlp_ratio)'
   layers.linear(m, 'rollouter.in_proj', 'predictor/in_proj', field)
@@ -348,10 +390,14 @@ def convert_slotformer(state_dict: dict[str, np.ndarray],
   encoding = m.take('rollouter.enc_t_pe')  # [1, history_len, D_e], fixed
   if encoding is not None:
     history_len, dim = encoding.shape[1:]
-    if history_len != dynamics.burn_in:
+    # The encoding covers the longest context: history_len frames, or
+    # cond_len for the growing context of the PHYRE model.
+    context = max(dynamics.burn_in, dynamics.get('max_context', 0))
+    if history_len != context:
       raise ConversionError(
-          f'rollouter.enc_t_pe covers {history_len} frames, the config '
-          f'{dynamics.burn_in}; change config.slotformer.burn_in')
+          f'rollouter.enc_t_pe covers {history_len} frames, the config\'s '
+          f'context {context}; change config.slotformer.burn_in (or '
+          'max_context, the official cond_len)')
     expected = np.asarray(slotformer_module.sinusoidal_encoding(
         jnp.arange(history_len - 1, -1, -1), dim))
     if not np.allclose(encoding[0], expected, atol=1e-5):
