@@ -218,11 +218,72 @@ def transformer_lstm_predictor(slots, state, sd, num_layers, num_heads):
   return out, (h, c)
 
 
+def residual_mlp_predictor(slots, sd):
+  """The CLEVRER StoSAVi predictor (norm_first): LN, MLP, + the normalised
+  input."""
+  normed = layer_norm(slots, sd, 'predictor.ln')
+  hidden = np.maximum(linear(normed, sd, 'predictor.mlp.0'), 0)
+  return linear(hidden, sd, 'predictor.mlp.2') + normed
+
+
+def kernel_linear_mean(slots, sd):
+  """The linear posterior head (kernel_mlp=False), mean half."""
+  return linear(slots, sd, 'kernel_dist_layer.0')[..., :slots.shape[-1]]
+
+
 def kernel_mlp_mean(slots, sd):
   """The MLP posterior head, mean half (the deterministic SAVi's input)."""
   hidden = linear(slots, sd, 'kernel_dist_layer.0')
   hidden = np.maximum(layer_norm(hidden, sd, 'kernel_dist_layer.1'), 0)
   return linear(hidden, sd, 'kernel_dist_layer.3')[..., :slots.shape[-1]]
+
+
+def savi_forward(img, sd, *, num_iterations, num_heads=0, num_layers=0,
+                 lstm_size=0, predictor='transformer_lstm', head='mlp'):
+  """Official (deterministic) SAVi over a video img [B, T, 3, H, W]:
+  per frame, the head's mean of the initial slots goes into Slot Attention,
+  whose output the predictor turns into the next frame's initial slots.
+  Returns slots [B, T, N, D]."""
+  batch, time = img.shape[:2]
+  features = savi_encoder(img.reshape(batch * time, *img.shape[2:]), sd)
+  features = features.reshape(batch, time, *features.shape[1:])
+  latents = np.repeat(sd['init_latents'], batch, axis=0)
+  num_slots = latents.shape[1]
+  state = (np.zeros((batch * num_slots, lstm_size)),) * 2
+  all_slots = []
+  for t in range(time):
+    if t:
+      if predictor == 'residual_mlp':
+        latents = residual_mlp_predictor(slots, sd)
+      else:
+        latents, state = transformer_lstm_predictor(slots, state, sd,
+                                                    num_layers, num_heads)
+    kernels = (kernel_mlp_mean(latents, sd) if head == 'mlp'
+               else kernel_linear_mean(latents, sd))
+    slots = slot_attention(features[:, t], kernels, sd, num_iterations)
+    all_slots.append(slots)
+  return np.stack(all_slots, 1)
+
+
+def single_step_rollouter(slots, sd, num_steps, num_heads, num_layers):
+  """The PHYRE rollouter: from 1 frame, the context grows to cond_len
+  (the length of enc_t_pe) frames, then slides; the newest frames get the
+  last positions of the encoding."""
+  batch, history, num_slots, size = slots.shape
+  cond_len = sd['rollouter.enc_t_pe'].shape[1]
+  pe = np.repeat(sd['rollouter.enc_t_pe'][0], num_slots, axis=0)
+  tokens = slots.reshape(batch, history * num_slots, size)
+  predictions = []
+  for _ in range(num_steps):
+    window = tokens[:, -cond_len * num_slots:]
+    x = linear(window, sd, 'rollouter.in_proj') + pe[-window.shape[1]:]
+    for i in range(num_layers):
+      x = transformer_layer(x, sd, f'rollouter.transformer_encoder.layers.{i}',
+                            num_heads)
+    predicted = linear(x[:, -num_slots:], sd, 'rollouter.out_proj')
+    predictions.append(predicted)
+    tokens = np.concatenate([tokens, predicted], 1)
+  return np.stack(predictions, 1)
 
 
 def slot_rollouter(slots, sd, num_steps, num_heads, num_layers):
@@ -307,10 +368,12 @@ def add_decoder(sd, r, slot_size, features, broadcast, kernel=5):
 
 def savi_state_dict(seed, *, num_slots, slot_size, encoder_features,
                     encoder_size, feature_resolution, slot_mlp_size,
-                    decoder_features, broadcast, predictor_layers,
-                    predictor_ffn, lstm_size, kernel=5):
-  """An official StoSAVi state dict with a Transformer + LSTM predictor and
-  the MLP posterior head (the OBJ3D / PHYRE layout)."""
+                    decoder_features, broadcast, predictor_layers=0,
+                    predictor_ffn=0, lstm_size=0, kernel=5,
+                    predictor='transformer_lstm', head='mlp'):
+  """An official StoSAVi state dict. Defaults: a Transformer + LSTM
+  predictor and the MLP posterior head (the OBJ3D / PHYRE layout);
+  predictor='residual_mlp', head='linear': the CLEVRER layout."""
   r = _Random(seed)
   sd = {}
   channels = (3, *encoder_features)
@@ -325,8 +388,9 @@ def savi_state_dict(seed, *, num_slots, slot_size, encoder_features,
   add_linear(sd, r, 'encoder_out_layer.3', encoder_size, encoder_size)
   sd['init_latents'] = r.rng.standard_normal((1, num_slots, slot_size))
   add_linear(sd, r, 'kernel_dist_layer.0', slot_size, 2 * slot_size)
-  add_layer_norm(sd, r, 'kernel_dist_layer.1', 2 * slot_size)
-  add_linear(sd, r, 'kernel_dist_layer.3', 2 * slot_size, 2 * slot_size)
+  if head == 'mlp':
+    add_layer_norm(sd, r, 'kernel_dist_layer.1', 2 * slot_size)
+    add_linear(sd, r, 'kernel_dist_layer.3', 2 * slot_size, 2 * slot_size)
   add_linear(sd, r, 'prior_slot_layer.0', slot_size, slot_size)
   add_layer_norm(sd, r, 'prior_slot_layer.1', slot_size)
   add_linear(sd, r, 'prior_slot_layer.3', slot_size, slot_size)
@@ -344,6 +408,11 @@ def savi_state_dict(seed, *, num_slots, slot_size, encoder_features,
   add_linear(sd, r, f'{sa}.mlp.1', slot_size, slot_mlp_size)
   add_linear(sd, r, f'{sa}.mlp.3', slot_mlp_size, slot_size)
   add_decoder(sd, r, slot_size, decoder_features, broadcast, kernel)
+  if predictor == 'residual_mlp':
+    add_layer_norm(sd, r, 'predictor.ln', slot_size)
+    add_linear(sd, r, 'predictor.mlp.0', slot_size, 2 * slot_size)
+    add_linear(sd, r, 'predictor.mlp.2', 2 * slot_size, slot_size)
+    return sd
   for i in range(predictor_layers):
     add_transformer_layer(
         sd, r, f'predictor.base_predictor.transformer_encoder.layers.{i}',
@@ -357,7 +426,7 @@ def savi_state_dict(seed, *, num_slots, slot_size, encoder_features,
 
 
 def slotformer_state_dict(seed, *, slot_size, d_model, num_layers, ffn,
-                          history_len, decoder_from):
+                          history_len, decoder_from, cond_len=0):
   """An official SlotFormer state dict whose frozen decoder is copied from
   the SAVi state dict `decoder_from`."""
   r = _Random(seed)
@@ -366,7 +435,7 @@ def slotformer_state_dict(seed, *, slot_size, d_model, num_layers, ffn,
   for i in range(num_layers):
     add_transformer_layer(sd, r, f'rollouter.transformer_encoder.layers.{i}',
                           d_model, ffn)
-  sd['rollouter.enc_t_pe'] = sin_pos_enc(history_len, d_model)
+  sd['rollouter.enc_t_pe'] = sin_pos_enc(max(history_len, cond_len), d_model)
   add_linear(sd, r, 'rollouter.out_proj', d_model, slot_size)
   for key, value in decoder_from.items():
     if key.startswith('decoder'):

@@ -175,18 +175,33 @@ def tiny_config():
   savi.num_slots, savi.slot_size = 3, 16
   savi.encoder.features, savi.encoder.output_size = (8, 8), 16
   savi.encoder.strides = (1, 1)
+  savi.encoder.padding = 'pytorch'
   savi.slot_attention.mlp_size = 32
-  savi.predictor.update(num_layers=1, num_heads=2, mlp_size=32, lstm_size=24)
+  # The OBJ3D / PHYRE layout (see configs/obj3d.py).
+  savi.predictor.update(kind='transformer_lstm', num_layers=1, num_heads=2,
+                        mlp_size=32, lstm_size=24)
+  savi.posterior_head = 'mlp'
+  savi.layer_norm_epsilon = 1e-5
   savi.decoder.broadcast_resolution, savi.decoder.features = (4, 4), (8, 8, 8)
   dyn = config.slotformer
   dyn.burn_in, dyn.embed_dim, dyn.num_layers = 3, 32, 2
   dyn.num_heads, dyn.mlp_ratio = 4, 2
+  dyn.layer_norm_epsilon = 1e-5
   savi.num_train_steps = dyn.num_train_steps = 10
+  return config
+
+
+def clevrer_layout(config):
+  """The official CLEVRER StoSAVi layout (see configs/clevrer.py)."""
+  config.savi.predictor.update(kind='residual_mlp', mlp_size=32, lstm_size=0)
+  config.savi.posterior_head = 'linear'
   return config
 
 
 def official_savi(config, seed=0):
   savi = config.savi
+  layout = ({'predictor': 'residual_mlp', 'head': 'linear'}
+            if savi.predictor.kind == 'residual_mlp' else {})
   return ref.savi_state_dict(
       seed, num_slots=savi.num_slots, slot_size=savi.slot_size,
       encoder_features=savi.encoder.features,
@@ -197,7 +212,7 @@ def official_savi(config, seed=0):
       broadcast=savi.decoder.broadcast_resolution,
       predictor_layers=savi.predictor.num_layers,
       predictor_ffn=savi.predictor.mlp_size,
-      lstm_size=savi.predictor.lstm_size)
+      lstm_size=savi.predictor.lstm_size, **layout)
 
 
 def official_slotformer(config, savi_state, seed=1):
@@ -205,15 +220,8 @@ def official_slotformer(config, savi_state, seed=1):
   return ref.slotformer_state_dict(
       seed, slot_size=config.savi.slot_size, d_model=dyn.embed_dim,
       num_layers=dyn.num_layers, ffn=dyn.mlp_ratio * dyn.embed_dim,
-      history_len=dyn.burn_in, decoder_from=savi_state)
-
-
-def _stochastic_savi_config():
-  """Today's stochastic SAVi has the MLP posterior head of the official
-  OBJ3D / PHYRE checkpoints, so every official key has a place."""
-  config = tiny_config()
-  config.savi.stochastic = True
-  return config
+      history_len=dyn.burn_in, cond_len=dyn.max_context,
+      decoder_from=savi_state)
 
 
 def test_slotformer_rollout_and_frozen_decoder():
@@ -235,10 +243,48 @@ def test_slotformer_rollout_and_frozen_decoder():
   _close(decoded.alpha_masks, masks.transpose(0, 1, 3, 4, 2))
 
 
+@pytest.mark.parametrize('layout', ['obj3d', 'clevrer'])
+def test_savi_video(layout):
+  """A converted deterministic SAVi over 3 frames against the official
+  definition: posterior-head mean -> Slot Attention -> predictor."""
+  config = tiny_config() if layout == 'obj3d' else clevrer_layout(
+      tiny_config())
+  state = official_savi(config)
+  params = families.convert_state_dict(state, config).params
+  video = np.random.default_rng(4).uniform(-1, 1, (2, 3, 3, 16, 16))
+  output = _apply(models.build_savi(config), params,
+                  jnp.asarray(video.transpose(0, 1, 3, 4, 2)))
+  predictor = config.savi.predictor
+  expected = ref.savi_forward(
+      video, state, num_iterations=2, num_heads=predictor.num_heads,
+      num_layers=predictor.num_layers, lstm_size=predictor.lstm_size,
+      predictor=predictor.kind, head=config.savi.posterior_head)
+  _close(output.slots, expected)
+  recon, _ = ref.savi_decoder(expected.reshape(6, 3, 16), state, (16, 16),
+                              (4, 4))
+  _close(output.decoded.recon.reshape(6, 16, 16, 3),
+         recon.transpose(0, 2, 3, 1))
+
+
+def test_slotformer_growing_context():
+  """The PHYRE model: 1 observed frame, the context grows to 4 frames
+  (official cond_len), then slides."""
+  config = tiny_config()
+  config.slotformer.update(burn_in=1, max_context=4)
+  state = official_slotformer(config, official_savi(config))
+  converted = families.convert_state_dict(state, config)
+  slots = np.random.default_rng(5).standard_normal((2, 1, 3, 16))
+  predicted = _apply(models.build_slotformer(config), converted.params,
+                     jnp.asarray(slots), 7)
+  _close(predicted, ref.single_step_rollouter(slots, state, 7, num_heads=4,
+                                              num_layers=2))
+
+
+@pytest.mark.slow  # test_savi_video covers the same parts end to end
 def test_savi_parts():
   """Encoder, Slot Attention corrector, decoder and the Transformer + LSTM
   predictor of a converted SAVi, each against the official definition."""
-  config = _stochastic_savi_config()
+  config = tiny_config()
   state = official_savi(config)
   params = families.convert_state_dict(state, config).params
   rng = np.random.default_rng(3)
@@ -246,13 +292,15 @@ def test_savi_parts():
 
   img = rng.uniform(-1, 1, (2, 3, 16, 16))
   features = _apply(
-      CNNEncoder(features=(8, 8), strides=(1, 1), output_size=16),
+      CNNEncoder(features=(8, 8), strides=(1, 1), output_size=16,
+                 padding='pytorch', layer_norm_epsilon=1e-5),
       params['encoder'], jnp.asarray(img.transpose(0, 2, 3, 1)))
   expected_features = ref.savi_encoder(img, state)
   _close(features, expected_features)
 
   slots = rng.standard_normal((2, 3, 16))
-  corrected = _apply(SlotAttention(num_iterations=2, mlp_size=32),
+  corrected = _apply(SlotAttention(num_iterations=2, mlp_size=32,
+                                   layer_norm_epsilon=1e-5),
                      params['frame_step']['corrector'], jnp.asarray(slots),
                      jnp.asarray(expected_features))
   _close(corrected, ref.slot_attention(expected_features, slots, state, 2))
@@ -264,7 +312,8 @@ def test_savi_parts():
 
   from slotformer_jax.modules.savi import SlotTransition  # pylint: disable=g-import-not-at-top
   transition = SlotTransition(num_layers=1, num_heads=2, mlp_size=32,
-                              lstm_size=savi.predictor.lstm_size)
+                              lstm_size=savi.predictor.lstm_size,
+                              layer_norm_epsilon=1e-5)
   h = rng.standard_normal((6, 24))
   c = rng.standard_normal((6, 24))
   carry = (jnp.asarray(c.reshape(2, 3, 24)), jnp.asarray(h.reshape(2, 3, 24)))
@@ -286,7 +335,7 @@ def test_savi_parts():
 
 
 def test_missing_and_unknown_keys_in_one_error():
-  config = _stochastic_savi_config()
+  config = tiny_config()
   state = official_savi(config)
   del state['slot_attention.gru.bias_hh']
   del state['encoder_out_layer.3.weight']
@@ -301,18 +350,37 @@ def test_missing_and_unknown_keys_in_one_error():
 
 
 def test_unknown_part_names_the_config_field():
-  config = tiny_config()  # deterministic: no posterior head here today
-  config.savi.predictor.lstm_size = 0
+  state = official_savi(tiny_config())
+  config = tiny_config()
+  config.savi.predictor.update(kind='transformer', lstm_size=0)
+  config.savi.posterior_head = 'none'
   with pytest.raises(families.ConversionError) as error:
-    families.convert_state_dict(official_savi(_stochastic_savi_config()),
-                                config)
+    families.convert_state_dict(state, config)
   message = str(error.value)
-  assert 'predictor.rnn.weight_ih_l0  (config.savi.predictor.lstm_size)' in (
-      message)
+  assert ('predictor.rnn.weight_ih_l0  (config.savi.predictor.kind / '
+          'lstm_size)') in message
+  assert 'kernel_dist_layer.3.weight  (config.savi.posterior_head)' in message
+
+
+@pytest.mark.parametrize('field, value', [
+    ('savi.layer_norm_epsilon', 1e-6),
+    ('savi.encoder.strides', (2, 1)),
+    ('savi.initial_slots', 'gaussian'),
+])
+def test_savi_config_must_be_the_official_one(field, value):
+  config = tiny_config()
+  state = official_savi(config)
+  section, *rest = field.split('.')
+  node = config[section]
+  for key in rest[:-1]:
+    node = node[key]
+  node[rest[-1]] = value
+  with pytest.raises(families.ConversionError, match=f'config.{field}'):
+    families.convert_state_dict(state, config)
 
 
 def test_shape_mismatch_names_key_shapes_and_field():
-  config = _stochastic_savi_config()
+  config = tiny_config()
   state = official_savi(config)
   config.savi.num_slots = 5
   with pytest.raises(families.ConversionError) as error:
@@ -371,7 +439,7 @@ def _write_all(config, workdir, savi_state, slotformer_state):
 
 
 def test_writes_where_the_pipeline_reads(tmp_path):
-  config = _stochastic_savi_config()
+  config = tiny_config()
   workdir = str(tmp_path / 'run')
   savi_state = official_savi(config)
   slotformer_state = official_slotformer(config, savi_state)
@@ -392,7 +460,7 @@ def test_writes_where_the_pipeline_reads(tmp_path):
 
 
 def test_frozen_decoder_must_be_the_savi_decoder(tmp_path):
-  config = _stochastic_savi_config()
+  config = tiny_config()
   workdir = str(tmp_path / 'run')
   savi_state = official_savi(config)
   other = official_savi(config, seed=5)
