@@ -27,6 +27,7 @@ from typing import Any
 
 from absl import app
 from absl import flags
+from absl import logging as absl_logging
 import jax
 import jax.numpy as jnp
 import ml_collections
@@ -185,9 +186,15 @@ def convert_files(config: ml_collections.ConfigDict, workdir: str,
 
 def main(argv):
   del argv
-  logging.basicConfig(level=logging.INFO,
-                      format='%(asctime)s %(levelname).1s %(name)s] '
-                      '%(message)s', datefmt='%H:%M:%S')
+  # This package's INFO lines only; orbax logs every save step through absl.
+  absl_logging.set_verbosity(absl_logging.ERROR)
+  handler = logging.StreamHandler()
+  handler.setFormatter(logging.Formatter(
+      '%(asctime)s %(levelname).1s %(name)s] %(message)s', '%H:%M:%S'))
+  package_logger = logging.getLogger('slotformer_jax')
+  package_logger.handlers[:] = [handler]
+  package_logger.setLevel(logging.INFO)
+  package_logger.propagate = False
   config = _CONFIG.value
   if config is None:
     raise app.UsageError('--config is required, e.g. configs/obj3d.py')
