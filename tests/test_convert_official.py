@@ -8,6 +8,9 @@ converted parameters and comparing with NumPy, then whole converted models
 then the errors and the workdir the converter writes.
 """
 
+import json
+import os
+
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
@@ -427,23 +430,36 @@ def test_bgr_datasets_need_bgr():
 # --------------------------------------------------------------------------
 
 
-def _write_all(config, workdir, savi_state, slotformer_state):
-  for state in (savi_state, slotformer_state):
-    converted = families.convert_state_dict(state, config)
-    if 'decoder' in converted.extras:
-      convert_official.check_frozen_decoder(config, workdir,
-                                            converted.extras['decoder'])
-    convert_official.write_converted(config, workdir, converted.stage,
-                                     converted.params, {'file': 'test'})
-  return converted
+def _convert_files(config, workdir, tmp_path, monkeypatch, states):
+  """convert_official.convert_files on {file name: state dict}, the .pth
+  reading replaced by the dicts (the reader has its own tests)."""
+  files = {str(tmp_path / name): state for name, state in states.items()}
+  for path in files:
+    open(path, 'wb').close()
+  monkeypatch.setattr(convert_official.pth_reader, 'read_state_dict',
+                      lambda path, reader: files[path])
+  return convert_official.convert_files(config, workdir, list(files))
 
 
-def test_writes_where_the_pipeline_reads(tmp_path):
+def test_writes_where_the_pipeline_reads(tmp_path, monkeypatch):
+  """SlotFormer listed first is still written after the SAVi its decoder is
+  checked against; the pipeline's loaders read both back exactly."""
   config = tiny_config()
   workdir = str(tmp_path / 'run')
   savi_state = official_savi(config)
   slotformer_state = official_slotformer(config, savi_state)
-  _write_all(config, workdir, savi_state, slotformer_state)
+  directories = _convert_files(
+      config, workdir, tmp_path, monkeypatch,
+      {'slotformer.pth': slotformer_state, 'savi.pth': savi_state})
+  assert directories == [stages.savi_dir(workdir),
+                         stages.dynamics_dir(workdir)]
+  with open(os.path.join(directories[1],
+                         convert_official.CONVERTED_FROM_FILE)) as f:
+    provenance = json.load(f)
+  assert provenance['file'] == str(tmp_path / 'slotformer.pth')
+  assert provenance['family'] == 'slotformer'
+  assert len(provenance['sha256']) == 64
+
   mesh = jax.sharding.Mesh(np.array(jax.devices()), ('data',))
   savi_params, savi_step = stages.load_savi_params(config, workdir, mesh)
   assert savi_step == config.savi.num_train_steps
@@ -459,15 +475,15 @@ def test_writes_where_the_pipeline_reads(tmp_path):
     convert_official.write_converted(config, workdir, 'savi', expected, {})
 
 
-def test_frozen_decoder_must_be_the_savi_decoder(tmp_path):
+def test_frozen_decoder_must_be_the_savi_decoder(tmp_path, monkeypatch):
   config = tiny_config()
   workdir = str(tmp_path / 'run')
-  savi_state = official_savi(config)
-  other = official_savi(config, seed=5)
-  slotformer_state = official_slotformer(config, other)
+  slotformer_state = official_slotformer(config, official_savi(config, seed=5))
   with pytest.raises(families.ConversionError, match='no SAVi checkpoint'):
     convert_official.check_frozen_decoder(
         config, workdir,
         families.convert_state_dict(slotformer_state, config).extras['decoder'])
   with pytest.raises(families.ConversionError, match='frozen decoder differs'):
-    _write_all(config, workdir, savi_state, slotformer_state)
+    _convert_files(config, workdir, tmp_path, monkeypatch,
+                   {'savi.pth': official_savi(config),
+                    'slotformer.pth': slotformer_state})
