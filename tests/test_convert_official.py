@@ -366,6 +366,7 @@ def test_unknown_part_names_the_config_field():
 
 
 @pytest.mark.parametrize('field, value', [
+    ('savi.decoder.broadcast_resolution', (8, 8)),
     ('savi.layer_norm_epsilon', 1e-6),
     ('savi.encoder.strides', (2, 1)),
     ('savi.initial_slots', 'gaussian'),
@@ -487,3 +488,49 @@ def test_frozen_decoder_must_be_the_savi_decoder(tmp_path, monkeypatch):
     _convert_files(config, workdir, tmp_path, monkeypatch,
                    {'savi.pth': official_savi(config),
                     'slotformer.pth': slotformer_state})
+
+
+@pytest.mark.slow
+def test_converted_workdir_runs_extract_evaluate_render(tmp_path):
+  """Official-format weights in the official layout -> the workdir ->
+  slot extraction, evaluation and pictures, with no training stage run."""
+  import test_end_to_end  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.evaluation import evaluate  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.evaluation import visualize  # pylint: disable=g-import-not-at-top
+  config = test_end_to_end._micro_config(tmp_path / 'data')  # pylint: disable=protected-access
+  config.slot_lstm.train = False
+  config.slotformer.residual = False  # the official SlotFormer has none
+  savi = config.savi
+  savi.encoder.padding = 'pytorch'
+  savi.predictor.update(kind='transformer_lstm', lstm_size=24)
+  savi.posterior_head = 'mlp'
+  savi.layer_norm_epsilon = config.slotformer.layer_norm_epsilon = 1e-5
+  savi_state = ref.savi_state_dict(
+      0, num_slots=savi.num_slots, slot_size=savi.slot_size,
+      encoder_features=savi.encoder.features,
+      encoder_size=savi.encoder.output_size,
+      feature_resolution=config.data.resolution,
+      slot_mlp_size=savi.slot_attention.mlp_size,
+      decoder_features=savi.decoder.features,
+      broadcast=savi.decoder.broadcast_resolution,
+      predictor_layers=savi.predictor.num_layers,
+      predictor_ffn=savi.predictor.mlp_size, lstm_size=24,
+      kernel=savi.encoder.kernel_size)
+  assert savi.decoder.kernel_size == savi.encoder.kernel_size
+  slotformer_state = official_slotformer(config, savi_state)
+  workdir = str(tmp_path / 'run')
+  for state in (savi_state, slotformer_state):
+    converted = families.convert_state_dict(state, config)
+    convert_official.write_converted(config, workdir, converted.stage,
+                                     converted.params, {'file': 'test'})
+  mesh = jax.sharding.Mesh(np.array(jax.devices()), ('data',))
+  stages.extract_slots(config, workdir, mesh)
+  results = evaluate.evaluate(config, workdir, mesh)
+  pictures = visualize.render(config, workdir, mesh)
+  assert results['checkpoints'] == {
+      'savi_step': savi.num_train_steps,
+      'slotformer_step': config.slotformer.num_train_steps}
+  per_step = results['rollout']['slotformer']['psnr']['per_step']
+  assert len(per_step) == config.evaluation.rollout_steps
+  assert all(np.isfinite(v) for v in per_step)
+  assert any(p.endswith('.gif') for p in pictures)

@@ -214,14 +214,31 @@ def savi_abstract_params(config: ml_collections.ConfigDict) -> Any:
   return jax.eval_shape(lambda: model.init(rngs, video))['params']
 
 
+def _check_grid(m: StateDictMapper, key: str, size: tuple[int, int],
+                field: str) -> None:
+  """An official SoftPositionEmbed grid [1, H, W, 4] must be H x W = size."""
+  if not m.has(key):
+    return  # older checkpoints may lack the buffer
+  grid_size = tuple(m.take(key).shape[1:3])
+  if grid_size != size:
+    raise ConversionError(
+        f'{key}: the official model works on a {grid_size} grid, the config '
+        f'on {size}; change {field}')
+
+
 def map_spatial_broadcast_decoder(m: StateDictMapper,
                                   config: ml_collections.ConfigDict,
                                   target: str = 'decoder') -> None:
   """`decoder.*` + `decoder_pos_embedding.*` (SAVi's and SlotFormer's)."""
-  field = 'config.savi.decoder (features / broadcast_resolution)'
+  field = ('config.savi.decoder (features / kernel_size / '
+           'broadcast_resolution)')
   layers.linear(m, 'decoder_pos_embedding.dense',
                 f'{target}/position_embedding/dense', field)
-  m.skip('decoder_pos_embedding.grid')  # the fixed coordinate grid
+  # The fixed coordinate grid: no parameter, but its size is the broadcast
+  # size, which no weight shape reveals and which decides the strides.
+  _check_grid(m, 'decoder_pos_embedding.grid',
+              tuple(config.savi.decoder.broadcast_resolution),
+              'config.savi.decoder.broadcast_resolution')
   num_layers = m.count('decoder.{}.0.weight')
   size = config.savi.decoder.broadcast_resolution[0]
   for i in range(num_layers):
@@ -234,12 +251,15 @@ def map_spatial_broadcast_decoder(m: StateDictMapper,
 
 
 def _map_encoder(m: StateDictMapper, config: ml_collections.ConfigDict):
-  field = 'config.savi.encoder (features / output_size)'
+  field = 'config.savi.encoder (features / kernel_size / output_size)'
   for i in range(m.count('encoder.{}.0.weight')):
     layers.conv(m, f'encoder.{i}.0', f'encoder/conv_{i}', field)
   layers.linear(m, 'encoder_pos_embedding.dense',
                 'encoder/position_embedding/dense', field)
-  m.skip('encoder_pos_embedding.grid')
+  strides = np.prod(config.savi.encoder.strides)
+  _check_grid(m, 'encoder_pos_embedding.grid',
+              tuple(int(size // strides) for size in config.data.resolution),
+              'config.data.resolution / config.savi.encoder.strides')
   layers.layer_norm(m, 'encoder_out_layer.0', 'encoder/norm', field)
   layers.linear(m, 'encoder_out_layer.1', 'encoder/mlp_hidden', field)
   layers.linear(m, 'encoder_out_layer.3', 'encoder/mlp_out', field)
