@@ -50,10 +50,7 @@ def _uniform(rng, shape, bound):
 
 def _recurrent_hidden_size(names, params) -> int:
   """Hidden size of the GRU / LSTM cell at `names` (its gate width)."""
-  cell = params
-  for name in names:
-    cell = cell[name]
-  return next(iter(cell.values()))['kernel'].shape[-1]
+  return next(iter(_layer(names, params).values()))['kernel'].shape[-1]
 
 
 def _initial_value(names: tuple[str, ...], shape: tuple[int, ...],
@@ -83,18 +80,21 @@ def _initial_value(names: tuple[str, ...], shape: tuple[int, ...],
     if module == 'out':
       return _uniform(rng, shape, 1.0 / np.sqrt(np.prod(shape[:-1])))
   if leaf == 'bias':
-    kernel_shape = _sibling_kernel_shape(parent, params)
+    layer = _layer(parent, params)
+    if 'scale' in layer:  # LayerNorm
+      return jnp.zeros(shape, jnp.float32)
+    kernel_shape = layer['kernel'].shape
     return _uniform(rng, shape, 1.0 / np.sqrt(
         _fan_in(kernel_shape, transposed=module.startswith('deconv_'))))
   return _uniform(rng, shape, 1.0 / np.sqrt(
       _fan_in(shape, transposed=module.startswith('deconv_'))))
 
 
-def _sibling_kernel_shape(parent, params) -> tuple[int, ...]:
+def _layer(parent, params) -> dict[str, Any]:
   layer = params
   for name in parent:
     layer = layer[name]
-  return layer['kernel'].shape
+  return layer
 
 
 def _fan_in(kernel_shape: tuple[int, ...], transposed: bool) -> int:
