@@ -23,15 +23,14 @@ import pickle
 import zipfile
 from typing import Any
 
-import ml_dtypes
 import numpy as np
 
-# torch storage class -> numpy dtype.
+# torch storage class -> numpy dtype ('bfloat16': ml_dtypes', loaded lazily).
 _STORAGE_DTYPES = {
     'DoubleStorage': np.float64,
     'FloatStorage': np.float32,
     'HalfStorage': np.float16,
-    'BFloat16Storage': ml_dtypes.bfloat16,
+    'BFloat16Storage': 'bfloat16',
     'LongStorage': np.int64,
     'IntStorage': np.int32,
     'ShortStorage': np.int16,
@@ -67,7 +66,11 @@ class _StorageType:
 
   def __init__(self, name: str):
     self.name = name
-    self.dtype = np.dtype(_STORAGE_DTYPES[name])
+    dtype = _STORAGE_DTYPES[name]
+    if dtype == 'bfloat16':
+      import ml_dtypes  # pylint: disable=g-import-not-at-top  (a jax dependency)
+      dtype = ml_dtypes.bfloat16
+    self.dtype = np.dtype(dtype)
 
 
 def _rebuild_tensor(storage: np.ndarray, storage_offset: int, size, stride,
