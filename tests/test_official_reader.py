@@ -3,7 +3,7 @@
 tests/data/official_tiny.pth was written once by `torch.save` (torch 2.13)
 from official-style key names with values given by the formulas below; it
 holds a transposed (non-contiguous) tensor, views into a shared storage
-with an offset, float16/float64/int64/bool tensors, a 0-d tensor, an
+with an offset, float16/bfloat16/float64/int64/bool tensors, a 0-d tensor, an
 nn.Parameter and an Adam + StepLR training state.
 """
 
@@ -11,6 +11,7 @@ import os
 import pickle
 import zipfile
 
+import ml_dtypes
 import numpy as np
 import pytest
 
@@ -33,6 +34,7 @@ def test_reads_the_state_dict_exactly():
       'rollouter.enc_t_pe': np.ones((1, 2, 2), np.float32),
       'num_batches_tracked': np.array(7, np.int64),
       'mask': np.array([True, False, True]),
+      'bf16': np.array([1.5, -2.0, 0.25], ml_dtypes.bfloat16),
   }
   assert list(state) == list(expected)  # order kept
   for key, value in expected.items():
