@@ -477,13 +477,16 @@ register(Family(
 register(Family('savi', _is_savi, convert_savi))
 register(Family('slotformer', _is_slotformer, convert_slotformer))
 register(Family(
-    'readout', lambda keys: 'in_proj.weight' in keys and any(
+    'phyre_readout', lambda keys: 'in_proj.weight' in keys and any(
         k.startswith('cls_mlp.') for k in keys),
-    missing_reason='the Physion / PHYRE readout heads need their modules '
-    '(issue 11).'))
+    missing_reason='the PHYRE success readout needs its module (issue 11).'))
 register(Family(
-    'aloe', lambda keys: any(
-        k.startswith(('cls_answer_mlp.', 'mc_answer_mlp.')) for k in keys),
+    'physion_readout', lambda keys: 'comb_idx' in keys
+    and 'linear1.weight' in keys,
+    missing_reason='the Physion contact readout needs its module (issue 11).'))
+register(Family(
+    'aloe', lambda keys: any('cls_answer_mlp.' in k or 'mc_answer_mlp.' in k
+                             for k in keys),
     missing_reason='Aloe (CLEVRER VQA) needs the Aloe module (issue 12).'))
 register(Family(
     'dvae', lambda keys: keys and all(
