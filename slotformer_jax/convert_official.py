@@ -23,6 +23,7 @@ import hashlib
 import json
 import logging
 import os
+import sys
 from typing import Any
 
 from absl import app
@@ -198,7 +199,12 @@ def main(argv):
   config = _CONFIG.value
   if config is None:
     raise app.UsageError('--config is required, e.g. configs/obj3d.py')
-  convert_files(config, _WORKDIR.value, _CHECKPOINTS.value, _READER.value)
+  try:
+    convert_files(config, _WORKDIR.value, _CHECKPOINTS.value, _READER.value)
+  except (families.ConversionError, FileExistsError,
+          NotImplementedError) as error:
+    # What to change is in the message; a traceback would only hide it.
+    sys.exit(f'convert_official: {error}')
 
 
 if __name__ == '__main__':
