@@ -43,7 +43,8 @@ from slotformer_jax.train import optim
 from slotformer_jax.train.state import TrainState
 from slotformer_jax.train.trainer import checkpointer_for
 
-logger = logging.getLogger(__name__)
+# Not __name__: that is '__main__' under python -m.
+logger = logging.getLogger('slotformer_jax.convert_official')
 
 _CONFIG = config_flags.DEFINE_config_file(
     'config', None, 'The config of the official model, e.g. '
