@@ -29,6 +29,7 @@ from slotformer_jax.data.slots import SlotWriter
 from slotformer_jax.data.slots import read_meta
 from slotformer_jax.data.sources import get_video_source
 from slotformer_jax.errors import UserError
+from slotformer_jax.modules import initializers
 from slotformer_jax.train import sharding
 from slotformer_jax.train.trainer import Stage
 from slotformer_jax.train.trainer import fit
@@ -87,8 +88,9 @@ def train_savi(config: ml_collections.ConfigDict, workdir: str,
       loss_fn=functools.partial(
           losses.savi_loss, model=model,
           kl_weight=stage_config.kl_weight if stage_config.stochastic else 0.0),
-      init_params=lambda rng: steps.init_params(
-          model, rng, jnp.zeros(clip_shape, jnp.float32)),
+      init_params=lambda rng: initializers.initialize(
+          steps.init_params(model, rng, jnp.zeros(clip_shape, jnp.float32)),
+          jax.random.fold_in(rng, 1), stage_config.init),
       batches=lambda start_step: pipeline.train_batches(
           source, batch_size=local_batch_size,
           clip_length=stage_config.clip_length, seed=config.seed,
@@ -265,8 +267,10 @@ def train_dynamics(config: ml_collections.ConfigDict, workdir: str,
           losses.slotformer_loss, model=model, decoder=decoder,
           rollout=rollout, image_loss_weight=stage_config.image_loss_weight,
           teacher_forcing=stage_config.teacher_forcing),
-      init_params=lambda rng: steps.init_params(
-          model, rng, jnp.zeros(history_shape, jnp.float32), rollout),
+      init_params=lambda rng: initializers.initialize(
+          steps.init_params(model, rng, jnp.zeros(history_shape, jnp.float32),
+                            rollout),
+          jax.random.fold_in(rng, 1), stage_config.get('init', 'flax')),
       batches=lambda start_step: pipeline.train_batches(
           source, batch_size=local_batch_size,
           clip_length=burn_in + rollout, seed=config.seed + 1,

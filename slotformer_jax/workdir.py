@@ -84,8 +84,14 @@ def savi_model_fields(config: ml_collections.ConfigDict) -> dict[str, Any]:
   savi = config.savi.to_dict()
   fields = {key: savi[key] for key in (
       'num_slots', 'slot_size', 'encoder', 'slot_attention', 'predictor',
-      'decoder', 'stochastic', 'initial_slots')}
+      'decoder', 'stochastic', 'initial_slots', 'posterior_head',
+      'layer_norm_epsilon')}
   fields['resolution'] = list(config.data.resolution)
+  # A SAVi that saw BGR frames (the official CLEVRER / Physion ones) needs
+  # BGR frames; recorded only when not RGB, so older workdirs still match.
+  channel_order = config.data.get('channel_order', 'rgb')
+  if channel_order != 'rgb':
+    fields['channel_order'] = channel_order
   return json.loads(json.dumps(fields))  # tuples -> lists, for comparison
 
 
@@ -96,7 +102,7 @@ def dynamics_model_fields(config: ml_collections.ConfigDict,
   keys = ['burn_in', 'embed_dim', 'num_layers', 'num_heads', 'mlp_ratio',
           'residual']
   if name == models.SLOTFORMER:
-    keys.append('positional_encoding')
+    keys += ['positional_encoding', 'max_context', 'layer_norm_epsilon']
   return json.loads(json.dumps({key: dynamics[key] for key in keys}))
 
 

@@ -1,0 +1,235 @@
+r"""Imports the authors' released PyTorch checkpoints into a workdir.
+
+  python -m slotformer_jax.convert_official --config=configs/obj3d.py \
+      --workdir=runs/obj3d_official \
+      --checkpoint=pretrained/savi_obj3d_params/model_40.pth \
+      --checkpoint=pretrained/slotformer_obj3d_params/model_200.pth
+
+Each checkpoint's family (SAVi / stochastic SAVi, SlotFormer, ...) is
+recognised from its keys; the converted parameters go where the pipeline
+reads them (`savi/checkpoints`, `slotformer/checkpoints`, each with its
+`model_config.json`), so `--mode=extract_slots`, `evaluate` and `render` run
+on them unchanged. SAVi checkpoints are converted first; a SlotFormer
+checkpoint's frozen decoder copy must equal the SAVi decoder in the workdir.
+Reading `.pth` needs no torch (see official/pth_reader.py). The official
+optimizer state is not converted: a converted stage starts a fresh Adam state
+at its last step, so training does not resume it.
+"""
+
+from __future__ import annotations
+
+import datetime
+import hashlib
+import json
+import logging
+import os
+import sys
+from typing import Any
+
+from absl import app
+from absl import flags
+from absl import logging as absl_logging
+import jax
+import jax.numpy as jnp
+import ml_collections
+from ml_collections import config_flags
+import numpy as np
+
+from slotformer_jax import inference
+from slotformer_jax import models
+from slotformer_jax import workdir as workdir_lib
+from slotformer_jax.files import write_json_atomic
+from slotformer_jax.official import families
+from slotformer_jax.official import pth_reader
+from slotformer_jax.train import optim
+from slotformer_jax.train.state import TrainState
+from slotformer_jax.train.trainer import checkpointer_for
+
+# Not __name__: that is '__main__' under python -m.
+logger = logging.getLogger('slotformer_jax.convert_official')
+
+_CONFIG = config_flags.DEFINE_config_file(
+    'config', None, 'The config of the official model, e.g. '
+    'configs/obj3d.py.', lock_config=True)
+_WORKDIR = flags.DEFINE_string('workdir', None, 'Where to write.',
+                               required=True)
+_CHECKPOINTS = flags.DEFINE_multi_string(
+    'checkpoint', None, 'An official .pth file (repeat the flag for several).',
+    required=True)
+_READER = flags.DEFINE_enum(
+    'reader', 'auto', ('auto', 'numpy', 'torch'),
+    'How to read .pth: numpy (no torch), torch (pip install -e .[torch]), '
+    'auto (numpy for zip files).')
+
+# Provenance of a converted stage, beside its model_config.json.
+CONVERTED_FROM_FILE = 'converted_from.json'
+
+# The family order in which checkpoints are written (SAVi before the models
+# whose frozen decoder is checked against it).
+_ORDER = (families.SAVI_STAGE, families.SLOTFORMER_STAGE)
+
+
+def check_channel_order(config: ml_collections.ConfigDict) -> None:
+  """The official CLEVRER / Physion models saw BGR frames: refuse RGB."""
+  if (config.data.name in families.BGR_DATASETS
+      and config.data.get('channel_order', 'rgb') != 'bgr'):
+    raise families.ConversionError(
+        f'the official {config.data.name} models were trained on BGR frames '
+        "(OpenCV); add --config.data.channel_order=bgr here and to every "
+        'later command on this workdir (the SAVi model config records it)')
+
+
+def _stage_target(config: ml_collections.ConfigDict, workdir: str,
+                  stage: str) -> tuple[str, dict[str, Any],
+                                       ml_collections.ConfigDict]:
+  """(directory, model-config fields, stage config) of `stage`."""
+  if stage == families.SAVI_STAGE:
+    return (workdir_lib.savi_dir(workdir_lib.stage1_workdir(config, workdir)),
+            workdir_lib.savi_model_fields(config), config.savi)
+  return (workdir_lib.dynamics_dir(workdir, stage),
+          workdir_lib.dynamics_model_fields(config, stage),
+          models.dynamics_config(config, stage))
+
+
+def write_converted(config: ml_collections.ConfigDict, workdir: str,
+                    stage: str, params: Any, provenance: dict[str, Any]
+                    ) -> str:
+  """Writes `params` as stage `stage`'s checkpoint; returns its directory.
+
+  The one place that writes into a workdir: a TrainState at step
+  `num_train_steps` of the stage (so training counts it as finished and
+  evaluation does not warn), a fresh Adam state, the stage's
+  model_config.json, and `converted_from.json` naming the source file.
+
+  Raises:
+    FileExistsError: the stage already has a checkpoint (never overwritten).
+  """
+  directory, fields, stage_config = _stage_target(config, workdir, stage)
+  checkpointer = checkpointer_for(directory)
+  try:
+    if checkpointer.latest_step() is not None:
+      raise FileExistsError(
+          f'{directory} already holds a {stage} checkpoint (step '
+          f'{checkpointer.latest_step()}); convert into a fresh --workdir')
+    workdir_lib.check_model_config(directory, fields, stage)
+    workdir_lib.write_model_config(directory, fields)
+    # The run identity the pipeline checks: a converted SAVi is a new stage 1;
+    # a converted SlotFormer descends from the SAVi of this workdir (the
+    # slots extracted later carry the same parent).
+    if stage == families.SAVI_STAGE:
+      identity = workdir_lib.new_identity(
+          workdir_lib.savi_identity_fields(config))
+    else:
+      savi_identity = workdir_lib.savi_identity(config, workdir)
+      identity = workdir_lib.new_identity(
+          workdir_lib.dynamics_identity_fields(config, stage),
+          workdir_lib.slots_parent(savi_identity,
+                                   int(config.savi.num_train_steps)))
+    workdir_lib.write_identity(directory, identity)
+    optimizer, _ = optim.make_optimizer(stage_config)
+    params = jax.tree.map(jnp.asarray, params)
+    step = int(stage_config.num_train_steps)
+    state = TrainState.create(params, optimizer).replace(
+        step=jnp.asarray(step, jnp.int32))
+    checkpointer.save(step, state, force=True)
+    checkpointer.wait_until_finished()
+  finally:
+    checkpointer.close()
+  if jax.process_index() == 0:
+    write_json_atomic(os.path.join(directory, CONVERTED_FROM_FILE),
+                      provenance)
+  return directory
+
+
+def _sha256(path: str) -> str:
+  digest = hashlib.sha256()
+  with open(path, 'rb') as f:
+    for block in iter(lambda: f.read(1 << 20), b''):
+      digest.update(block)
+  return digest.hexdigest()
+
+
+def check_frozen_decoder(config: ml_collections.ConfigDict, workdir: str,
+                         decoder: Any) -> None:
+  """SlotFormer's frozen decoder copy must be the workdir's SAVi decoder."""
+  directory = workdir_lib.savi_dir(workdir_lib.stage1_workdir(config, workdir))
+  mesh = jax.sharding.Mesh(np.array(jax.devices()[:1]), ('data',))
+  try:
+    savi_params, _ = inference.load_savi_params(config, workdir, mesh)
+  except FileNotFoundError as error:
+    raise families.ConversionError(
+        f'no SAVi checkpoint in {directory}: convert the SAVi checkpoint the '
+        'SlotFormer was trained on first (or in the same command, e.g. '
+        'savi_obj3d_params/model_40.pth before slotformer_obj3d_params/...)'
+    ) from error
+  flat_savi = families._flatten(savi_params['decoder'])  # pylint: disable=protected-access
+  flat_copy = families._flatten(decoder)  # pylint: disable=protected-access
+  worst = max(float(np.max(np.abs(np.asarray(flat_savi[k]) - flat_copy[k])))
+              for k in flat_copy)
+  if worst > 0:
+    raise families.ConversionError(
+        f'the SlotFormer checkpoint\'s frozen decoder differs from the SAVi '
+        f'decoder in {directory} (max |diff| {worst:.3g}): it was trained '
+        'on another SAVi checkpoint')
+
+
+def convert_files(config: ml_collections.ConfigDict, workdir: str,
+                  paths: list[str], reader: str = 'auto') -> list[str]:
+  """Converts and writes every checkpoint in `paths`; returns directories."""
+  check_channel_order(config)
+  with workdir_lib.workdir_lock(workdir):
+    # Later pipeline commands on this workdir must use the same settings.
+    workdir_lib.accept_config(config, workdir)
+    return _convert_files(config, workdir, paths, reader)
+
+
+def _convert_files(config: ml_collections.ConfigDict, workdir: str,
+                   paths: list[str], reader: str) -> list[str]:
+  converted = []
+  for path in paths:
+    state_dict = pth_reader.read_state_dict(path, reader)
+    result = families.convert_state_dict(state_dict, config)
+    logger.info('%s: official %s, %d tensors', path, result.family,
+                len(state_dict))
+    converted.append((path, result))
+  converted.sort(key=lambda item: _ORDER.index(item[1].stage))
+  directories = []
+  for path, result in converted:
+    if 'decoder' in result.extras:
+      check_frozen_decoder(config, workdir, result.extras['decoder'])
+    provenance = {
+        'file': os.path.abspath(path), 'sha256': _sha256(path),
+        'family': result.family,
+        'converted_at': datetime.datetime.now(datetime.timezone.utc)
+                        .isoformat(timespec='seconds'),
+    }
+    directories.append(write_converted(config, workdir, result.stage,
+                                       result.params, provenance))
+    logger.info('wrote %s', directories[-1])
+  return directories
+
+
+def main(argv):
+  del argv
+  # This package's INFO lines only; orbax logs every save step through absl.
+  absl_logging.set_verbosity(absl_logging.ERROR)
+  handler = logging.StreamHandler()
+  handler.setFormatter(logging.Formatter(
+      '%(asctime)s %(levelname).1s %(name)s] %(message)s', '%H:%M:%S'))
+  package_logger = logging.getLogger('slotformer_jax')
+  package_logger.handlers[:] = [handler]
+  package_logger.setLevel(logging.INFO)
+  package_logger.propagate = False
+  config = _CONFIG.value
+  if config is None:
+    raise app.UsageError('--config is required, e.g. configs/obj3d.py')
+  try:
+    convert_files(config, _WORKDIR.value, _CHECKPOINTS.value, _READER.value)
+  except (families.ConversionError, FileExistsError,
+          NotImplementedError) as error:
+    # What to change is in the message; a traceback would only hide it.
+    sys.exit(f'convert_official: {error}')
+
+
+if __name__ == '__main__':
+  app.run(main)
