@@ -138,14 +138,15 @@ def main(argv):
 
 
 def _run(config, workdir: str, selected: tuple[str, ...]) -> None:
+  if workdir_lib.uses_foreign_stage1(config, workdir):
+    # Before any data is generated: the read-only stage 1 must fit.
+    workdir_lib.savi_identity(config, workdir)
+  # config.json only ever records settings that are used from here on.
   changes = workdir_lib.accept_config(
       config, workdir, allow_change=_ALLOW_CONFIG_CHANGE.value)
   if changes:
     logger.warning('accepted changed settings (--allow_config_change): %s',
                    '; '.join(changes))
-  if workdir_lib.uses_foreign_stage1(config, workdir):
-    # Before any data is generated: the read-only stage 1 must fit.
-    workdir_lib.savi_identity(config, workdir)
   mesh = sharding.make_mesh()
   logger.info('%d processes, %d devices (%s)', jax.process_count(),
                jax.device_count(), jax.devices()[0].platform)

@@ -16,6 +16,7 @@ import jax
 from jax.sharding import Sharding
 import orbax.checkpoint as ocp
 
+from slotformer_jax.errors import ConfigError
 from slotformer_jax.errors import MissingInputError
 from slotformer_jax.errors import UserError
 
@@ -100,7 +101,7 @@ class Checkpointer:
             _one_line(failures[0][1]), candidate)
       return restored, candidate
     newest, error = failures[0]
-    raise UserError(
+    raise ConfigError(
         f'no checkpoint in {self.directory} can be restored into the {what} '
         f'model built from the current config (tried steps '
         f'{[s for s, _ in failures]}; step {newest}: {_one_line(error)}). '
@@ -114,8 +115,8 @@ class Checkpointer:
 
     Raises:
       FileNotFoundError: there is no checkpoint.
-      UserError: no checkpoint fits `abstract_state` (another model
-        configuration, or every checkpoint damaged).
+      ConfigError (a ValueError): no checkpoint fits `abstract_state`
+        (another model configuration, or every checkpoint damaged).
     """
     restored, _ = self._restore_newest_intact(
         lambda s: self._manager.restore(
