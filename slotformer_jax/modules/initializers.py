@@ -15,6 +15,8 @@ flax's (lecun-normal kernels, zero biases, orthogonal recurrent kernels):
                     biases 0; the output kernel as a Linear, its bias 0;
   LayerNorm         scale 1, bias 0 (as flax).
 Learned initial slots keep their N(0, 1) draw (also the official one).
+Every other kernel is re-drawn, including zero-initialised ones of
+non-official variants (SlotFormer's `residual` refinement).
 
 `pytorch_default_init` rewrites a parameter tree by the module names used in
 slotformer_jax/modules: rules are chosen from the path of each parameter,

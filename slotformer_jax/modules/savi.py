@@ -304,7 +304,9 @@ class SAVi(nn.Module):
     else:
       noise = jax.random.normal(self.make_rng('sample'), shape)
       slots = self.slot_init_mean + jnp.exp(self.slot_init_log_sigma) * noise
-    return slots, initial_lstm_state(slots, self.predictor_lstm_size)
+    lstm_size = (self.predictor_lstm_size
+                 if self.predictor_kind == TRANSFORMER_LSTM else 0)
+    return slots, initial_lstm_state(slots, lstm_size)
 
   def encode(self, video: jax.Array, carry: SAViCarry | None = None, *,
              deterministic: bool = True):
