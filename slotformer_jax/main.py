@@ -24,13 +24,19 @@ from ml_collections import config_flags
 import tqdm
 
 from slotformer_jax import stages
+from slotformer_jax import tasks
 from slotformer_jax.data.sources import default_data_dir
 from slotformer_jax.evaluation import evaluate
 from slotformer_jax.evaluation import visualize
 from slotformer_jax.train import sharding
 
 MODES = ('all', 'train_savi', 'extract_slots', 'train_slotformer',
-         'train_slot_lstm', 'evaluate', 'render')
+         'train_slot_lstm', 'evaluate', 'render', 'train_readout',
+         'evaluate_readout', 'plan')
+# Downstream-task stages (slotformer_jax/tasks/), run by `all` instead of
+# the video-prediction evaluation when the config names a task.
+TASK_MODES = {'contact': ('train_readout', 'evaluate_readout'),
+              'planning': ('train_readout', 'plan')}
 
 _CONFIG = config_flags.DEFINE_config_file(
     'config', None, 'Config file, e.g. configs/obj3d.py or '
@@ -101,7 +107,9 @@ def main(argv):
   logger.info('%d processes, %d devices (%s)', jax.process_count(),
                jax.device_count(), jax.devices()[0].platform)
 
+  task = config.get('task')
   run = {
+      **tasks.stages_for(task),
       'train_savi': stages.train_savi,
       'extract_slots': stages.extract_slots,
       'train_slotformer': stages.train_slotformer,
@@ -114,6 +122,17 @@ def main(argv):
     # The Slot-LSTM baseline only when the config asks for it.
     selected = tuple(m for m in MODES[1:]
                      if m != 'train_slot_lstm' or config.slot_lstm.train)
+    if task:
+      selected = ('train_savi', 'extract_slots', 'train_slotformer',
+                  *TASK_MODES[task])
+    else:
+      selected = tuple(m for m in selected if m not in TASK_MODES['contact']
+                       + TASK_MODES['planning'])
+  elif mode not in run:
+    raise app.UsageError(
+        f'--mode={mode} needs a task config (config.task = '
+        f"{sorted(TASK_MODES)}), e.g. configs/synthetic_contact.py or "
+        'configs/synthetic_phyre.py')
   else:
     selected = (mode,)
   for stage in selected:

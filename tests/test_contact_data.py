@@ -77,3 +77,17 @@ def test_generator_is_deterministic_and_labels_as_designed():
 def test_bad_config():
   with pytest.raises(ValueError, match='observed_frames'):
     contact.ContactConfig(num_frames=8, observed_frames=8)
+
+
+def test_written_dataset_reads_back(tmp_path):
+  from slotformer_jax.data import sources  # pylint: disable=g-import-not-at-top
+  config = dataclasses.replace(TINY, num_train=1, num_readout_train=2,
+                               num_readout_val=0, num_readout_test=0)
+  path = contact.build_contact_dataset(config, tmp_path)
+  source = sources.TfdsVideoSource(path, 'readout_train')
+  assert len(source) == 2
+  item = source[1]
+  expected = contact.generate_video(config, 'readout_train', 1)
+  for key, value in expected.items():
+    np.testing.assert_array_equal(item[key], value, err_msg=key)
+  assert contact.build_contact_dataset(config, tmp_path) == path

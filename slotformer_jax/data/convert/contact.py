@@ -30,10 +30,10 @@ simulated again with rendering, which bullet reproduces step for step.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
 import json
 import os
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -42,6 +42,7 @@ import pybullet
 import tensorflow_datasets as tfds
 
 from slotformer_jax.data import synthetic
+from slotformer_jax.data.convert import embedded
 
 GENERATOR_VERSION = 1
 
@@ -360,93 +361,43 @@ def generate_video(config: ContactConfig, split: str, index: int
 # ----------------------------------------------------------------------------
 
 
-@dataclasses.dataclass(eq=False)
-class ContactBuilderConfig(tfds.core.BuilderConfig):
-  generation: ContactConfig = dataclasses.field(default_factory=ContactConfig)
-
-
-class SyntheticContact(tfds.core.GeneratorBasedBuilder,
-                       skip_registration=True):
-  """Writes the four OCP splits as ``array_record``; record i = video i."""
-
-  name = 'synthetic_contact'
-  VERSION = tfds.core.Version('1.0.0')
-  RELEASE_NOTES = {'1.0.0': 'Initial release.'}
-
-  def __init__(self, *, generation: ContactConfig, **kwargs: Any):
-    super().__init__(
-        config=ContactBuilderConfig(
-            name=generation.slug, generation=generation,
-            description=json.dumps(dataclasses.asdict(generation))),
-        file_format='array_record', **kwargs)
-
-  @tfds.core.utils.classproperty
-  @classmethod
-  def code_path(cls) -> None:
-    return None  # nothing to download; see SyntheticObj3d.code_path
-
-  @property
-  def generation(self) -> ContactConfig:
-    return self.builder_config.generation
-
-  def _info(self) -> tfds.core.DatasetInfo:
-    g = self.generation
-    h, w = g.resolution
-    t, o = g.num_frames, g.max_objects_total
-    encoding = synthetic.SyntheticObj3d.TENSOR_ENCODING
-
-    def tensor(shape: tuple[int, ...], dtype: Any) -> tfds.features.Tensor:
-      return tfds.features.Tensor(shape=shape, dtype=dtype, encoding=encoding)
-
-    scalar = tfds.features.Scalar
-    return self.dataset_info_from_configs(
-        description='Physion-style contact prediction videos (pybullet).',
-        features=tfds.features.FeaturesDict({
-            'video': tensor((t, h, w, 3), np.uint8),
-            'segmentations': tensor((t, h, w), np.uint8),
-            'boxes': tensor((t, o, 4), np.float32),
-            'visible': tensor((t, o), np.bool_),
-            'positions': tensor((t, o, 3), np.float32),
-            'velocities': tensor((t, o, 3), np.float32),
-            'contact': scalar(np.bool_),
-            'contact_frame': scalar(np.int32),
-            'num_objects': scalar(np.int32),
-            'agent_index': scalar(np.int32),
-            'patient_index': scalar(np.int32),
-            'shapes': tensor((o,), np.int32),
-            'colors': tensor((o,), np.int32),
-            'sizes': tensor((o,), np.int32),
-            'index': scalar(np.int32),
-        }),
-        disable_shuffling=True)
-
-  def _split_generators(self, dl_manager: Any) -> dict[str, Iterator[Any]]:
-    del dl_manager
-    return {split: self._generate_examples(split) for split in SPLITS
-            if self.generation.num_videos(split) > 0}
-
-  def _generate_examples(self, split: str
-                         ) -> Iterator[tuple[int, dict[str, np.ndarray]]]:
-    # Serial: a 32x32 video takes ~0.1 s, so a worker pool buys little.
-    for index in range(self.generation.num_videos(split)):
-      yield index, generate_video(self.generation, split, index)
-
-
-def dataset_dir(config: ContactConfig, data_dir: str | os.PathLike[str]
-                ) -> Path:
-  return (Path(data_dir) / SyntheticContact.name / config.slug /
-          str(SyntheticContact.VERSION))
+def family(config: ContactConfig) -> embedded.Family:
+  """The four splits of ``config`` as an embedded TFDS family."""
+  h, w = config.resolution
+  t, o = config.num_frames, config.max_objects_total
+  tensor, scalar = embedded.tensor, tfds.features.Scalar
+  return embedded.Family(
+      name='synthetic_contact', slug=config.slug,
+      description=json.dumps(dataclasses.asdict(config)),
+      features={
+          'video': tensor((t, h, w, 3), np.uint8),
+          'segmentations': tensor((t, h, w), np.uint8),
+          'boxes': tensor((t, o, 4), np.float32),
+          'visible': tensor((t, o), np.bool_),
+          'positions': tensor((t, o, 3), np.float32),
+          'velocities': tensor((t, o, 3), np.float32),
+          'contact': scalar(np.bool_),
+          'contact_frame': scalar(np.int32),
+          'num_objects': scalar(np.int32),
+          'agent_index': scalar(np.int32),
+          'patient_index': scalar(np.int32),
+          'shapes': tensor((o,), np.int32),
+          'colors': tensor((o,), np.int32),
+          'sizes': tensor((o,), np.int32),
+          'index': scalar(np.int32),
+      },
+      split_sizes={split: config.num_videos(split) for split in SPLITS},
+      make=functools.partial(generate_video, config))
 
 
 def build_contact_dataset(config: ContactConfig,
                           data_dir: str | os.PathLike[str]) -> Path:
   """Generates the dataset under ``data_dir`` unless it is there already."""
-  path = dataset_dir(config, data_dir)
-  if (path / 'dataset_info.json').is_file():
-    return path
-  builder = SyntheticContact(generation=config, data_dir=os.fspath(data_dir))
-  builder.download_and_prepare(
-      download_config=tfds.download.DownloadConfig(try_download_gcs=False))
-  if Path(builder.data_dir) != path:
-    raise RuntimeError(f'tfds wrote to {builder.data_dir}, expected {path}')
-  return path
+  return embedded.build(family(config), data_dir)
+
+
+def config_from_data_config(data_config: Any) -> ContactConfig:
+  """The generation parameters named in a run's ``config.data``."""
+  fields = {f.name for f in dataclasses.fields(ContactConfig)}
+  return ContactConfig(**{key: data_config[key] for key in fields
+                          if key in data_config})

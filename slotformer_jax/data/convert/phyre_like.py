@@ -29,12 +29,20 @@ World: W x H = 10 x 10 m, y up, gravity 9.8 m/s^2; frames are rendered at
 from __future__ import annotations
 
 import dataclasses
+import functools
+import hashlib
+import json
+import os
 from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pymunk
+import tensorflow_datasets as tfds
 
 from slotformer_jax.data import synthetic
+from slotformer_jax.data.convert import embedded
 
 GENERATOR_VERSION = 1
 
@@ -426,3 +434,105 @@ def render_video(task: Task, action: Sequence[float] | None,
                         for poses in result['states']))
   return {'video': np.stack(frames), 'segmentations': np.stack(masks),
           'outcome': np.array(result['outcome'], np.int8)}
+
+
+# ----------------------------------------------------------------------------
+# Cached labels and the training videos (TFDS)
+# ----------------------------------------------------------------------------
+
+
+def slug(config: PhyreLikeConfig) -> str:
+  """A folder name unique to the generation parameters (+ code version)."""
+  payload = json.dumps({**dataclasses.asdict(config),
+                        'generator_version': GENERATOR_VERSION},
+                       sort_keys=True)
+  digest = hashlib.sha256(payload.encode()).hexdigest()[:8]
+  h, w = config.resolution
+  return (f'r{h}x{w}_f{config.fps}_t{config.sim_seconds:g}'
+          f'_k{config.success_seconds:g}_{len(config.templates)}x'
+          f'{config.tasks_per_template}_c{config.num_candidates}'
+          f'_fold{config.fold}_s{config.seed}_{digest}')
+
+
+def task_labels(config: PhyreLikeConfig, data_dir: str | os.PathLike[str]
+                ) -> dict[tuple[str, int], np.ndarray]:
+  """{(template, index): int8 [num_candidates]} for every task, cached.
+
+  Simulating every candidate of every task takes ~1 s per task; the result
+  is stored in ``<data_dir>/synthetic_phyre/<slug>/labels.npz``.
+  """
+  path = Path(data_dir) / 'synthetic_phyre' / slug(config) / 'labels.npz'
+  keys = [(t.template, t.index) for t in all_tasks(config)]
+  if path.is_file():
+    with np.load(path) as stored:
+      return {key: stored[f'{key[0]}_{key[1]}'] for key in keys}
+  actions = candidate_actions(config)
+  labels = {(t.template, t.index): label_candidates(t, actions, config)
+            for t in all_tasks(config)}
+  path.parent.mkdir(parents=True, exist_ok=True)
+  partial = path.with_suffix('.tmp.npz')
+  np.savez(partial, **{f'{k[0]}_{k[1]}': v for k, v in labels.items()})
+  os.replace(partial, path)
+  return labels
+
+
+def training_video(config: PhyreLikeConfig,
+                   labels: dict[tuple[str, int], np.ndarray],
+                   positive_ratio: float, split: str, index: int
+                   ) -> dict[str, np.ndarray]:
+  """Video ``index``: a valid candidate on a training task, solving with
+  probability ``positive_ratio`` when the task has a solution (the official
+  SlotFormer PHYRE data mixes positives in the same way)."""
+  train = split_tasks(config)['train']
+  task = train[index % len(train)]
+  rng = np.random.default_rng([config.seed, 17, ('train', 'val').index(split),
+                               index])
+  task_labels_ = labels[(task.template, task.index)]
+  solved = np.flatnonzero(task_labels_ == SOLVED)
+  valid = np.flatnonzero(task_labels_ != INVALID)
+  pool = solved if solved.size and rng.random() < positive_ratio else valid
+  candidate = int(rng.choice(pool))
+  out = render_video(task, candidate_actions(config)[candidate], config)
+  out.update(index=np.array(index, np.int32),
+             task=np.array(config.templates.index(task.template) * 10_000
+                           + task.index, np.int32),
+             candidate=np.array(candidate, np.int32))
+  return out
+
+
+def video_family(config: PhyreLikeConfig, num_train: int, num_val: int,
+                 positive_ratio: float,
+                 labels: dict[tuple[str, int], np.ndarray]) -> embedded.Family:
+  """Training videos for SAVi / SlotFormer ('train', 'val' splits)."""
+  h, w = config.resolution
+  t = config.num_frames
+  return embedded.Family(
+      name='synthetic_phyre',
+      slug=f'{slug(config)}_v{num_train}-{num_val}_p{positive_ratio:g}',
+      description=json.dumps(dataclasses.asdict(config)),
+      features={
+          'video': embedded.tensor((t, h, w, 3), np.uint8),
+          'segmentations': embedded.tensor((t, h, w), np.uint8),
+          'outcome': tfds.features.Scalar(np.int8),
+          'index': tfds.features.Scalar(np.int32),
+          'task': tfds.features.Scalar(np.int32),
+          'candidate': tfds.features.Scalar(np.int32),
+      },
+      split_sizes={'train': num_train, 'val': num_val},
+      make=functools.partial(training_video, config, labels, positive_ratio))
+
+
+def config_from_data_config(data_config: Any) -> PhyreLikeConfig:
+  fields = {f.name for f in dataclasses.fields(PhyreLikeConfig)}
+  return PhyreLikeConfig(**{key: data_config[key] for key in fields
+                            if key in data_config})
+
+
+def build_video_dataset(data_config: Any, data_dir: str | os.PathLike[str]
+                        ) -> Path:
+  """The SAVi / SlotFormer training videos named by a run's config.data."""
+  config = config_from_data_config(data_config)
+  labels = task_labels(config, data_dir)
+  return embedded.build(
+      video_family(config, data_config.num_train, data_config.num_val,
+                   data_config.positive_ratio, labels), data_dir)

@@ -1,0 +1,242 @@
+"""Physion-style object contact prediction (OCP) with SlotFormer rollouts.
+
+Protocol (SlotFormer Section 4.3, with the selection fixed):
+
+1. SAVi and SlotFormer are trained on the dynamics split ('train'); slots of
+   every readout split are extracted (``--mode=extract_slots``).
+2. Every readout video is observed for its first ``observed_frames`` frames;
+   the readout then sees one of these slot sequences (``CONDITIONS``):
+   'observed' (the observed frames only), 'rollout' (+ SlotFormer's rollout
+   of the rest, from the last ``burn_in`` observed frames), 'copy_last'
+   (+ the last observed slots repeated), 'ground_truth' (+ SAVi's slots of
+   the real future frames: the ceiling).
+3. ``train_readout``: per condition and seed, the Physion readout is fitted
+   on 'readout_train'; the epoch and the threshold are chosen on
+   'readout_val' (the official script picks both on test).
+4. ``evaluate_readout``: accuracy on 'readout_test' at the chosen threshold,
+   mean +- std over seeds, next to chance (the majority class).
+
+Workdir: ``readout/<condition>/seed_<s>/{params.msgpack, selection.json}``,
+``readout/results.json``, ``readout/results.md``.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import logging
+import os
+from typing import Any
+
+from flax import serialization
+import jax
+from jax.sharding import Mesh
+import ml_collections
+import numpy as np
+
+from slotformer_jax import models
+from slotformer_jax import stages
+from slotformer_jax.data.slots import SlotSource
+from slotformer_jax.data.sources import get_video_source
+from slotformer_jax.modules import readouts
+from slotformer_jax.tasks import readout as readout_lib
+from slotformer_jax.train import steps
+
+logger = logging.getLogger(__name__)
+
+OBSERVED, ROLLOUT, COPY_LAST, GROUND_TRUTH = (
+    'observed', 'rollout', 'copy_last', 'ground_truth')
+CONDITIONS = (OBSERVED, ROLLOUT, COPY_LAST, GROUND_TRUTH)
+TRAIN_SPLIT, VAL_SPLIT, TEST_SPLIT = 'readout_train', 'readout_val', 'readout_test'
+
+
+def readout_dir(workdir: str) -> str:
+  return os.path.join(workdir, 'readout')
+
+
+def build_readout(config: ml_collections.ConfigDict) -> readouts.PhysionReadout:
+  return readouts.PhysionReadout(
+      features=config.readout.features or config.savi.slot_size,
+      pairs=config.readout.pairs)
+
+
+def load_split(config: ml_collections.ConfigDict, workdir: str, split: str
+               ) -> tuple[np.ndarray, np.ndarray]:
+  """(slots float32 [V, T, N, D], labels float32 [V]) of a readout split."""
+  directory = stages.slots_dir(stages.stage1_workdir(config, workdir), split)
+  source = SlotSource(directory)  # names --mode=extract_slots when missing
+  slots = np.stack([source[i]['slots'] for i in range(len(source))])
+  videos = get_video_source(config.data, split)
+  field = config.readout.label_field
+  if field not in videos[0]:
+    raise KeyError(f'the {split} videos of {config.data.name!r} have no '
+                   f'{field!r} labels')
+  labels = np.array([videos[i][field] for i in range(len(videos))],
+                    np.float32)
+  return slots, labels
+
+
+def rollout_fn(config: ml_collections.ConfigDict, workdir: str, mesh: Mesh):
+  """observed slots [V, O, N, D], steps -> SlotFormer's rollout [V, K, N, D]."""
+  params, step = stages.load_slotformer_params(config, workdir, mesh)
+  logger.info('rollouts from SlotFormer step %d', step)
+  model = models.build_slotformer(config)
+  burn_in = config.slotformer.burn_in
+
+  def rollout(observed: np.ndarray, num_steps: int) -> np.ndarray:
+    if observed.shape[1] < burn_in:
+      raise ValueError(f'{observed.shape[1]} observed frames < SlotFormer '
+                       f'burn_in {burn_in}')
+    run = jax.jit(functools.partial(steps.rollout_slots, model=model,
+                                    num_steps=num_steps))
+    batch = config.readout.rollout_batch_size
+    return np.concatenate([
+        np.asarray(run(params, observed[i:i + batch, -burn_in:]))
+        for i in range(0, len(observed), batch)])
+  return rollout
+
+
+def condition_features(slots: np.ndarray, condition: str,
+                       observed_frames: int, rollout=None) -> np.ndarray:
+  """The slot sequence the readout sees, [V, T', N, D].
+
+  Args:
+    slots: SAVi's slots of the whole videos [V, T, N, D].
+    condition: one of CONDITIONS.
+    observed_frames: how many leading frames are observed.
+    rollout: (observed [V, O, N, D], steps) -> [V, steps, N, D]; needed for
+      'rollout'.
+  """
+  observed = slots[:, :observed_frames]
+  future = slots.shape[1] - observed_frames
+  if condition == OBSERVED:
+    return observed
+  if condition == GROUND_TRUTH:
+    return slots
+  if condition == COPY_LAST:
+    copied = np.repeat(observed[:, -1:], future, axis=1)
+    return np.concatenate([observed, copied], axis=1)
+  if condition == ROLLOUT:
+    if rollout is None:
+      raise ValueError('the rollout condition needs a rollout function')
+    return np.concatenate([observed, rollout(observed, future)], axis=1)
+  raise ValueError(f'unknown condition {condition!r}; one of {CONDITIONS}')
+
+
+def _features_by_condition(config, workdir, mesh, split, conditions):
+  slots, labels = load_split(config, workdir, split)
+  rollout = rollout_fn(config, workdir, mesh) if ROLLOUT in conditions else None
+  return {c: condition_features(slots, c, config.readout.observed_frames,
+                                rollout) for c in conditions}, labels
+
+
+def _fit_config(config: ml_collections.ConfigDict) -> readout_lib.FitConfig:
+  r = config.readout
+  return readout_lib.FitConfig(epochs=r.epochs, batch_size=r.batch_size,
+                               learning_rate=r.learning_rate,
+                               warmup_fraction=r.warmup_fraction)
+
+
+def _run_dir(workdir: str, condition: str, seed: int) -> str:
+  return os.path.join(readout_dir(workdir), condition, f'seed_{seed}')
+
+
+def train_readout(config: ml_collections.ConfigDict, workdir: str,
+                  mesh: Mesh) -> None:
+  """Fits the readout per condition and seed; selection on validation."""
+  conditions = tuple(config.readout.conditions)
+  train, train_labels = _features_by_condition(config, workdir, mesh,
+                                               TRAIN_SPLIT, conditions)
+  val, val_labels = _features_by_condition(config, workdir, mesh, VAL_SPLIT,
+                                           conditions)
+  model = build_readout(config)
+  for condition in conditions:
+    for seed in config.readout.seeds:
+      directory = _run_dir(workdir, condition, seed)
+      if os.path.exists(os.path.join(directory, 'selection.json')):
+        logger.info('readout %s seed %d already trained', condition, seed)
+        continue
+
+      def val_accuracy(params, condition=condition):
+        probs = readout_lib.predict(model, params, val[condition])
+        return readout_lib.best_threshold(probs, val_labels)[1]
+
+      params, log = readout_lib.fit(
+          model, (train[condition], train_labels), val_accuracy,
+          _fit_config(config), seed=seed)
+      probs = readout_lib.predict(model, params, val[condition])
+      threshold, accuracy = readout_lib.best_threshold(probs, val_labels)
+      os.makedirs(directory, exist_ok=True)
+      with open(os.path.join(directory, 'params.msgpack'), 'wb') as f:
+        f.write(serialization.msgpack_serialize(params))
+      with open(os.path.join(directory, 'selection.json'), 'w') as f:
+        json.dump({'threshold': threshold, 'val_accuracy': accuracy,
+                   'best_epoch': log['best_epoch'],
+                   'val_scores': log['scores'],
+                   'train_losses': log['losses']}, f, indent=1)
+      logger.info('readout %s seed %d: val accuracy %.3f (epoch %d, '
+                  'threshold %.1f)', condition, seed, accuracy,
+                  log['best_epoch'], threshold)
+
+
+def evaluate_readout(config: ml_collections.ConfigDict, workdir: str,
+                     mesh: Mesh) -> dict[str, Any]:
+  """Test accuracy at the validation-chosen checkpoint and threshold."""
+  conditions = tuple(config.readout.conditions)
+  test, labels = _features_by_condition(config, workdir, mesh, TEST_SPLIT,
+                                        conditions)
+  model = build_readout(config)
+  results: dict[str, Any] = {}
+  for condition in conditions:
+    accuracies, val_accuracies = [], []
+    for seed in config.readout.seeds:
+      directory = _run_dir(workdir, condition, seed)
+      selection_path = os.path.join(directory, 'selection.json')
+      if not os.path.exists(selection_path):
+        raise FileNotFoundError(
+            f'no trained readout in {directory}; run --mode=train_readout')
+      with open(selection_path) as f:
+        selection = json.load(f)
+      with open(os.path.join(directory, 'params.msgpack'), 'rb') as f:
+        params = serialization.msgpack_restore(f.read())
+      probs = readout_lib.predict(model, params, test[condition])
+      accuracies.append(readout_lib.accuracy_at(probs, labels,
+                                                selection['threshold']))
+      val_accuracies.append(selection['val_accuracy'])
+    results[condition] = {
+        'test_accuracy': accuracies,
+        'mean': float(np.mean(accuracies)), 'std': float(np.std(accuracies)),
+        'val_accuracy_mean': float(np.mean(val_accuracies))}
+  positive = float(labels.mean())
+  results['chance'] = {'mean': max(positive, 1.0 - positive), 'std': 0.0}
+  results['num_test_videos'] = len(labels)
+  os.makedirs(readout_dir(workdir), exist_ok=True)
+  with open(os.path.join(readout_dir(workdir), 'results.json'), 'w') as f:
+    json.dump(results, f, indent=1)
+  table = format_table(results, conditions)
+  with open(os.path.join(readout_dir(workdir), 'results.md'), 'w') as f:
+    f.write(table + '\n')
+  logger.info('contact prediction, test accuracy (%d seeds):\n%s',
+              len(config.readout.seeds), table)
+  return results
+
+
+_ROW_NAMES = {
+    OBSERVED: 'observed slots only',
+    ROLLOUT: 'observed + SlotFormer rollout',
+    COPY_LAST: 'observed + copy-last',
+    GROUND_TRUTH: 'observed + ground-truth future slots (ceiling)',
+    'chance': 'chance (majority class)',
+}
+
+
+def format_table(results: dict[str, Any], conditions: tuple[str, ...]) -> str:
+  lines = ['| readout input | test accuracy (%) | val accuracy (%) |',
+           '|---|---|---|']
+  for name in conditions + ('chance',):
+    row = results[name]
+    val = row.get('val_accuracy_mean')
+    lines.append(f'| {_ROW_NAMES[name]} | {100 * row["mean"]:.1f} +- '
+                 f'{100 * row["std"]:.1f} | '
+                 f'{"" if val is None else f"{100 * val:.1f}"} |')
+  return '\n'.join(lines)
