@@ -93,6 +93,7 @@ def get_config(variant: str = ''):
   r.learning_rate = 1e-3
   r.warmup_fraction = 0.0
   r.rollout_batch_size = 100
+  r.num_pictures = 4          # readout/test_<i>.png strips
 
   if variant == 'tiny':
     data.num_train, data.num_readout_train = 16, 16

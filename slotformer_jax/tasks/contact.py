@@ -31,8 +31,11 @@ from typing import Any
 from flax import serialization
 import jax
 from jax.sharding import Mesh
+import jax.numpy as jnp
 import ml_collections
 import numpy as np
+from PIL import Image
+from PIL import ImageDraw
 
 from slotformer_jax import models
 from slotformer_jax import stages
@@ -187,6 +190,7 @@ def evaluate_readout(config: ml_collections.ConfigDict, workdir: str,
                                         conditions)
   model = build_readout(config)
   results: dict[str, Any] = {}
+  first_seed_probs = {}
   for condition in conditions:
     accuracies, val_accuracies = [], []
     for seed in config.readout.seeds:
@@ -200,6 +204,7 @@ def evaluate_readout(config: ml_collections.ConfigDict, workdir: str,
       with open(os.path.join(directory, 'params.msgpack'), 'rb') as f:
         params = serialization.msgpack_restore(f.read())
       probs = readout_lib.predict(model, params, test[condition])
+      first_seed_probs.setdefault(condition, probs)
       accuracies.append(readout_lib.accuracy_at(probs, labels,
                                                 selection['threshold']))
       val_accuracies.append(selection['val_accuracy'])
@@ -218,7 +223,52 @@ def evaluate_readout(config: ml_collections.ConfigDict, workdir: str,
     f.write(table + '\n')
   logger.info('contact prediction, test accuracy (%d seeds):\n%s',
               len(config.readout.seeds), table)
+  if ROLLOUT in conditions and config.readout.get('num_pictures', 0):
+    write_pictures(config, workdir, mesh, test[ROLLOUT],
+                   first_seed_probs[ROLLOUT], labels)
   return results
+
+
+def write_pictures(config: ml_collections.ConfigDict, workdir: str,
+                   mesh: Mesh, rollout_slots: np.ndarray,
+                   probabilities: np.ndarray, labels: np.ndarray) -> None:
+  """readout/test_<i>.png: real frames over SAVi's decoding of [observed,
+  SlotFormer rollout] slots (green border: observed, red: rolled out), with
+  the readout's contact probability (first seed) and the truth."""
+  savi_params, _ = stages.load_savi_params(config, workdir, mesh)
+  decoder = models.build_decoder(config)
+  decode = jax.jit(lambda slots: steps.decode_slots(
+      savi_params['decoder'], slots, decoder=decoder).recon)
+  videos = get_video_source(config.data, TEST_SPLIT)
+  observed = config.readout.observed_frames
+  scale, every = 3, 2
+  for i in range(min(config.readout.num_pictures, len(labels))):
+    video = videos[i]
+    truth = video['video']
+    predicted = np.asarray(decode(jnp.asarray(rollout_slots[i])))
+    predicted = (np.clip(predicted, 0, 1) * 255 + 0.5).astype(np.uint8)
+    rows = []
+    for frames in (truth, predicted):
+      tiles = []
+      for t in range(0, len(frames), every):
+        tile = np.repeat(np.repeat(frames[t], scale, 0), scale, 1)
+        colour = (40, 160, 40) if t < observed else (200, 40, 40)
+        framed = np.empty((tile.shape[0] + 4, tile.shape[1] + 4, 3),
+                          np.uint8)
+        framed[:] = colour
+        framed[2:-2, 2:-2] = tile
+        tiles.append(framed)
+      rows.append(np.concatenate(tiles, axis=1))
+    grid = np.concatenate(rows, axis=0)
+    canvas = Image.new('RGB', (grid.shape[1], grid.shape[0] + 16),
+                       (255, 255, 255))
+    canvas.paste(Image.fromarray(grid), (0, 16))
+    onset = int(video.get('contact_frame', -1))
+    ImageDraw.Draw(canvas).text(
+        (3, 2), f'test video {i}: p(contact | observed + rollout) = '
+        f'{probabilities[i]:.2f}; truth: {"contact" if labels[i] else "none"}'
+        + (f' (onset frame {onset})' if onset >= 0 else ''), fill=(0, 0, 0))
+    canvas.save(os.path.join(readout_dir(workdir), f'test_{i}.png'))
 
 
 _ROW_NAMES = {
