@@ -82,6 +82,9 @@ def get_config(variant: str = ''):
   config.readout = r = ml_collections.ConfigDict()
   r.observed_frames = data.observed_frames
   r.label_field = 'contact'
+  r.splits = ml_collections.ConfigDict(dict(
+      train='readout_train', val='readout_val', test='readout_test'))
+  r.video_len = 0            # 0: every frame of the video
   r.conditions = ('observed', 'rollout', 'copy_last', 'ground_truth')
   r.seeds = (0, 1, 2)
   r.features = 64            # None: the slot size (official)

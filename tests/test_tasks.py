@@ -70,3 +70,36 @@ def test_first_frames_draw_the_action_ball():
   # Without the ball it is the task's first frame of a real rollout.
   video = phyre_like.render_video(task, action[0], config)
   np.testing.assert_array_equal(video['video'][0], frame)
+
+
+@pytest.mark.parametrize('stride', [1, 3])
+def test_interleaved_rollout_restores_frame_order(stride):
+  # Slots hold their frame index; the fake model continues its context's
+  # spacing, so a correct interleaving returns the future frame indices.
+  num_observed, num_steps, burn_in = 12, 7, 3
+  frames = np.arange(num_observed, dtype=np.float32)
+  observed = np.broadcast_to(frames[None, :, None, None], (2, num_observed,
+                                                           1, 1)).copy()
+
+  def predict(context, steps):
+    assert context.shape[1] == burn_in
+    spacing = context[:, -1] - context[:, -2]
+    assert np.all(spacing == stride)
+    k = np.arange(1, steps + 1, dtype=np.float32)[None, :, None, None]
+    return context[:, -1:] + k * spacing[:, None]
+
+  out = contact.interleaved_rollout(observed, num_steps, burn_in, stride,
+                                    predict)
+  np.testing.assert_array_equal(out[0, :, 0, 0],
+                                np.arange(num_observed,
+                                          num_observed + num_steps))
+  with pytest.raises(ValueError, match='observed frames'):
+    contact.interleaved_rollout(observed[:, :2], 3, burn_in, stride, predict)
+
+
+def test_physion_contact_config_names_real_splits():
+  from configs import physion_contact  # pylint: disable=g-import-not-at-top
+  config = physion_contact.get_config()
+  assert contact.readout_splits(config) == ('readout_train', 'readout_val',
+                                            'test')
+  assert set(contact.readout_splits(config)) <= set(config.extraction.splits)

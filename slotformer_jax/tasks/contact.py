@@ -50,7 +50,12 @@ logger = logging.getLogger(__name__)
 OBSERVED, ROLLOUT, COPY_LAST, GROUND_TRUTH = (
     'observed', 'rollout', 'copy_last', 'ground_truth')
 CONDITIONS = (OBSERVED, ROLLOUT, COPY_LAST, GROUND_TRUTH)
-TRAIN_SPLIT, VAL_SPLIT, TEST_SPLIT = 'readout_train', 'readout_val', 'readout_test'
+
+def readout_splits(config: ml_collections.ConfigDict) -> tuple[str, str, str]:
+  """(train, val, test) data splits of the readout (Physion's converter
+  writes the Testing videos as 'test', the embedded family 'readout_test')."""
+  splits = config.readout.splits
+  return splits.train, splits.val, splits.test
 
 
 def readout_dir(workdir: str) -> str:
@@ -65,10 +70,17 @@ def build_readout(config: ml_collections.ConfigDict) -> readouts.PhysionReadout:
 
 def load_split(config: ml_collections.ConfigDict, workdir: str, split: str
                ) -> tuple[np.ndarray, np.ndarray]:
-  """(slots float32 [V, T, N, D], labels float32 [V]) of a readout split."""
+  """(slots float32 [V, T, N, D], labels float32 [V]) of a readout split.
+
+  T is cut to ``readout.video_len`` when set (the official Physion readout
+  reads the first 75 frames). Videos whose label is negative (unlabelled)
+  are an error.
+  """
   directory = stages.slots_dir(stages.stage1_workdir(config, workdir), split)
   source = SlotSource(directory)  # names --mode=extract_slots when missing
-  slots = np.stack([source[i]['slots'] for i in range(len(source))])
+  video_len = config.readout.get('video_len') or None
+  slots = np.stack([source[i]['slots'][:video_len]
+                    for i in range(len(source))])
   videos = get_video_source(config.data, split)
   field = config.readout.label_field
   if field not in videos[0]:
@@ -76,26 +88,63 @@ def load_split(config: ml_collections.ConfigDict, workdir: str, split: str
                    f'{field!r} labels')
   labels = np.array([videos[i][field] for i in range(len(videos))],
                     np.float32)
+  if (labels < 0).any():
+    raise ValueError(f'{int((labels < 0).sum())} videos of {split} have no '
+                     f'{field!r} label; the readout splits must be labelled')
   return slots, labels
 
 
+def interleaved_rollout(observed: np.ndarray, num_steps: int, burn_in: int,
+                        frame_stride: int, predict) -> np.ndarray:
+  """Full-frame-rate future slots from a model trained on every
+  ``frame_stride``-th frame (the official Physion rollout script).
+
+  Offset ``o`` rolls out frames ``o, o + stride, ...`` after the observed
+  ones from the ``burn_in`` observed frames spaced ``stride`` apart that end
+  just before them; the offsets are interleaved back into frame order.
+
+  Args:
+    observed: [V, O, N, D] observed slots at the full frame rate.
+    num_steps: future frames wanted (full rate).
+    burn_in: the model's context length (in its own, strided frames).
+    frame_stride: the model's temporal subsampling.
+    predict: (context [V, burn_in, N, D], steps) -> [V, steps, N, D].
+
+  Returns:
+    [V, num_steps, N, D].
+  """
+  num_observed = observed.shape[1]
+  if num_observed < burn_in * frame_stride:
+    raise ValueError(f'{num_observed} observed frames < burn_in {burn_in} x '
+                     f'frame_stride {frame_stride}')
+  per_offset = []
+  for offset in range(frame_stride):
+    start = num_observed - burn_in * frame_stride + offset
+    context = observed[:, start::frame_stride][:, :burn_in]
+    steps_needed = len(range(offset, num_steps, frame_stride))
+    per_offset.append(predict(context, steps_needed) if steps_needed else None)
+  return np.stack([per_offset[i % frame_stride][:, i // frame_stride]
+                   for i in range(num_steps)], axis=1)
+
+
 def rollout_fn(config: ml_collections.ConfigDict, workdir: str, mesh: Mesh):
-  """observed slots [V, O, N, D], steps -> SlotFormer's rollout [V, K, N, D]."""
+  """observed slots [V, O, N, D], steps -> SlotFormer's rollout [V, K, N, D]
+  at the slots' frame rate (interleaved when SlotFormer was trained on
+  every ``slotformer.frame_stride``-th frame)."""
   params, step = stages.load_slotformer_params(config, workdir, mesh)
   logger.info('rollouts from SlotFormer step %d', step)
   model = models.build_slotformer(config)
-  burn_in = config.slotformer.burn_in
+  batch = config.readout.rollout_batch_size
 
-  def rollout(observed: np.ndarray, num_steps: int) -> np.ndarray:
-    if observed.shape[1] < burn_in:
-      raise ValueError(f'{observed.shape[1]} observed frames < SlotFormer '
-                       f'burn_in {burn_in}')
+  def predict(context: np.ndarray, num_steps: int) -> np.ndarray:
     run = jax.jit(functools.partial(steps.rollout_slots, model=model,
                                     num_steps=num_steps))
-    batch = config.readout.rollout_batch_size
-    return np.concatenate([
-        np.asarray(run(params, observed[i:i + batch, -burn_in:]))
-        for i in range(0, len(observed), batch)])
+    return np.concatenate([np.asarray(run(params, context[i:i + batch]))
+                           for i in range(0, len(context), batch)])
+
+  def rollout(observed: np.ndarray, num_steps: int) -> np.ndarray:
+    return interleaved_rollout(observed, num_steps, config.slotformer.burn_in,
+                               config.slotformer.frame_stride, predict)
   return rollout
 
 
@@ -148,9 +197,10 @@ def train_readout(config: ml_collections.ConfigDict, workdir: str,
                   mesh: Mesh) -> None:
   """Fits the readout per condition and seed; selection on validation."""
   conditions = tuple(config.readout.conditions)
+  train_split, val_split, _ = readout_splits(config)
   train, train_labels = _features_by_condition(config, workdir, mesh,
-                                               TRAIN_SPLIT, conditions)
-  val, val_labels = _features_by_condition(config, workdir, mesh, VAL_SPLIT,
+                                               train_split, conditions)
+  val, val_labels = _features_by_condition(config, workdir, mesh, val_split,
                                            conditions)
   model = build_readout(config)
   for condition in conditions:
@@ -186,7 +236,8 @@ def evaluate_readout(config: ml_collections.ConfigDict, workdir: str,
                      mesh: Mesh) -> dict[str, Any]:
   """Test accuracy at the validation-chosen checkpoint and threshold."""
   conditions = tuple(config.readout.conditions)
-  test, labels = _features_by_condition(config, workdir, mesh, TEST_SPLIT,
+  test_split = readout_splits(config)[2]
+  test, labels = _features_by_condition(config, workdir, mesh, test_split,
                                         conditions)
   model = build_readout(config)
   results: dict[str, Any] = {}
@@ -239,12 +290,12 @@ def write_pictures(config: ml_collections.ConfigDict, workdir: str,
   decoder = models.build_decoder(config)
   decode = jax.jit(lambda slots: steps.decode_slots(
       savi_params['decoder'], slots, decoder=decoder).recon)
-  videos = get_video_source(config.data, TEST_SPLIT)
+  videos = get_video_source(config.data, readout_splits(config)[2])
   observed = config.readout.observed_frames
   scale, every = 3, 2
   for i in range(min(config.readout.num_pictures, len(labels))):
     video = videos[i]
-    truth = video['video']
+    truth = video['video'][:len(rollout_slots[i])]
     predicted = np.asarray(decode(jnp.asarray(rollout_slots[i])))
     predicted = (np.clip(predicted, 0, 1) * 255 + 0.5).astype(np.uint8)
     rows = []
