@@ -98,6 +98,7 @@ def get_config(variant: str = ''):
   r.learning_rate = 1e-3
   r.warmup_fraction = 0.1        # official
   r.encode_batch_size = 64
+  r.num_pictures = 3          # planning/test_task_<k>.png
 
   if variant == 'tiny':
     data.tasks_per_template = 5

@@ -42,6 +42,8 @@ from jax.sharding import Mesh
 import jax.numpy as jnp
 import ml_collections
 import numpy as np
+from PIL import Image
+from PIL import ImageDraw
 
 from slotformer_jax import models
 from slotformer_jax import stages
@@ -237,6 +239,7 @@ def plan(config: ml_collections.ConfigDict, workdir: str,
   results['random'] = [planning.plan_auccess(
       planning.random_scores(test_outcomes, seed), test_outcomes)
                        for seed in seeds]
+  first_seed_scores = {}
   for condition in config.readout.conditions:
     model = build_classifier(config, condition)
     values = []
@@ -248,9 +251,9 @@ def plan(config: ml_collections.ConfigDict, workdir: str,
             f'no trained classifier in {directory}; run --mode=train_readout')
       with open(path, 'rb') as f:
         params = serialization.msgpack_restore(f.read())
-      values.append(planning.plan_auccess(
-          _scores(model, params, test, generation.num_candidates),
-          test_outcomes))
+      scores = _scores(model, params, test, generation.num_candidates)
+      first_seed_scores.setdefault(condition, scores)
+      values.append(planning.plan_auccess(scores, test_outcomes))
     results[condition] = values
   results['oracle'] = [planning.plan_auccess(
       planning.oracle_scores(test_outcomes), test_outcomes)]
@@ -269,7 +272,42 @@ def plan(config: ml_collections.ConfigDict, workdir: str,
     f.write(table + '\n')
   logger.info('planning, AUCCESS x 100 on %d test tasks:\n%s',
               len(test_outcomes), table)
+  condition = ROLLOUT if ROLLOUT in first_seed_scores else FIRST_FRAME
+  for k in range(min(config.readout.get('num_pictures', 0),
+                     len(test_outcomes))):
+    write_ranking_picture(
+        os.path.join(planning_dir(workdir), f'test_task_{k}.png'),
+        task_splits(config)['test'][k], first_seed_scores[condition][k],
+        test_outcomes[k], generation)
   return summary
+
+
+def write_ranking_picture(path: str, task: phyre_like.Task,
+                          scores: np.ndarray, outcomes: np.ndarray,
+                          generation: phyre_like.PhyreLikeConfig,
+                          top: int = 5) -> None:
+  """The ``top`` best-scored valid candidates of a task, one row each: the
+  simulated rollout (every other frame) with its score and outcome."""
+  actions = phyre_like.candidate_actions(generation)
+  order = [i for i in planning.rank_actions(scores)
+           if outcomes[i] != planning.INVALID][:top]
+  scale, label_h = 2, 12
+  rows = []
+  for rank, index in enumerate(order, start=1):
+    video = phyre_like.render_video(task, actions[index], generation)['video']
+    strip = np.concatenate([np.pad(
+        np.repeat(np.repeat(frame, scale, 0), scale, 1),
+        ((1, 1), (1, 1), (0, 0))) for frame in video[::2]], axis=1)
+    canvas = Image.new('RGB', (strip.shape[1], strip.shape[0] + label_h),
+                       (255, 255, 255))
+    canvas.paste(Image.fromarray(strip), (0, label_h))
+    outcome = 'SOLVED' if outcomes[index] == planning.SOLVED else 'not solved'
+    ImageDraw.Draw(canvas).text(
+        (2, 0), f'{task.template}:{task.index} rank {rank}: candidate '
+        f'{index}, p(success) = {scores[index]:.2f}, {outcome}',
+        fill=(0, 0, 0))
+    rows.append(np.asarray(canvas))
+  Image.fromarray(np.concatenate(rows, axis=0)).save(path)
 
 
 _ROW_NAMES = {
