@@ -7,6 +7,7 @@ K=10, D_e=256, 8 layers, no L_I (lambda=0), videos subsampled by 3.
 """
 
 from slotformer_jax.default_config import base_config
+from slotformer_jax.default_config import use_official_slotformer_recipe
 
 
 def get_config():
@@ -23,6 +24,7 @@ def get_config():
   config.savi.decoder.broadcast_resolution = (16, 16)
   config.savi.batch_size = 48
   config.savi.num_train_steps = 460_000
+  config.savi.encoder.padding = 'pytorch'  # Conv2d(padding=2) at stride 2
 
   # Transformer.
   config.slotformer.burn_in = 15
@@ -33,6 +35,7 @@ def get_config():
   config.slotformer.frame_stride = 3
   config.slotformer.batch_size = 128
   config.slotformer.num_train_steps = 250_000
+  use_official_slotformer_recipe(config)
 
   config.extraction.chunk_length = 50
   config.evaluation.rollout_steps = 35

@@ -44,21 +44,39 @@ def base_config() -> ml_collections.ConfigDict:
   # 'learned': a learned vector per slot (SlotFormer's SAVi); 'gaussian':
   # slots sampled from one learned Gaussian (the original Slot Attention).
   savi.initial_slots = 'learned'
+  # padding: 'same' (XLA) or 'pytorch' (K//2 on both sides: the official
+  # models; differs from 'same' only at stride 2).
   savi.encoder = ml_collections.ConfigDict(dict(
       features=(64, 64, 64, 64), kernel_size=5, strides=(1, 1, 1, 1),
-      output_size=128))
+      output_size=128, padding='same'))
   savi.slot_attention = ml_collections.ConfigDict(dict(
       num_iterations=2, mlp_size=256))
-  # f_trans: Transformer over one frame's slots (+ per-slot LSTM if > 0).
+  # f_trans. kind: 'transformer' (over one frame's slots), 'transformer_lstm'
+  # (+ a per-slot LSTM of lstm_size units and a linear layer back to D) or
+  # 'residual_mlp' (LN -> Linear(mlp_size) -> ReLU -> Linear, + residual).
+  # pre_norm: Pre-LN Transformer; for 'residual_mlp' the residual is taken
+  # from the normalised input. dropout_rate: the Transformer's.
   savi.predictor = ml_collections.ConfigDict(dict(
-      num_layers=2, num_heads=4, mlp_size=512, lstm_size=0))
+      kind='transformer', num_layers=2, num_heads=4, mlp_size=512,
+      lstm_size=0, pre_norm=True, dropout_rate=0.0))
+  # Head on the initial slots before Slot Attention: 'none', 'linear' or
+  # 'mlp' (Linear -> LN -> ReLU -> Linear); it predicts (mean, log-variance):
+  # stochastic SAVi samples, deterministic SAVi keeps the mean.
+  savi.posterior_head = 'none'
   savi.decoder = ml_collections.ConfigDict(dict(
       broadcast_resolution=(8, 8), features=(64, 64, 64, 64), kernel_size=5))
-  # Training (Adam, linear warm-up then cosine decay to 0).
+  # Of every LayerNorm: 1e-6 (flax) or 1e-5 (PyTorch, the official models).
+  savi.layer_norm_epsilon = 1e-6
+  # 'flax' (lecun-normal kernels, zero biases, orthogonal recurrent kernels)
+  # or 'pytorch' (PyTorch's defaults, see modules/initializers.py).
+  savi.init = 'flax'
+  # Training (Adam, linear warm-up then cosine decay; both start / end at
+  # min_lr_fraction * learning_rate).
   savi.batch_size = 64
   savi.clip_length = 6
   savi.num_train_steps = 80_000
   savi.learning_rate = 2e-4
+  savi.min_lr_fraction = 0.0
   savi.warmup_fraction = 0.025
   savi.grad_clip = 0.05  # max global gradient norm
   savi.log_every = 100
@@ -84,12 +102,19 @@ def base_config() -> ml_collections.ConfigDict:
   dyn.dropout_rate = 0.1
   dyn.positional_encoding = 'temporal'  # 'naive': ablation (per-token P.E.)
   dyn.residual = False  # predict S_t + f(...) (the paper's remark)
+  # 0: the context is the last burn_in frames. > burn_in: it grows from the
+  # burn_in observed frames by one predicted frame per step up to
+  # max_context frames, then slides (PHYRE: burn_in 1, max_context 6).
+  dyn.max_context = 0
+  dyn.layer_norm_epsilon = 1e-6  # 1e-5: PyTorch's, the official models
+  dyn.init = 'flax'  # or 'pytorch' (see savi.init)
   dyn.teacher_forcing = False  # ablation: feed ground-truth slots back
   dyn.image_loss_weight = 1.0  # lambda of L_I (0 disables L_I)
   dyn.frame_stride = 1  # temporal subsampling of the slot sequences
   dyn.batch_size = 128
   dyn.num_train_steps = 200_000
   dyn.learning_rate = 2e-4
+  dyn.min_lr_fraction = 0.0
   dyn.warmup_fraction = 0.05
   dyn.grad_clip = 0.0  # the paper uses none
   dyn.log_every = 100
@@ -124,8 +149,53 @@ def base_config() -> ml_collections.ConfigDict:
   # 0.5 reproduces the official post-processing (pixels where every alpha is
   # below it go to the weakest slot, taken as background).
   ev.background_threshold = ml_collections.config_dict.placeholder(float)
+  # AR's ground-truth boxes: 'segmentation' (the boxes of the id map) or
+  # 'object_masks' (each object's full mask, overlapped parts included: the
+  # official convention; needs a dataset that stores 'boxes', e.g. CLEVRER).
+  ev.ar_gt_boxes = 'segmentation'
+  # FG-mIoU over the objects of a frame: 'skip' (mean over the ids with
+  # pixels) or 'zero' (an id below the frame's largest one but without
+  # pixels counts IoU 0: the official convention).
+  ev.miou_absent_ids = 'skip'
 
   # ---- pictures -----------------------------------------------------------
   config.render = ml_collections.ConfigDict(dict(
       num_videos=4, fps=6, scale=2, strip_every=2))
   return config
+
+
+def use_official_savi_recipe(config: ml_collections.ConfigDict) -> None:
+  """The official SAVi training recipe and PyTorch layer conventions.
+
+  The paper's text says Adam at 2e-4, warmed up from 0 and decayed to 0; the
+  official code that produced its numbers uses 1e-4 ("a small learning rate
+  is very important for SAVi training") with a scheduler that starts and
+  ends at lr / 100, and its Transformer predictor keeps PyTorch's dropout of
+  0.1. The dataset configs follow the code; the paper's text is
+  --config.savi.learning_rate=2e-4 --config.savi.min_lr_fraction=0
+  --config.savi.predictor.dropout_rate=0.
+  """
+  savi = config.savi
+  savi.learning_rate = 1e-4
+  savi.min_lr_fraction = 0.01
+  savi.warmup_fraction = 0.025
+  savi.grad_clip = 0.05
+  savi.predictor.dropout_rate = 0.1
+  savi.layer_norm_epsilon = 1e-5  # PyTorch's
+  savi.encoder.padding = 'pytorch'  # Conv2d(padding=K // 2)
+  savi.init = 'pytorch'
+
+
+def use_official_slotformer_recipe(config: ml_collections.ConfigDict) -> None:
+  """The official SlotFormer recipe: as the paper (Adam 2e-4, 5% warm-up,
+  cosine, no clipping) except that the scheduler starts and ends at lr / 100
+  (the paper: 0), PyTorch's Transformer dropout of 0.1, LayerNorm epsilon
+  1e-5 and PyTorch's initialisation."""
+  dyn = config.slotformer
+  dyn.learning_rate = 2e-4
+  dyn.min_lr_fraction = 0.01
+  dyn.warmup_fraction = 0.05
+  dyn.grad_clip = 0.0
+  dyn.dropout_rate = 0.1
+  dyn.layer_norm_epsilon = 1e-5
+  dyn.init = 'pytorch'

@@ -25,18 +25,24 @@ def build_savi(config: ml_collections.ConfigDict) -> SAVi:
       encoder_kernel_size=savi.encoder.kernel_size,
       encoder_strides=tuple(savi.encoder.strides),
       encoder_size=savi.encoder.output_size,
+      encoder_padding=savi.encoder.padding,
       num_iterations=savi.slot_attention.num_iterations,
       slot_mlp_size=savi.slot_attention.mlp_size,
+      predictor_kind=savi.predictor.kind,
       predictor_layers=savi.predictor.num_layers,
       predictor_heads=savi.predictor.num_heads,
       predictor_mlp_size=savi.predictor.mlp_size,
       predictor_lstm_size=savi.predictor.lstm_size,
+      predictor_pre_norm=savi.predictor.pre_norm,
+      predictor_dropout_rate=savi.predictor.dropout_rate,
+      posterior_head=savi.posterior_head,
       decoder_broadcast_resolution=tuple(savi.decoder.broadcast_resolution),
       decoder_features=tuple(savi.decoder.features),
       decoder_kernel_size=savi.decoder.kernel_size,
       stochastic=savi.stochastic,
       prior_sigma=savi.prior_sigma,
       initial_slots=savi.initial_slots,
+      layer_norm_epsilon=savi.layer_norm_epsilon,
   )
 
 
@@ -66,6 +72,8 @@ def _transformer_fields(dynamics: ml_collections.ConfigDict) -> dict:
 def build_slotformer(config: ml_collections.ConfigDict) -> SlotFormer:
   dynamics = config.slotformer
   return SlotFormer(positional_encoding=dynamics.positional_encoding,
+                    max_context=dynamics.max_context,
+                    layer_norm_epsilon=dynamics.layer_norm_epsilon,
                     **_transformer_fields(dynamics))
 
 

@@ -32,6 +32,7 @@ from slotformer_jax.data.slots import SlotSource
 from slotformer_jax.data.slots import SlotWriter
 from slotformer_jax.data.slots import read_meta
 from slotformer_jax.data.sources import get_video_source
+from slotformer_jax.modules import initializers
 from slotformer_jax.train import sharding
 from slotformer_jax.train.trainer import Stage
 from slotformer_jax.train.trainer import abstract_train_state
@@ -63,7 +64,8 @@ def savi_model_fields(config: ml_collections.ConfigDict) -> dict[str, Any]:
   savi = config.savi.to_dict()
   fields = {key: savi[key] for key in (
       'num_slots', 'slot_size', 'encoder', 'slot_attention', 'predictor',
-      'decoder', 'stochastic', 'initial_slots')}
+      'decoder', 'stochastic', 'initial_slots', 'posterior_head',
+      'layer_norm_epsilon')}
   fields['resolution'] = list(config.data.resolution)
   return json.loads(json.dumps(fields))  # tuples -> lists, for comparison
 
@@ -75,7 +77,7 @@ def dynamics_model_fields(config: ml_collections.ConfigDict,
   keys = ['burn_in', 'embed_dim', 'num_layers', 'num_heads', 'mlp_ratio',
           'residual']
   if name == models.SLOTFORMER:
-    keys.append('positional_encoding')
+    keys += ['positional_encoding', 'max_context', 'layer_norm_epsilon']
   return json.loads(json.dumps({key: dynamics[key] for key in keys}))
 
 
@@ -135,8 +137,9 @@ def train_savi(config: ml_collections.ConfigDict, workdir: str,
       loss_fn=functools.partial(
           steps.savi_loss, model=model,
           kl_weight=stage_config.kl_weight if stage_config.stochastic else 0.0),
-      init_params=lambda rng: steps.init_params(
-          model, rng, jnp.zeros(clip_shape, jnp.float32)),
+      init_params=lambda rng: initializers.initialize(
+          steps.init_params(model, rng, jnp.zeros(clip_shape, jnp.float32)),
+          jax.random.fold_in(rng, 1), stage_config.init),
       batches=lambda start_step: pipeline.train_batches(
           source, batch_size=local_batch_size,
           clip_length=stage_config.clip_length, seed=config.seed,
@@ -307,8 +310,10 @@ def train_dynamics(config: ml_collections.ConfigDict, workdir: str,
           steps.slotformer_loss, model=model, decoder=decoder,
           rollout=rollout, image_loss_weight=stage_config.image_loss_weight,
           teacher_forcing=stage_config.teacher_forcing),
-      init_params=lambda rng: steps.init_params(
-          model, rng, jnp.zeros(history_shape, jnp.float32), rollout),
+      init_params=lambda rng: initializers.initialize(
+          steps.init_params(model, rng, jnp.zeros(history_shape, jnp.float32),
+                            rollout),
+          jax.random.fold_in(rng, 1), stage_config.get('init', 'flax')),
       batches=lambda start_step: pipeline.train_batches(
           source, batch_size=local_batch_size,
           clip_length=burn_in + rollout, seed=config.seed + 1,

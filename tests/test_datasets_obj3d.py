@@ -259,7 +259,8 @@ def tiny_obj3d_config(data_dir: Path) -> ml_collections.ConfigDict:
   savi.encoder.output_size = 16
   savi.slot_attention.mlp_size = 16
   savi.predictor.num_layers, savi.predictor.num_heads = 1, 2
-  savi.predictor.mlp_size, savi.predictor.lstm_size = 16, 0
+  savi.predictor.mlp_size = 16
+  savi.predictor.kind, savi.predictor.lstm_size = 'transformer', 0
   savi.decoder.features, savi.decoder.kernel_size = (8,), 3
   savi.batch_size, savi.clip_length = 4, 2
   savi.num_train_steps = savi.log_every = savi.checkpoint_every = 1

@@ -223,7 +223,10 @@ def _tiny_savi(**kwargs):
 @pytest.mark.parametrize('stochastic,lstm_size', [(False, 0), (True, 8)])
 def test_savi_chunked_encoding_equals_whole_video(stochastic, lstm_size):
   """Carrying the state across chunks gives the same slots as one call."""
-  model = _tiny_savi(stochastic=stochastic, predictor_lstm_size=lstm_size)
+  model = _tiny_savi(
+      stochastic=stochastic, predictor_lstm_size=lstm_size,
+      predictor_kind='transformer_lstm' if lstm_size else 'transformer',
+      posterior_head='mlp' if stochastic else 'none')
   video = jax.random.uniform(jax.random.key(0), (2, 6, 16, 16, 3),
                              minval=-1.0, maxval=1.0)
   rngs = {'params': jax.random.key(1), 'sample': jax.random.key(2)}

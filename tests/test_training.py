@@ -31,7 +31,8 @@ def _savi(stochastic=False):
               encoder_strides=(1, 1), encoder_size=16, slot_mlp_size=16,
               predictor_layers=1, predictor_heads=2, predictor_mlp_size=32,
               decoder_broadcast_resolution=(8, 8), decoder_features=(8, 8),
-              decoder_kernel_size=3, stochastic=stochastic)
+              decoder_kernel_size=3, stochastic=stochastic,
+              posterior_head='mlp' if stochastic else 'none')
 
 
 def _decoder():

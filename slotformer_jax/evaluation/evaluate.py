@@ -52,6 +52,9 @@ logger = logging.getLogger(__name__)
 FRAME_METRICS = ('psnr', 'ssim', 'lpips')
 OBJECT_METRICS = ('ari', 'fg_ari', 'fg_miou', 'ar')
 SEGMENTATION_FIELD = 'segmentations'
+# The dataset's per-object boxes (from each object's full mask) and whether
+# each object is visible: AR's official ground truth.
+BOX_FIELDS = ('boxes', 'visible')
 
 
 def eval_dir(workdir: str) -> str:
@@ -64,13 +67,16 @@ def num_true_ids(data_config: ml_collections.ConfigDict) -> int:
 
 
 def _frame_step_metrics(decoded, frames: jax.Array, segmentation: jax.Array,
+                        gt_boxes=None,
                         *, names: tuple[str, ...], num_true: int,
                         num_slots: int, lpips_fn: Callable | None,
                         background_threshold: float | None):
   """Metrics of one rollout step for a batch.
 
   decoded: DecodedSlots with leading [B] (recon in [0, 1]);
-  frames: float [B, H, W, 3] in [0, 1]; segmentation: int [B, H, W].
+  frames: float [B, H, W, 3] in [0, 1]; segmentation: int [B, H, W];
+  gt_boxes: None (AR's ground-truth boxes from the id map) or the dataset's
+  per-object boxes ('boxes' [B, M, 4], 'visible' [B, M]).
   Returns {name: (value [B], valid [B])}, and for 'fg_miou' the IoU
   matrix [B, C-1, K] with 'present' [B, C-1] (matched on the host).
   """
@@ -99,13 +105,30 @@ def _frame_step_metrics(decoded, frames: jax.Array, segmentation: jax.Array,
     out['fg_miou'] = metrics_lib.fg_iou_matrix(
         true_ids[:, None], pred_ids[:, None], num_true, num_slots)
   if 'ar' in names:
-    gt_boxes, gt_valid = metrics_lib.segmentation_to_boxes(true_ids, num_true)
+    if gt_boxes is None:
+      boxes, valid = metrics_lib.segmentation_to_boxes(true_ids, num_true)
+      # Row 0 of the ground truth is the background, not an object.
+      boxes, valid = boxes[:, 1:], valid[:, 1:]
+    else:
+      # Row k - 1 is id k, so the greedy matching visits the same order.
+      boxes, valid = metrics_lib.boxes_from_normalized(
+          gt_boxes['boxes'], gt_boxes['visible'],
+          height=frames.shape[-3], width=frames.shape[-2])
     pred_boxes, pred_valid = metrics_lib.segmentation_to_boxes(
         pred_ids, num_slots)
-    # Row 0 of the ground truth is the background, not an object.
     out['ar'] = tuple(metrics_lib.average_recall(
-        gt_boxes[:, 1:], gt_valid[:, 1:], pred_boxes, pred_valid))
+        boxes, valid, pred_boxes, pred_valid))
   return out
+
+
+def uses_dataset_boxes(eval_config: ml_collections.ConfigDict,
+                       names: tuple[str, ...]) -> bool:
+  """Whether AR reads the dataset's per-object boxes (see the config)."""
+  kind = eval_config.get('ar_gt_boxes', 'segmentation')
+  if kind not in ('segmentation', 'object_masks'):
+    raise ValueError("evaluation.ar_gt_boxes must be 'segmentation' or "
+                     f"'object_masks', got {kind!r}")
+  return 'ar' in names and kind == 'object_masks'
 
 
 def make_rollout_evaluator(config: ml_collections.ConfigDict, mesh: Mesh,
@@ -132,6 +155,7 @@ def make_rollout_evaluator(config: ml_collections.ConfigDict, mesh: Mesh,
       lpips_fn=lpips_fn,
       background_threshold=config.evaluation.get('background_threshold'))
   needs_segmentation = any(name in OBJECT_METRICS for name in names)
+  boxes_from_dataset = uses_dataset_boxes(config.evaluation, names)
 
   def evaluate_batch(dynamics_params, decoder_params, batch):
     history = batch['slots'][:, :burn_in]
@@ -146,26 +170,29 @@ def make_rollout_evaluator(config: ml_collections.ConfigDict, mesh: Mesh,
       segmentation = batch[SEGMENTATION_FIELD][:, burn_in:burn_in + rollout]
     else:  # unused placeholder of the right leading shape
       segmentation = jnp.zeros(frames.shape[:2], jnp.int32)
+    boxes = None
+    if boxes_from_dataset:
+      boxes = {field: batch[field][:, burn_in:burn_in + rollout]
+               for field in BOX_FIELDS}
     time_major = lambda x: jnp.swapaxes(x, 0, 1)
     decode = functools.partial(steps.decode_slots, decoder_params,
                                decoder=decoder)
-    score = lambda decoded, frame, seg: step_metrics(
-        decoded, steps.model_to_unit(steps.frames_to_model(frame)), seg)
+    score = lambda decoded, frame, seg, gt_boxes: step_metrics(
+        decoded, steps.model_to_unit(steps.frames_to_model(frame)), seg,
+        gt_boxes)
 
     def one_step(inputs):
-      slots, frame, seg = inputs
-      return score(decode(slots), frame, seg)
+      slots, frame, seg, gt_boxes = inputs
+      return score(decode(slots), frame, seg, gt_boxes)
 
+    targets = jax.tree.map(time_major, (frames, segmentation, boxes))
     # lax.map keeps one step's decoded frames in memory at a time.
-    out = {method: jax.lax.map(one_step, (time_major(slots),
-                                          time_major(frames),
-                                          time_major(segmentation)))
+    out = {method: jax.lax.map(one_step, (time_major(slots), *targets))
            for method, slots in predictions.items()}
     # Copy-last predicts the same slots at every step: decode them once.
     copied = decode(steps.copy_last_rollout(history, 1)[:, 0])
     out['copy_last'] = jax.lax.map(
-        lambda inputs: score(copied, *inputs),
-        (time_major(frames), time_major(segmentation)))
+        lambda inputs: score(copied, *inputs), targets)
     return out
 
   replicated = sharding.replicated_sharding(mesh)
@@ -373,6 +400,8 @@ def evaluate(config: ml_collections.ConfigDict, workdir: str,
   stride = config.slotformer.frame_stride
   video_fields = ('video',) + ((SEGMENTATION_FIELD,) if with_segmentation
                                else ())
+  if uses_dataset_boxes(eval_config, names):
+    video_fields += BOX_FIELDS
   source = stages.slot_source_for(config, workdir, eval_config.split,
                                   video_fields)
   if with_segmentation:
@@ -420,7 +449,9 @@ def evaluate(config: ml_collections.ConfigDict, workdir: str,
     for method, per_metric in out.items():
       for name, (values, valid) in per_metric.items():
         if name == 'fg_miou':
-          score = metrics_lib.hungarian_mean_iou(values, valid)
+          score = metrics_lib.hungarian_mean_iou(
+              values, valid,
+              absent_ids=eval_config.get('miou_absent_ids', 'skip'))
           values, valid = score.value, score.valid
         averager.add(method, name, np.asarray(values),
                      np.asarray(valid) & mask[None, :])
@@ -434,7 +465,11 @@ def evaluate(config: ml_collections.ConfigDict, workdir: str,
                    'burn_in': burn_in, 'rollout_steps': rollout,
                    'frame_stride': stride,
                    'background_threshold': eval_config.get(
-                       'background_threshold')},
+                       'background_threshold'),
+                   'ar_gt_boxes': eval_config.get('ar_gt_boxes',
+                                                  'segmentation'),
+                   'miou_absent_ids': eval_config.get('miou_absent_ids',
+                                                      'skip')},
       'checkpoints': {'savi_step': savi_step, **{
           f'{name}_step': step for name, step in dynamics_steps.items()}},
       'seconds': {'savi': savi_results.pop('seconds'),

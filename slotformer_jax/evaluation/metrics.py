@@ -78,10 +78,11 @@ Object metrics
   matching maximising total IoU, unmatched objects (more objects than slots)
   score 0, mean over the objects present. The official ``hungarian_miou``
   divides by the largest object id in the frame instead, so an absent id
-  below it would count as a 0. CLEVRER's per-frame ids (the order of the
+  below it counts as a 0 (``absent_ids="zero"``, what
+  ``configs/clevrer.py`` uses; ``"skip"``, the default, counts only objects
+  with at least one pixel). CLEVRER's per-frame ids (the order of the
   frame's mask proposals) are compact, so this only matters when resizing or
-  an overlapping proposal erases an object from the id map. Here only
-  objects with at least one pixel count.
+  an overlapping proposal erases an object from the id map.
 * ``average_recall``: the official ``bbox_precision_recall`` rule, which is
   greedy, not Hungarian: ground-truth boxes are visited in order; each takes
   its highest-IoU valid predicted box (first on ties), and is a hit if that
@@ -90,7 +91,9 @@ Object metrics
   ground-truth boxes. Predicted boxes come from every slot of the argmax
   segmentation (``segmentation_to_boxes``), empty slots excluded. The
   official ground-truth boxes come from the per-object CLEVRER masks before
-  the argmax that builds the id map; ``masks_to_boxes`` takes either.
+  the argmax that builds the id map (overlapped parts included); the
+  converters store those (``boxes``), ``boxes_from_normalized`` turns them
+  into this convention, and ``segmentation_to_boxes`` gives the id map's.
 * ``segmentation_from_alpha_masks``: argmax over slots; optionally the
   official post-processing (``postproc_mask``, threshold
   ``SLOTFORMER_BG_THRESHOLD`` = 0.5), which gives pixels where every slot's
@@ -438,7 +441,14 @@ def fg_iou_matrix(true_ids: ArrayLike, pred_ids: ArrayLike,
   return iou, true_area > 0
 
 
-def hungarian_mean_iou(iou: ArrayLike, present: ArrayLike) -> MaskedScore:
+# How FG-mIoU treats an object id that has no pixel in a frame.
+SKIP_ABSENT = "skip"  # this project: mean over the ids with pixels
+ZERO_ABSENT = "zero"  # official: ids up to the frame's largest count, absent = 0
+ABSENT_ID_CONVENTIONS = (SKIP_ABSENT, ZERO_ABSENT)
+
+
+def hungarian_mean_iou(iou: ArrayLike, present: ArrayLike, *,
+                       absent_ids: str = SKIP_ABSENT) -> MaskedScore:
   """Mean IoU of present objects under the best one-to-one slot matching.
 
   Host-side (NumPy + ``scipy.optimize.linear_sum_assignment``): the matching
@@ -449,6 +459,11 @@ def hungarian_mean_iou(iou: ArrayLike, present: ArrayLike) -> MaskedScore:
   Args:
     iou: float ``[..., C-1, K]`` from ``fg_iou_matrix``.
     present: bool ``[..., C-1]`` from ``fg_iou_matrix``.
+    absent_ids: ``"skip"`` averages over the present objects. ``"zero"``
+      (the official ``hungarian_miou``, which one-hot encodes ids up to the
+      frame's largest) averages over ids 1..max present id, so an absent id
+      below the largest counts IoU 0. The matched IoU sum is the same either
+      way: an absent id's IoU row is all zeros.
 
   Returns:
     ``MaskedScore`` of NumPy arrays: float32 ``[...]`` mean over present
@@ -456,6 +471,9 @@ def hungarian_mean_iou(iou: ArrayLike, present: ArrayLike) -> MaskedScore:
     more objects than slots score 0), and ``valid`` = at least one object
     present. Invalid values are NaN.
   """
+  if absent_ids not in ABSENT_ID_CONVENTIONS:
+    raise ValueError(f"absent_ids must be one of {ABSENT_ID_CONVENTIONS}, "
+                     f"got {absent_ids!r}")
   iou = np.asarray(iou, np.float64)
   present = np.asarray(present, bool)
   batch_shape = iou.shape[:-2]
@@ -467,14 +485,17 @@ def hungarian_mean_iou(iou: ArrayLike, present: ArrayLike) -> MaskedScore:
     if num_objects == 0:
       continue
     rows, cols = linear_sum_assignment(frame_iou[frame_present], maximize=True)
-    # Dividing by all present objects scores unmatched ones as 0.
+    if absent_ids == ZERO_ABSENT:
+      num_objects = int(np.flatnonzero(frame_present)[-1]) + 1
+    # Dividing by all counted objects scores unmatched ones as 0.
     values[i] = frame_iou[frame_present][rows, cols].sum() / num_objects
   valid = flat_present.any(axis=-1)
   return MaskedScore(values.reshape(batch_shape), valid.reshape(batch_shape))
 
 
 def fg_miou(true_ids: ArrayLike, pred_ids: ArrayLike, num_true_classes: int,
-            num_pred_classes: int) -> MaskedScore:
+            num_pred_classes: int, *,
+            absent_ids: str = SKIP_ABSENT) -> MaskedScore:
   """FG-mIoU: ``fg_iou_matrix`` on device, then ``hungarian_mean_iou``.
 
   Args:
@@ -483,13 +504,14 @@ def fg_miou(true_ids: ArrayLike, pred_ids: ArrayLike, num_true_classes: int,
     pred_ids: int ``[..., T, H, W]`` predicted slot ids.
     num_true_classes: number of ground-truth ids, background included.
     num_pred_classes: number of slots.
+    absent_ids: see ``hungarian_mean_iou``.
 
   Returns:
     ``MaskedScore`` of NumPy ``[...]`` arrays (see ``hungarian_mean_iou``).
   """
   iou, present = fg_iou_matrix(true_ids, pred_ids, num_true_classes,
                                num_pred_classes)
-  return hungarian_mean_iou(iou, present)
+  return hungarian_mean_iou(iou, present, absent_ids=absent_ids)
 
 
 # --------------------------------------------------------------------------
@@ -523,6 +545,32 @@ def masks_to_boxes(masks: ArrayLike) -> tuple[Array, Array]:
   valid = jnp.any(rows, axis=-1)
   boxes = jnp.stack([x1, y1, x2, y2], axis=-1).astype(jnp.float32)
   return jnp.where(valid[..., None], boxes, -1.0), valid
+
+
+@functools.partial(jax.jit, static_argnames=("height", "width"))
+def boxes_from_normalized(boxes: ArrayLike, visible: ArrayLike, *,
+                          height: int, width: int) -> tuple[Array, Array]:
+  """Dataset boxes -> the ``[x1, y1, x2, y2]`` inclusive-pixel convention.
+
+  Args:
+    boxes: float ``[..., 4]`` normalised ``(ymin, xmin, ymax, xmax)`` with
+      pixel edges, as the converters store them (``data/clevrer.py``: a mask
+      on rows 2..5 of 8 gives ymin = 2/8, ymax = 6/8), from each object's
+      full mask (overlapped parts included: the official ground truth).
+    visible: bool ``[...]``, False for padding / empty masks.
+    height, width: the frame size the boxes refer to.
+
+  Returns:
+    (boxes float32 ``[..., 4]``, valid bool ``[...]``), as ``masks_to_boxes``.
+  """
+  boxes = jnp.asarray(boxes, jnp.float32)
+  ymin = jnp.round(boxes[..., 0] * height)
+  xmin = jnp.round(boxes[..., 1] * width)
+  ymax = jnp.round(boxes[..., 2] * height) - 1
+  xmax = jnp.round(boxes[..., 3] * width) - 1
+  valid = jnp.asarray(visible, bool)
+  out = jnp.stack([xmin, ymin, xmax, ymax], axis=-1)
+  return jnp.where(valid[..., None], out, -1.0), valid
 
 
 @functools.partial(jax.jit, static_argnames=("num_classes",))

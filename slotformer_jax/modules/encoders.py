@@ -9,6 +9,27 @@ import jax
 import jax.numpy as jnp
 
 
+SAME = 'same'
+PYTORCH = 'pytorch'
+PADDINGS = (SAME, PYTORCH)
+
+
+def conv_padding(kind: str, kernel_size: int):
+  """The padding argument of `nn.Conv` for an odd kernel.
+
+  'same': XLA's SAME, which for stride 2 pads (K//2 - 1, K//2) on an even
+  input (e.g. (1, 2) for K=5). 'pytorch': K//2 on both sides, PyTorch's
+  `Conv2d(padding=K // 2)` of the official models; at stride 1 the two agree,
+  at stride 2 SAME samples the image one pixel further down and right.
+  """
+  if kind == SAME:
+    return 'SAME'
+  if kind == PYTORCH:
+    half = kernel_size // 2
+    return ((half, half), (half, half))
+  raise ValueError(f'padding must be one of {PADDINGS}, got {kind!r}')
+
+
 def coordinate_grid(height: int, width: int) -> jax.Array:
   """[height, width, 4] grid of (y, x, 1 - y, 1 - x), each in [0, 1]."""
   ys = jnp.linspace(0.0, 1.0, height)
@@ -39,12 +60,16 @@ class CNNEncoder(nn.Module):
     strides: stride of each conv layer (2 on the first layer for 128x128
       inputs in the paper's Physion / PHYRE settings).
     output_size: D_enc, the size of each output feature vector.
+    padding: 'same' or 'pytorch' (see `conv_padding`).
+    layer_norm_epsilon: 1e-6 (flax) or 1e-5 (PyTorch, the official models).
   """
 
   features: Sequence[int] = (64, 64, 64, 64)
   kernel_size: int = 5
   strides: Sequence[int] = (1, 1, 1, 1)
   output_size: int = 128
+  padding: str = SAME
+  layer_norm_epsilon: float = 1e-6
 
   @nn.compact
   def __call__(self, images: jax.Array) -> jax.Array:
@@ -56,12 +81,14 @@ class CNNEncoder(nn.Module):
     x = images
     for i, (channels, stride) in enumerate(zip(self.features, self.strides)):
       x = nn.Conv(channels, (self.kernel_size, self.kernel_size),
-                  strides=(stride, stride), padding='SAME', name=f'conv_{i}')(x)
+                  strides=(stride, stride),
+                  padding=conv_padding(self.padding, self.kernel_size),
+                  name=f'conv_{i}')(x)
       if i < len(self.features) - 1:
         x = nn.relu(x)
     x = SoftPositionEmbedding(name='position_embedding')(x)
     x = x.reshape(x.shape[0], -1, x.shape[-1])
-    x = nn.LayerNorm(name='norm')(x)
+    x = nn.LayerNorm(epsilon=self.layer_norm_epsilon, name='norm')(x)
     x = nn.Dense(self.output_size, name='mlp_hidden')(x)
     x = nn.relu(x)
     return nn.Dense(self.output_size, name='mlp_out')(x)

@@ -41,25 +41,29 @@ class SlotAttention(nn.Module):
     num_iterations: attention rounds per call (2 in SlotFormer's SAVi).
     mlp_size: hidden size of the residual MLP after the GRU.
     epsilon: see `inverted_attention_weights`.
+    layer_norm_epsilon: 1e-6 (flax) or 1e-5 (PyTorch, the official models).
   """
 
   num_iterations: int = 2
   mlp_size: int = 256
   epsilon: float = 1e-6
+  layer_norm_epsilon: float = 1e-6
 
   @nn.compact
   def __call__(self, slots: jax.Array, inputs: jax.Array) -> jax.Array:
     """slots [B, N, D], inputs [B, M, C] -> updated slots [B, N, D]."""
     slot_size = slots.shape[-1]
-    inputs = nn.LayerNorm(name='norm_inputs')(inputs)
+    layer_norm = lambda **kw: nn.LayerNorm(epsilon=self.layer_norm_epsilon,
+                                           **kw)
+    inputs = layer_norm(name='norm_inputs')(inputs)
     keys = nn.Dense(slot_size, use_bias=False, name='key')(inputs)
     values = nn.Dense(slot_size, use_bias=False, name='value')(inputs)
 
-    norm_slots = nn.LayerNorm(name='norm_slots')
+    norm_slots = layer_norm(name='norm_slots')
     to_query = nn.Dense(slot_size, use_bias=False, name='query')
     gru = nn.GRUCell(slot_size, name='gru')
     mlp = nn.Sequential([
-        nn.LayerNorm(),
+        layer_norm(),
         nn.Dense(self.mlp_size),
         nn.relu,
         nn.Dense(slot_size),

@@ -7,6 +7,15 @@ Transformer encoder mixes all T*N tokens, and a linear layer maps the last
 frame's N output tokens to the next frame's slots. The rollout feeds each
 prediction back into a fixed-size window of T frames.
 
+Growing context (PHYRE): with `max_context` > T the context starts with the
+T observed frames and grows by one predicted frame per step up to
+`max_context` frames, then slides. The scan keeps a fixed window of
+`max_context` frames whose not-yet-filled front is masked out of attention,
+so it compiles once; with the newest frame at position 0 the valid frames
+get exactly the position codes of an unpadded window of their length (the
+official model builds the encoding for `max_context` frames and uses its
+last t positions: the same codes).
+
 Shapes: slots [batch, time, num_slots, slot_size].
 """
 
@@ -61,20 +70,33 @@ class NextSlotPredictor(nn.Module):
   dropout_rate: float = 0.0
   positional_encoding: str = TEMPORAL
   residual: bool = False
+  layer_norm_epsilon: float = 1e-6
 
   @nn.compact
-  def __call__(self, history: jax.Array, *,
-               deterministic: bool = True) -> jax.Array:
-    """history [B, T, N, D] -> predicted next slots [B, N, D]."""
+  def __call__(self, history: jax.Array, num_valid: jax.Array | None = None,
+               *, deterministic: bool = True) -> jax.Array:
+    """history [B, T, N, D] -> predicted next slots [B, N, D].
+
+    num_valid: None (all T frames are context) or an int scalar: only the
+      last `num_valid` frames are; the others are masked out as keys.
+    """
     batch, num_frames, num_slots, slot_size = history.shape
     tokens = nn.Dense(self.embed_dim, name='in_proj')(
         history.reshape(batch, num_frames * num_slots, slot_size))
     tokens = tokens + token_position_encoding(
         num_frames, num_slots, self.embed_dim, self.positional_encoding)
+    mask = None
+    if num_valid is not None:
+      frame_valid = jnp.arange(num_frames) >= num_frames - num_valid
+      key_valid = jnp.repeat(frame_valid, num_slots)  # [T * N]
+      num_tokens = num_frames * num_slots
+      mask = jnp.broadcast_to(key_valid[None, None, None, :],
+                              (batch, 1, num_tokens, num_tokens))
     tokens = TransformerEncoder(
         num_layers=self.num_layers, num_heads=self.num_heads,
         mlp_size=self.mlp_size, dropout_rate=self.dropout_rate,
-        pre_norm=True, name='transformer')(tokens, deterministic=deterministic)
+        pre_norm=True, layer_norm_epsilon=self.layer_norm_epsilon,
+        name='transformer')(tokens, mask, deterministic=deterministic)
     if self.residual:
       # The paper's remark: refine the last input slots rather than predict
       # from scratch, which also keeps the slot order. The refinement starts
@@ -99,6 +121,10 @@ class SlotFormer(nn.Module):
       the official implementation.
     positional_encoding: 'temporal' (SlotFormer) or 'naive' (ablation).
     residual: add the last input slots to the prediction.
+    max_context: 0 (the context is always the last `burn_in` frames) or the
+      most frames the context grows to (see the module docstring; 6 in the
+      official PHYRE model, whose burn_in is 1).
+    layer_norm_epsilon: 1e-6 (flax) or 1e-5 (PyTorch, the official models).
   """
 
   burn_in: int = 6
@@ -109,18 +135,37 @@ class SlotFormer(nn.Module):
   dropout_rate: float = 0.0
   positional_encoding: str = TEMPORAL
   residual: bool = False
+  max_context: int = 0
+  layer_norm_epsilon: float = 1e-6
 
   def setup(self):
+    if self.max_context and self.max_context < self.burn_in:
+      raise ValueError(f'max_context={self.max_context} is shorter than '
+                       f'burn_in={self.burn_in}; use 0 for a fixed window')
     self.predictor = NextSlotPredictor(
         embed_dim=self.embed_dim, num_layers=self.num_layers,
         num_heads=self.num_heads, mlp_size=self.mlp_size,
         dropout_rate=self.dropout_rate,
-        positional_encoding=self.positional_encoding, residual=self.residual)
+        positional_encoding=self.positional_encoding, residual=self.residual,
+        layer_norm_epsilon=self.layer_norm_epsilon)
+
+  @property
+  def context_length(self) -> int:
+    """The most frames the model conditions on."""
+    return max(self.burn_in, self.max_context)
 
   def predict_next(self, history: jax.Array, *,
                    deterministic: bool = True) -> jax.Array:
-    """history [B, burn_in, N, D] -> next slots [B, N, D]."""
-    self._check_window(history)
+    """history [B, T, N, D] -> next slots [B, N, D].
+
+    T is `burn_in`, or up to `max_context` frames with a growing context.
+    """
+    if (history.ndim != 4
+        or not self.burn_in <= history.shape[1] <= self.context_length):
+      raise ValueError(
+          f'SlotFormer.predict_next expects slots [batch, T, num_slots, '
+          f'slot_size] with {self.burn_in} <= T <= {self.context_length}, '
+          f'got {history.shape}')
     return self.predictor(history, deterministic=deterministic)
 
   def __call__(self, burn_in_slots: jax.Array, num_steps: int,
@@ -140,18 +185,31 @@ class SlotFormer(nn.Module):
       [B, K, N, D] predicted slots.
     """
     self._check_window(burn_in_slots)
+    growing = self.context_length > self.burn_in
+    window = burn_in_slots
+    if growing:
+      # Not-yet-observed frames at the front, masked out until filled.
+      padding = jnp.zeros(
+          (burn_in_slots.shape[0], self.context_length - self.burn_in,
+           *burn_in_slots.shape[2:]), burn_in_slots.dtype)
+      window = jnp.concatenate([padding, burn_in_slots], axis=1)
 
-    def step(predictor, window, teacher):
-      prediction = predictor(window, deterministic=deterministic)
+    def step(predictor, carry, teacher):
+      window, num_valid = carry
+      prediction = predictor(window, num_valid if growing else None,
+                             deterministic=deterministic)
       fed_back = prediction if teacher is None else teacher
       window = jnp.concatenate([window[:, 1:], fed_back[:, None]], axis=1)
-      return window, prediction
+      num_valid = jnp.minimum(num_valid + 1, self.context_length)
+      return (window, num_valid), prediction
 
     rollout = nn.scan(
         step, variable_broadcast='params',
         split_rngs={'params': False, 'dropout': True},
         in_axes=1, out_axes=1, length=num_steps)
-    _, predictions = rollout(self.predictor, burn_in_slots, teacher_slots)
+    _, predictions = rollout(
+        self.predictor, (window, jnp.asarray(self.burn_in, jnp.int32)),
+        teacher_slots)
     return predictions
 
   def _check_window(self, slots: jax.Array):

@@ -20,15 +20,19 @@ class TransformerBlock(nn.Module):
       branches (PyTorch's `nn.TransformerEncoderLayer` convention).
     pre_norm: Pre-LN (LayerNorm before each sub-layer, SlotFormer's choice:
       easier to optimise) or Post-LN.
+    layer_norm_epsilon: 1e-6 (flax) or 1e-5 (PyTorch, the official models).
   """
 
   num_heads: int
   mlp_size: int
   dropout_rate: float = 0.0
   pre_norm: bool = True
+  layer_norm_epsilon: float = 1e-6
 
   @nn.compact
-  def __call__(self, x: jax.Array, *, deterministic: bool = True) -> jax.Array:
+  def __call__(self, x: jax.Array, mask: jax.Array | None = None, *,
+               deterministic: bool = True) -> jax.Array:
+    """x [B, L, D]; mask: optional bool [B, 1, L, L], True = may attend."""
     dim = x.shape[-1]
     attention = nn.MultiHeadDotProductAttention(
         num_heads=self.num_heads, dropout_rate=self.dropout_rate,
@@ -39,13 +43,15 @@ class TransformerBlock(nn.Module):
         nn.Dense(dim),
     ], name='mlp')
     dropout = nn.Dropout(self.dropout_rate, deterministic=deterministic)
-    norm_attention = nn.LayerNorm(name='norm_attention')
-    norm_mlp = nn.LayerNorm(name='norm_mlp')
+    norm_attention = nn.LayerNorm(epsilon=self.layer_norm_epsilon,
+                                  name='norm_attention')
+    norm_mlp = nn.LayerNorm(epsilon=self.layer_norm_epsilon, name='norm_mlp')
 
     def attend(tokens):
       # Attention weights [B, heads, tokens, tokens] are sown into
       # 'intermediates' (recorded only when that collection is mutable).
-      return attention(tokens, deterministic=deterministic, sow_weights=True)
+      return attention(tokens, mask=mask, deterministic=deterministic,
+                       sow_weights=True)
 
     if self.pre_norm:
       x = x + dropout(attend(norm_attention(x)))
@@ -62,12 +68,16 @@ class TransformerEncoder(nn.Module):
   mlp_size: int
   dropout_rate: float = 0.0
   pre_norm: bool = True
+  layer_norm_epsilon: float = 1e-6
 
   @nn.compact
-  def __call__(self, x: jax.Array, *, deterministic: bool = True) -> jax.Array:
+  def __call__(self, x: jax.Array, mask: jax.Array | None = None, *,
+               deterministic: bool = True) -> jax.Array:
+    """x [B, L, D]; mask: optional bool [B, 1, L, L], True = may attend."""
     for i in range(self.num_layers):
       x = TransformerBlock(
           num_heads=self.num_heads, mlp_size=self.mlp_size,
           dropout_rate=self.dropout_rate, pre_norm=self.pre_norm,
-          name=f'block_{i}')(x, deterministic=deterministic)
+          layer_norm_epsilon=self.layer_norm_epsilon,
+          name=f'block_{i}')(x, mask, deterministic=deterministic)
     return x

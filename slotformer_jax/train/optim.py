@@ -1,4 +1,4 @@
-"""Optimiser: Adam with linear warm-up, cosine decay to 0, optional clipping."""
+"""Optimiser: Adam with linear warm-up, cosine decay, optional clipping."""
 
 from __future__ import annotations
 
@@ -7,24 +7,29 @@ import optax
 
 
 def learning_rate_schedule(peak_learning_rate: float, num_steps: int,
-                           warmup_fraction: float) -> optax.Schedule:
-  """0 -> peak linearly over `warmup_fraction` of the steps, then cosine to 0."""
+                           warmup_fraction: float,
+                           min_lr_fraction: float = 0.0) -> optax.Schedule:
+  """floor -> peak linearly over `warmup_fraction` of the steps, then cosine
+  back to floor = min_lr_fraction * peak (0.01 in the official recipe, whose
+  scheduler starts and ends at lr / 100)."""
   warmup_steps = max(1, int(round(warmup_fraction * num_steps)))
+  floor = min_lr_fraction * peak_learning_rate
   return optax.warmup_cosine_decay_schedule(
-      init_value=0.0, peak_value=peak_learning_rate,
+      init_value=floor, peak_value=peak_learning_rate,
       warmup_steps=warmup_steps, decay_steps=max(num_steps, warmup_steps + 1),
-      end_value=0.0)
+      end_value=floor)
 
 
 def make_optimizer(stage_config: ml_collections.ConfigDict
                    ) -> tuple[optax.GradientTransformation, optax.Schedule]:
   """Adam over the stage's schedule; global-norm clipping if `grad_clip` > 0.
 
-  Reads `learning_rate`, `num_train_steps`, `warmup_fraction`, `grad_clip`.
+  Reads `learning_rate`, `num_train_steps`, `warmup_fraction`, `grad_clip`
+  and `min_lr_fraction` (0 when absent).
   """
   schedule = learning_rate_schedule(
       stage_config.learning_rate, stage_config.num_train_steps,
-      stage_config.warmup_fraction)
+      stage_config.warmup_fraction, stage_config.get('min_lr_fraction', 0.0))
   transforms = []
   if stage_config.get('grad_clip'):
     transforms.append(optax.clip_by_global_norm(stage_config.grad_clip))

@@ -61,7 +61,10 @@ def savi_loss(params: Any, batch: Batch, frozen_params: Any, rng: jax.Array,
   """
   del frozen_params
   video = frames_to_model(batch['video'])
-  output = model.apply({'params': params}, video, rngs={'sample': rng})
+  sample_rng, dropout_rng = jax.random.split(rng)
+  # deterministic=False: the predictor's dropout (0.1 officially) is on.
+  output = model.apply({'params': params}, video, deterministic=False,
+                       rngs={'sample': sample_rng, 'dropout': dropout_rng})
   recon_loss = jnp.mean(jnp.square(output.decoded.recon - video))
   kl = jnp.mean(output.kl)
   loss = recon_loss + kl_weight * kl
