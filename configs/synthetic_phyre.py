@@ -11,8 +11,9 @@ Tasks (data/convert/phyre_like.py): 3 templates x 25 tasks, 200 fixed
 candidate actions per task with simulated labels, within-template fold 0
 (80% train, of which 20% dev, 20% test), frames at 2 fps for 5 s, rendered
 at 32x32 here (the generator's default is 64x64).
-SlotFormer observes the first frame only (burn_in = 1): the growing-context
-rollout of the fidelity work (issue 9) is not on this branch.
+SlotFormer observes the first frame only (burn_in = 1) with a fixed window
+(max_context = 0), as in the measured run (docs/downstream.md);
+`--config.slotformer.max_context=6` uses the official growing context.
 """
 
 import ml_collections
@@ -67,6 +68,7 @@ def get_config(variant: str = ''):
 
   dyn = config.slotformer
   dyn.burn_in = 1                # first frame only (see the docstring)
+  dyn.max_context = 0            # official PHYRE: 6 (growing context)
   dyn.rollout = 10
   dyn.embed_dim = 64
   dyn.num_layers = 2

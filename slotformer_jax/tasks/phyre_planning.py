@@ -19,10 +19,9 @@ Protocol (SlotFormer Section 4.4; embedded tasks of data/convert/phyre_like.py):
    AUCCESS (tasks/planning.py) next to random ranking and the oracle
    (simulated labels).
 
-SlotFormer's rollout: the issue asks for the growing context of the
-fidelity work (issue 9); until that lands the context window is
-``slotformer.burn_in`` = 1 frame (the first frame only), which is what the
-config sets.
+SlotFormer's rollout starts from the first frame alone
+(``slotformer.burn_in`` = 1); with ``slotformer.max_context`` > 1 its context
+then grows with its own predictions (the official PHYRE model, 6 frames).
 
 Workdir: ``planning/<condition>/seed_<s>/{params.msgpack, selection.json}``,
 ``planning/results.json``, ``planning/results.md``.
