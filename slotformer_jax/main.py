@@ -15,6 +15,7 @@ checkpoint first (exit status 143). See docs/reliability.md.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 import json
 import logging
 import os
@@ -30,6 +31,7 @@ import tqdm
 
 from slotformer_jax import config_checks
 from slotformer_jax import stages
+from slotformer_jax import tasks
 from slotformer_jax import workdir as workdir_lib
 from slotformer_jax.data.data_dir import default_data_dir
 from slotformer_jax.errors import UserError
@@ -39,8 +41,15 @@ from slotformer_jax.evaluation import visualize
 from slotformer_jax.train import sharding
 from slotformer_jax.train.trainer import Preempted
 
+# Every stage name `--mode` accepts. Which of them a config runs, and in which
+# order `--mode=all` runs them, is `stage_table(config)`.
 MODES = ('all', 'train_savi', 'extract_slots', 'train_slotformer',
-         'train_slot_lstm', 'evaluate', 'render')
+         'train_slot_lstm', 'evaluate', 'render', 'train_readout',
+         'evaluate_readout', 'plan')
+# Downstream tasks (slotformer_jax/tasks/, `config.task`): their stages follow
+# stage 2 instead of the video-prediction evaluation.
+TASK_MODES = {'contact': ('train_readout', 'evaluate_readout'),
+              'planning': ('train_readout', 'plan')}
 
 _CONFIG = config_flags.DEFINE_config_file(
     'config', None, 'Config file, e.g. configs/obj3d.py or '
@@ -107,11 +116,34 @@ def _enable_compilation_cache() -> None:
   jax.config.update('jax_persistent_cache_min_compile_time_secs', 1.0)
 
 
+def stage_table(config) -> dict[str, Callable]:
+  """The stages `config` can run, in the order `--mode=all` runs them."""
+  table = {
+      'train_savi': stages.train_savi,
+      'extract_slots': stages.extract_slots,
+      'train_slotformer': stages.train_slotformer,
+      'train_slot_lstm': stages.train_slot_lstm,
+  }
+  task = config.get('task')
+  if task:
+    table.update(tasks.stages_for(task))
+  else:
+    table.update(evaluate=evaluate.evaluate, render=visualize.render)
+  return table
+
+
 def selected_stages(config, mode: str) -> tuple[str, ...]:
+  table = stage_table(config)
   if mode == 'all':
     # The Slot-LSTM baseline only when the config asks for it.
-    return tuple(m for m in MODES[1:]
+    return tuple(m for m in table
                  if m != 'train_slot_lstm' or config.slot_lstm.train)
+  if mode not in table:
+    raise UserError(
+        f'--mode={mode} does not apply to this config (slot_model='
+        f'{config.slot_model!r}, task={config.get("task")!r}); it runs '
+        f'{", ".join(table)}. Task stages need a task config, e.g. '
+        'configs/synthetic_contact.py or configs/synthetic_phyre.py.')
   return (mode,)
 
 
@@ -151,14 +183,7 @@ def _run(config, workdir: str, selected: tuple[str, ...]) -> None:
   logger.info('%d processes, %d devices (%s)', jax.process_count(),
                jax.device_count(), jax.devices()[0].platform)
 
-  run = {
-      'train_savi': stages.train_savi,
-      'extract_slots': stages.extract_slots,
-      'train_slotformer': stages.train_slotformer,
-      'train_slot_lstm': stages.train_slot_lstm,
-      'evaluate': evaluate.evaluate,
-      'render': visualize.render,
-  }
+  run = stage_table(config)
   wall_times = {}
   for stage in selected:
     started = time.time()

@@ -272,6 +272,8 @@ def get_video_source(data_config: ml_collections.ConfigDict,
           num_workers=data_config.get('num_workers', None))
     return TfdsVideoSource(dataset_dir, split, fix=(
         f'Delete {dataset_dir}: it is regenerated on the next run.'))
+  if name in EMBEDDED_TASK_DATASETS:
+    return _embedded_task_source(data_config, split)
   if name in REAL_DATASETS:
     path = prepared_dataset_path(data_dir, name)
     if not path.is_dir() or not _find_dataset_dirs(path):
@@ -298,8 +300,28 @@ def get_video_source(data_config: ml_collections.ConfigDict,
       raise UserError(f'the converted {name} dataset is damaged: {error}. '
                       f'Convert it again: {reconvert}') from None
     return with_channel_order(source, data_config.get('channel_order', 'rgb'))
-  raise ConfigError(f'Unknown dataset name {name!r}; expected "synthetic" or '
-                   f'one of {REAL_DATASETS}.')
+  raise ConfigError(f'Unknown dataset name {name!r}; expected "synthetic", '
+                    f'one of {EMBEDDED_TASK_DATASETS} or one of '
+                    f'{REAL_DATASETS}.')
+
+
+# The downstream-task families (data/convert/contact.py, phyre_like.py),
+# generated on first use like 'synthetic'.
+EMBEDDED_TASK_DATASETS = ('synthetic_contact', 'synthetic_phyre')
+
+
+def _embedded_task_source(data_config: ml_collections.ConfigDict,
+                          split: str) -> VideoSource:
+  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.data.convert import contact
+  from slotformer_jax.data.convert import phyre_like
+  root = resolve_data_dir(data_config.get('data_dir', None))
+  if data_config.name == 'synthetic_contact':
+    path = contact.build_contact_dataset(
+        contact.config_from_data_config(data_config), root)
+  else:
+    path = phyre_like.build_video_dataset(data_config, root)
+  return TfdsVideoSource(path, split)
 
 
 # ----------------------------------------------------------------------------

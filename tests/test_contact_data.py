@@ -1,0 +1,93 @@
+"""Tests of the embedded Physion-style contact (OCP) generator."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from slotformer_jax.data import synthetic
+from slotformer_jax.data.convert import contact
+
+TINY = contact.ContactConfig(resolution=(16, 16), num_frames=24,
+                             observed_frames=8, supersample=1, num_train=2,
+                             num_readout_train=2, num_readout_val=2,
+                             num_readout_test=2)
+SPHERE = synthetic.SHAPES.index('sphere')
+SMALL = synthetic.SIZES.index('small')
+
+
+def _head_on_scene(patient_x: float) -> synthetic.Scene:
+  """A small yellow sphere at (patient_x, 1); a small red sphere rolling
+  straight up the y axis from (0, -2.4) at 4 m/s."""
+  return synthetic.Scene(
+      shapes=np.array([SPHERE, SPHERE], np.int32),
+      colors=np.array([contact.PATIENT_COLOR, contact.AGENT_COLOR], np.int32),
+      sizes=np.array([SMALL, SMALL], np.int32),
+      xy=np.array([[patient_x, 1.0], [0.0, -2.4]]),
+      yaw=np.zeros(2),
+      launch_velocity=np.array([0.0, 4.0]))
+
+
+def test_known_contact_and_its_onset():
+  out = contact.simulate(_head_on_scene(0.0), TINY, render=False)
+  assert bool(out['contact'])
+  onset = int(out['contact_frame'])
+  # Touching means centre distance = 2 radii; the gap before is closed at
+  # the onset frame and open one frame earlier.
+  radius = synthetic.SIZE_RADII[SMALL]
+  agent, patient = int(out['agent_index']), int(out['patient_index'])
+  gap = np.linalg.norm(out['positions'][:, agent, :2]
+                       - out['positions'][:, patient, :2], axis=-1) - 2 * radius
+  assert gap[onset - 1] > 0.0
+  assert gap[:onset].min() > 0.0
+  # Frame-rate resolution: within one frame's travel (~0.2 m) of touching.
+  assert gap[onset] < 0.25
+  # The patient starts moving only after the hit.
+  speed = np.linalg.norm(out['velocities'][:, patient], axis=-1)
+  assert speed[:onset].max() < 1e-3 and speed[onset:].max() > 0.5
+  # Rolling friction slows the agent: 3.4 m at 4 m/s takes > 0.5 s (10 frames).
+  assert 10 <= onset <= 20
+
+
+def test_known_miss():
+  out = contact.simulate(_head_on_scene(2.0), TINY, render=False)
+  assert not bool(out['contact'])
+  assert int(out['contact_frame']) == -1
+
+
+def test_generator_is_deterministic_and_labels_as_designed():
+  first = [contact.generate_video(TINY, 'readout_val', i) for i in range(2)]
+  again = contact.generate_video(TINY, 'readout_val', 1)
+  for key, value in first[1].items():
+    np.testing.assert_array_equal(value, again[key], err_msg=key)
+  other_seed = contact.generate_video(
+      dataclasses.replace(TINY, seed=1), 'readout_val', 1)
+  assert not np.array_equal(other_seed['video'], again['video'])
+  # Video i wants label i % 2; contacts only after the observed frames.
+  assert [bool(v['contact']) for v in first] == [False, True]
+  assert int(first[1]['contact_frame']) >= TINY.observed_frames
+  video = first[1]
+  assert video['video'].shape == (24, 16, 16, 3)
+  assert video['colors'][int(video['agent_index'])] == contact.AGENT_COLOR
+  assert video['colors'][int(video['patient_index'])] == contact.PATIENT_COLOR
+
+
+def test_bad_config():
+  with pytest.raises(ValueError, match='observed_frames'):
+    contact.ContactConfig(num_frames=8, observed_frames=8)
+
+
+def test_written_dataset_reads_back(tmp_path):
+  from slotformer_jax.data import sources  # pylint: disable=g-import-not-at-top
+  config = dataclasses.replace(TINY, num_train=1, num_readout_train=2,
+                               num_readout_val=0, num_readout_test=0)
+  path = contact.build_contact_dataset(config, tmp_path)
+  source = sources.TfdsVideoSource(path, 'readout_train')
+  assert len(source) == 2
+  item = source[1]
+  expected = contact.generate_video(config, 'readout_train', 1)
+  for key, value in expected.items():
+    np.testing.assert_array_equal(item[key], value, err_msg=key)
+  assert contact.build_contact_dataset(config, tmp_path) == path

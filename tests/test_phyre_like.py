@@ -1,0 +1,90 @@
+"""Tests of the embedded PHYRE-like generator (pymunk)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from slotformer_jax.data.convert import phyre_like as p
+
+CONFIG = p.PhyreLikeConfig(tasks_per_template=5, num_candidates=40)
+
+
+def _action(x: float, y: float, radius: float) -> tuple[float, float, float]:
+  """World (x, y, radius) [m] -> the [0, 1]^3 action."""
+  return (x / p.WORLD, y / p.WORLD,
+          (radius - p.MIN_ACTION_RADIUS)
+          / (p.MAX_ACTION_RADIUS - p.MIN_ACTION_RADIUS))
+
+
+# A green ball balanced on a thin static peg; the goal strip starts just
+# right of the peg. Dropping the red ball on the ball's upper-left shoulder
+# knocks it right, onto the goal; on the upper-right shoulder, left.
+BALANCED = p.Task('hand', 0, (
+    p.Body(p.STATIC, 'box', (5.0, 1.0), size=(0.2, 2.0)),
+    p._goal_strip(1, 5.3),  # pylint: disable=protected-access
+    p.Body(p.GREEN, 'ball', (5.0, 2.5), radius=0.5),
+))
+
+
+def test_known_success_failure_and_invalid_actions():
+  assert p.simulate(BALANCED, None, CONFIG)['outcome'] == p.NOT_SOLVED
+  assert p.simulate(BALANCED, _action(4.4, 4.0, 0.5),
+                    CONFIG)['outcome'] == p.SOLVED
+  assert p.simulate(BALANCED, _action(5.6, 4.0, 0.5),
+                    CONFIG)['outcome'] == p.NOT_SOLVED
+  # Overlapping the green ball, or sticking out of the scene: invalid.
+  assert p.simulate(BALANCED, _action(5.0, 2.8, 0.5),
+                    CONFIG)['outcome'] == p.INVALID
+  assert not p.is_valid(BALANCED, _action(0.2, 5.0, 0.5))
+  # Needs the contact to last: with more time than simulated it cannot pass.
+  strict = dataclasses.replace(CONFIG, success_seconds=CONFIG.sim_seconds)
+  assert p.simulate(BALANCED, _action(4.4, 4.0, 0.5),
+                    strict)['outcome'] == p.NOT_SOLVED
+
+
+def test_render_video_shapes_and_masks():
+  out = p.render_video(BALANCED, _action(4.4, 4.0, 0.5), CONFIG)
+  assert out['video'].shape == (CONFIG.num_frames, 64, 64, 3)
+  assert out['segmentations'].shape == (CONFIG.num_frames, 64, 64)
+  assert int(out['outcome']) == p.SOLVED
+  # Ids: peg 1, goal 2, green 3, red ball 4; all visible in frame 0.
+  np.testing.assert_array_equal(np.unique(out['segmentations'][0]),
+                                [0, 1, 2, 3, 4])
+  green = out['segmentations'][0] == 3
+  # Edge pixels are blended by anti-aliasing; most are pure green.
+  pure = (out['video'][0][green] == p.KIND_RGB[p.GREEN]).all(-1)
+  assert pure.mean() > 0.5
+  # The ball falls: its mask moves down the image.
+  rows = [np.nonzero(m == 4)[0].mean() for m in out['segmentations'][:3]]
+  assert rows[0] < rows[1] < rows[2]
+
+
+def test_generator_is_deterministic_and_split_within_templates():
+  actions = p.candidate_actions(CONFIG)
+  np.testing.assert_array_equal(actions, p.candidate_actions(CONFIG))
+  task = p.make_task(CONFIG, 'tower', 3)
+  assert task == p.make_task(CONFIG, 'tower', 3)
+  assert task != p.make_task(dataclasses.replace(CONFIG, seed=1), 'tower', 3)
+  labels = p.label_candidates(task, actions, CONFIG)
+  np.testing.assert_array_equal(labels,
+                                p.label_candidates(task, actions, CONFIG))
+  video = p.render_video(task, actions[labels != p.INVALID][0], CONFIG)
+  again = p.render_video(task, actions[labels != p.INVALID][0], CONFIG)
+  np.testing.assert_array_equal(video['video'], again['video'])
+  splits = p.split_tasks(CONFIG)
+  for template in CONFIG.templates:
+    train = [t.index for t in splits['train'] if t.template == template]
+    test = [t.index for t in splits['test'] if t.template == template]
+    assert len(train) == 4 and len(test) == 1
+    assert sorted(train + test) == list(range(5))
+  other_fold = p.split_tasks(dataclasses.replace(CONFIG, fold=1))
+  assert ([t.index for t in other_fold['test']]
+          != [t.index for t in splits['test']])
+
+
+def test_bad_config():
+  with pytest.raises(ValueError, match='unknown templates'):
+    p.PhyreLikeConfig(templates=('seesaw',))
