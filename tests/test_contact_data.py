@@ -7,7 +7,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from slotformer_jax.data import synthetic
+from slotformer_jax.data.convert import synthetic
 from slotformer_jax.data.convert import contact
 
 TINY = contact.ContactConfig(resolution=(16, 16), num_frames=24,

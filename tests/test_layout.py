@@ -51,6 +51,14 @@ def test_evaluation_imports_no_training_code():
     assert not reached & set(TRAINING), (path.name, reached & set(TRAINING))
 
 
+def test_tasks_import_no_training_code():
+  # The downstream tasks train their own readouts (tasks/readout.py) but read
+  # SAVi and SlotFormer only through inference.py.
+  for path in (PACKAGE / 'tasks').glob('*.py'):
+    reached = _closure(_module(path))
+    assert not reached & set(TRAINING), (path.name, reached & set(TRAINING))
+
+
 def test_inference_and_workdir_import_no_training_code():
   for name in ('slotformer_jax.inference', 'slotformer_jax.workdir'):
     assert not _closure(name) & set(TRAINING), name

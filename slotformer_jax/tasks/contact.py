@@ -38,12 +38,12 @@ from PIL import Image
 from PIL import ImageDraw
 
 from slotformer_jax import models
-from slotformer_jax import stages
+from slotformer_jax import inference
+from slotformer_jax import workdir as workdir_lib
 from slotformer_jax.data.slots import SlotSource
 from slotformer_jax.data.sources import get_video_source
 from slotformer_jax.modules import readouts
 from slotformer_jax.tasks import readout as readout_lib
-from slotformer_jax.train import steps
 
 logger = logging.getLogger(__name__)
 
@@ -76,7 +76,7 @@ def load_split(config: ml_collections.ConfigDict, workdir: str, split: str
   reads the first 75 frames). Videos whose label is negative (unlabelled)
   are an error.
   """
-  directory = stages.slots_dir(stages.stage1_workdir(config, workdir), split)
+  directory = workdir_lib.slots_dir(workdir_lib.stage1_workdir(config, workdir), split)
   source = SlotSource(directory)  # names --mode=extract_slots when missing
   video_len = config.readout.get('video_len') or None
   slots = np.stack([source[i]['slots'][:video_len]
@@ -131,13 +131,13 @@ def rollout_fn(config: ml_collections.ConfigDict, workdir: str, mesh: Mesh):
   """observed slots [V, O, N, D], steps -> SlotFormer's rollout [V, K, N, D]
   at the slots' frame rate (interleaved when SlotFormer was trained on
   every ``slotformer.frame_stride``-th frame)."""
-  params, step = stages.load_slotformer_params(config, workdir, mesh)
+  params, step = inference.load_dynamics_params(config, workdir, mesh)
   logger.info('rollouts from SlotFormer step %d', step)
   model = models.build_slotformer(config)
   batch = config.readout.rollout_batch_size
 
   def predict(context: np.ndarray, num_steps: int) -> np.ndarray:
-    run = jax.jit(functools.partial(steps.rollout_slots, model=model,
+    run = jax.jit(functools.partial(inference.rollout_slots, model=model,
                                     num_steps=num_steps))
     return np.concatenate([np.asarray(run(params, context[i:i + batch]))
                            for i in range(0, len(context), batch)])
@@ -286,9 +286,9 @@ def write_pictures(config: ml_collections.ConfigDict, workdir: str,
   """readout/test_<i>.png: real frames over SAVi's decoding of [observed,
   SlotFormer rollout] slots (green border: observed, red: rolled out), with
   the readout's contact probability (first seed) and the truth."""
-  savi_params, _ = stages.load_savi_params(config, workdir, mesh)
+  savi_params, _ = inference.load_savi_params(config, workdir, mesh)
   decoder = models.build_decoder(config)
-  decode = jax.jit(lambda slots: steps.decode_slots(
+  decode = jax.jit(lambda slots: inference.decode_slots(
       savi_params['decoder'], slots, decoder=decoder).recon)
   videos = get_video_source(config.data, readout_splits(config)[2])
   observed = config.readout.observed_frames

@@ -45,13 +45,13 @@ from PIL import Image
 from PIL import ImageDraw
 
 from slotformer_jax import models
-from slotformer_jax import stages
+from slotformer_jax import inference
+from slotformer_jax import workdir as workdir_lib
 from slotformer_jax.data.convert import phyre_like
 from slotformer_jax.data.sources import resolve_data_dir
 from slotformer_jax.modules import readouts
 from slotformer_jax.tasks import planning
 from slotformer_jax.tasks import readout as readout_lib
-from slotformer_jax.train import steps
 
 logger = logging.getLogger(__name__)
 
@@ -104,8 +104,8 @@ class SlotFeatures:
   def __init__(self, config: ml_collections.ConfigDict, workdir: str,
                mesh: Mesh):
     self._resolution = tuple(config.data.resolution)
-    savi_params, _ = stages.load_savi_params(config, workdir, mesh)
-    dynamics_params, step = stages.load_slotformer_params(config, workdir,
+    savi_params, _ = inference.load_savi_params(config, workdir, mesh)
+    dynamics_params, step = inference.load_dynamics_params(config, workdir,
                                                           mesh)
     logger.info('planning with SlotFormer step %d', step)
     if config.slotformer.burn_in != 1:
@@ -118,9 +118,9 @@ class SlotFeatures:
 
     @jax.jit
     def features(frames):
-      slots, _ = steps.savi_encode(savi_params, frames[:, None],
+      slots, _ = inference.savi_encode(savi_params, frames[:, None],
                                    jax.random.key(0), None, model=savi)
-      rollout = steps.rollout_slots(dynamics_params, slots, model=slotformer,
+      rollout = inference.rollout_slots(dynamics_params, slots, model=slotformer,
                                     num_steps=num_steps)
       return jnp.concatenate([slots, rollout], axis=1)
 

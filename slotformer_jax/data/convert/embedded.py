@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 import tensorflow_datasets as tfds
 
-from slotformer_jax.data import synthetic
+from slotformer_jax.data.convert import synthetic
 
 VERSION = '1.0.0'
 

@@ -41,7 +41,7 @@ import numpy as np
 import pymunk
 import tensorflow_datasets as tfds
 
-from slotformer_jax.data import synthetic
+from slotformer_jax.data.convert import synthetic
 from slotformer_jax.data.convert import embedded
 
 GENERATOR_VERSION = 1
