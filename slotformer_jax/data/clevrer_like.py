@@ -385,6 +385,7 @@ class EventLog:
     entering: (object, frame) of objects coming into view after frame 0.
     exiting: (object, frame) of objects leaving the view.
     moving_at_end: per object, whether it moves at the last observed frame.
+    in_view_at_end: per object, whether it is in view at that frame.
     final_positions: per object, its centre [x, y, z] at the last simulated
       frame (None if it never appeared).
     counterfactual: removed object -> collisions in the world without it.
@@ -397,6 +398,7 @@ class EventLog:
   entering: list[tuple[int, int]] = dataclasses.field(default_factory=list)
   exiting: list[tuple[int, int]] = dataclasses.field(default_factory=list)
   moving_at_end: list[bool] = dataclasses.field(default_factory=list)
+  in_view_at_end: list[bool] = dataclasses.field(default_factory=list)
   final_positions: list[list[float] | None] = dataclasses.field(
       default_factory=list)
   counterfactual: dict[int, list[Collision]] = dataclasses.field(
@@ -430,6 +432,7 @@ class EventLog:
         entering=[tuple(e) for e in d['entering']],
         exiting=[tuple(e) for e in d['exiting']],
         moving_at_end=list(d['moving_at_end']),
+        in_view_at_end=list(d['in_view_at_end']),
         final_positions=list(d['final_positions']),
         counterfactual={int(k): collisions(v)
                         for k, v in d['counterfactual'].items()})
@@ -475,6 +478,7 @@ def event_log(scene: Scene, simulation: dict[str, Any],
       moving_at_end=[bool(simulation['present'][last, i]
                           and simulation['speeds'][last, i] > MOVING_SPEED)
                      for i in range(n)],
+      in_view_at_end=[bool(simulation['in_view'][last, i]) for i in range(n)],
       final_positions=final,
       counterfactual={k: [Collision((a, b), f) for a, b, f, _ in
                           sim['collisions']]
