@@ -28,7 +28,9 @@ class TransformerBlock(nn.Module):
   pre_norm: bool = True
 
   @nn.compact
-  def __call__(self, x: jax.Array, *, deterministic: bool = True) -> jax.Array:
+  def __call__(self, x: jax.Array, *, deterministic: bool = True,
+               mask: jax.Array | None = None) -> jax.Array:
+    """``mask``: optional bool [batch, 1, tokens, tokens], True = attend."""
     dim = x.shape[-1]
     attention = nn.MultiHeadDotProductAttention(
         num_heads=self.num_heads, dropout_rate=self.dropout_rate,
@@ -45,7 +47,8 @@ class TransformerBlock(nn.Module):
     def attend(tokens):
       # Attention weights [B, heads, tokens, tokens] are sown into
       # 'intermediates' (recorded only when that collection is mutable).
-      return attention(tokens, deterministic=deterministic, sow_weights=True)
+      return attention(tokens, mask=mask, deterministic=deterministic,
+                       sow_weights=True)
 
     if self.pre_norm:
       x = x + dropout(attend(norm_attention(x)))
@@ -64,10 +67,11 @@ class TransformerEncoder(nn.Module):
   pre_norm: bool = True
 
   @nn.compact
-  def __call__(self, x: jax.Array, *, deterministic: bool = True) -> jax.Array:
+  def __call__(self, x: jax.Array, *, deterministic: bool = True,
+               mask: jax.Array | None = None) -> jax.Array:
     for i in range(self.num_layers):
       x = TransformerBlock(
           num_heads=self.num_heads, mlp_size=self.mlp_size,
           dropout_rate=self.dropout_rate, pre_norm=self.pre_norm,
-          name=f'block_{i}')(x, deterministic=deterministic)
+          name=f'block_{i}')(x, deterministic=deterministic, mask=mask)
     return x
