@@ -114,3 +114,30 @@ def test_generate_video_render_and_event_log_roundtrip():
 def test_config_rejects_too_many_objects():
   with pytest.raises(ValueError):
     clevrer_like.ClevrerLikeConfig(max_objects=7, max_entering=2)
+
+
+def test_build_dataset_writes_videos_questions_and_vocabulary(tmp_path):
+  import json  # pylint: disable=g-import-not-at-top
+  import ml_collections  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.data import sources  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.data import vqa  # pylint: disable=g-import-not-at-top
+  data = ml_collections.ConfigDict(dict(
+      name='clevrer_like', data_dir=str(tmp_path), observed_frames=12,
+      predicted_frames=8, num_train=3, num_val=1, num_test=2, num_workers=1))
+  source = sources.get_video_source(data, 'test')
+  assert len(source) == 2
+  item = source[1]
+  assert item['video'].shape == (20, 32, 32, 3)
+  config = clevrer_like.config_from_data_config(data)
+  np.testing.assert_array_equal(
+      item['video'], clevrer_like.generate_video(config, 'test', 1)['video'])
+  root = clevrer_like.dataset_dir(config, tmp_path)
+  vocab = vqa.Vocabulary.load(root / 'vocab.json')
+  scenes = vqa.read_clevrer_questions(root, 'test')
+  assert [s['scene_index'] for s in scenes] == [15000, 15001]
+  # Every generated question encodes with the stored vocabulary.
+  vqa.encode_scenes(scenes, vocab, 20, 12)
+  with open(root / 'test' / 'events.jsonl') as f:
+    logs = [clevrer_like.EventLog.from_dict(json.loads(line)) for line in f]
+  assert logs[1] == clevrer_like.generate_video(
+      config, 'test', 1, render=False)['events']

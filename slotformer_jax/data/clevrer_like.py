@@ -31,9 +31,14 @@ Object ids are 0-based rows of the per-object arrays (mask id = row + 1).
 
 from __future__ import annotations
 
+import concurrent.futures
 import dataclasses
+import functools
 import hashlib
 import json
+import multiprocessing
+import os
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -519,3 +524,123 @@ def generate_video(config: ClevrerLikeConfig, split: str, index: int, *,
              index=np.array(index, np.int32),
              events=event_log(scene, sim, config, counterfactuals))
   return out
+
+
+# ----------------------------------------------------------------------------
+# Storage: frames as .npy per split (memory-mapped when read), event logs,
+# questions in CLEVRER's layout and the vocabulary
+# ----------------------------------------------------------------------------
+#
+#   <data_dir>/clevrer_like/<slug>/
+#     <split>/{video,segmentations,boxes,visible,num_objects}.npy
+#     <split>/events.jsonl          one EventLog per video, in index order
+#     questions/{train,validation,test}.json   (CLEVRER's file names)
+#     vocab.json                    {'q_vocab', 'a_vocab'}
+#     complete.json                 written last: the build finished
+
+DATASET_NAME = 'clevrer_like'
+ARRAY_FIELDS = ('video', 'segmentations', 'boxes', 'visible', 'num_objects')
+# scene_index = offset + video index, as CLEVRER numbers its splits.
+SCENE_OFFSETS = {'train': 0, 'val': 10000, 'test': 15000}
+_COMPLETE = 'complete.json'
+
+
+def video_filename(split: str, index: int) -> str:
+  return f'video_{SCENE_OFFSETS[split] + index:05d}.mp4'
+
+
+def dataset_dir(config: ClevrerLikeConfig, data_dir: str | os.PathLike[str]
+                ) -> Path:
+  return Path(data_dir) / DATASET_NAME / config.slug
+
+
+def _video_for_worker(config: ClevrerLikeConfig, split: str, index: int
+                      ) -> dict[str, Any]:
+  video = generate_video(config, split, index)
+  video['events'] = video['events'].to_dict()
+  return {k: video[k] for k in ARRAY_FIELDS + ('events',)}
+
+
+def build_dataset(config: ClevrerLikeConfig,
+                  data_dir: str | os.PathLike[str], *,
+                  num_workers: int | None = None) -> Path:
+  """Generates videos, event logs, questions and vocabulary unless present.
+
+  Returns the dataset folder. Deterministic: a pure function of ``config``
+  (the worker count does not matter).
+  """
+  # Imported here: the question generator imports this module.
+  from slotformer_jax.data import questions as question_generator  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.data import vqa  # pylint: disable=g-import-not-at-top
+  root = dataset_dir(config, data_dir)
+  if (root / _COMPLETE).is_file():
+    return root
+  root.mkdir(parents=True, exist_ok=True)
+  workers = num_workers or len(os.sched_getaffinity(0))
+  all_scenes = {}
+  for split in SPLITS:
+    count = config.num_videos(split)
+    make = functools.partial(_video_for_worker, config, split)
+    if workers <= 1 or count < 2:
+      videos = [make(i) for i in range(count)]
+    else:
+      with concurrent.futures.ProcessPoolExecutor(
+          min(workers, count),
+          mp_context=multiprocessing.get_context('spawn')) as pool:
+        videos = list(pool.map(make, range(count), chunksize=4))
+    folder = root / split
+    folder.mkdir(exist_ok=True)
+    if count:
+      for field in ARRAY_FIELDS:
+        np.save(folder / f'{field}.npy', np.stack([v[field] for v in videos]))
+    with open(folder / 'events.jsonl', 'w') as f:
+      for v in videos:
+        f.write(json.dumps(v['events']) + '\n')
+    logs = [EventLog.from_dict(v['events']) for v in videos]
+    all_scenes[split] = question_generator.generate_split(
+        logs, config.seed, split,
+        video_filenames=[video_filename(split, i) for i in range(count)],
+        scene_offset=SCENE_OFFSETS[split])
+  (root / 'questions').mkdir(exist_ok=True)
+  for split, scenes in all_scenes.items():
+    with open(root / 'questions' / vqa.CLEVRER_SPLIT_FILES[split], 'w') as f:
+      json.dump(scenes, f)
+  vqa.Vocabulary(
+      vqa.make_vocabulary(question_generator.template_words()),
+      vqa.make_vocabulary(question_generator.template_answers()),
+  ).save(root / 'vocab.json')
+  with open(root / _COMPLETE, 'w') as f:
+    json.dump(dataclasses.asdict(config), f)
+  return root
+
+
+class NpyVideoSource:
+  """The videos of one split of a built dataset (frames memory-mapped).
+
+  Items: video uint8 [T, H, W, 3], segmentations uint8 [T, H, W], boxes
+  float32 [T, O, 4], visible bool [T, O], num_objects int32 [], index.
+  """
+
+  def __init__(self, root: str | os.PathLike[str], split: str):
+    folder = Path(root) / split
+    self._arrays = {field: np.load(folder / f'{field}.npy', mmap_mode='r')
+                    for field in ARRAY_FIELDS}
+
+  def __len__(self) -> int:
+    return len(self._arrays['video'])
+
+  def __getitem__(self, index: int) -> dict[str, np.ndarray]:
+    if not 0 <= index < len(self):
+      raise IndexError(index)
+    item = {k: np.asarray(v[index]) for k, v in self._arrays.items()}
+    item['index'] = np.array(index, np.int32)
+    return item
+
+
+def config_from_data_config(data_config: Any) -> ClevrerLikeConfig:
+  """The generation parameters named by a data config (defaults filled in)."""
+  fields = {f.name for f in dataclasses.fields(ClevrerLikeConfig)}
+  values = {k: data_config[k] for k in fields if k in data_config}
+  if 'resolution' in values:
+    values['resolution'] = tuple(values['resolution'])
+  return ClevrerLikeConfig(**values)

@@ -254,6 +254,14 @@ def get_video_source(data_config: ml_collections.ConfigDict,
         config, resolve_data_dir(data_dir),
         num_workers=data_config.get('num_workers', None))
     return TfdsVideoSource(dataset_dir, split)
+  if name == 'clevrer_like':
+    # The CLEVRER-like VQA family (issue 12); imported here, it is optional.
+    from slotformer_jax.data import clevrer_like  # pylint: disable=g-import-not-at-top
+    root = clevrer_like.build_dataset(
+        clevrer_like.config_from_data_config(data_config),
+        resolve_data_dir(data_dir),
+        num_workers=data_config.get('num_workers', None))
+    return clevrer_like.NpyVideoSource(root, split)
   if name in REAL_DATASETS:
     path = prepared_dataset_path(data_dir, name)
     if not path.is_dir() or not _find_dataset_dirs(path):
