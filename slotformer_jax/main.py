@@ -31,6 +31,8 @@ from slotformer_jax.train import sharding
 
 MODES = ('all', 'train_savi', 'extract_slots', 'train_slotformer',
          'train_slot_lstm', 'evaluate', 'render')
+# CLEVRER-style VQA (configs with a `vqa` section): slots + rollout, Aloe.
+VQA_MODES = ('vqa_slots', 'train_vqa', 'evaluate_vqa')
 
 _CONFIG = config_flags.DEFINE_config_file(
     'config', None, 'Config file, e.g. configs/obj3d.py or '
@@ -38,7 +40,8 @@ _CONFIG = config_flags.DEFINE_config_file(
 _WORKDIR = flags.DEFINE_string(
     'workdir', None, 'Folder for checkpoints, slots, metrics and pictures.',
     required=True)
-_MODE = flags.DEFINE_enum('mode', 'all', MODES, 'Which stage(s) to run.')
+_MODE = flags.DEFINE_enum('mode', 'all', MODES + VQA_MODES,
+                          'Which stage(s) to run.')
 _DISTRIBUTED = flags.DEFINE_bool(
     'distributed', False, 'Call jax.distributed.initialize() first (one '
     'process per host on a TPU pod or multi-node GPU cluster).')
@@ -109,11 +112,21 @@ def main(argv):
       'evaluate': evaluate.evaluate,
       'render': visualize.render,
   }
+  if 'vqa' in config:
+    from slotformer_jax import vqa_stages  # pylint: disable=g-import-not-at-top
+    run.update(vqa_slots=vqa_stages.vqa_slots, train_vqa=vqa_stages.train_vqa,
+               evaluate_vqa=vqa_stages.evaluate_vqa)
   wall_times = {}
-  if mode == 'all':
+  if mode == 'all' and 'vqa' in config:
+    # VQA configs: the slots and SlotFormer Aloe reads, then Aloe.
+    selected = ('train_savi', 'extract_slots', 'train_slotformer') + VQA_MODES
+  elif mode == 'all':
     # The Slot-LSTM baseline only when the config asks for it.
     selected = tuple(m for m in MODES[1:]
                      if m != 'train_slot_lstm' or config.slot_lstm.train)
+  elif mode in VQA_MODES and mode not in run:
+    raise app.UsageError(f'--mode={mode} needs a config with a vqa section, '
+                         'e.g. configs/synthetic_vqa.py')
   else:
     selected = (mode,)
   for stage in selected:

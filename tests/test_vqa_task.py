@@ -144,3 +144,19 @@ def test_answer_prior_and_prediction_file():
               {'choice_id': 1, 'answer': 'wrong'},
               {'choice_id': 2, 'answer': 'correct'}]},
           {'question_id': 1, 'answer': 'PAD'}]}]
+
+
+def test_rollout_after_video_interleaves_strided_predictions():
+  # A "dynamics model" that continues the frame index linearly: slot value
+  # = frame number, so every predicted frame must equal its index.
+  def rollout(history, steps):
+    step = history[:, 1] - history[:, 0]
+    return history[:, -1:] + step[:, None] * np.arange(
+        1, steps + 1)[None, :, None, None]
+  observed = np.arange(20, dtype=np.float32)[None, :, None, None] * np.ones(
+      (2, 1, 3, 1))
+  for stride in (1, 2, 3):
+    future = task.rollout_after_video(rollout, observed, burn_in=4,
+                                      stride=stride, num_frames=7)
+    assert future.shape == (2, 7, 3, 1)
+    assert future[0, :, 0, 0].tolist() == list(range(20, 27))

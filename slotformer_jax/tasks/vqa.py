@@ -73,6 +73,36 @@ def question_frames(start: int, *, video_length: int, available: int,
   return indices
 
 
+def rollout_after_video(rollout: Callable[[np.ndarray, int], np.ndarray],
+                        observed: np.ndarray, *, burn_in: int, stride: int,
+                        num_frames: int) -> np.ndarray:
+  """The ``num_frames`` slot frames after the video, from a dynamics model.
+
+  A model trained on every ``stride``-th frame predicts every
+  ``stride``-th frame: as the official CLEVRER rollout, run it ``stride``
+  times, from the histories ending at the last ``stride`` observed frames
+  (offsets 0..stride-1), and interleave the predictions.
+
+  Args:
+    rollout: (history [B, burn_in, N, D], steps) -> [B, steps, N, D].
+    observed: [B, T, N, D] slots of the video (T >= burn_in * stride).
+
+  Returns:
+    [B, num_frames, N, D]; frame k is video frame T + k.
+  """
+  t = observed.shape[1]
+  if t < burn_in * stride:
+    raise ValueError(f'{t} observed frames < burn_in {burn_in} x stride '
+                     f'{stride}')
+  steps = -(-num_frames // stride)
+  per_offset = []
+  for offset in range(stride):
+    history = observed[:, t - burn_in * stride + offset::stride][:, :burn_in]
+    per_offset.append(np.asarray(rollout(history, steps)))
+  frames = [per_offset[k % stride][:, k // stride] for k in range(num_frames)]
+  return np.stack(frames, axis=1)
+
+
 # ----------------------------------------------------------------------------
 # Batches
 # ----------------------------------------------------------------------------
