@@ -58,9 +58,9 @@ def main() -> None:
              for t, m in COLUMNS]
     print('| answer prior | - | ' + ' | '.join(cells) + ' |')
   counts = runs[next(iter(runs))][0] if runs else {}
+  types = dict.fromkeys(t for t, _ in COLUMNS)
   print('\nquestions: ' + ', '.join(
-      f'{t} {counts[t]["questions"]}' for t, _ in COLUMNS[::2] if t in counts
-  ) if counts else '')
+      f'{t} {counts[t]["questions"]}' for t in types if t in counts))
 
 
 if __name__ == '__main__':
