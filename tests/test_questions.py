@@ -228,3 +228,23 @@ def test_official_vocabulary_conventions():
   assert answers['blue'] == 7 and answers['yellow'] == 20
   assert vqa.tokenize('What is the shape of the cube, that enters?') == [
       'what', 'is', 'the', 'shape', 'of', 'the', 'cube,', 'that', 'enters']
+
+
+def test_synthetic_vqa_config_fits_every_template():
+  import importlib.util  # pylint: disable=g-import-not-at-top
+  import os  # pylint: disable=g-import-not-at-top
+  spec = importlib.util.spec_from_file_location(
+      'synthetic_vqa', os.path.join(os.path.dirname(__file__), '..',
+                                    'configs', 'synthetic_vqa.py'))
+  module = importlib.util.module_from_spec(spec)
+  spec.loader.exec_module(module)
+  config = module.get_config()
+  question, choice = qg.max_lengths()
+  assert question == 17 and choice == 10  # the explanatory template
+  assert config.vqa.max_question_len >= question
+  assert config.vqa.max_choice_len >= choice
+  # The counted worst case is real: encode it.
+  vocab = vqa.make_vocabulary(qg.template_words())
+  text = qg.TEMPLATES['responsible'][1].format(a='green cylinder',
+                                               b='blue sphere')
+  vqa.encode_text(text, vocab, question)

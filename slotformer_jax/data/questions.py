@@ -337,3 +337,12 @@ def template_answers() -> list[str]:
   """Every open answer the descriptive templates can give."""
   return sorted([str(k) for k in range(MAX_COUNT + 1)] + list(COLORS)
                 + list(SHAPES) + ['no', 'yes'])
+
+
+def max_lengths() -> tuple[int, int]:
+  """(words of the longest question, of the longest choice) any template can
+  produce (every object name is two words)."""
+  def words(text: str) -> int:
+    return len(text.split()) + text.count('{')  # "{obj}" -> 2 words
+  return (max(words(t) for _, t in TEMPLATES.values()),
+          max(words(t) for t in CHOICE_TEMPLATES.values()))
