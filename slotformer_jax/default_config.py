@@ -199,3 +199,50 @@ def use_official_slotformer_recipe(config: ml_collections.ConfigDict) -> None:
   dyn.dropout_rate = 0.1
   dyn.layer_norm_epsilon = 1e-5
   dyn.init = 'pytorch'
+
+
+def vqa_config() -> ml_collections.ConfigDict:
+  """The VQA section (`config.vqa`, CLEVRER-style questions with Aloe).
+
+  Defaults are the official CLEVRER values (configs/clevrer_vqa.py);
+  configs/synthetic_vqa.py shrinks them for a 2-core CPU.
+  """
+  vqa = ml_collections.ConfigDict()
+  # Which slots Aloe reads: 'observed' (SAVi's slots of the video),
+  # 'rollout' (plus SlotFormer's rollout after it, read by predictive
+  # questions), 'blind' (zeros: the question-only baseline).
+  vqa.inputs = 'rollout'
+  vqa.seed = 0  # Aloe's initialisation and question order (runs per seed)
+  vqa.video_length = 128  # observed frames of a video
+  vqa.rollout_frames = 32  # frames rolled out after it (official: to 160)
+  vqa.num_frames = 25  # slot frames per question ...
+  vqa.frame_stride = 5  # ... with this stride (128 // 25), random start
+  vqa.max_question_len = 20
+  vqa.max_choice_len = 12
+  vqa.max_choices = 6  # padded choices per multiple-choice question
+  # Aloe: d_model = (word_dim + 2 flags + 2 type) * num_heads = 144.
+  vqa.word_dim = 14
+  vqa.d_model = 144
+  vqa.num_layers = 12
+  vqa.num_heads = 8
+  vqa.mlp_size = 512
+  vqa.head_size = 128
+  vqa.dropout_rate = 0.1  # nn.TransformerEncoderLayer's default
+  vqa.positions = 'token'  # 'token' (official) or 'frame'
+  # Training: Adam, 10% warm-up then cosine (official: 400 epochs, batch 256
+  # over 2 GPUs, lr 1e-3; its cosine ends at lr / 100, ours at 0).
+  vqa.open_batch_size = 128  # descriptive questions per step
+  vqa.choice_batch_size = 128  # multiple-choice questions per step
+  vqa.num_train_steps = 240_000
+  vqa.learning_rate = 1e-3
+  vqa.warmup_fraction = 0.1
+  vqa.grad_clip = 0.0
+  vqa.log_every = 100
+  vqa.checkpoint_every = 2000
+  vqa.eval_split = 'val'
+  vqa.eval_batch_size = 64
+  # Where CLEVRER's questions/ and vocabulary live (real data); the embedded
+  # family ('clevrer_like') keeps them in its dataset folder.
+  vqa.questions_root = ml_collections.config_dict.placeholder(str)
+  vqa.vocab_file = ml_collections.config_dict.placeholder(str)
+  return vqa

@@ -45,11 +45,12 @@ from slotformer_jax.train.trainer import Preempted
 # order `--mode=all` runs them, is `stage_table(config)`.
 MODES = ('all', 'train_savi', 'extract_slots', 'train_slotformer',
          'train_slot_lstm', 'evaluate', 'render', 'train_readout',
-         'evaluate_readout', 'plan')
+         'evaluate_readout', 'plan', 'vqa_slots', 'train_vqa', 'evaluate_vqa')
 # Downstream tasks (slotformer_jax/tasks/, `config.task`): their stages follow
 # stage 2 instead of the video-prediction evaluation.
 TASK_MODES = {'contact': ('train_readout', 'evaluate_readout'),
-              'planning': ('train_readout', 'plan')}
+              'planning': ('train_readout', 'plan'),
+              'vqa': ('vqa_slots', 'train_vqa', 'evaluate_vqa')}
 
 _CONFIG = config_flags.DEFINE_config_file(
     'config', None, 'Config file, e.g. configs/obj3d.py or '
@@ -125,7 +126,12 @@ def stage_table(config) -> dict[str, Callable]:
       'train_slot_lstm': stages.train_slot_lstm,
   }
   task = config.get('task')
-  if task:
+  if 'vqa' in config:  # CLEVRER-style VQA: Aloe over slots + rollout
+    from slotformer_jax import vqa_stages  # pylint: disable=g-import-not-at-top
+    table.update(vqa_slots=vqa_stages.vqa_slots,
+                 train_vqa=vqa_stages.train_vqa,
+                 evaluate_vqa=vqa_stages.evaluate_vqa)
+  elif task:
     table.update(tasks.stages_for(task))
   else:
     table.update(evaluate=evaluate.evaluate, render=visualize.render)
@@ -143,7 +149,8 @@ def selected_stages(config, mode: str) -> tuple[str, ...]:
         f'--mode={mode} does not apply to this config (slot_model='
         f'{config.slot_model!r}, task={config.get("task")!r}); it runs '
         f'{", ".join(table)}. Task stages need a task config, e.g. '
-        'configs/synthetic_contact.py or configs/synthetic_phyre.py.')
+        'configs/synthetic_contact.py, configs/synthetic_phyre.py or '
+        'configs/synthetic_vqa.py.')
   return (mode,)
 
 

@@ -110,3 +110,20 @@ def build_dynamics(config: ml_collections.ConfigDict,
     return build_slot_lstm(config)
   raise ValueError(f'unknown dynamics model {name!r}; one of '
                    f'{DYNAMICS_MODELS}')
+
+
+def build_aloe(config: ml_collections.ConfigDict, vocab_size: int,
+               num_answers: int) -> 'Aloe':
+  """Aloe for `config.vqa` over `config.savi`'s slots."""
+  # Imported here: the VQA model is optional for the video pipeline.
+  from slotformer_jax.modules.aloe import Aloe  # pylint: disable=g-import-not-at-top
+  vqa = config.vqa
+  return Aloe(
+      vocab_size=vocab_size, num_answers=num_answers,
+      num_frames=vqa.num_frames, num_slots=config.savi.num_slots,
+      text_length=vqa.max_question_len + vqa.max_choice_len,
+      question_length=vqa.max_question_len, d_model=vqa.d_model,
+      word_dim=vqa.word_dim, num_layers=vqa.num_layers,
+      num_heads=vqa.num_heads, mlp_size=vqa.mlp_size,
+      head_size=vqa.head_size, dropout_rate=vqa.dropout_rate,
+      positions=vqa.positions)

@@ -274,6 +274,14 @@ def get_video_source(data_config: ml_collections.ConfigDict,
         f'Delete {dataset_dir}: it is regenerated on the next run.'))
   if name in EMBEDDED_TASK_DATASETS:
     return _embedded_task_source(data_config, split)
+  if name == 'clevrer_like':
+    # The CLEVRER-like VQA family, generated on first use like 'synthetic'.
+    from slotformer_jax.data import clevrer_like  # pylint: disable=g-import-not-at-top
+    root = clevrer_like.build_dataset(
+        clevrer_like.config_from_data_config(data_config),
+        resolve_data_dir(data_dir),
+        num_workers=data_config.get('num_workers', None))
+    return clevrer_like.NpyVideoSource(root, split)
   if name in REAL_DATASETS:
     path = prepared_dataset_path(data_dir, name)
     if not path.is_dir() or not _find_dataset_dirs(path):
@@ -301,8 +309,8 @@ def get_video_source(data_config: ml_collections.ConfigDict,
                       f'Convert it again: {reconvert}') from None
     return with_channel_order(source, data_config.get('channel_order', 'rgb'))
   raise ConfigError(f'Unknown dataset name {name!r}; expected "synthetic", '
-                    f'one of {EMBEDDED_TASK_DATASETS} or one of '
-                    f'{REAL_DATASETS}.')
+                    f'"clevrer_like", one of {EMBEDDED_TASK_DATASETS} or one '
+                    f'of {REAL_DATASETS}.')
 
 
 # The downstream-task families (data/convert/contact.py, phyre_like.py),

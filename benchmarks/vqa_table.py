@@ -1,0 +1,67 @@
+r"""Mean +- std over seeds of the VQA variants of one workdir, as a table.
+
+  python benchmarks/vqa_table.py --workdir=runs/vqa [--split=test]
+
+Reads vqa/<inputs>_s<seed>/metrics_<split>.json (written by
+`--mode=evaluate_vqa`) and vqa/answer_prior_<split>.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import glob
+import json
+import os
+import re
+
+import numpy as np
+
+COLUMNS = (('descriptive', 'accuracy'),
+           ('explanatory', 'per_option'), ('explanatory', 'per_question'),
+           ('predictive', 'per_option'), ('predictive', 'per_question'),
+           ('counterfactual', 'per_option'),
+           ('counterfactual', 'per_question'))
+ROWS = ('rollout', 'observed', 'blind')
+
+
+def main() -> None:
+  parser = argparse.ArgumentParser()
+  parser.add_argument('--workdir', required=True)
+  parser.add_argument('--split', default='test')
+  args = parser.parse_args()
+  runs = collections.defaultdict(list)
+  for path in sorted(glob.glob(os.path.join(
+      args.workdir, 'vqa', '*_s*', f'metrics_{args.split}.json'))):
+    inputs = re.match(r'(.*)_s\d+$', os.path.basename(os.path.dirname(path)))
+    with open(path) as f:
+      runs[inputs.group(1)].append(json.load(f))
+  header = ' | '.join(f'{t[:5]}. {m.replace("per_", "per ")}'
+                      for t, m in COLUMNS)
+  print(f'| Aloe input | seeds | {header} |')
+  print('|' + '---|' * (len(COLUMNS) + 2))
+  for name in ROWS:
+    if name not in runs:
+      continue
+    cells = []
+    for t, m in COLUMNS:
+      values = [100 * r[t][m] for r in runs[name] if t in r]
+      cells.append(f'{np.mean(values):.1f} +- {np.std(values):.1f}'
+                   if values else '-')
+    print(f'| {name} | {len(runs[name])} | ' + ' | '.join(cells) + ' |')
+  prior_path = os.path.join(args.workdir, 'vqa',
+                            f'answer_prior_{args.split}.json')
+  if os.path.exists(prior_path):
+    with open(prior_path) as f:
+      prior = json.load(f)
+    cells = [f'{100 * prior[t][m]:.1f}' if t in prior else '-'
+             for t, m in COLUMNS]
+    print('| answer prior | - | ' + ' | '.join(cells) + ' |')
+  counts = runs[next(iter(runs))][0] if runs else {}
+  types = dict.fromkeys(t for t, _ in COLUMNS)
+  print('\nquestions: ' + ', '.join(
+      f'{t} {counts[t]["questions"]}' for t in types if t in counts))
+
+
+if __name__ == '__main__':
+  main()

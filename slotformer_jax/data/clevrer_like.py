@@ -1,0 +1,646 @@
+"""A CLEVRER-like scenario family with an event log from the simulator.
+
+CLEVRER (Yi et al., 2020) videos show objects sliding, colliding and entering
+the scene from its sides; every video comes with the events that happened
+(collisions, entering, exiting), from which its questions are generated. This
+module builds such videos on the same pybullet world as the OBJ3D-like
+generator (:mod:`slotformer_jax.data.synthetic`: objects, floor, camera,
+renderer, image helpers are imported from there):
+
+* :func:`sample_scene` draws objects present from frame 0 (some resting, some
+  moving, aimed roughly at another object) and objects that enter later from
+  the left or right side of the view;
+* :func:`simulate` runs the world for ``observed_frames + predicted_frames``
+  frames, checks contacts after *every* physics substep (a collision is the
+  onset of a contact between two objects), tracks which objects are in view,
+  and optionally renders the frames; ``removed=k`` re-simulates the same world
+  without object ``k`` (the counterfactual world), deterministically;
+* :func:`event_log` turns a simulation into an :class:`EventLog`, the only
+  thing the question generator (:mod:`slotformer_jax.data.questions`) reads;
+  :func:`generate_video` ties everything together per ``(seed, split, index)``.
+
+Frames: frame 0 is the initial state, frame ``t`` is ``t * SUBSTEPS_PER_FRAME``
+physics steps later. A contact first seen after physics step ``s`` (1-based)
+happened during frame interval ``(t - 1, t]`` with ``t = ceil(s / SUBSTEPS)``;
+``t`` is the collision's onset frame (the first frame showing its effect).
+Only the first ``observed_frames`` frames are the "video"; what happens later
+is what predictive questions ask about.
+
+Object ids are 0-based rows of the per-object arrays (mask id = row + 1).
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import dataclasses
+import functools
+import hashlib
+import json
+import multiprocessing
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pybullet
+
+from slotformer_jax.data.convert import synthetic
+from slotformer_jax.data.convert.synthetic import COLORS, SHAPES, SIZES
+
+GENERATOR_VERSION = 1
+SPLITS = synthetic.SPLITS
+SUBSTEPS_PER_FRAME = synthetic.SUBSTEPS_PER_FRAME
+
+# CLEVRER's objects slide far; the OBJ3D-like friction (0.5) stops a cube
+# ~0.5 s after a hit, which leaves little to predict after the observed window.
+LATERAL_FRICTION = 0.15
+ROLLING_FRICTION_PER_RADIUS = 0.15
+# A pair must be apart for this many substeps (0.1 s) before a new contact
+# counts as a new collision: resting or sliding contacts flicker.
+MIN_SEPARATION_SUBSTEPS = 24
+# Speed [m/s] above which an object counts as moving.
+MOVING_SPEED = 0.1
+# Objects present from frame 0 sit in this region (inside the view).
+START_X_RANGE = (-2.0, 2.0)
+START_Y_RANGE = (-1.0, 2.0)
+MIN_GAP = 0.25
+MOVING_SPEED_RANGE = (1.0, 3.0)       # [m/s] of objects moving at frame 0
+AIM_NOISE = 0.15                      # [rad] around the exact aim
+# Entering objects appear just outside the left/right edge of the view
+# (|x| = ENTER_X; the view's edge is at |x| ~ 3 near the middle) and roll in.
+ENTER_X = 4.3
+ENTER_Y_RANGE = (-0.5, 2.0)
+ENTER_SPEED_RANGE = (2.5, 4.0)
+# In view: the projected centre lies inside the image, with this margin of the
+# normalised device coordinates (so an object is "in" once mostly visible).
+VIEW_MARGIN = 0.05
+
+
+@dataclasses.dataclass(frozen=True)
+class ClevrerLikeConfig:
+  """Generation parameters; together they identify a generated dataset.
+
+  Attributes:
+    resolution: (H, W) of rendered frames.
+    observed_frames: frames of the video shown to models.
+    predicted_frames: frames simulated after the video (predictive questions
+      ask about them; a dynamics model has to roll out to see them).
+    min_objects, max_objects: objects present from frame 0.
+    max_entering: objects entering later (0..max_entering per video).
+    moving_fraction: probability that an object present at frame 0 moves.
+    seed: base seed; video ``i`` of split ``s`` uses ``(seed, s, i)``.
+    num_train, num_val, num_test: videos per split.
+    supersample, object_scale: as in :class:`synthetic.SyntheticConfig`.
+  """
+
+  resolution: tuple[int, int] = (32, 32)
+  observed_frames: int = 24
+  predicted_frames: int = 16
+  min_objects: int = 2
+  max_objects: int = 4
+  max_entering: int = 1
+  moving_fraction: float = 0.5
+  seed: int = 0
+  num_train: int = 1000
+  num_val: int = 100
+  num_test: int = 200
+  supersample: int = 2
+  object_scale: float = 1.0
+
+  def __post_init__(self):
+    object.__setattr__(self, 'resolution', tuple(int(r) for r in self.resolution))
+    if self.observed_frames < 2 or self.predicted_frames < 0:
+      raise ValueError('need observed_frames >= 2 and predicted_frames >= 0')
+    if not 1 <= self.min_objects <= self.max_objects:
+      raise ValueError('need 1 <= min_objects <= max_objects')
+    if self.max_objects + self.max_entering > len(COLORS):
+      # Objects are named by colour in questions: colours must be distinct.
+      raise ValueError(f'at most {len(COLORS)} objects per video')
+    if self.max_entering < 0:
+      raise ValueError('max_entering must be >= 0')
+
+  @property
+  def num_frames(self) -> int:
+    return self.observed_frames + self.predicted_frames
+
+  @property
+  def max_objects_total(self) -> int:
+    return self.max_objects + self.max_entering
+
+  def num_videos(self, split: str) -> int:
+    return {'train': self.num_train, 'val': self.num_val,
+            'test': self.num_test}[split]
+
+  @property
+  def slug(self) -> str:
+    h, w = self.resolution
+    payload = json.dumps({**dataclasses.asdict(self),
+                          'generator_version': GENERATOR_VERSION},
+                         sort_keys=True)
+    digest = hashlib.sha256(payload.encode()).hexdigest()[:8]
+    return (f'r{h}x{w}_t{self.observed_frames}+{self.predicted_frames}'
+            f'_o{self.min_objects}-{self.max_objects}+{self.max_entering}'
+            f'_s{self.seed}_{digest}')
+
+
+@dataclasses.dataclass(frozen=True)
+class Scene:
+  """The initial state of one video (N objects, entering ones last).
+
+  Attributes:
+    shapes, colors, sizes: int32 [N] indices into SHAPES / COLORS / SIZES;
+      colours are distinct (questions name objects by colour and shape).
+    xy: float64 [N, 2] ground position when the object appears.
+    yaw: float64 [N] rotation about z [rad].
+    velocity: float64 [N, 2] ground velocity when the object appears [m/s].
+    enter_frame: int32 [N]; 0 for objects present from the start, else the
+      frame at which the object is added (just outside the view).
+  """
+
+  shapes: np.ndarray
+  colors: np.ndarray
+  sizes: np.ndarray
+  xy: np.ndarray
+  yaw: np.ndarray
+  velocity: np.ndarray
+  enter_frame: np.ndarray
+
+  @property
+  def num_objects(self) -> int:
+    return int(self.shapes.shape[0])
+
+
+def _aim(rng: np.random.Generator, start: np.ndarray, target: np.ndarray,
+         speed_range: tuple[float, float]) -> np.ndarray:
+  direction = target - start
+  angle = np.arctan2(direction[1], direction[0]) + rng.uniform(-AIM_NOISE,
+                                                               AIM_NOISE)
+  return rng.uniform(*speed_range) * np.array([np.cos(angle), np.sin(angle)])
+
+
+def sample_scene(rng: np.random.Generator, config: ClevrerLikeConfig) -> Scene:
+  """Samples the objects of one video; a pure function of ``rng``'s state."""
+  num_start = int(rng.integers(config.min_objects, config.max_objects + 1))
+  num_enter = int(rng.integers(0, config.max_entering + 1))
+  n = num_start + num_enter
+  for _ in range(1000):
+    shapes = rng.integers(0, len(SHAPES), n)
+    sizes = rng.integers(0, len(SIZES), n)
+    placed: list[tuple[float, float, float]] = []
+    for shape, size in zip(shapes[:num_start], sizes[:num_start]):
+      footprint = synthetic._footprint_radius(  # pylint: disable=protected-access
+          int(shape), synthetic.SIZE_RADII[size] * config.object_scale)
+      for _ in range(200):
+        x, y = rng.uniform(*START_X_RANGE), rng.uniform(*START_Y_RANGE)
+        if all(np.hypot(x - px, y - py) > footprint + pr + MIN_GAP
+               for px, py, pr in placed):
+          placed.append((x, y, footprint))
+          break
+      else:
+        break
+    if len(placed) == num_start:
+      break
+  else:
+    raise ValueError(f'could not place {num_start} objects; lower max_objects')
+  colors = rng.permutation(len(COLORS))[:n]
+  yaw = rng.uniform(0.0, 2.0 * np.pi, n)
+  xy = np.zeros((n, 2))
+  xy[:num_start] = np.array([p[:2] for p in placed])
+  velocity = np.zeros((n, 2))
+  enter_frame = np.zeros(n, np.int32)
+  # At least one object moves, so that (almost) every video has events.
+  moving = rng.uniform(size=num_start) < config.moving_fraction
+  moving[int(rng.integers(0, num_start))] = True
+  for i in np.flatnonzero(moving):
+    others = [j for j in range(num_start) if j != i]
+    target = (xy[int(rng.choice(others))] if others
+              else np.array([0.0, 0.5]))
+    velocity[i] = _aim(rng, xy[i], target, MOVING_SPEED_RANGE)
+  for i in range(num_start, n):
+    side = 1.0 if rng.uniform() < 0.5 else -1.0
+    xy[i] = (side * ENTER_X, rng.uniform(*ENTER_Y_RANGE))
+    # Aim at an object already there (or the middle): entering objects
+    # cause collisions, some of them after the observed window.
+    target = xy[int(rng.integers(0, num_start))]
+    velocity[i] = _aim(rng, xy[i], target, ENTER_SPEED_RANGE)
+    # Entering takes ~0.3-0.5 s (6-10 frames) from outside the view: early
+    # enough that the object is seen before the video ends.
+    enter_frame[i] = int(rng.integers(1, max(2, config.observed_frames - 8)))
+  return Scene(shapes=shapes.astype(np.int32), colors=colors.astype(np.int32),
+               sizes=sizes.astype(np.int32), xy=xy, yaw=yaw, velocity=velocity,
+               enter_frame=enter_frame)
+
+
+def _projector(height: int, width: int):
+  """World points [..., 3] -> normalised device coordinates [..., 2]."""
+  view, projection = synthetic._camera_matrices(height, width)  # pylint: disable=protected-access
+  matrix = (np.asarray(projection, np.float64).reshape(4, 4).T
+            @ np.asarray(view, np.float64).reshape(4, 4).T)
+
+  def project(points: np.ndarray) -> np.ndarray:
+    homogeneous = np.concatenate([points, np.ones_like(points[..., :1])], -1)
+    clip = homogeneous @ matrix.T
+    return clip[..., :2] / clip[..., 3:4]
+  return project
+
+
+def simulate(scene: Scene, config: ClevrerLikeConfig, *,
+             removed: int | None = None, render: bool = False
+             ) -> dict[str, Any]:
+  """Simulates ``scene`` (without object ``removed``) for ``num_frames``.
+
+  Returns (T = config.num_frames, O = config.max_objects_total, N objects):
+    positions: float32 [T, O, 3] object centres (zeros before an object
+      appears, and for the removed object).
+    speeds: float32 [T, O] ground speed [m/s].
+    present: bool [T, O] the object exists in the world.
+    in_view: bool [T, O] present and its centre projects into the image.
+    collisions: list of (i, j, onset_frame, onset_substep), i < j, in onset
+      order; substeps are 1-based global physics step counts.
+    and, with ``render=True``: video uint8 [T, H, W, 3], segmentations uint8
+    [T, H, W], boxes float32 [T, O, 4], visible bool [T, O].
+  """
+  n = scene.num_objects
+  num_slots = config.max_objects_total
+  if n > num_slots:
+    raise ValueError(f'scene has {n} objects, config allows {num_slots}')
+  if removed is not None and not 0 <= removed < n:
+    raise ValueError(f'removed={removed} is not an object of the scene')
+  height, width = config.resolution
+  ss = config.supersample
+  project = _projector(height, width)
+  t_total = config.num_frames
+  client = pybullet.connect(pybullet.DIRECT)
+  bodies: dict[int, int] = {}  # object id -> body id
+  try:
+    pybullet.setPhysicsEngineParameter(
+        fixedTimeStep=synthetic.PHYSICS_DT, numSubSteps=0,
+        numSolverIterations=synthetic.SOLVER_ITERATIONS,
+        deterministicOverlappingPairs=1, physicsClientId=client)
+    pybullet.setGravity(0.0, 0.0, -synthetic.GRAVITY, physicsClientId=client)
+    floor = synthetic._create_floor(client)  # pylint: disable=protected-access
+    pybullet.changeDynamics(floor, -1, lateralFriction=LATERAL_FRICTION,
+                            physicsClientId=client)
+
+    def add(i: int) -> None:
+      radius = synthetic.SIZE_RADII[scene.sizes[i]] * config.object_scale
+      body = synthetic._create_object(  # pylint: disable=protected-access
+          client, int(scene.shapes[i]), radius, int(scene.colors[i]),
+          scene.xy[i], float(scene.yaw[i]))
+      pybullet.changeDynamics(
+          body, -1, lateralFriction=LATERAL_FRICTION,
+          rollingFriction=ROLLING_FRICTION_PER_RADIUS * radius,
+          spinningFriction=ROLLING_FRICTION_PER_RADIUS * radius,
+          physicsClientId=client)
+      vx, vy = (float(v) for v in scene.velocity[i])
+      # Spheres start rolling (w = z x v / r), other shapes sliding.
+      spin = ([-vy / radius, vx / radius, 0.0]
+              if SHAPES[scene.shapes[i]] == 'sphere' else [0.0, 0.0, 0.0])
+      pybullet.resetBaseVelocity(body, linearVelocity=[vx, vy, 0.0],
+                                 angularVelocity=spin, physicsClientId=client)
+      bodies[i] = body
+
+    view, projection = synthetic._camera_matrices(height, width)  # pylint: disable=protected-access
+    positions = np.zeros((t_total, num_slots, 3), np.float32)
+    speeds = np.zeros((t_total, num_slots), np.float32)
+    present = np.zeros((t_total, num_slots), bool)
+    frames, segs = [], []
+    collisions: list[tuple[int, int, int, int]] = []
+    touching: set[tuple[int, int]] = set()
+    last_contact: dict[tuple[int, int], int] = {}
+    substep = 0
+    for t in range(t_total):
+      for i in range(n):
+        if i != removed and scene.enter_frame[i] == t:
+          add(i)
+      body_to_object = {b: i for i, b in bodies.items()}
+      for i, body in bodies.items():
+        positions[t, i] = pybullet.getBasePositionAndOrientation(
+            body, physicsClientId=client)[0]
+        speeds[t, i] = np.hypot(*pybullet.getBaseVelocity(
+            body, physicsClientId=client)[0][:2])
+        present[t, i] = True
+      if render:
+        _, _, rgba, _, seg = pybullet.getCameraImage(
+            width * ss, height * ss, viewMatrix=view,
+            projectionMatrix=projection,
+            lightDirection=synthetic.LIGHT_DIRECTION,
+            lightColor=[1.0, 1.0, 1.0], shadow=0,
+            lightAmbientCoeff=synthetic.LIGHT_AMBIENT,
+            lightDiffuseCoeff=synthetic.LIGHT_DIFFUSE,
+            lightSpecularCoeff=synthetic.LIGHT_SPECULAR,
+            renderer=pybullet.ER_TINY_RENDERER, physicsClientId=client)
+        rgb = np.asarray(rgba, np.uint8).reshape(height * ss, width * ss, 4)
+        frames.append(synthetic.downsample_rgb(rgb[..., :3], ss))
+        lut = np.zeros(max(list(bodies.values()) + [floor]) + 2, np.uint8)
+        for i, body in bodies.items():
+          lut[body + 1] = i + 1
+        seg = lut[np.asarray(seg, np.int64).reshape(height * ss, width * ss)
+                  + 1]
+        segs.append(synthetic.downsample_segmentation(seg, ss))
+      if t + 1 == t_total:
+        break
+      for _ in range(SUBSTEPS_PER_FRAME):
+        pybullet.stepSimulation(physicsClientId=client)
+        substep += 1
+        now: set[tuple[int, int]] = set()
+        for contact in pybullet.getContactPoints(physicsClientId=client):
+          a, b = body_to_object.get(contact[1]), body_to_object.get(contact[2])
+          if a is None or b is None or a == b or contact[8] > 0.0:
+            continue  # the floor, or not touching
+          now.add((min(a, b), max(a, b)))
+        for pair in sorted(now - touching):
+          if substep - last_contact.get(pair, -10**9) > MIN_SEPARATION_SUBSTEPS:
+            collisions.append((pair[0], pair[1],
+                               -(-substep // SUBSTEPS_PER_FRAME), substep))
+        for pair in now:
+          last_contact[pair] = substep
+        touching = now
+  finally:
+    pybullet.disconnect(physicsClientId=client)
+  ndc = project(positions.astype(np.float64))
+  in_view = present & np.all(np.abs(ndc) < 1.0 - VIEW_MARGIN, axis=-1)
+  out: dict[str, Any] = {'positions': positions, 'speeds': speeds,
+                         'present': present, 'in_view': in_view,
+                         'collisions': collisions}
+  if render:
+    segmentations = np.stack(segs)
+    boxes, visible = synthetic.boxes_from_segmentation(segmentations, num_slots)
+    out.update(video=np.stack(frames), segmentations=segmentations,
+               boxes=boxes, visible=visible)
+  return out
+
+
+@dataclasses.dataclass(frozen=True)
+class Collision:
+  objects: tuple[int, int]  # (i, j), i < j
+  frame: int  # onset frame
+
+
+@dataclasses.dataclass
+class EventLog:
+  """Everything questions are generated from; JSON-serialisable (to_dict).
+
+  Attributes:
+    objects: per object, {'color', 'shape', 'size'} names.
+    observed_frames: frames of the video; events at frames >= this are in
+      the future (predictive questions).
+    num_frames: frames simulated.
+    collisions: every collision in onset order (observed and future).
+    entering: (object, frame) of objects coming into view after frame 0.
+    exiting: (object, frame) of objects leaving the view.
+    moving_at_end: per object, whether it moves at the last observed frame.
+    in_view_at_end: per object, whether it is in view at that frame.
+    final_positions: per object, its centre [x, y, z] at the last simulated
+      frame (None if it never appeared).
+    counterfactual: removed object -> collisions in the world without it.
+  """
+
+  objects: list[dict[str, str]]
+  observed_frames: int
+  num_frames: int
+  collisions: list[Collision]
+  entering: list[tuple[int, int]] = dataclasses.field(default_factory=list)
+  exiting: list[tuple[int, int]] = dataclasses.field(default_factory=list)
+  moving_at_end: list[bool] = dataclasses.field(default_factory=list)
+  in_view_at_end: list[bool] = dataclasses.field(default_factory=list)
+  final_positions: list[list[float] | None] = dataclasses.field(
+      default_factory=list)
+  counterfactual: dict[int, list[Collision]] = dataclasses.field(
+      default_factory=dict)
+
+  @property
+  def num_objects(self) -> int:
+    return len(self.objects)
+
+  def observed_collisions(self) -> list[Collision]:
+    return [c for c in self.collisions if c.frame < self.observed_frames]
+
+  def future_collisions(self) -> list[Collision]:
+    return [c for c in self.collisions if c.frame >= self.observed_frames]
+
+  def to_dict(self) -> dict[str, Any]:
+    d = dataclasses.asdict(self)
+    d['counterfactual'] = {str(k): [dataclasses.asdict(c) for c in v]
+                           for k, v in self.counterfactual.items()}
+    return d
+
+  @classmethod
+  def from_dict(cls, d: dict[str, Any]) -> EventLog:
+    def collisions(items):
+      return [Collision(tuple(c['objects']), int(c['frame'])) for c in items]
+    return cls(
+        objects=[dict(o) for o in d['objects']],
+        observed_frames=int(d['observed_frames']),
+        num_frames=int(d['num_frames']),
+        collisions=collisions(d['collisions']),
+        entering=[tuple(e) for e in d['entering']],
+        exiting=[tuple(e) for e in d['exiting']],
+        moving_at_end=list(d['moving_at_end']),
+        in_view_at_end=list(d['in_view_at_end']),
+        final_positions=list(d['final_positions']),
+        counterfactual={int(k): collisions(v)
+                        for k, v in d['counterfactual'].items()})
+
+
+def _view_events(in_view: np.ndarray, present: np.ndarray
+                 ) -> tuple[list[tuple[int, int]], list[tuple[int, int]]]:
+  """(object, frame) of entering (out -> in, after frame 0) and exiting."""
+  entering, exiting = [], []
+  for i in range(in_view.shape[1]):
+    for t in range(1, in_view.shape[0]):
+      if in_view[t, i] and not in_view[t - 1, i]:
+        entering.append((i, t))
+      elif in_view[t - 1, i] and not in_view[t, i] and present[t, i]:
+        exiting.append((i, t))
+  return (sorted(entering, key=lambda e: (e[1], e[0])),
+          sorted(exiting, key=lambda e: (e[1], e[0])))
+
+
+def event_log(scene: Scene, simulation: dict[str, Any],
+              config: ClevrerLikeConfig,
+              counterfactuals: dict[int, dict[str, Any]] | None = None
+              ) -> EventLog:
+  """The event log of one simulated video (+ its counterfactual worlds)."""
+  n = scene.num_objects
+  entering, exiting = _view_events(simulation['in_view'][:, :n],
+                                   simulation['present'][:, :n])
+  last = config.observed_frames - 1
+  final = []
+  for i in range(n):
+    seen = np.flatnonzero(simulation['present'][:, i])
+    final.append(simulation['positions'][-1, i].round(4).tolist()
+                 if seen.size else None)
+  return EventLog(
+      objects=[{'color': COLORS[scene.colors[i]],
+                'shape': SHAPES[scene.shapes[i]],
+                'size': SIZES[scene.sizes[i]]} for i in range(n)],
+      observed_frames=config.observed_frames,
+      num_frames=config.num_frames,
+      collisions=[Collision((a, b), f) for a, b, f, _ in
+                  simulation['collisions']],
+      entering=entering, exiting=exiting,
+      moving_at_end=[bool(simulation['present'][last, i]
+                          and simulation['speeds'][last, i] > MOVING_SPEED)
+                     for i in range(n)],
+      in_view_at_end=[bool(simulation['in_view'][last, i]) for i in range(n)],
+      final_positions=final,
+      counterfactual={k: [Collision((a, b), f) for a, b, f, _ in
+                          sim['collisions']]
+                      for k, sim in (counterfactuals or {}).items()},
+  )
+
+
+def video_rng(seed: int, split: str, index: int) -> np.random.Generator:
+  # A different stream from the OBJ3D-like family for the same seed.
+  return np.random.default_rng([seed, SPLITS.index(split), index, 12])
+
+
+def generate_video(config: ClevrerLikeConfig, split: str, index: int, *,
+                   render: bool = True) -> dict[str, Any]:
+  """Video ``index`` of ``split`` with its event log (+ counterfactuals).
+
+  Returns the arrays of :func:`simulate` (rendered unless ``render=False``),
+  ``shapes``/``colors``/``sizes`` int32 [O] (-1 padding), ``num_objects``,
+  ``index``, and ``events``: the :class:`EventLog`, whose counterfactual
+  worlds (one per object, physics only) are simulated here too.
+  """
+  if split not in SPLITS:
+    raise ValueError(f'split must be one of {SPLITS}, got {split!r}')
+  scene = sample_scene(video_rng(config.seed, split, index), config)
+  sim = simulate(scene, config, render=render)
+  counterfactuals = {k: simulate(scene, config, removed=k)
+                     for k in range(scene.num_objects)}
+  out = {k: v for k, v in sim.items() if k != 'collisions'}
+
+  def pad(values: np.ndarray) -> np.ndarray:
+    padded = np.full((config.max_objects_total,), -1, np.int32)
+    padded[:scene.num_objects] = values
+    return padded
+
+  out.update(shapes=pad(scene.shapes), colors=pad(scene.colors),
+             sizes=pad(scene.sizes),
+             num_objects=np.array(scene.num_objects, np.int32),
+             index=np.array(index, np.int32),
+             events=event_log(scene, sim, config, counterfactuals))
+  return out
+
+
+# ----------------------------------------------------------------------------
+# Storage: frames as .npy per split (memory-mapped when read), event logs,
+# questions in CLEVRER's layout and the vocabulary
+# ----------------------------------------------------------------------------
+#
+#   <data_dir>/clevrer_like/<slug>/
+#     <split>/{video,segmentations,boxes,visible,num_objects}.npy
+#     <split>/events.jsonl          one EventLog per video, in index order
+#     questions/{train,validation,test}.json   (CLEVRER's file names)
+#     vocab.json                    {'q_vocab', 'a_vocab'}
+#     complete.json                 written last: the build finished
+
+DATASET_NAME = 'clevrer_like'
+ARRAY_FIELDS = ('video', 'segmentations', 'boxes', 'visible', 'num_objects')
+# scene_index = offset + video index, as CLEVRER numbers its splits.
+SCENE_OFFSETS = {'train': 0, 'val': 10000, 'test': 15000}
+_COMPLETE = 'complete.json'
+
+
+def video_filename(split: str, index: int) -> str:
+  return f'video_{SCENE_OFFSETS[split] + index:05d}.mp4'
+
+
+def dataset_dir(config: ClevrerLikeConfig, data_dir: str | os.PathLike[str]
+                ) -> Path:
+  return Path(data_dir) / DATASET_NAME / config.slug
+
+
+def _video_for_worker(config: ClevrerLikeConfig, split: str, index: int
+                      ) -> dict[str, Any]:
+  video = generate_video(config, split, index)
+  video['events'] = video['events'].to_dict()
+  return {k: video[k] for k in ARRAY_FIELDS + ('events',)}
+
+
+def build_dataset(config: ClevrerLikeConfig,
+                  data_dir: str | os.PathLike[str], *,
+                  num_workers: int | None = None) -> Path:
+  """Generates videos, event logs, questions and vocabulary unless present.
+
+  Returns the dataset folder. Deterministic: a pure function of ``config``
+  (the worker count does not matter).
+  """
+  # Imported here: the question generator imports this module.
+  from slotformer_jax.data import questions as question_generator  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.data import vqa  # pylint: disable=g-import-not-at-top
+  root = dataset_dir(config, data_dir)
+  if (root / _COMPLETE).is_file():
+    return root
+  root.mkdir(parents=True, exist_ok=True)
+  workers = num_workers or len(os.sched_getaffinity(0))
+  all_scenes = {}
+  for split in SPLITS:
+    count = config.num_videos(split)
+    make = functools.partial(_video_for_worker, config, split)
+    if workers <= 1 or count < 2:
+      videos = [make(i) for i in range(count)]
+    else:
+      with concurrent.futures.ProcessPoolExecutor(
+          min(workers, count),
+          mp_context=multiprocessing.get_context('spawn')) as pool:
+        videos = list(pool.map(make, range(count), chunksize=4))
+    folder = root / split
+    folder.mkdir(exist_ok=True)
+    if count:
+      for field in ARRAY_FIELDS:
+        np.save(folder / f'{field}.npy', np.stack([v[field] for v in videos]))
+    with open(folder / 'events.jsonl', 'w') as f:
+      for v in videos:
+        f.write(json.dumps(v['events']) + '\n')
+    logs = [EventLog.from_dict(v['events']) for v in videos]
+    all_scenes[split] = question_generator.generate_split(
+        logs, config.seed, split,
+        video_filenames=[video_filename(split, i) for i in range(count)],
+        scene_offset=SCENE_OFFSETS[split])
+  (root / 'questions').mkdir(exist_ok=True)
+  for split, scenes in all_scenes.items():
+    with open(root / 'questions' / vqa.CLEVRER_SPLIT_FILES[split], 'w') as f:
+      json.dump(scenes, f)
+  vqa.Vocabulary(
+      vqa.make_vocabulary(question_generator.template_words()),
+      vqa.make_vocabulary(question_generator.template_answers()),
+  ).save(root / 'vocab.json')
+  with open(root / _COMPLETE, 'w') as f:
+    json.dump(dataclasses.asdict(config), f)
+  return root
+
+
+class NpyVideoSource:
+  """The videos of one split of a built dataset (frames memory-mapped).
+
+  Items: video uint8 [T, H, W, 3], segmentations uint8 [T, H, W], boxes
+  float32 [T, O, 4], visible bool [T, O], num_objects int32 [], index.
+  """
+
+  def __init__(self, root: str | os.PathLike[str], split: str):
+    folder = Path(root) / split
+    self._arrays = {field: np.load(folder / f'{field}.npy', mmap_mode='r')
+                    for field in ARRAY_FIELDS}
+
+  def __len__(self) -> int:
+    return len(self._arrays['video'])
+
+  def __getitem__(self, index: int) -> dict[str, np.ndarray]:
+    if not 0 <= index < len(self):
+      raise IndexError(index)
+    item = {k: np.asarray(v[index]) for k, v in self._arrays.items()}
+    item['index'] = np.array(index, np.int32)
+    return item
+
+
+def config_from_data_config(data_config: Any) -> ClevrerLikeConfig:
+  """The generation parameters named by a data config (defaults filled in)."""
+  fields = {f.name for f in dataclasses.fields(ClevrerLikeConfig)}
+  values = {k: data_config[k] for k in fields if k in data_config}
+  if 'resolution' in values:
+    values['resolution'] = tuple(values['resolution'])
+  return ClevrerLikeConfig(**values)

@@ -1,0 +1,348 @@
+"""CLEVRER-style questions about CLEVRER-like videos, answered by the simulator.
+
+Questions are generated from a video's :class:`clevrer_like.EventLog` only, by
+templates of CLEVRER's four types:
+
+* descriptive (open answer): counts of collisions / entering / moving objects,
+  whether an object moves at the end, colour or shape of the object that
+  collides with (or enters) ...;
+* explanatory (multiple choice): "which of the following is responsible for
+  the collision between A and B"; the presence of X is responsible if, in the
+  re-simulated world without X, A and B do not collide during the video; an
+  earlier collision is responsible if it leads to the target through a chain
+  of collisions that share an object (CLEVRER's causal trace);
+* predictive (multiple choice): "what will happen next"; a choice "A collides
+  with B" is correct iff they collide after the observed window;
+* counterfactual (multiple choice): "what will happen if X is removed"; a
+  choice is correct iff the pair collides, during the video, in the world
+  re-simulated without X.
+
+Every multiple-choice question has at least one correct and one wrong choice,
+and open answers are balanced per template (each answer kept at most as often
+as the median answer of its template), so a question-only model cannot do
+well. Objects are named "the <colour> <shape>" (colours are distinct in a
+video). The output uses CLEVRER's ``questions/<split>.json`` layout, so the
+same reader (:mod:`slotformer_jax.data.vqa`) serves embedded and real data;
+each question also records its ``template`` (CLEVRER's files do not).
+"""
+
+from __future__ import annotations
+
+import collections
+import itertools
+from collections.abc import Iterable, Sequence
+from typing import Any
+
+import numpy as np
+
+from slotformer_jax.data.clevrer_like import Collision, EventLog
+from slotformer_jax.data.convert.synthetic import COLORS, SHAPES
+
+QUESTION_TYPES = ('descriptive', 'explanatory', 'predictive',
+                  'counterfactual')
+MAX_COUNT = 5  # CLEVRER's count answers are 0..5
+MAX_CHOICES_PER_KIND = 2  # at most 2 correct + 2 wrong choices
+
+# template -> (question type, question text with {placeholders}).
+TEMPLATES: dict[str, tuple[str, str]] = {
+    'count_collisions': ('descriptive', 'how many collisions happen'),
+    'count_entering': ('descriptive', 'how many objects enter the scene'),
+    'count_moving_end': ('descriptive',
+                         'how many objects are moving when the video ends'),
+    'is_moving_end': ('descriptive',
+                      'is the {obj} moving when the video ends'),
+    'color_collides_with': ('descriptive',
+                            'what color is the object that collides with the '
+                            '{obj}'),
+    'shape_collides_with': ('descriptive',
+                            'what shape is the object that collides with the '
+                            '{obj}'),
+    'color_entering': ('descriptive',
+                       'what color is the object that enters the scene'),
+    'responsible': ('explanatory',
+                    'which of the following is responsible for the collision '
+                    'between the {a} and the {b}'),
+    'next': ('predictive', 'what will happen next'),
+    'removed': ('counterfactual', 'what will happen if the {obj} is removed'),
+}
+CHOICE_TEMPLATES = {
+    'presence': 'the presence of the {obj}',
+    'collision_event': 'the collision between the {a} and the {b}',
+    'collides': 'the {a} collides with the {b}',
+}
+
+
+def name(log: EventLog, i: int) -> str:
+  obj = log.objects[i]
+  return f"{obj['color']} {obj['shape']}"
+
+
+def _pairs_colliding(collisions: Iterable[Collision]) -> set[tuple[int, int]]:
+  return {c.objects for c in collisions}
+
+
+def _seen(log: EventLog) -> list[int]:
+  """Objects in view at some observed frame: those questions may name.
+
+  Objects entering after the video (never seen) cannot be asked about.
+  """
+  late = {i for i, f in log.entering if f >= log.observed_frames}
+  first_entry = {}
+  for i, f in log.entering:
+    first_entry.setdefault(i, f)
+  return [i for i in range(log.num_objects)
+          if i not in late or first_entry[i] < log.observed_frames]
+
+
+def _ancestors(collisions: Sequence[Collision], target: int) -> set[int]:
+  """Indices of collisions leading to ``collisions[target]``: an earlier
+  collision sharing an object is a parent; ancestors are parents' closure."""
+  found: set[int] = set()
+  frontier = [target]
+  while frontier:
+    k = frontier.pop()
+    for j, c in enumerate(collisions):
+      if (j not in found and j != target and c.frame < collisions[k].frame
+          and set(c.objects) & set(collisions[k].objects)):
+        found.add(j)
+        frontier.append(j)
+  return found
+
+
+def _choices(rng: np.random.Generator, correct: Sequence[str],
+             wrong: Sequence[str]) -> list[dict[str, Any]] | None:
+  """1-2 correct and 1-2 wrong choices, shuffled; None if either is empty."""
+  if not correct or not wrong:
+    return None
+  picked = []
+  for pool, label in ((correct, 'correct'), (wrong, 'wrong')):
+    k = int(rng.integers(1, min(MAX_CHOICES_PER_KIND, len(pool)) + 1))
+    for idx in rng.choice(len(pool), k, replace=False):
+      picked.append((pool[int(idx)], label))
+  order = rng.permutation(len(picked))
+  return [{'choice_id': c, 'choice': picked[int(k)][0],
+           'answer': picked[int(k)][1]} for c, k in enumerate(order)]
+
+
+def responsible_choices(log: EventLog, k: int) -> tuple[list[str], list[str]]:
+  """(correct, wrong) choices of "which is responsible for the collision
+  ``log.observed_collisions()[k]``"."""
+  observed = log.observed_collisions()
+  target = observed[k]
+  correct, wrong = [], []
+  for x in _seen(log):
+    if x in target.objects or x not in log.counterfactual:
+      continue
+    if any(e == x and f > target.frame for e, f in log.entering):
+      continue  # not there yet when the collision happened
+    still = any(c.objects == target.objects for c in log.counterfactual[x]
+                if c.frame < log.observed_frames)
+    text = CHOICE_TEMPLATES['presence'].format(obj=name(log, x))
+    (wrong if still else correct).append(text)
+  ancestors = _ancestors(observed, k)
+  for j, c in enumerate(observed):
+    if j == k or c.frame >= target.frame or c.objects == target.objects:
+      continue
+    text = CHOICE_TEMPLATES['collision_event'].format(
+        a=name(log, c.objects[0]), b=name(log, c.objects[1]))
+    if text not in correct and text not in wrong:
+      (correct if j in ancestors else wrong).append(text)
+  return correct, wrong
+
+
+def predictive_choices(log: EventLog) -> tuple[list[str], list[str]]:
+  """(correct, wrong) choices of "what will happen next": pairs of objects in
+  view at the end of the video, correct iff they collide after it."""
+  future = _pairs_colliding(log.future_collisions())
+  at_end = [i for i in _seen(log) if log.in_view_at_end[i]]
+  correct, wrong = [], []
+  for a, b in itertools.combinations(at_end, 2):
+    text = CHOICE_TEMPLATES['collides'].format(a=name(log, a), b=name(log, b))
+    (correct if (a, b) in future else wrong).append(text)
+  return correct, wrong
+
+
+def counterfactual_choices(log: EventLog, x: int
+                           ) -> tuple[list[str], list[str]]:
+  """(correct, wrong) choices of "what will happen if x is removed".
+
+  Correct: pairs colliding during the video in the world without ``x``.
+  Wrong: pairs that collided in the video but not without ``x`` when there
+  are any (so that "nothing changes" is not a winning guess), else pairs
+  that collide in neither world.
+  """
+  seen = [i for i in _seen(log) if i != x]
+  happened = _pairs_colliding(
+      c for c in log.counterfactual[x] if c.frame < log.observed_frames)
+  factual = _pairs_colliding(log.observed_collisions())
+  correct, hard_wrong, wrong = [], [], []
+  for a, b in itertools.combinations(seen, 2):
+    text = CHOICE_TEMPLATES['collides'].format(a=name(log, a), b=name(log, b))
+    if (a, b) in happened:
+      correct.append(text)
+    elif (a, b) in factual:
+      hard_wrong.append(text)
+    else:
+      wrong.append(text)
+  return correct, hard_wrong or wrong
+
+
+def candidate_questions(log: EventLog, rng: np.random.Generator
+                        ) -> list[dict[str, Any]]:
+  """Every question the templates can ask about one video (unbalanced).
+
+  Each has ``template``, ``question_type``, ``question`` and either
+  ``answer`` (descriptive) or ``choices`` (the rest).
+  """
+  out: list[dict[str, Any]] = []
+  seen = _seen(log)
+  observed = log.observed_collisions()
+
+  def ask(template: str, answer: Any = None, choices=None, **names: str):
+    q_type, text = TEMPLATES[template]
+    q = {'template': template, 'question_type': q_type,
+         'question': text.format(**names)}
+    if q_type == 'descriptive':
+      q['answer'] = str(answer)
+    else:
+      if choices is None:
+        return
+      q['choices'] = choices
+    out.append(q)
+
+  # ---- descriptive ---------------------------------------------------------
+  if len(observed) <= MAX_COUNT:
+    ask('count_collisions', len(observed))
+  entered = [i for i, f in log.entering if f < log.observed_frames]
+  if len(entered) <= MAX_COUNT:
+    ask('count_entering', len(entered))
+  present_at_end = [i for i in seen if log.in_view_at_end[i]]
+  ask('count_moving_end', sum(log.moving_at_end[i] for i in seen))
+  if present_at_end:
+    i = present_at_end[int(rng.integers(len(present_at_end)))]
+    ask('is_moving_end', 'yes' if log.moving_at_end[i] else 'no',
+        obj=name(log, i))
+  partners: dict[int, set[int]] = collections.defaultdict(set)
+  for c in observed:
+    a, b = c.objects
+    partners[a].add(b)
+    partners[b].add(a)
+  single = sorted(i for i, p in partners.items() if len(p) == 1)
+  if single:
+    i = single[int(rng.integers(len(single)))]
+    (other,) = partners[i]
+    ask('color_collides_with', log.objects[other]['color'], obj=name(log, i))
+    j = single[int(rng.integers(len(single)))]
+    (other,) = partners[j]
+    ask('shape_collides_with', log.objects[other]['shape'], obj=name(log, j))
+  if len(entered) == 1:
+    ask('color_entering', log.objects[entered[0]]['color'])
+
+  # ---- explanatory ---------------------------------------------------------
+  # Targets: first collisions of a pair with both correct and wrong choices.
+  targets = [k for k, c in enumerate(observed)
+             if all(d.objects != c.objects for d in observed[:k])
+             and all(responsible_choices(log, k))]
+  if targets:
+    k = targets[int(rng.integers(len(targets)))]
+    target = observed[k].objects
+    ask('responsible', choices=_choices(rng, *responsible_choices(log, k)),
+        a=name(log, target[0]), b=name(log, target[1]))
+
+  # ---- predictive ----------------------------------------------------------
+  ask('next', choices=_choices(rng, *predictive_choices(log)))
+
+  # ---- counterfactual ------------------------------------------------------
+  removable = [x for x in seen if x in log.counterfactual]
+  if removable:
+    x = removable[int(rng.integers(len(removable)))]
+    ask('removed', choices=_choices(rng, *counterfactual_choices(log, x)),
+        obj=name(log, x))
+  return out
+
+
+def balance(questions: list[dict[str, Any]], rng: np.random.Generator
+            ) -> list[dict[str, Any]]:
+  """Keeps each open answer at most median-count times per template.
+
+  Multiple-choice questions are kept as they are (each already mixes correct
+  and wrong choices). Returns the kept questions in their original order.
+  """
+  groups: dict[tuple[str, str], list[int]] = collections.defaultdict(list)
+  for k, q in enumerate(questions):
+    if q['question_type'] == 'descriptive':
+      groups[(q['template'], q['answer'])].append(k)
+  per_template: dict[str, list[int]] = collections.defaultdict(list)
+  for (template, _), members in groups.items():
+    per_template[template].append(len(members))
+  drop: set[int] = set()
+  for (template, _), members in sorted(groups.items()):
+    cap = int(np.ceil(np.median(per_template[template])))
+    if len(members) > cap:
+      keep = set(rng.choice(members, cap, replace=False).tolist())
+      drop.update(m for m in members if m not in keep)
+  return [q for k, q in enumerate(questions) if k not in drop]
+
+
+def generate_split(logs: Sequence[EventLog], seed: int, split: str,
+                   video_filenames: Sequence[str] | None = None,
+                   scene_offset: int = 0) -> list[dict[str, Any]]:
+  """Questions of one split in CLEVRER's ``questions/<split>.json`` layout.
+
+  Args:
+    logs: event logs of the split's videos, in video order.
+    seed: generation seed (with ``split``, it fixes every choice made here).
+    video_filenames: per video (default ``video_<index>.mp4``).
+    scene_offset: added to the video index to make ``scene_index``.
+
+  Returns:
+    One entry per video: {'scene_index', 'video_filename', 'questions': [
+    {'question_id', 'question_type', 'question', 'template', 'answer' |
+    'choices': [{'choice_id', 'choice', 'answer'}]}]}.
+  """
+  split_id = ('train', 'val', 'test').index(split)
+  flat, owner = [], []
+  for v, log in enumerate(logs):
+    rng = np.random.default_rng([seed, split_id, v, 1212])
+    for q in candidate_questions(log, rng):
+      flat.append(q)
+      owner.append(v)
+  kept_ids = {id(q) for q in balance(flat, np.random.default_rng(
+      [seed, split_id, 9999]))}
+  scenes = []
+  for v in range(len(logs)):
+    filename = (video_filenames[v] if video_filenames is not None
+                else f'video_{v + scene_offset:05d}.mp4')
+    scenes.append({'scene_index': v + scene_offset,
+                   'video_filename': filename, 'questions': []})
+  for q, v in zip(flat, owner):
+    if id(q) in kept_ids:
+      questions = scenes[v]['questions']
+      questions.append({'question_id': len(questions), **q})
+  return scenes
+
+
+def template_words() -> list[str]:
+  """Every word the templates can produce (the embedded question vocabulary)."""
+  words = set()
+  texts = [t for _, t in TEMPLATES.values()] + list(CHOICE_TEMPLATES.values())
+  for text in texts:
+    words.update(w for w in text.split() if not w.startswith('{'))
+  words.update(COLORS)
+  words.update(SHAPES)
+  return sorted(words)
+
+
+def template_answers() -> list[str]:
+  """Every open answer the descriptive templates can give."""
+  return sorted([str(k) for k in range(MAX_COUNT + 1)] + list(COLORS)
+                + list(SHAPES) + ['no', 'yes'])
+
+
+def max_lengths() -> tuple[int, int]:
+  """(words of the longest question, of the longest choice) any template can
+  produce (every object name is two words)."""
+  def words(text: str) -> int:
+    return len(text.split()) + text.count('{')  # "{obj}" -> 2 words
+  return (max(words(t) for _, t in TEMPLATES.values()),
+          max(words(t) for t in CHOICE_TEMPLATES.values()))

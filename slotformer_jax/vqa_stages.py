@@ -1,0 +1,311 @@
+"""VQA stages: slots (+ SlotFormer rollout) per video -> train Aloe -> evaluate.
+
+Run after the video pipeline (SAVi, extraction, SlotFormer):
+
+  python -m slotformer_jax.main --config=configs/synthetic_vqa.py \
+      --workdir=runs/vqa --mode=all     # everything, VQA included
+  ... --mode=train_vqa --config.vqa.inputs=observed --config.vqa.seed=1
+
+Workdir layout (next to the video pipeline's)::
+
+    vqa/slots/<split>.npy         float32 [V, video_length + rollout, N, D]
+    vqa/slots/meta.json           SAVi / SlotFormer steps they came from
+    vqa/<inputs>_s<seed>/         checkpoints/, train_log.jsonl,
+                                  metrics_<split>.json, predictions_test.json
+    vqa/answer_prior_<split>.json
+
+Questions and vocabulary: the embedded family ('clevrer_like') keeps them in
+its dataset folder; for CLEVRER set `vqa.questions_root` (the folder with
+questions/) and optionally `vqa.vocab_file` (default: built from the
+training questions and CLEVRER's answers).
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import logging
+import os
+from typing import Any
+
+import jax
+from jax.sharding import Mesh
+import jax.numpy as jnp
+import ml_collections
+import numpy as np
+import tqdm
+
+from slotformer_jax import inference
+from slotformer_jax import models
+from slotformer_jax import stages
+from slotformer_jax import workdir as workdir_lib
+from slotformer_jax.data import vqa as vqa_data
+from slotformer_jax.data.slots import SlotSource
+from slotformer_jax.tasks import vqa as task
+from slotformer_jax.train import sharding
+from slotformer_jax.train import steps
+from slotformer_jax.train.trainer import Stage
+from slotformer_jax.train.trainer import abstract_train_state
+from slotformer_jax.train.trainer import checkpointer_for
+from slotformer_jax.train.trainer import fit
+
+logger = logging.getLogger(__name__)
+
+INPUTS = ('observed', 'rollout', 'blind')
+
+
+def vqa_dir(workdir: str) -> str:
+  return os.path.join(workdir, 'vqa')
+
+
+def variant_dir(config: ml_collections.ConfigDict, workdir: str) -> str:
+  return os.path.join(vqa_dir(workdir),
+                      f'{config.vqa.inputs}_s{config.vqa.seed}')
+
+
+def _check_inputs(config: ml_collections.ConfigDict) -> None:
+  if config.vqa.inputs not in INPUTS:
+    raise ValueError(f'vqa.inputs must be one of {INPUTS}, got '
+                     f'{config.vqa.inputs!r}')
+
+
+# ----------------------------------------------------------------------------
+# Questions
+# ----------------------------------------------------------------------------
+
+
+def _questions_root(config: ml_collections.ConfigDict) -> str:
+  if config.data.name == 'clevrer_like':
+    from slotformer_jax.data import clevrer_like  # pylint: disable=g-import-not-at-top
+    from slotformer_jax.data.sources import resolve_data_dir  # pylint: disable=g-import-not-at-top
+    return str(clevrer_like.build_dataset(
+        clevrer_like.config_from_data_config(config.data),
+        resolve_data_dir(config.data.get('data_dir', None)),
+        num_workers=config.data.get('num_workers', None)))
+  if not config.vqa.questions_root:
+    raise ValueError('set vqa.questions_root to the folder holding '
+                     "CLEVRER's questions/{train,validation,test}.json")
+  return config.vqa.questions_root
+
+
+def vocabulary(config: ml_collections.ConfigDict) -> vqa_data.Vocabulary:
+  root = _questions_root(config)
+  path = config.vqa.vocab_file or os.path.join(root, 'vocab.json')
+  if os.path.exists(path):
+    return vqa_data.Vocabulary.load(path)
+  return vqa_data.Vocabulary.from_scenes(
+      vqa_data.read_clevrer_questions(root, 'train'),
+      answers=vqa_data.CLEVRER_ANSWERS)
+
+
+def encoded_questions(config: ml_collections.ConfigDict, split: str,
+                      vocab: vqa_data.Vocabulary
+                      ) -> list[vqa_data.EncodedQuestion]:
+  scenes = vqa_data.read_clevrer_questions(_questions_root(config), split)
+  return vqa_data.encode_scenes(scenes, vocab, config.vqa.max_question_len,
+                                config.vqa.max_choice_len)
+
+
+# ----------------------------------------------------------------------------
+# Slots per video: observed, then SlotFormer's rollout
+# ----------------------------------------------------------------------------
+
+
+def _slots_path(workdir: str, split: str) -> str:
+  return os.path.join(vqa_dir(workdir), 'slots', f'{split}.npy')
+
+
+def vqa_slots(config: ml_collections.ConfigDict, workdir: str,
+              mesh: Mesh) -> None:
+  """Writes each split's observed slots followed by SlotFormer's rollout."""
+  vqa = config.vqa
+  dynamics = config.slotformer
+  params, step = stages.load_slotformer_params(config, workdir, mesh)
+  model = models.build_slotformer(config)
+  meta_path = os.path.join(vqa_dir(workdir), 'slots', 'meta.json')
+  meta = {'slotformer_step': step, 'video_length': vqa.video_length,
+          'rollout_frames': vqa.rollout_frames}
+  if os.path.exists(meta_path):
+    with open(meta_path) as f:
+      if json.load(f) == meta and all(
+          os.path.exists(_slots_path(workdir, s))
+          for s in config.extraction.splits):
+        logger.info('VQA slots already rolled out (SlotFormer step %d)', step)
+        return
+  params = sharding.gather_to_host(params)
+  roll = jax.jit(functools.partial(inference.rollout_slots, model=model),
+                 static_argnames='num_steps')
+
+  def rollout(history: np.ndarray, num_steps: int) -> np.ndarray:
+    return np.asarray(roll(params, jnp.asarray(history), num_steps=num_steps))
+
+  os.makedirs(os.path.dirname(meta_path), exist_ok=True)
+  batch_size = config.extraction.batch_size
+  for split in config.extraction.splits:
+    source = SlotSource(workdir_lib.slots_dir(
+        workdir_lib.stage1_workdir(config, workdir), split))
+    out = None
+    for first in tqdm.trange(0, len(source), batch_size,
+                             desc=f'vqa rollout {split}'):
+      ids = range(first, min(len(source), first + batch_size))
+      observed = np.stack([source[i]['slots'][:vqa.video_length]
+                           for i in ids])
+      if observed.shape[1] != vqa.video_length:
+        raise ValueError(f'{split} videos have {observed.shape[1]} frames of '
+                         f'slots, vqa.video_length is {vqa.video_length}')
+      future = task.rollout_after_video(
+          rollout, observed, burn_in=dynamics.burn_in,
+          stride=dynamics.frame_stride, num_frames=vqa.rollout_frames)
+      both = np.concatenate([observed, future], axis=1).astype(np.float32)
+      if out is None:
+        out = np.lib.format.open_memmap(
+            _slots_path(workdir, split) + '.tmp.npy', mode='w+',
+            dtype=np.float32, shape=(len(source),) + both.shape[1:])
+      out[first:first + len(both)] = both
+    out.flush()
+    del out
+    os.replace(_slots_path(workdir, split) + '.tmp.npy',
+               _slots_path(workdir, split))
+  with open(meta_path, 'w') as f:
+    json.dump(meta, f)
+
+
+def _filename_to_index(config: ml_collections.ConfigDict,
+                       split: str) -> dict[str, int]:
+  scenes = vqa_data.read_clevrer_questions(_questions_root(config), split)
+  if config.data.name == 'clevrer_like':
+    from slotformer_jax.data import clevrer_like  # pylint: disable=g-import-not-at-top
+    offset = clevrer_like.SCENE_OFFSETS[split]
+    return {s['video_filename']: int(s['scene_index']) - offset
+            for s in scenes}
+  # CLEVRER: converted videos are in file-name order within a split.
+  names = sorted(s['video_filename'] for s in scenes)
+  return {name: k for k, name in enumerate(names)}
+
+
+def question_batches(config: ml_collections.ConfigDict, workdir: str,
+                     split: str, questions: list[vqa_data.EncodedQuestion]
+                     ) -> task.QuestionBatches:
+  _check_inputs(config)
+  vqa = config.vqa
+  path = _slots_path(workdir, split)
+  if not os.path.exists(path):
+    raise FileNotFoundError(f'{path} is missing: run --mode=vqa_slots first')
+  slots = np.load(path, mmap_mode='r')
+  if vqa.inputs != 'rollout':
+    slots = slots[:, :vqa.video_length]  # no rollout: predictive questions
+    # read the end of the video like the others
+  index = _filename_to_index(config, split)
+  return task.QuestionBatches(
+      questions, lambda name: slots[index[name]],
+      video_length=vqa.video_length, num_frames=vqa.num_frames,
+      stride=vqa.frame_stride, max_choices=vqa.max_choices,
+      blind=vqa.inputs == 'blind')
+
+
+# ----------------------------------------------------------------------------
+# Training and evaluation
+# ----------------------------------------------------------------------------
+
+
+def _model_and_init(config: ml_collections.ConfigDict,
+                    vocab: vqa_data.Vocabulary):
+  vqa = config.vqa
+  model = models.build_aloe(config, len(vocab.questions), len(vocab.answers))
+  length = vqa.max_question_len + vqa.max_choice_len
+  slots = jnp.zeros((1, vqa.num_frames, config.savi.num_slots,
+                     config.savi.slot_size))
+
+  def init(rng: jax.Array) -> Any:
+    return steps.init_params(
+        model, rng, slots, jnp.zeros((1, length), jnp.int32),
+        jnp.zeros((1, length), bool), slots,
+        jnp.zeros((1, 1, length), jnp.int32), jnp.zeros((1, 1, length), bool))
+  return model, init
+
+
+def train_vqa(config: ml_collections.ConfigDict, workdir: str,
+              mesh: Mesh) -> None:
+  """Trains Aloe on the training questions (resumable)."""
+  vqa = config.vqa
+  vocab = vocabulary(config)
+  batches = question_batches(config, workdir, 'train',
+                             encoded_questions(config, 'train', vocab))
+  model, init = _model_and_init(config, vocab)
+  open_size = sharding.per_host_batch_size(vqa.open_batch_size, mesh)
+  choice_size = sharding.per_host_batch_size(vqa.choice_batch_size, mesh)
+  seed = config.seed * 1000 + vqa.seed
+  stage = Stage(
+      name=f'vqa_{vqa.inputs}', directory=variant_dir(config, workdir),
+      config=vqa, loss_fn=functools.partial(task.vqa_loss, model=model),
+      init_params=lambda rng: {'params': init(rng)},
+      batches=lambda start_step: batches.train_batches(
+          open_size, choice_size, seed=seed + jax.process_index() * 7919,
+          start_step=start_step))
+  fit(stage, mesh=mesh, seed=seed)
+
+
+def _load_aloe(config: ml_collections.ConfigDict, workdir: str, mesh: Mesh,
+               vocab: vqa_data.Vocabulary):
+  model, init = _model_and_init(config, vocab)
+  directory = variant_dir(config, workdir)
+  checkpointer = checkpointer_for(directory, read_only=True)
+  if checkpointer.latest_step() is None:
+    raise FileNotFoundError(f'no Aloe checkpoint under {directory}; run '
+                            '--mode=train_vqa first')
+  state = checkpointer.restore(abstract_train_state(
+      lambda rng: {'params': init(rng)}, config.vqa, mesh))
+  return model, state.params
+
+
+def evaluate_vqa(config: ml_collections.ConfigDict, workdir: str,
+                 mesh: Mesh) -> dict[str, Any]:
+  """Metrics per question type on `vqa.eval_split` (+ the answer prior);
+  on a split without answers (CLEVRER's test), the prediction file."""
+  vqa = config.vqa
+  split = vqa.eval_split
+  vocab = vocabulary(config)
+  questions = encoded_questions(config, split, vocab)
+  batches = question_batches(config, workdir, split, questions)
+  model, params = _load_aloe(config, workdir, mesh, vocab)
+  replicated = sharding.replicated_sharding(mesh)
+  run = jax.jit(functools.partial(task.predict, model=model),
+                in_shardings=(replicated, sharding.batch_sharding(mesh)))
+  size = sharding.per_host_batch_size(vqa.eval_batch_size, mesh)
+  metrics = task.VqaMetrics()
+  open_answers, choice_correct = {}, {}
+  open_index = [k for k, q in enumerate(questions) if q.is_descriptive]
+  choice_index = [k for k, q in enumerate(questions) if not q.is_descriptive]
+  for batch, open_ids, choice_ids in batches.eval_batches(size, size):
+    answers, logits = sharding.gather_to_host(
+        run(params, sharding.to_global_batch(batch, mesh)))
+    n_open, n_choice = len(open_ids), len(choice_ids)
+    valid = batch['choice_valid'][:n_choice]
+    metrics.add_open(answers[:n_open], batch['open_label'][:n_open])
+    metrics.add_choices(logits[:n_choice] > 0, batch['choice_label'][:n_choice],
+                        valid, batch['choice_type'][:n_choice])
+    for k, i in enumerate(open_ids):
+      open_answers[open_index[i]] = int(answers[k])
+    for k, i in enumerate(choice_ids):
+      n = int(valid[k].sum())
+      choice_correct[choice_index[i]] = (logits[k, :n] > 0).tolist()
+  directory = variant_dir(config, workdir)
+  has_answers = all(q.answer >= 0 for q in questions if q.is_descriptive)
+  results = metrics.results() if has_answers else {}
+  if jax.process_index() == 0:
+    os.makedirs(directory, exist_ok=True)
+    with open(os.path.join(directory, f'metrics_{split}.json'), 'w') as f:
+      json.dump(results, f, indent=1)
+    if not has_answers:
+      with open(os.path.join(directory, f'predictions_{split}.json'),
+                'w') as f:
+        json.dump(task.prediction_file(questions, open_answers,
+                                       choice_correct, vocab.answer_names), f)
+    if has_answers:
+      prior = task.evaluate_answer_prior(task.fit_answer_prior(
+          encoded_questions(config, 'train', vocab)), questions)
+      with open(os.path.join(vqa_dir(workdir),
+                             f'answer_prior_{split}.json'), 'w') as f:
+        json.dump(prior, f, indent=1)
+  logger.info('VQA %s on %s: %s', vqa.inputs, split, json.dumps(results))
+  return results

@@ -1,0 +1,143 @@
+"""Tests of the CLEVRER-like scenario family: event log and counterfactuals."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from slotformer_jax.data import clevrer_like
+from slotformer_jax.data.convert import synthetic
+
+CONFIG = clevrer_like.ClevrerLikeConfig(
+    observed_frames=12, predicted_frames=8, num_train=4, num_val=2,
+    num_test=2)
+
+
+def _two_spheres(gap: float, speed: float, *, third: bool = False
+                 ) -> clevrer_like.Scene:
+  """Two small spheres rolling at each other along x (+ a far resting cube).
+
+  Surfaces start ``gap`` metres apart, each moving at ``speed`` m/s.
+  """
+  r = synthetic.SIZE_RADII[0]
+  half = r + gap / 2
+  n = 3 if third else 2
+  xy = [[-half, 0.5], [half, 0.5], [0.0, 2.2]][:n]
+  velocity = [[speed, 0.0], [-speed, 0.0], [0.0, 0.0]][:n]
+  return clevrer_like.Scene(
+      shapes=np.array([1, 1, 0][:n], np.int32),
+      colors=np.array([1, 2, 3][:n], np.int32),
+      sizes=np.zeros(n, np.int32),
+      xy=np.array(xy, np.float64), yaw=np.zeros(n),
+      velocity=np.array(velocity, np.float64),
+      enter_frame=np.zeros(n, np.int32))
+
+
+def test_collision_onset_at_substep_resolution():
+  gap, speed = 0.6, 1.5
+  sim = clevrer_like.simulate(_two_spheres(gap, speed), CONFIG)
+  assert sim['collisions'], 'head-on spheres must collide'
+  a, b, frame, substep = sim['collisions'][0]
+  assert (a, b) == (0, 1)
+  # Rolling friction slows them a little: contact no earlier than the
+  # frictionless time, and within a few substeps of it.
+  expected = gap / (2 * speed) / synthetic.PHYSICS_DT
+  assert expected - 2 <= substep <= expected * 1.1 + 2, (substep, expected)
+  assert frame == -(-substep // synthetic.SUBSTEPS_PER_FRAME)
+  # The contact is reported once (restitution separates them, no chatter).
+  assert [c[:2] for c in sim['collisions']].count((0, 1)) == 1
+
+
+def test_counterfactual_removes_the_object_and_its_collisions():
+  scene = _two_spheres(0.6, 1.5, third=True)
+  full = clevrer_like.simulate(scene, CONFIG)
+  without = clevrer_like.simulate(scene, CONFIG, removed=1)
+  assert any(c[:2] == (0, 1) for c in full['collisions'])
+  assert without['collisions'] == []
+  assert not without['present'][:, 1].any()
+  assert without['present'][:, [0, 2]].all()
+  # Removing the resting cube (never hit) changes nothing of the rest.
+  no_cube = clevrer_like.simulate(scene, CONFIG, removed=2)
+  assert [c[:3] for c in no_cube['collisions']] == [
+      c[:3] for c in full['collisions']]
+
+
+def test_counterfactual_resimulation_is_deterministic():
+  video = clevrer_like.generate_video(CONFIG, 'train', 3, render=False)
+  again = clevrer_like.generate_video(CONFIG, 'train', 3, render=False)
+  assert video['events'].to_dict() == again['events'].to_dict()
+  scene = clevrer_like.sample_scene(
+      clevrer_like.video_rng(CONFIG.seed, 'train', 3), CONFIG)
+  for k in range(scene.num_objects):
+    a = clevrer_like.simulate(scene, CONFIG, removed=k)
+    b = clevrer_like.simulate(scene, CONFIG, removed=k)
+    assert a['collisions'] == b['collisions']
+    assert a['positions'].tobytes() == b['positions'].tobytes()
+
+
+def test_entering_object_appears_later_and_enters_the_view():
+  scene = _two_spheres(3.0, 0.0)
+  # Object 1 enters at frame 3 from the right, rolling left into view.
+  scene = dataclasses.replace(
+      scene, xy=np.array([[-1.5, 0.5], [clevrer_like.ENTER_X, 0.5]]),
+      velocity=np.array([[0.0, 0.0], [-4.0, 0.0]]),
+      enter_frame=np.array([0, 3], np.int32))
+  sim = clevrer_like.simulate(scene, CONFIG)
+  assert not sim['present'][:3, 1].any() and sim['present'][3:, 1].all()
+  assert sim['in_view'][:, 0].all()
+  log = clevrer_like.event_log(scene, sim, CONFIG)
+  assert [i for i, _ in log.entering] == [1]
+  assert log.entering[0][1] > 3
+  assert not sim['in_view'][log.entering[0][1] - 1, 1]
+
+
+def test_generate_video_render_and_event_log_roundtrip():
+  video = clevrer_like.generate_video(CONFIG, 'val', 0)
+  t, (h, w) = CONFIG.num_frames, CONFIG.resolution
+  assert video['video'].shape == (t, h, w, 3)
+  assert video['segmentations'].shape == (t, h, w)
+  assert video['boxes'].shape == (t, CONFIG.max_objects_total, 4)
+  events = video['events']
+  n = int(video['num_objects'])
+  assert len(events.objects) == n and set(events.counterfactual) == set(
+      range(n))
+  assert len({o['color'] for o in events.objects}) == n  # distinct colours
+  again = clevrer_like.EventLog.from_dict(events.to_dict())
+  assert again == events
+  # Physics only (no rendering) gives the same events.
+  physics = clevrer_like.generate_video(CONFIG, 'val', 0, render=False)
+  assert physics['events'] == events
+
+
+def test_config_rejects_too_many_objects():
+  with pytest.raises(ValueError):
+    clevrer_like.ClevrerLikeConfig(max_objects=7, max_entering=2)
+
+
+def test_build_dataset_writes_videos_questions_and_vocabulary(tmp_path):
+  import json  # pylint: disable=g-import-not-at-top
+  import ml_collections  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.data import sources  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.data import vqa  # pylint: disable=g-import-not-at-top
+  data = ml_collections.ConfigDict(dict(
+      name='clevrer_like', data_dir=str(tmp_path), observed_frames=12,
+      predicted_frames=8, num_train=3, num_val=1, num_test=2, num_workers=1))
+  source = sources.get_video_source(data, 'test')
+  assert len(source) == 2
+  item = source[1]
+  assert item['video'].shape == (20, 32, 32, 3)
+  config = clevrer_like.config_from_data_config(data)
+  np.testing.assert_array_equal(
+      item['video'], clevrer_like.generate_video(config, 'test', 1)['video'])
+  root = clevrer_like.dataset_dir(config, tmp_path)
+  vocab = vqa.Vocabulary.load(root / 'vocab.json')
+  scenes = vqa.read_clevrer_questions(root, 'test')
+  assert [s['scene_index'] for s in scenes] == [15000, 15001]
+  # Every generated question encodes with the stored vocabulary.
+  vqa.encode_scenes(scenes, vocab, 20, 12)
+  with open(root / 'test' / 'events.jsonl') as f:
+    logs = [clevrer_like.EventLog.from_dict(json.loads(line)) for line in f]
+  assert logs[1] == clevrer_like.generate_video(
+      config, 'test', 1, render=False)['events']

@@ -1,0 +1,250 @@
+"""Question generator: every template against a hand-built event log."""
+
+from __future__ import annotations
+
+import collections
+import re
+
+import numpy as np
+import pytest
+
+from slotformer_jax.data import questions as qg
+from slotformer_jax.data import vqa
+from slotformer_jax.data.clevrer_like import Collision, EventLog
+
+RED_CUBE, BLUE_SPHERE, GREEN_CYL, YELLOW_SPHERE = range(4)
+NAMES = ['red cube', 'blue sphere', 'green cylinder', 'yellow sphere']
+
+
+def hand_log() -> EventLog:
+  """Red cube hits blue sphere (3), blue sphere hits green cylinder (8), the
+  yellow sphere enters (5) and hits the green cylinder (12); after the video
+  (observed 20 frames) the red cube and yellow sphere collide (24).
+
+  Counterfactuals: without the red cube the blue sphere never reaches the
+  cylinder; without the cylinder only the first collision is left.
+  """
+  return EventLog(
+      objects=[{'color': 'red', 'shape': 'cube', 'size': 'small'},
+               {'color': 'blue', 'shape': 'sphere', 'size': 'large'},
+               {'color': 'green', 'shape': 'cylinder', 'size': 'small'},
+               {'color': 'yellow', 'shape': 'sphere', 'size': 'small'}],
+      observed_frames=20, num_frames=30,
+      collisions=[Collision((0, 1), 3), Collision((1, 2), 8),
+                  Collision((2, 3), 12), Collision((0, 3), 24)],
+      entering=[(3, 5)], exiting=[],
+      moving_at_end=[False, True, True, True],
+      in_view_at_end=[True, True, True, True],
+      final_positions=[[0.0, 0.0, 0.5]] * 4,
+      counterfactual={
+          0: [Collision((2, 3), 12)],
+          1: [Collision((2, 3), 13)],
+          2: [Collision((0, 1), 3)],
+          3: [Collision((0, 1), 3), Collision((1, 2), 8)],
+      })
+
+
+def collides(a: int, b: int) -> str:
+  return f'the {NAMES[a]} collides with the {NAMES[b]}'
+
+
+def _by_template(log: EventLog, seed: int) -> dict[str, dict]:
+  out = {}
+  for q in qg.candidate_questions(log, np.random.default_rng(seed)):
+    out[q['template']] = q
+  return out
+
+
+def _named(text: str) -> int:
+  found = [k for k, n in enumerate(NAMES) if n in text]
+  assert len(found) == 1, text
+  return found[0]
+
+
+def test_descriptive_answers():
+  log = hand_log()
+  # The randomly picked object changes with the seed; the answer must match.
+  for seed in range(8):
+    q = _by_template(log, seed)
+    assert q['count_collisions']['answer'] == '3'  # the 4th is after the video
+    assert q['count_entering']['answer'] == '1'
+    assert q['count_moving_end']['answer'] == '3'
+    assert q['color_entering']['answer'] == 'yellow'
+    obj = _named(q['is_moving_end']['question'])
+    assert q['is_moving_end']['answer'] == ('no' if obj == RED_CUBE else 'yes')
+    # Only the red cube (-> blue sphere) and the yellow sphere (-> green
+    # cylinder) collide with exactly one object during the video.
+    obj = _named(q['color_collides_with']['question'])
+    assert q['color_collides_with']['answer'] == {
+        RED_CUBE: 'blue', YELLOW_SPHERE: 'green'}[obj]
+    obj = _named(q['shape_collides_with']['question'])
+    assert q['shape_collides_with']['answer'] == {
+        RED_CUBE: 'sphere', YELLOW_SPHERE: 'cylinder'}[obj]
+  # Every template has a question about this log.
+  assert set(_by_template(log, 0)) == set(qg.TEMPLATES)
+
+
+def test_explanatory_choices():
+  log = hand_log()
+  # Target blue sphere - green cylinder (8): without the red cube it does not
+  # happen; the red cube - blue sphere collision leads to it; the yellow
+  # sphere (entered at 5) is not needed.
+  correct, wrong = qg.responsible_choices(log, 1)
+  assert sorted(correct) == sorted([
+      'the presence of the red cube',
+      'the collision between the red cube and the blue sphere'])
+  assert wrong == ['the presence of the yellow sphere']
+  # Target green cylinder - yellow sphere (12): both earlier collisions are
+  # on its causal chain, but no single object's absence prevents it.
+  correct, wrong = qg.responsible_choices(log, 2)
+  assert sorted(correct) == sorted([
+      'the collision between the red cube and the blue sphere',
+      'the collision between the blue sphere and the green cylinder'])
+  assert sorted(wrong) == sorted(['the presence of the red cube',
+                                  'the presence of the blue sphere'])
+  # The first collision: the yellow sphere was not there yet, the cylinder
+  # is not responsible: no correct choice, so no question.
+  assert qg.responsible_choices(log, 0) == (
+      [], ['the presence of the green cylinder'])
+  for seed in range(8):
+    q = _by_template(log, seed)['responsible']
+    target = re.search('between the (.*) and the (.*)', q['question'])
+    k = {('blue sphere', 'green cylinder'): 1,
+         ('green cylinder', 'yellow sphere'): 2}[target.groups()]
+    correct, wrong = qg.responsible_choices(log, k)
+    for choice in q['choices']:
+      assert choice['choice'] in (correct if choice['answer'] == 'correct'
+                                  else wrong)
+
+
+def test_predictive_choices():
+  log = hand_log()
+  correct, wrong = qg.predictive_choices(log)
+  assert correct == [collides(RED_CUBE, YELLOW_SPHERE)]
+  assert sorted(wrong) == sorted(
+      collides(a, b) for a, b in [(0, 1), (0, 2), (1, 2), (1, 3), (2, 3)])
+  # An object out of view at the end is not asked about.
+  log.in_view_at_end[YELLOW_SPHERE] = False
+  correct, wrong = qg.predictive_choices(log)
+  assert correct == [] and len(wrong) == 3
+
+
+def test_counterfactual_choices():
+  log = hand_log()
+  # Without the red cube only green cylinder - yellow sphere happens; the
+  # blue sphere - green cylinder collision of the video is the wrong choice.
+  assert qg.counterfactual_choices(log, RED_CUBE) == (
+      [collides(GREEN_CYL, YELLOW_SPHERE)],
+      [collides(BLUE_SPHERE, GREEN_CYL)])
+  # Without the yellow sphere the first two collisions still happen; the
+  # only pair that does not collide is the wrong choice.
+  assert qg.counterfactual_choices(log, YELLOW_SPHERE) == (
+      [collides(RED_CUBE, BLUE_SPHERE), collides(BLUE_SPHERE, GREEN_CYL)],
+      [collides(RED_CUBE, GREEN_CYL)])
+  for seed in range(8):
+    q = _by_template(log, seed)['removed']
+    x = _named(q['question'])
+    correct, wrong = qg.counterfactual_choices(log, x)
+    labels = [c['answer'] for c in q['choices']]
+    assert 'correct' in labels and 'wrong' in labels
+    for choice in q['choices']:
+      assert choice['choice'] in (correct if choice['answer'] == 'correct'
+                                  else wrong)
+
+
+def _logs(n: int) -> list[EventLog]:
+  """Variations of the hand-built log (different collision counts)."""
+  logs = []
+  for k in range(n):
+    log = hand_log()
+    log.collisions = log.collisions[k % 3:]
+    log.moving_at_end = [bool((k + i) % 2) for i in range(4)]
+    logs.append(log)
+  return logs
+
+
+def test_split_is_deterministic_and_balanced():
+  logs = _logs(30)
+  a = qg.generate_split(logs, seed=3, split='train')
+  assert a == qg.generate_split(logs, seed=3, split='train')
+  assert a != qg.generate_split(logs, seed=4, split='train')
+  per_template = collections.defaultdict(collections.Counter)
+  for scene in a:
+    ids = [q['question_id'] for q in scene['questions']]
+    assert ids == list(range(len(ids)))
+    for q in scene['questions']:
+      if q['question_type'] == 'descriptive':
+        per_template[q['template']][q['answer']] += 1
+      else:
+        labels = {c['answer'] for c in q['choices']}
+        assert labels == {'correct', 'wrong'}
+  unbalanced = collections.defaultdict(collections.Counter)
+  for v, log in enumerate(logs):
+    rng = np.random.default_rng([3, 0, v, 1212])
+    for q in qg.candidate_questions(log, rng):
+      if q['question_type'] == 'descriptive':
+        unbalanced[q['template']][q['answer']] += 1
+  for template, counts in per_template.items():
+    cap = int(np.ceil(np.median(list(unbalanced[template].values()))))
+    assert max(counts.values()) <= cap, (template, counts)
+  # count_collisions answers 3, 2, 1 equally often before and after.
+  assert set(per_template['count_collisions']) == {'1', '2', '3'}
+
+
+def test_vocabulary_covers_templates_and_encoding_round_trips():
+  scenes = qg.generate_split(_logs(12), seed=0, split='val')
+  vocab = vqa.Vocabulary.from_scenes(scenes, answers=qg.template_answers())
+  assert set(vocab.questions) - {vqa.PAD} <= set(qg.template_words())
+  n = 0
+  for scene in scenes:
+    for q in scene['questions']:
+      tokens, pad = vqa.encode_text(q['question'], vocab.questions, 20)
+      assert vqa.decode_tokens(tokens, pad, vocab.questions) == q['question']
+      enc = vqa.encode_question(scene, q, vocab, 20, 12)
+      if q['question_type'] == 'descriptive':
+        assert vocab.answer_names[enc.answer] == q['answer']
+        assert enc.tokens.shape == (1, 32)
+      else:
+        for row, pad_row, choice in zip(enc.tokens, enc.pad_mask,
+                                        q['choices']):
+          assert vqa.decode_tokens(row[:20], pad_row[:20],
+                                   vocab.questions) == q['question']
+          assert vqa.decode_tokens(row[20:], pad_row[20:],
+                                   vocab.questions) == choice['choice']
+        assert enc.choice_labels.tolist() == [
+            int(c['answer'] == 'correct') for c in q['choices']]
+      n += 1
+  assert n > 0
+  with pytest.raises(ValueError):
+    vqa.encode_text('how many collisions happen', vocab.questions, 3)
+  with pytest.raises(KeyError):
+    vqa.encode_text('how many dragons', vocab.questions, 5)
+
+
+def test_official_vocabulary_conventions():
+  # PAD first, then sorted words: the official ids, e.g. 'yes' is 21.
+  answers = vqa.make_vocabulary(vqa.CLEVRER_ANSWERS)
+  assert answers['PAD'] == 0 and answers['0'] == 1 and answers['yes'] == 21
+  assert answers['blue'] == 7 and answers['yellow'] == 20
+  assert vqa.tokenize('What is the shape of the cube, that enters?') == [
+      'what', 'is', 'the', 'shape', 'of', 'the', 'cube,', 'that', 'enters']
+
+
+def test_synthetic_vqa_config_fits_every_template():
+  import importlib.util  # pylint: disable=g-import-not-at-top
+  import os  # pylint: disable=g-import-not-at-top
+  spec = importlib.util.spec_from_file_location(
+      'synthetic_vqa', os.path.join(os.path.dirname(__file__), '..',
+                                    'configs', 'synthetic_vqa.py'))
+  module = importlib.util.module_from_spec(spec)
+  spec.loader.exec_module(module)
+  config = module.get_config()
+  question, choice = qg.max_lengths()
+  assert question == 17 and choice == 10  # the explanatory template
+  assert config.vqa.max_question_len >= question
+  assert config.vqa.max_choice_len >= choice
+  # The counted worst case is real: encode it.
+  vocab = vqa.make_vocabulary(qg.template_words())
+  text = qg.TEMPLATES['responsible'][1].format(a='green cylinder',
+                                               b='blue sphere')
+  vqa.encode_text(text, vocab, question)
