@@ -41,15 +41,19 @@ class SlotAttention(nn.Module):
     num_iterations: attention rounds per call (2 in SlotFormer's SAVi).
     mlp_size: hidden size of the residual MLP after the GRU.
     epsilon: see `inverted_attention_weights`.
+    return_attention: also return the last iteration's slot competition
+      [B, N, M] (softmax over slots): STEVE's per-slot masks.
   """
 
   num_iterations: int = 2
   mlp_size: int = 256
   epsilon: float = 1e-6
+  return_attention: bool = False
 
   @nn.compact
-  def __call__(self, slots: jax.Array, inputs: jax.Array) -> jax.Array:
-    """slots [B, N, D], inputs [B, M, C] -> updated slots [B, N, D]."""
+  def __call__(self, slots: jax.Array, inputs: jax.Array):
+    """slots [B, N, D], inputs [B, M, C] -> updated slots [B, N, D]
+    (and the attention [B, N, M] when `return_attention`)."""
     slot_size = slots.shape[-1]
     inputs = nn.LayerNorm(name='norm_inputs')(inputs)
     keys = nn.Dense(slot_size, use_bias=False, name='key')(inputs)
@@ -75,4 +79,6 @@ class SlotAttention(nn.Module):
       updates = jnp.einsum('bnm,bmd->bnd', weights, values)
       slots, _ = gru(slots, updates)
       slots = slots + mlp(slots)
+    if self.return_attention:
+      return slots, competition
     return slots
