@@ -29,8 +29,12 @@ from slotformer_jax.evaluation import evaluate
 from slotformer_jax.evaluation import visualize
 from slotformer_jax.train import sharding
 
-MODES = ('all', 'train_savi', 'extract_slots', 'train_slotformer',
-         'train_slot_lstm', 'evaluate', 'render')
+MODES = ('all', 'train_savi', 'train_dvae', 'tokenize_frames', 'train_steve',
+         'extract_slots', 'train_slotformer', 'train_slot_lstm', 'evaluate',
+         'render')
+# Stage 1 of each slot model, in order (what `--mode=all` runs first).
+STAGE1_MODES = {'savi': ('train_savi',),
+                'steve': ('train_dvae', 'tokenize_frames', 'train_steve')}
 
 _CONFIG = config_flags.DEFINE_config_file(
     'config', None, 'Config file, e.g. configs/obj3d.py or '
@@ -82,6 +86,23 @@ def _save_config(config, workdir: str) -> None:
       f.write(config.to_json_best_effort(indent=1))
 
 
+def steve_stages_by_mode():
+  """The stages with STEVE as the slot model (slotformer_jax/steve_*)."""
+  # pylint: disable=g-import-not-at-top
+  from slotformer_jax import steve_stages
+  from slotformer_jax.evaluation import steve_evaluate
+  return {
+      'train_dvae': steve_stages.train_dvae,
+      'tokenize_frames': steve_stages.tokenize_frames,
+      'train_steve': steve_stages.train_steve,
+      'extract_slots': steve_stages.extract_slots,
+      'train_slotformer': steve_stages.train_slotformer,
+      'train_slot_lstm': steve_stages.train_slot_lstm,
+      'evaluate': steve_evaluate.evaluate,
+      'render': steve_evaluate.render,
+  }
+
+
 def main(argv):
   del argv
   if _DISTRIBUTED.value:
@@ -91,11 +112,9 @@ def main(argv):
   config, workdir, mode = _CONFIG.value, _WORKDIR.value, _MODE.value
   if config is None:
     raise app.UsageError('--config is required, e.g. configs/synthetic.py')
-  if config.slot_model != 'savi':
-    raise NotImplementedError(
-        f'slot_model={config.slot_model!r} is not implemented yet; only '
-        "'savi' (incl. stochastic SAVi) is. Override it with "
-        '--config.slot_model=savi to use SAVi on this dataset.')
+  if config.slot_model not in STAGE1_MODES:
+    raise ValueError(f'slot_model must be one of {tuple(STAGE1_MODES)}, got '
+                     f'{config.slot_model!r}')
   _save_config(config, workdir)
   mesh = sharding.make_mesh()
   logger.info('%d processes, %d devices (%s)', jax.process_count(),
@@ -109,11 +128,18 @@ def main(argv):
       'evaluate': evaluate.evaluate,
       'render': visualize.render,
   }
+  if config.slot_model == 'steve':
+    run = steve_stages_by_mode()
+  other_stage1 = {m for model, modes in STAGE1_MODES.items()
+                  if model != config.slot_model for m in modes}
+  if mode in other_stage1:
+    raise app.UsageError(f'--mode={mode} does not belong to '
+                         f'slot_model={config.slot_model!r}')
   wall_times = {}
   if mode == 'all':
     # The Slot-LSTM baseline only when the config asks for it.
-    selected = tuple(m for m in MODES[1:]
-                     if m != 'train_slot_lstm' or config.slot_lstm.train)
+    selected = tuple(m for m in MODES[1:] if m not in other_stage1 and (
+        m != 'train_slot_lstm' or config.slot_lstm.train))
   else:
     selected = (mode,)
   for stage in selected:
