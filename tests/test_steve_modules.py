@@ -69,10 +69,11 @@ def test_decoder_is_causal():
   """Changing token k never changes the logits of positions <= k (which
   are predicted from tokens < their position), and does change later ones."""
   decoder, params, slots, tokens = _decoder_setup()
-  logits = decoder.apply({'params': params}, slots, tokens)
+  forward = jax.jit(decoder.apply)
+  logits = forward({'params': params}, slots, tokens)
   for k in (0, 5, 14):
     changed = tokens.at[:, k].set((tokens[:, k] + 1) % VOCAB)
-    other = decoder.apply({'params': params}, slots, changed)
+    other = forward({'params': params}, slots, changed)
     np.testing.assert_array_equal(other[:, :k + 1], logits[:, :k + 1])
     assert float(jnp.abs(other[:, k + 1:] - logits[:, k + 1:]).max()) > 1e-4
 
@@ -94,10 +95,11 @@ def test_kv_cache_generation_equals_recomputation():
                         method=TokenDecoder.init_cache)
   full = decoder.apply({'params': params}, slots, tokens)
   previous = jnp.full((3,), VOCAB)
+  decode_step = jax.jit(functools.partial(decoder.apply,
+                                          method=TokenDecoder.decode_step))
   for position in range(16):
-    step_logits, _, cache = decoder.apply(
-        {'params': params}, previous, position, cache,
-        method=TokenDecoder.decode_step)
+    step_logits, _, cache = decode_step(
+        {'params': params}, previous, jnp.asarray(position), cache)
     np.testing.assert_allclose(step_logits, full[:, position], atol=1e-4,
                                rtol=1e-4)
     previous = tokens[:, position]
@@ -130,8 +132,8 @@ def test_steve_shapes_and_permutation_equivariance():
                               method=STEVE.initial_carry)
   lstm = tuple(x + 0.1 * jax.random.normal(jax.random.key(3), x.shape)
                for x in lstm)
-  run = lambda carry: model.apply({'params': params}, video, carry,
-                                  method=STEVE.encode)
+  run = jax.jit(lambda carry: model.apply({'params': params}, video, carry,
+                                          method=STEVE.encode))
   slots_a, masks_a, _ = run((initial, lstm))
   slots_b, masks_b, _ = run((initial[:, permutation],
                              tuple(x[:, permutation] for x in lstm)))
