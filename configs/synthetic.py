@@ -6,8 +6,9 @@ on a 2-core CPU (measured; see the README); `--config=configs/synthetic.py:tiny`
 is a smoke run of about a minute whose numbers mean nothing.
 `--config=configs/synthetic.py:steve` runs the STEVE pipeline instead (dVAE,
 tokens, STEVE, extraction, SlotFormer, evaluation, pictures) at 64x64 with
-16x16 tokens per frame (see docs/steve.md for its measured time);
-`:steve_tiny` is its smoke run.
+16x16 tokens per frame; `:steve_tiny` is its smoke run. Its one measured
+run (docs/steve.md, on a heavily loaded CPU with STEVE shortened to 1000
+steps) did not learn objects: the dVAE collapsed to a few codes.
 
 Videos: 2-3 static CLEVR-like objects and one sphere launched at them,
 simulated by pybullet and rendered at 32x32 with instance masks. Models keep
