@@ -5,7 +5,6 @@ import functools
 import jax
 import jax.numpy as jnp
 import numpy as np
-import pytest
 
 from slotformer_jax import steve_inference
 from slotformer_jax.modules.dvae import DVAE
