@@ -119,10 +119,15 @@ def validate(config: ml_collections.ConfigDict, stages: Sequence[str], *,
                       f'{num_processes} processes')
 
   stages = set(stages)
-  if config.slot_model != 'savi':
+  if config.slot_model not in ('savi', 'steve'):
     problems.append(
-        f'slot_model={config.slot_model!r} is not implemented; only '
-        "'savi' (incl. stochastic SAVi) is: --config.slot_model=savi")
+        f"slot_model must be 'savi' (incl. stochastic SAVi) or 'steve', got "
+        f'{config.slot_model!r}')
+  if config.slot_model == 'steve':
+    for section in ('dvae', 'steve'):
+      if 'train_' + section in stages:
+        positive(section, _TRAINING_INTS)
+        divisible(f'{section}.batch_size', config[section].batch_size)
   positive('savi', ('num_slots', 'slot_size', 'clip_length'))
   positive('data', ('max_instances',))
   if 'train_savi' in stages:

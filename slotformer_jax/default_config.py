@@ -14,7 +14,8 @@ import ml_collections
 def base_config() -> ml_collections.ConfigDict:
   config = ml_collections.ConfigDict()
   config.seed = 0
-  # Which stage-1 model extracts the slots: 'savi' (incl. stochastic SAVi).
+  # Which stage-1 model extracts the slots: 'savi' (incl. stochastic SAVi)
+  # or 'steve' (dVAE + STEVE, `config.dvae` / `config.steve`).
   config.slot_model = 'savi'
   # Another run's workdir whose SAVi checkpoint and extracted slots this run
   # uses (e.g. for stage-2 ablations); None: this run's own --workdir.
@@ -81,6 +82,46 @@ def base_config() -> ml_collections.ConfigDict:
   savi.grad_clip = 0.05  # max global gradient norm
   savi.log_every = 100
   savi.checkpoint_every = 1000
+
+  # ---- stage 1 with slot_model='steve': dVAE, then STEVE -----------------
+  # The official Physion values (dvae_physion_params, steve_physion_params).
+  config.dvae = dvae = ml_collections.ConfigDict()
+  dvae.vocab_size = 4096  # codes; 4x4 pixels per token
+  dvae.hidden_size = 64
+  # Gumbel-softmax temperature, cosine-annealed over the first 15% of steps.
+  dvae.gumbel_start = 1.0
+  dvae.gumbel_final = 0.1
+  dvae.gumbel_anneal_fraction = 0.15
+  dvae.batch_size = 64  # single frames
+  dvae.num_train_steps = 700_000
+  dvae.learning_rate = 1e-3
+  dvae.warmup_fraction = 0.05
+  dvae.grad_clip = 0.0  # none
+  dvae.tokenize_batch_size = 16  # videos per batch when tokenizing
+  dvae.log_every = 100
+  dvae.checkpoint_every = 1000
+  config.steve = steve = ml_collections.ConfigDict()
+  steve.num_slots = 6
+  steve.slot_size = 192
+  steve.encoder = ml_collections.ConfigDict(dict(
+      features=(64, 64, 64, 64), kernel_size=5, strides=(2, 1, 1, 1),
+      output_size=192))
+  steve.slot_attention = ml_collections.ConfigDict(dict(
+      num_iterations=2, mlp_size=384))
+  steve.predictor = ml_collections.ConfigDict(dict(
+      num_layers=2, num_heads=4, mlp_size=768, lstm_size=384))
+  # The autoregressive token decoder; its width is slot_size.
+  steve.decoder = ml_collections.ConfigDict(dict(
+      num_layers=4, num_heads=4, dropout_rate=0.1))
+  steve.batch_size = 48
+  steve.clip_length = 6
+  steve.num_train_steps = 460_000
+  steve.learning_rate = 1e-4
+  steve.group_learning_rates = {'decoder': 3e-4}  # the token decoder
+  steve.warmup_fraction = 0.05
+  steve.grad_clip = 0.05
+  steve.log_every = 100
+  steve.checkpoint_every = 1000
 
   # ---- slot extraction ----------------------------------------------------
   config.extraction = ml_collections.ConfigDict(dict(

@@ -43,7 +43,8 @@ from slotformer_jax.train.trainer import Preempted
 
 # Every stage name `--mode` accepts. Which of them a config runs, and in which
 # order `--mode=all` runs them, is `stage_table(config)`.
-MODES = ('all', 'train_savi', 'extract_slots', 'train_slotformer',
+MODES = ('all', 'train_savi', 'train_dvae', 'tokenize_frames', 'train_steve',
+         'extract_slots', 'train_slotformer',
          'train_slot_lstm', 'evaluate', 'render', 'train_readout',
          'evaluate_readout', 'plan', 'vqa_slots', 'train_vqa', 'evaluate_vqa')
 # Downstream tasks (slotformer_jax/tasks/, `config.task`): their stages follow
@@ -119,12 +120,29 @@ def _enable_compilation_cache() -> None:
 
 def stage_table(config) -> dict[str, Callable]:
   """The stages `config` can run, in the order `--mode=all` runs them."""
-  table = {
-      'train_savi': stages.train_savi,
-      'extract_slots': stages.extract_slots,
-      'train_slotformer': stages.train_slotformer,
-      'train_slot_lstm': stages.train_slot_lstm,
-  }
+  if config.slot_model == 'steve':  # dVAE + STEVE (Physion), then stage 2
+    # pylint: disable=g-import-not-at-top
+    from slotformer_jax import steve_stages
+    from slotformer_jax.evaluation import steve_evaluate
+    table = {
+        'train_dvae': steve_stages.train_dvae,
+        'tokenize_frames': steve_stages.tokenize_frames,
+        'train_steve': steve_stages.train_steve,
+        'extract_slots': steve_stages.extract_slots,
+        'train_slotformer': steve_stages.train_slotformer,
+        'train_slot_lstm': steve_stages.train_slot_lstm,
+    }
+    video_prediction = {'evaluate': steve_evaluate.evaluate,
+                        'render': steve_evaluate.render}
+  else:
+    table = {
+        'train_savi': stages.train_savi,
+        'extract_slots': stages.extract_slots,
+        'train_slotformer': stages.train_slotformer,
+        'train_slot_lstm': stages.train_slot_lstm,
+    }
+    video_prediction = {'evaluate': evaluate.evaluate,
+                        'render': visualize.render}
   task = config.get('task')
   if 'vqa' in config:  # CLEVRER-style VQA: Aloe over slots + rollout
     from slotformer_jax import vqa_stages  # pylint: disable=g-import-not-at-top
@@ -134,7 +152,7 @@ def stage_table(config) -> dict[str, Callable]:
   elif task:
     table.update(tasks.stages_for(task))
   else:
-    table.update(evaluate=evaluate.evaluate, render=visualize.render)
+    table.update(video_prediction)
   return table
 
 

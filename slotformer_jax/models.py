@@ -5,9 +5,11 @@ from __future__ import annotations
 import ml_collections
 
 from slotformer_jax.modules.decoders import SpatialBroadcastDecoder
+from slotformer_jax.modules.dvae import DVAE
 from slotformer_jax.modules.savi import SAVi
 from slotformer_jax.modules.slot_lstm import SlotLSTM
 from slotformer_jax.modules.slotformer import SlotFormer
+from slotformer_jax.modules.steve import STEVE
 
 SLOTFORMER = 'slotformer'
 SLOT_LSTM = 'slot_lstm'
@@ -43,6 +45,36 @@ def build_savi(config: ml_collections.ConfigDict) -> SAVi:
       prior_sigma=savi.prior_sigma,
       initial_slots=savi.initial_slots,
       layer_norm_epsilon=savi.layer_norm_epsilon,
+  )
+
+
+def build_dvae(config: ml_collections.ConfigDict) -> DVAE:
+  """STEVE's tokenizer (`config.dvae`)."""
+  return DVAE(vocab_size=config.dvae.vocab_size,
+              hidden_size=config.dvae.hidden_size)
+
+
+def build_steve(config: ml_collections.ConfigDict) -> STEVE:
+  """STEVE (`config.steve`); its vocabulary is the dVAE's."""
+  steve = config.steve
+  return STEVE(
+      resolution=tuple(config.data.resolution),
+      num_slots=steve.num_slots,
+      slot_size=steve.slot_size,
+      encoder_features=tuple(steve.encoder.features),
+      encoder_kernel_size=steve.encoder.kernel_size,
+      encoder_strides=tuple(steve.encoder.strides),
+      encoder_size=steve.encoder.output_size,
+      num_iterations=steve.slot_attention.num_iterations,
+      slot_mlp_size=steve.slot_attention.mlp_size,
+      predictor_layers=steve.predictor.num_layers,
+      predictor_heads=steve.predictor.num_heads,
+      predictor_mlp_size=steve.predictor.mlp_size,
+      predictor_lstm_size=steve.predictor.lstm_size,
+      vocab_size=config.dvae.vocab_size,
+      decoder_layers=steve.decoder.num_layers,
+      decoder_heads=steve.decoder.num_heads,
+      decoder_dropout=steve.decoder.dropout_rate,
   )
 
 

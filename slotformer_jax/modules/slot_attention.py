@@ -42,16 +42,20 @@ class SlotAttention(nn.Module):
     mlp_size: hidden size of the residual MLP after the GRU.
     epsilon: see `inverted_attention_weights`.
     layer_norm_epsilon: 1e-6 (flax) or 1e-5 (PyTorch, the official models).
+    return_attention: also return the last iteration's slot competition
+      [B, N, M] (softmax over slots): STEVE's per-slot masks.
   """
 
   num_iterations: int = 2
   mlp_size: int = 256
   epsilon: float = 1e-6
   layer_norm_epsilon: float = 1e-6
+  return_attention: bool = False
 
   @nn.compact
-  def __call__(self, slots: jax.Array, inputs: jax.Array) -> jax.Array:
-    """slots [B, N, D], inputs [B, M, C] -> updated slots [B, N, D]."""
+  def __call__(self, slots: jax.Array, inputs: jax.Array):
+    """slots [B, N, D], inputs [B, M, C] -> updated slots [B, N, D]
+    (and the attention [B, N, M] when `return_attention`)."""
     slot_size = slots.shape[-1]
     layer_norm = lambda **kw: nn.LayerNorm(epsilon=self.layer_norm_epsilon,
                                            **kw)
@@ -79,4 +83,6 @@ class SlotAttention(nn.Module):
       updates = jnp.einsum('bnm,bmd->bnd', weights, values)
       slots, _ = gru(slots, updates)
       slots = slots + mlp(slots)
+    if self.return_attention:
+      return slots, competition
     return slots

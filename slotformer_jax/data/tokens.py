@@ -1,0 +1,96 @@
+"""The frozen dVAE's tokens of every frame of a split, computed once.
+
+One folder per split::
+
+    tokens.u16       uint16 rows of [num_tokens] (h * w, raster order), all
+                     videos concatenated along time (read back as a memmap)
+    video_index.npy  int64 [num_videos, 2]: (first row, number of frames)
+    meta.json        num_videos, num_tokens, dvae_step, complete
+
+`TokenSource` serves a video source's items with their 'tokens' [T, L]
+added, so STEVE's training clips take frames and tokens from the same steps.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from typing import Any
+
+import numpy as np
+
+TOKENS_FILE = 'tokens.u16'
+INDEX_FILE = 'video_index.npy'
+META_FILE = 'meta.json'
+
+
+def read_meta(directory: str) -> dict[str, Any] | None:
+  path = os.path.join(directory, META_FILE)
+  if not os.path.exists(path):
+    return None
+  with open(path) as f:
+    return json.load(f)
+
+
+class TokenWriter:
+  """Writes the tokens of one split, video by video, in any index order."""
+
+  def __init__(self, directory: str, num_videos: int, num_tokens: int,
+               dvae_step: int):
+    os.makedirs(directory, exist_ok=True)
+    self._directory = directory
+    self._meta = dict(num_videos=num_videos, num_tokens=num_tokens,
+                      dvae_step=dvae_step, complete=False)
+    self._write_meta()
+    self._index = np.full((num_videos, 2), -1, np.int64)
+    self._file = open(os.path.join(directory, TOKENS_FILE), 'wb')
+    self._rows = 0
+
+  def _write_meta(self):
+    with open(os.path.join(self._directory, META_FILE), 'w') as f:
+      json.dump(self._meta, f, indent=1)
+
+  def add(self, video_index: int, tokens: np.ndarray) -> None:
+    """tokens: int [num_frames, num_tokens] of one video (< 2**16 codes)."""
+    if tokens.ndim != 2 or tokens.shape[1] != self._meta['num_tokens']:
+      raise ValueError(f'tokens {tokens.shape} do not match '
+                       f'[T, {self._meta["num_tokens"]}]')
+    self._file.write(np.ascontiguousarray(tokens, np.uint16).tobytes())
+    self._index[video_index] = (self._rows, len(tokens))
+    self._rows += len(tokens)
+
+  def close(self) -> None:
+    """Marks the split complete; fails if a video was never added."""
+    self._file.close()
+    missing = np.flatnonzero(self._index[:, 0] < 0)
+    if missing.size:
+      raise RuntimeError(
+          f'tokenization missed {missing.size} videos, e.g. {missing[:5]}')
+    np.save(os.path.join(self._directory, INDEX_FILE), self._index)
+    self._meta['complete'] = True
+    self._write_meta()
+
+
+class TokenSource:
+  """A video source's items plus 'tokens' uint16 [T, L] of the same frames."""
+
+  def __init__(self, directory: str, video_source: Any):
+    meta = read_meta(directory)
+    if not meta or not meta.get('complete'):
+      raise FileNotFoundError(f'no complete tokens under {directory}')
+    self._videos = video_source
+    self._index = np.load(os.path.join(directory, INDEX_FILE))
+    if len(self._index) != len(video_source):
+      raise ValueError(f'{directory} has tokens of {len(self._index)} videos, '
+                       f'the video source has {len(video_source)}')
+    self._tokens = np.memmap(os.path.join(directory, TOKENS_FILE),
+                             np.uint16, 'r').reshape(-1, meta['num_tokens'])
+
+  def __len__(self) -> int:
+    return len(self._videos)
+
+  def __getitem__(self, index: int) -> dict[str, np.ndarray]:
+    item = dict(self._videos[index])
+    start, length = self._index[index]
+    item['tokens'] = np.asarray(self._tokens[start:start + length])
+    return item
