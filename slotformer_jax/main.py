@@ -24,6 +24,7 @@ from ml_collections import config_flags
 import tqdm
 
 from slotformer_jax import stages
+from slotformer_jax import xla_flags
 from slotformer_jax.data.sources import default_data_dir
 from slotformer_jax.evaluation import evaluate
 from slotformer_jax.evaluation import visualize
@@ -84,10 +85,14 @@ def _save_config(config, workdir: str) -> None:
 
 def main(argv):
   del argv
+  # Before anything starts jax's backends ($SLOTFORMER_XLA_CPU_FLAGS=0: off).
+  added_flags = xla_flags.apply_fast_cpu_flags()
   if _DISTRIBUTED.value:
     jax.distributed.initialize()
   _configure_logging()
   _enable_compilation_cache()
+  if added_flags:
+    logger.info('XLA_FLAGS += %s', ' '.join(added_flags))
   config, workdir, mode = _CONFIG.value, _WORKDIR.value, _MODE.value
   if config is None:
     raise app.UsageError('--config is required, e.g. configs/synthetic.py')
