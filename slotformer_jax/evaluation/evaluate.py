@@ -44,6 +44,7 @@ from slotformer_jax.data import pipeline
 from slotformer_jax.data.pipeline import ClipSource
 from slotformer_jax.data.sources import get_video_source
 from slotformer_jax.evaluation import metrics as metrics_lib
+from slotformer_jax.train import precision
 from slotformer_jax.train import sharding
 from slotformer_jax.train import steps
 
@@ -66,11 +67,14 @@ def num_true_ids(data_config: ml_collections.ConfigDict) -> int:
 def _frame_step_metrics(decoded, frames: jax.Array, segmentation: jax.Array,
                         *, names: tuple[str, ...], num_true: int,
                         num_slots: int, lpips_fn: Callable | None,
-                        background_threshold: float | None):
+                        background_threshold: float | None,
+                        lpips_target: Any = None):
   """Metrics of one rollout step for a batch.
 
   decoded: DecodedSlots with leading [B] (recon in [0, 1]);
-  frames: float [B, H, W, 3] in [0, 1]; segmentation: int [B, H, W].
+  frames: float [B, H, W, 3] in [0, 1]; segmentation: int [B, H, W];
+  lpips_target: `lpips_fn.features(frames)`, computed once for all methods
+  (None: LPIPS computes the frames' features itself).
   Returns {name: (value [B], valid [B])}, and for 'fg_miou' the IoU
   matrix [B, C-1, K] with 'present' [B, C-1] (matched on the host).
   """
@@ -81,7 +85,11 @@ def _frame_step_metrics(decoded, frames: jax.Array, segmentation: jax.Array,
   if 'ssim' in names:
     out['ssim'] = (metrics_lib.ssim(decoded.recon, frames), ones)
   if 'lpips' in names and lpips_fn is not None:
-    out['lpips'] = (lpips_fn(decoded.recon, frames), ones)
+    if lpips_target is None:
+      out['lpips'] = (lpips_fn(decoded.recon, frames), ones)
+    else:
+      out['lpips'] = (lpips_fn.distance_to_features(decoded.recon,
+                                                    lpips_target), ones)
   object_names = [n for n in names if n in OBJECT_METRICS]
   if not object_names:
     return out
@@ -132,12 +140,16 @@ def make_rollout_evaluator(config: ml_collections.ConfigDict, mesh: Mesh,
       lpips_fn=lpips_fn,
       background_threshold=config.evaluation.get('background_threshold'))
   needs_segmentation = any(name in OBJECT_METRICS for name in names)
+  # bfloat16: rollouts and decoding compute in it, metrics in float32.
+  in_compute_dtype = functools.partial(precision.with_compute_dtype,
+                                       compute_dtype=config.compute_dtype)
 
   def evaluate_batch(dynamics_params, decoder_params, batch):
     history = batch['slots'][:, :burn_in]
     predictions = {
-        name: steps.rollout_slots(dynamics_params[name], history,
-                                  model=model, num_steps=rollout)
+        name: in_compute_dtype(functools.partial(
+            steps.rollout_slots, model=model, num_steps=rollout))(
+                dynamics_params[name], history)
         for name, model in models_by_name.items()}
     predictions['savi_reconstruction'] = batch['slots'][
         :, burn_in:burn_in + rollout]
@@ -147,26 +159,29 @@ def make_rollout_evaluator(config: ml_collections.ConfigDict, mesh: Mesh,
     else:  # unused placeholder of the right leading shape
       segmentation = jnp.zeros(frames.shape[:2], jnp.int32)
     time_major = lambda x: jnp.swapaxes(x, 0, 1)
-    decode = functools.partial(steps.decode_slots, decoder_params,
-                               decoder=decoder)
-    score = lambda decoded, frame, seg: step_metrics(
-        decoded, steps.model_to_unit(steps.frames_to_model(frame)), seg)
-
-    def one_step(inputs):
-      slots, frame, seg = inputs
-      return score(decode(slots), frame, seg)
-
-    # lax.map keeps one step's decoded frames in memory at a time.
-    out = {method: jax.lax.map(one_step, (time_major(slots),
-                                          time_major(frames),
-                                          time_major(segmentation)))
-           for method, slots in predictions.items()}
+    decode = in_compute_dtype(functools.partial(
+        steps.decode_slots, decoder_params, decoder=decoder))
     # Copy-last predicts the same slots at every step: decode them once.
     copied = decode(steps.copy_last_rollout(history, 1)[:, 0])
-    out['copy_last'] = jax.lax.map(
-        lambda inputs: score(copied, *inputs),
-        (time_major(frames), time_major(segmentation)))
-    return out
+    with_lpips = hasattr(lpips_fn, 'features') and 'lpips' in names
+
+    def one_step(inputs):
+      """All methods at one rollout step: the ground-truth frames' LPIPS
+      features are computed once and shared by every method."""
+      slots_by_method, frame, seg = inputs
+      frame = steps.model_to_unit(steps.frames_to_model(frame))
+      target = lpips_fn.features(frame) if with_lpips else None
+      score = lambda decoded: step_metrics(decoded, frame, seg,
+                                           lpips_target=target)
+      out = {method: score(decode(slots))
+             for method, slots in slots_by_method.items()}
+      out['copy_last'] = score(copied)
+      return out
+
+    # lax.map keeps one step's decoded frames in memory at a time.
+    return jax.lax.map(one_step, (
+        {method: time_major(slots) for method, slots in predictions.items()},
+        time_major(frames), time_major(segmentation)))
 
   replicated = sharding.replicated_sharding(mesh)
   return jax.jit(evaluate_batch,
