@@ -5,7 +5,7 @@ r"""Times the jitted steps at the paper's model sizes (median after warm-up).
 
 Prints one line per case with the time of the official PyTorch
 implementation on the same shapes (torch 2.13 CPU, 2 threads; the defaults
-are issue 13's idle-machine figures, --reference takes your own, see
+are idle-machine figures measured earlier, --reference takes your own, see
 docs/performance.md) and the ratio (< 1: this project is faster). The faster XLA:CPU flags of
 `slotformer_jax.xla_flags` are on unless $SLOTFORMER_XLA_CPU_FLAGS=0.
 
@@ -56,7 +56,7 @@ from slotformer_jax.train import steps  # noqa: E402
 from slotformer_jax.train.state import TrainState  # noqa: E402
 
 # Seconds per call of the official PyTorch code (torch 2.13 CPU, 2 threads)
-# on the same shapes, as issue 13 measured them on an idle 2-core Intel Xeon
+# on the same shapes, as measured on an idle 2-core Intel Xeon
 # (its second alternating run). No reference for LPIPS there. Pass
 # --reference=official.json to compare with a run of your own instead.
 PYTORCH_SECONDS = {

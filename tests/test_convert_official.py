@@ -163,7 +163,7 @@ def test_transformer_encoder_layer_pre_ln(r):
   x = r.rng.standard_normal((2, 5, 8))
   out = TransformerBlock(num_heads=2, mlp_size=16, pre_norm=True).apply(
       {'params': _params(m, 'block')}, x)
-  # LayerNorm epsilon: 1e-5 officially, flax's 1e-6 here (issue 9): an
+  # LayerNorm epsilon: 1e-5 officially, flax's 1e-6 by default: an
   # O(1e-6) difference on unit-variance tokens, inside the tolerance.
   _close(out, ref.transformer_layer(x, sd, 'layer0', 2))
 

@@ -1,4 +1,4 @@
-"""The official metric conventions as options (issue 9, difference 7)."""
+"""The official metric conventions as options ."""
 
 import jax.numpy as jnp
 import numpy as np

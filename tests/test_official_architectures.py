@@ -1,4 +1,4 @@
-"""The parts that make the dataset configs the official models (issue 9).
+"""The parts that make the dataset configs the official models.
 
 SAVi's predictor / posterior-head variants, the growing-context SlotFormer
 rollout, PyTorch padding, LayerNorm epsilon, PyTorch-default initialisation,

@@ -1,4 +1,4 @@
-"""Runs you can trust (issue 8): one test (or more) per reproduced defect.
+"""Runs you can trust: one test (or more) per reproduced defect.
 
 1. a foreign `stage1_workdir` is read-only;
 2. artifacts record what they were made from, nothing mixes; workdir lock;

@@ -1,4 +1,4 @@
-"""Kill and preemption checks of issue 8 that run real processes (minutes).
+"""Kill and preemption checks that run real processes (minutes).
 
     python -m pytest -q -m slow tests/test_reliability_slow.py
 
