@@ -26,7 +26,7 @@ def test_steve_pipeline_runs_and_resumes(tmp_path):
   config = _micro_config(tmp_path / 'data')
   workdir = str(tmp_path / 'run')
   mesh = sharding.make_mesh()
-  stages = main_lib.steve_stages_by_mode()
+  stages = main_lib.stage_table(config)
   for mode in ('train_dvae', 'tokenize_frames', 'train_steve',
                'extract_slots', 'train_slotformer'):
     stages[mode](config, workdir, mesh)
