@@ -39,6 +39,7 @@ from slotformer_jax.data.slots import SlotWriter
 from slotformer_jax.data.slots import read_meta
 from slotformer_jax.data.sources import get_video_source
 from slotformer_jax.errors import ConfigError
+from slotformer_jax.errors import UserError
 from slotformer_jax.train import sharding
 from slotformer_jax.train import steps
 from slotformer_jax.train import steve_steps
@@ -97,6 +98,44 @@ def _init_dynamics(config, name, rng):
 # --------------------------------------------------------------------------
 
 
+def check_foreign_stage1(config: ml_collections.ConfigDict, workdir: str,
+                         mesh: Mesh) -> None:
+  """`stage1_workdir` is read-only: its dVAE and STEVE must be complete and
+  descend from each other, its slots made by that STEVE (as
+  `stages.check_foreign_stage1` for SAVi).
+
+  Raises:
+    UserError: what is missing or different, and where to fix it.
+  """
+  other = workdir_lib.stage1_workdir(config, workdir)
+  _, dvae_step = load_dvae_params(config, workdir, mesh)
+  _, steve_step = load_steve_params(config, workdir, mesh)
+  for what, step, total in (('dVAE', dvae_step, config.dvae.num_train_steps),
+                            ('STEVE', steve_step,
+                             config.steve.num_train_steps)):
+    if step < total:
+      raise UserError(
+          f'stage 1 in stage1_workdir={other} is incomplete ({what} step '
+          f'{step} of {total}); this run never trains there. Finish it with '
+          'its own run: python -m slotformer_jax.main --config=<its config> '
+          f'--workdir={other}')
+  identity = steve_workdir.check_steve_current(config, workdir, dvae_step)
+  for split in config.extraction.splits:
+    workdir_lib.check_slots_current(config, workdir, split, identity,
+                                    steve_step, STEVE)
+
+
+def _foreign_stage1(config: ml_collections.ConfigDict, workdir: str,
+                    mesh: Mesh, what: str) -> bool:
+  """True (after checking it) when stage 1 is another workdir's."""
+  if not workdir_lib.uses_foreign_stage1(config, workdir):
+    return False
+  check_foreign_stage1(config, workdir, mesh)
+  logger.info('%s: using the read-only stage 1 in %s', what,
+              workdir_lib.stage1_workdir(config, workdir))
+  return True
+
+
 def dvae_stage(config: ml_collections.ConfigDict, workdir: str,
                mesh: Mesh) -> Stage:
   """The dVAE's training stage (single frames, annealed Gumbel-softmax)."""
@@ -127,6 +166,8 @@ def dvae_stage(config: ml_collections.ConfigDict, workdir: str,
 
 def train_dvae(config: ml_collections.ConfigDict, workdir: str,
                mesh: Mesh) -> None:
+  if _foreign_stage1(config, workdir, mesh, 'dVAE'):
+    return
   stage = dvae_stage(config, workdir, mesh)
   fields = dvae_model_fields(config)
   workdir_lib.start_stage(stage.directory,
@@ -184,6 +225,8 @@ def tokenize_frames(config: ml_collections.ConfigDict, workdir: str,
                     mesh: Mesh) -> None:
   """The frozen dVAE's argmax tokens of every training frame, stored once
   (skipped when they came from the current dVAE checkpoint)."""
+  if _foreign_stage1(config, workdir, mesh, 'tokens'):
+    return
   params, dvae_step = load_dvae_params(config, workdir, mesh)
   parent = steve_workdir.dvae_parent(
       steve_workdir.dvae_identity(config, workdir), dvae_step)
@@ -268,6 +311,8 @@ def train_steve(config: ml_collections.ConfigDict, workdir: str,
                 mesh: Mesh) -> None:
   """STEVE on the tokens of the current dVAE. A STEVE trained with another
   dVAE (or other settings) is set aside and retrained from scratch."""
+  if _foreign_stage1(config, workdir, mesh, 'STEVE'):
+    return
   _, dvae_step = load_dvae_params(config, workdir, mesh)
   parent = steve_workdir.dvae_parent(
       steve_workdir.dvae_identity(config, workdir), dvae_step)
@@ -292,6 +337,8 @@ def extract_slots(config: ml_collections.ConfigDict, workdir: str,
                   mesh: Mesh) -> None:
   """STEVE's slots of every video of every split, in chunks of
   `extraction.chunk_length` frames that carry STEVE's state."""
+  if _foreign_stage1(config, workdir, mesh, 'slots'):
+    return
   params, steve_step = load_steve_params(config, workdir, mesh)
   _, dvae_step = load_dvae_params(config, workdir, mesh)
   identity = steve_workdir.check_steve_current(config, workdir, dvae_step)

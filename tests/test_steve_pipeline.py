@@ -80,3 +80,18 @@ def test_steve_pipeline_runs_and_resumes(tmp_path):
   stages['extract_slots'](config, workdir, mesh)
   with pytest.raises(UserError, match='would mix them'):
     stages['evaluate'](config, workdir, mesh)
+  # Stage 2 in another workdir on this stage 1 (read-only there): the stage-1
+  # modes only check it, SlotFormer trains in the new workdir on its slots.
+  other = str(tmp_path / 'ablation')
+  config.stage1_workdir = workdir
+  listing = sorted(os.listdir(workdir))
+  for mode in ('train_dvae', 'tokenize_frames', 'train_steve',
+               'extract_slots', 'train_slotformer'):
+    stages[mode](config, other, mesh)
+  assert sorted(os.listdir(workdir)) == listing
+  assert sorted(os.listdir(other)) == ['slotformer']
+  current = read_meta(workdir_lib.slots_dir(workdir, 'train'))['parent']
+  assert workdir_lib.read_identity(
+      workdir_lib.dynamics_dir(other, 'slotformer'))['parent'] == current
+  assert stages['evaluate'](config, other, mesh)['identity']['slots'] == (
+      current)
