@@ -14,6 +14,7 @@ Only paths and checks live here (no training code), so evaluation can use it.
 
 from __future__ import annotations
 
+import json
 import os
 from typing import Any
 
@@ -40,10 +41,14 @@ def tokens_dir(workdir: str, split: str) -> str:
   return os.path.join(workdir, 'tokens', split)
 
 
+def _jsonable(fields: dict[str, Any]) -> dict[str, Any]:
+  return json.loads(json.dumps(fields))  # tuples -> lists, for comparison
+
+
 def dvae_model_fields(config: ml_collections.ConfigDict) -> dict[str, Any]:
   """The config values that determine the dVAE's parameters."""
-  return workdir_lib._plain({'vocab_size': config.dvae.vocab_size,  # pylint: disable=protected-access
-                             'hidden_size': config.dvae.hidden_size})
+  return _jsonable({'vocab_size': config.dvae.vocab_size,
+                    'hidden_size': config.dvae.hidden_size})
 
 
 def steve_model_fields(config: ml_collections.ConfigDict) -> dict[str, Any]:
@@ -54,24 +59,18 @@ def steve_model_fields(config: ml_collections.ConfigDict) -> dict[str, Any]:
       'decoder')}
   fields['resolution'] = list(config.data.resolution)
   fields['vocab_size'] = config.dvae.vocab_size
-  return workdir_lib._plain(fields)  # pylint: disable=protected-access
+  return _jsonable(fields)
 
 
 def dvae_identity_fields(config: ml_collections.ConfigDict) -> dict[str, Any]:
   """Everything that shapes the dVAE: data, the dvae section, the seed."""
-  shaping = workdir_lib._shaping  # pylint: disable=protected-access
-  return workdir_lib._plain({  # pylint: disable=protected-access
-      'seed': config.seed, 'data': shaping(config.data.to_dict()),
-      'dvae': shaping(config.dvae.to_dict())})
+  return workdir_lib.stage_identity_fields(config, 'dvae')
 
 
 def steve_identity_fields(config: ml_collections.ConfigDict
                           ) -> dict[str, Any]:
   """Everything that shapes STEVE besides its dVAE (recorded as parent)."""
-  shaping = workdir_lib._shaping  # pylint: disable=protected-access
-  return workdir_lib._plain({  # pylint: disable=protected-access
-      'seed': config.seed, 'data': shaping(config.data.to_dict()),
-      'steve': shaping(config.steve.to_dict())})
+  return workdir_lib.stage_identity_fields(config, 'steve')
 
 
 def dvae_identity(config: ml_collections.ConfigDict, workdir: str

@@ -175,6 +175,15 @@ def savi_identity_fields(config: ml_collections.ConfigDict) -> dict[str, Any]:
                  'savi': _shaping(config.savi.to_dict())})
 
 
+def stage_identity_fields(config: ml_collections.ConfigDict,
+                          section: str) -> dict[str, Any]:
+  """Everything that shapes a stage-1 model trained from the videos with the
+  settings of `config[section]` (e.g. 'dvae', 'steve'): data, that section,
+  the seed (the same form as `savi_identity_fields`)."""
+  return _plain({'seed': config.seed, 'data': _shaping(config.data.to_dict()),
+                 section: _shaping(config[section].to_dict())})
+
+
 def slots_identity_fields(config: ml_collections.ConfigDict
                           ) -> dict[str, Any]:
   """Besides the SAVi that made them: extraction settings and the seed
