@@ -1,39 +1,71 @@
 r"""Times the jitted steps at the paper's model sizes (median after warm-up).
 
-  python benchmarks/step_time.py [--repeats=5]
+  python benchmarks/step_time.py [--repeats=5] [--cases=savi,lpips_32]
+      [--compute_dtype=bfloat16] [--json=out.json] [--reference=ref.json]
 
-Prints one line per case with the reference time of the official PyTorch
-implementation measured on the same 2-core CPU.
+Prints one line per case with the time of the official PyTorch
+implementation on the same shapes (torch 2.13 CPU, 2 threads; the defaults
+are issue 13's idle-machine figures, --reference takes your own, see
+docs/performance.md) and the ratio (< 1: this project is faster). The faster XLA:CPU flags of
+`slotformer_jax.xla_flags` are on unless $SLOTFORMER_XLA_CPU_FLAGS=0.
+
+Cases (shapes as the official configs):
+  savi              StoSAVi CLEVRER config train step, batch 4 x 6 frames 64x64
+  decoder           SAVi decoder forward + backward alone, 168 slot images
+                    64x64 (= the 4 x 6 x 7 slots of `savi`)
+  slots_only        SlotFormer OBJ3D train step, batch 32, L_S only
+  image_loss        SlotFormer OBJ3D train step, batch 4, L_S + L_I through
+                    the frozen decoder
+  rollout           44-step rollout, batch 8
+  rollout_decode    44-step rollout + decoding the 44 frames, batch 8
+  lpips_32/lpips_64 LPIPS-VGG of 100 frame pairs at 32x32 / 64x64
+  lpips_32_features / lpips_64_features
+                    the same with the ground-truth frames' VGG features
+                    computed beforehand (what the evaluation does: once for
+                    all methods), i.e. the per-method cost
 """
 
 import argparse
 import functools
+import json
 import os
 import sys
 import time
 
-import jax
-import jax.numpy as jnp
-import numpy as np
-import optax
-
+sys.path.insert(0, os.path.join(os.path.dirname(__file__), '..'))
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), '..', 'configs'))
+
+from slotformer_jax import xla_flags  # noqa: E402  (imports no jax)
+
+# Before jax starts its backend.
+ADDED_FLAGS = xla_flags.apply_fast_cpu_flags()
+
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
 
 import clevrer  # noqa: E402  (configs/clevrer.py)
 import obj3d  # noqa: E402  (configs/obj3d.py)
-from slotformer_jax import models  # noqa: E402
-from slotformer_jax.train import optim  # noqa: E402
 from slotformer_jax import inference  # noqa: E402
 from slotformer_jax import losses  # noqa: E402
+from slotformer_jax import models  # noqa: E402
+from slotformer_jax.evaluation import metrics  # noqa: E402
+from slotformer_jax.train import optim  # noqa: E402
+from slotformer_jax.train import precision  # noqa: E402
 from slotformer_jax.train import steps  # noqa: E402
 from slotformer_jax.train.state import TrainState  # noqa: E402
 
-# Seconds per call of the official PyTorch code on the same CPU.
+# Seconds per call of the official PyTorch code (torch 2.13 CPU, 2 threads)
+# on the same shapes, as issue 13 measured them on an idle 2-core Intel Xeon
+# (its second alternating run). No reference for LPIPS there. Pass
+# --reference=official.json to compare with a run of your own instead.
 PYTORCH_SECONDS = {
-    'savi_clevrer_b4x6': 6.74,
-    'slotformer_obj3d_b32_slots_only': 1.25,
-    'slotformer_obj3d_b4_with_image_loss': 5.53,
-    'rollout_obj3d_44_steps_b8': 0.274,
+    'savi': 4.64,
+    'decoder': 3.15,
+    'slots_only': 0.84,
+    'image_loss': 3.50,
+    'rollout': 0.161,
+    'rollout_decode': 25.5,
 }
 
 
@@ -56,13 +88,13 @@ def train_step_runner(loss_fn, params, batch, frozen, stage_config):
   holder = {'state': state}
 
   def run():
-    holder['state'], metrics = update(holder['state'], batch, frozen)
-    return metrics['loss']
+    holder['state'], metrics_ = update(holder['state'], batch, frozen)
+    return metrics_['loss']
 
   return run
 
 
-def savi_case(batch_size=4, clip_length=6):
+def savi_case(dtype, batch_size=4, clip_length=6):
   config = clevrer.get_config()
   model = models.build_savi(config)
   video = np.random.default_rng(0).integers(
@@ -70,13 +102,30 @@ def savi_case(batch_size=4, clip_length=6):
   params = steps.init_params(model, jax.random.key(0),
                              jnp.zeros((1, clip_length,
                                         *config.data.resolution, 3)))
-  loss_fn = functools.partial(losses.savi_loss, model=model,
-                              kl_weight=config.savi.kl_weight)
+  loss_fn = precision.with_compute_dtype(functools.partial(
+      losses.savi_loss, model=model, kl_weight=config.savi.kl_weight), dtype)
   return train_step_runner(loss_fn, params, {'video': video}, None,
                            config.savi)
 
 
-def slotformer_case(batch_size, image_loss_weight):
+def decoder_case(dtype, num_images=4 * 6):
+  """Forward + backward (parameters and slots) of the CLEVRER decoder."""
+  config = clevrer.get_config()
+  decoder = models.build_decoder(config)
+  slots = jnp.asarray(np.random.default_rng(0).normal(size=(
+      num_images, config.savi.num_slots, config.savi.slot_size)), jnp.float32)
+  params = decoder.init(jax.random.key(0), slots[:1])['params']
+
+  def loss(params, slots):
+    params, slots = precision.cast_floats((params, slots), dtype)
+    recon = decoder.apply({'params': params}, slots).recon
+    return jnp.mean(jnp.square(recon.astype(jnp.float32)))
+
+  grad = jax.jit(jax.grad(loss, argnums=(0, 1)))
+  return lambda: grad(params, slots)
+
+
+def slotformer_case(dtype, batch_size, image_loss_weight):
   config = obj3d.get_config()
   config.slotformer.image_loss_weight = image_loss_weight
   dyn = config.slotformer
@@ -94,42 +143,107 @@ def slotformer_case(batch_size, image_loss_weight):
                              dyn.rollout)
   decoder_params = decoder.init(jax.random.key(1),
                                 jnp.asarray(batch['slots'][:1, 0]))['params']
-  loss_fn = functools.partial(
+  loss_fn = precision.with_compute_dtype(functools.partial(
       losses.slotformer_loss, model=model, decoder=decoder,
       rollout=dyn.rollout, image_loss_weight=image_loss_weight,
-      teacher_forcing=False)
+      teacher_forcing=False), dtype)
   return train_step_runner(loss_fn, params, batch, decoder_params, dyn)
 
 
-def rollout_case(batch_size=8, num_steps=44):
+def _rollout_inputs(batch_size):
   config = obj3d.get_config()
   model = models.build_slotformer(config)
   history = jnp.asarray(np.random.default_rng(0).normal(size=(
       batch_size, config.slotformer.burn_in, config.savi.num_slots,
       config.savi.slot_size)), jnp.float32)
   params = steps.init_params(model, jax.random.key(0), history[:1], 1)
-  rollout = jax.jit(functools.partial(inference.rollout_slots, model=model,
-                                      num_steps=num_steps))
+  return config, model, history, params
+
+
+def rollout_case(dtype, batch_size=8, num_steps=44):
+  _, model, history, params = _rollout_inputs(batch_size)
+  rollout = jax.jit(precision.with_compute_dtype(functools.partial(
+      inference.rollout_slots, model=model, num_steps=num_steps), dtype))
   return lambda: rollout(params, history)
 
 
+def rollout_decode_case(dtype, batch_size=8, num_steps=44):
+  config, model, history, params = _rollout_inputs(batch_size)
+  decoder = models.build_decoder(config)
+  decoder_params = decoder.init(jax.random.key(1), history[:1, 0])['params']
+
+  def rollout_and_decode(params, decoder_params, history):
+    slots = inference.rollout_slots(params, history, model=model,
+                                num_steps=num_steps)
+    return inference.decode_slots(decoder_params, slots, decoder=decoder).recon
+
+  run = jax.jit(precision.with_compute_dtype(rollout_and_decode, dtype))
+  return lambda: run(params, decoder_params, history)
+
+
+def lpips_case(dtype, resolution, with_features, num_pairs=100):
+  del dtype  # LPIPS is a metric: always float32
+  rng = np.random.default_rng(0)
+  pred, target = (jnp.asarray(rng.uniform(size=(num_pairs, resolution,
+                                                resolution, 3)), jnp.float32)
+                  for _ in range(2))
+  lpips = metrics.make_lpips_vgg()
+  if not with_features:
+    return lambda: lpips(pred, target)
+  target_features = jax.block_until_ready(lpips.features(target))
+  return lambda: lpips.distance_to_features(pred, target_features)
+
+
+CASES = {
+    'savi': savi_case,
+    'decoder': decoder_case,
+    'slots_only': lambda dtype: slotformer_case(dtype, 32, 0.0),
+    'image_loss': lambda dtype: slotformer_case(dtype, 4, 1.0),
+    'rollout': rollout_case,
+    'rollout_decode': rollout_decode_case,
+    'lpips_32': lambda dtype: lpips_case(dtype, 32, False),
+    'lpips_64': lambda dtype: lpips_case(dtype, 64, False),
+    'lpips_32_features': lambda dtype: lpips_case(dtype, 32, True),
+    'lpips_64_features': lambda dtype: lpips_case(dtype, 64, True),
+}
+
+
 def main():
-  parser = argparse.ArgumentParser(description=__doc__)
+  parser = argparse.ArgumentParser(
+      description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
   parser.add_argument('--repeats', type=int, default=5)
+  parser.add_argument('--cases', default=','.join(CASES),
+                      help='comma-separated subset of: ' + ', '.join(CASES))
+  parser.add_argument('--compute_dtype', default='float32',
+                      choices=precision.COMPUTE_DTYPES)
+  parser.add_argument('--json', help='also write {case: seconds} here')
+  parser.add_argument('--reference', help='{case: seconds} of the official '
+                      'code measured on this machine (replaces the defaults)')
   args = parser.parse_args()
-  cases = {
-      'savi_clevrer_b4x6': savi_case,
-      'slotformer_obj3d_b32_slots_only': lambda: slotformer_case(32, 0.0),
-      'slotformer_obj3d_b4_with_image_loss': lambda: slotformer_case(4, 1.0),
-      'rollout_obj3d_44_steps_b8': rollout_case,
-  }
+  names = [n for n in args.cases.split(',') if n]
+  unknown = sorted(set(names) - set(CASES))
+  if unknown:
+    parser.error(f'unknown cases {unknown}; choose from {list(CASES)}')
   print(f'jax {jax.__version__} on {jax.devices()[0].device_kind}, '
-        f'{os.cpu_count()} cores; median of {args.repeats} after warm-up')
-  for name, make in cases.items():
-    seconds = median_seconds(make(), args.repeats)
-    reference = PYTORCH_SECONDS[name]
-    print(f'{name:<40} {seconds:8.3f} s   (official PyTorch {reference:.3f} s,'
-          f' ratio {seconds / reference:.2f}x)', flush=True)
+        f'{os.cpu_count()} cores, compute_dtype={args.compute_dtype}, '
+        f'XLA_FLAGS={os.environ.get("XLA_FLAGS", "")!r}; median of '
+        f'{args.repeats} after warm-up', flush=True)
+  references = dict(PYTORCH_SECONDS)
+  if args.reference:
+    with open(args.reference) as f:
+      references = json.load(f)
+  results = {}
+  for name in names:
+    seconds = median_seconds(CASES[name](args.compute_dtype), args.repeats)
+    results[name] = seconds
+    # The *_features cases are the per-method cost of the same comparison.
+    reference = references.get(name.removesuffix('_features'))
+    note = (f'   (official PyTorch {reference:.3f} s, ratio '
+            f'{seconds / reference:.2f}x)' if reference else '')
+    print(f'{name:<20} {seconds:8.3f} s{note}', flush=True)
+  if args.json:
+    with open(args.json, 'w') as f:
+      json.dump(results, f, indent=1)
 
 
 if __name__ == '__main__':

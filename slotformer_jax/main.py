@@ -33,6 +33,7 @@ from slotformer_jax import config_checks
 from slotformer_jax import stages
 from slotformer_jax import tasks
 from slotformer_jax import workdir as workdir_lib
+from slotformer_jax import xla_flags
 from slotformer_jax.data.data_dir import default_data_dir
 from slotformer_jax.errors import UserError
 from slotformer_jax.files import append_line_atomic
@@ -174,10 +175,14 @@ def selected_stages(config, mode: str) -> tuple[str, ...]:
 
 def main(argv):
   del argv
+  # Before anything starts jax's backends ($SLOTFORMER_XLA_CPU_FLAGS=0: off).
+  added_flags = xla_flags.apply_fast_cpu_flags()
   if _DISTRIBUTED.value:
     jax.distributed.initialize()
   _configure_logging()
   _enable_compilation_cache()
+  if added_flags:
+    logger.info('XLA_FLAGS += %s', ' '.join(added_flags))
   config, workdir, mode = _CONFIG.value, _WORKDIR.value, _MODE.value
   if config is None:
     raise app.UsageError('--config is required, e.g. configs/synthetic.py')

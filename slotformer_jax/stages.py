@@ -29,6 +29,7 @@ from slotformer_jax.data.slots import read_meta
 from slotformer_jax.data.sources import get_video_source
 from slotformer_jax.errors import UserError
 from slotformer_jax.modules import initializers
+from slotformer_jax.train import precision
 from slotformer_jax.train import sharding
 from slotformer_jax.train.trainer import Stage
 from slotformer_jax.train.trainer import fit
@@ -84,9 +85,10 @@ def train_savi(config: ml_collections.ConfigDict, workdir: str,
       name='savi',
       directory=directory,
       config=stage_config,
-      loss_fn=functools.partial(
+      loss_fn=precision.with_compute_dtype(functools.partial(
           losses.savi_loss, model=model,
           kl_weight=stage_config.kl_weight if stage_config.stochastic else 0.0),
+          config.compute_dtype),
       init_params=lambda rng: initializers.initialize(
           steps.init_params(model, rng, jnp.zeros(clip_shape, jnp.float32)),
           jax.random.fold_in(rng, 1), stage_config.init),
@@ -240,10 +242,10 @@ def train_dynamics(config: ml_collections.ConfigDict, workdir: str,
       name=name,
       directory=directory,
       config=stage_config,
-      loss_fn=functools.partial(
+      loss_fn=precision.with_compute_dtype(functools.partial(
           losses.slotformer_loss, model=model, decoder=decoder,
           rollout=rollout, image_loss_weight=stage_config.image_loss_weight,
-          teacher_forcing=stage_config.teacher_forcing),
+          teacher_forcing=stage_config.teacher_forcing), config.compute_dtype),
       init_params=lambda rng: initializers.initialize(
           steps.init_params(model, rng, jnp.zeros(history_shape, jnp.float32),
                             rollout),

@@ -11,6 +11,10 @@ if _FLAG not in os.environ.get('XLA_FLAGS', ''):
   os.environ['XLA_FLAGS'] = (os.environ.get('XLA_FLAGS', '') + ' ' + _FLAG).strip()
 os.environ.setdefault('JAX_PLATFORMS', 'cpu')
 
+# The faster XLA:CPU convolution path, as main.py uses it (imports no jax).
+from slotformer_jax import xla_flags  # noqa: E402
+xla_flags.apply_fast_cpu_flags()
+
 import tempfile  # noqa: E402
 
 import jax  # noqa: E402

@@ -50,6 +50,7 @@ from slotformer_jax.files import atomic_text
 from slotformer_jax.files import write_json_atomic
 from slotformer_jax.frames import frames_to_model
 from slotformer_jax.frames import model_to_unit
+from slotformer_jax.train import precision
 from slotformer_jax.train import sharding
 
 logger = logging.getLogger(__name__)
@@ -74,13 +75,16 @@ def _frame_step_metrics(decoded, frames: jax.Array, segmentation: jax.Array,
                         gt_boxes=None,
                         *, names: tuple[str, ...], num_true: int,
                         num_slots: int, lpips_fn: Callable | None,
-                        background_threshold: float | None):
+                        background_threshold: float | None,
+                        lpips_target: Any = None):
   """Metrics of one rollout step for a batch.
 
   decoded: DecodedSlots with leading [B] (recon in [0, 1]);
   frames: float [B, H, W, 3] in [0, 1]; segmentation: int [B, H, W];
   gt_boxes: None (AR's ground-truth boxes from the id map) or the dataset's
   per-object boxes ('boxes' [B, M, 4], 'visible' [B, M]).
+  lpips_target: `lpips_fn.features(frames)`, computed once for all methods
+  (None: LPIPS computes the frames' features itself).
   Returns {name: (value [B], valid [B])}, and for 'fg_miou' the IoU
   matrix [B, C-1, K] with 'present' [B, C-1] (matched on the host).
   """
@@ -91,7 +95,11 @@ def _frame_step_metrics(decoded, frames: jax.Array, segmentation: jax.Array,
   if 'ssim' in names:
     out['ssim'] = (metrics_lib.ssim(decoded.recon, frames), ones)
   if 'lpips' in names and lpips_fn is not None:
-    out['lpips'] = (lpips_fn(decoded.recon, frames), ones)
+    if lpips_target is None:
+      out['lpips'] = (lpips_fn(decoded.recon, frames), ones)
+    else:
+      out['lpips'] = (lpips_fn.distance_to_features(decoded.recon,
+                                                    lpips_target), ones)
   object_names = [n for n in names if n in OBJECT_METRICS]
   if not object_names:
     return out
@@ -160,11 +168,17 @@ def make_rollout_evaluator(config: ml_collections.ConfigDict, mesh: Mesh,
       background_threshold=config.evaluation.get('background_threshold'))
   needs_segmentation = any(name in OBJECT_METRICS for name in names)
   boxes_from_dataset = uses_dataset_boxes(config.evaluation, names)
+  # bfloat16: rollouts and decoding compute in it, metrics in float32.
+  in_compute_dtype = functools.partial(precision.with_compute_dtype,
+                                       compute_dtype=config.compute_dtype)
 
   def evaluate_batch(dynamics_params, decoder_params, batch):
     history = batch['slots'][:, :burn_in]
-    predictions = inference.rollouts(dynamics_params, models_by_name, history,
-                                     rollout, copy_last=False)
+    predictions = {
+        name: in_compute_dtype(functools.partial(
+            inference.rollout_slots, model=model, num_steps=rollout))(
+                dynamics_params[name], history)
+        for name, model in models_by_name.items()}
     predictions['savi_reconstruction'] = batch['slots'][
         :, burn_in:burn_in + rollout]
     frames = batch['video'][:, burn_in:burn_in + rollout]
@@ -177,24 +191,30 @@ def make_rollout_evaluator(config: ml_collections.ConfigDict, mesh: Mesh,
       boxes = {field: batch[field][:, burn_in:burn_in + rollout]
                for field in BOX_FIELDS}
     time_major = lambda x: jnp.swapaxes(x, 0, 1)
-    decode = functools.partial(inference.decode_slots, decoder_params,
-                               decoder=decoder)
-    score = lambda decoded, frame, seg, gt_boxes: step_metrics(
-        decoded, model_to_unit(frames_to_model(frame)), seg, gt_boxes)
-
-    def one_step(inputs):
-      slots, frame, seg, gt_boxes = inputs
-      return score(decode(slots), frame, seg, gt_boxes)
-
-    targets = jax.tree.map(time_major, (frames, segmentation, boxes))
-    # lax.map keeps one step's decoded frames in memory at a time.
-    out = {method: jax.lax.map(one_step, (time_major(slots), *targets))
-           for method, slots in predictions.items()}
+    decode = in_compute_dtype(functools.partial(
+        inference.decode_slots, decoder_params, decoder=decoder))
     # Copy-last predicts the same slots at every step: decode them once.
     copied = decode(inference.copy_last_rollout(history, 1)[:, 0])
-    out['copy_last'] = jax.lax.map(
-        lambda inputs: score(copied, *inputs), targets)
-    return out
+    with_lpips = hasattr(lpips_fn, 'features') and 'lpips' in names
+
+    def one_step(inputs):
+      """All methods at one rollout step: the ground-truth frames' LPIPS
+      features are computed once and shared by every method."""
+      slots_by_method, frame, seg, gt_boxes = inputs
+      frame = model_to_unit(frames_to_model(frame))
+      target = lpips_fn.features(frame) if with_lpips else None
+      score = lambda decoded: step_metrics(decoded, frame, seg, gt_boxes,
+                                           lpips_target=target)
+      out = {method: score(decode(slots))
+             for method, slots in slots_by_method.items()}
+      out['copy_last'] = score(copied)
+      return out
+
+    # lax.map keeps one step's decoded frames in memory at a time.
+    return jax.lax.map(one_step, (
+        {method: time_major(slots) for method, slots in predictions.items()},
+        time_major(frames), time_major(segmentation),
+        jax.tree.map(time_major, boxes)))
 
   replicated = sharding.replicated_sharding(mesh)
   return jax.jit(evaluate_batch,

