@@ -166,6 +166,7 @@ def dvae_stage(config: ml_collections.ConfigDict, workdir: str,
 
 def train_dvae(config: ml_collections.ConfigDict, workdir: str,
                mesh: Mesh) -> None:
+  steve_workdir.check_float32(config)
   if _foreign_stage1(config, workdir, mesh, 'dVAE'):
     return
   stage = dvae_stage(config, workdir, mesh)
@@ -311,6 +312,7 @@ def train_steve(config: ml_collections.ConfigDict, workdir: str,
                 mesh: Mesh) -> None:
   """STEVE on the tokens of the current dVAE. A STEVE trained with another
   dVAE (or other settings) is set aside and retrained from scratch."""
+  steve_workdir.check_float32(config)
   if _foreign_stage1(config, workdir, mesh, 'STEVE'):
     return
   _, dvae_step = load_dvae_params(config, workdir, mesh)
@@ -440,6 +442,7 @@ def train_dynamics(config: ml_collections.ConfigDict, workdir: str,
                    mesh: Mesh, name: str = models.SLOTFORMER) -> None:
   """Stage 2 on STEVE's current slots; a model trained on other slots (or
   with other settings) is set aside and retrained from scratch."""
+  steve_workdir.check_float32(config)
   _, steve_step = load_steve_params(config, workdir, mesh)
   _, dvae_step = load_dvae_params(config, workdir, mesh)
   identity = steve_workdir.check_steve_current(config, workdir, dvae_step)

@@ -22,11 +22,22 @@ import ml_collections
 
 from slotformer_jax import workdir as workdir_lib
 from slotformer_jax.data import tokens as tokens_lib
+from slotformer_jax.errors import ConfigError
 from slotformer_jax.errors import MissingInputError
 from slotformer_jax.errors import UserError
 
 DVAE = 'dvae'
 STEVE = 'steve'
+
+
+def check_float32(config: ml_collections.ConfigDict) -> None:
+  """The STEVE stages compute in float32 only (`compute_dtype` wraps the
+  SAVi / SlotFormer losses and evaluator, not STEVE's); refuse rather than
+  ignore another setting."""
+  if config.get('compute_dtype', 'float32') != 'float32':
+    raise ConfigError(
+        f'compute_dtype={config.compute_dtype!r} is not implemented for '
+        "slot_model='steve'; use --config.compute_dtype=float32")
 
 
 def dvae_dir(workdir: str) -> str:

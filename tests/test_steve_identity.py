@@ -16,6 +16,7 @@ from slotformer_jax import steve_workdir
 from slotformer_jax import workdir as workdir_lib
 from slotformer_jax.data import tokens as tokens_lib
 from slotformer_jax.data.slots import SlotWriter
+from slotformer_jax.errors import ConfigError
 from slotformer_jax.errors import MissingInputError
 from slotformer_jax.errors import UserError
 from test_end_to_end import load_config
@@ -133,3 +134,11 @@ def test_steve_stage_set_aside_when_its_dvae_changes(chain):
   new = workdir_lib.start_stage(directory, fields, other, 'STEVE')
   assert new['run_id'] != old['run_id'] and new['parent'] == other
   assert os.path.isdir(f'{directory}.stale-{old["run_id"]}')
+
+
+def test_other_compute_dtype_is_refused_not_ignored():
+  config = load_config('synthetic', 'steve_tiny')
+  steve_workdir.check_float32(config)
+  config.compute_dtype = 'bfloat16'
+  with pytest.raises(ConfigError, match='not implemented'):
+    steve_workdir.check_float32(config)

@@ -260,6 +260,7 @@ def evaluate(config: ml_collections.ConfigDict, workdir: str,
              mesh: Mesh) -> dict[str, Any]:
   """STEVE masks on the held-out videos + rollouts; writes eval/metrics.json
   and eval/per_step.csv like the SAVi evaluation."""
+  steve_workdir.check_float32(config)
   started = time.time()
   eval_config = config.evaluation
   names = tuple(eval_config.metrics)
