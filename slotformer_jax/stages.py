@@ -9,7 +9,6 @@ from __future__ import annotations
 import functools
 import logging
 import math
-import os
 from typing import Any
 
 import jax
@@ -105,30 +104,8 @@ def train_savi(config: ml_collections.ConfigDict, workdir: str,
 
 def _start_stage(directory: str, fields: dict[str, Any],
                  parent: dict[str, Any] | None, what: str) -> dict[str, Any]:
-  """The stage's identity, stamped before training starts. A stage made with
-  other settings or from another parent is stale: set aside, then retrained
-  from scratch (so nothing mixes)."""
-  identity = workdir_lib.read_identity(directory)
-  has_checkpoints = os.path.isdir(os.path.join(directory, 'checkpoints')) and (
-      os.listdir(os.path.join(directory, 'checkpoints')))
-  if identity is None and has_checkpoints:
-    # A workdir from before identities: its checkpoints are the ones it was
-    # trained with under config.json (which accept_config checked).
-    logger.warning('%s in %s has no identity.json (older version); '
-                   'stamping one for the current settings', what, directory)
-  elif identity is not None:
-    changes = workdir_lib.flat_differences(identity['fields'], fields)
-    if identity.get('parent') != parent:
-      changes.append(f'trained on {identity.get("parent")}, stage 1 is now '
-                     f'{parent}')
-    if not changes:
-      return identity
-    moved = workdir_lib.set_aside(directory, identity)
-    logger.warning('%s in %s is stale (%s): set aside as %s and retrained',
-                   what, directory, '; '.join(changes), moved)
-  identity = workdir_lib.new_identity(fields, parent)
-  workdir_lib.write_identity(directory, identity)
-  return identity
+  """See `workdir.start_stage` (shared with the STEVE stages)."""
+  return workdir_lib.start_stage(directory, fields, parent, what)
 
 
 # --------------------------------------------------------------------------

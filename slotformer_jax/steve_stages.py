@@ -3,22 +3,21 @@
 train dVAE -> tokenize the training frames once -> train STEVE -> extract
 slots -> train SlotFormer / Slot-LSTM on them. The stages share the SAVi
 pipeline's data stream, trainer, checkpoints and slot files; what differs is
-here. Workdir layout::
+here. Paths and what each artifact descends from (run identities, as with
+SAVi): steve_workdir.py; reading trained parameters: steve_inference.py.
 
-    dvae/checkpoints/   dvae/model_config.json   dvae/train_log.jsonl
-    tokens/train/       the frozen dVAE's tokens (see data/tokens.py)
-    steve/checkpoints/  steve/model_config.json  steve/train_log.jsonl
-    slots/<split>/      STEVE's slots (meta 'savi_step' = STEVE's step)
-    slotformer/ ...     as with SAVi
+    dvae/      identity parent: none
+    tokens/    meta parent: the dVAE run id + step
+    steve/     identity parent: the dVAE run id + step
+    slots/     meta parent: the STEVE run id + step (re-extracted when stale)
+    slotformer/, slot_lstm/   identity parent: the STEVE run id + step
 """
 
 from __future__ import annotations
 
 import functools
-import json
 import logging
 import math
-import os
 from typing import Any
 
 import jax
@@ -29,60 +28,40 @@ import ml_collections
 import numpy as np
 import tqdm
 
+from slotformer_jax import losses
 from slotformer_jax import models
-from slotformer_jax import stages
 from slotformer_jax import steve_inference
+from slotformer_jax import steve_workdir
+from slotformer_jax import workdir as workdir_lib
 from slotformer_jax.data import pipeline
 from slotformer_jax.data import tokens as tokens_lib
 from slotformer_jax.data.slots import SlotWriter
 from slotformer_jax.data.slots import read_meta
 from slotformer_jax.data.sources import get_video_source
+from slotformer_jax.errors import ConfigError
+from slotformer_jax.errors import UserError
 from slotformer_jax.train import sharding
 from slotformer_jax.train import steps
 from slotformer_jax.train import steve_steps
 from slotformer_jax.train.trainer import Stage
-from slotformer_jax.train.trainer import abstract_train_state
-from slotformer_jax.train.trainer import checkpointer_for
 from slotformer_jax.train.trainer import fit
 
 logger = logging.getLogger(__name__)
 
-DVAE = 'dvae'
-STEVE = 'steve'
+DVAE = steve_workdir.DVAE
+STEVE = steve_workdir.STEVE
 TOKENIZED_SPLITS = ('train',)  # STEVE trains on these; nothing else needs tokens
 
-
-def dvae_dir(workdir: str) -> str:
-  return os.path.join(workdir, DVAE)
-
-
-def steve_dir(workdir: str) -> str:
-  return os.path.join(workdir, STEVE)
-
-
-def tokens_dir(workdir: str, split: str) -> str:
-  return os.path.join(workdir, 'tokens', split)
-
-
-def _jsonable(fields: dict[str, Any]) -> dict[str, Any]:
-  return json.loads(json.dumps(fields))  # tuples -> lists, for comparison
-
-
-def dvae_model_fields(config: ml_collections.ConfigDict) -> dict[str, Any]:
-  """The config values that determine the dVAE's parameters."""
-  return _jsonable({'vocab_size': config.dvae.vocab_size,
-                    'hidden_size': config.dvae.hidden_size})
-
-
-def steve_model_fields(config: ml_collections.ConfigDict) -> dict[str, Any]:
-  """The config values that determine STEVE's parameters (incl. its dVAE)."""
-  steve = config.steve.to_dict()
-  fields = {key: steve[key] for key in (
-      'num_slots', 'slot_size', 'encoder', 'slot_attention', 'predictor',
-      'decoder')}
-  fields['resolution'] = list(config.data.resolution)
-  fields['vocab_size'] = config.dvae.vocab_size
-  return _jsonable(fields)
+# Paths and model fields live in steve_workdir.py (evaluation reads them);
+# kept here under their old names.
+dvae_dir = steve_workdir.dvae_dir
+steve_dir = steve_workdir.steve_dir
+tokens_dir = steve_workdir.tokens_dir
+dvae_model_fields = steve_workdir.dvae_model_fields
+steve_model_fields = steve_workdir.steve_model_fields
+load_dvae_params = steve_inference.load_dvae_params
+load_steve_params = steve_inference.load_steve_params
+load_dynamics_params = steve_inference.load_dynamics_params
 
 
 def _frame_shape(config: ml_collections.ConfigDict) -> tuple[int, int, int]:
@@ -114,29 +93,47 @@ def _init_dynamics(config, name, rng):
                            stage_config.rollout)
 
 
-def _load(directory: str, what: str, init_params, stage_config, mesh: Mesh,
-          fields: dict[str, Any] | None, mode: str) -> tuple[Any, int]:
-  """The newest parameters (replicated) of a stage and their step."""
-  checkpointer = checkpointer_for(directory, read_only=True)
-  if checkpointer.latest_step() is None:
-    raise FileNotFoundError(
-        f'no {what} checkpoint under {directory}/checkpoints. Train it '
-        'first: python -m slotformer_jax.main --config=<config> '
-        f'--workdir=<workdir> --mode={mode}')
-  if fields is not None:
-    stages._check_model_config(directory, fields, what)  # pylint: disable=protected-access
-  state = checkpointer.restore(
-      abstract_train_state(init_params, stage_config, mesh))
-  step = int(state.step)
-  if step < stage_config.num_train_steps:
-    logger.warning('%s was trained for %d of %d steps only', what, step,
-                    stage_config.num_train_steps)
-  return state.params, step
-
-
 # --------------------------------------------------------------------------
 # Stage 1a: dVAE
 # --------------------------------------------------------------------------
+
+
+def check_foreign_stage1(config: ml_collections.ConfigDict, workdir: str,
+                         mesh: Mesh) -> None:
+  """`stage1_workdir` is read-only: its dVAE and STEVE must be complete and
+  descend from each other, its slots made by that STEVE (as
+  `stages.check_foreign_stage1` for SAVi).
+
+  Raises:
+    UserError: what is missing or different, and where to fix it.
+  """
+  other = workdir_lib.stage1_workdir(config, workdir)
+  _, dvae_step = load_dvae_params(config, workdir, mesh)
+  _, steve_step = load_steve_params(config, workdir, mesh)
+  for what, step, total in (('dVAE', dvae_step, config.dvae.num_train_steps),
+                            ('STEVE', steve_step,
+                             config.steve.num_train_steps)):
+    if step < total:
+      raise UserError(
+          f'stage 1 in stage1_workdir={other} is incomplete ({what} step '
+          f'{step} of {total}); this run never trains there. Finish it with '
+          'its own run: python -m slotformer_jax.main --config=<its config> '
+          f'--workdir={other}')
+  identity = steve_workdir.check_steve_current(config, workdir, dvae_step)
+  for split in config.extraction.splits:
+    workdir_lib.check_slots_current(config, workdir, split, identity,
+                                    steve_step, STEVE)
+
+
+def _foreign_stage1(config: ml_collections.ConfigDict, workdir: str,
+                    mesh: Mesh, what: str) -> bool:
+  """True (after checking it) when stage 1 is another workdir's."""
+  if not workdir_lib.uses_foreign_stage1(config, workdir):
+    return False
+  check_foreign_stage1(config, workdir, mesh)
+  logger.info('%s: using the read-only stage 1 in %s', what,
+              workdir_lib.stage1_workdir(config, workdir))
+  return True
 
 
 def dvae_stage(config: ml_collections.ConfigDict, workdir: str,
@@ -159,7 +156,8 @@ def dvae_stage(config: ml_collections.ConfigDict, workdir: str,
         frames, start_step, stage_config.num_train_steps, **schedule)
 
   return Stage(
-      name=DVAE, directory=dvae_dir(stages.stage1_workdir(config, workdir)),
+      name=DVAE,
+      directory=dvae_dir(workdir_lib.stage1_workdir(config, workdir)),
       config=stage_config,
       loss_fn=functools.partial(steve_steps.dvae_loss, model=model),
       init_params=functools.partial(_init_dvae, config),
@@ -168,18 +166,17 @@ def dvae_stage(config: ml_collections.ConfigDict, workdir: str,
 
 def train_dvae(config: ml_collections.ConfigDict, workdir: str,
                mesh: Mesh) -> None:
+  steve_workdir.check_float32(config)
+  if _foreign_stage1(config, workdir, mesh, 'dVAE'):
+    return
   stage = dvae_stage(config, workdir, mesh)
   fields = dvae_model_fields(config)
-  stages._check_model_config(stage.directory, fields, 'dVAE')  # pylint: disable=protected-access
-  stages._write_model_config(stage.directory, fields)  # pylint: disable=protected-access
+  workdir_lib.start_stage(stage.directory,
+                          steve_workdir.dvae_identity_fields(config), None,
+                          'dVAE')
+  workdir_lib.check_model_config(stage.directory, fields, 'dVAE')
+  workdir_lib.write_model_config(stage.directory, fields)
   fit(stage, mesh=mesh, seed=config.seed)
-
-
-def load_dvae_params(config: ml_collections.ConfigDict, workdir: str,
-                     mesh: Mesh) -> tuple[Any, int]:
-  return _load(dvae_dir(stages.stage1_workdir(config, workdir)), 'dVAE',
-               functools.partial(_init_dvae, config), config.dvae, mesh,
-               dvae_model_fields(config), 'train_dvae')
 
 
 # --------------------------------------------------------------------------
@@ -204,6 +201,14 @@ def _video_batches(source: Any, local_batch_size: int):
     yield indices, valid
 
 
+def _padded_clip(video: np.ndarray, num_frames: int) -> np.ndarray:
+  """video [T, ...] -> [num_frames, ...], repeating the last frame."""
+  if len(video) >= num_frames:
+    return video[:num_frames]
+  padding = np.repeat(video[-1:], num_frames - len(video), axis=0)
+  return np.concatenate([video, padding], axis=0)
+
+
 def _chunked_padded(videos: list[np.ndarray], chunk_length: int):
   """Stacked videos padded (last frame repeated) to a multiple of
   chunk_length frames, equal on every host, and the number of chunks."""
@@ -212,7 +217,7 @@ def _chunked_padded(videos: list[np.ndarray], chunk_length: int):
   if jax.process_count() > 1:
     num_chunks = int(multihost_utils.process_allgather(
         np.array(num_chunks)).max())
-  padded = np.stack([stages._padded_clip(v, num_chunks * chunk_length)  # pylint: disable=protected-access
+  padded = np.stack([_padded_clip(v, num_chunks * chunk_length)
                      for v in videos])
   return padded, lengths, num_chunks
 
@@ -221,7 +226,11 @@ def tokenize_frames(config: ml_collections.ConfigDict, workdir: str,
                     mesh: Mesh) -> None:
   """The frozen dVAE's argmax tokens of every training frame, stored once
   (skipped when they came from the current dVAE checkpoint)."""
+  if _foreign_stage1(config, workdir, mesh, 'tokens'):
+    return
   params, dvae_step = load_dvae_params(config, workdir, mesh)
+  parent = steve_workdir.dvae_parent(
+      steve_workdir.dvae_identity(config, workdir), dvae_step)
   dvae = models.build_dvae(config)
   batched = sharding.batch_sharding(mesh)
   tokenize = jax.jit(
@@ -233,17 +242,19 @@ def tokenize_frames(config: ml_collections.ConfigDict, workdir: str,
       config.dvae.tokenize_batch_size, mesh)
   height, width = _token_grid(config)
   for split in TOKENIZED_SPLITS:
-    directory = tokens_dir(stages.stage1_workdir(config, workdir), split)
+    directory = tokens_dir(workdir_lib.stage1_workdir(config, workdir), split)
     meta = tokens_lib.read_meta(directory)
-    if meta and meta.get('complete') and meta.get('dvae_step') == dvae_step:
-      logger.info('tokens of %s already computed (dVAE step %d)', split,
-                   dvae_step)
+    if meta and meta.get('complete') and meta.get('parent') == parent:
+      logger.info('tokens of %s already computed (dVAE %s)', split, parent)
       continue
+    if meta and meta.get('complete'):
+      logger.info('tokens of %s are stale (from dVAE %s, now %s): '
+                  'recomputing', split, meta.get('parent'), parent)
     source = get_video_source(config.data, split)
     writer = None
     if jax.process_index() == 0:
       writer = tokens_lib.TokenWriter(directory, len(source), height * width,
-                                      dvae_step)
+                                      dvae_step, parent=parent)
     for indices, valid in tqdm.tqdm(
         list(_video_batches(source, local_batch_size)),
         desc=f'tokenize {split}', disable=jax.process_index() != 0):
@@ -254,7 +265,7 @@ def tokenize_frames(config: ml_collections.ConfigDict, workdir: str,
         frames = padded[:, chunk * chunk_length:(chunk + 1) * chunk_length]
         chunks.append(tokenize(params, sharding.to_global_batch(
             {'video': frames}, mesh)['video']))
-      gathered = stages.gather_to_host({
+      gathered = sharding.gather_to_host({
           'tokens': jnp.concatenate(chunks, axis=1),
           **sharding.to_global_batch(
               {'index': np.asarray(indices), 'length': lengths,
@@ -281,12 +292,7 @@ def steve_stage(config: ml_collections.ConfigDict, workdir: str,
                 mesh: Mesh) -> Stage:
   model = models.build_steve(config)
   stage_config = config.steve
-  root = stages.stage1_workdir(config, workdir)
-  meta = tokens_lib.read_meta(tokens_dir(root, 'train'))
-  if not meta or not meta.get('complete'):
-    raise FileNotFoundError(
-        f'no dVAE tokens under {tokens_dir(root, "train")}; run '
-        '--mode=tokenize_frames first')
+  root = workdir_lib.stage1_workdir(config, workdir)
   source = tokens_lib.TokenSource(tokens_dir(root, 'train'),
                                   get_video_source(config.data, 'train'))
   local_batch_size = sharding.per_host_batch_size(stage_config.batch_size, mesh)
@@ -304,18 +310,24 @@ def steve_stage(config: ml_collections.ConfigDict, workdir: str,
 
 def train_steve(config: ml_collections.ConfigDict, workdir: str,
                 mesh: Mesh) -> None:
+  """STEVE on the tokens of the current dVAE. A STEVE trained with another
+  dVAE (or other settings) is set aside and retrained from scratch."""
+  steve_workdir.check_float32(config)
+  if _foreign_stage1(config, workdir, mesh, 'STEVE'):
+    return
+  _, dvae_step = load_dvae_params(config, workdir, mesh)
+  parent = steve_workdir.dvae_parent(
+      steve_workdir.dvae_identity(config, workdir), dvae_step)
+  for split in TOKENIZED_SPLITS:
+    steve_workdir.check_tokens_current(config, workdir, split, parent)
   stage = steve_stage(config, workdir, mesh)
   fields = steve_model_fields(config)
-  stages._check_model_config(stage.directory, fields, 'STEVE')  # pylint: disable=protected-access
-  stages._write_model_config(stage.directory, fields)  # pylint: disable=protected-access
+  workdir_lib.start_stage(stage.directory,
+                          steve_workdir.steve_identity_fields(config), parent,
+                          'STEVE')
+  workdir_lib.check_model_config(stage.directory, fields, 'STEVE')
+  workdir_lib.write_model_config(stage.directory, fields)
   fit(stage, mesh=mesh, seed=config.seed)
-
-
-def load_steve_params(config: ml_collections.ConfigDict, workdir: str,
-                      mesh: Mesh) -> tuple[Any, int]:
-  return _load(steve_dir(stages.stage1_workdir(config, workdir)), 'STEVE',
-               functools.partial(_init_steve, config), config.steve, mesh,
-               steve_model_fields(config), 'train_steve')
 
 
 # --------------------------------------------------------------------------
@@ -327,12 +339,18 @@ def extract_slots(config: ml_collections.ConfigDict, workdir: str,
                   mesh: Mesh) -> None:
   """STEVE's slots of every video of every split, in chunks of
   `extraction.chunk_length` frames that carry STEVE's state."""
+  if _foreign_stage1(config, workdir, mesh, 'slots'):
+    return
   params, steve_step = load_steve_params(config, workdir, mesh)
+  _, dvae_step = load_dvae_params(config, workdir, mesh)
+  identity = steve_workdir.check_steve_current(config, workdir, dvae_step)
+  parent = workdir_lib.slots_parent(identity, steve_step, STEVE)
+  slot_fields = workdir_lib.slots_identity_fields(config)
   model = models.build_steve(config)
   replicated = sharding.replicated_sharding(mesh)
   batched = sharding.batch_sharding(mesh)
   encode = jax.jit(
-      lambda params, video, carry: steve_steps.steve_encode(
+      lambda params, video, carry: steve_inference.steve_encode(
           params, video, carry, model=model)[::2],  # (slots, carry)
       in_shardings=(replicated, batched, batched),
       out_shardings=(batched, batched))
@@ -340,17 +358,22 @@ def extract_slots(config: ml_collections.ConfigDict, workdir: str,
   local_batch_size = sharding.per_host_batch_size(
       config.extraction.batch_size, mesh)
   for split in config.extraction.splits:
-    directory = stages.slots_dir(stages.stage1_workdir(config, workdir), split)
+    directory = workdir_lib.slots_dir(
+        workdir_lib.stage1_workdir(config, workdir), split)
     meta = read_meta(directory)
-    if meta and meta.get('complete') and meta.get('savi_step') == steve_step:
-      logger.info('slots of %s already extracted (STEVE step %d)', split,
-                   steve_step)
+    if (meta and meta.get('complete') and meta.get('parent') == parent
+        and meta.get('fields') == slot_fields):
+      logger.info('slots of %s already extracted (STEVE %s)', split, parent)
       continue
+    if meta and meta.get('complete'):
+      logger.info('slots of %s are stale (from %s, now STEVE %s): '
+                  're-extracting', split, meta.get('parent'), parent)
     source = get_video_source(config.data, split)
     writer = None
     if jax.process_index() == 0:
       writer = SlotWriter(directory, len(source), config.steve.num_slots,
-                          config.steve.slot_size, steve_step)
+                          config.steve.slot_size, steve_step,
+                          parent=parent, fields=slot_fields)
     for indices, valid in tqdm.tqdm(
         list(_video_batches(source, local_batch_size)),
         desc=f'extract {split}', disable=jax.process_index() != 0):
@@ -362,7 +385,7 @@ def extract_slots(config: ml_collections.ConfigDict, workdir: str,
         slots, carry = encode(params, sharding.to_global_batch(
             {'video': frames}, mesh)['video'], carry)
         chunks.append(slots)
-      gathered = stages.gather_to_host({
+      gathered = sharding.gather_to_host({
           'slots': jnp.concatenate(chunks, axis=1),
           **sharding.to_global_batch(
               {'index': np.asarray(indices), 'length': lengths,
@@ -390,19 +413,19 @@ def dynamics_stage(config: ml_collections.ConfigDict, workdir: str,
   """SlotFormer (or Slot-LSTM) on STEVE's slots, trained with L_S alone."""
   stage_config = models.dynamics_config(config, name)
   if stage_config.image_loss_weight > 0:
-    raise ValueError(
+    raise ConfigError(
         'L_I through STEVE\'s autoregressive decoder is not implemented (the '
         'paper trains SlotFormer on STEVE slots without it); set '
         f'--config.slotformer.image_loss_weight=0 (got '
         f'{stage_config.image_loss_weight})')
   model = models.build_dynamics(config, name)
-  source = stages.slot_source_for(config, workdir, 'train', ())
+  source = workdir_lib.slot_source_for(config, workdir, 'train', ())
   local_batch_size = sharding.per_host_batch_size(stage_config.batch_size, mesh)
   return Stage(
-      name=name, directory=stages.dynamics_dir(workdir, name),
+      name=name, directory=workdir_lib.dynamics_dir(workdir, name),
       config=stage_config,
       loss_fn=functools.partial(
-          steps.slotformer_loss, model=model, decoder=None,
+          losses.slotformer_loss, model=model, decoder=None,
           rollout=stage_config.rollout, image_loss_weight=0.0,
           teacher_forcing=stage_config.teacher_forcing),
       init_params=functools.partial(_init_dynamics, config, name),
@@ -417,20 +440,22 @@ def dynamics_stage(config: ml_collections.ConfigDict, workdir: str,
 
 def train_dynamics(config: ml_collections.ConfigDict, workdir: str,
                    mesh: Mesh, name: str = models.SLOTFORMER) -> None:
+  """Stage 2 on STEVE's current slots; a model trained on other slots (or
+  with other settings) is set aside and retrained from scratch."""
+  steve_workdir.check_float32(config)
+  _, steve_step = load_steve_params(config, workdir, mesh)
+  _, dvae_step = load_dvae_params(config, workdir, mesh)
+  identity = steve_workdir.check_steve_current(config, workdir, dvae_step)
+  parent = workdir_lib.check_slots_current(config, workdir, 'train', identity,
+                                           steve_step, STEVE)
   stage = dynamics_stage(config, workdir, mesh, name)
-  fields = stages.dynamics_model_fields(config, name)
-  stages._check_model_config(stage.directory, fields, name)  # pylint: disable=protected-access
-  stages._write_model_config(stage.directory, fields)  # pylint: disable=protected-access
+  fields = workdir_lib.dynamics_model_fields(config, name)
+  workdir_lib.start_stage(stage.directory,
+                          workdir_lib.dynamics_identity_fields(config, name),
+                          parent, name)
+  workdir_lib.check_model_config(stage.directory, fields, name)
+  workdir_lib.write_model_config(stage.directory, fields)
   fit(stage, mesh=mesh, seed=config.seed + 1)
-
-
-def load_dynamics_params(config: ml_collections.ConfigDict, workdir: str,
-                         mesh: Mesh, name: str = models.SLOTFORMER
-                         ) -> tuple[Any, int]:
-  return _load(stages.dynamics_dir(workdir, name), name,
-               functools.partial(_init_dynamics, config, name),
-               models.dynamics_config(config, name), mesh,
-               stages.dynamics_model_fields(config, name), f'train_{name}')
 
 
 def train_slotformer(config, workdir, mesh) -> None:

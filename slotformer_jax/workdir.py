@@ -175,6 +175,15 @@ def savi_identity_fields(config: ml_collections.ConfigDict) -> dict[str, Any]:
                  'savi': _shaping(config.savi.to_dict())})
 
 
+def stage_identity_fields(config: ml_collections.ConfigDict,
+                          section: str) -> dict[str, Any]:
+  """Everything that shapes a stage-1 model trained from the videos with the
+  settings of `config[section]` (e.g. 'dvae', 'steve'): data, that section,
+  the seed (the same form as `savi_identity_fields`)."""
+  return _plain({'seed': config.seed, 'data': _shaping(config.data.to_dict()),
+                 section: _shaping(config[section].to_dict())})
+
+
 def slots_identity_fields(config: ml_collections.ConfigDict
                           ) -> dict[str, Any]:
   """Besides the SAVi that made them: extraction settings and the seed
@@ -240,35 +249,49 @@ def savi_identity(config: ml_collections.ConfigDict, workdir: str
     UserError: SAVi there was trained with other settings (the fields are
       listed), or has no identity yet.
   """
-  directory = savi_dir(stage1_workdir(config, workdir))
+  return checked_identity(savi_dir(stage1_workdir(config, workdir)),
+                          savi_identity_fields(config), 'SAVi',
+                          stage1_workdir(config, workdir), 'train_savi')
+
+
+def checked_identity(directory: str, fields: dict[str, Any], what: str,
+                     workdir: str, train_mode: str) -> dict[str, Any]:
+  """The identity of the stage in `directory`, made with `fields`.
+
+  Raises:
+    MissingInputError: the stage has no identity (never trained).
+    UserError: it was trained with other settings (the fields are listed).
+  """
   identity = read_identity(directory)
   if identity is None:
     raise MissingInputError(
-        f'no trained SAVi in {directory}. Train stage 1 first: python -m '
-        'slotformer_jax.main --config=<config> '
-        f'--workdir={stage1_workdir(config, workdir)} --mode=train_savi')
-  check_identity_fields(identity, savi_identity_fields(config), 'SAVi',
-                        directory)
+        f'no trained {what} in {directory}. Train it first: python -m '
+        f'slotformer_jax.main --config=<config> --workdir={workdir} '
+        f'--mode={train_mode}')
+  check_identity_fields(identity, fields, what, directory)
   return identity
 
 
-def slots_parent(identity: dict[str, Any], savi_step: int) -> dict[str, Any]:
-  """What slots (and the dynamics trained on them) descend from."""
-  return {'savi_run_id': identity['run_id'], 'savi_step': int(savi_step)}
+def slots_parent(identity: dict[str, Any], step: int,
+                 stage: str = 'savi') -> dict[str, Any]:
+  """What slots (and the dynamics trained on them) descend from: the run id
+  and step of the stage-1 model `stage` ('savi', 'steve') that made them."""
+  return {f'{stage}_run_id': identity['run_id'], f'{stage}_step': int(step)}
 
 
 def check_slots_current(config: ml_collections.ConfigDict, workdir: str,
                         split: str, identity: dict[str, Any],
-                        savi_step: int) -> dict[str, Any]:
-  """The slots of `split` must come from the current SAVi; returns their
-  parent.
+                        savi_step: int, stage: str = 'savi'
+                        ) -> dict[str, Any]:
+  """The slots of `split` must come from the current stage-1 model (`stage`:
+  'savi' or 'steve', its `identity` at `savi_step`); returns their parent.
 
   Raises:
     UserError: missing or stale slots, with the command that rebuilds them.
   """
   directory = slots_dir(stage1_workdir(config, workdir), split)
   meta = read_meta(directory)
-  expected = slots_parent(identity, savi_step)
+  expected = slots_parent(identity, savi_step, stage)
   rebuild = ('python -m slotformer_jax.main --config=<config> '
              f'--workdir={stage1_workdir(config, workdir)} '
              '--mode=extract_slots')
@@ -277,9 +300,10 @@ def check_slots_current(config: ml_collections.ConfigDict, workdir: str,
                     f'{rebuild}')
   if (meta.get('parent') != expected
       or meta.get('fields') != slots_identity_fields(config)):
+    what = {'savi': 'SAVi', 'steve': 'STEVE'}.get(stage, stage)
     raise UserError(
-        f'the slots in {directory} are stale: made by SAVi '
-        f'{meta.get("parent")}, the current SAVi is {expected}. Re-extract '
+        f'the slots in {directory} are stale: made by {what} '
+        f'{meta.get("parent")}, the current {what} is {expected}. Re-extract '
         f'them: {rebuild}')
   return expected
 
@@ -339,6 +363,34 @@ def _only_observation(change: str) -> bool:
   name = change.split(':', 1)[0]
   last = name.rsplit('.', 1)[-1]
   return last in _NOT_SHAPING or name.startswith('render.')
+
+
+def start_stage(directory: str, fields: dict[str, Any],
+                parent: dict[str, Any] | None, what: str) -> dict[str, Any]:
+  """The stage's identity, stamped before training starts. A stage made with
+  other settings or from another parent is stale: set aside, then retrained
+  from scratch (so nothing mixes)."""
+  identity = read_identity(directory)
+  has_checkpoints = os.path.isdir(os.path.join(directory, 'checkpoints')) and (
+      os.listdir(os.path.join(directory, 'checkpoints')))
+  if identity is None and has_checkpoints:
+    # A workdir from before identities: its checkpoints are the ones it was
+    # trained with under config.json (which accept_config checked).
+    logger.warning('%s in %s has no identity.json (older version); '
+                   'stamping one for the current settings', what, directory)
+  elif identity is not None:
+    changes = flat_differences(identity['fields'], fields)
+    if identity.get('parent') != parent:
+      changes.append(f'trained on {identity.get("parent")}, its parent is '
+                     f'now {parent}')
+    if not changes:
+      return identity
+    moved = set_aside(directory, identity)
+    logger.warning('%s in %s is stale (%s): set aside as %s and retrained',
+                   what, directory, '; '.join(changes), moved)
+  identity = new_identity(fields, parent)
+  write_identity(directory, identity)
+  return identity
 
 
 def set_aside(stage_directory: str, identity: dict[str, Any] | None) -> str:

@@ -5,7 +5,8 @@ One folder per split::
     tokens.u16       uint16 rows of [num_tokens] (h * w, raster order), all
                      videos concatenated along time (read back as a memmap)
     video_index.npy  int64 [num_videos, 2]: (first row, number of frames)
-    meta.json        num_videos, num_tokens, dvae_step, complete
+    meta.json        num_videos, num_tokens, dvae_step, parent (the dVAE's
+                     run id and step, see steve_workdir.py), complete
 
 `TokenSource` serves a video source's items with their 'tokens' [T, L]
 added, so STEVE's training clips take frames and tokens from the same steps.
@@ -36,11 +37,12 @@ class TokenWriter:
   """Writes the tokens of one split, video by video, in any index order."""
 
   def __init__(self, directory: str, num_videos: int, num_tokens: int,
-               dvae_step: int):
+               dvae_step: int, *, parent: dict[str, Any] | None = None):
     os.makedirs(directory, exist_ok=True)
     self._directory = directory
     self._meta = dict(num_videos=num_videos, num_tokens=num_tokens,
-                      dvae_step=dvae_step, complete=False)
+                      dvae_step=dvae_step, parent=parent,
+                      complete=False)
     self._write_meta()
     self._index = np.full((num_videos, 2), -1, np.int64)
     self._file = open(os.path.join(directory, TOKENS_FILE), 'wb')

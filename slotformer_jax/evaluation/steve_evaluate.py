@@ -34,18 +34,21 @@ import ml_collections
 import numpy as np
 import tqdm
 
+from slotformer_jax import inference
 from slotformer_jax import models
-from slotformer_jax import stages
 from slotformer_jax import steve_inference
-from slotformer_jax import steve_stages
+from slotformer_jax import steve_workdir
+from slotformer_jax import workdir as workdir_lib
 from slotformer_jax.data import pipeline
 from slotformer_jax.evaluation import evaluate as savi_evaluate
 from slotformer_jax.evaluation import metrics as metrics_lib
 from slotformer_jax.evaluation import visualize
+from slotformer_jax.files import write_json_atomic
+from slotformer_jax.frames import frames_to_model
+from slotformer_jax.frames import model_to_unit
 from slotformer_jax.modules.steve import STEVE
 from slotformer_jax.modules.token_decoder import TokenDecoder
 from slotformer_jax.train import sharding
-from slotformer_jax.train import steps
 
 logger = logging.getLogger(__name__)
 
@@ -119,7 +122,7 @@ def make_rollout_evaluator(config: ml_collections.ConfigDict, mesh: Mesh,
   def evaluate_batch(dynamics_params, steve_params, dvae_params, batch):
     history = batch['slots'][:, :burn_in]
     predictions = {
-        name: steps.rollout_slots(dynamics_params[name], history,
+        name: inference.rollout_slots(dynamics_params[name], history,
                                   model=model, num_steps=rollout)
         for name, model in models_by_name.items()}
     predictions[REFERENCE] = batch['slots'][:, burn_in:burn_in + rollout]
@@ -130,8 +133,8 @@ def make_rollout_evaluator(config: ml_collections.ConfigDict, mesh: Mesh,
       segmentation = jnp.zeros(frames.shape[:2], jnp.int32)
     time_major = lambda x: jnp.swapaxes(x, 0, 1)
     score = lambda generated, frame, seg: step_metrics(
-        generated, steve_inference.model_to_unit(
-            steve_inference.frames_to_model(frame)), seg)
+        generated, model_to_unit(
+            frames_to_model(frame)), seg)
 
     def one_step(inputs):
       slots, frame, seg = inputs
@@ -169,7 +172,7 @@ def make_segmentation_evaluator(config: ml_collections.ConfigDict,
 
   def evaluate_chunk(steve_params, video, segmentation, frame_valid, carry):
     _, masks, carry = model.apply(
-        {'params': steve_params}, steve_inference.frames_to_model(video),
+        {'params': steve_params}, frames_to_model(video),
         carry, method=STEVE.encode)
     pred_ids = jnp.argmax(upsample_masks(masks, resolution), axis=2)
     # Ids outside [0, C) are not counted: that drops the padded frames.
@@ -216,7 +219,7 @@ def evaluate_segmentation(config: ml_collections.ConfigDict, mesh: Mesh,
       pipeline.eval_batches(source, num_frames=num_frames, **batch_args),
       desc='evaluate STEVE masks', leave=False,
       disable=jax.process_index() != 0):
-    mask = stages.gather_to_host(
+    mask = sharding.gather_to_host(
         sharding.to_global_batch({'mask': batch['mask']}, mesh))['mask']
     totals, carry = {}, None
     for start in range(0, num_frames, chunk):
@@ -230,7 +233,7 @@ def evaluate_segmentation(config: ml_collections.ConfigDict, mesh: Mesh,
       out, carry = evaluator(steve_params, pieces['video'],
                              pieces[SEGMENTATION_FIELD],
                              pieces['frame_valid'], carry)
-      out = stages.gather_to_host(out)
+      out = sharding.gather_to_host(out)
       for key in ('table', 'fg_ari_frame_sum', 'fg_ari_frame_count'):
         totals[key] = totals.get(key, 0) + out[key]
       # present is False on padded frames, so those frames are not valid.
@@ -257,25 +260,31 @@ def evaluate(config: ml_collections.ConfigDict, workdir: str,
              mesh: Mesh) -> dict[str, Any]:
   """STEVE masks on the held-out videos + rollouts; writes eval/metrics.json
   and eval/per_step.csv like the SAVi evaluation."""
+  steve_workdir.check_float32(config)
   started = time.time()
   eval_config = config.evaluation
   names = tuple(eval_config.metrics)
   with_segmentation = any(n in savi_evaluate.OBJECT_METRICS for n in names)
   lpips_fn = savi_evaluate._lpips_or_none(names)  # pylint: disable=protected-access
-  steve_params, steve_step = steve_stages.load_steve_params(
+  steve_params, steve_step = steve_inference.load_steve_params(
       config, workdir, mesh)
-  dvae_params, dvae_step = steve_stages.load_dvae_params(config, workdir, mesh)
+  dvae_params, dvae_step = steve_inference.load_dvae_params(config, workdir, mesh)
   dynamics_names = savi_evaluate.dynamics_to_evaluate(config)
   dynamics_params, dynamics_steps = {}, {}
   for name in dynamics_names:
     dynamics_params[name], dynamics_steps[name] = (
-        steve_stages.load_dynamics_params(config, workdir, mesh, name))
+        steve_inference.load_dynamics_params(config, workdir, mesh, name))
+  # Never mix: the dVAE, STEVE, its slots and every dynamics model descend
+  # from each other, and the metrics record which ones they are.
+  identity = steve_workdir.evaluation_identity(
+      config, workdir, eval_config.split, dvae_step, steve_step,
+      dynamics_steps)
   burn_in = config.slotformer.burn_in
   rollout = eval_config.rollout_steps
   stride = config.slotformer.frame_stride
   video_fields = ('video',) + ((SEGMENTATION_FIELD,) if with_segmentation
                                else ())
-  source = stages.slot_source_for(config, workdir, eval_config.split,
+  source = workdir_lib.slot_source_for(config, workdir, eval_config.split,
                                   video_fields)
   if with_segmentation:
     savi_evaluate._check_has_segmentations(source, names)  # pylint: disable=protected-access
@@ -306,10 +315,10 @@ def evaluate(config: ml_collections.ConfigDict, workdir: str,
     batch.pop('index')
     for field in batch:
       batch[field] = batch[field][:, ::stride]
-    out = stages.gather_to_host(evaluator(
+    out = sharding.gather_to_host(evaluator(
         dynamics_params, steve_params, dvae_params,
         sharding.to_global_batch(batch, mesh)))
-    mask = stages.gather_to_host(
+    mask = sharding.gather_to_host(
         sharding.to_global_batch({'mask': mask}, mesh))['mask']
     for method, per_metric in out.items():
       for name, (values, valid) in per_metric.items():
@@ -331,6 +340,7 @@ def evaluate(config: ml_collections.ConfigDict, workdir: str,
                             'Attention (STEVE on the videos)'},
       'checkpoints': {'dvae_step': dvae_step, 'steve_step': steve_step, **{
           f'{name}_step': step for name, step in dynamics_steps.items()}},
+      'identity': identity,
       'seconds': {'steve_segmentation': steve_results.pop('seconds'),
                   'rollout': time.time() - rollout_started,
                   'total': time.time() - started},
@@ -378,18 +388,24 @@ def render(config: ml_collections.ConfigDict, workdir: str,
   rollouts and their cross-attention segmentation, and STEVE's own
   Slot-Attention segmentation of the real frames."""
   render_config = config.render
-  steve_params, _ = steve_stages.load_steve_params(config, workdir, mesh)
-  dvae_params, _ = steve_stages.load_dvae_params(config, workdir, mesh)
+  steve_params, steve_step = steve_inference.load_steve_params(
+      config, workdir, mesh)
+  dvae_params, dvae_step = steve_inference.load_dvae_params(
+      config, workdir, mesh)
   dynamics_names = savi_evaluate.dynamics_to_evaluate(config)
-  dynamics_params = {
-      name: steve_stages.load_dynamics_params(config, workdir, mesh, name)[0]
+  loaded = {
+      name: steve_inference.load_dynamics_params(config, workdir, mesh, name)
       for name in dynamics_names}
+  dynamics_params = {name: params for name, (params, _) in loaded.items()}
+  identity = steve_workdir.evaluation_identity(
+      config, workdir, config.evaluation.split, dvae_step, steve_step,
+      {name: step for name, (_, step) in loaded.items()})
   if jax.process_index() != 0:
     return []
   burn_in = config.slotformer.burn_in
   rollout = config.evaluation.rollout_steps
   stride = config.slotformer.frame_stride
-  source = stages.slot_source_for(config, workdir, config.evaluation.split,
+  source = workdir_lib.slot_source_for(config, workdir, config.evaluation.split,
                                   ('video',))
   count = min(render_config.num_videos, len(source))
   needed = (burn_in + rollout - 1) * stride + 1
@@ -405,10 +421,10 @@ def render(config: ml_collections.ConfigDict, workdir: str,
   @jax.jit
   def pictures(dynamics_params, steve_params, dvae_params, slots, videos):
     history = slots[:, :burn_in]
-    futures = {name: steps.rollout_slots(dynamics_params[name], history,
+    futures = {name: inference.rollout_slots(dynamics_params[name], history,
                                          model=m, num_steps=rollout)
                for name, m in dynamics.items()}
-    futures['copy_last'] = steps.copy_last_rollout(history, rollout)
+    futures['copy_last'] = inference.copy_last_rollout(history, rollout)
     out = {}
     for name, future in futures.items():
       whole = jnp.concatenate([history, future], axis=1)
@@ -417,7 +433,7 @@ def render(config: ml_collections.ConfigDict, workdir: str,
           jnp.swapaxes(whole, 0, 1))
       out[name] = jax.tree.map(lambda x: jnp.swapaxes(x, 0, 1), generated)
     _, masks, _ = model.apply(
-        {'params': steve_params}, steve_inference.frames_to_model(videos),
+        {'params': steve_params}, frames_to_model(videos),
         method=STEVE.encode)
     out['steve_masks'] = upsample_masks(masks, resolution)
     return out
@@ -425,7 +441,7 @@ def render(config: ml_collections.ConfigDict, workdir: str,
   out = jax.device_get(pictures(jax.device_get(dynamics_params),
                                 jax.device_get(steve_params),
                                 jax.device_get(dvae_params), slots, videos))
-  directory = visualize.render_dir(workdir)
+  directory = workdir_lib.render_dir(workdir)
   os.makedirs(directory, exist_ok=True)
   methods = (*dynamics_names, 'copy_last')
   written = []
@@ -454,8 +470,11 @@ def render(config: ml_collections.ConfigDict, workdir: str,
     visualize._write_strip(png_path, list(rows.values()), burn_in,  # pylint: disable=protected-access
                            render_config)
     written += [gif_path, png_path]
-  curves = visualize.write_per_step_figure(workdir)
+  curves = visualize.write_per_step_figure(workdir, identity)
   if curves:
     written.append(curves)
+  write_json_atomic(os.path.join(directory, 'identity.json'),
+                    {'identity': identity, 'pictures': sorted(
+                        os.path.basename(p) for p in written)})
   print(f'wrote {len(written)} pictures to {directory}')
   return written

@@ -19,9 +19,10 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from slotformer_jax import steve_inference
+from slotformer_jax.frames import frames_to_model
 from slotformer_jax.modules.dvae import DVAE
 from slotformer_jax.modules.steve import STEVE
-from slotformer_jax.steve_inference import frames_to_model
 
 Batch = dict[str, jax.Array]
 Metrics = dict[str, jax.Array]
@@ -101,9 +102,5 @@ def steve_loss(params: Any, batch: Batch, frozen_params: Any, rng: jax.Array,
   return loss, {'token_loss': loss, 'token_accuracy': accuracy}
 
 
-def steve_encode(params: Any, video: jax.Array, carry: Any, *,
-                 model: STEVE):
-  """uint8 video [B, T, H, W, 3] -> (slots [B, T, N, D], masks [B, T, N, h',
-  w'], carry); `carry` continues the state of the previous chunk."""
-  return model.apply({'params': params}, frames_to_model(video), carry,
-                     method=STEVE.encode)
+# Kept under its old name; the implementation lives with inference.
+steve_encode = steve_inference.steve_encode
