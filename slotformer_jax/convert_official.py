@@ -37,6 +37,7 @@ import numpy as np
 from slotformer_jax import inference
 from slotformer_jax import models
 from slotformer_jax import workdir as workdir_lib
+from slotformer_jax.errors import UserError
 from slotformer_jax.files import write_json_atomic
 from slotformer_jax.official import families
 from slotformer_jax.official import pth_reader
@@ -47,18 +48,6 @@ from slotformer_jax.train.trainer import checkpointer_for
 # Not __name__: that is '__main__' under python -m.
 logger = logging.getLogger('slotformer_jax.convert_official')
 
-_CONFIG = config_flags.DEFINE_config_file(
-    'config', None, 'The config of the official model, e.g. '
-    'configs/obj3d.py.', lock_config=True)
-_WORKDIR = flags.DEFINE_string('workdir', None, 'Where to write.',
-                               required=True)
-_CHECKPOINTS = flags.DEFINE_multi_string(
-    'checkpoint', None, 'An official .pth file (repeat the flag for several).',
-    required=True)
-_READER = flags.DEFINE_enum(
-    'reader', 'auto', ('auto', 'numpy', 'torch'),
-    'How to read .pth: numpy (no torch), torch (pip install -e .[torch]), '
-    'auto (numpy for zip files).')
 
 # Provenance of a converted stage, beside its model_config.json.
 CONVERTED_FROM_FILE = 'converted_from.json'
@@ -174,16 +163,11 @@ def check_frozen_decoder(config: ml_collections.ConfigDict, workdir: str,
 
 def convert_files(config: ml_collections.ConfigDict, workdir: str,
                   paths: list[str], reader: str = 'auto') -> list[str]:
-  """Converts and writes every checkpoint in `paths`; returns directories."""
+  """Converts and writes every checkpoint in `paths`; returns directories.
+
+  Every file is read and converted before anything is written, so a file
+  that does not convert leaves the workdir untouched."""
   check_channel_order(config)
-  with workdir_lib.workdir_lock(workdir):
-    # Later pipeline commands on this workdir must use the same settings.
-    workdir_lib.accept_config(config, workdir)
-    return _convert_files(config, workdir, paths, reader)
-
-
-def _convert_files(config: ml_collections.ConfigDict, workdir: str,
-                   paths: list[str], reader: str) -> list[str]:
   converted = []
   for path in paths:
     state_dict = pth_reader.read_state_dict(path, reader)
@@ -192,23 +176,51 @@ def _convert_files(config: ml_collections.ConfigDict, workdir: str,
                 len(state_dict))
     converted.append((path, result))
   converted.sort(key=lambda item: _ORDER.index(item[1].stage))
-  directories = []
-  for path, result in converted:
-    if 'decoder' in result.extras:
-      check_frozen_decoder(config, workdir, result.extras['decoder'])
-    provenance = {
-        'file': os.path.abspath(path), 'sha256': _sha256(path),
-        'family': result.family,
-        'converted_at': datetime.datetime.now(datetime.timezone.utc)
-                        .isoformat(timespec='seconds'),
-    }
-    directories.append(write_converted(config, workdir, result.stage,
-                                       result.params, provenance))
-    logger.info('wrote %s', directories[-1])
-  return directories
+  with workdir_lib.workdir_lock(workdir):
+    # Later pipeline commands on this workdir must use the same settings.
+    workdir_lib.accept_config(config, workdir)
+    return [_write(config, workdir, path, result)
+            for path, result in converted]
 
 
-def main(argv):
+def _write(config: ml_collections.ConfigDict, workdir: str, path: str,
+           result: Any) -> str:
+  if 'decoder' in result.extras:
+    check_frozen_decoder(config, workdir, result.extras['decoder'])
+  provenance = {
+      'file': os.path.abspath(path), 'sha256': _sha256(path),
+      'family': result.family,
+      'converted_at': datetime.datetime.now(datetime.timezone.utc)
+                      .isoformat(timespec='seconds'),
+  }
+  directory = write_converted(config, workdir, result.stage, result.params,
+                              provenance)
+  logger.info('wrote %s', directory)
+  return directory
+
+
+def _define_flags() -> dict[str, Any]:
+  """The command's flags. Defined when the command runs, not on import, so
+  that importing this module beside `slotformer_jax.main` (which defines
+  --config and --workdir too) does not clash."""
+  return dict(
+      config=config_flags.DEFINE_config_file(
+          'config', None, 'The config of the official model, e.g. '
+          'configs/obj3d.py.', lock_config=True),
+      workdir=flags.DEFINE_string('workdir', None, 'Where to write.',
+                                  required=True),
+      checkpoints=flags.DEFINE_multi_string(
+          'checkpoint', None,
+          'An official .pth file (repeat the flag for several).',
+          required=True),
+      reader=flags.DEFINE_enum(
+          'reader', 'auto', ('auto', 'numpy', 'torch'),
+          'How to read .pth: numpy (no torch), torch (pip install -e '
+          '.[torch]), auto (numpy for zip files).'),
+  )
+
+
+def main(argv, flag_holders: dict[str, Any]):
   del argv
   # This package's INFO lines only; orbax logs every save step through absl.
   absl_logging.set_verbosity(absl_logging.ERROR)
@@ -219,16 +231,19 @@ def main(argv):
   package_logger.handlers[:] = [handler]
   package_logger.setLevel(logging.INFO)
   package_logger.propagate = False
-  config = _CONFIG.value
+  config = flag_holders['config'].value
   if config is None:
     raise app.UsageError('--config is required, e.g. configs/obj3d.py')
   try:
-    convert_files(config, _WORKDIR.value, _CHECKPOINTS.value, _READER.value)
-  except (families.ConversionError, FileExistsError,
-          NotImplementedError) as error:
+    convert_files(config, flag_holders['workdir'].value,
+                  flag_holders['checkpoints'].value,
+                  flag_holders['reader'].value)
+  except (families.ConversionError, FileExistsError, NotImplementedError,
+          UserError) as error:
     # What to change is in the message; a traceback would only hide it.
     sys.exit(f'convert_official: {error}')
 
 
 if __name__ == '__main__':
-  app.run(main)
+  _holders = _define_flags()
+  app.run(lambda argv: main(argv, _holders))
