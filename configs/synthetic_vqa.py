@@ -13,6 +13,7 @@ Aloe's input ('rollout', 'observed', 'blind'), `vqa.seed` its seed.
 """
 
 from slotformer_jax.default_config import base_config
+from slotformer_jax.default_config import use_cpu_demo_savi
 from slotformer_jax.default_config import vqa_config
 
 
@@ -35,22 +36,9 @@ def get_config(variant: str = ''):
 
   savi = config.savi
   savi.num_slots = 6
-  savi.slot_size = 64
-  savi.encoder.features = (32, 32, 32, 32)
-  savi.encoder.kernel_size = 3
-  savi.encoder.strides = (2, 1, 1, 1)
-  savi.encoder.output_size = 64
-  savi.slot_attention.mlp_size = 128
-  savi.predictor.num_layers = 1
-  savi.predictor.mlp_size = 256
-  savi.decoder.broadcast_resolution = (8, 8)
-  savi.decoder.features = (32, 32)
-  savi.decoder.kernel_size = 3
-  savi.batch_size = 8
-  savi.clip_length = 2
+  use_cpu_demo_savi(config)  # the embedded demos' small SAVi (default_config.py)
   # Sized so the whole comparison (9 Aloe runs) fits a shared 2-core CPU.
   savi.num_train_steps = 1200
-  savi.learning_rate = 1e-3
   savi.log_every = 100
   savi.checkpoint_every = 500
 

@@ -209,6 +209,28 @@ def base_config() -> ml_collections.ConfigDict:
   return config
 
 
+def use_cpu_demo_savi(config: ml_collections.ConfigDict) -> None:
+  """The small SAVi of the embedded CPU demos (configs/synthetic*.py): 64-d
+  slots, a 4-layer 3x3 encoder whose first layer has stride 2, one predictor
+  layer, a 2-layer decoder from an 8x8 grid, 2-frame clips of batch 8, Adam
+  1e-3. Each demo sets its own number of slots and steps."""
+  savi = config.savi
+  savi.slot_size = 64
+  savi.encoder.features = (32, 32, 32, 32)
+  savi.encoder.kernel_size = 3
+  savi.encoder.strides = (2, 1, 1, 1)
+  savi.encoder.output_size = 64
+  savi.slot_attention.mlp_size = 128
+  savi.predictor.num_layers = 1
+  savi.predictor.mlp_size = 256
+  savi.decoder.broadcast_resolution = (8, 8)
+  savi.decoder.features = (32, 32)
+  savi.decoder.kernel_size = 3
+  savi.batch_size = 8
+  savi.clip_length = 2
+  savi.learning_rate = 1e-3
+
+
 def use_official_savi_recipe(config: ml_collections.ConfigDict) -> None:
   """The official SAVi training recipe and PyTorch layer conventions.
 
