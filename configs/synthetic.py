@@ -76,7 +76,7 @@ def get_config(variant: str = ''):
   ev.rollout_steps = 18  # 3x the training rollout
   ev.batch_size = 50
   ev.chunk_length = data.num_frames
-  ev.metrics = ('psnr', 'ssim', 'ari', 'fg_ari', 'fg_miou', 'ar')
+  ev.metrics = ('psnr', 'ssim', 'lpips', 'ari', 'fg_ari', 'fg_miou', 'ar')
 
   config.render.num_videos = 4
   config.render.scale = 3
