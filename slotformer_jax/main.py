@@ -48,11 +48,6 @@ MODES = ('all', 'train_savi', 'train_dvae', 'tokenize_frames', 'train_steve',
          'extract_slots', 'train_slotformer',
          'train_slot_lstm', 'evaluate', 'render', 'train_readout',
          'evaluate_readout', 'plan', 'vqa_slots', 'train_vqa', 'evaluate_vqa')
-# Downstream tasks (slotformer_jax/tasks/, `config.task`): their stages follow
-# stage 2 instead of the video-prediction evaluation.
-TASK_MODES = {'contact': ('train_readout', 'evaluate_readout'),
-              'planning': ('train_readout', 'plan'),
-              'vqa': ('vqa_slots', 'train_vqa', 'evaluate_vqa')}
 
 _CONFIG = config_flags.DEFINE_config_file(
     'config', None, 'Config file, e.g. configs/obj3d.py or '
@@ -144,8 +139,11 @@ def stage_table(config) -> dict[str, Callable]:
     }
     video_prediction = {'evaluate': evaluate.evaluate,
                         'render': visualize.render}
+  # Downstream tasks follow stage 2 instead of the video-prediction
+  # evaluation: CLEVRER-style VQA (a `vqa` section), or `config.task`
+  # ('contact', 'planning'; slotformer_jax/tasks/).
   task = config.get('task')
-  if 'vqa' in config:  # CLEVRER-style VQA: Aloe over slots + rollout
+  if 'vqa' in config:
     from slotformer_jax import vqa_stages  # pylint: disable=g-import-not-at-top
     table.update(vqa_slots=vqa_stages.vqa_slots,
                  train_vqa=vqa_stages.train_vqa,
