@@ -410,11 +410,6 @@ def test_slotformer_config_must_match():
 
 
 @pytest.mark.parametrize('keys, family', [
-    (('encoder.0.weight', 'decoder.0.weight'), 'dvae'),
-    (('init_latents', 'slot_attention.project_k.weight', 'dvae.encoder.0.w',
-      'trans_decoder.tf.weight'), 'steve'),
-    (('rollouter.in_proj.weight', 'dvae.encoder.0.w', 'decoder.tf.weight'),
-     'steve_slotformer'),
     (('in_proj.weight', 'transformer_encoder.layers.0.linear1.weight',
       'cls_mlp.0.weight'), 'phyre_readout'),
     (('comb_idx', 'linear1.weight', 'linear2.weight'), 'physion_readout'),
