@@ -29,8 +29,8 @@ def base_config() -> ml_collections.ConfigDict:
   config.data = ml_collections.ConfigDict()
   config.data.name = 'synthetic'
   config.data.data_dir = None  # None: $SLOTFORMER_DATA_DIR or ~/.cache/...
-  # Real datasets: 'rgb' (as converted) or 'bgr' (the official CLEVRER /
-  # Physion models saw OpenCV's BGR frames).
+  # Real datasets: 'rgb' (as converted) or 'bgr' (the official CLEVRER
+  # models saw OpenCV's BGR frames; the official Physion ones saw RGB).
   config.data.channel_order = 'rgb'
   # Real datasets: which conversion under <data_dir>/<name> to read when
   # `resolution` does not single one out (None: the only / matching one).
