@@ -242,6 +242,34 @@ def check_frozen_copy(config: ml_collections.ConfigDict, workdir: str,
         f'was trained with another {what} checkpoint than {source}')
 
 
+# extras key -> (the stage holding the original, its part of the params).
+_COPY_SOURCES = {
+    'decoder': (families.SAVI_STAGE, 'decoder'),
+    'dvae': (steve_families.DVAE_STAGE, None),
+    'steve_decoder': (steve_families.STEVE_STAGE, 'decoder'),
+}
+
+
+def _check_copies_within(converted: list[tuple[str, Any]]) -> None:
+  """Frozen copies against the originals converted in the same command,
+  before anything is written (`_write` checks them against the workdir)."""
+  by_stage = {result.stage: (path, result) for path, result in converted}
+  for path, result in converted:
+    for key, copy in result.extras.items():
+      stage, part = _COPY_SOURCES[key]
+      if stage not in by_stage:
+        continue
+      source, original = by_stage[stage]
+      held = original.params if part is None else original.params[part]
+      worst = steve_families.max_difference(held, copy)
+      if worst > 0:
+        raise families.ConversionError(
+            f'{path}: its frozen copy of the {stage} '
+            f'{"" if part is None else part + " "}differs from {source} '
+            f'(max |diff| {worst:.3g}): they are not from the same official '
+            'run')
+
+
 def convert_files(config: ml_collections.ConfigDict, workdir: str,
                   paths: list[str], reader: str = 'auto') -> list[str]:
   """Converts and writes every checkpoint in `paths`; returns directories.
@@ -257,6 +285,7 @@ def convert_files(config: ml_collections.ConfigDict, workdir: str,
                 len(state_dict))
     converted.append((path, result))
   converted.sort(key=lambda item: _ORDER.index(item[1].stage))
+  _check_copies_within(converted)
   with workdir_lib.workdir_lock(workdir):
     # Later pipeline commands on this workdir must use the same settings.
     workdir_lib.accept_config(config, workdir)

@@ -498,10 +498,19 @@ def test_frozen_decoder_must_be_the_savi_decoder(tmp_path, monkeypatch):
     convert_official.check_frozen_decoder(
         config, workdir,
         families.convert_state_dict(slotformer_state, config).extras['decoder'])
-  with pytest.raises(families.ConversionError, match='frozen decoder differs'):
+  # In one command: refused before anything is written.
+  with pytest.raises(families.ConversionError,
+                     match='frozen copy of the savi decoder differs'):
     _convert_files(config, workdir, tmp_path, monkeypatch,
                    {'savi.pth': official_savi(config),
                     'slotformer.pth': slotformer_state})
+  assert not os.path.exists(workdir_lib.savi_dir(workdir))
+  # Against the SAVi an earlier command wrote.
+  _convert_files(config, workdir, tmp_path, monkeypatch,
+                 {'savi.pth': official_savi(config)})
+  with pytest.raises(families.ConversionError, match='frozen decoder differs'):
+    _convert_files(config, workdir, tmp_path, monkeypatch,
+                   {'slotformer.pth': slotformer_state})
 
 
 @pytest.mark.slow

@@ -380,7 +380,17 @@ def test_frozen_copies_must_match_the_workdir(states, tmp_path, monkeypatch):
     _convert_files(config, workdir, tmp_path, monkeypatch,
                    {'steve.pth': steve_state})
   other_dvae = official_dvae(config, seed=7)
+  # In one command: refused before anything is written.
+  with pytest.raises(families.ConversionError,
+                     match='steve.pth: its frozen copy of the dvae differs '
+                     'from .*dvae.pth'):
+    _convert_files(config, workdir, tmp_path, monkeypatch,
+                   {'dvae.pth': other_dvae, 'steve.pth': steve_state})
+  assert not (tmp_path / 'run' / 'dvae').exists()
+  # Against the workdir's dVAE, converted by an earlier command.
+  _convert_files(config, workdir, tmp_path, monkeypatch,
+                 {'dvae.pth': other_dvae})
   with pytest.raises(families.ConversionError,
                      match='frozen copy of the dVAE differs'):
     _convert_files(config, workdir, tmp_path, monkeypatch,
-                   {'dvae.pth': other_dvae, 'steve.pth': steve_state})
+                   {'steve.pth': steve_state})
