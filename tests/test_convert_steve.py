@@ -394,3 +394,40 @@ def test_frozen_copies_must_match_the_workdir(states, tmp_path, monkeypatch):
                      match='frozen copy of the dVAE differs'):
     _convert_files(config, workdir, tmp_path, monkeypatch,
                    {'steve.pth': steve_state})
+
+
+@pytest.mark.slow
+def test_converted_steve_workdir_runs_extract_evaluate_render(tmp_path,
+                                                              monkeypatch):
+  """Official-format dVAE, STEVE and STEVESlotFormer weights -> the workdir
+  -> slot extraction, evaluation (generated frames) and pictures, with no
+  training stage run (the embedded data, 16x16, the official architecture
+  with the micro widths of the STEVE pipeline test)."""
+  import test_steve_pipeline  # pylint: disable=g-import-not-at-top
+  from slotformer_jax import main as main_lib  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.train import sharding  # pylint: disable=g-import-not-at-top
+  config = test_steve_pipeline._micro_config(tmp_path / 'data')  # pylint: disable=protected-access
+  steve = config.steve
+  steve.encoder.strides = (1,) * len(steve.encoder.features)
+  steve.encoder.padding = 'pytorch'
+  steve.layer_norm_epsilon = 1e-5
+  config.slotformer.residual = False
+  config.slotformer.positional_encoding = 'temporal'
+  config.slotformer.layer_norm_epsilon = 1e-5
+  config.slot_lstm.train = False
+  dvae_state = official_dvae(config)
+  steve_state = official_steve(config, dvae_state)
+  workdir = str(tmp_path / 'run')
+  _convert_files(config, workdir, tmp_path, monkeypatch, {
+      'dvae.pth': dvae_state, 'steve.pth': steve_state,
+      'slotformer.pth': official_steve_slotformer(config, dvae_state,
+                                                  steve_state)})
+  mesh = sharding.make_mesh()
+  stages = main_lib.stage_table(config)
+  stages['extract_slots'](config, workdir, mesh)
+  results = stages['evaluate'](config, workdir, mesh)
+  assert results['checkpoints']['steve_step'] == steve.num_train_steps
+  for method in ('slotformer', 'copy_last', 'steve_reconstruction'):
+    assert np.isfinite(results['rollout'][method]['psnr']['mean'])
+  pictures = stages['render'](config, workdir, mesh)
+  assert any(p.endswith('steve_rollout_000.gif') for p in pictures)
