@@ -164,6 +164,7 @@ def steve_encode(img, sd, *, first_stride, num_iterations, num_heads,
   num_slots = latents.shape[1]
   state = (np.zeros((batch * num_slots, lstm_size)),) * 2
   all_slots, all_masks = [], []
+  slots = None  # the previous frame's
   for t in range(time):
     if t:
       latents, state = ref.transformer_lstm_predictor(

@@ -259,7 +259,7 @@ def test_missing_and_unknown_keys_in_one_error(states):
 
 
 def test_more_decoder_blocks_name_the_field(states):
-  config, _, steve_state, _ = states
+  steve_state = states[2]
   config = steve_config()
   config.steve.decoder.num_layers = 1
   with pytest.raises(families.ConversionError,
