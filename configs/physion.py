@@ -31,6 +31,8 @@ def get_config():
   config.steve.slot_size = 192
   config.steve.encoder.strides = (2, 1, 1, 1)  # 128x128 -> 64x64 features
   config.steve.encoder.output_size = 192
+  config.steve.encoder.padding = 'pytorch'  # Conv2d(padding=2) at stride 2
+  config.steve.layer_norm_epsilon = 1e-5  # PyTorch's
   config.steve.slot_attention.mlp_size = 384
   config.steve.predictor.mlp_size = 768
   config.steve.predictor.lstm_size = 384

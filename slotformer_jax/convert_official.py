@@ -5,12 +5,21 @@ r"""Imports the authors' released PyTorch checkpoints into a workdir.
       --checkpoint=pretrained/savi_obj3d_params/model_40.pth \
       --checkpoint=pretrained/slotformer_obj3d_params/model_200.pth
 
-Each checkpoint's family (SAVi / stochastic SAVi, SlotFormer, ...) is
-recognised from its keys; the converted parameters go where the pipeline
-reads them (`savi/checkpoints`, `slotformer/checkpoints`, each with its
-`model_config.json`), so `--mode=extract_slots`, `evaluate` and `render` run
-on them unchanged. SAVi checkpoints are converted first; a SlotFormer
-checkpoint's frozen decoder copy must equal the SAVi decoder in the workdir.
+  python -m slotformer_jax.convert_official --config=configs/physion.py \
+      --workdir=runs/physion_official \
+      --checkpoint=pretrained/dvae_physion_params/model_20.pth \
+      --checkpoint=pretrained/steve_physion_params/model_10.pth \
+      --checkpoint=pretrained/slotformer_physion_params/model_25.pth
+
+Each checkpoint's family (SAVi / stochastic SAVi, SlotFormer, dVAE, STEVE,
+SlotFormer on STEVE slots) is recognised from its keys; the converted
+parameters go where the pipeline reads them (`savi/`, `dvae/`, `steve/`,
+`slotformer/` checkpoints, each with its `model_config.json` and run
+identity), so `--mode=extract_slots`, `evaluate` and `render` run on them
+unchanged. Stage-1 checkpoints are written first (dVAE before STEVE); the
+frozen copies a later checkpoint carries (SlotFormer's SAVi decoder,
+STEVE's dVAE, STEVESlotFormer's dVAE and token decoder) must equal what the
+workdir already holds.
 Reading `.pth` needs no torch (see official/pth_reader.py). The official
 optimizer state is not converted: a converted stage starts a fresh Adam state
 at its last step, so training does not resume it.
@@ -36,11 +45,14 @@ import numpy as np
 
 from slotformer_jax import inference
 from slotformer_jax import models
+from slotformer_jax import steve_inference
+from slotformer_jax import steve_workdir
 from slotformer_jax import workdir as workdir_lib
 from slotformer_jax.errors import UserError
 from slotformer_jax.files import write_json_atomic
 from slotformer_jax.official import families
 from slotformer_jax.official import pth_reader
+from slotformer_jax.official import steve_families
 from slotformer_jax.train import optim
 from slotformer_jax.train.state import TrainState
 from slotformer_jax.train.trainer import checkpointer_for
@@ -52,25 +64,41 @@ logger = logging.getLogger('slotformer_jax.convert_official')
 # Provenance of a converted stage, beside its model_config.json.
 CONVERTED_FROM_FILE = 'converted_from.json'
 
-# The family order in which checkpoints are written (SAVi before the models
-# whose frozen decoder is checked against it).
-_ORDER = (families.SAVI_STAGE, families.SLOTFORMER_STAGE)
+# The order in which checkpoints are written: each stage before the ones
+# whose frozen copies are checked against it (and whose identity names it as
+# parent).
+_ORDER = (steve_families.DVAE_STAGE, steve_families.STEVE_STAGE,
+          families.SAVI_STAGE, families.SLOTFORMER_STAGE)
 
 
 def check_channel_order(config: ml_collections.ConfigDict) -> None:
-  """The official CLEVRER / Physion models saw BGR frames: refuse RGB."""
-  if (config.data.name in families.BGR_DATASETS
-      and config.data.get('channel_order', 'rgb') != 'bgr'):
+  """The official CLEVRER models saw BGR frames: refuse RGB; the other
+  official models (OBJ3D, PHYRE, Physion) saw RGB: refuse BGR."""
+  channel_order = config.data.get('channel_order', 'rgb')
+  if config.data.name in families.BGR_DATASETS and channel_order != 'bgr':
     raise families.ConversionError(
         f'the official {config.data.name} models were trained on BGR frames '
         "(OpenCV); add --config.data.channel_order=bgr here and to every "
         'later command on this workdir (the SAVi model config records it)')
+  if (config.data.name in families.RGB_DATASETS
+      and channel_order != 'rgb'):
+    raise families.ConversionError(
+        f'the official {config.data.name} models were trained on RGB frames '
+        f'(read with PIL), not {channel_order!r}; drop '
+        '--config.data.channel_order (or set it to rgb)')
 
 
 def _stage_target(config: ml_collections.ConfigDict, workdir: str,
                   stage: str) -> tuple[str, dict[str, Any],
                                        ml_collections.ConfigDict]:
   """(directory, model-config fields, stage config) of `stage`."""
+  root = workdir_lib.stage1_workdir(config, workdir)
+  if stage == steve_families.DVAE_STAGE:
+    return (steve_workdir.dvae_dir(root),
+            steve_workdir.dvae_model_fields(config), config.dvae)
+  if stage == steve_families.STEVE_STAGE:
+    return (steve_workdir.steve_dir(root),
+            steve_workdir.steve_model_fields(config), config.steve)
   if stage == families.SAVI_STAGE:
     return (workdir_lib.savi_dir(workdir_lib.stage1_workdir(config, workdir)),
             workdir_lib.savi_model_fields(config), config.savi)
@@ -101,18 +129,7 @@ def write_converted(config: ml_collections.ConfigDict, workdir: str,
           f'{checkpointer.latest_step()}); convert into a fresh --workdir')
     workdir_lib.check_model_config(directory, fields, stage)
     workdir_lib.write_model_config(directory, fields)
-    # The run identity the pipeline checks: a converted SAVi is a new stage 1;
-    # a converted SlotFormer descends from the SAVi of this workdir (the
-    # slots extracted later carry the same parent).
-    if stage == families.SAVI_STAGE:
-      identity = workdir_lib.new_identity(
-          workdir_lib.savi_identity_fields(config))
-    else:
-      savi_identity = workdir_lib.savi_identity(config, workdir)
-      identity = workdir_lib.new_identity(
-          workdir_lib.dynamics_identity_fields(config, stage),
-          workdir_lib.slots_parent(savi_identity,
-                                   int(config.savi.num_train_steps)))
+    identity = _identity(config, workdir, stage)
     workdir_lib.write_identity(directory, identity)
     optimizer, _ = optim.make_optimizer(stage_config)
     params = jax.tree.map(jnp.asarray, params)
@@ -127,6 +144,34 @@ def write_converted(config: ml_collections.ConfigDict, workdir: str,
     write_json_atomic(os.path.join(directory, CONVERTED_FROM_FILE),
                       provenance)
   return directory
+
+
+def _identity(config: ml_collections.ConfigDict, workdir: str,
+              stage: str) -> dict[str, Any]:
+  """The run identity the pipeline checks, as training would stamp it: a
+  converted SAVi or dVAE is a new run without parent; STEVE descends from
+  the workdir's dVAE at its last step, a SlotFormer from the workdir's SAVi
+  or STEVE at its last step (the slots extracted later name the same
+  parent)."""
+  if stage == steve_families.DVAE_STAGE:
+    return workdir_lib.new_identity(
+        steve_workdir.dvae_identity_fields(config))
+  if stage == steve_families.STEVE_STAGE:
+    return workdir_lib.new_identity(
+        steve_workdir.steve_identity_fields(config),
+        steve_workdir.dvae_parent(steve_workdir.dvae_identity(config, workdir),
+                                  int(config.dvae.num_train_steps)))
+  if stage == families.SAVI_STAGE:
+    return workdir_lib.new_identity(workdir_lib.savi_identity_fields(config))
+  if config.slot_model == steve_workdir.STEVE:
+    parent = workdir_lib.slots_parent(
+        steve_workdir.steve_identity(config, workdir),
+        int(config.steve.num_train_steps), steve_workdir.STEVE)
+  else:
+    parent = workdir_lib.slots_parent(workdir_lib.savi_identity(config, workdir),
+                                      int(config.savi.num_train_steps))
+  return workdir_lib.new_identity(
+      workdir_lib.dynamics_identity_fields(config, stage), parent)
 
 
 def _sha256(path: str) -> str:
@@ -161,6 +206,70 @@ def check_frozen_decoder(config: ml_collections.ConfigDict, workdir: str,
         'on another SAVi checkpoint')
 
 
+# extras key -> (what it is a copy of, the checkpoint to convert first, how
+# to read the workdir's own from (config, workdir, mesh)).
+_FROZEN_COPIES = {
+    'dvae': ('dVAE', 'dvae_physion_params/model_20.pth',
+             lambda config, workdir, mesh: steve_inference.load_dvae_params(
+                 config, workdir, mesh)[0]),
+    'steve_decoder': ("STEVE's token decoder",
+                      'steve_physion_params/model_10.pth',
+                      lambda config, workdir, mesh:
+                      steve_inference.load_steve_params(
+                          config, workdir, mesh)[0]['decoder']),
+}
+
+
+def check_frozen_copy(config: ml_collections.ConfigDict, workdir: str,
+                      key: str, copy: Any, family: str) -> None:
+  """A frozen module copy inside a STEVE / STEVESlotFormer checkpoint must
+  equal, bit for bit, the one the workdir already holds (the same official
+  run), since the pipeline uses the workdir's."""
+  what, source, load = _FROZEN_COPIES[key]
+  mesh = jax.sharding.Mesh(np.array(jax.devices()[:1]), ('data',))
+  try:
+    held = load(config, workdir, mesh)
+  except FileNotFoundError as error:
+    raise families.ConversionError(
+        f'the official {family} checkpoint carries a frozen copy of the '
+        f'{what}, but {workdir} has no {what} checkpoint yet: convert '
+        f'{source} first (or in the same command)') from error
+  worst = steve_families.max_difference(held, copy)
+  if worst > 0:
+    raise families.ConversionError(
+        f'the official {family} checkpoint\'s frozen copy of the {what} '
+        f'differs from the {what} in {workdir} (max |diff| {worst:.3g}): it '
+        f'was trained with another {what} checkpoint than {source}')
+
+
+# extras key -> (the stage holding the original, its part of the params).
+_COPY_SOURCES = {
+    'decoder': (families.SAVI_STAGE, 'decoder'),
+    'dvae': (steve_families.DVAE_STAGE, None),
+    'steve_decoder': (steve_families.STEVE_STAGE, 'decoder'),
+}
+
+
+def _check_copies_within(converted: list[tuple[str, Any]]) -> None:
+  """Frozen copies against the originals converted in the same command,
+  before anything is written (`_write` checks them against the workdir)."""
+  by_stage = {result.stage: (path, result) for path, result in converted}
+  for path, result in converted:
+    for key, copy in result.extras.items():
+      stage, part = _COPY_SOURCES[key]
+      if stage not in by_stage:
+        continue
+      source, original = by_stage[stage]
+      held = original.params if part is None else original.params[part]
+      worst = steve_families.max_difference(held, copy)
+      if worst > 0:
+        raise families.ConversionError(
+            f'{path}: its frozen copy of the {stage} '
+            f'{"" if part is None else part + " "}differs from {source} '
+            f'(max |diff| {worst:.3g}): they are not from the same official '
+            'run')
+
+
 def convert_files(config: ml_collections.ConfigDict, workdir: str,
                   paths: list[str], reader: str = 'auto') -> list[str]:
   """Converts and writes every checkpoint in `paths`; returns directories.
@@ -176,6 +285,7 @@ def convert_files(config: ml_collections.ConfigDict, workdir: str,
                 len(state_dict))
     converted.append((path, result))
   converted.sort(key=lambda item: _ORDER.index(item[1].stage))
+  _check_copies_within(converted)
   with workdir_lib.workdir_lock(workdir):
     # Later pipeline commands on this workdir must use the same settings.
     workdir_lib.accept_config(config, workdir)
@@ -187,6 +297,10 @@ def _write(config: ml_collections.ConfigDict, workdir: str, path: str,
            result: Any) -> str:
   if 'decoder' in result.extras:
     check_frozen_decoder(config, workdir, result.extras['decoder'])
+  for key in ('dvae', 'steve_decoder'):
+    if key in result.extras:
+      check_frozen_copy(config, workdir, key, result.extras[key],
+                        result.family)
   provenance = {
       'file': os.path.abspath(path), 'sha256': _sha256(path),
       'family': result.family,

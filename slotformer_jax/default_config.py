@@ -29,8 +29,8 @@ def base_config() -> ml_collections.ConfigDict:
   config.data = ml_collections.ConfigDict()
   config.data.name = 'synthetic'
   config.data.data_dir = None  # None: $SLOTFORMER_DATA_DIR or ~/.cache/...
-  # Real datasets: 'rgb' (as converted) or 'bgr' (the official CLEVRER /
-  # Physion models saw OpenCV's BGR frames).
+  # Real datasets: 'rgb' (as converted) or 'bgr' (the official CLEVRER
+  # models saw OpenCV's BGR frames; the official Physion ones saw RGB).
   config.data.channel_order = 'rgb'
   # Real datasets: which conversion under <data_dir>/<name> to read when
   # `resolution` does not single one out (None: the only / matching one).
@@ -107,9 +107,13 @@ def base_config() -> ml_collections.ConfigDict:
   config.steve = steve = ml_collections.ConfigDict()
   steve.num_slots = 6
   steve.slot_size = 192
+  # padding as savi.encoder's ('pytorch': the official Conv2d).
   steve.encoder = ml_collections.ConfigDict(dict(
       features=(64, 64, 64, 64), kernel_size=5, strides=(2, 1, 1, 1),
-      output_size=192))
+      output_size=192, padding='same'))
+  # Of the encoder, Slot Attention and the predictor (1e-5: PyTorch's, the
+  # official model); the token decoder uses 1e-5 always.
+  steve.layer_norm_epsilon = 1e-6
   steve.slot_attention = ml_collections.ConfigDict(dict(
       num_iterations=2, mlp_size=384))
   steve.predictor = ml_collections.ConfigDict(dict(

@@ -65,6 +65,7 @@ def build_steve(config: ml_collections.ConfigDict) -> STEVE:
       encoder_kernel_size=steve.encoder.kernel_size,
       encoder_strides=tuple(steve.encoder.strides),
       encoder_size=steve.encoder.output_size,
+      encoder_padding=steve.encoder.padding,
       num_iterations=steve.slot_attention.num_iterations,
       slot_mlp_size=steve.slot_attention.mlp_size,
       predictor_layers=steve.predictor.num_layers,
@@ -75,6 +76,7 @@ def build_steve(config: ml_collections.ConfigDict) -> STEVE:
       decoder_layers=steve.decoder.num_layers,
       decoder_heads=steve.decoder.num_heads,
       decoder_dropout=steve.decoder.dropout_rate,
+      layer_norm_epsilon=steve.layer_norm_epsilon,
   )
 
 

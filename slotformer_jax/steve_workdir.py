@@ -67,7 +67,7 @@ def steve_model_fields(config: ml_collections.ConfigDict) -> dict[str, Any]:
   steve = config.steve.to_dict()
   fields = {key: steve[key] for key in (
       'num_slots', 'slot_size', 'encoder', 'slot_attention', 'predictor',
-      'decoder')}
+      'decoder', 'layer_norm_epsilon')}
   fields['resolution'] = list(config.data.resolution)
   fields['vocab_size'] = config.dvae.vocab_size
   return _jsonable(fields)

@@ -87,7 +87,7 @@ def savi_model_fields(config: ml_collections.ConfigDict) -> dict[str, Any]:
       'decoder', 'stochastic', 'initial_slots', 'posterior_head',
       'layer_norm_epsilon')}
   fields['resolution'] = list(config.data.resolution)
-  # A SAVi that saw BGR frames (the official CLEVRER / Physion ones) needs
+  # A SAVi that saw BGR frames (the official CLEVRER ones) needs
   # BGR frames; recorded only when not RGB, so older workdirs still match.
   channel_order = config.data.get('channel_order', 'rgb')
   if channel_order != 'rgb':

@@ -410,11 +410,6 @@ def test_slotformer_config_must_match():
 
 
 @pytest.mark.parametrize('keys, family', [
-    (('encoder.0.weight', 'decoder.0.weight'), 'dvae'),
-    (('init_latents', 'slot_attention.project_k.weight', 'dvae.encoder.0.w',
-      'trans_decoder.tf.weight'), 'steve'),
-    (('rollouter.in_proj.weight', 'dvae.encoder.0.w', 'decoder.tf.weight'),
-     'steve_slotformer'),
     (('in_proj.weight', 'transformer_encoder.layers.0.linear1.weight',
       'cls_mlp.0.weight'), 'phyre_readout'),
     (('comb_idx', 'linear1.weight', 'linear2.weight'), 'physion_readout'),
@@ -503,10 +498,19 @@ def test_frozen_decoder_must_be_the_savi_decoder(tmp_path, monkeypatch):
     convert_official.check_frozen_decoder(
         config, workdir,
         families.convert_state_dict(slotformer_state, config).extras['decoder'])
-  with pytest.raises(families.ConversionError, match='frozen decoder differs'):
+  # In one command: refused before anything is written.
+  with pytest.raises(families.ConversionError,
+                     match='frozen copy of the savi decoder differs'):
     _convert_files(config, workdir, tmp_path, monkeypatch,
                    {'savi.pth': official_savi(config),
                     'slotformer.pth': slotformer_state})
+  assert not os.path.exists(workdir_lib.savi_dir(workdir))
+  # Against the SAVi an earlier command wrote.
+  _convert_files(config, workdir, tmp_path, monkeypatch,
+                 {'savi.pth': official_savi(config)})
+  with pytest.raises(families.ConversionError, match='frozen decoder differs'):
+    _convert_files(config, workdir, tmp_path, monkeypatch,
+                   {'slotformer.pth': slotformer_state})
 
 
 @pytest.mark.slow

@@ -40,6 +40,7 @@ class STEVEStep(nn.Module):
   predictor_heads: int
   predictor_mlp_size: int
   predictor_lstm_size: int
+  layer_norm_epsilon: float = 1e-6
 
   @nn.compact
   def __call__(self, carry: SAViCarry, features: jax.Array):
@@ -47,10 +48,12 @@ class STEVEStep(nn.Module):
     initial_slots, lstm_state = carry
     slots, masks = SlotAttention(
         self.num_iterations, self.slot_mlp_size, return_attention=True,
+        layer_norm_epsilon=self.layer_norm_epsilon,
         name='corrector')(initial_slots, features)
     next_slots, lstm_state = SlotTransition(
         num_layers=self.predictor_layers, num_heads=self.predictor_heads,
         mlp_size=self.predictor_mlp_size, lstm_size=self.predictor_lstm_size,
+        layer_norm_epsilon=self.layer_norm_epsilon,
         name='predictor')(slots, lstm_state)
     return (next_slots, lstm_state), (slots, masks)
 
@@ -61,12 +64,17 @@ class STEVE(nn.Module):
   Attributes:
     resolution: (H, W) of the frames.
     num_slots, slot_size: N and D_slot (6 and 192 for Physion).
-    encoder_*: SAVi's CNN encoder (first stride 2 at 128x128).
+    encoder_*: SAVi's CNN encoder (first stride 2 at 128x128);
+      `encoder_padding` 'same' or 'pytorch' (K // 2 on every side, the
+      official Conv2d; the two differ at stride 2 only).
     num_iterations, slot_mlp_size: Slot Attention.
     predictor_*: f_trans; `predictor_lstm_size` the per-slot LSTM (384).
     vocab_size: the dVAE's codes.
     token_downsampling: frame pixels per token side (4: 128 -> 32x32).
     decoder_*: the token decoder (its size is `slot_size`, as officially).
+    layer_norm_epsilon: of the encoder, Slot Attention and the predictor
+      (1e-6 flax's, 1e-5 PyTorch's, the official model's); the token
+      decoder always uses 1e-5.
   """
 
   resolution: tuple[int, int] = (128, 128)
@@ -76,6 +84,7 @@ class STEVE(nn.Module):
   encoder_kernel_size: int = 5
   encoder_strides: Sequence[int] = (2, 1, 1, 1)
   encoder_size: int = 192
+  encoder_padding: str = 'same'
   num_iterations: int = 2
   slot_mlp_size: int = 384
   predictor_layers: int = 2
@@ -87,6 +96,7 @@ class STEVE(nn.Module):
   decoder_layers: int = 4
   decoder_heads: int = 4
   decoder_dropout: float = 0.1
+  layer_norm_epsilon: float = 1e-6
 
   @property
   def token_grid(self) -> tuple[int, int]:
@@ -106,7 +116,9 @@ class STEVE(nn.Module):
   def setup(self):
     self.encoder = CNNEncoder(
         features=self.encoder_features, kernel_size=self.encoder_kernel_size,
-        strides=self.encoder_strides, output_size=self.encoder_size)
+        strides=self.encoder_strides, output_size=self.encoder_size,
+        padding=self.encoder_padding,
+        layer_norm_epsilon=self.layer_norm_epsilon)
     self.slot_init = self.param(
         'initial_slots', nn.initializers.normal(stddev=1.0),
         (self.num_slots, self.slot_size))
@@ -118,7 +130,8 @@ class STEVE(nn.Module):
             predictor_layers=self.predictor_layers,
             predictor_heads=self.predictor_heads,
             predictor_mlp_size=self.predictor_mlp_size,
-            predictor_lstm_size=self.predictor_lstm_size)
+            predictor_lstm_size=self.predictor_lstm_size,
+            layer_norm_epsilon=self.layer_norm_epsilon)
     height, width = self.token_grid
     self.decoder = TokenDecoder(
         vocab_size=self.vocab_size, num_tokens=height * width,

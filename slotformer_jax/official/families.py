@@ -30,8 +30,13 @@ from slotformer_jax.official.layers import StateDictMapper
 SAVI_STAGE = 'savi'
 SLOTFORMER_STAGE = models.SLOTFORMER
 
-# Datasets whose official models saw OpenCV's BGR frames.
-BGR_DATASETS = ('clevrer', 'physion')
+# Datasets whose official models saw OpenCV's BGR frames: CLEVRER's
+# read the videos with cv2 (nerv's VideoReader without to_rgb). Physion's
+# did not: its frames were written to JPEG by cv2.imwrite (colours kept)
+# and read back with PIL's convert('RGB').
+BGR_DATASETS = ('clevrer',)
+# Datasets whose official models saw RGB frames (PIL).
+RGB_DATASETS = ('obj3d', 'phyre', 'physion')
 
 
 # nn.LayerNorm's default in PyTorch, in every official model.
@@ -250,23 +255,28 @@ def map_spatial_broadcast_decoder(m: StateDictMapper,
   layers.conv(m, f'decoder.{num_layers}', f'{target}/readout', field)
 
 
-def _map_encoder(m: StateDictMapper, config: ml_collections.ConfigDict):
-  field = 'config.savi.encoder (features / kernel_size / output_size)'
+def map_cnn_encoder(m: StateDictMapper, config: ml_collections.ConfigDict,
+                    section: str = 'savi'):
+  """SAVi's (and STEVE's) CNN encoder `encoder.*`, `encoder_pos_embedding`,
+  `encoder_out_layer`; `section`: the config section ('savi', 'steve')."""
+  field = (f'config.{section}.encoder (features / kernel_size / '
+           'output_size)')
   for i in range(m.count('encoder.{}.0.weight')):
     layers.conv(m, f'encoder.{i}.0', f'encoder/conv_{i}', field)
   layers.linear(m, 'encoder_pos_embedding.dense',
                 'encoder/position_embedding/dense', field)
-  strides = np.prod(config.savi.encoder.strides)
+  strides = np.prod(config[section].encoder.strides)
   _check_grid(m, 'encoder_pos_embedding.grid',
               tuple(int(size // strides) for size in config.data.resolution),
-              'config.data.resolution / config.savi.encoder.strides')
+              f'config.data.resolution / config.{section}.encoder.strides')
   layers.layer_norm(m, 'encoder_out_layer.0', 'encoder/norm', field)
   layers.linear(m, 'encoder_out_layer.1', 'encoder/mlp_hidden', field)
   layers.linear(m, 'encoder_out_layer.3', 'encoder/mlp_out', field)
 
 
-def _map_slot_attention(m: StateDictMapper, target: str):
-  field = 'config.savi.slot_size / slot_attention.mlp_size'
+def map_slot_attention(m: StateDictMapper, target: str,
+                       section: str = 'savi'):
+  field = f'config.{section}.slot_size / slot_attention.mlp_size'
   source = 'slot_attention'
   layers.layer_norm(m, f'{source}.norm_inputs', f'{target}/norm_inputs',
                     field)
@@ -325,9 +335,10 @@ def _map_posterior_head(m: StateDictMapper, config: ml_collections.ConfigDict,
   # 'none': the head's keys stay unknown, naming the field.
 
 
-def _official_encoder_strides(config: ml_collections.ConfigDict):
+def official_encoder_strides(config: ml_collections.ConfigDict,
+                             section: str = 'savi'):
   """The official encoder halves 128x128 frames in its first layer only."""
-  num_layers = len(config.savi.encoder.features)
+  num_layers = len(config[section].encoder.features)
   first = 2 if config.data.resolution[0] == 128 else 1
   return (first,) + (1,) * (num_layers - 1)
 
@@ -335,11 +346,12 @@ def _official_encoder_strides(config: ml_collections.ConfigDict):
 def convert_savi(state_dict: dict[str, np.ndarray],
                  config: ml_collections.ConfigDict) -> Converted:
   """Official StoSAVi (deterministic when trained with kld_method='none')."""
+  require(config, 'slot_model', 'savi', 'is a SAVi')
   require(config, 'savi.initial_slots', 'learned',
           'starts from one learned vector per slot (init_latents)')
   require(config, 'savi.layer_norm_epsilon', PYTORCH_LN_EPSILON,
           "uses PyTorch's LayerNorm epsilon")
-  require(config, 'savi.encoder.strides', _official_encoder_strides(config),
+  require(config, 'savi.encoder.strides', official_encoder_strides(config),
           f'strides its encoder so at {tuple(config.data.resolution)}')
   if max(config.savi.encoder.strides) > 1:
     require(config, 'savi.encoder.padding', 'pytorch',
@@ -349,9 +361,9 @@ def convert_savi(state_dict: dict[str, np.ndarray],
   if latents is not None:
     m.put('initial_slots', latents[0], 'init_latents', latents.shape,
           'config.savi.num_slots / slot_size')
-  _map_encoder(m, config)
+  map_cnn_encoder(m, config)
   _map_posterior_head(m, config, 'frame_step/posterior_head')
-  _map_slot_attention(m, 'frame_step/corrector')
+  map_slot_attention(m, 'frame_step/corrector')
   _map_savi_predictor(m, config, 'frame_step/predictor')
   map_spatial_broadcast_decoder(m, config)
   # The official code builds it "just for compatibility" and never uses it.
@@ -391,6 +403,31 @@ def convert_slotformer(state_dict: dict[str, np.ndarray],
   """Official SlotFormer: `rollouter.*` plus its frozen copy of SAVi's
   decoder, returned in `extras['decoder']` to be checked against the SAVi
   checkpoint of the same run."""
+  require(config, 'slot_model', 'savi', 'runs on SAVi slots')
+  m = StateDictMapper(state_dict)
+  map_rollouter(m, config)
+  decoder = StateDictMapper(state_dict)
+  map_spatial_broadcast_decoder(decoder, config, target='decoder')
+  for key in state_dict:  # what the decoder read is known to `m` too
+    if key.startswith('decoder'):
+      m.skip(key)
+  params = assemble(m, slotformer_abstract_params(config), hints={
+      'rollouter.transformer_encoder': 'config.slotformer.num_layers',
+  })
+  decoder_model = models.build_decoder(config)
+  decoder_abstract = jax.eval_shape(lambda: decoder_model.init(
+      jax.random.key(0), jnp.zeros((1, config.savi.num_slots,
+                                    config.savi.slot_size))))['params']
+  decoder_params = assemble(
+      _only(decoder, 'decoder/'), {'decoder': decoder_abstract}, hints={})
+  return Converted('slotformer', SLOTFORMER_STAGE, params,
+                   extras={'decoder': decoder_params['decoder']})
+
+
+def map_rollouter(m: StateDictMapper,
+                  config: ml_collections.ConfigDict) -> None:
+  """`rollouter.*` (SlotRollouter) -> the SlotFormer's `predictor/*`; the
+  fixed temporal encoding is checked, not mapped."""
   dynamics = config.slotformer
   require(config, 'slotformer.residual', False,
           'predicts the next slots directly (no residual)')
@@ -398,7 +435,6 @@ def convert_slotformer(state_dict: dict[str, np.ndarray],
           'adds a sinusoidal temporal encoding')
   require(config, 'slotformer.layer_norm_epsilon', PYTORCH_LN_EPSILON,
           "uses PyTorch's LayerNorm epsilon")
-  m = StateDictMapper(state_dict)
   field = 'config.slotformer (embed_dim / num_layers / mlp_ratio)'
   layers.linear(m, 'rollouter.in_proj', 'predictor/in_proj', field)
   for i in range(dynamics.num_layers):
@@ -429,22 +465,6 @@ def convert_slotformer(state_dict: dict[str, np.ndarray],
     raise ConversionError(
         'rollouter.enc_slots_pe: a per-slot position encoding (slots_pe) '
         'is not part of SlotFormer here')
-  decoder = StateDictMapper(state_dict)
-  map_spatial_broadcast_decoder(decoder, config, target='decoder')
-  for key in state_dict:  # what the decoder read is known to `m` too
-    if key.startswith('decoder'):
-      m.skip(key)
-  params = assemble(m, slotformer_abstract_params(config), hints={
-      'rollouter.transformer_encoder': 'config.slotformer.num_layers',
-  })
-  decoder_model = models.build_decoder(config)
-  decoder_abstract = jax.eval_shape(lambda: decoder_model.init(
-      jax.random.key(0), jnp.zeros((1, config.savi.num_slots,
-                                    config.savi.slot_size))))['params']
-  decoder_params = assemble(
-      _only(decoder, 'decoder/'), {'decoder': decoder_abstract}, hints={})
-  return Converted('slotformer', SLOTFORMER_STAGE, params,
-                   extras={'decoder': decoder_params['decoder']})
 
 
 def _only(m: StateDictMapper, prefix: str) -> StateDictMapper:
@@ -464,17 +484,42 @@ def _is_slotformer(keys: set[str]) -> bool:
 # The registry. Families recognised but not implemented yet say so.
 # --------------------------------------------------------------------------
 
+def _convert_steve_family(name: str):
+  """The STEVE families' converters live in steve_families.py, which uses
+  this module's helpers: imported when first called."""
+
+  def convert(state_dict, config):
+    from slotformer_jax.official import steve_families  # pylint: disable=g-import-not-at-top
+    return getattr(steve_families, f'convert_{name}')(state_dict, config)
+
+  return convert
+
+
+def _is_steve_slotformer(keys: set[str]) -> bool:
+  """STEVESlotFormer: the rollouter plus copies of the dVAE and of STEVE's
+  token decoder."""
+  return 'rollouter.in_proj.weight' in keys and any(
+      k.startswith('dvae.') for k in keys)
+
+
+def _is_steve(keys: set[str]) -> bool:
+  """STEVE: SAVi's encoder and Slot Attention, a token decoder and a dVAE
+  copy (before 'savi', whose keys it also has)."""
+  return 'init_latents' in keys and any(
+      k.startswith(('dvae.', 'trans_decoder.')) for k in keys)
+
+
+def _is_dvae(keys: set[str]) -> bool:
+  """The dVAE: only `encoder.*` / `decoder.*`, with GroupNorm conv blocks
+  (`<i>.m.weight`, the bias-free conv of a Conv2dBlock)."""
+  return (bool(keys) and any(k.endswith('.m.weight') for k in keys)
+          and all(k.startswith(('encoder.', 'decoder.')) for k in keys))
+
+
 # Order matters: the first family whose keys match converts.
-register(Family(
-    'steve_slotformer', lambda keys: 'rollouter.in_proj.weight' in keys and any(
-        k.startswith(('dvae.', 'trans_decoder.', 'decoder.trans')) for k in keys),
-    missing_reason='SlotFormer over STEVE slots (Physion): its converter '
-    'is not written yet (it needs the STEVE mapping; add one here with '
-    'register(Family(...))).'))
-register(Family(
-    'steve', lambda keys: 'init_latents' in keys and any(
-        k.startswith(('dvae.', 'trans_decoder.')) for k in keys),
-    missing_reason='STEVE (Physion): its converter is not written yet.'))
+register(Family('steve_slotformer', _is_steve_slotformer,
+                _convert_steve_family('steve_slotformer')))
+register(Family('steve', _is_steve, _convert_steve_family('steve')))
 register(Family('savi', _is_savi, convert_savi))
 register(Family('slotformer', _is_slotformer, convert_slotformer))
 register(Family(
@@ -490,8 +535,4 @@ register(Family(
     'aloe', lambda keys: any('cls_answer_mlp.' in k or 'mc_answer_mlp.' in k
                              for k in keys),
     missing_reason='Aloe (CLEVRER VQA): its converter is not written yet.'))
-register(Family(
-    'dvae', lambda keys: keys and all(
-        k.startswith(('encoder.', 'decoder.')) for k in keys),
-    missing_reason='the dVAE of STEVE (Physion): its converter is not '
-    'written yet.'))
+register(Family('dvae', _is_dvae, _convert_steve_family('dvae')))

@@ -14,11 +14,15 @@ Conventions (PyTorch -> flax):
                   transposed-convolution definition); stride 1 ('same'
                   padding): an ordinary Conv with the kernel flipped in space
   LayerNorm       weight, bias                -> scale, bias
+  GroupNorm (the dVAE blocks' F.group_norm) weight, bias -> scale, bias
+  Embedding       weight [num, dim]           -> embedding [num, dim]
   GRUCell         (r, z, n) blocks; flax folds b_hr into ir, b_hz into iz
   LSTM            (i, f, g, o) blocks; flax keeps one bias per gate (b_ih+b_hh)
   MultiheadAttention in_proj (q; k; v) [3E, E] -> query/key/value
                   DenseGeneral [E, heads, E/heads]; out_proj -> out
                   [heads, E/heads, E]
+  SLATE attention proj_q/k/v/o [E, E] (no bias) -> the same DenseGeneral
+                  kernels
 """
 
 from __future__ import annotations
@@ -104,14 +108,58 @@ def linear(m: StateDictMapper, source: str, target: str, field: str, *,
     m.put(f'{target}/bias', b, f'{source}.bias', b.shape, field)
 
 
-def conv(m: StateDictMapper, source: str, target: str, field: str) -> None:
+def conv(m: StateDictMapper, source: str, target: str, field: str, *,
+         bias: bool = True) -> None:
   """nn.Conv2d -> nn.Conv (same padding / stride; checked by the caller)."""
-  weight, bias = m.take(f'{source}.weight'), m.take(f'{source}.bias')
-  if not _all(weight, bias):
+  weight = m.take(f'{source}.weight')
+  b = m.take(f'{source}.bias') if bias else None
+  if weight is None or (bias and b is None):
     return
   m.put(f'{target}/kernel', weight.transpose(2, 3, 1, 0), f'{source}.weight',
         weight.shape, field)
-  m.put(f'{target}/bias', bias, f'{source}.bias', bias.shape, field)
+  if bias:
+    m.put(f'{target}/bias', b, f'{source}.bias', b.shape, field)
+
+
+def group_norm(m: StateDictMapper, source: str, target: str,
+               field: str) -> None:
+  """F.group_norm's affine `weight`, `bias` [C] -> nn.GroupNorm scale, bias
+  (the group count and epsilon are the module's, not in the weights)."""
+  layer_norm(m, source, target, field)
+
+
+def embedding(m: StateDictMapper, source: str, target: str,
+              field: str) -> None:
+  """nn.Embedding weight [num, dim] -> nn.Embed embedding [num, dim]."""
+  weight = m.take(f'{source}.weight')
+  if weight is not None:
+    m.put(f'{target}/embedding', weight, f'{source}.weight', weight.shape,
+          field)
+
+
+def slate_attention(m: StateDictMapper, source: str, target: str,
+                    field: str, *, num_heads: int) -> None:
+  """SLATE / STEVE's MultiHeadAttention (bias-free `proj_q/k/v/o`, each
+  [E, E]) -> the token decoder's `Attention`: query/key/value DenseGeneral
+  kernels [E, heads, E/heads], out [heads, E/heads, E]. PyTorch splits the
+  projected E features into heads as (heads, E/heads), row-major, which is
+  the reshape here."""
+  weights = {name: m.take(f'{source}.proj_{name[0]}.weight')
+             for name in ('query', 'key', 'value', 'out')}
+  if not _all(*weights.values()):
+    return
+  dim = weights['out'].shape[0]
+  if dim % num_heads:
+    raise ValueError(f'{source}: embedding size {dim} is not divisible by '
+                     f'{num_heads} heads; change {field}')
+  head_dim = dim // num_heads
+  for name in ('query', 'key', 'value'):
+    w = weights[name]
+    m.put(f'{target}/{name}/kernel', w.T.reshape(-1, num_heads, head_dim),
+          f'{source}.proj_{name[0]}.weight', w.shape, field)
+  w = weights['out']
+  m.put(f'{target}/out/kernel', w.T.reshape(num_heads, head_dim, -1),
+        f'{source}.proj_o.weight', w.shape, field)
 
 
 def conv_transpose(m: StateDictMapper, source: str, target: str, field: str,
