@@ -32,6 +32,9 @@ def get_config(variant: str = ''):
   data.num_test = 200
   data.seed = 0
   data.object_scale = 1.2
+  # Most videos have a collision after the window: predictive questions are
+  # asked only about those (rejection sampling, physics only).
+  data.future_collision_fraction = 0.8
   data.max_instances = data.max_objects + data.max_entering
 
   savi = config.savi

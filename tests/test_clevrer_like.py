@@ -141,3 +141,24 @@ def test_build_dataset_writes_videos_questions_and_vocabulary(tmp_path):
     logs = [clevrer_like.EventLog.from_dict(json.loads(line)) for line in f]
   assert logs[1] == clevrer_like.generate_video(
       config, 'test', 1, render=False)['events']
+
+
+def test_future_collision_fraction_gives_something_to_predict():
+  # With fraction 1 every video is drawn among scenes where two objects in
+  # view at the end of the video collide after it (if one is found within
+  # MAX_SCENE_TRIES draws); with 0 it is the first draw.
+  config = dataclasses.replace(CONFIG, future_collision_fraction=1.0)
+  found = 0
+  for index in range(4):
+    scene = clevrer_like.sample_video_scene(
+        clevrer_like.video_rng(0, 'train', index), config)
+    found += clevrer_like.has_future_collision(
+        clevrer_like.simulate(scene, config), config)
+  assert found == 4
+  plain = [clevrer_like.has_future_collision(clevrer_like.simulate(
+      clevrer_like.sample_video_scene(clevrer_like.video_rng(0, 'train', i),
+                                      CONFIG), CONFIG), CONFIG)
+           for i in range(4)]
+  assert sum(plain) < 4
+  with pytest.raises(ValueError):
+    dataclasses.replace(CONFIG, future_collision_fraction=1.5)
