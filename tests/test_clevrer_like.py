@@ -160,5 +160,12 @@ def test_future_collision_fraction_gives_something_to_predict():
                                       CONFIG), CONFIG), CONFIG)
            for i in range(4)]
   assert sum(plain) < 4
+  # Fraction 0 draws exactly the scenes of generator version 1.
+  a = clevrer_like.sample_video_scene(clevrer_like.video_rng(0, 'val', 1),
+                                      CONFIG)
+  b = clevrer_like.sample_scene(clevrer_like.video_rng(0, 'val', 1), CONFIG)
+  for field in dataclasses.fields(a):
+    np.testing.assert_array_equal(getattr(a, field.name),
+                                  getattr(b, field.name))
   with pytest.raises(ValueError):
     dataclasses.replace(CONFIG, future_collision_fraction=1.5)

@@ -518,7 +518,9 @@ def sample_video_scene(rng: np.random.Generator, config: ClevrerLikeConfig
   ``config.future_collision_fraction`` the first of up to MAX_SCENE_TRIES
   draws whose future has a collision (:func:`has_future_collision`), else
   the first draw. A pure function of ``rng``'s state."""
-  wants_future = rng.uniform() < config.future_collision_fraction
+  # No extra draw at fraction 0: the scenes are those of generator version 1.
+  wants_future = (config.future_collision_fraction > 0.0
+                  and rng.uniform() < config.future_collision_fraction)
   scene = sample_scene(rng, config)
   if wants_future:
     for _ in range(MAX_SCENE_TRIES - 1):
