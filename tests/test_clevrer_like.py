@@ -141,6 +141,18 @@ def test_build_dataset_writes_videos_questions_and_vocabulary(tmp_path):
     logs = [clevrer_like.EventLog.from_dict(json.loads(line)) for line in f]
   assert logs[1] == clevrer_like.generate_video(
       config, 'test', 1, render=False)['events']
+  # A dataset from an older question generator gets new questions from its
+  # event logs; its videos are not regenerated.
+  with open(root / 'complete.json') as f:
+    complete = json.load(f)
+  complete['questions_version'] -= 1
+  with open(root / 'complete.json', 'w') as f:
+    json.dump(complete, f)
+  (root / 'questions' / 'test.json').write_text('[]')
+  video_mtime = (root / 'test' / 'video.npy').stat().st_mtime_ns
+  assert clevrer_like.build_dataset(config, tmp_path) == root
+  assert vqa.read_clevrer_questions(root, 'test') == scenes
+  assert (root / 'test' / 'video.npy').stat().st_mtime_ns == video_mtime
 
 
 def test_future_collision_fraction_gives_something_to_predict():

@@ -148,16 +148,19 @@ def test_explanatory_choices():
       'presence': (['the presence of the red cube'],
                    ['the presence of the yellow sphere']),
       'collision_event': (
-          ['the collision between the red cube and the blue sphere'], [])}
+          ['the collision between the red cube and the blue sphere'], []),
+      'other_collision_event': ([], [])}
   # Target green cylinder - yellow sphere (12): no single object's absence
   # prevents it (it happens a frame later without the blue sphere), so
-  # nothing is responsible: no question about it.
+  # nothing is responsible: no question about it. The red cube - blue sphere
+  # collision shares no object with the target: the other kind.
   assert qg.responsible_choices(log, 2) == {
       'presence': ([], ['the presence of the red cube',
                         'the presence of the blue sphere']),
       'collision_event': ([], [
-          'the collision between the red cube and the blue sphere',
-          'the collision between the blue sphere and the green cylinder'])}
+          'the collision between the blue sphere and the green cylinder']),
+      'other_collision_event': ([], [
+          'the collision between the red cube and the blue sphere'])}
   log = chain_log()
   # The presence and the collision kinds agree: both by re-simulation.
   assert qg.responsible_choices(log, 3) == {
@@ -165,16 +168,18 @@ def test_explanatory_choices():
                     'the presence of the blue sphere'],
                    ['the presence of the yellow sphere']),
       'collision_event': (
-          ['the collision between the red cube and the blue sphere',
-           'the collision between the blue sphere and the green cylinder'],
-          ['the collision between the yellow sphere and the purple cube'])}
+          ['the collision between the blue sphere and the green cylinder'],
+          ['the collision between the yellow sphere and the purple cube']),
+      'other_collision_event': (
+          ['the collision between the red cube and the blue sphere'], [])}
 
 
 def test_explanatory_labels_balanced_within_each_choice_kind():
   # Within a question, each kind of choice ("the presence of ...", "the
-  # collision between ...") has as many correct as wrong choices, so the
-  # wording of a choice does not tell its label (the old generator's
-  # collision choices were almost always correct).
+  # collision between ..." naming an object of the target or not) has as
+  # many correct as wrong choices, so the wording of a choice does not tell
+  # its label (the old generator's collision choices were almost always
+  # correct).
   names = NAMES + ['purple cube']
   # Targets with both labels in some kind: the chain log's blue sphere -
   # green cylinder and green cylinder - purple cube, the hand log's blue
@@ -190,17 +195,15 @@ def test_explanatory_labels_balanced_within_each_choice_kind():
         pair = tuple(sorted(names.index(n) for n in re.search(
             'between the (.*) and the (.*)', q['question']).groups()))
         asked.add(pair)
+        kinds = qg.responsible_choices(log, observed.index(pair))
         per_kind = collections.defaultdict(collections.Counter)
         for choice in q['choices']:
-          per_kind[choice['choice'].split()[1]][choice['answer']] += 1
+          (kind,) = [k for k, pools in kinds.items()
+                     if choice['choice'] in pools[choice['answer'] == 'wrong']]
+          per_kind[kind][choice['answer']] += 1
         for counts in per_kind.values():
           assert counts['correct'] == counts['wrong'] >= 1, q
         assert len(q['choices']) <= qg.MAX_CHOICES
-        kinds = qg.responsible_choices(log, observed.index(pair))
-        for choice in q['choices']:
-          pools = kinds['presence' if 'presence' in choice['choice']
-                        else 'collision_event']
-          assert choice['choice'] in pools[choice['answer'] == 'wrong']
       assert asked == targets
   # Both kinds have both labels for the chain log's last collision: 2 + 2.
   for q in qg.candidate_questions(chain_log(), np.random.default_rng(0)):

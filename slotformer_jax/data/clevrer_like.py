@@ -47,8 +47,8 @@ import pybullet
 from slotformer_jax.data.convert import synthetic
 from slotformer_jax.data.convert.synthetic import COLORS, SHAPES, SIZES
 
-# 2: explanatory labels by re-simulation, choices balanced per kind, count
-# templates over objects, future_collision_fraction.
+# The videos and event logs (the questions have their own version,
+# questions.VERSION). 2: future_collision_fraction.
 GENERATOR_VERSION = 2
 SPLITS = synthetic.SPLITS
 SUBSTEPS_PER_FRAME = synthetic.SUBSTEPS_PER_FRAME
@@ -600,23 +600,59 @@ def _video_for_worker(config: ClevrerLikeConfig, split: str, index: int
   return {k: video[k] for k in ARRAY_FIELDS + ('events',)}
 
 
+def _write_questions(config: ClevrerLikeConfig, root: Path) -> None:
+  """Questions of every split (from its stored event logs) and vocabulary."""
+  # Imported here: the question generator imports this module.
+  from slotformer_jax.data import questions as question_generator  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.data import vqa  # pylint: disable=g-import-not-at-top
+  (root / 'questions').mkdir(exist_ok=True)
+  for split in SPLITS:
+    with open(root / split / 'events.jsonl') as f:
+      logs = [EventLog.from_dict(json.loads(line)) for line in f]
+    scenes = question_generator.generate_split(
+        logs, config.seed, split,
+        video_filenames=[video_filename(split, i) for i in range(len(logs))],
+        scene_offset=SCENE_OFFSETS[split])
+    with open(root / 'questions' / vqa.CLEVRER_SPLIT_FILES[split], 'w') as f:
+      json.dump(scenes, f)
+  vqa.Vocabulary(
+      vqa.make_vocabulary(question_generator.template_words()),
+      vqa.make_vocabulary(question_generator.template_answers()),
+  ).save(root / 'vocab.json')
+
+
 def build_dataset(config: ClevrerLikeConfig,
                   data_dir: str | os.PathLike[str], *,
                   num_workers: int | None = None) -> Path:
   """Generates videos, event logs, questions and vocabulary unless present.
 
+  A dataset built by an older question generator (``questions.VERSION``)
+  gets new questions from its stored event logs; its videos are kept.
   Returns the dataset folder. Deterministic: a pure function of ``config``
   (the worker count does not matter).
   """
-  # Imported here: the question generator imports this module.
   from slotformer_jax.data import questions as question_generator  # pylint: disable=g-import-not-at-top
-  from slotformer_jax.data import vqa  # pylint: disable=g-import-not-at-top
   root = dataset_dir(config, data_dir)
+  complete = {**dataclasses.asdict(config),
+              'questions_version': question_generator.VERSION}
   if (root / _COMPLETE).is_file():
-    return root
-  root.mkdir(parents=True, exist_ok=True)
+    with open(root / _COMPLETE) as f:
+      if json.load(f).get('questions_version') == complete[
+          'questions_version']:
+        return root
+  else:
+    root.mkdir(parents=True, exist_ok=True)
+    _write_videos(config, root, num_workers)
+  _write_questions(config, root)
+  with open(root / _COMPLETE, 'w') as f:
+    json.dump(complete, f)
+  return root
+
+
+def _write_videos(config: ClevrerLikeConfig, root: Path,
+                  num_workers: int | None) -> None:
+  """Frames and event logs of every split."""
   workers = num_workers or len(os.sched_getaffinity(0))
-  all_scenes = {}
   for split in SPLITS:
     count = config.num_videos(split)
     make = functools.partial(_video_for_worker, config, split)
@@ -635,22 +671,6 @@ def build_dataset(config: ClevrerLikeConfig,
     with open(folder / 'events.jsonl', 'w') as f:
       for v in videos:
         f.write(json.dumps(v['events']) + '\n')
-    logs = [EventLog.from_dict(v['events']) for v in videos]
-    all_scenes[split] = question_generator.generate_split(
-        logs, config.seed, split,
-        video_filenames=[video_filename(split, i) for i in range(count)],
-        scene_offset=SCENE_OFFSETS[split])
-  (root / 'questions').mkdir(exist_ok=True)
-  for split, scenes in all_scenes.items():
-    with open(root / 'questions' / vqa.CLEVRER_SPLIT_FILES[split], 'w') as f:
-      json.dump(scenes, f)
-  vqa.Vocabulary(
-      vqa.make_vocabulary(question_generator.template_words()),
-      vqa.make_vocabulary(question_generator.template_answers()),
-  ).save(root / 'vocab.json')
-  with open(root / _COMPLETE, 'w') as f:
-    json.dump(dataclasses.asdict(config), f)
-  return root
 
 
 class NpyVideoSource:

@@ -43,6 +43,13 @@ import numpy as np
 from slotformer_jax.data.clevrer_like import Collision, EventLog
 from slotformer_jax.data.convert.synthetic import COLORS, SHAPES
 
+# Bumped when the questions generated from an event log change; a built
+# dataset then regenerates its questions from its stored event logs (the
+# videos do not change). 1: the first generator; 2: explanatory labels by
+# re-simulation, balanced per choice kind, count templates over objects in
+# view, up to 2 predictive / explanatory questions per video.
+VERSION = 2
+
 QUESTION_TYPES = ('descriptive', 'explanatory', 'predictive',
                   'counterfactual')
 MAX_COUNT = 5  # CLEVRER's count answers are 0..5
@@ -134,15 +141,17 @@ def _balanced_choices(rng: np.random.Generator,
   A kind with only one label offered is left out (its wording would tell the
   label); from each other kind the same number m of correct and wrong
   choices is drawn, m in 1..2 (1 when two kinds share the MAX_CHOICES
-  choices). Returns the shuffled choices, or None if no kind has both labels.
+  choices; when more kinds qualify than MAX_CHOICES / 2, a random
+  MAX_CHOICES / 2 of them). Returns the shuffled choices, or None if no kind
+  has both labels.
   """
   usable = [(c, w) for c, w in kinds if c and w]
   if not usable:
     return None
+  if 2 * len(usable) > MAX_CHOICES:
+    keep = sorted(rng.choice(len(usable), MAX_CHOICES // 2, replace=False))
+    usable = [usable[int(i)] for i in keep]
   per_kind = MAX_CHOICES // (2 * len(usable))
-  if per_kind < 1:
-    raise ValueError(f'{len(usable)} choice kinds do not fit {MAX_CHOICES} '
-                     'choices')
   picked = []
   for correct, wrong in usable:
     m = int(rng.integers(1, min(per_kind, len(correct), len(wrong)) + 1))
@@ -162,9 +171,14 @@ def _prevents(log: EventLog, x: int, pair: tuple[int, int]) -> bool:
 
 def responsible_choices(log: EventLog, k: int
                         ) -> dict[str, tuple[list[str], list[str]]]:
-  """Per choice kind ('presence', 'collision_event'), the (correct, wrong)
-  choices of "which is responsible for the collision
-  ``log.observed_collisions()[k]``".
+  """Per choice kind, the (correct, wrong) choices of "which is responsible
+  for the collision ``log.observed_collisions()[k]``".
+
+  Kinds: 'presence'; 'collision_event', an earlier collision that involves
+  one of the target's objects; 'other_collision_event', one that does not.
+  The two collision kinds are balanced apart because the words tell them
+  apart (a collision naming an object of the question is far more often
+  responsible).
 
   The presence of X (seen before the target, not one of its objects) is
   responsible iff the target pair does not collide during the video in the
@@ -184,7 +198,8 @@ def responsible_choices(log: EventLog, k: int
       continue  # not there yet when the collision happened
     text = CHOICE_TEMPLATES['presence'].format(obj=name(log, x))
     presence[0 if _prevents(log, x, target.objects) else 1].append(text)
-  events: tuple[list[str], list[str]] = ([], [])
+  events: dict[bool, tuple[list[str], list[str]]] = {True: ([], []),
+                                                     False: ([], [])}
   for c in observed:
     if c.frame >= target.frame or c.objects == target.objects:
       continue
@@ -193,11 +208,13 @@ def responsible_choices(log: EventLog, k: int
       continue
     text = CHOICE_TEMPLATES['collision_event'].format(
         a=name(log, c.objects[0]), b=name(log, c.objects[1]))
-    if text in events[0] or text in events[1]:
+    kind = events[len(others) == 1]  # shares an object with the target
+    if text in kind[0] or text in kind[1]:
       continue  # the same pair collided twice before the target
-    events[0 if all(_prevents(log, x, target.objects) for x in others)
-           else 1].append(text)
-  return {'presence': presence, 'collision_event': events}
+    kind[0 if all(_prevents(log, x, target.objects) for x in others)
+         else 1].append(text)
+  return {'presence': presence, 'collision_event': events[True],
+          'other_collision_event': events[False]}
 
 
 def predictive_choices(log: EventLog) -> tuple[list[str], list[str]]:
