@@ -68,9 +68,9 @@ def get_config(variant: str = ''):
   vqa.rollout_frames = data.predicted_frames
   # Aloe's cost is its tokens x d_model^2 (one sequence per choice): 4 slot
   # frames (24 slot tokens) at d 48 take ~0.14 s per 16 + 16-question step
-  # on a loaded 2-core CPU, against ~1.1 s for 8 frames at d 72, so the same
-  # time buys ~7x the steps: 2000 steps (~9 passes over the descriptive
-  # questions) instead of 300 (see docs/vqa.md, "Measured").
+  # on a loaded 2-core CPU, against ~1.1 s for 8 frames at d 72: 1000 steps
+  # (~6.5 passes over the descriptive questions) cost less than the former
+  # 300 steps at 8 frames, d 72 (see docs/vqa.md, "Measured").
   vqa.num_frames = 4
   vqa.frame_stride = 7  # 4 frames span 22 of the 24: starts 0..2
   vqa.max_question_len = 18  # the explanatory template has 17 words
@@ -86,10 +86,10 @@ def get_config(variant: str = ''):
   vqa.positions = 'token'
   vqa.open_batch_size = 16
   vqa.choice_batch_size = 16
-  vqa.num_train_steps = 2000
+  vqa.num_train_steps = 1000
   vqa.learning_rate = 1e-3
   vqa.log_every = 200
-  vqa.checkpoint_every = 1000
+  vqa.checkpoint_every = 500
   vqa.eval_split = 'test'
   vqa.eval_batch_size = 64
 
