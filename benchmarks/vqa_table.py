@@ -60,6 +60,26 @@ def main() -> None:
     cells = [f'{100 * prior[t][m]:.1f}' if t in prior else '-'
              for t, m in COLUMNS]
     print('| answer prior | - | ' + ' | '.join(cells) + ' |')
+  templates = sorted({t for rs in runs.values() for r in rs
+                      for t in r.get('descriptive_per_template', {})})
+  if templates:
+    print('\n| descriptive accuracy per template | ' + ' | '.join(
+        name for name in ROWS if name in runs) + ' |')
+    print('|---|' + '---|' * sum(name in runs for name in ROWS))
+    for t in templates:
+      cells = []
+      for name in ROWS:
+        if name not in runs:
+          continue
+        values = [100 * r['descriptive_per_template'][t]['accuracy']
+                  for r in runs[name]
+                  if t in r.get('descriptive_per_template', {})]
+        cells.append(f'{np.mean(values):.1f} +- {np.std(values):.1f}'
+                     if values else '-')
+      n = next(r['descriptive_per_template'][t]['questions']
+               for rs in runs.values() for r in rs
+               if t in r.get('descriptive_per_template', {}))
+      print(f'| {t} ({n}) | ' + ' | '.join(cells) + ' |')
   counts = runs[next(iter(runs))][0] if runs else {}
   types = dict.fromkeys(t for t, _ in COLUMNS)
   print('\nquestions: ' + ', '.join(
