@@ -20,12 +20,13 @@ templates of CLEVRER's four types:
   re-simulated without X.
 
 Every multiple-choice question has, within each choice kind ("the presence
-of ...", "the collision between ...", "... collides with ..."), as many
-correct as wrong choices (1 or 2 of each; a kind offering only one label is
-left out), so neither the wording of a choice nor the template tells its
-label; open answers are balanced per template (each answer kept at most as
-often as the median answer of its template), so a question-only model cannot
-do well. Objects are named "the <colour> <shape>" (colours are distinct in a
+of ...", "the collision between ..." naming an object of the target or
+naming none, "... collides with ..."), as many correct as wrong choices (1
+or 2 of each; a kind offering only one label is left out), so neither the
+wording of a choice nor the template tells its label; open answers are
+balanced per template (each answer kept at most as often as the lower
+median answer count of its template), so a question-only model cannot do
+well. Objects are named "the <colour> <shape>" (colours are distinct in a
 video). The output uses CLEVRER's ``questions/<split>.json`` layout, so the
 same reader (:mod:`slotformer_jax.data.vqa`) serves embedded and real data;
 each question also records its ``template`` (CLEVRER's files do not).
