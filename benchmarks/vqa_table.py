@@ -1,9 +1,11 @@
 r"""Mean +- std over seeds of the VQA variants of one workdir, as a table.
 
-  python benchmarks/vqa_table.py --workdir=runs/vqa [--split=test]
+  python benchmarks/vqa_table.py --workdir=runs/vqa [--workdir=...] [--split=test]
 
 Reads vqa/<inputs>_s<seed>/metrics_<split>.json (written by
-`--mode=evaluate_vqa`) and vqa/answer_prior_<split>.json.
+`--mode=evaluate_vqa`) and vqa/answer_prior_<split>.json of every workdir
+given (variants trained in parallel live in separate workdirs: one run
+holds a workdir's lock).
 """
 
 from __future__ import annotations
@@ -27,12 +29,13 @@ ROWS = ('rollout', 'observed', 'blind')
 
 def main() -> None:
   parser = argparse.ArgumentParser()
-  parser.add_argument('--workdir', required=True)
+  parser.add_argument('--workdir', required=True, action='append')
   parser.add_argument('--split', default='test')
   args = parser.parse_args()
   runs = collections.defaultdict(list)
-  for path in sorted(glob.glob(os.path.join(
-      args.workdir, 'vqa', '*_s*', f'metrics_{args.split}.json'))):
+  paths = sorted(set(path for workdir in args.workdir for path in glob.glob(
+      os.path.join(workdir, 'vqa', '*_s*', f'metrics_{args.split}.json'))))
+  for path in paths:
     inputs = re.match(r'(.*)_s\d+$', os.path.basename(os.path.dirname(path)))
     with open(path) as f:
       runs[inputs.group(1)].append(json.load(f))
@@ -49,14 +52,34 @@ def main() -> None:
       cells.append(f'{np.mean(values):.1f} +- {np.std(values):.1f}'
                    if values else '-')
     print(f'| {name} | {len(runs[name])} | ' + ' | '.join(cells) + ' |')
-  prior_path = os.path.join(args.workdir, 'vqa',
-                            f'answer_prior_{args.split}.json')
-  if os.path.exists(prior_path):
-    with open(prior_path) as f:
+  priors = [p for workdir in args.workdir for p in glob.glob(os.path.join(
+      workdir, 'vqa', f'answer_prior_{args.split}.json'))]
+  if priors:
+    with open(priors[0]) as f:
       prior = json.load(f)
     cells = [f'{100 * prior[t][m]:.1f}' if t in prior else '-'
              for t, m in COLUMNS]
     print('| answer prior | - | ' + ' | '.join(cells) + ' |')
+  templates = sorted({t for rs in runs.values() for r in rs
+                      for t in r.get('descriptive_per_template', {})})
+  if templates:
+    print('\n| descriptive accuracy per template | ' + ' | '.join(
+        name for name in ROWS if name in runs) + ' |')
+    print('|---|' + '---|' * sum(name in runs for name in ROWS))
+    for t in templates:
+      cells = []
+      for name in ROWS:
+        if name not in runs:
+          continue
+        values = [100 * r['descriptive_per_template'][t]['accuracy']
+                  for r in runs[name]
+                  if t in r.get('descriptive_per_template', {})]
+        cells.append(f'{np.mean(values):.1f} +- {np.std(values):.1f}'
+                     if values else '-')
+      n = next(r['descriptive_per_template'][t]['questions']
+               for rs in runs.values() for r in rs
+               if t in r.get('descriptive_per_template', {}))
+      print(f'| {t} ({n}) | ' + ' | '.join(cells) + ' |')
   counts = runs[next(iter(runs))][0] if runs else {}
   types = dict.fromkeys(t for t, _ in COLUMNS)
   print('\nquestions: ' + ', '.join(

@@ -292,6 +292,9 @@ def evaluate_vqa(config: ml_collections.ConfigDict, workdir: str,
   directory = variant_dir(config, workdir)
   has_answers = all(q.answer >= 0 for q in questions if q.is_descriptive)
   results = metrics.results() if has_answers else {}
+  if has_answers:
+    results['descriptive_per_template'] = task.open_accuracy_per_template(
+        questions, open_answers)
   if jax.process_index() == 0:
     os.makedirs(directory, exist_ok=True)
     with open(os.path.join(directory, f'metrics_{split}.json'), 'w') as f:

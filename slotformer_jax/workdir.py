@@ -157,6 +157,9 @@ CONFIG_HISTORY_FILE = 'config_history.jsonl'
 
 # Settings that change how a run is observed, not what it computes.
 _NOT_SHAPING = ('log_every', 'checkpoint_every', 'num_workers', 'data_dir')
+# Settings that pick a variant with its own folder (vqa/<inputs>_s<seed>/):
+# one workdir holds every Aloe input and seed of a comparison.
+_VARIANT_SELECTORS = ('vqa.inputs', 'vqa.seed', 'vqa.eval_split')
 
 
 def _plain(value: Any) -> Any:
@@ -362,7 +365,8 @@ def accept_config(config: ml_collections.ConfigDict, workdir: str, *,
 def _only_observation(change: str) -> bool:
   name = change.split(':', 1)[0]
   last = name.rsplit('.', 1)[-1]
-  return last in _NOT_SHAPING or name.startswith('render.')
+  return (last in _NOT_SHAPING or name.startswith('render.')
+          or name in _VARIANT_SELECTORS)
 
 
 def start_stage(directory: str, fields: dict[str, Any],

@@ -141,3 +141,43 @@ def test_build_dataset_writes_videos_questions_and_vocabulary(tmp_path):
     logs = [clevrer_like.EventLog.from_dict(json.loads(line)) for line in f]
   assert logs[1] == clevrer_like.generate_video(
       config, 'test', 1, render=False)['events']
+  # A dataset from an older question generator gets new questions from its
+  # event logs; its videos are not regenerated.
+  with open(root / 'complete.json') as f:
+    complete = json.load(f)
+  complete['questions_version'] -= 1
+  with open(root / 'complete.json', 'w') as f:
+    json.dump(complete, f)
+  (root / 'questions' / 'test.json').write_text('[]')
+  video_mtime = (root / 'test' / 'video.npy').stat().st_mtime_ns
+  assert clevrer_like.build_dataset(config, tmp_path) == root
+  assert vqa.read_clevrer_questions(root, 'test') == scenes
+  assert (root / 'test' / 'video.npy').stat().st_mtime_ns == video_mtime
+
+
+def test_future_collision_fraction_gives_something_to_predict():
+  # With fraction 1 every video is drawn among scenes where two objects in
+  # view at the end of the video collide after it (if one is found within
+  # MAX_SCENE_TRIES draws); with 0 it is the first draw.
+  config = dataclasses.replace(CONFIG, future_collision_fraction=1.0)
+  found = 0
+  for index in range(4):
+    scene = clevrer_like.sample_video_scene(
+        clevrer_like.video_rng(0, 'train', index), config)
+    found += clevrer_like.has_future_collision(
+        clevrer_like.simulate(scene, config), config)
+  assert found == 4
+  plain = [clevrer_like.has_future_collision(clevrer_like.simulate(
+      clevrer_like.sample_video_scene(clevrer_like.video_rng(0, 'train', i),
+                                      CONFIG), CONFIG), CONFIG)
+           for i in range(4)]
+  assert sum(plain) < 4
+  # Fraction 0 draws exactly the scenes of generator version 1.
+  a = clevrer_like.sample_video_scene(clevrer_like.video_rng(0, 'val', 1),
+                                      CONFIG)
+  b = clevrer_like.sample_scene(clevrer_like.video_rng(0, 'val', 1), CONFIG)
+  for field in dataclasses.fields(a):
+    np.testing.assert_array_equal(getattr(a, field.name),
+                                  getattr(b, field.name))
+  with pytest.raises(ValueError):
+    dataclasses.replace(CONFIG, future_collision_fraction=1.5)

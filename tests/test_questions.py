@@ -84,37 +84,131 @@ def test_descriptive_answers():
   assert set(_by_template(log, 0)) == set(qg.TEMPLATES)
 
 
+def test_count_templates_count_objects_in_view():
+  log = hand_log()
+  # The blue sphere leaves the view (14) and comes back (17): not an entering
+  # object (it was there from the start), and not counted twice. The green
+  # cylinder is still moving at the end but out of view: not counted.
+  log.exiting = [(BLUE_SPHERE, 14)]
+  log.entering = [(YELLOW_SPHERE, 5), (BLUE_SPHERE, 17)]
+  log.in_view_at_end[GREEN_CYL] = False
+  assert qg.entered_objects(log) == [YELLOW_SPHERE]
+  assert qg.moving_in_view_at_end(log) == [BLUE_SPHERE, YELLOW_SPHERE]
+  for seed in range(4):
+    q = _by_template(log, seed)
+    assert q['count_entering']['answer'] == '1'
+    assert q['color_entering']['answer'] == 'yellow'
+    assert q['count_moving_end']['answer'] == '2'
+  # An object that enters twice (in, out, in) is one entering object; one
+  # entering after the video is none.
+  log.exiting = [(YELLOW_SPHERE, 9)]
+  log.entering = [(YELLOW_SPHERE, 5), (YELLOW_SPHERE, 11), (RED_CUBE, 25)]
+  assert qg.entered_objects(log) == [YELLOW_SPHERE]
+  assert _by_template(log, 0)['count_entering']['answer'] == '1'
+
+
+def chain_log() -> EventLog:
+  """Five objects; the target is the green cylinder - purple cube collision
+  (10). The red cube hits the blue sphere (3), which hits the cylinder (6),
+  which goes on to the purple cube; the yellow sphere hits the purple cube
+  (4) but the cylinder would reach the cube anyway.
+
+  Counterfactuals: without the red cube or the blue sphere the target does
+  not happen; without the yellow sphere it happens one frame later.
+  """
+  return EventLog(
+      objects=[{'color': 'red', 'shape': 'cube', 'size': 'small'},
+               {'color': 'blue', 'shape': 'sphere', 'size': 'large'},
+               {'color': 'green', 'shape': 'cylinder', 'size': 'small'},
+               {'color': 'yellow', 'shape': 'sphere', 'size': 'small'},
+               {'color': 'purple', 'shape': 'cube', 'size': 'small'}],
+      observed_frames=20, num_frames=30,
+      collisions=[Collision((0, 1), 3), Collision((3, 4), 4),
+                  Collision((1, 2), 6), Collision((2, 4), 10)],
+      entering=[], exiting=[],
+      moving_at_end=[False, False, True, False, True],
+      in_view_at_end=[True] * 5, final_positions=[[0.0, 0.0, 0.5]] * 5,
+      counterfactual={
+          0: [Collision((3, 4), 4)],
+          1: [Collision((3, 4), 4)],
+          2: [Collision((0, 1), 3), Collision((3, 4), 4)],
+          3: [Collision((0, 1), 3), Collision((1, 2), 6),
+              Collision((2, 4), 11)],
+          4: [Collision((0, 1), 3), Collision((1, 2), 6)],
+      })
+
+
 def test_explanatory_choices():
   log = hand_log()
   # Target blue sphere - green cylinder (8): without the red cube it does not
-  # happen; the red cube - blue sphere collision leads to it; the yellow
-  # sphere (entered at 5) is not needed.
-  correct, wrong = qg.responsible_choices(log, 1)
-  assert sorted(correct) == sorted([
-      'the presence of the red cube',
-      'the collision between the red cube and the blue sphere'])
-  assert wrong == ['the presence of the yellow sphere']
-  # Target green cylinder - yellow sphere (12): both earlier collisions are
-  # on its causal chain, but no single object's absence prevents it.
-  correct, wrong = qg.responsible_choices(log, 2)
-  assert sorted(correct) == sorted([
-      'the collision between the red cube and the blue sphere',
-      'the collision between the blue sphere and the green cylinder'])
-  assert sorted(wrong) == sorted(['the presence of the red cube',
-                                  'the presence of the blue sphere'])
-  # The first collision: the yellow sphere was not there yet, the cylinder
-  # is not responsible: no correct choice, so no question.
-  assert qg.responsible_choices(log, 0) == (
-      [], ['the presence of the green cylinder'])
-  for seed in range(8):
-    q = _by_template(log, seed)['responsible']
-    target = re.search('between the (.*) and the (.*)', q['question'])
-    k = {('blue sphere', 'green cylinder'): 1,
-         ('green cylinder', 'yellow sphere'): 2}[target.groups()]
-    correct, wrong = qg.responsible_choices(log, k)
-    for choice in q['choices']:
-      assert choice['choice'] in (correct if choice['answer'] == 'correct'
-                                  else wrong)
+  # happen; the yellow sphere (entered at 5) is not needed. The red cube -
+  # blue sphere collision is responsible too (without the red cube, no
+  # target), but it is the only collision choice: that kind has one label.
+  assert qg.responsible_choices(log, 1) == {
+      'presence': (['the presence of the red cube'],
+                   ['the presence of the yellow sphere']),
+      'collision_event': (
+          ['the collision between the red cube and the blue sphere'], []),
+      'other_collision_event': ([], [])}
+  # Target green cylinder - yellow sphere (12): no single object's absence
+  # prevents it (it happens a frame later without the blue sphere), so
+  # nothing is responsible: no question about it. The red cube - blue sphere
+  # collision shares no object with the target: the other kind.
+  assert qg.responsible_choices(log, 2) == {
+      'presence': ([], ['the presence of the red cube',
+                        'the presence of the blue sphere']),
+      'collision_event': ([], [
+          'the collision between the blue sphere and the green cylinder']),
+      'other_collision_event': ([], [
+          'the collision between the red cube and the blue sphere'])}
+  log = chain_log()
+  # The presence and the collision kinds agree: both by re-simulation.
+  assert qg.responsible_choices(log, 3) == {
+      'presence': (['the presence of the red cube',
+                    'the presence of the blue sphere'],
+                   ['the presence of the yellow sphere']),
+      'collision_event': (
+          ['the collision between the blue sphere and the green cylinder'],
+          ['the collision between the yellow sphere and the purple cube']),
+      'other_collision_event': (
+          ['the collision between the red cube and the blue sphere'], [])}
+
+
+def test_explanatory_labels_balanced_within_each_choice_kind():
+  # Within a question, each kind of choice ("the presence of ...", "the
+  # collision between ..." naming an object of the target or not) has as
+  # many correct as wrong choices, so the wording of a choice does not tell
+  # its label (the old generator's collision choices were almost always
+  # correct).
+  names = NAMES + ['purple cube']
+  # Targets with both labels in some kind: the chain log's blue sphere -
+  # green cylinder and green cylinder - purple cube, the hand log's blue
+  # sphere - green cylinder.
+  for log, targets in ((chain_log(), {(1, 2), (2, 4)}),
+                       (hand_log(), {(1, 2)})):
+    observed = [c.objects for c in log.observed_collisions()]
+    for seed in range(16):
+      asked = set()
+      for q in qg.candidate_questions(log, np.random.default_rng(seed)):
+        if q['template'] != 'responsible':
+          continue
+        pair = tuple(sorted(names.index(n) for n in re.search(
+            'between the (.*) and the (.*)', q['question']).groups()))
+        asked.add(pair)
+        kinds = qg.responsible_choices(log, observed.index(pair))
+        per_kind = collections.defaultdict(collections.Counter)
+        for choice in q['choices']:
+          (kind,) = [k for k, pools in kinds.items()
+                     if choice['choice'] in pools[choice['answer'] == 'wrong']]
+          per_kind[kind][choice['answer']] += 1
+        for counts in per_kind.values():
+          assert counts['correct'] == counts['wrong'] >= 1, q
+        assert len(q['choices']) <= qg.MAX_CHOICES
+      assert asked == targets
+  # Both kinds have both labels for the chain log's last collision: 2 + 2.
+  for q in qg.candidate_questions(chain_log(), np.random.default_rng(0)):
+    if q['template'] == 'responsible' and 'purple' in q['question']:
+      assert len(q['choices']) == 4
 
 
 def test_predictive_choices():
@@ -127,6 +221,32 @@ def test_predictive_choices():
   log.in_view_at_end[YELLOW_SPHERE] = False
   correct, wrong = qg.predictive_choices(log)
   assert correct == [] and len(wrong) == 3
+
+
+def test_two_predictive_questions_with_disjoint_balanced_choices():
+  log = hand_log()
+  # Two collisions after the video: two questions, each with one correct
+  # and one wrong choice (balanced), no choice asked twice.
+  log.collisions.append(Collision((1, 2), 26))
+  correct, wrong = qg.predictive_choices(log)
+  assert sorted(correct) == sorted([collides(RED_CUBE, YELLOW_SPHERE),
+                                    collides(BLUE_SPHERE, GREEN_CYL)])
+  for seed in range(8):
+    questions = [q for q in qg.candidate_questions(
+        log, np.random.default_rng(seed)) if q['template'] == 'next']
+    assert len(questions) == qg.MAX_PREDICTIVE == 2
+    asked = [c['choice'] for q in questions for c in q['choices']]
+    assert len(asked) == len(set(asked))
+    for q in questions:
+      labels = collections.Counter(c['answer'] for c in q['choices'])
+      assert labels['correct'] == labels['wrong'] >= 1
+      for choice in q['choices']:
+        assert choice['choice'] in (correct if choice['answer'] == 'correct'
+                                    else wrong)
+  # One future collision: one question.
+  log.collisions.pop()
+  assert [q['template'] for q in qg.candidate_questions(
+      log, np.random.default_rng(0))].count('next') == 1
 
 
 def test_counterfactual_choices():
@@ -145,8 +265,8 @@ def test_counterfactual_choices():
     q = _by_template(log, seed)['removed']
     x = _named(q['question'])
     correct, wrong = qg.counterfactual_choices(log, x)
-    labels = [c['answer'] for c in q['choices']]
-    assert 'correct' in labels and 'wrong' in labels
+    labels = collections.Counter(c['answer'] for c in q['choices'])
+    assert labels['correct'] == labels['wrong'] >= 1
     for choice in q['choices']:
       assert choice['choice'] in (correct if choice['answer'] == 'correct'
                                   else wrong)
@@ -176,8 +296,8 @@ def test_split_is_deterministic_and_balanced():
       if q['question_type'] == 'descriptive':
         per_template[q['template']][q['answer']] += 1
       else:
-        labels = {c['answer'] for c in q['choices']}
-        assert labels == {'correct', 'wrong'}
+        labels = collections.Counter(c['answer'] for c in q['choices'])
+        assert labels['correct'] == labels['wrong'] >= 1
   unbalanced = collections.defaultdict(collections.Counter)
   for v, log in enumerate(logs):
     rng = np.random.default_rng([3, 0, v, 1212])
@@ -185,8 +305,11 @@ def test_split_is_deterministic_and_balanced():
       if q['question_type'] == 'descriptive':
         unbalanced[q['template']][q['answer']] += 1
   for template, counts in per_template.items():
-    cap = int(np.ceil(np.median(list(unbalanced[template].values()))))
+    cap = qg.lower_median(list(unbalanced[template].values()))
     assert max(counts.values()) <= cap, (template, counts)
+  # A two-answer template is exactly balanced (the lower median).
+  assert per_template['is_moving_end']['yes'] == per_template[
+      'is_moving_end']['no'] > 0
   # count_collisions answers 3, 2, 1 equally often before and after.
   assert set(per_template['count_collisions']) == {'1', '2', '3'}
 

@@ -49,3 +49,30 @@ def test_train_and_evaluate_vqa_on_random_slots(tmp_path, monkeypatch):
                            'metrics_test.json')) as f:
       assert json.load(f) == results
   assert os.path.exists(os.path.join(workdir, 'vqa', 'answer_prior_test.json'))
+
+
+def test_vqa_inputs_and_seed_are_variants_of_one_workdir(tmp_path):
+  # The comparison trains every Aloe input and seed in one workdir (each in
+  # vqa/<inputs>_s<seed>/): picking them is not a change of settings; an
+  # Aloe size is.
+  from slotformer_jax import workdir as workdir_lib  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.errors import UserError  # pylint: disable=g-import-not-at-top
+  config = _synthetic_vqa_config()
+  workdir = str(tmp_path)
+  assert workdir_lib.accept_config(config, workdir) == []
+  config.vqa.inputs, config.vqa.seed, config.vqa.eval_split = (
+      'blind', 2, 'val')
+  assert workdir_lib.accept_config(config, workdir) == []
+  config.vqa.num_layers += 1
+  with pytest.raises(UserError):
+    workdir_lib.accept_config(config, workdir)
+
+
+def _synthetic_vqa_config():
+  import importlib.util  # pylint: disable=g-import-not-at-top
+  spec = importlib.util.spec_from_file_location(
+      'synthetic_vqa', os.path.join(os.path.dirname(__file__), '..',
+                                    'configs', 'synthetic_vqa.py'))
+  module = importlib.util.module_from_spec(spec)
+  spec.loader.exec_module(module)
+  return module.get_config()

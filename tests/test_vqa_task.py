@@ -160,3 +160,19 @@ def test_rollout_after_video_interleaves_strided_predictions():
                                       stride=stride, num_frames=7)
     assert future.shape == (2, 7, 3, 1)
     assert future[0, :, 0, 0].tolist() == list(range(20, 27))
+
+
+def test_open_accuracy_per_template_by_hand():
+  def q(template: str, answer: int) -> vqa.EncodedQuestion:
+    return vqa.EncodedQuestion(
+        scene_index=0, video_filename='v', question_id=0, question_type=0,
+        template=template, tokens=np.zeros((1, 3), np.int32),
+        pad_mask=np.zeros((1, 3), bool), answer=answer)
+  questions = [q('count_collisions', 2), q('count_collisions', 3),
+               q('color_entering', 5), q('', 1), q('color_entering', -1)]
+  # 1 of 2 count_collisions right, 1 of 1 color_entering; no template (a
+  # CLEVRER file) or no answer: not counted.
+  got = task.open_accuracy_per_template(
+      questions, {0: 2, 1: 2, 2: 5, 3: 1, 4: 7})
+  assert got == {'color_entering': {'accuracy': 1.0, 'questions': 1},
+                 'count_collisions': {'accuracy': 0.5, 'questions': 2}}

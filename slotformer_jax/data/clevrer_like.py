@@ -47,7 +47,9 @@ import pybullet
 from slotformer_jax.data.convert import synthetic
 from slotformer_jax.data.convert.synthetic import COLORS, SHAPES, SIZES
 
-GENERATOR_VERSION = 1
+# The videos and event logs (the questions have their own version,
+# questions.VERSION). 2: future_collision_fraction.
+GENERATOR_VERSION = 2
 SPLITS = synthetic.SPLITS
 SUBSTEPS_PER_FRAME = synthetic.SUBSTEPS_PER_FRAME
 
@@ -74,6 +76,9 @@ ENTER_SPEED_RANGE = (2.5, 4.0)
 # In view: the projected centre lies inside the image, with this margin of the
 # normalised device coordinates (so an object is "in" once mostly visible).
 VIEW_MARGIN = 0.05
+# Scenes drawn (physics only, ~20 ms each) to find one whose future has a
+# collision, when a video should have one (future_collision_fraction).
+MAX_SCENE_TRIES = 30
 
 
 @dataclasses.dataclass(frozen=True)
@@ -88,6 +93,10 @@ class ClevrerLikeConfig:
     min_objects, max_objects: objects present from frame 0.
     max_entering: objects entering later (0..max_entering per video).
     moving_fraction: probability that an object present at frame 0 moves.
+    future_collision_fraction: probability that a video is drawn among
+      scenes where two objects in view at the last observed frame collide
+      after it (rejection sampling over physics-only simulations): without
+      it only ~1/3 of the videos have anything to predict.
     seed: base seed; video ``i`` of split ``s`` uses ``(seed, s, i)``.
     num_train, num_val, num_test: videos per split.
     supersample, object_scale: as in :class:`synthetic.SyntheticConfig`.
@@ -100,6 +109,7 @@ class ClevrerLikeConfig:
   max_objects: int = 4
   max_entering: int = 1
   moving_fraction: float = 0.5
+  future_collision_fraction: float = 0.0
   seed: int = 0
   num_train: int = 1000
   num_val: int = 100
@@ -118,6 +128,8 @@ class ClevrerLikeConfig:
       raise ValueError(f'at most {len(COLORS)} objects per video')
     if self.max_entering < 0:
       raise ValueError('max_entering must be >= 0')
+    if not 0.0 <= self.future_collision_fraction <= 1.0:
+      raise ValueError('future_collision_fraction must be in [0, 1]')
 
   @property
   def num_frames(self) -> int:
@@ -491,6 +503,33 @@ def event_log(scene: Scene, simulation: dict[str, Any],
   )
 
 
+def has_future_collision(simulation: dict[str, Any],
+                         config: ClevrerLikeConfig) -> bool:
+  """Whether two objects in view at the last observed frame collide after
+  it (what a predictive question can ask about)."""
+  in_view = simulation['in_view'][config.observed_frames - 1]
+  return any(f >= config.observed_frames and in_view[a] and in_view[b]
+             for a, b, f, _ in simulation['collisions'])
+
+
+def sample_video_scene(rng: np.random.Generator, config: ClevrerLikeConfig
+                       ) -> Scene:
+  """The scene of one video: with probability
+  ``config.future_collision_fraction`` the first of up to MAX_SCENE_TRIES
+  draws whose future has a collision (:func:`has_future_collision`), else
+  the first draw. A pure function of ``rng``'s state."""
+  # No extra draw at fraction 0: the scenes are those of generator version 1.
+  wants_future = (config.future_collision_fraction > 0.0
+                  and rng.uniform() < config.future_collision_fraction)
+  scene = sample_scene(rng, config)
+  if wants_future:
+    for _ in range(MAX_SCENE_TRIES - 1):
+      if has_future_collision(simulate(scene, config), config):
+        break
+      scene = sample_scene(rng, config)
+  return scene
+
+
 def video_rng(seed: int, split: str, index: int) -> np.random.Generator:
   # A different stream from the OBJ3D-like family for the same seed.
   return np.random.default_rng([seed, SPLITS.index(split), index, 12])
@@ -507,7 +546,7 @@ def generate_video(config: ClevrerLikeConfig, split: str, index: int, *,
   """
   if split not in SPLITS:
     raise ValueError(f'split must be one of {SPLITS}, got {split!r}')
-  scene = sample_scene(video_rng(config.seed, split, index), config)
+  scene = sample_video_scene(video_rng(config.seed, split, index), config)
   sim = simulate(scene, config, render=render)
   counterfactuals = {k: simulate(scene, config, removed=k)
                      for k in range(scene.num_objects)}
@@ -561,23 +600,59 @@ def _video_for_worker(config: ClevrerLikeConfig, split: str, index: int
   return {k: video[k] for k in ARRAY_FIELDS + ('events',)}
 
 
+def _write_questions(config: ClevrerLikeConfig, root: Path) -> None:
+  """Questions of every split (from its stored event logs) and vocabulary."""
+  # Imported here: the question generator imports this module.
+  from slotformer_jax.data import questions as question_generator  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.data import vqa  # pylint: disable=g-import-not-at-top
+  (root / 'questions').mkdir(exist_ok=True)
+  for split in SPLITS:
+    with open(root / split / 'events.jsonl') as f:
+      logs = [EventLog.from_dict(json.loads(line)) for line in f]
+    scenes = question_generator.generate_split(
+        logs, config.seed, split,
+        video_filenames=[video_filename(split, i) for i in range(len(logs))],
+        scene_offset=SCENE_OFFSETS[split])
+    with open(root / 'questions' / vqa.CLEVRER_SPLIT_FILES[split], 'w') as f:
+      json.dump(scenes, f)
+  vqa.Vocabulary(
+      vqa.make_vocabulary(question_generator.template_words()),
+      vqa.make_vocabulary(question_generator.template_answers()),
+  ).save(root / 'vocab.json')
+
+
 def build_dataset(config: ClevrerLikeConfig,
                   data_dir: str | os.PathLike[str], *,
                   num_workers: int | None = None) -> Path:
   """Generates videos, event logs, questions and vocabulary unless present.
 
+  A dataset built by an older question generator (``questions.VERSION``)
+  gets new questions from its stored event logs; its videos are kept.
   Returns the dataset folder. Deterministic: a pure function of ``config``
   (the worker count does not matter).
   """
-  # Imported here: the question generator imports this module.
   from slotformer_jax.data import questions as question_generator  # pylint: disable=g-import-not-at-top
-  from slotformer_jax.data import vqa  # pylint: disable=g-import-not-at-top
   root = dataset_dir(config, data_dir)
+  complete = {**dataclasses.asdict(config),
+              'questions_version': question_generator.VERSION}
   if (root / _COMPLETE).is_file():
-    return root
-  root.mkdir(parents=True, exist_ok=True)
+    with open(root / _COMPLETE) as f:
+      if json.load(f).get('questions_version') == complete[
+          'questions_version']:
+        return root
+  else:
+    root.mkdir(parents=True, exist_ok=True)
+    _write_videos(config, root, num_workers)
+  _write_questions(config, root)
+  with open(root / _COMPLETE, 'w') as f:
+    json.dump(complete, f)
+  return root
+
+
+def _write_videos(config: ClevrerLikeConfig, root: Path,
+                  num_workers: int | None) -> None:
+  """Frames and event logs of every split."""
   workers = num_workers or len(os.sched_getaffinity(0))
-  all_scenes = {}
   for split in SPLITS:
     count = config.num_videos(split)
     make = functools.partial(_video_for_worker, config, split)
@@ -596,22 +671,6 @@ def build_dataset(config: ClevrerLikeConfig,
     with open(folder / 'events.jsonl', 'w') as f:
       for v in videos:
         f.write(json.dumps(v['events']) + '\n')
-    logs = [EventLog.from_dict(v['events']) for v in videos]
-    all_scenes[split] = question_generator.generate_split(
-        logs, config.seed, split,
-        video_filenames=[video_filename(split, i) for i in range(count)],
-        scene_offset=SCENE_OFFSETS[split])
-  (root / 'questions').mkdir(exist_ok=True)
-  for split, scenes in all_scenes.items():
-    with open(root / 'questions' / vqa.CLEVRER_SPLIT_FILES[split], 'w') as f:
-      json.dump(scenes, f)
-  vqa.Vocabulary(
-      vqa.make_vocabulary(question_generator.template_words()),
-      vqa.make_vocabulary(question_generator.template_answers()),
-  ).save(root / 'vocab.json')
-  with open(root / _COMPLETE, 'w') as f:
-    json.dump(dataclasses.asdict(config), f)
-  return root
 
 
 class NpyVideoSource:

@@ -9,17 +9,23 @@ templates of CLEVRER's four types:
 * explanatory (multiple choice): "which of the following is responsible for
   the collision between A and B"; the presence of X is responsible if, in the
   re-simulated world without X, A and B do not collide during the video; an
-  earlier collision is responsible if it leads to the target through a chain
-  of collisions that share an object (CLEVRER's causal trace);
+  earlier collision between C and D is responsible if removing each of its
+  objects other than A and B prevents the target the same way (both kinds
+  are answered by re-simulation, so they never disagree);
 * predictive (multiple choice): "what will happen next"; a choice "A collides
-  with B" is correct iff they collide after the observed window;
+  with B" is correct iff they collide after the observed window (up to
+  ``MAX_PREDICTIVE`` questions per video, with disjoint choices);
 * counterfactual (multiple choice): "what will happen if X is removed"; a
   choice is correct iff the pair collides, during the video, in the world
   re-simulated without X.
 
-Every multiple-choice question has at least one correct and one wrong choice,
-and open answers are balanced per template (each answer kept at most as often
-as the median answer of its template), so a question-only model cannot do
+Every multiple-choice question has, within each choice kind ("the presence
+of ...", "the collision between ..." naming an object of the target or
+naming none, "... collides with ..."), as many correct as wrong choices (1
+or 2 of each; a kind offering only one label is left out), so neither the
+wording of a choice nor the template tells its label; open answers are
+balanced per template (each answer kept at most as often as the lower
+median answer count of its template), so a question-only model cannot do
 well. Objects are named "the <colour> <shape>" (colours are distinct in a
 video). The output uses CLEVRER's ``questions/<split>.json`` layout, so the
 same reader (:mod:`slotformer_jax.data.vqa`) serves embedded and real data;
@@ -38,10 +44,19 @@ import numpy as np
 from slotformer_jax.data.clevrer_like import Collision, EventLog
 from slotformer_jax.data.convert.synthetic import COLORS, SHAPES
 
+# Bumped when the questions generated from an event log change; a built
+# dataset then regenerates its questions from its stored event logs (the
+# videos do not change). 1: the first generator; 2: explanatory labels by
+# re-simulation, balanced per choice kind, count templates over objects in
+# view, up to 2 predictive / explanatory questions per video.
+VERSION = 2
+
 QUESTION_TYPES = ('descriptive', 'explanatory', 'predictive',
                   'counterfactual')
 MAX_COUNT = 5  # CLEVRER's count answers are 0..5
-MAX_CHOICES_PER_KIND = 2  # at most 2 correct + 2 wrong choices
+MAX_CHOICES = 4  # choices per question (the embedded config's max_choices)
+MAX_PREDICTIVE = 2  # predictive questions per video (disjoint choices)
+MAX_EXPLANATORY = 2  # explanatory questions per video (different targets)
 
 # template -> (question type, question text with {placeholders}).
 TEMPLATES: dict[str, tuple[str, str]] = {
@@ -94,60 +109,113 @@ def _seen(log: EventLog) -> list[int]:
           if i not in late or first_entry[i] < log.observed_frames]
 
 
-def _ancestors(collisions: Sequence[Collision], target: int) -> set[int]:
-  """Indices of collisions leading to ``collisions[target]``: an earlier
-  collision sharing an object is a parent; ancestors are parents' closure."""
-  found: set[int] = set()
-  frontier = [target]
-  while frontier:
-    k = frontier.pop()
-    for j, c in enumerate(collisions):
-      if (j not in found and j != target and c.frame < collisions[k].frame
-          and set(c.objects) & set(collisions[k].objects)):
-        found.add(j)
-        frontier.append(j)
-  return found
+def entered_objects(log: EventLog) -> list[int]:
+  """Objects that come into view during the video from outside it, each
+  once: an object's first entering counts, unless it was in view before
+  (it left and came back) or it enters after the video."""
+  first_exit = {}
+  for i, f in log.exiting:
+    first_exit.setdefault(i, f)
+  first_entry = {}
+  for i, f in log.entering:
+    first_entry.setdefault(i, f)
+  return sorted((i for i, f in first_entry.items()
+                 if f < log.observed_frames
+                 and first_exit.get(i, log.num_frames) > f),
+                key=lambda i: (first_entry[i], i))
 
 
-def _choices(rng: np.random.Generator, correct: Sequence[str],
-             wrong: Sequence[str]) -> list[dict[str, Any]] | None:
-  """1-2 correct and 1-2 wrong choices, shuffled; None if either is empty."""
-  if not correct or not wrong:
+def moving_in_view_at_end(log: EventLog) -> list[int]:
+  """Objects in view and moving at the last observed frame."""
+  return [i for i in _seen(log)
+          if log.in_view_at_end[i] and log.moving_at_end[i]]
+
+
+def _balanced_choices(rng: np.random.Generator,
+                      kinds: Sequence[tuple[Sequence[str], Sequence[str]]]
+                      ) -> list[dict[str, Any]] | None:
+  """Choices with as many correct as wrong ones within every choice kind.
+
+  Args:
+    kinds: per choice kind, its (correct, wrong) candidate texts.
+
+  A kind with only one label offered is left out (its wording would tell the
+  label); from each other kind the same number m of correct and wrong
+  choices is drawn, m in 1..2 (1 when two kinds share the MAX_CHOICES
+  choices; when more kinds qualify than MAX_CHOICES / 2, a random
+  MAX_CHOICES / 2 of them). Returns the shuffled choices, or None if no kind
+  has both labels.
+  """
+  usable = [(c, w) for c, w in kinds if c and w]
+  if not usable:
     return None
+  if 2 * len(usable) > MAX_CHOICES:
+    keep = sorted(rng.choice(len(usable), MAX_CHOICES // 2, replace=False))
+    usable = [usable[int(i)] for i in keep]
+  per_kind = MAX_CHOICES // (2 * len(usable))
   picked = []
-  for pool, label in ((correct, 'correct'), (wrong, 'wrong')):
-    k = int(rng.integers(1, min(MAX_CHOICES_PER_KIND, len(pool)) + 1))
-    for idx in rng.choice(len(pool), k, replace=False):
-      picked.append((pool[int(idx)], label))
+  for correct, wrong in usable:
+    m = int(rng.integers(1, min(per_kind, len(correct), len(wrong)) + 1))
+    for pool, label in ((correct, 'correct'), (wrong, 'wrong')):
+      for idx in rng.choice(len(pool), m, replace=False):
+        picked.append((pool[int(idx)], label))
   order = rng.permutation(len(picked))
   return [{'choice_id': c, 'choice': picked[int(k)][0],
            'answer': picked[int(k)][1]} for c, k in enumerate(order)]
 
 
-def responsible_choices(log: EventLog, k: int) -> tuple[list[str], list[str]]:
-  """(correct, wrong) choices of "which is responsible for the collision
-  ``log.observed_collisions()[k]``"."""
+def _prevents(log: EventLog, x: int, pair: tuple[int, int]) -> bool:
+  """Whether ``pair`` does not collide during the video without ``x``."""
+  return not any(c.objects == pair for c in log.counterfactual[x]
+                 if c.frame < log.observed_frames)
+
+
+def responsible_choices(log: EventLog, k: int
+                        ) -> dict[str, tuple[list[str], list[str]]]:
+  """Per choice kind, the (correct, wrong) choices of "which is responsible
+  for the collision ``log.observed_collisions()[k]``".
+
+  Kinds: 'presence'; 'collision_event', an earlier collision that involves
+  one of the target's objects; 'other_collision_event', one that does not.
+  The two collision kinds are balanced apart because the words tell them
+  apart (a collision naming an object of the question is far more often
+  responsible).
+
+  The presence of X (seen before the target, not one of its objects) is
+  responsible iff the target pair does not collide during the video in the
+  world without X. An earlier collision between C and D (not the target
+  pair) is responsible iff removing each of C, D that is not in the target
+  prevents it the same way: removing an object removes its collisions, and
+  asking it of every such object ties the label to this collision rather
+  than to one object's other effects.
+  """
   observed = log.observed_collisions()
   target = observed[k]
-  correct, wrong = [], []
+  presence: tuple[list[str], list[str]] = ([], [])
   for x in _seen(log):
     if x in target.objects or x not in log.counterfactual:
       continue
     if any(e == x and f > target.frame for e, f in log.entering):
       continue  # not there yet when the collision happened
-    still = any(c.objects == target.objects for c in log.counterfactual[x]
-                if c.frame < log.observed_frames)
     text = CHOICE_TEMPLATES['presence'].format(obj=name(log, x))
-    (wrong if still else correct).append(text)
-  ancestors = _ancestors(observed, k)
-  for j, c in enumerate(observed):
-    if j == k or c.frame >= target.frame or c.objects == target.objects:
+    presence[0 if _prevents(log, x, target.objects) else 1].append(text)
+  events: dict[bool, tuple[list[str], list[str]]] = {True: ([], []),
+                                                     False: ([], [])}
+  for c in observed:
+    if c.frame >= target.frame or c.objects == target.objects:
+      continue
+    others = [x for x in c.objects if x not in target.objects]
+    if not all(x in log.counterfactual for x in others):
       continue
     text = CHOICE_TEMPLATES['collision_event'].format(
         a=name(log, c.objects[0]), b=name(log, c.objects[1]))
-    if text not in correct and text not in wrong:
-      (correct if j in ancestors else wrong).append(text)
-  return correct, wrong
+    kind = events[len(others) == 1]  # shares an object with the target
+    if text in kind[0] or text in kind[1]:
+      continue  # the same pair collided twice before the target
+    kind[0 if all(_prevents(log, x, target.objects) for x in others)
+         else 1].append(text)
+  return {'presence': presence, 'collision_event': events[True],
+          'other_collision_event': events[False]}
 
 
 def predictive_choices(log: EventLog) -> tuple[list[str], list[str]]:
@@ -213,11 +281,15 @@ def candidate_questions(log: EventLog, rng: np.random.Generator
   # ---- descriptive ---------------------------------------------------------
   if len(observed) <= MAX_COUNT:
     ask('count_collisions', len(observed))
-  entered = [i for i, f in log.entering if f < log.observed_frames]
+  # Objects, not entering events: one that leaves and comes back is not
+  # counted, nor twice.
+  entered = entered_objects(log)
   if len(entered) <= MAX_COUNT:
     ask('count_entering', len(entered))
   present_at_end = [i for i in seen if log.in_view_at_end[i]]
-  ask('count_moving_end', sum(log.moving_at_end[i] for i in seen))
+  # Only what the last frame shows: an object moving outside the view is not
+  # "in the video" any more.
+  ask('count_moving_end', len(moving_in_view_at_end(log)))
   if present_at_end:
     i = present_at_end[int(rng.integers(len(present_at_end)))]
     ask('is_moving_end', 'yes' if log.moving_at_end[i] else 'no',
@@ -239,31 +311,50 @@ def candidate_questions(log: EventLog, rng: np.random.Generator
     ask('color_entering', log.objects[entered[0]]['color'])
 
   # ---- explanatory ---------------------------------------------------------
-  # Targets: first collisions of a pair with both correct and wrong choices.
+  # Targets: first collisions of a pair with both labels in some choice kind.
   targets = [k for k, c in enumerate(observed)
              if all(d.objects != c.objects for d in observed[:k])
-             and all(responsible_choices(log, k))]
-  if targets:
-    k = targets[int(rng.integers(len(targets)))]
+             and any(right and wrong
+                     for right, wrong in responsible_choices(log, k).values())]
+  picked = rng.choice(len(targets), min(MAX_EXPLANATORY, len(targets)),
+                      replace=False) if targets else []
+  for k in sorted(targets[int(i)] for i in picked):
     target = observed[k].objects
-    ask('responsible', choices=_choices(rng, *responsible_choices(log, k)),
+    ask('responsible', choices=_balanced_choices(
+        rng, list(responsible_choices(log, k).values())),
         a=name(log, target[0]), b=name(log, target[1]))
 
   # ---- predictive ----------------------------------------------------------
-  ask('next', choices=_choices(rng, *predictive_choices(log)))
+  # Up to MAX_PREDICTIVE questions, the pools dealt out so that no choice is
+  # asked twice about one video.
+  correct, wrong = predictive_choices(log)
+  num = min(MAX_PREDICTIVE, len(correct), len(wrong))
+  correct = [correct[int(i)] for i in rng.permutation(len(correct))]
+  wrong = [wrong[int(i)] for i in rng.permutation(len(wrong))]
+  for part in range(num):
+    ask('next', choices=_balanced_choices(
+        rng, [(correct[part::num], wrong[part::num])]))
 
   # ---- counterfactual ------------------------------------------------------
   removable = [x for x in seen if x in log.counterfactual]
   if removable:
     x = removable[int(rng.integers(len(removable)))]
-    ask('removed', choices=_choices(rng, *counterfactual_choices(log, x)),
-        obj=name(log, x))
+    ask('removed', choices=_balanced_choices(
+        rng, [counterfactual_choices(log, x)]), obj=name(log, x))
   return out
+
+
+def lower_median(counts: Sequence[int]) -> int:
+  """The median of ``counts``; of the two middle values, the smaller."""
+  return int(sorted(counts)[(len(counts) - 1) // 2])
 
 
 def balance(questions: list[dict[str, Any]], rng: np.random.Generator
             ) -> list[dict[str, Any]]:
-  """Keeps each open answer at most median-count times per template.
+  """Keeps each open answer at most (lower-)median-count times per template.
+
+  The lower median makes a two-answer template (yes / no, 0 / 1) exactly
+  balanced.
 
   Multiple-choice questions are kept as they are (each already mixes correct
   and wrong choices). Returns the kept questions in their original order.
@@ -277,7 +368,7 @@ def balance(questions: list[dict[str, Any]], rng: np.random.Generator
     per_template[template].append(len(members))
   drop: set[int] = set()
   for (template, _), members in sorted(groups.items()):
-    cap = int(np.ceil(np.median(per_template[template])))
+    cap = lower_median(per_template[template])
     if len(members) > cap:
       keep = set(rng.choice(members, cap, replace=False).tolist())
       drop.update(m for m in members if m not in keep)

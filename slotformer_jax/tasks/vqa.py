@@ -348,6 +348,26 @@ class VqaMetrics:
     return out
 
 
+def open_accuracy_per_template(questions: Sequence[EncodedQuestion],
+                               open_answers: Mapping[int, int]
+                               ) -> dict[str, dict[str, float]]:
+  """Descriptive accuracy per template (embedded data; CLEVRER's files have
+  no templates): which questions read the slots shows here first.
+
+  Args:
+    questions: the encoded questions (``questions[k]``).
+    open_answers: k -> predicted answer id, for descriptive questions.
+  """
+  right, count = collections.Counter(), collections.Counter()
+  for k, answer in open_answers.items():
+    q = questions[k]
+    if q.template and q.answer >= 0:
+      right[q.template] += int(answer == q.answer)
+      count[q.template] += 1
+  return {t: {'accuracy': right[t] / count[t], 'questions': count[t]}
+          for t in sorted(count)}
+
+
 # ----------------------------------------------------------------------------
 # The answer prior
 # ----------------------------------------------------------------------------
