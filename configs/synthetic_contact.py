@@ -99,6 +99,11 @@ def get_config(variant: str = ''):
     r.seeds = (0, 1)
     r.epochs = 2
     r.batch_size = 8
+  elif variant == 'side':
+    # The agent launched from the left / right edge, across the camera's
+    # view (data/convert/contact.py: launch_side); a new data seed.
+    data.launch_side = 'side'
+    data.seed = 1
   elif variant:
-    raise ValueError(f'unknown variant {variant!r}; use "" or "tiny"')
+    raise ValueError(f'unknown variant {variant!r}; use "", "tiny" or "side"')
   return config
