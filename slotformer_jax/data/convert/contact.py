@@ -178,29 +178,30 @@ def sample_contact_scene(rng: np.random.Generator, config: ContactConfig,
   num_distractors = int(rng.integers(config.min_distractors,
                                      config.max_distractors + 1))
   side = config.launch_side == 'side'
-  if side:  # its size first: the start must clear the other objects
+  if side:  # its size first: the distractors keep clear of its start
     agent_size = int(rng.integers(0, len(synthetic.SIZES)))
     agent_radius = synthetic.SIZE_RADII[agent_size] * scale
   for _ in range(_MAX_SCENE_ATTEMPTS):
     shapes = rng.integers(0, len(synthetic.SHAPES), num_distractors + 1)
     sizes = rng.integers(0, len(synthetic.SIZES), num_distractors + 1)
     placed: list[tuple[float, float, float]] = []
+    keep_clear: list[tuple[float, float, float]] = []
     for k, (shape, size) in enumerate(zip(shapes, sizes)):
       footprint = synthetic._footprint_radius(  # pylint: disable=protected-access
           int(shape), synthetic.SIZE_RADII[size] * scale)
       ranges = ((PATIENT_X_RANGE, PATIENT_Y_RANGE) if k == 0 else
                 (synthetic.STATIC_X_RANGE, synthetic.STATIC_Y_RANGE))
-      xy = _place(rng, placed, footprint, *ranges)
+      xy = _place(rng, placed + keep_clear, footprint, *ranges)
       if xy is None:
         break
       placed.append((*xy, footprint))
-    if len(placed) < num_distractors + 1:
-      continue
-    if not side:
-      break
-    start = _side_start(rng, placed[0][:2])
-    if all(np.hypot(*(start - p[:2])) > p[2] + agent_radius + synthetic.MIN_GAP
-           for p in placed):
+      if side and k == 0:  # the start depends on where the patient is
+        start = _side_start(rng, xy)
+        if np.hypot(*(start - np.asarray(xy))) <= (
+            footprint + agent_radius + synthetic.MIN_GAP):
+          break  # the agent would start inside the patient: re-sample
+        keep_clear = [(*start, agent_radius)]
+    if len(placed) == num_distractors + 1:
       break
   else:
     raise ValueError('could not place the objects; use fewer distractors')
