@@ -5,7 +5,9 @@
 
 runs SAVi -> slot extraction -> SlotFormer -> readout training (per input
 condition and seed, selection on validation) -> readout evaluation on test.
-`:tiny` is a smoke run whose numbers mean nothing.
+`:tiny` is a smoke run whose numbers mean nothing; `:side` launches the
+red sphere from the left / right edge, across the view, instead of from the
+front (data seed 1; docs/downstream.md).
 
 Videos (data/convert/contact.py): a red sphere launched at (or beside) a
 yellow object among 1-2 distractors, pybullet, 32x32, 24 frames at 20 fps; the
