@@ -6,14 +6,25 @@ no L_I (lambda=0), its context growing from the 1 observed frame to 6
 frames, then sliding. The official models: `savi_phyre_params-fold0` and
 `slotformer_phyre_params-fold0`; docs/official_architectures.md maps every
 official layer onto these modules.
+
+`--config=configs/phyre.py:planning` adds the planning task on the same
+models (`--mode=train_readout`, `--mode=plan`; tasks/phyre_rendered.py):
+the official task-success classifier (readout_phyre_params-fold0: frames
+(0, 3) of the 1-fps rollout, d_model 128, 4 Pre-LN layers, 8 heads, Adam
+1e-3, 10% warm-up + cosine, batch 256, 50 epochs). The pre-rendered layout
+holds only a subset of each task's actions and `phyre` cannot be installed,
+so planning ranks the rendered candidates of each test task: NOT the
+official 10,000-action protocol (docs/downstream.md).
 """
+
+import ml_collections
 
 from slotformer_jax.default_config import base_config
 from slotformer_jax.default_config import use_official_savi_recipe
 from slotformer_jax.default_config import use_official_slotformer_recipe
 
 
-def get_config():
+def get_config(variant: str = ''):
   config = base_config()
   config.data.name = 'phyre'
   config.data.resolution = (128, 128)
@@ -55,4 +66,34 @@ def get_config():
   config.extraction.splits = ('train', 'val')
   config.evaluation.split = 'val'
   config.evaluation.metrics = ('psnr', 'ssim', 'lpips')
+  if variant == 'planning':
+    _planning(config)
+  elif variant:
+    raise ValueError(f'unknown variant {variant!r}; use "" or "planning"')
   return config
+
+
+def _planning(config: ml_collections.ConfigDict) -> None:
+  """The official PHYRE task-success classifier (readout_phyre_params)."""
+  config.task = 'planning'
+  config.readout = r = ml_collections.ConfigDict()
+  # The fold the layout was rendered for (render_phyre.py --fold); it only
+  # labels the results (not in `data`, so SAVi's identity is unchanged).
+  r.fold = 0
+  r.candidates = 'rendered'      # the only set ranked without `phyre`
+  r.splits = ml_collections.ConfigDict(dict(train='train', test='val'))
+  r.conditions = ('first_frame', 'rollout')
+  r.selected_steps = (0, 3)      # official sel_slots at 1 fps
+  r.embed_dim = 128
+  r.num_layers = 4
+  r.num_heads = 8
+  r.mlp_ratio = 4
+  r.seeds = (0, 1, 2)
+  # Not official: it picks the checkpoint on the test tasks' rollouts; we
+  # hold out 10% of every template's training tasks instead.
+  r.dev_share = 0.1
+  r.epochs = 50
+  r.batch_size = 256
+  r.learning_rate = 1e-3
+  r.warmup_fraction = 0.1
+  r.encode_batch_size = 256

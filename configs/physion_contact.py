@@ -11,8 +11,11 @@ chosen on 'readout_val' (the official script picks them on test), 3 seeds.
 Labels come from the converter's `label` field (readout_labels.csv for the
 Readout Fitting videos, labels.csv for the Testing videos).
 
-As configs/physion.py, the paper's slot model is STEVE: use
-`--config.slot_model=savi` until STEVE is available.
+As configs/physion.py, the slot model is STEVE (the paper's Physion
+pipeline): the stages are train_dvae, tokenize_frames, train_steve,
+extract_slots, train_slotformer (on STEVE's slots), train_readout,
+evaluate_readout, and the readout reads STEVE's 192-d slots;
+`--config.slot_model=savi` swaps SAVi in.
 """
 
 import ml_collections

@@ -5,7 +5,9 @@
 
 runs SAVi -> slot extraction -> SlotFormer -> readout training (per input
 condition and seed, selection on validation) -> readout evaluation on test.
-`:tiny` is a smoke run whose numbers mean nothing.
+`:tiny` is a smoke run whose numbers mean nothing; `:side` launches the
+red sphere from the left / right edge, across the view, instead of from the
+front (data seed 1; docs/downstream.md).
 
 Videos (data/convert/contact.py): a red sphere launched at (or beside) a
 yellow object among 1-2 distractors, pybullet, 32x32, 24 frames at 20 fps; the
@@ -99,6 +101,11 @@ def get_config(variant: str = ''):
     r.seeds = (0, 1)
     r.epochs = 2
     r.batch_size = 8
+  elif variant == 'side':
+    # The agent launched from the left / right edge, across the camera's
+    # view (data/convert/contact.py: launch_side); a new data seed.
+    data.launch_side = 'side'
+    data.seed = 1
   elif variant:
-    raise ValueError(f'unknown variant {variant!r}; use "" or "tiny"')
+    raise ValueError(f'unknown variant {variant!r}; use "", "tiny" or "side"')
   return config

@@ -91,3 +91,37 @@ def test_written_dataset_reads_back(tmp_path):
   for key, value in expected.items():
     np.testing.assert_array_equal(item[key], value, err_msg=key)
   assert contact.build_contact_dataset(config, tmp_path) == path
+
+
+def test_side_launch_moves_across_the_view():
+  side = dataclasses.replace(TINY, launch_side='side')
+  videos = [contact.generate_video(side, 'readout_test', i) for i in range(4)]
+  assert [bool(v['contact']) for v in videos] == [False, True, False, True]
+  for video in videos:
+    agent, patient = int(video['agent_index']), int(video['patient_index'])
+    start = video['positions'][0, agent]
+    # From the left / right edge, on the side away from the patient, at its
+    # depth, moving mostly across the view (x) rather than along it (y).
+    assert abs(start[0]) == pytest.approx(contact.SIDE_LAUNCH_X)
+    assert np.sign(start[0]) != np.sign(video['positions'][0, patient, 0])
+    assert abs(start[1] - video['positions'][0, patient, 1]) <= (
+        contact.SIDE_LAUNCH_DEPTH_NOISE + 1e-6)
+    vx, vy = video['velocities'][0, agent, :2]
+    assert abs(vx) > abs(vy)
+    if bool(video['contact']):
+      assert int(video['contact_frame']) >= side.observed_frames
+  again = contact.generate_video(side, 'readout_test', 3)
+  for key, value in videos[3].items():
+    np.testing.assert_array_equal(value, again[key], err_msg=key)
+  assert side.slug != TINY.slug
+  with pytest.raises(ValueError, match='launch_side'):
+    dataclasses.replace(TINY, launch_side='top')
+
+
+def test_front_launch_datasets_are_unchanged_by_the_option():
+  # The slug of the default (front) config, as before `launch_side` existed:
+  # cached datasets keep their names (the generated videos are unchanged,
+  # checked against the previous generator when the option was added).
+  config = contact.ContactConfig(resolution=(16, 16), supersample=1,
+                                 num_frames=12, observed_frames=6)
+  assert config.slug == 'r16x16_t12_obs6_d1-2_s0_n1000-400-100-200_19cd5100'

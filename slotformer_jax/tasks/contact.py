@@ -39,6 +39,7 @@ from PIL import ImageDraw
 
 from slotformer_jax import models
 from slotformer_jax import inference
+from slotformer_jax import steve_inference
 from slotformer_jax import workdir as workdir_lib
 from slotformer_jax.data.slots import SlotSource
 from slotformer_jax.data.sources import get_video_source
@@ -62,9 +63,17 @@ def readout_dir(workdir: str) -> str:
   return os.path.join(workdir, 'readout')
 
 
+def slot_size(config: ml_collections.ConfigDict) -> int:
+  """The size of the slots the readout reads: STEVE's on the paper's
+  Physion pipeline (``slot_model='steve'``), else SAVi's."""
+  if config.get('slot_model', 'savi') == 'steve':
+    return config.steve.slot_size
+  return config.savi.slot_size
+
+
 def build_readout(config: ml_collections.ConfigDict) -> readouts.PhysionReadout:
   return readouts.PhysionReadout(
-      features=config.readout.features or config.savi.slot_size,
+      features=config.readout.features or slot_size(config),
       pairs=config.readout.pairs)
 
 
@@ -131,7 +140,10 @@ def rollout_fn(config: ml_collections.ConfigDict, workdir: str, mesh: Mesh):
   """observed slots [V, O, N, D], steps -> SlotFormer's rollout [V, K, N, D]
   at the slots' frame rate (interleaved when SlotFormer was trained on
   every ``slotformer.frame_stride``-th frame)."""
-  params, step = inference.load_dynamics_params(config, workdir, mesh)
+  if config.get('slot_model', 'savi') == 'steve':  # trained on STEVE's slots
+    params, step = steve_inference.load_dynamics_params(config, workdir, mesh)
+  else:
+    params, step = inference.load_dynamics_params(config, workdir, mesh)
   logger.info('rollouts from SlotFormer step %d', step)
   model = models.build_slotformer(config)
   batch = config.readout.rollout_batch_size
@@ -283,13 +295,11 @@ def evaluate_readout(config: ml_collections.ConfigDict, workdir: str,
 def write_pictures(config: ml_collections.ConfigDict, workdir: str,
                    mesh: Mesh, rollout_slots: np.ndarray,
                    probabilities: np.ndarray, labels: np.ndarray) -> None:
-  """readout/test_<i>.png: real frames over SAVi's decoding of [observed,
-  SlotFormer rollout] slots (green border: observed, red: rolled out), with
-  the readout's contact probability (first seed) and the truth."""
-  savi_params, _ = inference.load_savi_params(config, workdir, mesh)
-  decoder = models.build_decoder(config)
-  decode = jax.jit(lambda slots: inference.decode_slots(
-      savi_params['decoder'], slots, decoder=decoder).recon)
+  """readout/test_<i>.png: real frames over the slot model's decoding of
+  [observed, SlotFormer rollout] slots (green border: observed, red: rolled
+  out), with the readout's contact probability (first seed) and the truth.
+  STEVE's frames are generated token by token (steve_evaluate)."""
+  decode = _frame_decoder(config, workdir, mesh)
   videos = get_video_source(config.data, readout_splits(config)[2])
   observed = config.readout.observed_frames
   scale, every = 3, 2
@@ -320,6 +330,23 @@ def write_pictures(config: ml_collections.ConfigDict, workdir: str,
         f'{probabilities[i]:.2f}; truth: {"contact" if labels[i] else "none"}'
         + (f' (onset frame {onset})' if onset >= 0 else ''), fill=(0, 0, 0))
     canvas.save(os.path.join(readout_dir(workdir), f'test_{i}.png'))
+
+
+def _frame_decoder(config: ml_collections.ConfigDict, workdir: str,
+                   mesh: Mesh):
+  """Jitted slots [T, N, D] -> frames [T, H, W, 3] in [0, 1]."""
+  if config.get('slot_model', 'savi') == 'steve':
+    # pylint: disable=g-import-not-at-top
+    from slotformer_jax.evaluation import steve_evaluate
+    steve_params, _ = steve_inference.load_steve_params(config, workdir, mesh)
+    dvae_params, _ = steve_inference.load_dvae_params(config, workdir, mesh)
+    generate = steve_evaluate.make_generator(config)
+    return jax.jit(lambda slots: generate(steve_params, dvae_params,
+                                          slots).recon)
+  savi_params, _ = inference.load_savi_params(config, workdir, mesh)
+  decoder = models.build_decoder(config)
+  return jax.jit(lambda slots: inference.decode_slots(
+      savi_params['decoder'], slots, decoder=decoder).recon)
 
 
 _ROW_NAMES = {

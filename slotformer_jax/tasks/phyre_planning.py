@@ -23,6 +23,10 @@ SlotFormer's rollout starts from the first frame alone
 (``slotformer.burn_in`` = 1); with ``slotformer.max_context`` > 1 its context
 then grows with its own predictions (the official PHYRE model, 6 frames).
 
+The real PHYRE layout (``config.data.name == 'phyre'``) has rendered
+rollouts instead of a simulator: tasks/phyre_rendered.py, dispatched from
+``train_readout`` and ``plan`` here.
+
 Workdir: ``planning/<condition>/seed_<s>/{params.msgpack, selection.json}``,
 ``planning/results.json``, ``planning/results.md``.
 """
@@ -49,6 +53,7 @@ from slotformer_jax import inference
 from slotformer_jax.data.convert import phyre_like
 from slotformer_jax.data.sources import resolve_data_dir
 from slotformer_jax.modules import readouts
+from slotformer_jax.tasks import phyre_rendered
 from slotformer_jax.tasks import planning
 from slotformer_jax.tasks import readout as readout_lib
 
@@ -181,6 +186,8 @@ def _run_dir(workdir: str, condition: str, seed: int) -> str:
 def train_readout(config: ml_collections.ConfigDict, workdir: str,
                   mesh: Mesh) -> None:
   """Fits the success classifiers; the epoch is chosen by dev AUCCESS."""
+  if config.data.name == 'phyre':  # the real, pre-rendered layout
+    return phyre_rendered.train_readout(config, workdir, mesh)
   by_split, outcomes, generation = _setup(config, workdir, mesh,
                                           ('train', 'dev'))
   rng = np.random.default_rng(config.seed)
@@ -230,6 +237,8 @@ def train_readout(config: ml_collections.ConfigDict, workdir: str,
 def plan(config: ml_collections.ConfigDict, workdir: str,
          mesh: Mesh) -> dict[str, Any]:
   """Ranks every candidate of every test task; AUCCESS per method."""
+  if config.data.name == 'phyre':  # the real, pre-rendered layout
+    return phyre_rendered.plan(config, workdir, mesh)
   by_split, outcomes, generation = _setup(config, workdir, mesh, ('test',))
   test, test_outcomes = by_split['test'], outcomes['test']
   seeds = tuple(config.readout.seeds)

@@ -9,7 +9,10 @@ copied):
 
 * object row 0 is the yellow patient (a random shape), rows 1..n-2 are
   distractors (never red or yellow), row n-1 is the red agent, a sphere
-  launched from the front of the scene;
+  launched from the front of the scene (``launch_side='front'``: along the
+  camera's view direction) or from the left / right edge at the patient's
+  depth (``'side'``: across the view, so a hit and a near miss look
+  different in the image);
 * the label is whether agent and patient touch at ANY physics substep of the
   whole video (``pybullet.getClosestPoints`` after every ``stepSimulation``,
   not only at rendered frames), with the onset frame and per-frame
@@ -63,6 +66,12 @@ AGENT_SPEED_RANGE = (3.0, 4.5)
 # MISS_ANGLE_RANGE away, so they are near misses rather than trivial ones.
 HIT_NOISE = 0.05                  # [rad]
 MISS_ANGLE_RANGE = (0.15, 0.45)   # [rad]
+# 'side' launches start this far [m] from the scene's centre line, on the
+# side away from the patient (the longer run keeps onsets after the observed
+# frames), at the patient's depth +- SIDE_LAUNCH_DEPTH_NOISE.
+SIDE_LAUNCH_X = 2.6
+SIDE_LAUNCH_DEPTH_NOISE = 0.3
+LAUNCH_SIDES = ('front', 'side')
 # Surfaces closer than this [m] touch (bullet keeps a small collision margin).
 CONTACT_DISTANCE = 1e-3
 _MAX_SCENE_ATTEMPTS = 200
@@ -82,6 +91,9 @@ class ContactConfig:
       per split.
     supersample: anti-aliasing factor (see synthetic.py).
     object_scale: multiplies every object's size.
+    launch_side: where the agent starts: 'front' (the camera's side, moving
+      along the view direction) or 'side' (the left / right edge, moving
+      across it).
   """
 
   resolution: tuple[int, int] = (64, 64)
@@ -96,6 +108,7 @@ class ContactConfig:
   num_readout_test: int = 200
   supersample: int = 2
   object_scale: float = 1.0
+  launch_side: str = 'front'
 
   def __post_init__(self):
     object.__setattr__(self, 'resolution',
@@ -109,6 +122,9 @@ class ContactConfig:
       raise ValueError('need 0 <= min_distractors <= max_distractors <= 4')
     if min(self.num_videos(s) for s in SPLITS) < 0 or self.seed < 0:
       raise ValueError('split sizes and seed must be >= 0')
+    if self.launch_side not in LAUNCH_SIDES:
+      raise ValueError(f'launch_side must be one of {LAUNCH_SIDES}, got '
+                       f'{self.launch_side!r}')
 
   @property
   def max_objects_total(self) -> int:
@@ -123,8 +139,11 @@ class ContactConfig:
   @property
   def slug(self) -> str:
     h, w = self.resolution
+    fields = dataclasses.asdict(self)
+    if fields['launch_side'] == 'front':  # the datasets made before the option
+      del fields['launch_side']
     payload = json.dumps(
-        {**dataclasses.asdict(self), 'generator_version': GENERATOR_VERSION,
+        {**fields, 'generator_version': GENERATOR_VERSION,
          'synthetic_version': synthetic.GENERATOR_VERSION}, sort_keys=True)
     digest = hashlib.sha256(payload.encode()).hexdigest()[:8]
     return (f'r{h}x{w}_t{self.num_frames}_obs{self.observed_frames}'
@@ -158,19 +177,30 @@ def sample_contact_scene(rng: np.random.Generator, config: ContactConfig,
   scale = config.object_scale
   num_distractors = int(rng.integers(config.min_distractors,
                                      config.max_distractors + 1))
+  side = config.launch_side == 'side'
+  if side:  # its size first: the distractors keep clear of its start
+    agent_size = int(rng.integers(0, len(synthetic.SIZES)))
+    agent_radius = synthetic.SIZE_RADII[agent_size] * scale
   for _ in range(_MAX_SCENE_ATTEMPTS):
     shapes = rng.integers(0, len(synthetic.SHAPES), num_distractors + 1)
     sizes = rng.integers(0, len(synthetic.SIZES), num_distractors + 1)
     placed: list[tuple[float, float, float]] = []
+    keep_clear: list[tuple[float, float, float]] = []
     for k, (shape, size) in enumerate(zip(shapes, sizes)):
       footprint = synthetic._footprint_radius(  # pylint: disable=protected-access
           int(shape), synthetic.SIZE_RADII[size] * scale)
       ranges = ((PATIENT_X_RANGE, PATIENT_Y_RANGE) if k == 0 else
                 (synthetic.STATIC_X_RANGE, synthetic.STATIC_Y_RANGE))
-      xy = _place(rng, placed, footprint, *ranges)
+      xy = _place(rng, placed + keep_clear, footprint, *ranges)
       if xy is None:
         break
       placed.append((*xy, footprint))
+      if side and k == 0:  # the start depends on where the patient is
+        start = _side_start(rng, xy)
+        if np.hypot(*(start - np.asarray(xy))) <= (
+            footprint + agent_radius + synthetic.MIN_GAP):
+          break  # the agent would start inside the patient: re-sample
+        keep_clear = [(*start, agent_radius)]
     if len(placed) == num_distractors + 1:
       break
   else:
@@ -179,7 +209,9 @@ def sample_contact_scene(rng: np.random.Generator, config: ContactConfig,
       [PATIENT_COLOR],
       rng.choice(DISTRACTOR_COLORS, num_distractors, replace=False),
       [AGENT_COLOR]])
-  start = np.array([rng.uniform(*synthetic.LAUNCH_X_RANGE), synthetic.LAUNCH_Y])
+  if not side:  # (draw order of the datasets made before launch_side)
+    start = np.array([rng.uniform(*synthetic.LAUNCH_X_RANGE),
+                      synthetic.LAUNCH_Y])
   direction = np.array(placed[0][:2]) - start
   angle = np.arctan2(direction[1], direction[0])
   if want_contact:
@@ -187,15 +219,25 @@ def sample_contact_scene(rng: np.random.Generator, config: ContactConfig,
   else:
     angle += rng.choice([-1.0, 1.0]) * rng.uniform(*MISS_ANGLE_RANGE)
   speed = rng.uniform(*AGENT_SPEED_RANGE)
+  if not side:
+    agent_size = int(rng.integers(0, len(synthetic.SIZES)))
   return synthetic.Scene(
       shapes=np.append(shapes, synthetic.SHAPES.index('sphere')).astype(
           np.int32),
       colors=colors.astype(np.int32),
-      sizes=np.append(sizes, rng.integers(0, len(synthetic.SIZES))).astype(
-          np.int32),
+      sizes=np.append(sizes, agent_size).astype(np.int32),
       xy=np.concatenate([np.array([p[:2] for p in placed]), start[None]], 0),
       yaw=rng.uniform(0.0, 2.0 * np.pi, num_distractors + 2),
       launch_velocity=speed * np.array([np.cos(angle), np.sin(angle)]))
+
+
+def _side_start(rng: np.random.Generator,
+                patient_xy: tuple[float, float]) -> np.ndarray:
+  """float [2]: a 'side' launch's start, on the side away from the patient."""
+  edge = -SIDE_LAUNCH_X if patient_xy[0] > 0 else SIDE_LAUNCH_X
+  depth = patient_xy[1] + rng.uniform(-SIDE_LAUNCH_DEPTH_NOISE,
+                                      SIDE_LAUNCH_DEPTH_NOISE)
+  return np.array([edge, depth])
 
 
 def simulate(scene: synthetic.Scene, config: ContactConfig, *,
