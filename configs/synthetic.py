@@ -59,11 +59,12 @@ def get_config(variant: str = ''):
   # scratch, 2000 steps did not even learn to copy: slot MSE 0.049 vs 0.011).
   dyn.residual = True
   # The paper's loss, L_S + L_I (lambda = 1). L_I decodes every predicted
-  # frame through SAVi's frozen decoder, about 5x the cost of an L_S-only
-  # step here, so the demo trains half as many steps as it did on L_S alone;
-  # measured on the 100 test videos, 1,000 steps with L_I beat 2,000 without
-  # it on every rollout metric (PSNR 21.87 vs 20.95, LPIPS 0.144 vs 0.158,
-  # FG-ARI 0.723 vs 0.684). `--config.slotformer.image_loss_weight=0` is the
+  # frame through SAVi's frozen decoder, about 4x the cost of an L_S-only
+  # step here (measured on an idle 2-core CPU: 2.5 vs ~9.5 steps/s), so the
+  # demo trains half as many steps as it did on L_S alone; on the 100 test
+  # videos, 1,000 steps with L_I beat 2,000 without it on every rollout
+  # metric but AR (PSNR 21.87 vs 20.95, LPIPS 0.144 vs 0.158, FG-ARI 0.723
+  # vs 0.684, AR 0.130 vs 0.134). `--config.slotformer.image_loss_weight=0` is the
   # paper's "no L_I" ablation.
   dyn.image_loss_weight = 1.0
   dyn.batch_size = 32
