@@ -35,7 +35,9 @@ def get_config():
       train='readout_train', val='readout_val', test='test'))
   r.conditions = ('observed', 'rollout', 'copy_last', 'ground_truth')
   r.seeds = (0, 1, 2)
-  r.features = None          # the slot size (192), as the official readout
+  # None: the slot size (192), as the official readout (typed, so that
+  # --config.readout.features=N can set it).
+  r.features = ml_collections.config_dict.placeholder(int)
   r.pairs = 'unordered'
   r.epochs = 50
   r.batch_size = 64

@@ -28,13 +28,15 @@ def base_config() -> ml_collections.ConfigDict:
   # ---- data (see slotformer_jax/data/sources.py for every field) ----------
   config.data = ml_collections.ConfigDict()
   config.data.name = 'synthetic'
-  config.data.data_dir = None  # None: $SLOTFORMER_DATA_DIR or ~/.cache/...
+  # None: $SLOTFORMER_DATA_DIR or ~/.cache/... (a typed placeholder, so that
+  # --config.data.data_dir=... can set it).
+  config.data.data_dir = ml_collections.config_dict.placeholder(str)
   # Real datasets: 'rgb' (as converted) or 'bgr' (the official CLEVRER
   # models saw OpenCV's BGR frames; the official Physion ones saw RGB).
   config.data.channel_order = 'rgb'
   # Real datasets: which conversion under <data_dir>/<name> to read when
   # `resolution` does not single one out (None: the only / matching one).
-  config.data.prepared_config = None
+  config.data.prepared_config = ml_collections.config_dict.placeholder(str)
   config.data.resolution = (64, 64)
   # Largest ground-truth instance id in the segmentations (0 = background).
   config.data.max_instances = 6

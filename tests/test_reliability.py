@@ -515,3 +515,44 @@ def test_anticipated_errors_are_one_line(tmp_path):
     assert result.returncode != 0, result.stderr
     assert 'Traceback' not in result.stderr, result.stderr
     assert len(lines) == 1 and needle in lines[0], result.stderr
+
+
+
+def _none_fields(config, prefix=''):
+  """(dotted name, its ConfigDict, key) of every field whose value is None."""
+  for key in config.keys():
+    value = config[key]
+    if isinstance(value, ml_collections.ConfigDict):
+      yield from _none_fields(value, f'{prefix}{key}.')
+    elif value is None:
+      yield f'{prefix}{key}', config, key
+
+
+@pytest.mark.parametrize('name', sorted(
+    f[:-3] for f in os.listdir(os.path.join(ROOT, 'configs'))
+    if f.endswith('.py') and not f.startswith('_')))
+def test_every_unset_field_can_be_set_on_the_command_line(name, monkeypatch):
+  """A field left None must be a typed placeholder: absl cannot override a
+  plain None (`--config.data.data_dir=...` stopped with a flags error)."""
+  from absl import flags
+  from ml_collections import config_flags
+  samples = {str: '/tmp/x', int: '3', float: '0.5', bool: 'true'}
+  fields, overrides = [], []
+  for field, parent, key in _none_fields(test_end_to_end.load_config(name)):
+    reference = parent._fields[key]  # pylint: disable=protected-access
+    assert isinstance(reference, ml_collections.FieldReference), (
+        f'configs/{name}.py: {field} is a plain None; use '
+        'ml_collections.config_dict.placeholder(<type>)')
+    fields.append(field)
+    overrides.append(f'--config.{field}={samples[reference.get_type()]}')
+  path = os.path.join(ROOT, 'configs', f'{name}.py')
+  flag_values = flags.FlagValues()
+  config_flags.DEFINE_config_file('config', flag_values=flag_values)
+  argv = ['prog', f'--config={path}', *overrides]
+  monkeypatch.setattr(sys, 'argv', argv)  # config_flags reads overrides here
+  flag_values(argv)
+  for field in fields:
+    value = flag_values.config
+    for part in field.split('.'):
+      value = value[part]
+    assert value is not None, field
