@@ -7,11 +7,9 @@ about 25 minutes on a 2-core CPU (per-stage measurements in the README);
 numbers mean nothing.
 `--config=configs/synthetic.py:steve` runs the STEVE pipeline instead (dVAE,
 tokens, STEVE, extraction, SlotFormer, evaluation, pictures) at 64x64 with
-16x16 tokens per frame; `:steve_tiny` is its smoke run. Measured (docs/
-steve.md, ~22 min of stages on a loaded 2-core CPU): STEVE mask FG-ARI 0.41,
-SlotFormer slightly above copy-last on FG-ARI / FG-mIoU, but greedy
-generation draws background only (it drew the objects after 3000 steps on
-2-frame clips, where SlotFormer lost to copy-last).
+16x16 tokens per frame; `:steve_tiny` is its smoke run. Measured (README,
+docs/steve.md): 14.4 min on an idle 2-core CPU, STEVE mask FG-ARI 0.47,
+SlotFormer above copy-last on FG-ARI (0.516 vs 0.502), level on FG-mIoU.
 
 Videos: 2-3 static CLEVR-like objects and one sphere launched at them,
 simulated by pybullet and rendered at 32x32 with instance masks. Models keep
