@@ -2,7 +2,7 @@
 
 `--config=configs/synthetic.py` runs the whole pipeline (SAVi, extraction,
 SlotFormer and the Slot-LSTM baseline with L_I, evaluation, pictures) in
-about 25 minutes on a 2-core CPU (per-stage measurements in the README);
+about 20 minutes on a 2-core CPU (measured; see the README);
 `--config=configs/synthetic.py:tiny` is a smoke run of about a minute whose
 numbers mean nothing.
 `--config=configs/synthetic.py:steve` runs the STEVE pipeline instead (dVAE,
