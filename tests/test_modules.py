@@ -6,6 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from slotformer_jax.modules.decoders import PointwiseConv
 from slotformer_jax.modules.decoders import SpatialBroadcastDecoder
 from slotformer_jax.modules.decoders import SubPixelConvTranspose
 from slotformer_jax.modules.decoders import sub_pixel_conv_transpose
@@ -245,3 +246,15 @@ def test_savi_chunked_encoding_equals_whole_video(stochastic, lstm_size):
                              rngs=rng)
   np.testing.assert_allclose(jnp.concatenate([first, second], axis=1),
                              output.slots, atol=1e-5)
+
+
+def test_pointwise_conv_is_a_1x1_convolution():
+  """Same parameter tree, initial values and outputs as nn.Conv(F, (1, 1))."""
+  x = jax.random.normal(jax.random.key(0), (2, 3, 5, 7, 6))
+  conv = nn.Conv(4, (1, 1))
+  pointwise = PointwiseConv(4)
+  conv_params = conv.init(jax.random.key(1), x)
+  pointwise_params = pointwise.init(jax.random.key(1), x)
+  jax.tree.map(np.testing.assert_array_equal, conv_params, pointwise_params)
+  np.testing.assert_allclose(pointwise.apply(conv_params, x),
+                             conv.apply(conv_params, x), atol=1e-5)
