@@ -286,12 +286,16 @@ def _vgg_conv3x3(x: Array, conv: Any) -> Array:
     # On the <= 4x4 maps of the last blocks of small frames (32x32 input:
     # 4x4 and 2x2), XLA:CPU picks a slow operand-swapped convolution; the
     # same sum written as patches @ kernel is one well-shaped matmul.
-    patches = jax.lax.conv_general_dilated_patches(
-        x, (3, 3), (1, 1), ((1, 1), (1, 1)),
-        dimension_numbers=("NHWC", "HWIO", "NHWC"))  # [N, H, W, C*9]
-    # Patch features are ordered (C, kh, kw); the kernel is (kh, kw, C, O).
-    kernel = jnp.transpose(conv["kernel"], (2, 0, 1, 3)).reshape(
-        -1, conv["kernel"].shape[-1])
+    # Patches by padding and slicing (pure data movement): XLA:CPU runs
+    # `conv_general_dilated_patches` as a grouped convolution, which took
+    # most of the time of these layers. Patch features ordered (kh, kw, C),
+    # like the kernel's [kh, kw, C, O].
+    height, width = x.shape[1:3]
+    padded = jnp.pad(x, ((0, 0), (1, 1), (1, 1), (0, 0)))
+    patches = jnp.concatenate(
+        [padded[:, dy:dy + height, dx:dx + width]
+         for dy in range(3) for dx in range(3)], axis=-1)  # [N, H, W, 9*C]
+    kernel = conv["kernel"].reshape(-1, conv["kernel"].shape[-1])
     y = patches @ kernel
   else:
     y = jax.lax.conv_general_dilated(
