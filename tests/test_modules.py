@@ -1,5 +1,7 @@
 """Properties of the linen modules (tiny shapes, CPU)."""
 
+import functools
+
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
@@ -258,3 +260,43 @@ def test_pointwise_conv_is_a_1x1_convolution():
   jax.tree.map(np.testing.assert_array_equal, conv_params, pointwise_params)
   np.testing.assert_allclose(pointwise.apply(conv_params, x),
                              conv.apply(conv_params, x), atol=1e-5)
+
+
+@pytest.mark.parametrize('padding', [((2, 2), (2, 2)), ((1, 1), (0, 1)),
+                                     ((0, 1), (1, 0)), ((-1, 2), (0, 0))])
+def test_conv2d_gradients_equal_xla_autodiff(padding):
+  """conv2d's own kernel gradient (transpose of x @ I) is the plain one."""
+  from slotformer_jax.modules import convolution
+  rng = np.random.default_rng(7)
+  x = jnp.asarray(rng.normal(size=(3, 7, 6, 4)), jnp.float32)
+  kernel = jnp.asarray(rng.normal(size=(3, 2, 4, 5)), jnp.float32)
+
+  def plain(x, kernel):
+    return jax.lax.conv_general_dilated(
+        x, kernel, (1, 1), padding,
+        dimension_numbers=('NHWC', 'HWIO', 'NHWC'))
+
+  out = convolution.conv2d(x, kernel, padding)
+  np.testing.assert_array_equal(out, plain(x, kernel))
+  cotangent = jnp.asarray(rng.normal(size=out.shape), jnp.float32)
+  expected = jax.vjp(plain, x, kernel)[1](cotangent)
+  got = jax.vjp(lambda x, k: convolution.conv2d(x, k, padding),
+                x, kernel)[1](cotangent)
+  for e, g in zip(expected, got):
+    np.testing.assert_allclose(g, e, rtol=1e-5, atol=1e-5)
+
+
+def test_same_conv_is_nn_conv():
+  from slotformer_jax.modules import convolution
+  x = jax.random.normal(jax.random.key(0), (2, 9, 8, 3))
+  conv = nn.Conv(6, (5, 5), padding='SAME')
+  same = convolution.SameConv(6, 5)
+  params = conv.init(jax.random.key(1), x)
+  jax.tree.map(np.testing.assert_array_equal, params,
+               same.init(jax.random.key(1), x))
+  np.testing.assert_allclose(same.apply(params, x), conv.apply(params, x),
+                             atol=1e-5)
+  grads = [jax.grad(lambda p, m=m: jnp.sum(m.apply(p, x) ** 2))(params)
+           for m in (conv, same)]
+  jax.tree.map(functools.partial(np.testing.assert_allclose, rtol=1e-5,
+                                 atol=1e-4), *grads)

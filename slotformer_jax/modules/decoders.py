@@ -22,6 +22,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from slotformer_jax.modules import convolution
 from slotformer_jax.modules.encoders import SoftPositionEmbedding
 
 
@@ -102,9 +103,7 @@ def sub_pixel_conv_transpose(
       # d_first..d_last, i.e. padding -d_first below and d_last above.
       padding = ((-taps_y[0][0], taps_y[-1][0]),
                  (-taps_x[0][0], taps_x[-1][0]))
-      columns.append(jax.lax.conv_general_dilated(
-          x, phase_kernel, window_strides=(1, 1), padding=padding,
-          dimension_numbers=('NHWC', 'HWIO', 'NHWC')))
+      columns.append(convolution.conv2d(x, phase_kernel, padding))
     rows.append(jnp.stack(columns, axis=3))  # [B, H, W, s_x, C_out]
   out = jnp.stack(rows, axis=2)  # [B, H, s_y, W, s_x, C_out]
   out = out.reshape(batch, height * stride, width * stride, c_out)
@@ -201,8 +200,8 @@ class SpatialBroadcastDecoder(nn.Module):
                                   name=f'deconv_{i}')(x)
       else:
         # A stride-1 'same' transposed convolution is an ordinary one.
-        x = nn.Conv(channels, (self.kernel_size, self.kernel_size),
-                    padding='SAME', name=f'deconv_{i}')(x)
+        x = convolution.SameConv(channels, self.kernel_size,
+                                 name=f'deconv_{i}')(x)
       x = nn.relu(x)
     if tuple(x.shape[1:3]) != tuple(self.output_resolution):
       raise ValueError(
