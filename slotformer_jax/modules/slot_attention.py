@@ -59,9 +59,15 @@ class SlotAttention(nn.Module):
     slot_size = slots.shape[-1]
     layer_norm = lambda **kw: nn.LayerNorm(epsilon=self.layer_norm_epsilon,
                                            **kw)
-    inputs = layer_norm(name='norm_inputs')(inputs)
-    keys = nn.Dense(slot_size, use_bias=False, name='key')(inputs)
-    values = nn.Dense(slot_size, use_bias=False, name='value')(inputs)
+    # Per-input LayerNorm and projections on a [B*M, C] view (the same
+    # math; faster gradients on XLA:CPU than the 3-D view, as in
+    # `CNNEncoder`).
+    batch, num_inputs, _ = inputs.shape
+    flat = layer_norm(name='norm_inputs')(inputs.reshape(batch * num_inputs, -1))
+    keys = nn.Dense(slot_size, use_bias=False, name='key')(flat).reshape(
+        batch, num_inputs, slot_size)
+    values = nn.Dense(slot_size, use_bias=False, name='value')(flat).reshape(
+        batch, num_inputs, slot_size)
 
     norm_slots = layer_norm(name='norm_slots')
     to_query = nn.Dense(slot_size, use_bias=False, name='query')
