@@ -193,3 +193,13 @@ def test_bank_generator_is_deterministic_and_labels_as_designed():
     dataclasses.replace(BANK, scenario='pool')
   with pytest.raises(ValueError, match='bank'):
     dataclasses.replace(BANK, launch_side='front')
+
+
+def test_bank_config_variant():
+  from configs import synthetic_contact  # pylint: disable=g-import-not-at-top
+  bank = contact.config_from_data_config(
+      synthetic_contact.get_config('bank').data)
+  assert (bank.scenario, bank.launch_side, bank.seed) == ('bank', 'side', 2)
+  side = contact.config_from_data_config(
+      synthetic_contact.get_config('side').data)
+  assert (side.scenario, side.launch_side, side.seed) == ('direct', 'side', 1)
