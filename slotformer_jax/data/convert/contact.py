@@ -12,7 +12,10 @@ copied):
   launched from the front of the scene (``launch_side='front'``: along the
   camera's view direction) or from the left / right edge at the patient's
   depth (``'side'``: across the view, so a hit and a near miss look
-  different in the image);
+  different in the image); with ``scenario='bank'`` it is launched from
+  the side at a *bumper* (row 1) and reaches the patient, or not, only by
+  bouncing off it after the observed frames (``bump_frame``), so that the
+  observed motion alone does not decide the label;
 * the label is whether agent and patient touch at ANY physics substep of the
   whole video (``pybullet.getClosestPoints`` after every ``stepSimulation``,
   not only at rendered frames), with the onset frame and per-frame
