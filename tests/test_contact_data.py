@@ -125,3 +125,81 @@ def test_front_launch_datasets_are_unchanged_by_the_option():
   config = contact.ContactConfig(resolution=(16, 16), supersample=1,
                                  num_frames=12, observed_frames=6)
   assert config.slug == 'r16x16_t12_obs6_d1-2_s0_n1000-400-100-200_19cd5100'
+
+
+def _bank_scene(bumper_size: int, patient_x: float) -> synthetic.Scene:
+  """Row 0 a small yellow sphere at (patient_x, 0), row 1 a sphere bumper
+  of ``bumper_size`` at (0, 0), a small red sphere rolling along +x from
+  (-2.6, 0) at 4 m/s: straight at the bumper, which is straight in front
+  of the patient."""
+  return synthetic.Scene(
+      shapes=np.array([SPHERE] * 3, np.int32),
+      colors=np.array([contact.PATIENT_COLOR, contact.DISTRACTOR_COLORS[0],
+                       contact.AGENT_COLOR], np.int32),
+      sizes=np.array([SMALL, bumper_size, SMALL], np.int32),
+      xy=np.array([[patient_x, 0.0], [0.0, 0.0], [-2.6, 0.0]]),
+      yaw=np.zeros(3),
+      launch_velocity=np.array([4.0, 0.0]))
+
+
+BANK = dataclasses.replace(TINY, launch_side='side', scenario='bank')
+
+
+def test_bank_labels_on_simulated_cases():
+  # The agent hits the (heavier) bumper head-on; the bumper goes on and
+  # hits the patient, the agent never does: the patient moved, yet the
+  # label (agent touches patient) is False.
+  large = synthetic.SIZES.index('large')
+  out = contact.simulate(_bank_scene(large, 1.4), BANK, render=False)
+  bump = int(out['bump_frame'])
+  radius = synthetic.SIZE_RADII
+  gap = np.linalg.norm(out['positions'][:, 2, :2] - out['positions'][:, 1, :2],
+                       axis=-1) - radius[SMALL] - radius[large]
+  assert gap[:bump].min() > 0.0 and gap[bump] < 0.25
+  # 2.6 m - 1.3 m of radii at ~4 m/s, slowed by rolling friction: frame 8.
+  assert 7 <= bump <= 9
+  patient_speed = np.linalg.norm(out['velocities'][:, 0], axis=-1)
+  assert patient_speed[:bump].max() < 1e-3 and patient_speed.max() > 0.2
+  assert out['positions'][-1, 2, 0] < -1.0  # the light agent bounced back
+  assert not bool(out['contact']) and int(out['contact_frame']) == -1
+  # The direct scenario reports no bump_frame (its datasets are unchanged).
+  assert 'bump_frame' not in contact.simulate(
+      _head_on_scene(0.0), TINY, render=False)
+
+
+def test_bank_generator_is_deterministic_and_labels_as_designed():
+  videos = [contact.generate_states(BANK, 'readout_val', i) for i in range(4)]
+  assert [bool(v['contact']) for v in videos] == [False, True, False, True]
+  for video in videos:
+    bump = int(video['bump_frame'])
+    # The bounce happens after the observed frames, and a contact after it.
+    assert bump >= BANK.observed_frames
+    if bool(video['contact']):
+      assert int(video['contact_frame']) > bump
+    agent = int(video['agent_index'])
+    assert abs(video['positions'][0, agent, 0]) == pytest.approx(
+        contact.SIDE_LAUNCH_X)
+  rendered = contact.generate_video(BANK, 'readout_val', 3)
+  for key, value in videos[3].items():
+    np.testing.assert_array_equal(value, rendered[key], err_msg=key)
+  again = contact.generate_video(BANK, 'readout_val', 3)
+  for key, value in rendered.items():
+    np.testing.assert_array_equal(value, again[key], err_msg=key)
+  other = contact.generate_states(dataclasses.replace(BANK, seed=1),
+                                  'readout_val', 3)
+  assert not np.array_equal(other['positions'], videos[3]['positions'])
+  assert BANK.slug != dataclasses.replace(BANK, scenario='direct').slug
+  with pytest.raises(ValueError, match='scenario'):
+    dataclasses.replace(BANK, scenario='pool')
+  with pytest.raises(ValueError, match='bank'):
+    dataclasses.replace(BANK, launch_side='front')
+
+
+def test_bank_config_variant():
+  from configs import synthetic_contact  # pylint: disable=g-import-not-at-top
+  bank = contact.config_from_data_config(
+      synthetic_contact.get_config('bank').data)
+  assert (bank.scenario, bank.launch_side, bank.seed) == ('bank', 'side', 2)
+  side = contact.config_from_data_config(
+      synthetic_contact.get_config('side').data)
+  assert (side.scenario, side.launch_side, side.seed) == ('direct', 'side', 1)

@@ -12,7 +12,10 @@ copied):
   launched from the front of the scene (``launch_side='front'``: along the
   camera's view direction) or from the left / right edge at the patient's
   depth (``'side'``: across the view, so a hit and a near miss look
-  different in the image);
+  different in the image); with ``scenario='bank'`` it is launched from
+  the side at a *bumper* (row 1) and reaches the patient, or not, only by
+  bouncing off it after the observed frames (``bump_frame``), so that the
+  observed motion alone does not decide the label;
 * the label is whether agent and patient touch at ANY physics substep of the
   whole video (``pybullet.getClosestPoints`` after every ``stepSimulation``,
   not only at rendered frames), with the onset frame and per-frame
@@ -72,6 +75,22 @@ MISS_ANGLE_RANGE = (0.15, 0.45)   # [rad]
 SIDE_LAUNCH_X = 2.6
 SIDE_LAUNCH_DEPTH_NOISE = 0.3
 LAUNCH_SIDES = ('front', 'side')
+# 'direct': the agent is aimed at (or beside) the patient, so its heading in
+# the observed frames decides the label. 'bank': it is aimed at a *bumper*
+# (object row 1) that stands off the line to the patient, and reaches the
+# patient (or not) only after bouncing off it, after the observed frames:
+# the observed motion alone no longer answers, the collision decides.
+SCENARIOS = ('direct', 'bank')
+# 'bank' geometry: the bumper stands BANK_GAP [m] (surface to surface) from
+# the patient, in a direction BANK_ANGLE [rad] off the line from the patient
+# back to the agent's start (to either side); the agent aims at the bumper's
+# centre with a sideways offset of up to BANK_OFFSET * (sum of the two
+# radii), i.e. anything from a head-on to a grazing hit. Whether the bounce
+# reaches the patient is decided by simulation.
+BANK_GAP = (0.3, 1.2)
+BANK_ANGLE = (0.5, 1.3)
+BANK_OFFSET = 0.9
+BANK_SPEED_RANGE = (3.0, 4.5)     # [m/s]: as AGENT_SPEED_RANGE
 # Surfaces closer than this [m] touch (bullet keeps a small collision margin).
 CONTACT_DISTANCE = 1e-3
 _MAX_SCENE_ATTEMPTS = 200
@@ -109,6 +128,7 @@ class ContactConfig:
   supersample: int = 2
   object_scale: float = 1.0
   launch_side: str = 'front'
+  scenario: str = 'direct'
 
   def __post_init__(self):
     object.__setattr__(self, 'resolution',
@@ -125,6 +145,13 @@ class ContactConfig:
     if self.launch_side not in LAUNCH_SIDES:
       raise ValueError(f'launch_side must be one of {LAUNCH_SIDES}, got '
                        f'{self.launch_side!r}')
+    if self.scenario not in SCENARIOS:
+      raise ValueError(f'scenario must be one of {SCENARIOS}, got '
+                       f'{self.scenario!r}')
+    if self.scenario == 'bank' and (self.launch_side != 'side'
+                                    or self.min_distractors < 1):
+      raise ValueError("scenario='bank' needs launch_side='side' and "
+                       'min_distractors >= 1 (the bumper is a distractor)')
 
   @property
   def max_objects_total(self) -> int:
@@ -142,6 +169,8 @@ class ContactConfig:
     fields = dataclasses.asdict(self)
     if fields['launch_side'] == 'front':  # the datasets made before the option
       del fields['launch_side']
+    if fields['scenario'] == 'direct':  # ... and before this one
+      del fields['scenario']
     payload = json.dumps(
         {**fields, 'generator_version': GENERATOR_VERSION,
          'synthetic_version': synthetic.GENERATOR_VERSION}, sort_keys=True)
@@ -174,6 +203,8 @@ def sample_contact_scene(rng: np.random.Generator, config: ContactConfig,
   Whether the agent really touches the patient is decided by simulation
   (:func:`simulate`), not by this aim.
   """
+  if config.scenario == 'bank':
+    return _sample_bank_scene(rng, config)
   scale = config.object_scale
   num_distractors = int(rng.integers(config.min_distractors,
                                      config.max_distractors + 1))
@@ -231,6 +262,71 @@ def sample_contact_scene(rng: np.random.Generator, config: ContactConfig,
       launch_velocity=speed * np.array([np.cos(angle), np.sin(angle)]))
 
 
+def _sample_bank_scene(rng: np.random.Generator, config: ContactConfig
+                       ) -> synthetic.Scene:
+  """A 'bank' scene: patient (row 0), bumper (row 1), other distractors,
+  agent (last row) launched from the side at the bumper. The label does not
+  steer the sampling: the collision decides it, :func:`accept` keeps the
+  scenes with the wanted one."""
+  scale = config.object_scale
+  num_distractors = int(rng.integers(config.min_distractors,
+                                     config.max_distractors + 1))
+  agent_size = int(rng.integers(0, len(synthetic.SIZES)))
+  agent_radius = synthetic.SIZE_RADII[agent_size] * scale
+  for _ in range(_MAX_SCENE_ATTEMPTS):
+    shapes = rng.integers(0, len(synthetic.SHAPES), num_distractors + 1)
+    sizes = rng.integers(0, len(synthetic.SIZES), num_distractors + 1)
+    footprints = [synthetic._footprint_radius(  # pylint: disable=protected-access
+        int(shape), synthetic.SIZE_RADII[size] * scale)
+                  for shape, size in zip(shapes, sizes)]
+    patient = np.array([rng.uniform(*PATIENT_X_RANGE),
+                        rng.uniform(*PATIENT_Y_RANGE)])
+    start = _side_start(rng, tuple(patient))
+    back = np.arctan2(*(start - patient)[::-1])
+    angle = back + rng.choice([-1.0, 1.0]) * rng.uniform(*BANK_ANGLE)
+    distance = footprints[0] + footprints[1] + rng.uniform(*BANK_GAP)
+    bumper = patient + distance * np.array([np.cos(angle), np.sin(angle)])
+    placed = [(*patient, footprints[0]), (*bumper, footprints[1])]
+    clear = [(*start, agent_radius)]
+    pairs = ((placed[0], placed[1]), (placed[0], clear[0]),
+             (placed[1], clear[0]))
+    if any(np.hypot(a[0] - b[0], a[1] - b[1]) <= a[2] + b[2] + synthetic.MIN_GAP
+           for a, b in pairs):
+      continue  # overlapping patient / bumper / agent: re-sample
+    for footprint in footprints[2:]:
+      xy = _place(rng, placed + clear, footprint, synthetic.STATIC_X_RANGE,
+                  synthetic.STATIC_Y_RANGE)
+      if xy is None:
+        break
+      placed.append((*xy, footprint))
+    if len(placed) == num_distractors + 1:
+      break
+  else:
+    raise ValueError('could not place the objects; use fewer distractors')
+  colors = np.concatenate([
+      [PATIENT_COLOR],
+      rng.choice(DISTRACTOR_COLORS, num_distractors, replace=False),
+      [AGENT_COLOR]])
+  to_bumper = bumper - start
+  heading = to_bumper / np.linalg.norm(to_bumper)
+  # A sideways offset b of the aim line from the bumper's centre: the
+  # impact parameter of the collision (0: head-on; r_agent + r_bumper:
+  # grazing), which sets the direction of the bounce.
+  offset = rng.uniform(-BANK_OFFSET, BANK_OFFSET) * (
+      agent_radius + footprints[1])
+  aim = bumper + offset * np.array([-heading[1], heading[0]])
+  direction = (aim - start) / np.linalg.norm(aim - start)
+  speed = rng.uniform(*BANK_SPEED_RANGE)
+  return synthetic.Scene(
+      shapes=np.append(shapes, synthetic.SHAPES.index('sphere')).astype(
+          np.int32),
+      colors=colors.astype(np.int32),
+      sizes=np.append(sizes, agent_size).astype(np.int32),
+      xy=np.concatenate([np.array([p[:2] for p in placed]), start[None]], 0),
+      yaw=rng.uniform(0.0, 2.0 * np.pi, num_distractors + 2),
+      launch_velocity=speed * direction)
+
+
 def _side_start(rng: np.random.Generator,
                 patient_xy: tuple[float, float]) -> np.ndarray:
   """float [2]: a 'side' launch's start, on the side away from the patient."""
@@ -249,6 +345,8 @@ def simulate(scene: synthetic.Scene, config: ContactConfig, *,
 
   Returns (O = config.max_objects_total, N = scene.num_objects):
     contact: bool [], agent and patient touched at some substep.
+    bump_frame: int32 [], only for scenario 'bank': as contact_frame, for
+      the agent and the bumper (row 1).
     contact_frame: int32 [], the first frame at or after the first touching
       substep (-1 without contact).
     positions, velocities: float32 [T, O, 3] centres [m] / linear velocities
@@ -296,6 +394,8 @@ def simulate(scene: synthetic.Scene, config: ContactConfig, *,
     positions = np.zeros((config.num_frames, num_rows, 3), np.float32)
     velocities = np.zeros((config.num_frames, num_rows, 3), np.float32)
     contact_frame = -1
+    bump_frame = -1   # 'bank': the agent's first touch of the bumper (row 1)
+    bank = config.scenario == 'bank'
     for t in range(config.num_frames):
       if render:
         _, _, rgba, _, seg = pybullet.getCameraImage(
@@ -322,6 +422,8 @@ def simulate(scene: synthetic.Scene, config: ContactConfig, *,
           pybullet.stepSimulation(physicsClientId=client)
           if contact_frame < 0 and touching(client, agent, patient):
             contact_frame = t + 1
+          if bank and bump_frame < 0 and touching(client, agent, bodies[1]):
+            bump_frame = t + 1
   finally:
     pybullet.disconnect(physicsClientId=client)
 
@@ -342,6 +444,8 @@ def simulate(scene: synthetic.Scene, config: ContactConfig, *,
       'colors': pad(scene.colors),
       'sizes': pad(scene.sizes),
   }
+  if bank:
+    example['bump_frame'] = np.array(bump_frame, np.int32)
   if render:
     segmentations = np.stack(segs)
     boxes, visible = synthetic.boxes_from_segmentation(segmentations, num_rows)
@@ -365,11 +469,45 @@ def touching(client: int, body_a: int, body_b: int) -> bool:
 
 def accept(outcome: dict[str, np.ndarray], config: ContactConfig,
            want_contact: bool) -> bool:
-  """A scene is kept if it has the wanted label and a late-enough onset."""
+  """A scene is kept if it has the wanted label and a late-enough onset;
+  a 'bank' scene also needs the agent to hit the bumper after the observed
+  frames and before any touch of the patient."""
   if bool(outcome['contact']) != want_contact:
     return False
+  if config.scenario == 'bank':
+    bump = int(outcome['bump_frame'])
+    if bump < config.observed_frames:
+      return False
+    if want_contact and int(outcome['contact_frame']) <= bump:
+      return False
   return not want_contact or int(
       outcome['contact_frame']) >= config.observed_frames
+
+
+def accepted_scene(config: ContactConfig, split: str, index: int
+                   ) -> tuple[synthetic.Scene, dict[str, np.ndarray]]:
+  """(scene, physics-only outcome) of video ``index`` of ``split``; the
+  wanted label is ``index % 2``."""
+  if split not in SPLITS:
+    raise ValueError(f'split must be one of {SPLITS}, got {split!r}')
+  rng = video_rng(config.seed, split, index)
+  want_contact = bool(index % 2)
+  for _ in range(_MAX_SCENE_ATTEMPTS):
+    scene = sample_contact_scene(rng, config, want_contact)
+    outcome = simulate(scene, config, render=False)
+    if accept(outcome, config, want_contact):
+      return scene, outcome
+  raise RuntimeError(f'no scene with contact={want_contact} after '
+                     f'{_MAX_SCENE_ATTEMPTS} attempts (video {index} of '
+                     f'{split}); check the launch / layout ranges')
+
+
+def generate_states(config: ContactConfig, split: str, index: int
+                    ) -> dict[str, np.ndarray]:
+  """The simulator ground truth of video ``index`` without its frames (the
+  dict of :func:`simulate` with ``render=False``): what
+  scripts/contact_state_ceiling.py trains on."""
+  return accepted_scene(config, split, index)[1]
 
 
 def generate_video(config: ContactConfig, split: str, index: int
@@ -378,20 +516,9 @@ def generate_video(config: ContactConfig, split: str, index: int
 
   Returns the dict of :func:`simulate` (rendered) plus ``index``: int32 [].
   """
-  if split not in SPLITS:
-    raise ValueError(f'split must be one of {SPLITS}, got {split!r}')
-  rng = video_rng(config.seed, split, index)
-  want_contact = bool(index % 2)
-  for _ in range(_MAX_SCENE_ATTEMPTS):
-    scene = sample_contact_scene(rng, config, want_contact)
-    if accept(simulate(scene, config, render=False), config, want_contact):
-      break
-  else:
-    raise RuntimeError(f'no scene with contact={want_contact} after '
-                       f'{_MAX_SCENE_ATTEMPTS} attempts (video {index} of '
-                       f'{split}); check the launch / layout ranges')
+  scene, _ = accepted_scene(config, split, index)
   example = simulate(scene, config, render=True)
-  if not accept(example, config, want_contact):
+  if not accept(example, config, bool(index % 2)):
     raise RuntimeError('the rendered simulation disagrees with the '
                        'physics-only pass; bullet is not deterministic here')
   example['index'] = np.array(index, np.int32)
@@ -427,6 +554,8 @@ def family(config: ContactConfig) -> embedded.Family:
           'colors': tensor((o,), np.int32),
           'sizes': tensor((o,), np.int32),
           'index': scalar(np.int32),
+          **({'bump_frame': scalar(np.int32)}
+             if config.scenario == 'bank' else {}),
       },
       split_sizes={split: config.num_videos(split) for split in SPLITS},
       make=functools.partial(generate_video, config))
