@@ -12,6 +12,8 @@ Aloe's input ('rollout', 'observed', 'blind'), `vqa.seed` its seed.
 `:tiny` is a smoke run whose numbers mean nothing.
 """
 
+import ml_collections
+
 from slotformer_jax.default_config import base_config
 from slotformer_jax.default_config import use_cpu_demo_savi
 from slotformer_jax.default_config import vqa_config
@@ -86,6 +88,10 @@ def get_config(variant: str = ''):
   vqa.head_size = 64
   vqa.dropout_rate = 0.1
   vqa.positions = 'token'
+  # Weight of each multiple-choice type in the training draws (1 = as many
+  # as the training split has).
+  vqa.choice_type_weights = ml_collections.ConfigDict(
+      {'explanatory': 1.0, 'predictive': 1.0, 'counterfactual': 1.0})
   vqa.open_batch_size = 16
   vqa.choice_batch_size = 16
   vqa.num_train_steps = 1000
