@@ -24,7 +24,7 @@ COLUMNS = (('descriptive', 'accuracy'),
            ('predictive', 'per_option'), ('predictive', 'per_question'),
            ('counterfactual', 'per_option'),
            ('counterfactual', 'per_question'))
-ROWS = ('rollout', 'observed', 'blind')
+ROWS = ('future', 'rollout', 'observed', 'blind')
 
 
 def main() -> None:

@@ -51,7 +51,10 @@ from slotformer_jax.train.trainer import fit
 
 logger = logging.getLogger(__name__)
 
-INPUTS = ('observed', 'rollout', 'blind')
+# 'future': the ground-truth future, i.e. SAVi's slots of the real frames
+# after the video (the extraction must cover them): the ceiling of what any
+# rollout can give predictive questions (embedded data only).
+INPUTS = ('observed', 'rollout', 'blind', 'future')
 
 
 def vqa_dir(workdir: str) -> str:
@@ -183,6 +186,25 @@ def _filename_to_index(config: ml_collections.ConfigDict,
   return {name: k for k, name in enumerate(names)}
 
 
+def _true_future_slots(config: ml_collections.ConfigDict, workdir: str,
+                       split: str, length: int) -> np.ndarray:
+  """SAVi's slots of the video and of the real frames after it, float32
+  [V, length, N, D] (length = video_length + rollout_frames): the input of
+  the ground-truth-future ceiling (`vqa.inputs='future'`)."""
+  source = SlotSource(workdir_lib.slots_dir(
+      workdir_lib.stage1_workdir(config, workdir), split))
+  out = []
+  for i in range(len(source)):
+    slots = source[i]['slots']
+    if len(slots) < length:
+      raise ValueError(
+          f"vqa.inputs='future' needs slots of {length} frames per video "
+          f'(the video and the frames after it), {split} video {i} has '
+          f'{len(slots)}: extract slots over the whole simulated clip')
+    out.append(slots[:length])
+  return np.stack(out).astype(np.float32)
+
+
 def question_batches(config: ml_collections.ConfigDict, workdir: str,
                      split: str, questions: list[vqa_data.EncodedQuestion]
                      ) -> task.QuestionBatches:
@@ -192,7 +214,9 @@ def question_batches(config: ml_collections.ConfigDict, workdir: str,
   if not os.path.exists(path):
     raise FileNotFoundError(f'{path} is missing: run --mode=vqa_slots first')
   slots = np.load(path, mmap_mode='r')
-  if vqa.inputs != 'rollout':
+  if vqa.inputs == 'future':
+    slots = _true_future_slots(config, workdir, split, slots.shape[1])
+  elif vqa.inputs != 'rollout':
     slots = slots[:, :vqa.video_length]  # no rollout: predictive questions
     # read the end of the video like the others
   index = _filename_to_index(config, split)
@@ -200,7 +224,9 @@ def question_batches(config: ml_collections.ConfigDict, workdir: str,
       questions, lambda name: slots[index[name]],
       video_length=vqa.video_length, num_frames=vqa.num_frames,
       stride=vqa.frame_stride, max_choices=vqa.max_choices,
-      blind=vqa.inputs == 'blind')
+      blind=vqa.inputs == 'blind',
+      choice_weights=(dict(vqa.choice_type_weights)
+                      if vqa.get('choice_type_weights') else None))
 
 
 # ----------------------------------------------------------------------------

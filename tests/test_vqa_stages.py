@@ -76,3 +76,25 @@ def _synthetic_vqa_config():
   module = importlib.util.module_from_spec(spec)
   spec.loader.exec_module(module)
   return module.get_config()
+
+
+def test_future_inputs_read_the_extracted_slots_of_the_real_future(tmp_path):
+  # vqa.inputs='future' (the ground-truth-future ceiling) reads SAVi's slots
+  # of the frames after the video from the extraction, not the rollout file.
+  from slotformer_jax import vqa_stages  # pylint: disable=g-import-not-at-top
+  from slotformer_jax import workdir as workdir_lib  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.data.slots import SlotWriter  # pylint: disable=g-import-not-at-top
+  config = _synthetic_vqa_config()
+  workdir = str(tmp_path)
+  writer = SlotWriter(workdir_lib.slots_dir(workdir, 'val'), 2, 3, 2, 1)
+  for v, frames in ((1, 20), (0, 20)):
+    # value = 100 * video + frame, so the frames can be read back.
+    writer.add(v, (100.0 * v + np.arange(frames, dtype=np.float32))[
+        :, None, None] * np.ones((1, 3, 2), np.float32))
+  writer.close()
+  slots = vqa_stages._true_future_slots(config, workdir, 'val', 18)  # pylint: disable=protected-access
+  assert slots.shape == (2, 18, 3, 2)
+  assert slots[1, :, 0, 0].tolist() == [100.0 + t for t in range(18)]
+  assert slots[0, 17, 2, 1] == 17.0
+  with pytest.raises(ValueError, match='whole simulated clip'):
+    vqa_stages._true_future_slots(config, workdir, 'val', 21)  # pylint: disable=protected-access

@@ -117,6 +117,29 @@ def test_batches_shapes_masks_and_rollout_window():
     np.testing.assert_array_equal(a[key], b[key])
 
 
+def test_choice_type_weights_set_the_share_of_each_type():
+  scenes = _scenes()
+  vocab = vqa.Vocabulary.from_scenes(scenes, answers=vqa.CLEVRER_ANSWERS)
+  questions = vqa.encode_scenes(scenes, vocab, 8, 6)
+  frames = np.zeros((30, 3, 2), np.float32)
+
+  def share_of_predictive(weights):
+    batches = task.QuestionBatches(
+        questions, lambda name: frames, video_length=20, num_frames=4,
+        stride=5, max_choices=4, choice_weights=weights)
+    stream = batches.train_batches(1, 64, seed=0)
+    types = np.concatenate([next(stream)['choice_type'] for _ in range(20)])
+    return np.mean(types == task.PREDICTIVE)
+
+  # One predictive and one counterfactual question: uniform draws give ~1/2,
+  # weight 3 on predictive ~3/4, weight 0 on counterfactual all predictive.
+  assert abs(share_of_predictive(None) - 0.5) < 0.06
+  assert abs(share_of_predictive({'predictive': 3.0}) - 0.75) < 0.06
+  assert share_of_predictive({'counterfactual': 0.0}) == 1.0
+  with pytest.raises(ValueError):
+    share_of_predictive({'descriptive': 2.0})
+
+
 def test_answer_prior_and_prediction_file():
   scenes = _scenes()
   vocab = vqa.Vocabulary.from_scenes(scenes, answers=vqa.CLEVRER_ANSWERS)

@@ -119,12 +119,16 @@ class QuestionBatches:
     num_frames, stride: the frame window (see :func:`question_frames`).
     max_choices: C; questions with more choices are rejected.
     blind: zero slots (the question-only baseline).
+    choice_weights: question type name -> weight of its multiple-choice
+      questions in the training draws (missing types weigh 1); None draws
+      them uniformly (as do equal weights of every type).
   """
 
   def __init__(self, questions: Sequence[EncodedQuestion],
                slots_of: Callable[[str], np.ndarray], *, video_length: int,
                num_frames: int, stride: int, max_choices: int,
-               blind: bool = False):
+               blind: bool = False,
+               choice_weights: Mapping[str, float] | None = None):
     self.open = [q for q in questions if q.is_descriptive]
     self.choice = [q for q in questions if not q.is_descriptive]
     too_many = [q for q in self.choice if len(q.choice_ids) > max_choices]
@@ -138,6 +142,20 @@ class QuestionBatches:
     self.max_choices = max_choices
     self.blind = blind
     self.num_starts = num_starts(video_length, num_frames, stride)
+    self.choice_p = None  # None: uniform draws
+    weights = dict(choice_weights or {})
+    unknown = set(weights) - set(QUESTION_TYPES[1:])
+    if unknown:
+      raise ValueError(f'choice_weights names {sorted(unknown)}, not '
+                       f'multiple-choice types {QUESTION_TYPES[1:]}')
+    per_type = [float(weights.get(t, 1.0)) for t in QUESTION_TYPES[1:]]
+    if min(per_type) < 0 or max(per_type) <= 0:
+      raise ValueError(f'choice_weights must be >= 0, some > 0: {weights}')
+    if self.choice and len(set(per_type)) > 1:
+      w = np.array([per_type[q.question_type - 1] for q in self.choice])
+      if w.sum() <= 0:
+        raise ValueError(f'choice_weights {weights} leave no question')
+      self.choice_p = w / w.sum()
 
   def _slots(self, q: EncodedQuestion, start: int) -> np.ndarray:
     slots = self.slots_of(q.video_filename)
@@ -213,7 +231,10 @@ class QuestionBatches:
     while True:
       rng = np.random.default_rng([seed, step])
       open_ids = rng.integers(0, len(self.open), open_size)
-      choice_ids = rng.integers(0, len(self.choice), choice_size)
+      if self.choice_p is None:
+        choice_ids = rng.integers(0, len(self.choice), choice_size)
+      else:  # e.g. more predictive questions per step
+        choice_ids = rng.choice(len(self.choice), choice_size, p=self.choice_p)
       starts = rng.integers(0, self.num_starts, open_size + choice_size)
       yield self.batch(list(open_ids), list(choice_ids), starts, open_size,
                        choice_size)
