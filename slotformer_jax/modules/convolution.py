@@ -72,6 +72,19 @@ def _conv2d_backward(padding, residuals, grad_out):
 conv2d.defvjp(_conv2d_forward, _conv2d_backward)
 
 
+def odd_kernel_params(module: nn.Module, kernel_size: int, c_in: int,
+                      features: int) -> tuple[jax.Array, jax.Array]:
+  """Declares `nn.Conv`'s 'kernel' [K, K, C_in, C_out] and 'bias' [C_out]
+  (same initialisers) on `module`, for layers that evaluate the convolution
+  themselves; K must be odd ('same' padding K // 2)."""
+  if kernel_size % 2 != 1:
+    raise ValueError(f'kernel_size must be odd, got {kernel_size}')
+  kernel = module.param('kernel', nn.initializers.lecun_normal(),
+                        (kernel_size, kernel_size, c_in, features))
+  bias = module.param('bias', nn.initializers.zeros_init(), (features,))
+  return kernel, bias
+
+
 class SameConv(nn.Module):
   """`nn.Conv(features, (K, K), padding='SAME')` at stride 1 and odd K, through
   `conv2d`. Same parameter tree and initialisers as `nn.Conv`, so checkpoints
@@ -84,11 +97,7 @@ class SameConv(nn.Module):
   @nn.compact
   def __call__(self, x: jax.Array) -> jax.Array:
     """x [N, H, W, C_in] -> [N, H, W, features]."""
-    if self.kernel_size % 2 != 1:
-      raise ValueError(f'kernel_size must be odd, got {self.kernel_size}')
-    kernel = self.param(
-        'kernel', nn.initializers.lecun_normal(),
-        (self.kernel_size, self.kernel_size, x.shape[-1], self.features))
-    bias = self.param('bias', nn.initializers.zeros_init(), (self.features,))
+    kernel, bias = odd_kernel_params(self, self.kernel_size, x.shape[-1],
+                                     self.features)
     pad = self.kernel_size // 2
     return conv2d(x, kernel, ((pad, pad), (pad, pad))) + bias

@@ -121,12 +121,8 @@ class SubPixelConvTranspose(nn.Module):
 
   @nn.compact
   def __call__(self, x: jax.Array) -> jax.Array:
-    if self.kernel_size % 2 != 1:
-      raise ValueError(f'kernel_size must be odd, got {self.kernel_size}')
-    kernel = self.param(
-        'kernel', nn.initializers.lecun_normal(),
-        (self.kernel_size, self.kernel_size, x.shape[-1], self.features))
-    bias = self.param('bias', nn.initializers.zeros_init(), (self.features,))
+    kernel, bias = convolution.odd_kernel_params(
+        self, self.kernel_size, x.shape[-1], self.features)
     return sub_pixel_conv_transpose(x, kernel, bias, self.stride)
 
 

@@ -236,10 +236,7 @@ def sample_contact_scene(rng: np.random.Generator, config: ContactConfig,
       break
   else:
     raise ValueError('could not place the objects; use fewer distractors')
-  colors = np.concatenate([
-      [PATIENT_COLOR],
-      rng.choice(DISTRACTOR_COLORS, num_distractors, replace=False),
-      [AGENT_COLOR]])
+  colors = _scene_colors(rng, num_distractors)
   if not side:  # (draw order of the datasets made before launch_side)
     start = np.array([rng.uniform(*synthetic.LAUNCH_X_RANGE),
                       synthetic.LAUNCH_Y])
@@ -260,6 +257,15 @@ def sample_contact_scene(rng: np.random.Generator, config: ContactConfig,
       xy=np.concatenate([np.array([p[:2] for p in placed]), start[None]], 0),
       yaw=rng.uniform(0.0, 2.0 * np.pi, num_distractors + 2),
       launch_velocity=speed * np.array([np.cos(angle), np.sin(angle)]))
+
+
+def _scene_colors(rng: np.random.Generator, num_distractors: int
+                  ) -> np.ndarray:
+  """Colour ids: patient, distinct distractor colours, agent (last)."""
+  return np.concatenate([
+      [PATIENT_COLOR],
+      rng.choice(DISTRACTOR_COLORS, num_distractors, replace=False),
+      [AGENT_COLOR]])
 
 
 def _sample_bank_scene(rng: np.random.Generator, config: ContactConfig
@@ -303,10 +309,7 @@ def _sample_bank_scene(rng: np.random.Generator, config: ContactConfig
       break
   else:
     raise ValueError('could not place the objects; use fewer distractors')
-  colors = np.concatenate([
-      [PATIENT_COLOR],
-      rng.choice(DISTRACTOR_COLORS, num_distractors, replace=False),
-      [AGENT_COLOR]])
+  colors = _scene_colors(rng, num_distractors)
   to_bumper = bumper - start
   heading = to_bumper / np.linalg.norm(to_bumper)
   # A sideways offset b of the aim line from the bumper's centre: the
