@@ -93,6 +93,22 @@ def test_written_dataset_reads_back(tmp_path):
   assert contact.build_contact_dataset(config, tmp_path) == path
 
 
+def test_parallel_build_writes_the_serial_videos_in_order(tmp_path):
+  from slotformer_jax.data import sources  # pylint: disable=g-import-not-at-top
+  # 9 videos in chunks of 4 over 2 worker processes: out-of-order chunks
+  # would put a video at the wrong record.
+  config = dataclasses.replace(TINY, num_train=0, num_readout_train=9,
+                               num_readout_val=0, num_readout_test=0)
+  path = contact.build_contact_dataset(config, tmp_path, num_workers=2)
+  source = sources.TfdsVideoSource(path, 'readout_train')
+  assert len(source) == 9
+  for index in range(9):
+    expected = contact.generate_video(config, 'readout_train', index)
+    for key, value in expected.items():
+      np.testing.assert_array_equal(source[index][key], value,
+                                    err_msg=f'{index} {key}')
+
+
 def test_side_launch_moves_across_the_view():
   side = dataclasses.replace(TINY, launch_side='side')
   videos = [contact.generate_video(side, 'readout_test', i) for i in range(4)]

@@ -30,7 +30,8 @@ Data config fields (``ml_collections.ConfigDict``; all but ``name`` optional):
 * ``object_scale``: synthetic only, multiplies object sizes. Default 1.
 * ``distinct_colors``: synthetic only, no repeated colour in a video.
   Default False.
-* ``num_workers``: synthetic only, generator processes. Default: all cores.
+* ``num_workers``: synthetic and the embedded task families (contact,
+  PHYRE-like), generator processes. Default: all cores.
 * ``channel_order``: real datasets only, ``'rgb'`` (default) or ``'bgr'``:
   the channel order of the ``video`` frames handed out. Conversions store
   RGB; ``'bgr'`` reverses the channels at read time (see
@@ -326,7 +327,8 @@ def _embedded_task_source(data_config: ml_collections.ConfigDict,
   root = resolve_data_dir(data_config.get('data_dir', None))
   if data_config.name == 'synthetic_contact':
     path = contact.build_contact_dataset(
-        contact.config_from_data_config(data_config), root)
+        contact.config_from_data_config(data_config), root,
+        num_workers=data_config.get('num_workers', None))
   else:
     path = phyre_like.build_video_dataset(data_config, root)
   return TfdsVideoSource(path, split)

@@ -565,9 +565,11 @@ def family(config: ContactConfig) -> embedded.Family:
 
 
 def build_contact_dataset(config: ContactConfig,
-                          data_dir: str | os.PathLike[str]) -> Path:
-  """Generates the dataset under ``data_dir`` unless it is there already."""
-  return embedded.build(family(config), data_dir)
+                          data_dir: str | os.PathLike[str], *,
+                          num_workers: int | None = None) -> Path:
+  """Generates the dataset under ``data_dir`` unless it is there already,
+  in ``num_workers`` processes (default: the available cores)."""
+  return embedded.build(family(config), data_dir, num_workers=num_workers)
 
 
 def config_from_data_config(data_config: Any) -> ContactConfig:

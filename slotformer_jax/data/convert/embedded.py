@@ -10,6 +10,7 @@ dataset. Record ``i`` of a split is example ``i`` (no shuffling).
 from __future__ import annotations
 
 import dataclasses
+import functools
 import os
 from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
@@ -19,6 +20,7 @@ import numpy as np
 import tensorflow_datasets as tfds
 
 from slotformer_jax.data.convert import synthetic
+from slotformer_jax.data.convert.pool import ordered_map
 
 VERSION = '1.0.0'
 
@@ -51,8 +53,10 @@ class _EmbeddedBuilder(tfds.core.GeneratorBasedBuilder,
   VERSION = tfds.core.Version(VERSION)
   RELEASE_NOTES = {'1.0.0': 'Initial release.'}
 
-  def __init__(self, *, family: Family, **kwargs: Any):
+  def __init__(self, *, family: Family, num_workers: int | None = None,
+               **kwargs: Any):
     self.name = family.name
+    self._num_workers = num_workers
     super().__init__(config=_BuilderConfig(name=family.slug, family=family,
                                            description=family.description),
                      file_format='array_record', **kwargs)
@@ -78,20 +82,29 @@ class _EmbeddedBuilder(tfds.core.GeneratorBasedBuilder,
   def _generate_examples(self, split: str
                          ) -> Iterator[tuple[int, dict[str, np.ndarray]]]:
     family = self.builder_config.family
-    for index in range(family.split_sizes[split]):
-      yield index, family.make(split, index)
+    # Index order whatever the worker count: every example depends on its
+    # (split, index) alone (the families seed per video).
+    yield from enumerate(ordered_map(functools.partial(family.make, split),
+                                     family.split_sizes[split],
+                                     self._num_workers))
 
 
 def dataset_dir(family: Family, data_dir: str | os.PathLike[str]) -> Path:
   return Path(data_dir) / family.name / family.slug / VERSION
 
 
-def build(family: Family, data_dir: str | os.PathLike[str]) -> Path:
-  """Writes ``family`` under ``data_dir`` unless it is there; its folder."""
+def build(family: Family, data_dir: str | os.PathLike[str], *,
+          num_workers: int | None = None) -> Path:
+  """Writes ``family`` under ``data_dir`` unless it is there; its folder.
+
+  ``num_workers`` generator processes (default: the available cores; 1
+  generates in this process); ``family.make`` must then be picklable.
+  """
   path = dataset_dir(family, data_dir)
   if (path / 'dataset_info.json').is_file():
     return path
-  builder = _EmbeddedBuilder(family=family, data_dir=os.fspath(data_dir))
+  builder = _EmbeddedBuilder(family=family, num_workers=num_workers,
+                             data_dir=os.fspath(data_dir))
   builder.download_and_prepare(
       download_config=tfds.download.DownloadConfig(try_download_gcs=False))
   if Path(builder.data_dir) != path:

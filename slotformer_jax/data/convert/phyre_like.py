@@ -535,4 +535,5 @@ def build_video_dataset(data_config: Any, data_dir: str | os.PathLike[str]
   labels = task_labels(config, data_dir)
   return embedded.build(
       video_family(config, data_config.num_train, data_config.num_val,
-                   data_config.positive_ratio, labels), data_dir)
+                   data_config.positive_ratio, labels), data_dir,
+      num_workers=data_config.get('num_workers', None))

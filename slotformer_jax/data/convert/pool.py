@@ -17,8 +17,11 @@ import signal
 import sys
 import threading
 import time
+from collections.abc import Callable, Iterator
+from typing import TypeVar
 
 _PR_SET_PDEATHSIG = 1
+T = TypeVar('T')
 
 
 def _die_with_parent(parent_pid: int) -> None:
@@ -48,3 +51,29 @@ def process_pool(num_workers: int) -> concurrent.futures.ProcessPoolExecutor:
   return concurrent.futures.ProcessPoolExecutor(
       num_workers, mp_context=multiprocessing.get_context('spawn'),
       initializer=_die_with_parent, initargs=(os.getpid(),))
+
+
+def ordered_map(make: Callable[[int], T], count: int,
+                num_workers: int | None = None) -> Iterator[T]:
+  """``make(0), ..., make(count - 1)`` in index order, computed by
+  ``num_workers`` processes (default: the available cores; 1: in this
+  process). ``make`` must be picklable and depend on its index alone, so
+  the output is the serial one whatever the worker count."""
+  workers = min(num_workers or len(os.sched_getaffinity(0)), count)
+  if workers <= 1:
+    for index in range(count):
+      yield make(index)
+    return
+  pool = process_pool(workers)
+  try:
+    yield from pool.map(make, range(count), chunksize=4)
+  except concurrent.futures.process.BrokenProcessPool as error:
+    raise RuntimeError(
+        'Data-generation worker processes died (out of memory?). With the '
+        '"spawn" start method they re-import the main script, so a script '
+        "that builds a dataset must do so under `if __name__ == '__main__':`;"
+        ' or set the data config field num_workers=1.') from error
+  finally:
+    # On an early exit (error, Ctrl-C) drop the queued items instead of
+    # computing them all before returning.
+    pool.shutdown(wait=True, cancel_futures=True)

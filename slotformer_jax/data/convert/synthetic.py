@@ -27,7 +27,6 @@ real object (id ``num_objects``); rows ``num_objects ..`` are padding.
 
 from __future__ import annotations
 
-import concurrent.futures
 import dataclasses
 import functools
 import hashlib
@@ -43,7 +42,7 @@ import pybullet
 import tensorflow_datasets as tfds
 
 from slotformer_jax.data import integrity
-from slotformer_jax.data.convert.pool import process_pool
+from slotformer_jax.data.convert.pool import ordered_map
 from slotformer_jax.data.data_dir import resolve_data_dir
 from slotformer_jax.lock import FileLock
 
@@ -616,28 +615,8 @@ class SyntheticObj3d(tfds.core.GeneratorBasedBuilder, skip_registration=True):
   def _generate_examples(self, split: str
                          ) -> Iterator[tuple[int, dict[str, np.ndarray]]]:
     count = self.generation.num_videos(split)
-    workers = self._num_workers or len(os.sched_getaffinity(0))
-    workers = min(workers, count)
     make = functools.partial(_example_for_worker, self.generation, split)
-    if workers <= 1:
-      for index in range(count):
-        yield index, make(index)
-      return
-    # map() keeps the index order, and every video only depends on its index,
-    # so the output is identical to the serial path.
-    pool = process_pool(workers)
-    try:
-      yield from enumerate(pool.map(make, range(count), chunksize=4))
-    except concurrent.futures.process.BrokenProcessPool as error:
-      raise RuntimeError(
-          'Synthetic-data worker processes died. With the "spawn" start '
-          'method they re-import the main script, so a script that builds '
-          "the dataset must do so under `if __name__ == '__main__':`; or "
-          'pass num_workers=1 (data config field num_workers).') from error
-    finally:
-      # On an early exit (error, Ctrl-C) drop the queued videos instead of
-      # rendering them all before returning.
-      pool.shutdown(wait=True, cancel_futures=True)
+    yield from enumerate(ordered_map(make, count, self._num_workers))
 
 
 def build_synthetic_dataset(config: SyntheticConfig,
