@@ -103,6 +103,8 @@ def main():
   parser.add_argument('--config', default='configs/synthetic_contact.py:side')
   parser.add_argument('--limit', type=int, default=10**9,
                       help='at most this many videos per readout split')
+  parser.add_argument('--train_limit', type=int, default=10**9,
+                      help='at most this many readout_train videos (labels)')
   parser.add_argument('--epochs', type=int, default=100)
   parser.add_argument('--seeds', type=int, nargs='+', default=[0, 1, 2])
   parser.add_argument('--all_objects', action='store_true',
@@ -120,8 +122,10 @@ def main():
     run_config.data[key.removeprefix('data.')] = eval(value)  # pylint: disable=eval-used
   config = contact.config_from_data_config(run_config.data)
   start = time.time()
-  splits = {s: load(config, s, args.limit, args.all_objects)
-            for s in ('readout_train', 'readout_val', 'readout_test')}
+  limits = {'readout_train': min(args.limit, args.train_limit),
+            'readout_val': args.limit, 'readout_test': args.limit}
+  splits = {s: load(config, s, n, args.all_objects)
+            for s, n in limits.items()}
   sim_s = time.time() - start
   observed = config.observed_frames
   onsets = splits['readout_test'][2]
