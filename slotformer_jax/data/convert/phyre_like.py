@@ -22,6 +22,12 @@ rigid bodies, the same class of engine as PHYRE's Box2D):
 * tasks of every template are split into train / test inside the template
   (PHYRE's "within-template" protocol), by a shuffle that depends on ``fold``.
 
+Templates: ``ledge``, ``tower``, ``stack`` (the default set) and ``ramp``
+(selected by name, e.g. ``configs/synthetic_phyre.py:ramp``): the green ball
+starts on a tilted static ramp, rolls off at once and flies over the goal
+basket unless the red ball meets it, so the first frame decides the outcome
+only through the motion that follows (docs/downstream.md, "Planning, ramp").
+
 World: W x H = 10 x 10 m, y up, gravity 9.8 m/s^2; frames are rendered at
 ``fps`` with 2x supersampling (area-averaged RGB, majority-vote masks).
 """
