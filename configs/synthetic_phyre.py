@@ -18,7 +18,9 @@ SlotFormer observes the first frame only (burn_in = 1) with a fixed window
 Variant `ramp` (`--config=configs/synthetic_phyre.py:ramp`): the `ramp`
 template only (100 tasks, 20 test tasks per fold), designed on simulator
 states so that the frames after the first tell much more than the first
-(docs/downstream.md, "Planning, ramp").
+(docs/downstream.md, "Planning, ramp"). Measured on slots (fold 0, with
+`--config.slotformer.max_context=6`): the rollout classifier 73.8 AUCCESS,
+the first-frame one 78.4, random 42.4, oracle 100: the rollout does not help.
 """
 
 import ml_collections
