@@ -63,27 +63,41 @@ class Logistic(nn.Module):
     return nn.Dense(1)(x)[..., 0]
 
 
-def frame_rows(bodies, poses) -> np.ndarray:
-  """float32 [len(ROLES), 9] for one frame."""
-  rows = np.zeros((len(ROLES), 9), np.float32)
+def role_rows(tasks) -> tuple[str, ...]:
+  """One row per body a kind can have: ROLES, with a kind repeated as often
+  as the most bodies of that kind in one task (the first templates have at
+  most one of each, so their rows are ROLES exactly)."""
+  most = {kind: max([1] + [sum(b.kind == kind for b in t.bodies)
+                           for t in tasks]) for kind in ROLES}
+  return tuple(kind for kind in ROLES for _ in range(most[kind]))
+
+
+def frame_rows(bodies, poses, roles=ROLES) -> np.ndarray:
+  """float32 [len(roles), 9] for one frame; the k-th body of a kind goes to
+  that kind's k-th row."""
+  rows = np.zeros((len(roles), 9), np.float32)
+  seen = {kind: 0 for kind in ROLES}
   for body, ((x, y), angle) in zip(bodies, poses):
     w = phyre_like.WORLD
-    rows[ROLES.index(body.kind)] = [
+    row = [i for i, kind in enumerate(roles) if kind == body.kind][
+        seen[body.kind]]
+    seen[body.kind] += 1
+    rows[row] = [
         1.0, x / w, y / w, np.cos(angle), np.sin(angle), body.radius / w,
         body.size[0] / w, body.size[1] / w, float(body.shape == 'ball')]
   return rows
 
 
-def simulate_task(task, actions, config):
+def simulate_task(task, actions, config, roles=ROLES):
   """(outcomes int8 [A], states float32 [A, T, R, 9]; invalid rows zero)."""
   outcomes = np.full(len(actions), planning.INVALID, np.int8)
-  states = np.zeros((len(actions), config.num_frames, len(ROLES), 9),
+  states = np.zeros((len(actions), config.num_frames, len(roles), 9),
                     np.float32)
   for i, action in enumerate(actions):
     result = phyre_like.simulate(task, action, config, record=True)
     outcomes[i] = result['outcome']
     if result['outcome'] != planning.INVALID:
-      states[i] = [frame_rows(result['bodies'], poses)
+      states[i] = [frame_rows(result['bodies'], poses, roles)
                    for poses in result['states']]
   return outcomes, states
 
@@ -101,21 +115,33 @@ def main():
   parser.add_argument('--epochs', type=int, default=40)
   parser.add_argument('--inputs', nargs='+', default=list(INPUTS))
   parser.add_argument('--heads', nargs='+', default=['mlp', 'logistic'])
+  parser.add_argument('--templates', nargs='+', default=None,
+                      help='override config.data.templates (names of '
+                      'phyre_like.ALL_TEMPLATES)')
+  parser.add_argument('--tasks_per_template', type=int, default=None)
   args = parser.parse_args()
   path, _, variant = args.config.partition(':')
   spec = importlib.util.spec_from_file_location('cfg', path)
   module = importlib.util.module_from_spec(spec)
   spec.loader.exec_module(module)
   run_config = module.get_config(variant)
+  if args.templates:
+    run_config.data.templates = tuple(args.templates)
+  if args.tasks_per_template:
+    run_config.data.tasks_per_template = args.tasks_per_template
   generation = phyre_like.config_from_data_config(run_config.data)
   actions = phyre_like.candidate_actions(generation)
   start = time.time()
-  sims = {(t.template, t.index): simulate_task(t, actions, generation)
-          for t in phyre_like.all_tasks(generation)}  # fold-independent
+  tasks = phyre_like.all_tasks(generation)
+  roles = role_rows(tasks)
+  sims = {(t.template, t.index): simulate_task(t, actions, generation, roles)
+          for t in tasks}  # fold-independent
   sim_s = time.time() - start
   print(f'simulated {len(sims)} tasks x {len(actions)} candidates in '
         f'{sim_s:.0f} s', flush=True)
-  results = {'config': args.config, 'simulation_s': round(sim_s, 1),
+  results = {'config': args.config, 'templates': list(generation.templates),
+             'tasks_per_template': generation.tasks_per_template,
+             'simulation_s': round(sim_s, 1),
              'epochs': args.epochs, 'seeds': args.seeds}
   heads = {'mlp': MLP, 'logistic': Logistic}
   for fold in args.folds:

@@ -88,3 +88,74 @@ def test_generator_is_deterministic_and_split_within_templates():
 def test_bad_config():
   with pytest.raises(ValueError, match='unknown templates'):
     p.PhyreLikeConfig(templates=('seesaw',))
+
+
+# ---- the 'ramp' template ----------------------------------------------------
+
+RAMP_CONFIG = p.PhyreLikeConfig(templates=('ramp',), tasks_per_template=4,
+                                num_candidates=40)
+
+# A hand-built ramp task: a 30-degree ramp whose lower end is at (3, 3); the
+# green ball starts at its top and flies right over a basket (goal from
+# x = 2.5 to 5.0, static lip at 5.15) to land near x ~ 6.
+_ANGLE = np.deg2rad(30.0)
+_RAMP = p._ramp_box((3.0, 3.0), 3.0, _ANGLE)  # pylint: disable=protected-access
+_ALONG = 3.0 - 0.5 - 0.1
+HAND_RAMP = p.Task('hand', 0, (
+    _RAMP,
+    p.Body(p.STATIC, 'box', (5.15, 0.35), size=(0.3, 0.7)),
+    p.Body(p.GOAL, 'box', (3.75, p.GOAL_THICKNESS / 2),
+           size=(2.5, p.GOAL_THICKNESS)),
+    p.Body(p.GREEN, 'ball',
+           (3.0 - np.cos(_ANGLE) * _ALONG + np.sin(_ANGLE) * 0.5,
+            3.0 + np.sin(_ANGLE) * _ALONG + np.cos(_ANGLE) * 0.5),
+           radius=0.5),
+))
+
+
+def test_ramp_hand_task_success_and_failure():
+  # No red ball: the green ball rolls off the ramp and over the basket.
+  landing = p._first_floor_touch(HAND_RAMP.bodies)  # pylint: disable=protected-access
+  assert landing > 5.3
+  assert p.simulate(HAND_RAMP, None, RAMP_CONFIG)['outcome'] == p.NOT_SOLVED
+  # A red ball far left of everything changes nothing.
+  assert p.simulate(HAND_RAMP, _action(1.0, 1.0, 0.5),
+                    RAMP_CONFIG)['outcome'] == p.NOT_SOLVED
+  # A big red ball resting on the floor just beyond the lip, where the green
+  # ball would land: the green ball hits it and drops back into the basket.
+  assert p.simulate(HAND_RAMP, _action(6.3, 1.0, 1.0),
+                    RAMP_CONFIG)['outcome'] == p.SOLVED
+  # Overlapping the ramp: invalid.
+  assert not p.is_valid(HAND_RAMP, _action(2.0, 3.3, 0.5))
+
+
+def test_ramp_tasks_deterministic_and_unsolved_without_action():
+  task = p.make_task(RAMP_CONFIG, 'ramp', 2)
+  assert task == p.make_task(RAMP_CONFIG, 'ramp', 2)
+  assert task != p.make_task(dataclasses.replace(RAMP_CONFIG, seed=1),
+                             'ramp', 2)
+  for task in p.all_tasks(RAMP_CONFIG):
+    kinds = [b.kind for b in task.bodies]
+    assert kinds == [p.STATIC, p.STATIC, p.GOAL, p.GREEN]
+    assert task.bodies[0].angle != 0.0  # the ramp is tilted
+    assert p.simulate(task, None, RAMP_CONFIG)['outcome'] == p.NOT_SOLVED
+  labels = p.label_candidates(task, p.candidate_actions(RAMP_CONFIG),
+                              RAMP_CONFIG)
+  np.testing.assert_array_equal(labels, p.label_candidates(
+      task, p.candidate_actions(RAMP_CONFIG), RAMP_CONFIG))
+  # The ramp is drawn tilted: its mask spans many rows and columns.
+  frame = p.render_video(task, p.candidate_actions(RAMP_CONFIG)[
+      labels != p.INVALID][0], RAMP_CONFIG)['segmentations'][0]
+  rows, cols = np.nonzero(frame == 1)
+  assert np.ptp(rows) > 8 and np.ptp(cols) > 8
+
+
+def test_default_templates_unchanged():
+  # The first templates keep their names, order, tasks and dataset folder
+  # names (cached datasets are found by slug) when templates are added.
+  assert p.TEMPLATES == ('ledge', 'tower', 'stack')
+  assert p.ALL_TEMPLATES[:3] == p.TEMPLATES
+  assert p.PhyreLikeConfig().templates == p.TEMPLATES
+  config = p.PhyreLikeConfig(resolution=(32, 32))
+  assert p.slug(config) == 'r32x32_f2_t5_k1_3x25_c200_fold0_s0_35de6daa'
+  assert all(b.angle == 0.0 for t in p.all_tasks(CONFIG) for b in t.bodies)

@@ -72,6 +72,19 @@ def test_first_frames_draw_the_action_ball():
   np.testing.assert_array_equal(video['video'][0], frame)
 
 
+def test_first_frames_draw_the_tilted_ramp_as_the_simulator():
+  # The classifier's first frame must be the rollout's frame 0, tilted
+  # bodies included (drawing the ramp flat would show another task).
+  config = phyre_like.PhyreLikeConfig(templates=('ramp',),
+                                      tasks_per_template=1)
+  task = phyre_like.make_task(config, 'ramp', 0)
+  action = np.array([[0.5, 0.9, 0.2]])
+  assert phyre_like.is_valid(task, action[0])
+  frame = phyre_planning.first_frames(task, action, (64, 64))[0]
+  video = phyre_like.render_video(task, action[0], config)
+  np.testing.assert_array_equal(video['video'][0], frame)
+
+
 @pytest.mark.parametrize('stride', [1, 3])
 def test_interleaved_rollout_restores_frame_order(stride):
   # Slots hold their frame index; the fake model continues its context's

@@ -97,7 +97,7 @@ def first_frames(task: phyre_like.Task, actions: np.ndarray,
   frames = []
   for action in actions:
     bodies = list(task.bodies) + [phyre_like.action_ball(action)]
-    poses = [(b.position, 0.0) for b in bodies]
+    poses = [(b.position, b.angle) for b in bodies]
     frames.append(phyre_like.render_state(bodies, poses, resolution)[0])
   return np.stack(frames)
 

@@ -22,6 +22,12 @@ rigid bodies, the same class of engine as PHYRE's Box2D):
 * tasks of every template are split into train / test inside the template
   (PHYRE's "within-template" protocol), by a shuffle that depends on ``fold``.
 
+Templates: ``ledge``, ``tower``, ``stack`` (the default set) and ``ramp``
+(selected by name, e.g. ``configs/synthetic_phyre.py:ramp``): the green ball
+starts on a tilted static ramp, rolls off at once and flies over the goal
+basket unless the red ball meets it, so the first frame decides the outcome
+only through the motion that follows (docs/downstream.md, "Planning, ramp").
+
 World: W x H = 10 x 10 m, y up, gravity 9.8 m/s^2; frames are rendered at
 ``fps`` with 2x supersampling (area-averaged RGB, majority-vote masks).
 """
@@ -57,7 +63,10 @@ DENSITY = 1.0                   # mass = DENSITY * area
 MIN_ACTION_RADIUS, MAX_ACTION_RADIUS = 0.3, 1.0   # [m]
 GOAL_THICKNESS = 0.15           # [m]
 
+# The first templates (the default set: their tasks and cached datasets must
+# not change) and templates added later, which a config selects by name.
 TEMPLATES: tuple[str, ...] = ('ledge', 'tower', 'stack')
+ALL_TEMPLATES: tuple[str, ...] = TEMPLATES + ('ramp',)
 
 # Kinds of body, in drawing order (later ones are drawn on top).
 STATIC, DYNAMIC, GOAL, GREEN, ACTION = 'static', 'dynamic', 'goal', 'green', 'red'
@@ -83,6 +92,7 @@ class Body:
   position: tuple[float, float]
   radius: float = 0.0
   size: tuple[float, float] = (0.0, 0.0)
+  angle: float = 0.0              # [rad], counter-clockwise (ramps)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -128,10 +138,10 @@ class PhyreLikeConfig:
     object.__setattr__(self, 'resolution',
                        tuple(int(r) for r in self.resolution))
     object.__setattr__(self, 'templates', tuple(self.templates))
-    unknown = set(self.templates) - set(TEMPLATES)
+    unknown = set(self.templates) - set(ALL_TEMPLATES)
     if unknown:
       raise ValueError(f'unknown templates {sorted(unknown)}; '
-                       f'choose from {TEMPLATES}')
+                       f'choose from {ALL_TEMPLATES}')
     if self.success_seconds > self.sim_seconds:
       raise ValueError('success_seconds must be <= sim_seconds')
     if not 0.0 < self.train_share < 1.0:
@@ -204,13 +214,88 @@ def _stack(rng: np.random.Generator) -> list[Body]:
   ]
 
 
-_TEMPLATE_BUILDERS = {'ledge': _ledge, 'tower': _tower, 'stack': _stack}
+def _mirror(bodies: list[Body], side: int) -> list[Body]:
+  """Bodies built with the goal on the right, mirrored when ``side`` < 0."""
+  if side > 0:
+    return bodies
+  return [dataclasses.replace(b, position=(WORLD - b.position[0],
+                                           b.position[1]), angle=-b.angle)
+          for b in bodies]
+
+
+def _ramp_box(low_end: tuple[float, float], length: float, angle: float,
+              thickness: float = 0.3) -> Body:
+  """A static plank whose top surface descends at ``angle`` (rad, > 0: down
+  to the right) to its lower end ``low_end`` (the top-right corner)."""
+  c, s = np.cos(angle), np.sin(angle)
+  # From the top-right corner to the centre: half a length up the slope
+  # (-c, s), half a thickness down the normal (-s, -c).
+  cx = low_end[0] - c * length / 2 - s * thickness / 2
+  cy = low_end[1] + s * length / 2 - c * thickness / 2
+  return Body(STATIC, 'box', (cx, cy), size=(length, thickness), angle=-angle)
+
+
+def _first_floor_touch(bodies: Sequence[Body], limit_s: float = 5.0
+                       ) -> float | None:
+  """x [m] where the green ball of ``bodies`` (simulated alone, no action)
+  first comes within 5 cm of the floor; None if it does not in ``limit_s``."""
+  space, shapes = _build_space(bodies)
+  green = next(s for s, b in zip(shapes, bodies) if b.kind == GREEN)
+  for _ in range(int(round(limit_s / PHYSICS_DT))):
+    space.step(PHYSICS_DT)
+    if green.body.position.y <= green.radius + 0.05:
+      return float(green.body.position.x)
+  return None
+
+
+def _ramp(rng: np.random.Generator) -> list[Body]:
+  """The green ball starts at the top of a static ramp and rolls at once;
+  launched off the ramp's end it flies OVER a goal basket (a purple strip
+  with a static lip at its far end) and lands beyond it.
+
+  Nothing in the first frame is in contact: the red ball must meet the
+  moving green ball (block it on the ramp, knock it down in flight, ...) so
+  that it ends in the basket. Where the green ball will be, and when, is what
+  the frames after the first show.
+  """
+  side = int(rng.choice([-1, 1]))
+  for _ in range(100):  # until the unperturbed ball lands in the open
+    angle = np.deg2rad(rng.uniform(20.0, 35.0))
+    length = rng.uniform(2.5, 3.5)
+    low_end = (rng.uniform(2.0, 3.5), rng.uniform(2.0, 3.5))
+    ramp = _ramp_box(low_end, length, angle)
+    radius = rng.uniform(0.4, 0.55)
+    c, s = np.cos(angle), np.sin(angle)
+    along = length - radius - 0.1  # from the lower end, up the slope
+    green = Body(GREEN, 'ball', (low_end[0] - c * along + s * radius,
+                                 low_end[1] + s * along + c * radius),
+                 radius=radius)
+    landing = _first_floor_touch([ramp, green])
+    if landing is None:
+      continue
+    lip_x = landing - rng.uniform(0.4, 0.9)
+    lip_h = rng.uniform(0.5, 0.9)
+    goal_w = rng.uniform(2.0, 3.5)
+    if lip_x - goal_w < 0.3 or lip_x > WORLD - 1.0:
+      continue
+    lo = lip_x - 0.15 - goal_w
+    bodies = [ramp,
+              Body(STATIC, 'box', (lip_x, lip_h / 2), size=(0.3, lip_h)),
+              Body(GOAL, 'box', (lo + goal_w / 2, GOAL_THICKNESS / 2),
+                   size=(goal_w, GOAL_THICKNESS)),
+              green]
+    return _mirror(bodies, side)
+  raise RuntimeError('no ramp layout found')
+
+
+_TEMPLATE_BUILDERS = {'ledge': _ledge, 'tower': _tower, 'stack': _stack,
+                      'ramp': _ramp}
 
 
 def make_task(config: PhyreLikeConfig, template: str, index: int) -> Task:
   """Task ``index`` of ``template``; a pure function of its arguments."""
   rng = np.random.default_rng(
-      [config.seed, 7, TEMPLATES.index(template), index])
+      [config.seed, 7, ALL_TEMPLATES.index(template), index])
   bodies = tuple(_TEMPLATE_BUILDERS[template](rng))
   if len(bodies) + 1 > config.max_instances:
     raise ValueError(f'{template} needs {len(bodies) + 1} mask ids, '
@@ -231,7 +316,7 @@ def split_tasks(config: PhyreLikeConfig) -> dict[str, list[Task]]:
   splits: dict[str, list[Task]] = {'train': [], 'test': []}
   for template in config.templates:
     order = np.random.default_rng(
-        [config.seed, 11, TEMPLATES.index(template), config.fold]).permutation(
+        [config.seed, 11, ALL_TEMPLATES.index(template), config.fold]).permutation(
             config.tasks_per_template)
     num_train = int(round(config.train_share * config.tasks_per_template))
     for rank, i in enumerate(order):
@@ -268,6 +353,7 @@ def _add_body(space: pymunk.Space, body: Body) -> pymunk.Shape:
     mass = DENSITY * body.size[0] * body.size[1]
     handle = pymunk.Body(mass, pymunk.moment_for_box(mass, body.size))
   handle.position = body.position
+  handle.angle = body.angle
   if body.shape == 'ball':
     shape = pymunk.Circle(handle, body.radius)
   else:
