@@ -19,7 +19,7 @@ last observed one), with SAVi's own decoder:
   majority class), ridge regression slot -> box centre (R^2 per axis).
 
 Needs the workdir's SAVi and extracted slots (`--mode=extract_slots`) and the
-dataset (`SLOTFORMER_DATA_DIR`). Numpy only (no scikit-learn).
+dataset (`SLOTFORMER_DATA_DIR`). The probes are fitted with numpy.
 """
 
 from __future__ import annotations

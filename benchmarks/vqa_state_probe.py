@@ -24,6 +24,7 @@ import os
 import time
 
 import numpy as np
+from sklearn.linear_model import LogisticRegression
 
 from slotformer_jax.data import clevrer_like
 from slotformer_jax.data.sources import resolve_data_dir
@@ -95,9 +96,6 @@ def main() -> None:
   parser = argparse.ArgumentParser()
   parser.add_argument('--config', default='configs/synthetic_vqa.py')
   args = parser.parse_args()
-  # Imported here so that the feature helpers (tests) need no scikit-learn,
-  # which the project's environment does not install.
-  from sklearn.linear_model import LogisticRegression  # pylint: disable=g-import-not-at-top
   spec = importlib.util.spec_from_file_location('vqa_config', args.config)
   module = importlib.util.module_from_spec(spec)
   spec.loader.exec_module(module)
