@@ -1,7 +1,8 @@
 r"""The whole embedded VQA comparison as one command, one stage at a time.
 
   python benchmarks/vqa_run.py --workdir=runs/vqa [--seeds=0,1,2] \
-      [--inputs=future,rollout,observed,blind] [--split=test] [-- <flags>]
+      [--inputs=future,rollout,observed,blind] [--split=test] \
+      [--config=configs/synthetic_vqa.py:long_savi] [-- <flags>]
 
 Runs, one after the other (never in parallel: the 2-core CPU it is sized
 for is shared), the video pipeline of `configs/synthetic_vqa.py` (dataset if
@@ -27,16 +28,18 @@ CONFIG = 'configs/synthetic_vqa.py'
 PIPELINE = ('train_savi', 'extract_slots', 'train_slotformer', 'vqa_slots')
 
 
-def _run(args: list[str]) -> float:
+def _run(config: str, args: list[str]) -> float:
   start = time.time()
   subprocess.run([sys.executable, '-m', 'slotformer_jax.main',
-                  f'--config={CONFIG}'] + args, check=True)
+                  f'--config={config}'] + args, check=True)
   return time.time() - start
 
 
 def main() -> None:
   parser = argparse.ArgumentParser()
   parser.add_argument('--workdir', required=True)
+  parser.add_argument('--config', default=CONFIG,
+                      help='config file[:variant] of every stage')
   parser.add_argument('--seeds', default='0,1,2')
   parser.add_argument('--inputs', default='future,rollout,observed,blind')
   parser.add_argument('--split', default='test',
@@ -48,7 +51,7 @@ def main() -> None:
   start = time.time()
   common = [f'--workdir={args.workdir}'] + args.extra
   for mode in PIPELINE:
-    times[mode] = _run(common + [f'--mode={mode}'])
+    times[mode] = _run(args.config, common + [f'--mode={mode}'])
     print(f'[vqa_run] {mode}: {times[mode]:.0f} s', flush=True)
   for seed in args.seeds.split(','):
     for inputs in args.inputs.split(','):
@@ -56,7 +59,7 @@ def main() -> None:
                  f'--config.vqa.eval_split={args.split}']
       for mode in ('train_vqa', 'evaluate_vqa'):
         key = f'{mode}/{inputs}_s{seed}'
-        times[key] = _run(common + variant + [f'--mode={mode}'])
+        times[key] = _run(args.config, common + variant + [f'--mode={mode}'])
         print(f'[vqa_run] {key}: {times[key]:.0f} s', flush=True)
   times['total'] = time.time() - start
   with open(os.path.join(args.workdir, 'vqa', 'run_times.json'), 'w') as f:

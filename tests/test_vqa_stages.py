@@ -68,14 +68,24 @@ def test_vqa_inputs_and_seed_are_variants_of_one_workdir(tmp_path):
     workdir_lib.accept_config(config, workdir)
 
 
-def _synthetic_vqa_config():
+def _synthetic_vqa_config(variant: str = ''):
   import importlib.util  # pylint: disable=g-import-not-at-top
   spec = importlib.util.spec_from_file_location(
       'synthetic_vqa', os.path.join(os.path.dirname(__file__), '..',
                                     'configs', 'synthetic_vqa.py'))
   module = importlib.util.module_from_spec(spec)
   spec.loader.exec_module(module)
-  return module.get_config()
+  return module.get_config(variant)
+
+
+def test_long_savi_variant_changes_only_savi_steps():
+  # The issue-12 variant: same data (same dataset folder), same everything
+  # but SAVi's schedule length, so the default config stays reproducible.
+  base = _synthetic_vqa_config().to_dict()
+  long_savi = _synthetic_vqa_config('long_savi').to_dict()
+  assert long_savi['savi'].pop('num_train_steps') == 4500
+  assert base['savi'].pop('num_train_steps') == 1200
+  assert long_savi == base
 
 
 def test_future_inputs_read_the_extracted_slots_of_the_real_future(tmp_path):
