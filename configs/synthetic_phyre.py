@@ -123,6 +123,9 @@ def get_config(variant: str = ''):
     # fold (one task is worth 5 AUCCESS points, not 7).
     data.templates = ('ramp',)
     data.tasks_per_template = 100
+    # Chosen on fold 0's dev tasks: SlotFormer 1000 -> 3000 steps took the
+    # rollout classifier's dev AUCCESS from 81.8 to 83.8 (docs/downstream.md).
+    dyn.num_train_steps = 3000
   elif variant:
     raise ValueError(f'unknown variant {variant!r}; use "", "tiny" or '
                      '"ramp"')
