@@ -88,6 +88,29 @@ def test_long_savi_variant_changes_only_savi_steps():
   assert long_savi == base
 
 
+def test_big_variant_changes_only_data_size_and_schedules():
+  # Round 3 of issue 12: more training videos (the val / test videos are the
+  # same: a video is a function of seed, split and index), longer schedules,
+  # Aloe on predictive + descriptive questions; nothing else.
+  flat = lambda c: {f'{k}.{j}': w for k, v in c.to_dict().items()
+                    for j, w in (v.items() if isinstance(v, dict)
+                                 else [('', v)])}
+  base, big = flat(_synthetic_vqa_config('long_savi')), flat(
+      _synthetic_vqa_config('big'))
+  changed = {k: (base[k], big[k]) for k in base if base[k] != big[k]}
+  assert set(base) == set(big)
+  assert changed == {
+      'data.num_train': (600, 3000),
+      'slotformer.num_train_steps': (1000, 4000),
+      'vqa.num_train_steps': (700, 12000),
+      'vqa.choice_type_weights': (
+          {'counterfactual': 1.0, 'explanatory': 1.0, 'predictive': 1.0},
+          {'counterfactual': 0.0, 'explanatory': 0.0, 'predictive': 1.0}),
+      'vqa.log_every': (100, 500),
+      'vqa.checkpoint_every': (350, 3000),
+  }
+
+
 def test_future_inputs_read_the_extracted_slots_of_the_real_future(tmp_path):
   # vqa.inputs='future' (the ground-truth-future ceiling) reads SAVi's slots
   # of the frames after the video from the extraction, not the rollout file.
