@@ -512,6 +512,46 @@ def has_future_collision(simulation: dict[str, Any],
              for a, b, f, _ in simulation['collisions'])
 
 
+def object_radius(shape: str, size: str, object_scale: float) -> float:
+  """Radius [m] of the circle covering an object's ground footprint."""
+  return synthetic._footprint_radius(  # pylint: disable=protected-access
+      SHAPES.index(shape), synthetic.SIZE_RADII[SIZES.index(size)]
+      * object_scale)
+
+
+def extrapolated_clearance(positions: np.ndarray, radii: np.ndarray, a: int,
+                           b: int, observed_frames: int, horizon: int
+                           ) -> float:
+  """Smallest gap [m] between objects a and b over the ``horizon`` frames
+  after the video if both kept the velocity of their last two observed
+  frames: min_t |centre_a(t) - centre_b(t)| - (radii[a] + radii[b]).
+
+  What "who meets whom" looks like from the observed end alone (on the
+  ground plane; friction and other objects ignored). A gap below a small
+  margin is this rule's "they will collide".
+
+  Args:
+    positions: float [T, O, 2 or 3] object centres of a simulation.
+    radii: float [O] footprint radii (:func:`object_radius`).
+  """
+  p = np.asarray(positions, np.float64)[..., :2]
+  last, velocity = p[observed_frames - 1], (p[observed_frames - 1]
+                                            - p[observed_frames - 2])
+  steps = np.arange(1, horizon + 1, dtype=np.float64)[:, None]
+  gap = np.linalg.norm((last[a] - last[b]) + steps * (velocity[a]
+                                                      - velocity[b]), axis=-1)
+  return float(gap.min() - radii[a] - radii[b])
+
+
+def future_clearance(positions: np.ndarray, radii: np.ndarray, a: int, b: int,
+                     observed_frames: int) -> float:
+  """As :func:`extrapolated_clearance` over the simulated frames after the
+  video (what a perfect dynamics model shows)."""
+  p = np.asarray(positions, np.float64)[observed_frames:, :, :2]
+  gap = np.linalg.norm(p[:, a] - p[:, b], axis=-1)
+  return float(gap.min() - radii[a] - radii[b])
+
+
 def sample_video_scene(rng: np.random.Generator, config: ClevrerLikeConfig
                        ) -> Scene:
   """The scene of one video: with probability
