@@ -79,6 +79,18 @@ VIEW_MARGIN = 0.05
 # Scenes drawn (physics only, ~20 ms each) to find one whose future has a
 # collision, when a video should have one (future_collision_fraction).
 MAX_SCENE_TRIES = 30
+# predictive_design: 'direct', the scenes above (most future collisions are
+# objects already heading at each other: extrapolating the observed end
+# answers ~85% of the predictive options, benchmarks/
+# vqa_state_extrapolation.py); 'deflected', scenes drawn until the future
+# has an event that extrapolation gets wrong (docs/vqa.md, "Issue 12, round
+# 4"), and every pair in view at the end carries the extrapolation's verdict
+# (EventLog.extrapolated) so that the questions balance labels within it.
+PREDICTIVE_DESIGNS = ('direct', 'deflected')
+# The extrapolation's "they will collide": the gap of
+# extrapolated_clearance below this [m] (the margin that is best on the
+# 'direct' design's training options).
+EXTRAPOLATION_MARGIN = 0.05
 
 
 @dataclasses.dataclass(frozen=True)
@@ -100,6 +112,9 @@ class ClevrerLikeConfig:
     seed: base seed; video ``i`` of split ``s`` uses ``(seed, s, i)``.
     num_train, num_val, num_test: videos per split.
     supersample, object_scale: as in :class:`synthetic.SyntheticConfig`.
+    predictive_design: one of PREDICTIVE_DESIGNS ('direct' is the generator
+      of version 2; the field enters the slug only when not 'direct', so the
+      datasets built before it keep their slugs and contents).
   """
 
   resolution: tuple[int, int] = (32, 32)
@@ -116,6 +131,7 @@ class ClevrerLikeConfig:
   num_test: int = 200
   supersample: int = 2
   object_scale: float = 1.0
+  predictive_design: str = 'direct'
 
   def __post_init__(self):
     object.__setattr__(self, 'resolution', tuple(int(r) for r in self.resolution))
@@ -130,6 +146,9 @@ class ClevrerLikeConfig:
       raise ValueError('max_entering must be >= 0')
     if not 0.0 <= self.future_collision_fraction <= 1.0:
       raise ValueError('future_collision_fraction must be in [0, 1]')
+    if self.predictive_design not in PREDICTIVE_DESIGNS:
+      raise ValueError(f'predictive_design must be one of '
+                       f'{PREDICTIVE_DESIGNS}, got {self.predictive_design!r}')
 
   @property
   def num_frames(self) -> int:
@@ -143,10 +162,18 @@ class ClevrerLikeConfig:
     return {'train': self.num_train, 'val': self.num_val,
             'test': self.num_test}[split]
 
+  def identity(self) -> dict[str, Any]:
+    """The fields that identify the dataset: all of them, except
+    ``predictive_design`` when it is 'direct' (as before the field)."""
+    fields = dataclasses.asdict(self)
+    if fields['predictive_design'] == 'direct':
+      del fields['predictive_design']
+    return fields
+
   @property
   def slug(self) -> str:
     h, w = self.resolution
-    payload = json.dumps({**dataclasses.asdict(self),
+    payload = json.dumps({**self.identity(),
                           'generator_version': GENERATOR_VERSION},
                          sort_keys=True)
     digest = hashlib.sha256(payload.encode()).hexdigest()[:8]
@@ -406,6 +433,11 @@ class EventLog:
     final_positions: per object, its centre [x, y, z] at the last simulated
       frame (None if it never appeared).
     counterfactual: removed object -> collisions in the world without it.
+    extrapolated: predictive_design 'deflected' only (None otherwise, and
+      then not written by to_dict): the pairs (i, j), i < j, of objects in
+      view at the last observed frame that extrapolating their last two
+      observed positions says will collide (extrapolated_clearance <
+      EXTRAPOLATION_MARGIN within predicted_frames).
   """
 
   objects: list[dict[str, str]]
@@ -420,6 +452,7 @@ class EventLog:
       default_factory=list)
   counterfactual: dict[int, list[Collision]] = dataclasses.field(
       default_factory=dict)
+  extrapolated: list[tuple[int, int]] | None = None
 
   @property
   def num_objects(self) -> int:
@@ -435,6 +468,8 @@ class EventLog:
     d = dataclasses.asdict(self)
     d['counterfactual'] = {str(k): [dataclasses.asdict(c) for c in v]
                            for k, v in self.counterfactual.items()}
+    if d['extrapolated'] is None:
+      del d['extrapolated']  # the logs of the 'direct' design, as before
     return d
 
   @classmethod
@@ -452,7 +487,9 @@ class EventLog:
         in_view_at_end=list(d['in_view_at_end']),
         final_positions=list(d['final_positions']),
         counterfactual={int(k): collisions(v)
-                        for k, v in d['counterfactual'].items()})
+                        for k, v in d['counterfactual'].items()},
+        extrapolated=(None if d.get('extrapolated') is None
+                      else [tuple(p) for p in d['extrapolated']]))
 
 
 def _view_events(in_view: np.ndarray, present: np.ndarray
@@ -500,7 +537,47 @@ def event_log(scene: Scene, simulation: dict[str, Any],
       counterfactual={k: [Collision((a, b), f) for a, b, f, _ in
                           sim['collisions']]
                       for k, sim in (counterfactuals or {}).items()},
+      extrapolated=([(a, b) for a, b, _, said in
+                     end_pairs(scene, simulation, config) if said]
+                    if config.predictive_design == 'deflected' else None),
   )
+
+
+def end_pairs(scene: Scene, simulation: dict[str, Any],
+              config: ClevrerLikeConfig
+              ) -> list[tuple[int, int, bool, bool]]:
+  """(a, b, collides after the video, extrapolation says so) for every
+  pair a < b of objects in view at the last observed frame (the pairs a
+  predictive question can offer)."""
+  last = config.observed_frames - 1
+  in_view = np.flatnonzero(simulation['in_view'][last, :scene.num_objects])
+  radii = np.array([object_radius(SHAPES[scene.shapes[i]],
+                                  SIZES[scene.sizes[i]], config.object_scale)
+                    for i in range(scene.num_objects)])
+  future = {(a, b) for a, b, f, _ in simulation['collisions']
+            if f >= config.observed_frames}
+  out = []
+  for k, a in enumerate(in_view):
+    for b in in_view[k + 1:]:
+      gap = extrapolated_clearance(simulation['positions'], radii, int(a),
+                                   int(b), config.observed_frames,
+                                   config.predicted_frames)
+      out.append((int(a), int(b), (a, b) in future,
+                  gap < EXTRAPOLATION_MARGIN))
+  return out
+
+
+def has_deflected_question(scene: Scene, simulation: dict[str, Any],
+                           config: ClevrerLikeConfig) -> bool:
+  """Whether a predictive question can be asked with labels balanced
+  within the extrapolation's verdict: among the pairs in view at the end,
+  one it says collide that does and one that does not (a near miss), or
+  one it says do not collide that does (an event after the video decides)
+  and one that does not."""
+  labels = {said: set() for said in (False, True)}
+  for _, _, collides, said in end_pairs(scene, simulation, config):
+    labels[said].add(collides)
+  return any(len(v) == 2 for v in labels.values())
 
 
 def has_future_collision(simulation: dict[str, Any],
@@ -562,9 +639,13 @@ def sample_video_scene(rng: np.random.Generator, config: ClevrerLikeConfig
   wants_future = (config.future_collision_fraction > 0.0
                   and rng.uniform() < config.future_collision_fraction)
   scene = sample_scene(rng, config)
+  if config.predictive_design == 'deflected':
+    accept = functools.partial(has_deflected_question, config=config)
+  else:
+    accept = lambda scene, sim: has_future_collision(sim, config)
   if wants_future:
     for _ in range(MAX_SCENE_TRIES - 1):
-      if has_future_collision(simulate(scene, config), config):
+      if accept(scene, simulate(scene, config)):
         break
       scene = sample_scene(rng, config)
   return scene
@@ -673,7 +754,7 @@ def build_dataset(config: ClevrerLikeConfig,
   """
   from slotformer_jax.data import questions as question_generator  # pylint: disable=g-import-not-at-top
   root = dataset_dir(config, data_dir)
-  complete = {**dataclasses.asdict(config),
+  complete = {**config.identity(),
               'questions_version': question_generator.VERSION}
   if (root / _COMPLETE).is_file():
     with open(root / _COMPLETE) as f:

@@ -218,16 +218,37 @@ def responsible_choices(log: EventLog, k: int
           'other_collision_event': events[False]}
 
 
-def predictive_choices(log: EventLog) -> tuple[list[str], list[str]]:
+def predictive_choices(log: EventLog,
+                       extrapolated: bool | None = None
+                       ) -> tuple[list[str], list[str]]:
   """(correct, wrong) choices of "what will happen next": pairs of objects in
-  view at the end of the video, correct iff they collide after it."""
+  view at the end of the video, correct iff they collide after it.
+
+  With ``extrapolated`` (a log of the 'deflected' design only), only the
+  pairs on which extrapolating the observed end says ``extrapolated``
+  (``log.extrapolated``).
+  """
   future = _pairs_colliding(log.future_collisions())
   at_end = [i for i in _seen(log) if log.in_view_at_end[i]]
   correct, wrong = [], []
   for a, b in itertools.combinations(at_end, 2):
+    if (extrapolated is not None
+        and ((a, b) in log.extrapolated) != extrapolated):
+      continue
     text = CHOICE_TEMPLATES['collides'].format(a=name(log, a), b=name(log, b))
     (correct if (a, b) in future else wrong).append(text)
   return correct, wrong
+
+
+def predictive_kinds(log: EventLog) -> list[tuple[list[str], list[str]]]:
+  """The (correct, wrong) pools of the predictive choices, one per choice
+  kind: all pairs in one kind, or, for a log that carries the
+  extrapolation's verdicts ('deflected' design), one kind per verdict, so
+  that within each the extrapolation says the same of every label (its
+  per-option accuracy is 50%)."""
+  if log.extrapolated is None:
+    return [predictive_choices(log)]
+  return [predictive_choices(log, said) for said in (True, False)]
 
 
 def counterfactual_choices(log: EventLog, x: int
@@ -327,13 +348,23 @@ def candidate_questions(log: EventLog, rng: np.random.Generator
   # ---- predictive ----------------------------------------------------------
   # Up to MAX_PREDICTIVE questions, the pools dealt out so that no choice is
   # asked twice about one video.
-  correct, wrong = predictive_choices(log)
-  num = min(MAX_PREDICTIVE, len(correct), len(wrong))
-  correct = [correct[int(i)] for i in rng.permutation(len(correct))]
-  wrong = [wrong[int(i)] for i in rng.permutation(len(wrong))]
-  for part in range(num):
-    ask('next', choices=_balanced_choices(
-        rng, [(correct[part::num], wrong[part::num])]))
+  kinds = predictive_kinds(log)
+  if len(kinds) == 1:  # the 'direct' design, as in VERSION 2
+    correct, wrong = kinds[0]
+    num = min(MAX_PREDICTIVE, len(correct), len(wrong))
+    correct = [correct[int(i)] for i in rng.permutation(len(correct))]
+    wrong = [wrong[int(i)] for i in rng.permutation(len(wrong))]
+    for part in range(num):
+      ask('next', choices=_balanced_choices(
+          rng, [(correct[part::num], wrong[part::num])]))
+  else:
+    shuffled = [([c[int(i)] for i in rng.permutation(len(c))],
+                 [w[int(i)] for i in rng.permutation(len(w))])
+                for c, w in kinds]
+    num = min(MAX_PREDICTIVE, max(min(len(c), len(w)) for c, w in kinds))
+    for part in range(num):
+      ask('next', choices=_balanced_choices(
+          rng, [(c[part::num], w[part::num]) for c, w in shuffled]))
 
   # ---- counterfactual ------------------------------------------------------
   removable = [x for x in seen if x in log.counterfactual]
