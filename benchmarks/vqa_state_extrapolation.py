@@ -43,7 +43,7 @@ from sklearn.linear_model import LogisticRegression
 from slotformer_jax.data import clevrer_like
 from slotformer_jax.data import questions as question_generator
 
-MARGINS = np.round(np.arange(-0.3, 0.61, 0.05), 3)
+MARGINS = np.round(np.arange(-1.0, 0.61, 0.05), 3)
 
 
 def _module(path: str, name: str):

@@ -41,6 +41,7 @@ from typing import Any
 
 import numpy as np
 
+from slotformer_jax.data.clevrer_like import EXTRAPOLATION_BINS
 from slotformer_jax.data.clevrer_like import Collision, EventLog
 from slotformer_jax.data.convert.synthetic import COLORS, SHAPES
 
@@ -218,22 +219,21 @@ def responsible_choices(log: EventLog, k: int
           'other_collision_event': events[False]}
 
 
-def predictive_choices(log: EventLog,
-                       extrapolated: bool | None = None
+def predictive_choices(log: EventLog, verdict: int | None = None
                        ) -> tuple[list[str], list[str]]:
   """(correct, wrong) choices of "what will happen next": pairs of objects in
   view at the end of the video, correct iff they collide after it.
 
-  With ``extrapolated`` (a log of the 'deflected' design only), only the
-  pairs on which extrapolating the observed end says ``extrapolated``
-  (``log.extrapolated``).
+  With ``verdict`` (a log of the 'deflected' design only), only the pairs
+  on which extrapolating the observed end gives that verdict
+  (``log.extrapolated``; clevrer_like.EXTRAPOLATION_BINS).
   """
   future = _pairs_colliding(log.future_collisions())
   at_end = [i for i in _seen(log) if log.in_view_at_end[i]]
+  verdicts = {(a, b): v for a, b, v in log.extrapolated or []}
   correct, wrong = [], []
   for a, b in itertools.combinations(at_end, 2):
-    if (extrapolated is not None
-        and ((a, b) in log.extrapolated) != extrapolated):
+    if verdict is not None and verdicts.get((a, b)) != verdict:
       continue
     text = CHOICE_TEMPLATES['collides'].format(a=name(log, a), b=name(log, b))
     (correct if (a, b) in future else wrong).append(text)
@@ -244,11 +244,12 @@ def predictive_kinds(log: EventLog) -> list[tuple[list[str], list[str]]]:
   """The (correct, wrong) pools of the predictive choices, one per choice
   kind: all pairs in one kind, or, for a log that carries the
   extrapolation's verdicts ('deflected' design), one kind per verdict, so
-  that within each the extrapolation says the same of every label (its
-  per-option accuracy is 50%)."""
+  that within each the extrapolation says the same of either label (a
+  rule on the verdict is right on half the options)."""
   if log.extrapolated is None:
     return [predictive_choices(log)]
-  return [predictive_choices(log, said) for said in (True, False)]
+  return [predictive_choices(log, v)
+          for v in range(len(EXTRAPOLATION_BINS) + 1)]
 
 
 def counterfactual_choices(log: EventLog, x: int
