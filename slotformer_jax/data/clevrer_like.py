@@ -9,7 +9,9 @@ renderer, image helpers are imported from there):
 
 * :func:`sample_scene` draws objects present from frame 0 (some resting, some
   moving, aimed roughly at another object) and objects that enter later from
-  the left or right side of the view;
+  the left or right side of the view; with ``predictive_design='deflected'``
+  three of them form a bank shot whose outcome is decided after the video
+  (see PREDICTIVE_DESIGNS);
 * :func:`simulate` runs the world for ``observed_frames + predicted_frames``
   frames, checks contacts after *every* physics substep (a collision is the
   onset of a contact between two objects), tracks which objects are in view,

@@ -14,7 +14,10 @@ templates of CLEVRER's four types:
   are answered by re-simulation, so they never disagree);
 * predictive (multiple choice): "what will happen next"; a choice "A collides
   with B" is correct iff they collide after the observed window (up to
-  ``MAX_PREDICTIVE`` questions per video, with disjoint choices);
+  ``MAX_PREDICTIVE`` questions per video, with disjoint choices); on videos
+  of the 'deflected' design (clevrer_like.PREDICTIVE_DESIGNS) the pairs are
+  split into choice kinds by what extrapolating the observed end says of
+  them (``EventLog.extrapolated``), so that it cannot tell the label;
 * counterfactual (multiple choice): "what will happen if X is removed"; a
   choice is correct iff the pair collides, during the video, in the world
   re-simulated without X.
