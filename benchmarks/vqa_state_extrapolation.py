@@ -56,7 +56,8 @@ def _module(path: str, name: str):
 def option_rows(config: clevrer_like.ClevrerLikeConfig, split: str,
                 option_features=None) -> dict[str, np.ndarray]:
   """Per predictive option of ``split``: extrapolated and future clearance
-  [m], label (1 = correct), state-probe features; and counts."""
+  [m], label (1 = correct), state-probe features, the extrapolation's
+  verdict (clevrer_like.extrapolation_verdict); and counts."""
   start = time.process_time()
   logs, positions = [], []
   for i in range(config.num_videos(split)):
@@ -70,7 +71,7 @@ def option_rows(config: clevrer_like.ClevrerLikeConfig, split: str,
                        for i in range(len(logs))],
       scene_offset=clevrer_like.SCENE_OFFSETS[split])
   horizon = config.predicted_frames
-  extrapolated, future, label, features = [], [], [], []
+  extrapolated, future, label, features, verdicts = [], [], [], [], []
   num_questions = 0
   for log, pos, scene in zip(logs, positions, scenes):
     radii = np.array([clevrer_like.object_radius(o['shape'], o['size'],
@@ -85,8 +86,11 @@ def option_rows(config: clevrer_like.ClevrerLikeConfig, split: str,
       for choice in q['choices']:
         words = choice['choice'].split()  # the A B collides with the C D
         a, b = names[' '.join(words[1:3])], names[' '.join(words[6:8])]
-        extrapolated.append(clevrer_like.extrapolated_clearance(
-            pos, radii, a, b, config.observed_frames, horizon))
+        approach = clevrer_like.extrapolated_approach(
+            pos, radii, a, b, config.observed_frames, horizon)
+        extrapolated.append(approach[0])
+        verdicts.append(clevrer_like.extrapolation_verdict(*approach,
+                                                           horizon))
         future.append(clevrer_like.future_clearance(
             pos, radii, a, b, config.observed_frames))
         label.append(int(choice['answer'] == 'correct'))
@@ -96,6 +100,7 @@ def option_rows(config: clevrer_like.ClevrerLikeConfig, split: str,
                                           horizon)[0])
   return {'extrapolated': np.array(extrapolated), 'future': np.array(future),
           'label': np.array(label), 'features': np.array(features),
+          'verdict': np.array(verdicts),
           'videos': len(logs), 'questions': num_questions,
           'seconds': seconds}
 

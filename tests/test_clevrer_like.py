@@ -268,12 +268,17 @@ def test_bank_shot_collision_that_extrapolation_misses():
   # A's extrapolated path overlaps B (a close call), but C stops it.
   assert -0.5 < gap(0, 2) < 0.0
   assert gap(0, 1) < -0.5  # A hits C: extrapolation is right here
-  assert log.extrapolated == [(0, 1, 3), (0, 2, 2), (1, 2, 1)]
+  # Verdicts (bin + 4 * motion): A-C a clear hit (3) closing in, met early
+  # (motion 2); A-B a close call (2) closing in, met late (motion 3); B-C a
+  # near miss (1) of a pair at rest (motion 0).
+  hit, close_late, still_near = 3 + 8, 2 + 12, 1
+  assert log.extrapolated == [(0, 1, hit), (0, 2, close_late),
+                              (1, 2, still_near)]
   name = lambda a, b: questions.CHOICE_TEMPLATES['collides'].format(
       a=questions.name(log, a), b=questions.name(log, b))
-  assert questions.predictive_choices(log, 1) == ([name(1, 2)], [])
-  assert questions.predictive_choices(log, 2) == ([], [name(0, 2)])
-  assert questions.predictive_choices(log, 3) == ([name(0, 1)], [])
+  assert questions.predictive_choices(log, still_near) == ([name(1, 2)], [])
+  assert questions.predictive_choices(log, close_late) == ([], [name(0, 2)])
+  assert questions.predictive_choices(log, hit) == ([name(0, 1)], [])
   # No verdict has both labels here: no balanced question to ask.
   assert not clevrer_like.has_deflected_question(scene, sim, config)
   # Without C, A goes on and hits B, as extrapolation says: the collision

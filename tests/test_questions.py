@@ -251,7 +251,7 @@ def test_two_predictive_questions_with_disjoint_balanced_choices():
 
 def test_deflected_predictive_choices_balanced_within_each_verdict():
   # A log of the 'deflected' design carries the extrapolation's verdict
-  # per pair (0 far apart .. 3 a clear hit): every predictive question has
+  # per pair (clevrer_like.extrapolation_verdict): every predictive question has
   # as many correct as wrong choices within each verdict, so a rule on the
   # verdict is right on half of them.
   log = hand_log()

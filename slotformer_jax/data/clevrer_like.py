@@ -91,13 +91,18 @@ MAX_SCENE_TRIES = 30
 # (EventLog.extrapolated) so that the questions balance the labels within
 # each verdict (docs/vqa.md, "Issue 12, round 4").
 PREDICTIVE_DESIGNS = ('direct', 'deflected')
-# The extrapolation's verdicts on a pair, by extrapolated_clearance [m]:
-# 3 "a clear hit" (< EXTRAPOLATION_BINS[0]), 2 "a close call", 1 "a near
-# miss", 0 "far apart" (>= EXTRAPOLATION_BINS[2]). A hit / miss verdict
-# was not enough: how deep the extrapolated overlap is, or how close a
-# miss, still told the label (a threshold on the clearance scored 62-68%
-# per option on the bank-shot scenes; docs/vqa.md, round 4).
+# The extrapolation's verdict on a pair (extrapolation_verdict): the bin of
+# its extrapolated_clearance [m], 3 "a clear hit" (< EXTRAPOLATION_BINS[0]),
+# 2 "a close call", 1 "a near miss", 0 "far apart" (>= the last bin edge),
+# and how the two move relative to each other: not, apart, or closing in
+# and meeting early or late in the predicted frames. A plain hit / miss
+# verdict was not enough: how deep the overlap was, how close the miss,
+# whether the pair rests, or how soon they meet still told the label
+# (per-option accuracy of a threshold on the clearance 62-68%, of a logistic
+# regression on the pair's end state ~74%; docs/vqa.md, round 4).
 EXTRAPOLATION_BINS = (-0.5, 0.05, 0.5)
+NUM_GAP_BINS = len(EXTRAPOLATION_BINS) + 1
+NUM_VERDICTS = 4 * NUM_GAP_BINS
 # 'deflected' scenes are built around a bank shot: a mover A slides at a
 # resting blocker C with a resting target B just behind it, all in view,
 # and reaches C only after the video (BANK_CONTACT_DELAY after it).
@@ -601,9 +606,9 @@ class EventLog:
     counterfactual: removed object -> collisions in the world without it.
     extrapolated: predictive_design 'deflected' only (None otherwise, and
       then not written by to_dict): (i, j, verdict) for every pair i < j of
-      objects in view at the last observed frame, verdict the
-      extrapolation's (EXTRAPOLATION_BINS) from their last two observed
-      positions over predicted_frames (:func:`extrapolation_verdict`).
+      objects in view at the last observed frame, verdict what extrapolating
+      their last two observed positions over predicted_frames says
+      (:func:`extrapolation_verdict`, 0 .. NUM_VERDICTS - 1).
   """
 
   objects: list[dict[str, str]]
@@ -725,19 +730,33 @@ def end_pairs(scene: Scene, simulation: dict[str, Any],
   out = []
   for k, a in enumerate(in_view):
     for b in in_view[k + 1:]:
-      gap = extrapolated_clearance(simulation['positions'], radii, int(a),
-                                   int(b), config.observed_frames,
-                                   config.predicted_frames)
+      approach = extrapolated_approach(
+          simulation['positions'], radii, int(a), int(b),
+          config.observed_frames, config.predicted_frames)
       out.append((int(a), int(b), (a, b) in future,
-                  extrapolation_verdict(gap)))
+                  extrapolation_verdict(*approach, config.predicted_frames)))
   return out
 
 
-def extrapolation_verdict(gap: float) -> int:
-  """The verdict (EXTRAPOLATION_BINS: 0 far apart .. 3 a clear hit) of an
-  extrapolated_clearance."""
-  return int(len(EXTRAPOLATION_BINS)
-             - np.searchsorted(EXTRAPOLATION_BINS, gap, side='right'))
+def extrapolation_verdict(gap: float, frame: int, relative_speed: float,
+                          closing: bool, horizon: int) -> int:
+  """What the observed end says of a pair (:func:`extrapolated_approach`):
+  ``bin + NUM_GAP_BINS * motion``, ``bin`` the clearance's
+  (EXTRAPOLATION_BINS: 0 far apart .. 3 a clear hit), ``motion`` 0 if the
+  two do not move relative to each other (below MOVING_SPEED), 1 if they
+  move apart, else 2 if they meet in the first half of the ``horizon``, 3
+  in the second.
+  """
+  gap_bin = int(len(EXTRAPOLATION_BINS)
+                - np.searchsorted(EXTRAPOLATION_BINS, gap, side='right'))
+  fps = 1.0 / (SUBSTEPS_PER_FRAME * synthetic.PHYSICS_DT)
+  if relative_speed * fps < MOVING_SPEED:
+    motion = 0
+  elif not closing:
+    motion = 1
+  else:
+    motion = 2 if 2 * frame <= horizon else 3
+  return gap_bin + NUM_GAP_BINS * motion
 
 
 def has_deflected_question(scene: Scene, simulation: dict[str, Any],
@@ -784,13 +803,30 @@ def extrapolated_clearance(positions: np.ndarray, radii: np.ndarray, a: int,
     positions: float [T, O, 2 or 3] object centres of a simulation.
     radii: float [O] footprint radii (:func:`object_radius`).
   """
+  return extrapolated_approach(positions, radii, a, b, observed_frames,
+                               horizon)[0]
+
+
+def extrapolated_approach(positions: np.ndarray, radii: np.ndarray, a: int,
+                          b: int, observed_frames: int, horizon: int
+                          ) -> tuple[float, int, float, bool]:
+  """(:func:`extrapolated_clearance`, the frame after the video (1-based)
+  when they meet, the pair's relative speed [m / frame] at the end of the
+  video, whether they are closing in then). "Meet": the first frame with a
+  gap below the contact margin EXTRAPOLATION_BINS[1], or, for a pair that
+  stays apart, the frame of the smallest gap."""
   p = np.asarray(positions, np.float64)[..., :2]
   last, velocity = p[observed_frames - 1], (p[observed_frames - 1]
                                             - p[observed_frames - 2])
   steps = np.arange(1, horizon + 1, dtype=np.float64)[:, None]
   gap = np.linalg.norm((last[a] - last[b]) + steps * (velocity[a]
                                                       - velocity[b]), axis=-1)
-  return float(gap.min() - radii[a] - radii[b])
+  gap = gap - radii[a] - radii[b]
+  smallest = float(gap.min())
+  k = int(np.argmax(gap <= max(smallest, EXTRAPOLATION_BINS[1])))
+  relative = velocity[a] - velocity[b]
+  return (smallest, k + 1, float(np.linalg.norm(relative)),
+          bool(np.dot(last[a] - last[b], relative) < 0.0))
 
 
 def future_clearance(positions: np.ndarray, radii: np.ndarray, a: int, b: int,

@@ -44,7 +44,7 @@ from typing import Any
 
 import numpy as np
 
-from slotformer_jax.data.clevrer_like import EXTRAPOLATION_BINS
+from slotformer_jax.data.clevrer_like import NUM_VERDICTS
 from slotformer_jax.data.clevrer_like import Collision, EventLog
 from slotformer_jax.data.convert.synthetic import COLORS, SHAPES
 
@@ -229,7 +229,7 @@ def predictive_choices(log: EventLog, verdict: int | None = None
 
   With ``verdict`` (a log of the 'deflected' design only), only the pairs
   on which extrapolating the observed end gives that verdict
-  (``log.extrapolated``; clevrer_like.EXTRAPOLATION_BINS).
+  (``log.extrapolated``; clevrer_like.extrapolation_verdict).
   """
   future = _pairs_colliding(log.future_collisions())
   at_end = [i for i in _seen(log) if log.in_view_at_end[i]]
@@ -251,8 +251,7 @@ def predictive_kinds(log: EventLog) -> list[tuple[list[str], list[str]]]:
   rule on the verdict is right on half the options)."""
   if log.extrapolated is None:
     return [predictive_choices(log)]
-  return [predictive_choices(log, v)
-          for v in range(len(EXTRAPOLATION_BINS) + 1)]
+  return [predictive_choices(log, v) for v in range(NUM_VERDICTS)]
 
 
 def counterfactual_choices(log: EventLog, x: int
