@@ -285,3 +285,40 @@ def test_bank_shot_collision_that_extrapolation_misses():
   # with C after the video is what decides both wrong answers.
   without = clevrer_like.simulate(scene, config, removed=1)
   assert [c[:2] for c in without['collisions']] == [(0, 2)]
+
+
+def test_extrapolated_approach_and_verdict_by_hand():
+  # Object 0 moves +0.1 m per frame along x towards object 1, resting 2 m
+  # ahead at the last observed frame (frame 5); radii 0.5 each. Over 12
+  # frames the gap falls to 2 - 1.2 - 1 = -0.2 m (a close call), first
+  # within the 0.05 m margin after ceil((1 - 0.05) / 0.1) = 10 frames:
+  # met late.
+  t = np.arange(6, dtype=float)
+  positions = np.zeros((6, 3, 2))
+  positions[:, 0, 0] = 0.1 * t - 0.5
+  positions[:, 1, 0] = 2.0
+  positions[:, 2] = [0.0, 3.0]  # rests at (0, 3)
+  radii = np.full(3, 0.5)
+  gap, frame, speed, closing = clevrer_like.extrapolated_approach(
+      positions, radii, 0, 1, 6, 12)
+  assert gap == pytest.approx(-0.2)
+  assert (frame, closing) == (10, True)
+  assert speed == pytest.approx(0.1)
+  assert clevrer_like.extrapolation_verdict(gap, frame, speed, closing,
+                                            12) == 2 + 4 * 3
+  assert clevrer_like.extrapolated_clearance(positions, radii, 0, 1, 6,
+                                             12) == gap
+  # Over 24 frames the centres meet (gap -1 m, a clear hit), and frame 10
+  # is in the first half: motion 2.
+  assert clevrer_like.extrapolation_verdict(
+      *clevrer_like.extrapolated_approach(positions, radii, 0, 1, 6, 24),
+      24) == 3 + 4 * 2
+  # Two resting objects sqrt(13) m apart: far apart, still.
+  still = clevrer_like.extrapolated_approach(positions, radii, 1, 2, 6, 12)
+  assert still[0] == pytest.approx(np.sqrt(13.0) - 1.0)
+  assert clevrer_like.extrapolation_verdict(*still, 12) == 0
+  # Played backwards object 0 moves away: far apart, moving apart.
+  apart = positions[::-1].copy()
+  assert clevrer_like.extrapolation_verdict(
+      *clevrer_like.extrapolated_approach(apart, radii, 0, 1, 6, 12),
+      12) == 0 + 4 * 1

@@ -97,9 +97,10 @@ PREDICTIVE_DESIGNS = ('direct', 'deflected')
 # and how the two move relative to each other: not, apart, or closing in
 # and meeting early or late in the predicted frames. A plain hit / miss
 # verdict was not enough: how deep the overlap was, how close the miss,
-# whether the pair rests, or how soon they meet still told the label
-# (per-option accuracy of a threshold on the clearance 62-68%, of a logistic
-# regression on the pair's end state ~74%; docs/vqa.md, round 4).
+# whether the pair rests, or how soon they meet still told the label (on
+# the bank-shot scenes a threshold on the clearance scored 61-72% per
+# option, a logistic regression on the pair's end state 67-73%; docs/
+# vqa.md, round 4).
 EXTRAPOLATION_BINS = (-0.5, 0.05, 0.5)
 NUM_GAP_BINS = len(EXTRAPOLATION_BINS) + 1
 NUM_VERDICTS = 4 * NUM_GAP_BINS
@@ -141,7 +142,9 @@ class ClevrerLikeConfig:
     future_collision_fraction: probability that a video is drawn among
       scenes where two objects in view at the last observed frame collide
       after it (rejection sampling over physics-only simulations): without
-      it only ~1/3 of the videos have anything to predict.
+      it only ~1/3 of the videos have anything to predict. With the
+      'deflected' design: among scenes with a predictive question balanced
+      within the extrapolation's verdict (:func:`has_deflected_question`).
     seed: base seed; video ``i`` of split ``s`` uses ``(seed, s, i)``.
     num_train, num_val, num_test: videos per split.
     supersample, object_scale: as in :class:`synthetic.SyntheticConfig`.
@@ -179,8 +182,11 @@ class ClevrerLikeConfig:
       raise ValueError('max_entering must be >= 0')
     if not 0.0 <= self.future_collision_fraction <= 1.0:
       raise ValueError('future_collision_fraction must be in [0, 1]')
-    if self.predictive_design == 'deflected' and self.max_objects < 3:
-      raise ValueError("predictive_design='deflected' needs max_objects >= 3")
+    if self.predictive_design == 'deflected' and (
+        self.max_objects < 3 or self.predicted_frames < 2):
+      # A bank shot needs three objects, a verdict a few future frames.
+      raise ValueError("predictive_design='deflected' needs max_objects >= 3 "
+                       'and predicted_frames >= 2')
     if self.predictive_design not in PREDICTIVE_DESIGNS:
       raise ValueError(f'predictive_design must be one of '
                        f'{PREDICTIVE_DESIGNS}, got {self.predictive_design!r}')
@@ -842,8 +848,10 @@ def sample_video_scene(rng: np.random.Generator, config: ClevrerLikeConfig
                        ) -> Scene:
   """The scene of one video: with probability
   ``config.future_collision_fraction`` the first of up to MAX_SCENE_TRIES
-  draws whose future has a collision (:func:`has_future_collision`), else
-  the first draw. A pure function of ``rng``'s state."""
+  draws whose future has a collision (:func:`has_future_collision`; with
+  the 'deflected' design, a balanced predictive question:
+  :func:`has_deflected_question`), else the first draw. A pure function of
+  ``rng``'s state."""
   # No extra draw at fraction 0: the scenes are those of generator version 1.
   wants_future = (config.future_collision_fraction > 0.0
                   and rng.uniform() < config.future_collision_fraction)
