@@ -147,7 +147,18 @@ def get_config(variant: str = ''):
     vqa.choice_type_weights.counterfactual = 0.0
     vqa.log_every = 500
     vqa.checkpoint_every = 3000
+  elif variant == 'deflect':
+    # Issue 12, round 4 (docs/vqa.md): `:big` on scenes whose future holds
+    # an event that extrapolating the observed end gets wrong, with the
+    # predictive labels balanced within the extrapolation's verdict
+    # (clevrer_like.PREDICTIVE_DESIGNS).
+    return _deflect(get_config('big'))
   elif variant:
     raise ValueError(f'unknown variant {variant!r}; use "", "tiny", '
-                     '"long_savi" or "big"')
+                     '"long_savi", "big" or "deflect"')
+  return config
+
+
+def _deflect(config):
+  config.data.predictive_design = 'deflected'
   return config

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+import json
 
 import numpy as np
 import pytest
@@ -181,3 +183,142 @@ def test_future_collision_fraction_gives_something_to_predict():
                                   getattr(b, field.name))
   with pytest.raises(ValueError):
     dataclasses.replace(CONFIG, future_collision_fraction=1.5)
+
+
+# ---- predictive_design (issue 12, round 4) --------------------------------
+
+DEFLECTED = dataclasses.replace(CONFIG, predictive_design='deflected',
+                                future_collision_fraction=1.0)
+
+
+def test_direct_design_is_the_generator_of_before():
+  # The default design keeps the slugs (so the datasets already built) and
+  # the event logs of generator version 2: values pinned before the field
+  # existed.
+  assert (clevrer_like.ClevrerLikeConfig().slug
+          == 'r32x32_t24+16_o2-4+1_s0_038d4ccb')
+  config = dataclasses.replace(CONFIG, future_collision_fraction=1.0)
+  assert config.slug == 'r32x32_t12+8_o2-4+1_s0_41f59940'
+  assert 'predictive_design' not in config.identity()
+  events = clevrer_like.generate_video(config, 'train', 1,
+                                       render=False)['events'].to_dict()
+  assert 'extrapolated' not in events
+  digest = hashlib.sha256(json.dumps(events, sort_keys=True).encode())
+  assert digest.hexdigest() == ('f6aa069c54abd493a635d2785636ec24a7eff939d4'
+                                '7fabc491cfe0b17bab5ee5')
+  # The new design is another dataset.
+  assert DEFLECTED.slug != config.slug
+  assert DEFLECTED.identity()['predictive_design'] == 'deflected'
+  with pytest.raises(ValueError):
+    dataclasses.replace(CONFIG, predictive_design='bank')
+  with pytest.raises(ValueError):
+    dataclasses.replace(DEFLECTED, min_objects=2, max_objects=2)
+
+
+def test_deflected_design_is_deterministic_and_asks_something():
+  first = [clevrer_like.generate_video(DEFLECTED, 'val', i, render=False)
+           for i in range(3)]
+  again = clevrer_like.generate_video(DEFLECTED, 'val', 1, render=False)
+  np.testing.assert_array_equal(first[1]['positions'], again['positions'])
+  assert first[1]['events'].to_dict() == again['events'].to_dict()
+  assert first[0]['events'].to_dict() != first[1]['events'].to_dict()
+  for video in first:
+    log = video['events']
+    # A verdict for every pair in view at the end; the log round-trips.
+    in_view = [i for i in range(log.num_objects) if log.in_view_at_end[i]]
+    assert [(a, b) for a, b, _ in log.extrapolated] == [
+        (a, b) for k, a in enumerate(in_view) for b in in_view[k + 1:]]
+    assert clevrer_like.EventLog.from_dict(
+        json.loads(json.dumps(log.to_dict()))) == log
+    # Drawn among scenes with a question balanced within a verdict.
+    labels = {}
+    future = {c.objects for c in log.future_collisions()}
+    for a, b, verdict in log.extrapolated:
+      labels.setdefault(verdict, set()).add((a, b) in future)
+    assert any(len(v) == 2 for v in labels.values())
+
+
+def _bank_shot() -> clevrer_like.Scene:
+  """Cylinders in a row along x: A slides at 2.5 m/s at C, which rests 0.1
+  m (surface to surface) in front of B. A reaches C after the 12 observed
+  frames and pushes it into B; A itself never reaches B."""
+  return clevrer_like.Scene(
+      shapes=np.full(3, synthetic.SHAPES.index('cylinder'), np.int32),
+      colors=np.array([1, 2, 3], np.int32), sizes=np.zeros(3, np.int32),
+      xy=np.array([[-2.6, 0.5], [0.0, 0.5], [1.1, 0.5]]), yaw=np.zeros(3),
+      velocity=np.array([[2.5, 0.0], [0.0, 0.0], [0.0, 0.0]]),
+      enter_frame=np.zeros(3, np.int32))
+
+
+def test_bank_shot_collision_that_extrapolation_misses():
+  from slotformer_jax.data import questions  # pylint: disable=g-import-not-at-top
+  config = dataclasses.replace(DEFLECTED, predicted_frames=12)
+  scene = _bank_shot()
+  sim = clevrer_like.simulate(scene, config)
+  log = clevrer_like.event_log(scene, sim, config)
+  observed = config.observed_frames
+  assert all(c.frame >= observed for c in log.collisions)
+  assert {c.objects for c in log.future_collisions()} == {(0, 1), (1, 2)}
+  radii = np.array([clevrer_like.object_radius('cylinder', 'small', 1.0)] * 3)
+  gap = lambda a, b: clevrer_like.extrapolated_clearance(
+      sim['positions'], radii, a, b, observed, config.predicted_frames)
+  # C and B rest at the end of the video: extrapolated, 0.1 m apart (a
+  # near miss) -- but C is pushed into B after it.
+  assert gap(1, 2) == pytest.approx(0.1, abs=0.01)
+  # A's extrapolated path overlaps B (a close call), but C stops it.
+  assert -0.5 < gap(0, 2) < 0.0
+  assert gap(0, 1) < -0.5  # A hits C: extrapolation is right here
+  # Verdicts (bin + 4 * motion): A-C a clear hit (3) closing in, met early
+  # (motion 2); A-B a close call (2) closing in, met late (motion 3); B-C a
+  # near miss (1) of a pair at rest (motion 0).
+  hit, close_late, still_near = 3 + 8, 2 + 12, 1
+  assert log.extrapolated == [(0, 1, hit), (0, 2, close_late),
+                              (1, 2, still_near)]
+  name = lambda a, b: questions.CHOICE_TEMPLATES['collides'].format(
+      a=questions.name(log, a), b=questions.name(log, b))
+  assert questions.predictive_choices(log, still_near) == ([name(1, 2)], [])
+  assert questions.predictive_choices(log, close_late) == ([], [name(0, 2)])
+  assert questions.predictive_choices(log, hit) == ([name(0, 1)], [])
+  # No verdict has both labels here: no balanced question to ask.
+  assert not clevrer_like.has_deflected_question(scene, sim, config)
+  # Without C, A goes on and hits B, as extrapolation says: the collision
+  # with C after the video is what decides both wrong answers.
+  without = clevrer_like.simulate(scene, config, removed=1)
+  assert [c[:2] for c in without['collisions']] == [(0, 2)]
+
+
+def test_extrapolated_approach_and_verdict_by_hand():
+  # Object 0 moves +0.1 m per frame along x towards object 1, resting 2 m
+  # ahead at the last observed frame (frame 5); radii 0.5 each. Over 12
+  # frames the gap falls to 2 - 1.2 - 1 = -0.2 m (a close call), first
+  # within the 0.05 m margin after ceil((1 - 0.05) / 0.1) = 10 frames:
+  # met late.
+  t = np.arange(6, dtype=float)
+  positions = np.zeros((6, 3, 2))
+  positions[:, 0, 0] = 0.1 * t - 0.5
+  positions[:, 1, 0] = 2.0
+  positions[:, 2] = [0.0, 3.0]  # rests at (0, 3)
+  radii = np.full(3, 0.5)
+  gap, frame, speed, closing = clevrer_like.extrapolated_approach(
+      positions, radii, 0, 1, 6, 12)
+  assert gap == pytest.approx(-0.2)
+  assert (frame, closing) == (10, True)
+  assert speed == pytest.approx(0.1)
+  assert clevrer_like.extrapolation_verdict(gap, frame, speed, closing,
+                                            12) == 2 + 4 * 3
+  assert clevrer_like.extrapolated_clearance(positions, radii, 0, 1, 6,
+                                             12) == gap
+  # Over 24 frames the centres meet (gap -1 m, a clear hit), and frame 10
+  # is in the first half: motion 2.
+  assert clevrer_like.extrapolation_verdict(
+      *clevrer_like.extrapolated_approach(positions, radii, 0, 1, 6, 24),
+      24) == 3 + 4 * 2
+  # Two resting objects sqrt(13) m apart: far apart, still.
+  still = clevrer_like.extrapolated_approach(positions, radii, 1, 2, 6, 12)
+  assert still[0] == pytest.approx(np.sqrt(13.0) - 1.0)
+  assert clevrer_like.extrapolation_verdict(*still, 12) == 0
+  # Played backwards object 0 moves away: far apart, moving apart.
+  apart = positions[::-1].copy()
+  assert clevrer_like.extrapolation_verdict(
+      *clevrer_like.extrapolated_approach(apart, radii, 0, 1, 6, 12),
+      12) == 0 + 4 * 1

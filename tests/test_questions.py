@@ -249,6 +249,45 @@ def test_two_predictive_questions_with_disjoint_balanced_choices():
       log, np.random.default_rng(0))].count('next') == 1
 
 
+def test_deflected_predictive_choices_balanced_within_each_verdict():
+  # A log of the 'deflected' design carries the extrapolation's verdict
+  # per pair (clevrer_like.extrapolation_verdict): every predictive question has
+  # as many correct as wrong choices within each verdict, so a rule on the
+  # verdict is right on half of them.
+  log = hand_log()
+  log.collisions.append(Collision((1, 2), 26))  # future: (0, 3), (1, 2)
+  log.extrapolated = [(0, 1, 3), (0, 2, 0), (0, 3, 3), (1, 2, 1),
+                      (1, 3, 1), (2, 3, 0)]
+  verdict = {collides(a, b): v for a, b, v in log.extrapolated}
+  assert qg.predictive_choices(log, 3) == ([collides(0, 3)],
+                                           [collides(0, 1)])
+  assert qg.predictive_choices(log, 1) == ([collides(1, 2)],
+                                           [collides(1, 3)])
+  assert qg.predictive_choices(log, 0) == ([], [collides(0, 2),
+                                                collides(2, 3)])
+  asked = set()
+  for seed in range(8):
+    questions = [q for q in qg.candidate_questions(
+        log, np.random.default_rng(seed)) if q['template'] == 'next']
+    assert questions
+    seen = [c['choice'] for q in questions for c in q['choices']]
+    assert len(seen) == len(set(seen))
+    for q in questions:
+      labels = collections.Counter((verdict[c['choice']], c['answer'])
+                                   for c in q['choices'])
+      for v in {v for v, _ in labels}:
+        assert labels[(v, 'correct')] == labels[(v, 'wrong')] >= 1
+      asked.update(c['choice'] for c in q['choices'])
+  # Verdict 0 has no collision: its pairs are never offered.
+  assert collides(0, 2) not in asked and collides(2, 3) not in asked
+  # Without verdicts (the 'direct' design), the far pairs are offered.
+  log.extrapolated = None
+  assert any(collides(0, 2) in [c['choice'] for c in q['choices']]
+             for seed in range(8)
+             for q in qg.candidate_questions(log, np.random.default_rng(seed))
+             if q['template'] == 'next')
+
+
 def test_counterfactual_choices():
   log = hand_log()
   # Without the red cube only green cylinder - yellow sphere happens; the

@@ -131,3 +131,19 @@ def test_future_inputs_read_the_extracted_slots_of_the_real_future(tmp_path):
   assert slots[0, 17, 2, 1] == 17.0
   with pytest.raises(ValueError, match='whole simulated clip'):
     vqa_stages._true_future_slots(config, workdir, 'val', 21)  # pylint: disable=protected-access
+
+
+def test_deflect_variant_changes_only_the_predictive_design():
+  # Round 4 of issue 12: `:big` on the 'deflected' scene design
+  # (clevrer_like.PREDICTIVE_DESIGNS); everything else as `:big`.
+  flat = lambda c: {f'{k}.{j}': w for k, v in c.to_dict().items()
+                    for j, w in (v.items() if isinstance(v, dict)
+                                 else [('', v)])}
+  big, deflect = flat(_synthetic_vqa_config('big')), flat(
+      _synthetic_vqa_config('deflect'))
+  assert deflect.pop('data.predictive_design') == 'deflected'
+  assert 'data.predictive_design' not in big  # 'direct', the default
+  assert deflect == big
+  from slotformer_jax.data import clevrer_like  # pylint: disable=g-import-not-at-top
+  assert clevrer_like.config_from_data_config(
+      _synthetic_vqa_config('deflect').data).predictive_design == 'deflected'

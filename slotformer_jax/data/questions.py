@@ -14,7 +14,10 @@ templates of CLEVRER's four types:
   are answered by re-simulation, so they never disagree);
 * predictive (multiple choice): "what will happen next"; a choice "A collides
   with B" is correct iff they collide after the observed window (up to
-  ``MAX_PREDICTIVE`` questions per video, with disjoint choices);
+  ``MAX_PREDICTIVE`` questions per video, with disjoint choices); on videos
+  of the 'deflected' design (clevrer_like.PREDICTIVE_DESIGNS) the pairs are
+  split into choice kinds by what extrapolating the observed end says of
+  them (``EventLog.extrapolated``), so that it cannot tell the label;
 * counterfactual (multiple choice): "what will happen if X is removed"; a
   choice is correct iff the pair collides, during the video, in the world
   re-simulated without X.
@@ -41,6 +44,7 @@ from typing import Any
 
 import numpy as np
 
+from slotformer_jax.data.clevrer_like import NUM_VERDICTS
 from slotformer_jax.data.clevrer_like import Collision, EventLog
 from slotformer_jax.data.convert.synthetic import COLORS, SHAPES
 
@@ -218,16 +222,36 @@ def responsible_choices(log: EventLog, k: int
           'other_collision_event': events[False]}
 
 
-def predictive_choices(log: EventLog) -> tuple[list[str], list[str]]:
+def predictive_choices(log: EventLog, verdict: int | None = None
+                       ) -> tuple[list[str], list[str]]:
   """(correct, wrong) choices of "what will happen next": pairs of objects in
-  view at the end of the video, correct iff they collide after it."""
+  view at the end of the video, correct iff they collide after it.
+
+  With ``verdict`` (a log of the 'deflected' design only), only the pairs
+  on which extrapolating the observed end gives that verdict
+  (``log.extrapolated``; clevrer_like.extrapolation_verdict).
+  """
   future = _pairs_colliding(log.future_collisions())
   at_end = [i for i in _seen(log) if log.in_view_at_end[i]]
+  verdicts = {(a, b): v for a, b, v in log.extrapolated or []}
   correct, wrong = [], []
   for a, b in itertools.combinations(at_end, 2):
+    if verdict is not None and verdicts.get((a, b)) != verdict:
+      continue
     text = CHOICE_TEMPLATES['collides'].format(a=name(log, a), b=name(log, b))
     (correct if (a, b) in future else wrong).append(text)
   return correct, wrong
+
+
+def predictive_kinds(log: EventLog) -> list[tuple[list[str], list[str]]]:
+  """The (correct, wrong) pools of the predictive choices, one per choice
+  kind: all pairs in one kind, or, for a log that carries the
+  extrapolation's verdicts ('deflected' design), one kind per verdict, so
+  that within each the extrapolation says the same of either label (a
+  rule on the verdict is right on half the options)."""
+  if log.extrapolated is None:
+    return [predictive_choices(log)]
+  return [predictive_choices(log, v) for v in range(NUM_VERDICTS)]
 
 
 def counterfactual_choices(log: EventLog, x: int
@@ -327,13 +351,23 @@ def candidate_questions(log: EventLog, rng: np.random.Generator
   # ---- predictive ----------------------------------------------------------
   # Up to MAX_PREDICTIVE questions, the pools dealt out so that no choice is
   # asked twice about one video.
-  correct, wrong = predictive_choices(log)
-  num = min(MAX_PREDICTIVE, len(correct), len(wrong))
-  correct = [correct[int(i)] for i in rng.permutation(len(correct))]
-  wrong = [wrong[int(i)] for i in rng.permutation(len(wrong))]
-  for part in range(num):
-    ask('next', choices=_balanced_choices(
-        rng, [(correct[part::num], wrong[part::num])]))
+  kinds = predictive_kinds(log)
+  if len(kinds) == 1:  # the 'direct' design, as in VERSION 2
+    correct, wrong = kinds[0]
+    num = min(MAX_PREDICTIVE, len(correct), len(wrong))
+    correct = [correct[int(i)] for i in rng.permutation(len(correct))]
+    wrong = [wrong[int(i)] for i in rng.permutation(len(wrong))]
+    for part in range(num):
+      ask('next', choices=_balanced_choices(
+          rng, [(correct[part::num], wrong[part::num])]))
+  else:
+    shuffled = [([c[int(i)] for i in rng.permutation(len(c))],
+                 [w[int(i)] for i in rng.permutation(len(w))])
+                for c, w in kinds]
+    num = min(MAX_PREDICTIVE, max(min(len(c), len(w)) for c, w in kinds))
+    for part in range(num):
+      ask('next', choices=_balanced_choices(
+          rng, [(c[part::num], w[part::num]) for c, w in shuffled]))
 
   # ---- counterfactual ------------------------------------------------------
   removable = [x for x in seen if x in log.counterfactual]
