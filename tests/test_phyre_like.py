@@ -159,3 +159,37 @@ def test_default_templates_unchanged():
   config = p.PhyreLikeConfig(resolution=(32, 32))
   assert p.slug(config) == 'r32x32_f2_t5_k1_3x25_c200_fold0_s0_35de6daa'
   assert all(b.angle == 0.0 for t in p.all_tasks(CONFIG) for b in t.bodies)
+
+
+def test_dynamics_layouts_are_never_labelled_tasks_and_fold_free():
+  config = p.PhyreLikeConfig(templates=('stack', 'tower'), tasks_per_template=4,
+                             num_candidates=6, resolution=(16, 16))
+  layouts = p.layout_tasks(config, 3)
+  labelled = {(t.template, t.index) for t in p.all_tasks(config)}
+  assert len(layouts) == 6
+  assert not {(t.template, t.index) for t in layouts} & labelled
+  other_fold = p.layout_tasks(dataclasses.replace(config, fold=2), 3)
+  assert [t.bodies for t in layouts] == [t.bodies for t in other_fold]
+  actions = p.candidate_actions(config)
+  labels = {(t.template, t.index): p.label_candidates(t, actions, config)
+            for t in layouts}
+  for index in range(6):  # each layout once, in layout_tasks' order
+    video = p.training_video(config, labels, 0.0, 'train', index, layouts=3)
+    task = layouts[index]
+    assert int(video['task']) == (config.templates.index(task.template)
+                                  * 10_000 + task.index)
+  # Without layouts the videos stay on the fold's training tasks.
+  train = {(t.template, t.index) for t in p.split_tasks(config)['train']}
+  labels = {(t.template, t.index): p.label_candidates(t, actions, config)
+            for t in p.all_tasks(config)}
+  video = p.training_video(config, labels, 0.0, 'train', 0)
+  code = int(video['task'])
+  assert (config.templates[code // 10_000], code % 10_000) in train
+
+
+def test_dynamics_layouts_change_only_their_own_dataset_name():
+  labels = {}
+  plain = p.video_family(CONFIG, 8, 0, 0.2, labels)
+  with_layouts = p.video_family(CONFIG, 8, 0, 0.2, labels, layouts=5)
+  assert with_layouts.slug == plain.slug + '_l5'
+  assert not plain.slug.endswith('_l0')

@@ -11,6 +11,7 @@ from configs import synthetic_phyre
 from slotformer_jax.data.convert import phyre_like
 from slotformer_jax.tasks import contact
 from slotformer_jax.tasks import phyre_planning
+from slotformer_jax.workdir import flat_differences
 
 
 def test_condition_features():
@@ -116,3 +117,11 @@ def test_physion_contact_config_names_real_splits():
   assert contact.readout_splits(config) == ('readout_train', 'readout_val',
                                             'test')
   assert set(contact.readout_splits(config)) <= set(config.extraction.splits)
+
+
+def test_ramp_layouts_variant_changes_only_where_dynamics_videos_come_from():
+  ramp = synthetic_phyre.get_config('ramp').to_dict()
+  layouts = synthetic_phyre.get_config('ramp_layouts').to_dict()
+  # max_context = 6 is what every measured :ramp run passed on the command line.
+  assert sorted(flat_differences(ramp, layouts)) == [
+      'data.dynamics_layouts: 0 -> 300', 'slotformer.max_context: 0 -> 6']

@@ -562,15 +562,55 @@ def task_labels(config: PhyreLikeConfig, data_dir: str | os.PathLike[str]
   return labels
 
 
+def layout_tasks(config: PhyreLikeConfig, count: int) -> list[Task]:
+  """``count`` extra layouts of every template, never a labelled task.
+
+  Their indices start at ``tasks_per_template``, so no fold's train, dev or
+  test task is among them; they do not depend on the fold."""
+  return [make_task(config, template, config.tasks_per_template + j)
+          for template in config.templates for j in range(count)]
+
+
+def layout_labels(config: PhyreLikeConfig, count: int,
+                  data_dir: str | os.PathLike[str]
+                  ) -> dict[tuple[str, int], np.ndarray]:
+  """The simulated outcomes of every candidate on :func:`layout_tasks`
+  (cached; ~1 s per layout), used only to mix solving actions into the
+  dynamics videos as on labelled tasks."""
+  unfolded = dataclasses.replace(config, fold=0)
+  path = (Path(data_dir) / 'synthetic_phyre' / slug(unfolded)
+          / f'layouts_{count}.npz')
+  tasks = layout_tasks(config, count)
+  keys = [(t.template, t.index) for t in tasks]
+  if path.is_file():
+    with np.load(path) as stored:
+      return {key: stored[f'{key[0]}_{key[1]}'] for key in keys}
+  actions = candidate_actions(config)
+  labels = {(t.template, t.index): label_candidates(t, actions, config)
+            for t in tasks}
+  path.parent.mkdir(parents=True, exist_ok=True)
+  partial = path.with_suffix('.tmp.npz')
+  np.savez(partial, **{f'{k[0]}_{k[1]}': v for k, v in labels.items()})
+  os.replace(partial, path)
+  return labels
+
+
 def training_video(config: PhyreLikeConfig,
                    labels: dict[tuple[str, int], np.ndarray],
-                   positive_ratio: float, split: str, index: int
-                   ) -> dict[str, np.ndarray]:
+                   positive_ratio: float, split: str, index: int,
+                   layouts: int = 0) -> dict[str, np.ndarray]:
   """Video ``index``: a valid candidate on a training task, solving with
   probability ``positive_ratio`` when the task has a solution (the official
-  SlotFormer PHYRE data mixes positives in the same way)."""
-  train = split_tasks(config)['train']
-  task = train[index % len(train)]
+  SlotFormer PHYRE data mixes positives in the same way). With ``layouts``
+  > 0 the task is one of :func:`layout_tasks` instead (``labels`` must
+  hold theirs)."""
+  if layouts:  # only this video's layout (each one is simulated to build)
+    k = index % (len(config.templates) * layouts)
+    task = make_task(config, config.templates[k // layouts],
+                     config.tasks_per_template + k % layouts)
+  else:
+    train = split_tasks(config)['train']
+    task = train[index % len(train)]
   rng = np.random.default_rng([config.seed, 17, ('train', 'val').index(split),
                                index])
   task_labels_ = labels[(task.template, task.index)]
@@ -588,13 +628,17 @@ def training_video(config: PhyreLikeConfig,
 
 def video_family(config: PhyreLikeConfig, num_train: int, num_val: int,
                  positive_ratio: float,
-                 labels: dict[tuple[str, int], np.ndarray]) -> embedded.Family:
-  """Training videos for SAVi / SlotFormer ('train', 'val' splits)."""
+                 labels: dict[tuple[str, int], np.ndarray],
+                 layouts: int = 0) -> embedded.Family:
+  """Training videos for SAVi / SlotFormer ('train', 'val' splits): on the
+  fold's training tasks, or on ``layouts`` extra layouts per template."""
   h, w = config.resolution
   t = config.num_frames
+  layout_part = f'_l{layouts}' if layouts else ''
   return embedded.Family(
       name='synthetic_phyre',
-      slug=f'{slug(config)}_v{num_train}-{num_val}_p{positive_ratio:g}',
+      slug=(f'{slug(config)}_v{num_train}-{num_val}_p{positive_ratio:g}'
+            f'{layout_part}'),
       description=json.dumps(dataclasses.asdict(config)),
       features={
           'video': embedded.tensor((t, h, w, 3), np.uint8),
@@ -605,7 +649,8 @@ def video_family(config: PhyreLikeConfig, num_train: int, num_val: int,
           'candidate': tfds.features.Scalar(np.int32),
       },
       split_sizes={'train': num_train, 'val': num_val},
-      make=functools.partial(training_video, config, labels, positive_ratio))
+      make=functools.partial(training_video, config, labels, positive_ratio,
+                             layouts=layouts))
 
 
 def config_from_data_config(data_config: Any) -> PhyreLikeConfig:
@@ -618,8 +663,16 @@ def build_video_dataset(data_config: Any, data_dir: str | os.PathLike[str]
                         ) -> Path:
   """The SAVi / SlotFormer training videos named by a run's config.data."""
   config = config_from_data_config(data_config)
-  labels = task_labels(config, data_dir)
+  layouts = int(data_config.get('dynamics_layouts', 0) or 0)
+  if layouts < 0:
+    raise ValueError(f'data.dynamics_layouts must be >= 0, got {layouts}')
+  if layouts:
+    # Layout videos do not depend on the fold: one dataset serves all folds.
+    config = dataclasses.replace(config, fold=0)
+    labels = layout_labels(config, layouts, data_dir)
+  else:
+    labels = task_labels(config, data_dir)
   return embedded.build(
       video_family(config, data_config.num_train, data_config.num_val,
-                   data_config.positive_ratio, labels), data_dir,
+                   data_config.positive_ratio, labels, layouts), data_dir,
       num_workers=data_config.get('num_workers', None))

@@ -1,0 +1,83 @@
+r"""Rollout vs first-frame planning classifier, task by task (issue 11).
+
+  python benchmarks/planning_per_task.py --split=test \
+      --workdir=runs/ramp_f0 --workdir=runs/ramp_f1 --workdir=runs/ramp_f2
+
+AUCCESS over 16-20 tasks per fold moves by several points between seeds, so
+"the rollout classifier is above the first-frame one" needs a paired test:
+for every task of ``--split`` ('test', or 'dev' = the training tasks that
+choose the epoch), the AUCCESS of each trained classifier (mean over its
+seeds), then the difference rollout - first frame, pooled over the given
+workdirs (one per fold), with its standard error over tasks.
+
+Reads each workdir's config.json, its SAVi / SlotFormer and the classifiers
+that `--mode=train_readout` wrote (planning/<condition>/seed_<k>/).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+
+import ml_collections
+import numpy as np
+from flax import serialization
+
+from slotformer_jax.tasks import phyre_planning
+from slotformer_jax.tasks import planning
+from slotformer_jax.train import sharding
+
+
+def per_task_auccess(config: ml_collections.ConfigDict, workdir: str,
+                     split: str, mesh) -> dict[str, np.ndarray]:
+  """{condition: float [tasks]}: each task's AUCCESS, mean over seeds."""
+  # pylint: disable=protected-access
+  by_split, outcomes, generation = phyre_planning._setup(
+      config, workdir, mesh, (split,))
+  out = {}
+  for condition in config.readout.conditions:
+    model = phyre_planning.build_classifier(config, condition)
+    per_seed = []
+    for seed in config.readout.seeds:
+      path = os.path.join(phyre_planning.planning_dir(workdir), condition,
+                          f'seed_{seed}', 'params.msgpack')
+      with open(path, 'rb') as f:
+        params = serialization.msgpack_restore(f.read())
+      scores = phyre_planning._scores(model, params, by_split[split],
+                                      generation.num_candidates)
+      per_seed.append([planning.plan_auccess([s], [o])
+                       for s, o in zip(scores, outcomes[split])])
+    out[condition] = np.mean(per_seed, axis=0)
+  return out
+
+
+def main() -> None:
+  parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+  parser.add_argument('--workdir', action='append', required=True)
+  parser.add_argument('--split', default='test', choices=('test', 'dev'))
+  args = parser.parse_args()
+  mesh = sharding.make_mesh()
+  differences = []
+  for workdir in args.workdir:
+    with open(os.path.join(workdir, 'config.json')) as f:
+      config = ml_collections.ConfigDict(json.load(f))
+    auccess = per_task_auccess(config, workdir, args.split, mesh)
+    difference = auccess[phyre_planning.ROLLOUT] - auccess[
+        phyre_planning.FIRST_FRAME]
+    differences.append(difference)
+    print(f'{workdir} (fold {config.data.fold}, {len(difference)} '
+          f'{args.split} tasks): first frame '
+          f'{100 * auccess[phyre_planning.FIRST_FRAME].mean():.1f}, rollout '
+          f'{100 * auccess[phyre_planning.ROLLOUT].mean():.1f}, difference '
+          f'{100 * difference.mean():+.1f}')
+  pooled = np.concatenate(differences)
+  error = pooled.std(ddof=1) / np.sqrt(len(pooled)) if len(pooled) > 1 else 0
+  print(f'all {len(pooled)} tasks: rollout - first frame '
+        f'{100 * pooled.mean():+.2f} +- {100 * error:.2f} (standard error '
+        f'over tasks); rollout better on {int((pooled > 0.005).sum())}, '
+        f'worse on {int((pooled < -0.005).sum())}')
+
+
+if __name__ == '__main__':
+  main()
