@@ -78,14 +78,12 @@ def _synthetic_vqa_config(variant: str = ''):
   return module.get_config(variant)
 
 
-def test_long_savi_variant_changes_only_savi_steps():
-  # The issue-12 variant: same data (same dataset folder), same everything
-  # but SAVi's schedule length, so the default config stays reproducible.
+def test_long_savi_variant_is_the_default():
+  # Issue 12, round 2's variant (SAVi 4500 steps) became the default in
+  # round 5; its name still runs the commands written for it.
   base = _synthetic_vqa_config().to_dict()
-  long_savi = _synthetic_vqa_config('long_savi').to_dict()
-  assert long_savi['savi'].pop('num_train_steps') == 4500
-  assert base['savi'].pop('num_train_steps') == 1200
-  assert long_savi == base
+  assert base['savi']['num_train_steps'] == 4500
+  assert _synthetic_vqa_config('long_savi').to_dict() == base
 
 
 def test_big_variant_changes_only_data_size_and_schedules():
@@ -102,12 +100,12 @@ def test_big_variant_changes_only_data_size_and_schedules():
   assert changed == {
       'data.num_train': (600, 3000),
       'slotformer.num_train_steps': (1000, 4000),
-      'vqa.num_train_steps': (700, 12000),
+      'vqa.num_train_steps': (1500, 12000),
       'vqa.choice_type_weights': (
           {'counterfactual': 1.0, 'explanatory': 1.0, 'predictive': 1.0},
           {'counterfactual': 0.0, 'explanatory': 0.0, 'predictive': 1.0}),
       'vqa.log_every': (100, 500),
-      'vqa.checkpoint_every': (350, 3000),
+      'vqa.checkpoint_every': (750, 3000),
   }
 
 
