@@ -175,7 +175,7 @@ def rollout_decode_case(dtype, batch_size=8, num_steps=44):
   def rollout_and_decode(params, decoder_params, history):
     slots = inference.rollout_slots(params, history, model=model,
                                 num_steps=num_steps)
-    return inference.decode_slots(decoder_params, slots, decoder=decoder).recon
+    return decoder.apply({'params': decoder_params}, slots).recon
 
   run = jax.jit(precision.with_compute_dtype(rollout_and_decode, dtype))
   return lambda: run(params, decoder_params, history)

@@ -35,12 +35,11 @@ sys.path.insert(0, os.path.join(os.path.dirname(__file__), '..', 'configs'))
 
 import physion  # noqa: E402  (configs/physion.py)
 from slotformer_jax import models  # noqa: E402
-from slotformer_jax import steve_inference  # noqa: E402
+from slotformer_jax import losses  # noqa: E402
+from slotformer_jax.slot_models import steve as steve_slots  # noqa: E402
 from slotformer_jax.train import optim  # noqa: E402
 from slotformer_jax.train import steps  # noqa: E402
-from slotformer_jax.train import steve_steps  # noqa: E402
 from slotformer_jax.train.state import TrainState  # noqa: E402
-from slotformer_jax.evaluation.steve_evaluate import _token_decoder  # noqa: E402
 
 
 def timed(compiled, args, repeats):
@@ -82,7 +81,7 @@ def steve_train_case(config, batch_size, clip_length, repeats):
   state = TrainState.create(params, optimizer)
   update = jax.jit(functools.partial(
       steps.train_step,
-      loss_fn=functools.partial(steve_steps.steve_loss, model=model),
+      loss_fn=functools.partial(losses.steve_loss, model=model),
       optimizer=optimizer, seed=0))
   compiled = update.lower(state, batch, None).compile()
   seconds = timed(compiled, (state, batch, None), repeats)
@@ -91,7 +90,7 @@ def steve_train_case(config, batch_size, clip_length, repeats):
 
 def generation_cases(config, batch_size, repeats, recompute_steps):
   steve = models.build_steve(config)
-  decoder = _token_decoder(config)
+  decoder = steve_slots.token_decoder(config)
   dvae = models.build_dvae(config)
   grid = steve.token_grid
   slots = jax.random.normal(jax.random.key(1), (batch_size, steve.num_slots,
@@ -104,7 +103,7 @@ def generation_cases(config, batch_size, repeats, recompute_steps):
       1.0)
 
   def with_cache(decoder_params, dvae_params, slots):
-    frames, _ = steve_inference.generate_frames(
+    frames, _ = steve_slots.generate_frames(
         decoder_params, dvae_params, slots, decoder=decoder, dvae=dvae,
         token_grid=grid)
     return frames

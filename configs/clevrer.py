@@ -9,9 +9,9 @@ BGR frames: converted weights need --config.data.channel_order=bgr).
 docs/official_architectures.md maps every official layer onto these modules.
 """
 
-from slotformer_jax.default_config import base_config
-from slotformer_jax.default_config import use_official_savi_recipe
-from slotformer_jax.default_config import use_official_slotformer_recipe
+from slotformer_jax.config.defaults import base_config
+from slotformer_jax.config.defaults import use_official_savi_recipe
+from slotformer_jax.config.defaults import use_official_slotformer_recipe
 
 
 def get_config():

@@ -17,7 +17,7 @@ predictive questions; Adam 1e-3, 10% warm-up, cosine, 400 epochs of batch
 import importlib.util
 import os
 
-from slotformer_jax.default_config import vqa_config
+from slotformer_jax.config.defaults import vqa_config
 
 
 def _clevrer_config():

@@ -7,9 +7,9 @@ first 50. OBJ3D has no ground-truth masks, so only frame metrics.
 docs/official_architectures.md maps every official layer onto these modules.
 """
 
-from slotformer_jax.default_config import base_config
-from slotformer_jax.default_config import use_official_savi_recipe
-from slotformer_jax.default_config import use_official_slotformer_recipe
+from slotformer_jax.config.defaults import base_config
+from slotformer_jax.config.defaults import use_official_savi_recipe
+from slotformer_jax.config.defaults import use_official_slotformer_recipe
 
 
 def get_config():

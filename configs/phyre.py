@@ -19,9 +19,9 @@ official 10,000-action protocol (docs/downstream.md).
 
 import ml_collections
 
-from slotformer_jax.default_config import base_config
-from slotformer_jax.default_config import use_official_savi_recipe
-from slotformer_jax.default_config import use_official_slotformer_recipe
+from slotformer_jax.config.defaults import base_config
+from slotformer_jax.config.defaults import use_official_savi_recipe
+from slotformer_jax.config.defaults import use_official_slotformer_recipe
 
 
 def get_config(variant: str = ''):

@@ -8,8 +8,8 @@ SlotFormer: T=15, K=10, D_e=256, 8 layers, no L_I (lambda=0), videos
 subsampled by 3.
 """
 
-from slotformer_jax.default_config import base_config
-from slotformer_jax.default_config import use_official_slotformer_recipe
+from slotformer_jax.config.defaults import base_config
+from slotformer_jax.config.defaults import use_official_slotformer_recipe
 
 
 def get_config():

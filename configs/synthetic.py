@@ -16,8 +16,8 @@ simulated by pybullet and rendered at 32x32 with instance masks. Models keep
 the paper's architecture with smaller widths.
 """
 
-from slotformer_jax.default_config import base_config
-from slotformer_jax.default_config import use_cpu_demo_savi
+from slotformer_jax.config.defaults import base_config
+from slotformer_jax.config.defaults import use_cpu_demo_savi
 
 
 def get_config(variant: str = ''):
@@ -38,7 +38,7 @@ def get_config(variant: str = ''):
 
   savi = config.savi
   savi.num_slots = 5
-  use_cpu_demo_savi(config)  # the embedded demos' small SAVi (default_config.py)
+  use_cpu_demo_savi(config)  # the demos' small SAVi (config/defaults.py)
   savi.num_train_steps = 4500
   savi.log_every = 50
   savi.checkpoint_every = 500

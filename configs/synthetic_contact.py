@@ -10,7 +10,7 @@ red sphere from the left / right edge, across the view, instead of from the
 front (data seed 1; docs/downstream.md); `:bank` launches it from the side
 at a *bumper* standing off the line to the yellow object, so that whether it
 reaches the yellow object is decided by a bounce after the observed frames
-(data seed 2; scripts/contact_state_ceiling.py measures why).
+(data seed 2; experiments/contact_state_ceiling.py measures why).
 
 Videos (data/convert/contact.py): a red sphere launched at (or beside) a
 yellow object among 1-2 distractors, pybullet, 32x32, 24 frames at 20 fps; the
@@ -22,8 +22,8 @@ one (Adam 1e-3, cosine, batch 64).
 
 import ml_collections
 
-from slotformer_jax.default_config import base_config
-from slotformer_jax.default_config import use_cpu_demo_savi
+from slotformer_jax.config.defaults import base_config
+from slotformer_jax.config.defaults import use_cpu_demo_savi
 
 
 def get_config(variant: str = ''):
@@ -45,7 +45,7 @@ def get_config(variant: str = ''):
 
   savi = config.savi
   savi.num_slots = 5
-  use_cpu_demo_savi(config)  # the embedded demos' small SAVi (default_config.py)
+  use_cpu_demo_savi(config)  # the demos' small SAVi (config/defaults.py)
   savi.num_train_steps = 1500
   savi.log_every = 50
   savi.checkpoint_every = 500

@@ -27,8 +27,8 @@ AUCCESS, first-frame one 80.3, random 42.4, oracle 100 (dev: 92.4 vs
 
 import ml_collections
 
-from slotformer_jax.default_config import base_config
-from slotformer_jax.default_config import use_cpu_demo_savi
+from slotformer_jax.config.defaults import base_config
+from slotformer_jax.config.defaults import use_cpu_demo_savi
 
 
 def get_config(variant: str = ''):
@@ -58,7 +58,7 @@ def get_config(variant: str = ''):
 
   savi = config.savi
   savi.num_slots = 6             # <= 4 bodies + red ball + background
-  use_cpu_demo_savi(config)  # the embedded demos' small SAVi (default_config.py)
+  use_cpu_demo_savi(config)  # the demos' small SAVi (config/defaults.py)
   savi.num_train_steps = 1500
   savi.log_every = 50
   savi.checkpoint_every = 500

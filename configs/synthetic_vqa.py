@@ -11,8 +11,8 @@ video -> Aloe (small) on 4 slot frames with stride 7; `vqa.inputs` picks
 Aloe's input ('rollout', 'observed', 'blind', 'future'), `vqa.seed` its
 seed. SAVi trains 4500 steps: at 1200 (the earlier default) its slots tile
 the image rather than hold objects, so no reader can find the object a
-question names (benchmarks/vqa_slot_probe.py; docs/vqa.md, issue 12, round
-2). The whole comparison (`python benchmarks/vqa_run.py`: 4 inputs x 3
+question names (experiments/vqa_slot_probe.py; docs/vqa.md, issue 12, round
+2). The whole comparison (`python experiments/vqa_run.py`: 4 inputs x 3
 seeds) is sized to ~30 minutes on 2 idle cores (docs/vqa.md, round 5).
 `:tiny` is a smoke run whose numbers mean nothing; `:long_savi` is the
 default (its name kept for the commands of rounds 2-3). `:big` (3000
@@ -23,9 +23,9 @@ hours on 2 cores.
 
 import ml_collections
 
-from slotformer_jax.default_config import base_config
-from slotformer_jax.default_config import use_cpu_demo_savi
-from slotformer_jax.default_config import vqa_config
+from slotformer_jax.config.defaults import base_config
+from slotformer_jax.config.defaults import use_cpu_demo_savi
+from slotformer_jax.config.defaults import vqa_config
 
 
 def get_config(variant: str = ''):
@@ -50,7 +50,7 @@ def get_config(variant: str = ''):
 
   savi = config.savi
   savi.num_slots = 6
-  use_cpu_demo_savi(config)  # the embedded demos' small SAVi (default_config.py)
+  use_cpu_demo_savi(config)  # the demos' small SAVi (config/defaults.py)
   # Object-centric slots (one slot holds an object's colour 98.7% of the
   # time, its position R^2 0.94 / 1.00; at 1200 steps 27 of 600 val slots
   # held an object): docs/vqa.md, issue 12, round 2.

@@ -1,58 +1,42 @@
-"""Inference, one implementation for evaluation, rendering and extraction.
+"""Inference shared by every stage: one implementation each.
 
-encode (SAVi over chunks) / decode (frozen SAVi decoder) / rollout (the
-dynamics model or the copy-last baseline) / rollout-and-decode / predicted
-segmentation, plus reading trained parameters from a workdir without
-building an optimizer. Pure functions of params; the caller jits them.
+* rollouts of the dynamics models (SlotFormer, Slot-LSTM) and the copy-last
+  baseline: pure functions of the parameters (the caller jits them);
+* reading trained parameters from a workdir without building an optimizer;
+* `encode_videos`: a jitted function over every video of a source, in
+  fixed-shape host batches and chunks of frames that carry a state (slot
+  extraction, STEVE's tokenization).
 
-Shapes at this boundary: video uint8 [B, T, H, W, 3]; slots [B, T, N, D];
-decoded recon / rgb float [..., H, W, 3] in [0, 1], alpha_masks [..., N, H,
-W, 1].
+Slot models (SAVi, STEVE) encode and decode through `slot_models/`; this
+module knows nothing of them but their slot shape.
+
+Shapes: slots [B, T, N, D]; video uint8 [B, T, H, W, 3].
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterator
 import logging
+import math
 from typing import Any
 
 import jax
+from jax.experimental import multihost_utils
 from jax.sharding import Mesh
 import jax.numpy as jnp
 import ml_collections
+import numpy as np
+import tqdm
 
 from slotformer_jax import models
 from slotformer_jax import workdir as workdir_lib
-from slotformer_jax.evaluation.metrics import segmentation_from_alpha_masks
-from slotformer_jax.frames import frames_to_model
-from slotformer_jax.frames import model_to_unit
-from slotformer_jax.modules.decoders import SpatialBroadcastDecoder
-from slotformer_jax.modules.savi import SAVi
+from slotformer_jax.data import pipeline
 from slotformer_jax.modules.slot_lstm import SlotLSTM
 from slotformer_jax.modules.slotformer import SlotFormer
 from slotformer_jax.train import sharding
 from slotformer_jax.train.checkpoint import restore_params
 
 logger = logging.getLogger(__name__)
-
-
-def savi_encode(params: Any, video: jax.Array, rng: jax.Array, carry: Any,
-                *, model: SAVi):
-  """uint8 video [B, T, H, W, 3] -> (slots [B, T, N, D], carry).
-
-  `carry` continues SAVi's state from the previous chunk (None: fresh).
-  """
-  slots, _, carry = model.apply(
-      {'params': params}, frames_to_model(video), carry,
-      method=SAVi.encode, rngs={'sample': rng})
-  return slots, carry
-
-
-def decode_slots(decoder_params: Any, slots: jax.Array, *,
-                 decoder: SpatialBroadcastDecoder):
-  """slots [..., N, D] -> DecodedSlots; `recon` and `rgb` in [0, 1]."""
-  decoded = decoder.apply({'params': decoder_params}, slots)
-  return decoded.replace(recon=model_to_unit(decoded.recon),
-                         rgb=model_to_unit(decoded.rgb))
 
 
 def rollout_slots(params: Any, burn_in_slots: jax.Array, *,
@@ -82,71 +66,148 @@ def rollouts(dynamics_params: dict[str, Any], dynamics: dict[str, Any],
   return out
 
 
-def predicted_segmentation(decoded, bg_threshold: float | None = None
-                           ) -> jax.Array:
-  """DecodedSlots (alpha_masks [..., N, H, W, 1]) -> int32 [..., H, W]: the
-  slot with the largest alpha per pixel (`bg_threshold`: the official
-  post-processing, see `metrics.segmentation_from_alpha_masks`)."""
-  return segmentation_from_alpha_masks(decoded.alpha_masks[..., 0],
-                                       bg_threshold=bg_threshold)
-
-
 # --------------------------------------------------------------------------
 # Trained parameters of a workdir (no optimizer is built)
 # --------------------------------------------------------------------------
 
 
-def _param_shapes(module, *args, **kwargs) -> Any:
-  rngs = {name: jax.random.key(0) for name in ('params', 'sample', 'dropout')}
+def param_shapes(module, *args, **kwargs) -> Any:
+  """The parameter shapes of `module` for example inputs (no compute)."""
+  rngs = {name: jax.random.key(0)
+          for name in ('params', 'sample', 'dropout', 'gumbel')}
   return jax.eval_shape(
       lambda: module.init(rngs, *args, **kwargs)['params'])
 
 
-def savi_param_shapes(config: ml_collections.ConfigDict) -> Any:
-  clip_shape = (1, config.savi.clip_length, *config.data.resolution, 3)
-  return _param_shapes(models.build_savi(config),
-                       jnp.zeros(clip_shape, jnp.float32))
-
-
-def dynamics_param_shapes(config: ml_collections.ConfigDict,
-                          name: str = models.SLOTFORMER) -> Any:
+def dynamics_example(config: ml_collections.ConfigDict, name: str,
+                     slot_shape: tuple[int, int]) -> tuple[jax.Array, int]:
+  """(history zeros [1, burn_in, N, D], rollout): the example inputs stage-2
+  model `name` is initialised with, for slots of `slot_shape` (N, D)."""
   stage_config = models.dynamics_config(config, name)
-  history_shape = (1, stage_config.burn_in, config.savi.num_slots,
-                   config.savi.slot_size)
-  return _param_shapes(models.build_dynamics(config, name),
-                       jnp.zeros(history_shape, jnp.float32),
-                       stage_config.rollout)
+  history = jnp.zeros((1, stage_config.burn_in, *slot_shape), jnp.float32)
+  return history, stage_config.rollout
 
 
-def load_savi_params(config: ml_collections.ConfigDict, workdir: str,
-                     mesh: Mesh) -> tuple[Any, int]:
-  """SAVi's trained parameters (replicated) and the step they are from."""
-  directory = workdir_lib.savi_dir(workdir_lib.stage1_workdir(config, workdir))
-  workdir_lib.check_model_config(directory, workdir_lib.savi_model_fields(
-      config), 'SAVi')
+def dynamics_param_shapes(config: ml_collections.ConfigDict, name: str,
+                          slot_shape: tuple[int, int]) -> Any:
+  return param_shapes(models.build_dynamics(config, name),
+                      *dynamics_example(config, name, slot_shape))
+
+
+def train_command(workdir: str, mode: str) -> str:
+  return ('python -m slotformer_jax.main --config=<config> '
+          f'--workdir={workdir} --mode={mode}')
+
+
+def restore(directory: str, shapes: Any, mesh: Mesh, *, what: str,
+            workdir: str, mode: str, num_train_steps: int
+            ) -> tuple[Any, int]:
+  """The newest parameters of the stage folder `directory` (replicated) and
+  their step; a warning when it was trained for fewer steps than asked.
+
+  Raises:
+    UserError: no checkpoint (the message names `mode`), or none fits.
+  """
   params, step = restore_params(
-      directory, savi_param_shapes(config),
-      sharding.replicated_sharding(mesh), what='SAVi',
-      train_command=_train_command(workdir, 'train_savi'))
-  if step < config.savi.num_train_steps:
-    logger.warning('SAVi was trained for %d of %d steps only', step,
-                   config.savi.num_train_steps)
+      directory, shapes, sharding.replicated_sharding(mesh), what=what,
+      train_command=train_command(workdir, mode))
+  if step < num_train_steps:
+    logger.warning('%s was trained for %d of %d steps only', what, step,
+                   num_train_steps)
   return params, step
 
 
 def load_dynamics_params(config: ml_collections.ConfigDict, workdir: str,
-                         mesh: Mesh, name: str = models.SLOTFORMER
+                         mesh: Mesh, name: str, slot_shape: tuple[int, int]
                          ) -> tuple[Any, int]:
-  """The newest parameters of stage-2 model `name` and their step."""
+  """The newest parameters of stage-2 model `name` (trained on slots of
+  `slot_shape`) and their step."""
   directory = workdir_lib.dynamics_dir(workdir, name)
   workdir_lib.check_model_config(
       directory, workdir_lib.dynamics_model_fields(config, name), name)
-  return restore_params(
-      directory, dynamics_param_shapes(config, name),
-      sharding.replicated_sharding(mesh), what=name,
-      train_command=_train_command(workdir, f'train_{name}'))
+  return restore(directory, dynamics_param_shapes(config, name, slot_shape),
+                 mesh, what=name, workdir=workdir, mode=f'train_{name}',
+                 num_train_steps=models.dynamics_config(
+                     config, name).num_train_steps)
 
 
-def _train_command(workdir: str, mode: str) -> str:
-  return ('python -m slotformer_jax.main --config=<config> '
-          f'--workdir={workdir} --mode={mode}')
+# --------------------------------------------------------------------------
+# A function over every video of a source
+# --------------------------------------------------------------------------
+
+# encode_chunk(batch_index, chunk_index, frames uint8 [B, C, H, W, 3] (global,
+# batch-sharded), carry) -> (out [B, C, ...], carry).
+ChunkFn = Callable[[int, int, jax.Array, Any], tuple[jax.Array, Any]]
+
+
+def _padded_clip(video: np.ndarray, num_frames: int) -> np.ndarray:
+  """video [T, ...] -> [num_frames, ...], repeating the last frame."""
+  if len(video) >= num_frames:
+    return video[:num_frames]
+  padding = np.repeat(video[-1:], num_frames - len(video), axis=0)
+  return np.concatenate([video, padding], axis=0)
+
+
+def encode_videos(source: pipeline.Source, encode_chunk: ChunkFn, *,
+                  chunk_length: int, batch_size: int, mesh: Mesh,
+                  desc: str) -> Iterator[tuple[int, np.ndarray]]:
+  """`encode_chunk` over every video of `source`, chunk after chunk.
+
+  Each host encodes its own videos (`pipeline.host_batches`: p, p + P, ...)
+  in batches of `batch_size` (per host); videos are padded to a whole
+  number of chunks of `chunk_length` frames by repeating their last frame,
+  every host running the same number of batches and chunks (the collectives
+  of a multi-host run stay in lockstep, also on a host with no video). The
+  carry starts as None for every batch.
+
+  Yields, on every host, (video index, out [T, ...]) of every video of the
+  source (all hosts' results are gathered), T its own number of frames.
+  """
+  process_index, process_count = jax.process_index(), jax.process_count()
+  plan = list(pipeline.host_batches(len(source), batch_size, process_index,
+                                    process_count))
+  for batch_index, (indices, valid) in enumerate(tqdm.tqdm(
+      plan, desc=desc, disable=process_index != 0)):
+    videos = [source[int(i)]['video'] for i in indices]
+    lengths = np.array([len(v) for v in videos])
+    num_chunks = math.ceil(lengths.max() / chunk_length)
+    if process_count > 1:  # all hosts must run the same number of chunks
+      num_chunks = int(multihost_utils.process_allgather(
+          np.array(num_chunks)).max())
+    padded = np.stack([_padded_clip(v, num_chunks * chunk_length)
+                       for v in videos])
+    carry, chunks = None, []
+    for chunk in range(num_chunks):
+      frames = padded[:, chunk * chunk_length:(chunk + 1) * chunk_length]
+      out, carry = encode_chunk(
+          batch_index, chunk,
+          sharding.to_global_batch({'video': frames}, mesh)['video'], carry)
+      chunks.append(out)
+    gathered = sharding.gather_to_host({
+        'out': jnp.concatenate(chunks, axis=1),
+        **sharding.to_global_batch(
+            {'index': indices, 'length': lengths, 'valid': valid}, mesh)})
+    for out, index, length, is_valid in zip(
+        gathered['out'], gathered['index'], gathered['length'],
+        gathered['valid']):
+      if is_valid:
+        yield int(index), out[:length]
+
+
+def encode_videos_into(make_writer: Callable[[], Any], source: pipeline.Source,
+                       encode_chunk: ChunkFn, *, chunk_length: int,
+                       batch_size: int, mesh: Mesh, desc: str) -> None:
+  """`encode_videos`, each video's output added to the writer
+  `make_writer()` builds on the lead host (a `SlotWriter`, `TokenWriter`:
+  `add(index, out)`, `close()`); every host waits until it is closed."""
+  writer = make_writer() if jax.process_index() == 0 else None
+  for index, out in encode_videos(source, encode_chunk,
+                                  chunk_length=chunk_length,
+                                  batch_size=batch_size, mesh=mesh,
+                                  desc=desc):
+    if writer is not None:
+      writer.add(index, out)
+  if writer is not None:
+    writer.close()
+  if jax.process_count() > 1:
+    multihost_utils.sync_global_devices(f'{desc} written')

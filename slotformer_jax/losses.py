@@ -3,8 +3,12 @@
 * SAVi: frame reconstruction MSE (+ kl_weight * KL for stochastic SAVi).
 * SlotFormer / Slot-LSTM: L = L_S + lambda * L_I (slot MSE + image MSE of
   the frames decoded by the frozen SAVi decoder).
+* STEVE's dVAE: pixel MSE of the relaxed-code reconstruction; STEVE: the
+  cross-entropy of its token decoder against the frozen dVAE's tokens.
 
-Both are in the [-1, 1] pixel range of `frames.frames_to_model`.
+Pixels are in the [-1, 1] range of `frames.frames_to_model`. Every loss
+plugs into `train.trainer.fit` as `loss_fn(params, batch, frozen_params,
+rng) -> (loss, metrics)`.
 """
 
 from __future__ import annotations
@@ -13,12 +17,15 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
+import optax
 
 from slotformer_jax.frames import frames_to_model
 from slotformer_jax.modules.decoders import SpatialBroadcastDecoder
+from slotformer_jax.modules.dvae import DVAE
 from slotformer_jax.modules.savi import SAVi
 from slotformer_jax.modules.slot_lstm import SlotLSTM
 from slotformer_jax.modules.slotformer import SlotFormer
+from slotformer_jax.modules.steve import STEVE
 
 Batch = dict[str, jax.Array]
 Metrics = dict[str, jax.Array]
@@ -75,3 +82,46 @@ def slotformer_loss(params: Any, batch: Batch, decoder_params: Any,
     metrics['image_loss'] = image_loss
     loss = loss + image_loss_weight * image_loss
   return loss, metrics
+
+
+def dvae_loss(params: Any, batch: Batch, frozen_params: Any, rng: jax.Array,
+              *, model: DVAE) -> tuple[jax.Array, Metrics]:
+  """Pixel MSE of the relaxed-code reconstruction.
+
+  batch['video']: uint8 [B, T, H, W, 3] (single frames: T = 1);
+  batch['gumbel_temperature']: float32 [B], every entry the temperature of
+  the batch's step (the step is not an argument of a loss; see
+  `slot_models.steve.with_gumbel_temperature`).
+  """
+  del frozen_params
+  video = frames_to_model(batch['video'])
+  images = video.reshape(-1, *video.shape[2:])
+  temperature = jnp.mean(batch['gumbel_temperature'])
+  recon, log_probs = model.apply({'params': params}, images, temperature,
+                                 rngs={'gumbel': rng})
+  loss = jnp.mean(jnp.square(recon - images))
+  # How many codes the encoder uses: exp(entropy of the mean code
+  # distribution), a quick check for codebook collapse.
+  mean_probs = jnp.mean(jnp.exp(log_probs), axis=(0, 1, 2))
+  perplexity = jnp.exp(-jnp.sum(mean_probs * jnp.log(mean_probs + 1e-10)))
+  return loss, {'recon_loss': loss, 'gumbel_temperature': temperature,
+                'code_perplexity': perplexity}
+
+
+def steve_loss(params: Any, batch: Batch, frozen_params: Any, rng: jax.Array,
+               *, model: STEVE) -> tuple[jax.Array, Metrics]:
+  """Cross-entropy of the decoder's token logits against the frozen dVAE's
+  tokens, averaged over batch, frames and tokens.
+
+  batch['video']: uint8 [B, T, H, W, 3]; batch['tokens']: int [B, T, L]
+  (precomputed argmax codes of the same frames).
+  """
+  del frozen_params
+  video = frames_to_model(batch['video'])
+  tokens = batch['tokens'].astype(jnp.int32)
+  logits, _, _ = model.apply({'params': params}, video, tokens,
+                             deterministic=False, rngs={'dropout': rng})
+  loss = jnp.mean(optax.softmax_cross_entropy_with_integer_labels(
+      logits, tokens))
+  accuracy = jnp.mean(jnp.argmax(logits, -1) == tokens)
+  return loss, {'token_loss': loss, 'token_accuracy': accuracy}

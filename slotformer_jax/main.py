@@ -15,7 +15,6 @@ checkpoint first (exit status 143). See docs/reliability.md.
 
 from __future__ import annotations
 
-from collections.abc import Callable
 import json
 import logging
 import os
@@ -29,25 +28,16 @@ import jax
 from ml_collections import config_flags
 import tqdm
 
-from slotformer_jax import config_checks
+from slotformer_jax import slot_models
 from slotformer_jax import stages
-from slotformer_jax import tasks
 from slotformer_jax import workdir as workdir_lib
 from slotformer_jax import xla_flags
+from slotformer_jax.config import checks as config_checks
 from slotformer_jax.data.data_dir import default_data_dir
 from slotformer_jax.errors import UserError
 from slotformer_jax.files import append_line_atomic
-from slotformer_jax.evaluation import evaluate
-from slotformer_jax.evaluation import visualize
 from slotformer_jax.train import sharding
 from slotformer_jax.train.trainer import Preempted
-
-# Every stage name `--mode` accepts. Which of them a config runs, and in which
-# order `--mode=all` runs them, is `stage_table(config)`.
-MODES = ('all', 'train_savi', 'train_dvae', 'tokenize_frames', 'train_steve',
-         'extract_slots', 'train_slotformer',
-         'train_slot_lstm', 'evaluate', 'render', 'train_readout',
-         'evaluate_readout', 'plan', 'vqa_slots', 'train_vqa', 'evaluate_vqa')
 
 _CONFIG = config_flags.DEFINE_config_file(
     'config', None, 'Config file, e.g. configs/obj3d.py or '
@@ -55,7 +45,8 @@ _CONFIG = config_flags.DEFINE_config_file(
 _WORKDIR = flags.DEFINE_string(
     'workdir', None, 'Folder for checkpoints, slots, metrics and pictures.',
     required=True)
-_MODE = flags.DEFINE_enum('mode', 'all', MODES, 'Which stage(s) to run.')
+_MODE = flags.DEFINE_enum('mode', 'all', stages.MODES,
+                          'Which stage(s) to run.')
 _DISTRIBUTED = flags.DEFINE_bool(
     'distributed', False, 'Call jax.distributed.initialize() first (one '
     'process per host on a TPU pod or multi-node GPU cluster).')
@@ -114,63 +105,6 @@ def _enable_compilation_cache() -> None:
   jax.config.update('jax_persistent_cache_min_compile_time_secs', 1.0)
 
 
-def stage_table(config) -> dict[str, Callable]:
-  """The stages `config` can run, in the order `--mode=all` runs them."""
-  if config.slot_model == 'steve':  # dVAE + STEVE (Physion), then stage 2
-    # pylint: disable=g-import-not-at-top
-    from slotformer_jax import steve_stages
-    from slotformer_jax.evaluation import steve_evaluate
-    table = {
-        'train_dvae': steve_stages.train_dvae,
-        'tokenize_frames': steve_stages.tokenize_frames,
-        'train_steve': steve_stages.train_steve,
-        'extract_slots': steve_stages.extract_slots,
-        'train_slotformer': steve_stages.train_slotformer,
-        'train_slot_lstm': steve_stages.train_slot_lstm,
-    }
-    video_prediction = {'evaluate': steve_evaluate.evaluate,
-                        'render': steve_evaluate.render}
-  else:
-    table = {
-        'train_savi': stages.train_savi,
-        'extract_slots': stages.extract_slots,
-        'train_slotformer': stages.train_slotformer,
-        'train_slot_lstm': stages.train_slot_lstm,
-    }
-    video_prediction = {'evaluate': evaluate.evaluate,
-                        'render': visualize.render}
-  # Downstream tasks follow stage 2 instead of the video-prediction
-  # evaluation: CLEVRER-style VQA (a `vqa` section), or `config.task`
-  # ('contact', 'planning'; slotformer_jax/tasks/).
-  task = config.get('task')
-  if 'vqa' in config:
-    from slotformer_jax import vqa_stages  # pylint: disable=g-import-not-at-top
-    table.update(vqa_slots=vqa_stages.vqa_slots,
-                 train_vqa=vqa_stages.train_vqa,
-                 evaluate_vqa=vqa_stages.evaluate_vqa)
-  elif task:
-    table.update(tasks.stages_for(task))
-  else:
-    table.update(video_prediction)
-  return table
-
-
-def selected_stages(config, mode: str) -> tuple[str, ...]:
-  table = stage_table(config)
-  if mode == 'all':
-    # The Slot-LSTM baseline only when the config asks for it.
-    return tuple(m for m in table
-                 if m != 'train_slot_lstm' or config.slot_lstm.train)
-  if mode not in table:
-    raise UserError(
-        f'--mode={mode} does not apply to this config (slot_model='
-        f'{config.slot_model!r}, task={config.get("task")!r}); it runs '
-        f'{", ".join(table)}. Task stages need a task config, e.g. '
-        'configs/synthetic_contact.py, configs/synthetic_phyre.py or '
-        'configs/synthetic_vqa.py.')
-  return (mode,)
-
-
 def main(argv):
   del argv
   # Before anything starts jax's backends ($SLOTFORMER_XLA_CPU_FLAGS=0: off).
@@ -184,7 +118,7 @@ def main(argv):
   config, workdir, mode = _CONFIG.value, _WORKDIR.value, _MODE.value
   if config is None:
     raise app.UsageError('--config is required, e.g. configs/synthetic.py')
-  selected = selected_stages(config, mode)
+  selected = stages.selected_stages(config, mode)
   # Every check before any work: a bad value costs seconds, not a stage.
   config_checks.validate(config, selected, num_devices=jax.device_count(),
                          num_processes=jax.process_count())
@@ -198,9 +132,11 @@ def main(argv):
 
 
 def _run(config, workdir: str, selected: tuple[str, ...]) -> None:
+  slot_model = slot_models.get(config)
+  slot_model.check_compute_dtype()
   if workdir_lib.uses_foreign_stage1(config, workdir):
     # Before any data is generated: the read-only stage 1 must fit.
-    workdir_lib.savi_identity(config, workdir)
+    slot_model.check_identity(workdir)
   # config.json only ever records settings that are used from here on.
   changes = workdir_lib.accept_config(
       config, workdir, allow_change=_ALLOW_CONFIG_CHANGE.value)
@@ -211,7 +147,7 @@ def _run(config, workdir: str, selected: tuple[str, ...]) -> None:
   logger.info('%d processes, %d devices (%s)', jax.process_count(),
                jax.device_count(), jax.devices()[0].platform)
 
-  run = stage_table(config)
+  run = stages.stage_table(config)
   wall_times = {}
   for stage in selected:
     started = time.time()

@@ -147,14 +147,14 @@ def build_dynamics(config: ml_collections.ConfigDict,
 
 
 def build_aloe(config: ml_collections.ConfigDict, vocab_size: int,
-               num_answers: int) -> 'Aloe':
-  """Aloe for `config.vqa` over `config.savi`'s slots."""
+               num_answers: int, *, num_slots: int) -> 'Aloe':
+  """Aloe for `config.vqa` over `num_slots` slots per frame."""
   # Imported here: the VQA model is optional for the video pipeline.
   from slotformer_jax.modules.aloe import Aloe  # pylint: disable=g-import-not-at-top
   vqa = config.vqa
   return Aloe(
       vocab_size=vocab_size, num_answers=num_answers,
-      num_frames=vqa.num_frames, num_slots=config.savi.num_slots,
+      num_frames=vqa.num_frames, num_slots=num_slots,
       text_length=vqa.max_question_len + vqa.max_choice_len,
       question_length=vqa.max_question_len, d_model=vqa.d_model,
       word_dim=vqa.word_dim, num_layers=vqa.num_layers,

@@ -4,13 +4,18 @@ Workdir layout (shared by all stages; each stage resumes from it)::
 
     config.json                 the settings this workdir was trained with
     config_history.jsonl        every accepted settings change
-    savi/checkpoints/<step>/    savi/model_config.json  savi/train_log.jsonl
+    <stage-1 model>/            e.g. savi/, or dvae/ + tokens/ + steve/
+                                (slot_models/): checkpoints/<step>/,
+                                model_config.json, identity.json,
+                                train_log.jsonl
     slots/<split>/              extracted slots (see data/slots.py)
-    slotformer/checkpoints/     slotformer/train_log.jsonl
+    slotformer/checkpoints/     slotformer/train_log.jsonl (also slot_lstm/)
     eval/metrics.json           eval/per_step.csv
     render/*.gif, *.png
 
 Only paths and checks live here (no training code), so evaluation can use it.
+What is particular to one slot model (its folders, the fields that shape it)
+lives with it in `slot_models/`.
 """
 
 from __future__ import annotations
@@ -58,10 +63,6 @@ def uses_foreign_stage1(config: ml_collections.ConfigDict,
                           != os.path.realpath(workdir))
 
 
-def savi_dir(workdir: str) -> str:
-  return os.path.join(workdir, 'savi')
-
-
 def slots_dir(workdir: str, split: str) -> str:
   return os.path.join(workdir, 'slots', split)
 
@@ -77,22 +78,6 @@ def eval_dir(workdir: str) -> str:
 
 def render_dir(workdir: str) -> str:
   return os.path.join(workdir, 'render')
-
-
-def savi_model_fields(config: ml_collections.ConfigDict) -> dict[str, Any]:
-  """The config values that determine SAVi's parameter shapes / behaviour."""
-  savi = config.savi.to_dict()
-  fields = {key: savi[key] for key in (
-      'num_slots', 'slot_size', 'encoder', 'slot_attention', 'predictor',
-      'decoder', 'stochastic', 'initial_slots', 'posterior_head',
-      'layer_norm_epsilon')}
-  fields['resolution'] = list(config.data.resolution)
-  # A SAVi that saw BGR frames (the official CLEVRER ones) needs
-  # BGR frames; recorded only when not RGB, so older workdirs still match.
-  channel_order = config.data.get('channel_order', 'rgb')
-  if channel_order != 'rgb':
-    fields['channel_order'] = channel_order
-  return json.loads(json.dumps(fields))  # tuples -> lists, for comparison
 
 
 def dynamics_model_fields(config: ml_collections.ConfigDict,
@@ -172,25 +157,19 @@ def _shaping(section: dict[str, Any]) -> dict[str, Any]:
           if key not in _NOT_SHAPING}
 
 
-def savi_identity_fields(config: ml_collections.ConfigDict) -> dict[str, Any]:
-  """Everything that shapes SAVi's parameters: data, the savi section, seed."""
-  return _plain({'seed': config.seed, 'data': _shaping(config.data.to_dict()),
-                 'savi': _shaping(config.savi.to_dict())})
-
-
 def stage_identity_fields(config: ml_collections.ConfigDict,
                           section: str) -> dict[str, Any]:
   """Everything that shapes a stage-1 model trained from the videos with the
-  settings of `config[section]` (e.g. 'dvae', 'steve'): data, that section,
-  the seed (the same form as `savi_identity_fields`)."""
+  settings of `config[section]` (e.g. 'savi', 'dvae', 'steve'): data, that
+  section, the seed."""
   return _plain({'seed': config.seed, 'data': _shaping(config.data.to_dict()),
                  section: _shaping(config[section].to_dict())})
 
 
 def slots_identity_fields(config: ml_collections.ConfigDict
                           ) -> dict[str, Any]:
-  """Besides the SAVi that made them: extraction settings and the seed
-  (stochastic SAVi samples with it)."""
+  """Besides the slot model that made them: extraction settings and the
+  seed (stochastic SAVi samples with it)."""
   extraction = config.extraction.to_dict()
   extraction.pop('splits', None)
   return _plain({'seed': config.seed, 'extraction': extraction})
@@ -244,19 +223,6 @@ def write_identity(stage_directory: str, identity: dict[str, Any]) -> None:
     write_json_atomic(os.path.join(stage_directory, IDENTITY_FILE), identity)
 
 
-def savi_identity(config: ml_collections.ConfigDict, workdir: str
-                  ) -> dict[str, Any]:
-  """{'run_id', 'fingerprint'} of the SAVi stage 1 of this run.
-
-  Raises:
-    UserError: SAVi there was trained with other settings (the fields are
-      listed), or has no identity yet.
-  """
-  return checked_identity(savi_dir(stage1_workdir(config, workdir)),
-                          savi_identity_fields(config), 'SAVi',
-                          stage1_workdir(config, workdir), 'train_savi')
-
-
 def checked_identity(directory: str, fields: dict[str, Any], what: str,
                      workdir: str, train_mode: str) -> dict[str, Any]:
   """The identity of the stage in `directory`, made with `fields`.
@@ -276,25 +242,23 @@ def checked_identity(directory: str, fields: dict[str, Any], what: str,
 
 
 def slots_parent(identity: dict[str, Any], step: int,
-                 stage: str = 'savi') -> dict[str, Any]:
+                 stage: str) -> dict[str, Any]:
   """What slots (and the dynamics trained on them) descend from: the run id
   and step of the stage-1 model `stage` ('savi', 'steve') that made them."""
   return {f'{stage}_run_id': identity['run_id'], f'{stage}_step': int(step)}
 
 
 def check_slots_current(config: ml_collections.ConfigDict, workdir: str,
-                        split: str, identity: dict[str, Any],
-                        savi_step: int, stage: str = 'savi'
+                        split: str, expected: dict[str, Any], what: str
                         ) -> dict[str, Any]:
-  """The slots of `split` must come from the current stage-1 model (`stage`:
-  'savi' or 'steve', its `identity` at `savi_step`); returns their parent.
+  """The slots of `split` must descend from `expected` (the slot model's
+  `Loaded.slots_parent`; `what` names that model); returns their parent.
 
   Raises:
     UserError: missing or stale slots, with the command that rebuilds them.
   """
   directory = slots_dir(stage1_workdir(config, workdir), split)
   meta = read_meta(directory)
-  expected = slots_parent(identity, savi_step, stage)
   rebuild = ('python -m slotformer_jax.main --config=<config> '
              f'--workdir={stage1_workdir(config, workdir)} '
              '--mode=extract_slots')
@@ -303,7 +267,6 @@ def check_slots_current(config: ml_collections.ConfigDict, workdir: str,
                     f'{rebuild}')
   if (meta.get('parent') != expected
       or meta.get('fields') != slots_identity_fields(config)):
-    what = {'savi': 'SAVi', 'steve': 'STEVE'}.get(stage, stage)
     raise UserError(
         f'the slots in {directory} are stale: made by {what} '
         f'{meta.get("parent")}, the current {what} is {expected}. Re-extract '
@@ -416,19 +379,24 @@ def workdir_lock(workdir: str) -> FileLock:
 
 
 def evaluation_identity(config: ml_collections.ConfigDict, workdir: str,
-                        split: str, savi_step: int,
+                        split: str, stage1: dict[str, Any],
+                        slots_parent: dict[str, Any], what: str,
                         dynamics_steps: dict[str, int]) -> dict[str, Any]:
-  """What an evaluation (metrics, pictures) is made from; checks that SAVi,
-  the slots of `split` and every dynamics model descend from each other.
+  """What an evaluation (metrics, pictures) is made from; checks that the
+  slot model, the slots of `split` and every dynamics model descend from
+  each other.
+
+  Args:
+    stage1: the slot model's own identity entries (`Loaded.identity`).
+    slots_parent: what its slots descend from (`Loaded.slots_parent`).
+    what: the slot model's name in messages ('SAVi').
+    dynamics_steps: {dynamics model name: step} of the loaded checkpoints.
 
   Raises:
     UserError: something is stale; the message names the stage to rerun.
   """
-  savi = savi_identity(config, workdir)
-  parent = check_slots_current(config, workdir, split, savi, savi_step)
-  out = {'savi': {'run_id': savi['run_id'], 'step': int(savi_step),
-                  'fingerprint': savi['fingerprint']},
-         'slots': parent}
+  parent = check_slots_current(config, workdir, split, slots_parent, what)
+  out = {**stage1, 'slots': parent}
   for name, step in dynamics_steps.items():
     directory = dynamics_dir(workdir, name)
     identity = read_identity(directory)
@@ -441,7 +409,7 @@ def evaluation_identity(config: ml_collections.ConfigDict, workdir: str,
                           name, directory)
     if identity.get('parent') != parent:
       raise UserError(
-          f'{name} in {directory} was trained on the slots of SAVi '
+          f'{name} in {directory} was trained on the slots of {what} '
           f'{identity.get("parent")}, but stage 1 is now {parent}; '
           f'evaluating would mix them. Retrain it (it is set aside and '
           f'retrained): {retrain}')

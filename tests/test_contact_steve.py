@@ -11,7 +11,8 @@ import pytest
 
 from configs import physion_contact
 from configs import synthetic_contact
-from slotformer_jax import main as main_lib
+from slotformer_jax import slot_models
+from slotformer_jax import stages
 from slotformer_jax.data.slots import read_meta
 from slotformer_jax.tasks import contact
 from slotformer_jax.train import sharding
@@ -55,9 +56,11 @@ def test_readout_reads_the_slot_models_slot_size():
   config = physion_contact.get_config()
   assert config.slot_model == 'steve'
   config.steve.slot_size = 48  # physion.py gives SAVi and STEVE both 192
-  assert contact.build_readout(config).features == config.steve.slot_size
+  slot_size = lambda: slot_models.get(config).slot_shape[1]
+  assert contact.build_readout(config, slot_size()).features == 48
   config.slot_model = 'savi'
-  assert contact.build_readout(config).features == config.savi.slot_size
+  assert contact.build_readout(config, slot_size()).features == (
+      config.savi.slot_size)
 
 
 @pytest.mark.slow
@@ -66,7 +69,7 @@ def test_contact_stages_on_steve_slots(tmp_path):
   assert config.steve.slot_size != config.savi.slot_size
   workdir = str(tmp_path / 'run')
   mesh = sharding.make_mesh()
-  table = main_lib.stage_table(config)
+  table = stages.stage_table(config)
   assert 'train_steve' in table and 'train_savi' not in table
   for mode in ('train_dvae', 'tokenize_frames', 'train_steve',
                'extract_slots', 'train_slotformer', 'train_readout'):

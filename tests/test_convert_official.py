@@ -18,12 +18,11 @@ import numpy as np
 import pytest
 
 import official_reference as ref
-from slotformer_jax import convert_official
+from slotformer_jax.official import convert as convert_official
 from slotformer_jax import models
 from slotformer_jax import inference
-from slotformer_jax import stages
 from slotformer_jax import workdir as workdir_lib
-from slotformer_jax.default_config import base_config
+from slotformer_jax.config.defaults import base_config
 from slotformer_jax.modules.decoders import SubPixelConvTranspose
 from slotformer_jax.modules.encoders import CNNEncoder
 from slotformer_jax.modules.slot_attention import SlotAttention
@@ -31,13 +30,17 @@ from slotformer_jax.modules.transformer import TransformerBlock
 from slotformer_jax.official import families
 from slotformer_jax.official import layers
 from slotformer_jax.official.layers import StateDictMapper
+from slotformer_jax.stages import extract
+from slotformer_jax.stages import video_prediction
+from slotformer_jax.slot_models import savi as savi_slots
+from slotformer_jax.official import common
 
 # float32 modules vs the float64 reference, values of order 1.
 TOLERANCE = 1e-4
 
 
 def _params(m: StateDictMapper, prefix: str):
-  return families._unflatten({  # pylint: disable=protected-access
+  return common.unflatten({
       path[len(prefix) + 1:]: assigned.value
       for path, assigned in m.params.items() if path.startswith(prefix + '/')})
 
@@ -437,7 +440,7 @@ def test_bgr_datasets_need_bgr():
     convert_official.check_channel_order(config)
   config.data.channel_order = 'bgr'
   convert_official.check_channel_order(config)
-  assert workdir_lib.savi_model_fields(config)['channel_order'] == 'bgr'
+  assert savi_slots.model_fields(config)['channel_order'] == 'bgr'
 
 
 # --------------------------------------------------------------------------
@@ -466,7 +469,7 @@ def test_writes_where_the_pipeline_reads(tmp_path, monkeypatch):
   directories = _convert_files(
       config, workdir, tmp_path, monkeypatch,
       {'slotformer.pth': slotformer_state, 'savi.pth': savi_state})
-  assert directories == [workdir_lib.savi_dir(workdir),
+  assert directories == [savi_slots.savi_dir(workdir),
                          workdir_lib.dynamics_dir(workdir)]
   with open(os.path.join(directories[1],
                          convert_official.CONVERTED_FROM_FILE)) as f:
@@ -476,12 +479,15 @@ def test_writes_where_the_pipeline_reads(tmp_path, monkeypatch):
   assert len(provenance['sha256']) == 64
 
   mesh = jax.sharding.Mesh(np.array(jax.devices()), ('data',))
-  savi_params, savi_step = inference.load_savi_params(config, workdir, mesh)
+  loaded = savi_slots.Savi(config).load(workdir, mesh)
+  savi_params, savi_step = loaded.params, loaded.step
   assert savi_step == config.savi.num_train_steps
   expected = families.convert_state_dict(savi_state, config).params
   jax.tree.map(np.testing.assert_array_equal, jax.device_get(savi_params),
                expected)
-  dyn_params, _ = stages.load_slotformer_params(config, workdir, mesh)
+  dyn_params, _ = inference.load_dynamics_params(
+      config, workdir, mesh, 'slotformer',
+      (config.savi.num_slots, config.savi.slot_size))
   expected = families.convert_state_dict(slotformer_state, config).params
   jax.tree.map(np.testing.assert_array_equal, jax.device_get(dyn_params),
                expected)
@@ -504,7 +510,7 @@ def test_frozen_decoder_must_be_the_savi_decoder(tmp_path, monkeypatch):
     _convert_files(config, workdir, tmp_path, monkeypatch,
                    {'savi.pth': official_savi(config),
                     'slotformer.pth': slotformer_state})
-  assert not os.path.exists(workdir_lib.savi_dir(workdir))
+  assert not os.path.exists(savi_slots.savi_dir(workdir))
   # Against the SAVi an earlier command wrote.
   _convert_files(config, workdir, tmp_path, monkeypatch,
                  {'savi.pth': official_savi(config)})
@@ -517,10 +523,8 @@ def test_frozen_decoder_must_be_the_savi_decoder(tmp_path, monkeypatch):
 def test_converted_workdir_runs_extract_evaluate_render(tmp_path):
   """Official-format weights in the official layout -> the workdir ->
   slot extraction, evaluation and pictures, with no training stage run."""
-  import test_end_to_end  # pylint: disable=g-import-not-at-top
-  from slotformer_jax.evaluation import evaluate  # pylint: disable=g-import-not-at-top
-  from slotformer_jax.evaluation import visualize  # pylint: disable=g-import-not-at-top
-  config = test_end_to_end._micro_config(tmp_path / 'data')  # pylint: disable=protected-access
+  import pipeline_helpers  # pylint: disable=g-import-not-at-top
+  config = pipeline_helpers.micro_config('savi', tmp_path / 'data')
   config.slot_lstm.train = False
   config.slotformer.residual = False  # the official SlotFormer has none
   savi = config.savi
@@ -547,9 +551,9 @@ def test_converted_workdir_runs_extract_evaluate_render(tmp_path):
     convert_official.write_converted(config, workdir, converted.stage,
                                      converted.params, {'file': 'test'})
   mesh = jax.sharding.Mesh(np.array(jax.devices()), ('data',))
-  stages.extract_slots(config, workdir, mesh)
-  results = evaluate.evaluate(config, workdir, mesh)
-  pictures = visualize.render(config, workdir, mesh)
+  extract.extract_slots(config, workdir, mesh)
+  results = video_prediction.evaluate(config, workdir, mesh)
+  pictures = video_prediction.render(config, workdir, mesh)
   assert results['checkpoints'] == {
       'savi_step': savi.num_train_steps,
       'slotformer_step': config.slotformer.num_train_steps}

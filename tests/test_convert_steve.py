@@ -11,18 +11,19 @@ import pytest
 
 import official_reference as ref
 import official_steve_reference as sref
-from slotformer_jax import convert_official
+from slotformer_jax.official import convert as convert_official
+from slotformer_jax import inference
 from slotformer_jax import models
-from slotformer_jax import steve_inference
-from slotformer_jax import steve_workdir
+from slotformer_jax import stages
+from slotformer_jax.slot_models import steve as steve_slots
 from slotformer_jax import workdir as workdir_lib
-from slotformer_jax.default_config import base_config
+from slotformer_jax.config.defaults import base_config
 from slotformer_jax.modules.dvae import DVAE
 from slotformer_jax.modules.steve import STEVE
 from slotformer_jax.official import families
 from slotformer_jax.official import layers
-from slotformer_jax.official import steve_families
 from slotformer_jax.official.layers import StateDictMapper
+from slotformer_jax.official import common
 
 TOLERANCE = 1e-4
 
@@ -123,7 +124,7 @@ def test_slate_attention_causal_and_cross():
   sd = {f'a.proj_{p}.weight': r.matrix(12, 12) for p in 'qkvo'}
   m = StateDictMapper(sd)
   layers.slate_attention(m, 'a', 't', 'field', num_heads=3)
-  params = families._unflatten(  # pylint: disable=protected-access
+  params = common.unflatten(
       {k[2:]: v.value for k, v in m.params.items()})
   x, context = r.rng.standard_normal((2, 5, 12)), r.rng.standard_normal(
       (2, 4, 12))
@@ -183,7 +184,7 @@ def test_steve_slots_masks_and_token_logits():
   state = official_steve(config, dvae_state)
   converted = families.convert_state_dict(state, config)
   assert converted.family == 'steve' and converted.stage == 'steve'
-  assert steve_families.max_difference(
+  assert common.max_difference(
       converted.extras['dvae'],
       families.convert_state_dict(dvae_state, config).params) == 0
   model = models.build_steve(config)
@@ -219,12 +220,12 @@ def test_steve_slotformer_rollout_and_frozen_copies(states, converted):
   config, _, _, state = states
   dvae, steve, converted = converted
   assert converted.family == 'steve_slotformer'
-  assert converted.stage == families.SLOTFORMER_STAGE
-  assert steve_families.max_difference(converted.extras['steve_decoder'],
+  assert converted.stage == common.SLOTFORMER_STAGE
+  assert common.max_difference(converted.extras['steve_decoder'],
                                        steve.params['decoder']) == 0
-  assert steve_families.max_difference(converted.extras['dvae'],
+  assert common.max_difference(converted.extras['dvae'],
                                        dvae.params) == 0
-  assert steve_families.max_difference(steve.extras['dvae'],
+  assert common.max_difference(steve.extras['dvae'],
                                        dvae.params) == 0
   dyn = config.slotformer
   rng = np.random.default_rng(2)
@@ -351,20 +352,22 @@ def test_writes_where_the_steve_pipeline_reads(states, converted, tmp_path,
       config, workdir, tmp_path, monkeypatch,
       {'slotformer.pth': slotformer_state, 'steve.pth': steve_state,
        'dvae.pth': dvae_state})
-  assert directories == [steve_workdir.dvae_dir(workdir),
-                         steve_workdir.steve_dir(workdir),
+  assert directories == [steve_slots.dvae_dir(workdir),
+                         steve_slots.steve_dir(workdir),
                          workdir_lib.dynamics_dir(workdir)]
   mesh = jax.sharding.Mesh(np.array(jax.devices()), ('data',))
-  for load, expected in zip((steve_inference.load_dvae_params,
-                             steve_inference.load_steve_params,
-                             steve_inference.load_dynamics_params),
-                            converted):
-    params, step = load(config, workdir, mesh)
+  slot_model = steve_slots.Steve(config)
+  loads = (lambda: slot_model.load_dvae(workdir, mesh),
+           lambda: slot_model.load_steve(workdir, mesh),
+           lambda: inference.load_dynamics_params(
+               config, workdir, mesh, 'slotformer', slot_model.slot_shape))
+  for load, expected in zip(loads, converted):
+    params, step = load()
     assert step == 10
-    assert steve_families.max_difference(jax.device_get(params),
-                                         expected.params) == 0
+    assert common.max_difference(jax.device_get(params),
+                                 expected.params) == 0
   # STEVE descends from the dVAE, SlotFormer from STEVE.
-  steve_identity = steve_workdir.check_steve_current(config, workdir, 10)
+  steve_identity = steve_slots.check_steve_current(config, workdir, 10)
   slotformer_identity = workdir_lib.read_identity(
       workdir_lib.dynamics_dir(workdir))
   assert slotformer_identity['parent'] == workdir_lib.slots_parent(
@@ -403,10 +406,9 @@ def test_converted_steve_workdir_runs_extract_evaluate_render(tmp_path,
   -> slot extraction, evaluation (generated frames) and pictures, with no
   training stage run (the embedded data, 16x16, the official architecture
   with the micro widths of the STEVE pipeline test)."""
-  import test_steve_pipeline  # pylint: disable=g-import-not-at-top
-  from slotformer_jax import main as main_lib  # pylint: disable=g-import-not-at-top
+  import pipeline_helpers  # pylint: disable=g-import-not-at-top
   from slotformer_jax.train import sharding  # pylint: disable=g-import-not-at-top
-  config = test_steve_pipeline._micro_config(tmp_path / 'data')  # pylint: disable=protected-access
+  config = pipeline_helpers.micro_config('steve', tmp_path / 'data')
   steve = config.steve
   steve.encoder.strides = (1,) * len(steve.encoder.features)
   steve.encoder.padding = 'pytorch'
@@ -423,11 +425,11 @@ def test_converted_steve_workdir_runs_extract_evaluate_render(tmp_path,
       'slotformer.pth': official_steve_slotformer(config, dvae_state,
                                                   steve_state)})
   mesh = sharding.make_mesh()
-  stages = main_lib.stage_table(config)
-  stages['extract_slots'](config, workdir, mesh)
-  results = stages['evaluate'](config, workdir, mesh)
+  table = stages.stage_table(config)
+  table['extract_slots'](config, workdir, mesh)
+  results = table['evaluate'](config, workdir, mesh)
   assert results['checkpoints']['steve_step'] == steve.num_train_steps
   for method in ('slotformer', 'copy_last', 'steve_reconstruction'):
     assert np.isfinite(results['rollout'][method]['psnr']['mean'])
-  pictures = stages['render'](config, workdir, mesh)
-  assert any(p.endswith('steve_rollout_000.gif') for p in pictures)
+  pictures = table['render'](config, workdir, mesh)
+  assert any(p.endswith('rollout_000.gif') for p in pictures)

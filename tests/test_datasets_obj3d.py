@@ -299,20 +299,22 @@ def test_config_fields_select_conversion_and_channel_order(converted,
 
 def test_obj3d_config_runs_the_pipeline_on_converted_data(converted, tmp_path):
   # Imported here: the other tests need no JAX.
-  from slotformer_jax import stages  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.slot_models import savi as savi_slots  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.stages import dynamics  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.stages import extract  # pylint: disable=g-import-not-at-top
   from slotformer_jax import workdir as workdir_lib  # pylint: disable=g-import-not-at-top
   from slotformer_jax.train import sharding  # pylint: disable=g-import-not-at-top
   _, data_dir = converted
   config = tiny_obj3d_config(data_dir)
   workdir = str(tmp_path / 'run')
   mesh = sharding.make_mesh()
-  stages.train_savi(config, workdir, mesh)
-  stages.extract_slots(config, workdir, mesh)
+  savi_slots.train_savi(config, workdir, mesh)
+  extract.extract_slots(config, workdir, mesh)
   for split, count in (('train', 4), ('val', 2), ('test', 1)):
     source = workdir_lib.slot_source_for(config, workdir, split, ('video',))
     assert len(source) == count
     item = source[0]
     assert item['slots'].shape == (KEEP, 3, 16)
     assert item['video'].shape == (KEEP, RES, RES, 3)
-  stages.train_slotformer(config, workdir, mesh)
+  dynamics.train_slotformer(config, workdir, mesh)
   assert os.listdir(os.path.join(workdir, 'slotformer', 'checkpoints'))

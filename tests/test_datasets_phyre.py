@@ -1,4 +1,4 @@
-"""PHYRE: rollouts rendered by scripts/render_phyre.py -> convert -> read back.
+"""PHYRE: rollouts rendered by tools/render_phyre.py -> convert -> read back.
 
 ``phyre`` cannot be installed here, so the render script runs against a
 small stand-in module with the same functions (folds, the 100k-action cache,
@@ -90,7 +90,7 @@ FAKE_PHYRE = textwrap.dedent('''
 
 def load_render_script():
   spec = importlib.util.spec_from_file_location(
-      'render_phyre', REPO / 'scripts' / 'render_phyre.py')
+      'render_phyre', REPO / 'tools' / 'render_phyre.py')
   module = importlib.util.module_from_spec(spec)
   spec.loader.exec_module(module)
   return module
@@ -280,7 +280,7 @@ def test_missing_parts_name_the_layout(tmp_path, capsys):
   assert prepare.main(convert_args(root, tmp_path / 'data')) == 1
   err = capsys.readouterr().err
   assert 'val/rollouts.jsonl not found' in err
-  assert 'scripts/render_phyre.py' in err
+  assert 'tools/render_phyre.py' in err
   (root / phyre.META_FILE).unlink()
   with pytest.raises(FileNotFoundError, match='meta.json not found'):
     phyre.discover(root, 'train', phyre.Options())

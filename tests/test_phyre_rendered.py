@@ -1,6 +1,6 @@
 """Planning on the real, pre-rendered PHYRE layout (tasks/phyre_rendered.py).
 
-A tiny source in the layout scripts/render_phyre.py writes (meta.json,
+A tiny source in the layout tools/render_phyre.py writes (meta.json,
 rollouts.jsonl, vertically stacked PNG frames), converted by the real
 converter; the slow test runs every stage of configs/phyre.py:planning on it.
 """
@@ -17,7 +17,6 @@ import pytest
 import dataset_fixtures as fx
 from configs import phyre as phyre_config
 from slotformer_jax import stages
-from slotformer_jax import tasks
 from slotformer_jax.data.convert import phyre
 from slotformer_jax.data.convert import prepare
 from slotformer_jax.errors import ConfigError
@@ -25,6 +24,10 @@ from slotformer_jax.errors import MissingInputError
 from slotformer_jax.tasks import phyre_rendered
 from slotformer_jax.tasks import planning
 from slotformer_jax.train import sharding
+from slotformer_jax.slot_models import savi as savi_slots
+from slotformer_jax.stages import extract
+from slotformer_jax.stages import planning_rendered
+from slotformer_jax.stages import dynamics
 
 SCENE = 16
 FRAMES = 4
@@ -156,7 +159,7 @@ def test_official_candidates_name_the_missing_package():
 def test_missing_slots_name_the_stage(converted, tmp_path):
   config = micro_config(converted)
   with pytest.raises(MissingInputError, match='--mode=extract_slots'):
-    phyre_rendered.load_rendered(config, str(tmp_path), 'val')
+    planning_rendered.load_rendered(config, str(tmp_path), 'val')
 
 
 @pytest.mark.slow
@@ -164,10 +167,10 @@ def test_planning_stages_on_the_rendered_layout(converted, tmp_path):
   config = micro_config(converted)
   workdir = str(tmp_path / 'run')
   mesh = sharding.make_mesh()
-  stages.train_savi(config, workdir, mesh)
-  stages.extract_slots(config, workdir, mesh)
-  stages.train_slotformer(config, workdir, mesh)
-  run = tasks.stages_for(config.task)
+  savi_slots.train_savi(config, workdir, mesh)
+  extract.extract_slots(config, workdir, mesh)
+  dynamics.train_slotformer(config, workdir, mesh)
+  run = stages.stage_table(config)
   run['train_readout'](config, workdir, mesh)
   selection = json.load(open(os.path.join(
       workdir, 'planning', 'rollout', 'seed_0', 'selection.json')))

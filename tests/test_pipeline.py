@@ -354,3 +354,46 @@ def test_clevrer_evaluation_clips_skip_entering_objects():
     evaluate.clevrer_clips(
         [{'in_view': calm, 'has_annotations': np.bool_(False)}], 1, burn_in,
         rollout, stride)
+
+
+def test_host_batches_give_every_host_the_same_number_of_batches():
+  plans = [list(pipeline.host_batches(3, 2, p, 5)) for p in range(5)]
+  assert {len(plan) for plan in plans} == {1}
+  seen = sorted(int(i) for plan in plans for indices, valid in plan
+                for i in indices[valid])
+  assert seen == [0, 1, 2]
+  # Hosts 3 and 4 have no item at all: padded with item 0, none valid.
+  for p in (3, 4):
+    (indices, valid), = plans[p]
+    assert indices.tolist() == [0, 0] and not valid.any()
+
+
+def test_encoding_videos_on_a_host_without_any(monkeypatch):
+  """More processes than videos: the host without a video still runs the
+  same batches and chunks (for the collectives) and yields nothing."""
+  import jax  # pylint: disable=g-import-not-at-top
+  import jax.numpy as jnp  # pylint: disable=g-import-not-at-top
+  from jax.experimental import multihost_utils  # pylint: disable=g-import-not-at-top
+  from slotformer_jax import inference  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.train import sharding  # pylint: disable=g-import-not-at-top
+  source = [{'video': np.full((5, 2, 2, 3), 7, np.uint8)}]
+  mesh = jax.sharding.Mesh(np.array(jax.devices()[:1]), ('data',))
+  calls = []
+
+  def encode(batch_index, chunk, frames, carry):
+    calls.append((batch_index, chunk, frames.shape))
+    return jnp.asarray(frames, jnp.float32)[..., 0], carry
+
+  # Process 1 of 2 (the one video belongs to process 0); the collectives of
+  # a real 2-process run are stood in for by this process's own arrays.
+  monkeypatch.setattr(jax, 'process_index', lambda: 1)
+  monkeypatch.setattr(jax, 'process_count', lambda: 2)
+  monkeypatch.setattr(multihost_utils, 'process_allgather',
+                      lambda tree, tiled=False: jax.tree.map(np.asarray, tree))
+  monkeypatch.setattr(sharding, 'to_global_batch',
+                      lambda batch, mesh: batch)
+  out = list(inference.encode_videos(source, encode, chunk_length=2,
+                                     batch_size=1, mesh=mesh, desc='test'))
+  assert out == []
+  assert calls == [(0, 0, (1, 2, 2, 2, 3)), (0, 1, (1, 2, 2, 2, 3)),
+                   (0, 2, (1, 2, 2, 2, 3))]

@@ -30,30 +30,32 @@ import ml_collections
 import numpy as np
 import pytest
 
-from slotformer_jax import config_checks
+from slotformer_jax.config import checks as config_checks
 from slotformer_jax import files
 from slotformer_jax import inference
-from slotformer_jax import stages
 from slotformer_jax import workdir as workdir_lib
 from slotformer_jax.data import integrity
 from slotformer_jax.data import sources
 from slotformer_jax.data.slots import SlotSource
 from slotformer_jax.errors import UserError
-from slotformer_jax.evaluation import evaluate
 from slotformer_jax.lock import FileLock
 from slotformer_jax.train import checkpoint as checkpoint_lib
 from slotformer_jax.train import sharding
 from slotformer_jax.train.trainer import Diverged
 from slotformer_jax.train.trainer import Stage
 from slotformer_jax.train.trainer import fit
+from slotformer_jax.slot_models import savi as savi_slots
+from slotformer_jax.stages import extract
+from slotformer_jax.stages import dynamics
+from slotformer_jax.stages import video_prediction
 
-import test_end_to_end
+import pipeline_helpers
 
 ROOT = os.path.join(os.path.dirname(__file__), '..')
 
 
 def _config(data_dir):
-  config = test_end_to_end._micro_config(data_dir)
+  config = pipeline_helpers.micro_config('savi', data_dir)
   config.slot_lstm.train = False
   config.evaluation.metrics = ('psnr', 'ari')
   config.evaluation.savi_metrics = False
@@ -79,9 +81,9 @@ def trained(tmp_path_factory):
   config = _config(base / 'data')
   workdir = str(base / 'run')
   mesh = sharding.make_mesh()
-  stages.train_savi(config, workdir, mesh)
-  stages.extract_slots(config, workdir, mesh)
-  stages.train_slotformer(config, workdir, mesh)
+  savi_slots.train_savi(config, workdir, mesh)
+  extract.extract_slots(config, workdir, mesh)
+  dynamics.train_slotformer(config, workdir, mesh)
   return config, workdir
 
 
@@ -107,12 +109,12 @@ def test_foreign_stage1_with_other_settings_is_refused_untouched(
   config.savi.num_train_steps = 6  # OTHER was trained for 4
   mesh = sharding.make_mesh()
   workdir = str(tmp_path / 'ablation')
-  for stage in (stages.train_savi, stages.extract_slots):
+  for stage in (savi_slots.train_savi, extract.extract_slots):
     with pytest.raises(UserError, match='num_train_steps: 4 -> 6'):
       stage(config, workdir, mesh)
   # main checks this before any data is generated.
   with pytest.raises(UserError, match='num_train_steps'):
-    workdir_lib.savi_identity(config, workdir)
+    savi_slots.Savi(config).check_identity(workdir)
   assert _snapshot(other) == before
 
 
@@ -125,9 +127,9 @@ def test_foreign_stage1_is_used_without_writing_there(trained, tmp_path):
   config.slotformer.num_train_steps = 2
   workdir = str(tmp_path / 'ablation')
   mesh = sharding.make_mesh()
-  stages.train_savi(config, workdir, mesh)  # checks, trains nothing
-  stages.extract_slots(config, workdir, mesh)
-  stages.train_slotformer(config, workdir, mesh)
+  savi_slots.train_savi(config, workdir, mesh)  # checks, trains nothing
+  extract.extract_slots(config, workdir, mesh)
+  dynamics.train_slotformer(config, workdir, mesh)
   assert _snapshot(other) == before
   assert not os.path.exists(os.path.join(workdir, 'savi'))
   assert os.listdir(os.path.join(workdir, 'slotformer', 'checkpoints'))
@@ -147,16 +149,16 @@ def test_slots_and_dynamics_of_another_savi_are_refused(copied):
   identity = workdir_lib.read_identity(savi)
   workdir_lib.write_identity(savi, dict(identity, run_id='retrained'))
   with pytest.raises(UserError, match='stale'):
-    stages.train_slotformer(config, workdir, mesh)
+    dynamics.train_slotformer(config, workdir, mesh)
   with pytest.raises(UserError, match='stale'):
-    evaluate.evaluate(config, workdir, mesh)
+    video_prediction.evaluate(config, workdir, mesh)
   # Fresh slots of the new SAVi, but the SlotFormer of the old one.
   meta_path = os.path.join(workdir_lib.slots_dir(workdir, 'test'), 'meta.json')
   meta = files.read_json(meta_path)
   meta['parent']['savi_run_id'] = 'retrained'
   files.write_json_atomic(meta_path, meta)
   with pytest.raises(UserError, match='would mix'):
-    evaluate.evaluate(config, workdir, mesh)
+    video_prediction.evaluate(config, workdir, mesh)
 
 
 @pytest.mark.slow  # retrains SAVi and SlotFormer (~60 s on 2 busy cores)
@@ -168,22 +170,22 @@ def test_retrained_savi_rebuilds_slots_and_refuses_stale_dynamics(copied):
   # Retrain SAVi to the same step count (another learning rate).
   shutil.rmtree(os.path.join(workdir, 'savi'))
   config.savi.learning_rate = 5e-4
-  stages.train_savi(config, workdir, mesh)
+  savi_slots.train_savi(config, workdir, mesh)
   _, step = inference.load_savi_params(config, workdir, mesh)
   assert step == 4
   # The slots of the old SAVi are not used for anything.
   with pytest.raises(UserError, match='stale'):
-    stages.train_slotformer(config, workdir, mesh)
-  stages.extract_slots(config, workdir, mesh)  # re-extracts: new parent
+    dynamics.train_slotformer(config, workdir, mesh)
+  extract.extract_slots(config, workdir, mesh)  # re-extracts: new parent
   new_parent = workdir_lib.read_meta(
       workdir_lib.slots_dir(workdir, 'train'))['parent']
   assert new_parent != old_parent and new_parent['savi_step'] == 4
   # SlotFormer trained on the old slots must not be evaluated with them.
   with pytest.raises(UserError, match='would mix'):
-    evaluate.evaluate(config, workdir, mesh)
-  stages.train_slotformer(config, workdir, mesh)  # set aside and retrained
+    video_prediction.evaluate(config, workdir, mesh)
+  dynamics.train_slotformer(config, workdir, mesh)  # set aside and retrained
   assert any('.stale-' in name for name in os.listdir(workdir))
-  results = evaluate.evaluate(config, workdir, mesh)
+  results = video_prediction.evaluate(config, workdir, mesh)
   assert results['identity']['slotformer']['parent'] == new_parent
   saved = files.read_json(os.path.join(workdir, 'eval', 'metrics.json'))
   assert saved['identity']['savi']['run_id'] == new_parent['savi_run_id']
@@ -250,8 +252,8 @@ def test_a_stage_made_with_other_settings_is_set_aside(copied):
   config.seed = 1  # accepted with --allow_config_change
   savi = os.path.join(workdir, 'savi')
   old = workdir_lib.read_identity(savi)
-  identity = stages._start_stage(
-      savi, workdir_lib.savi_identity_fields(config), None, 'SAVi')
+  identity = workdir_lib.start_stage(
+      savi, savi_slots.identity_fields(config), None, 'SAVi')
   assert identity['run_id'] != old['run_id']
   assert os.path.isdir(f'{savi}.stale-{old["run_id"]}')
   assert not os.path.exists(os.path.join(savi, 'checkpoints'))
@@ -263,7 +265,7 @@ def test_a_stage_made_with_other_settings_is_set_aside(copied):
 
 
 def test_shipped_config_fails_before_work_on_four_devices():
-  config = test_end_to_end.load_config('synthetic')
+  config = pipeline_helpers.load_config('synthetic')
   with pytest.raises(UserError, match='evaluation.batch_size=50'):
     config_checks.validate(config, ('train_savi', 'evaluate'),
                            num_devices=4)
@@ -386,7 +388,9 @@ def test_damaged_newest_checkpoint_falls_back_with_a_warning(copied, caplog):
       with open(path, 'r+b') as f:
         f.truncate(os.path.getsize(path) // 3)
   with caplog.at_level(logging.WARNING):
-    _, step = inference.load_dynamics_params(config, workdir, mesh)
+    _, step = inference.load_dynamics_params(
+        config, workdir, mesh, 'slotformer',
+        (config.savi.num_slots, config.savi.slot_size))
   assert step == 2
   assert 'newest intact checkpoint, step 2' in caplog.text
 
@@ -538,7 +542,7 @@ def test_every_unset_field_can_be_set_on_the_command_line(name, monkeypatch):
   from ml_collections import config_flags
   samples = {str: '/tmp/x', int: '3', float: '0.5', bool: 'true'}
   fields, overrides = [], []
-  for field, parent, key in _none_fields(test_end_to_end.load_config(name)):
+  for field, parent, key in _none_fields(pipeline_helpers.load_config(name)):
     reference = parent._fields[key]  # pylint: disable=protected-access
     assert isinstance(reference, ml_collections.FieldReference), (
         f'configs/{name}.py: {field} is a plain None; use '

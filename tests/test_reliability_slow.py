@@ -22,14 +22,14 @@ from slotformer_jax import inference
 from slotformer_jax.train import sharding
 from slotformer_jax.train.checkpoint import Checkpointer
 
-import test_end_to_end
+import pipeline_helpers
 
 ROOT = os.path.abspath(os.path.join(os.path.dirname(__file__), '..'))
 SYNTHETIC = os.path.join(ROOT, 'configs', 'synthetic.py') + ':tiny'
 
 pytestmark = pytest.mark.slow
 
-# test_end_to_end's micro config, as command-line overrides.
+# pipeline_helpers' SAVi micro config, as command-line overrides.
 MICRO = [
     '--config.data.resolution=(16,16)', '--config.data.num_frames=8',
     '--config.data.num_train=8', '--config.data.num_val=4',
@@ -55,7 +55,7 @@ def _command(workdir):
 
 
 def _micro_config(data_dir):
-  config = test_end_to_end._micro_config(data_dir)
+  config = pipeline_helpers.micro_config('savi', data_dir)
   config.savi.num_train_steps = 30
   return config
 

@@ -3,8 +3,8 @@
 The chain dVAE -> tokens -> STEVE -> slots -> SlotFormer -> evaluation is
 checked link by link: each test builds a consistent chain, then breaks one
 link (as retraining that stage would) and expects the stage below it to be
-refused. The slow `test_steve_pipeline` checks the same chain as the real
-stages write it.
+refused. `test_pipeline_end_to_end` checks the same chain as the real stages
+write it.
 """
 
 import os
@@ -12,14 +12,14 @@ import os
 import pytest
 
 from slotformer_jax import models
-from slotformer_jax import steve_workdir
+from slotformer_jax.slot_models import steve as steve_slots
 from slotformer_jax import workdir as workdir_lib
 from slotformer_jax.data import tokens as tokens_lib
 from slotformer_jax.data.slots import SlotWriter
 from slotformer_jax.errors import ConfigError
 from slotformer_jax.errors import MissingInputError
 from slotformer_jax.errors import UserError
-from test_end_to_end import load_config
+from pipeline_helpers import load_config
 
 DVAE_STEP, STEVE_STEP = 4, 6
 
@@ -32,14 +32,14 @@ def _stamp(directory, fields, parent):
 
 def _chain(config, workdir):
   """A consistent dVAE -> tokens -> STEVE -> slots -> SlotFormer chain."""
-  dvae = _stamp(steve_workdir.dvae_dir(workdir),
-                steve_workdir.dvae_identity_fields(config), None)
-  dvae_parent = steve_workdir.dvae_parent(dvae, DVAE_STEP)
-  writer = tokens_lib.TokenWriter(steve_workdir.tokens_dir(workdir, 'train'),
+  dvae = _stamp(steve_slots.dvae_dir(workdir),
+                steve_slots.dvae_identity_fields(config), None)
+  dvae_parent = steve_slots.dvae_parent(dvae, DVAE_STEP)
+  writer = tokens_lib.TokenWriter(steve_slots.tokens_dir(workdir, 'train'),
                                   0, 4, DVAE_STEP, parent=dvae_parent)
   writer.close()
-  steve = _stamp(steve_workdir.steve_dir(workdir),
-                 steve_workdir.steve_identity_fields(config), dvae_parent)
+  steve = _stamp(steve_slots.steve_dir(workdir),
+                 steve_slots.steve_identity_fields(config), dvae_parent)
   slots_parent = workdir_lib.slots_parent(steve, STEVE_STEP, 'steve')
   for split in ('train', config.evaluation.split):
     SlotWriter(workdir_lib.slots_dir(workdir, split), 0, 2, 3, STEVE_STEP,
@@ -52,9 +52,12 @@ def _chain(config, workdir):
 
 
 def _evaluation_identity(config, workdir):
-  return steve_workdir.evaluation_identity(
-      config, workdir, config.evaluation.split, DVAE_STEP, STEVE_STEP,
-      {models.SLOTFORMER: 3})
+  slot_model = steve_slots.Steve(config)
+  stage1, slots_parent = slot_model.chain(
+      workdir, {'dvae': DVAE_STEP, 'steve': STEVE_STEP})
+  return workdir_lib.evaluation_identity(
+      config, workdir, config.evaluation.split, stage1, slots_parent,
+      slot_model.label, {models.SLOTFORMER: 3})
 
 
 @pytest.fixture
@@ -66,7 +69,7 @@ def chain(tmp_path):
 
 def test_consistent_chain_is_accepted_and_recorded(chain):
   config, workdir, dvae_parent, slots_parent = chain
-  steve_workdir.check_tokens_current(config, workdir, 'train', dvae_parent)
+  steve_slots.check_tokens_current(config, workdir, 'train', dvae_parent)
   identity = _evaluation_identity(config, workdir)
   assert identity['steve']['parent'] == dvae_parent
   assert identity['slots'] == slots_parent
@@ -76,11 +79,11 @@ def test_consistent_chain_is_accepted_and_recorded(chain):
 
 def test_retrained_dvae_makes_tokens_and_steve_stale(chain):
   config, workdir, _, _ = chain
-  new = _stamp(steve_workdir.dvae_dir(workdir),
-               steve_workdir.dvae_identity_fields(config), None)
-  parent = steve_workdir.dvae_parent(new, DVAE_STEP)
+  new = _stamp(steve_slots.dvae_dir(workdir),
+               steve_slots.dvae_identity_fields(config), None)
+  parent = steve_slots.dvae_parent(new, DVAE_STEP)
   with pytest.raises(UserError, match='tokens .* are stale'):
-    steve_workdir.check_tokens_current(config, workdir, 'train', parent)
+    steve_slots.check_tokens_current(config, workdir, 'train', parent)
   with pytest.raises(UserError, match='STEVE .* was trained with dVAE'):
     _evaluation_identity(config, workdir)
 
@@ -88,13 +91,13 @@ def test_retrained_dvae_makes_tokens_and_steve_stale(chain):
 def test_another_dvae_step_makes_steve_stale(chain):
   config, workdir, _, _ = chain
   with pytest.raises(UserError, match='trained with dVAE'):
-    steve_workdir.check_steve_current(config, workdir, DVAE_STEP + 1)
+    steve_slots.check_steve_current(config, workdir, DVAE_STEP + 1)
 
 
 def test_retrained_steve_makes_slots_stale(chain):
   config, workdir, dvae_parent, _ = chain
-  _stamp(steve_workdir.steve_dir(workdir),
-         steve_workdir.steve_identity_fields(config), dvae_parent)
+  _stamp(steve_slots.steve_dir(workdir),
+         steve_slots.steve_identity_fields(config), dvae_parent)
   with pytest.raises(UserError, match='made by STEVE'):
     _evaluation_identity(config, workdir)
 
@@ -118,16 +121,16 @@ def test_steve_settings_changed_are_refused(chain):
 def test_missing_stages_name_the_command(tmp_path):
   config = load_config('synthetic', 'steve_tiny')
   with pytest.raises(MissingInputError, match='--mode=train_dvae'):
-    steve_workdir.dvae_identity(config, str(tmp_path))
+    steve_slots.dvae_identity(config, str(tmp_path))
   with pytest.raises(MissingInputError, match='--mode=tokenize_frames'):
-    steve_workdir.check_tokens_current(config, str(tmp_path), 'train', {})
+    steve_slots.check_tokens_current(config, str(tmp_path), 'train', {})
 
 
 def test_steve_stage_set_aside_when_its_dvae_changes(chain):
   config, workdir, dvae_parent, _ = chain
-  directory = steve_workdir.steve_dir(workdir)
+  directory = steve_slots.steve_dir(workdir)
   old = workdir_lib.read_identity(directory)
-  fields = steve_workdir.steve_identity_fields(config)
+  fields = steve_slots.steve_identity_fields(config)
   assert workdir_lib.start_stage(directory, fields, dvae_parent,
                                  'STEVE') == old
   other = dict(dvae_parent, dvae_step=DVAE_STEP + 1)
@@ -138,7 +141,7 @@ def test_steve_stage_set_aside_when_its_dvae_changes(chain):
 
 def test_other_compute_dtype_is_refused_not_ignored():
   config = load_config('synthetic', 'steve_tiny')
-  steve_workdir.check_float32(config)
+  steve_slots.Steve(config).check_compute_dtype()
   config.compute_dtype = 'bfloat16'
   with pytest.raises(ConfigError, match='not implemented'):
-    steve_workdir.check_float32(config)
+    steve_slots.Steve(config).check_compute_dtype()

@@ -6,7 +6,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from slotformer_jax import steve_inference
+from slotformer_jax.slot_models import steve as steve_slots
 from slotformer_jax.modules.dvae import DVAE
 from slotformer_jax.modules.dvae import pixel_shuffle
 from slotformer_jax.modules.steve import STEVE
@@ -57,9 +57,9 @@ def test_dvae_shapes():
   np.testing.assert_array_equal(tokens, jnp.argmax(log_probs, -1))
   frames = jnp.asarray(np.random.default_rng(0).integers(
       0, 256, (2, 3, 16, 16, 3), dtype=np.uint8))
-  flat = steve_inference.tokenize(variables['params'], frames, dvae=dvae)
+  flat = steve_slots.tokenize(variables['params'], frames, dvae=dvae)
   assert flat.shape == (2, 3, 16)
-  decoded = steve_inference.decode_tokens(variables['params'], flat,
+  decoded = steve_slots.decode_tokens(variables['params'], flat,
                                           dvae=dvae, token_grid=(4, 4))
   assert decoded.shape == (2, 3, 16, 16, 3)
 
@@ -79,11 +79,11 @@ def test_decoder_is_causal():
 
 def test_kv_cache_generation_equals_recomputation():
   decoder, params, slots, _ = _decoder_setup()
-  generate = jax.jit(functools.partial(steve_inference.generate_tokens,
+  generate = jax.jit(functools.partial(steve_slots.generate_tokens,
                                        decoder=decoder))
   tokens, weights = generate(params, slots)
   reference = jax.jit(functools.partial(
-      steve_inference.generate_tokens_recomputed, decoder=decoder))(
+      steve_slots.generate_tokens_recomputed, decoder=decoder))(
           params, slots)
   np.testing.assert_array_equal(tokens, reference)
   assert len(np.unique(np.asarray(tokens))) > 2  # not a degenerate sequence

@@ -17,7 +17,8 @@ from slotformer_jax.modules.steve import STEVE
 from slotformer_jax.train import optim
 from slotformer_jax.train import sharding
 from slotformer_jax.train import steps
-from slotformer_jax.train import steve_steps
+from slotformer_jax import losses
+from slotformer_jax.slot_models import steve as steve_slots
 from slotformer_jax.train.state import TrainState
 from slotformer_jax.train.trainer import Stage
 from slotformer_jax.train.trainer import fit
@@ -51,7 +52,7 @@ def _tokens(batch, time, seed=0):
 
 def test_gumbel_temperature_schedule():
   num_steps = 1000  # annealed over the first 150 steps
-  temperature = lambda step: steve_steps.gumbel_temperature(step, num_steps)
+  temperature = lambda step: steve_slots.gumbel_temperature(step, num_steps)
   assert temperature(0) == pytest.approx(1.0)
   assert temperature(75) == pytest.approx(0.55)  # half-way down the cosine
   assert temperature(150) == pytest.approx(0.1)
@@ -61,7 +62,7 @@ def test_gumbel_temperature_schedule():
   # Cosine, not linear: slow at both ends.
   assert 1.0 - temperature(15) < 0.55 - temperature(90)
   # The batches carry their own step's temperature, also when resumed.
-  stream = steve_steps.with_gumbel_temperature(
+  stream = steve_slots.with_gumbel_temperature(
       iter([{'video': np.zeros((2, 1))}] * 3), 74, num_steps)
   got = [float(b['gumbel_temperature'][0]) for b in stream]
   np.testing.assert_allclose(got, [temperature(74), temperature(75),
@@ -108,12 +109,12 @@ def _dvae_stage(directory, num_steps, source, interrupt_after=None):
   def batches(start_step):
     frames = pipeline.train_batches(source, batch_size=4, clip_length=1,
                                     seed=0, start_step=start_step, prefetch=0)
-    return _interruptible(steve_steps.with_gumbel_temperature(
+    return _interruptible(steve_slots.with_gumbel_temperature(
         frames, start_step, num_steps), interrupt_after)
 
   return Stage(
       name='dvae', directory=str(directory), config=_stage_config(num_steps),
-      loss_fn=functools.partial(steve_steps.dvae_loss, model=model),
+      loss_fn=functools.partial(losses.dvae_loss, model=model),
       init_params=lambda rng: steps.init_params(
           model, rng, jnp.zeros((1, *RESOLUTION, 3)), 1.0),
       batches=batches)
@@ -130,7 +131,7 @@ def _steve_stage(directory, num_steps, source, interrupt_after=None):
 
   return Stage(
       name='steve', directory=str(directory), config=config,
-      loss_fn=functools.partial(steve_steps.steve_loss, model=model),
+      loss_fn=functools.partial(losses.steve_loss, model=model),
       init_params=lambda rng: steps.init_params(
           model, rng, jnp.zeros((1, 2, *RESOLUTION, 3)),
           jnp.zeros((1, 2, 16), jnp.int32)),
@@ -173,7 +174,7 @@ def _setup(name):
     model = _dvae()
     params = steps.init_params(model, jax.random.key(0),
                                jnp.zeros((1, *RESOLUTION, 3)), 1.0)
-    loss_fn = functools.partial(steve_steps.dvae_loss, model=model)
+    loss_fn = functools.partial(losses.dvae_loss, model=model)
     batch = {'video': _video(4, 1),
              'gumbel_temperature': np.full(4, 0.5, np.float32)}
   else:
@@ -181,7 +182,7 @@ def _setup(name):
     params = steps.init_params(model, jax.random.key(0),
                                jnp.zeros((1, 2, *RESOLUTION, 3)),
                                jnp.zeros((1, 2, 16), jnp.int32))
-    loss_fn = functools.partial(steve_steps.steve_loss, model=model)
+    loss_fn = functools.partial(losses.steve_loss, model=model)
     batch = {'video': _video(4, 2), 'tokens': _tokens(4, 2)}
   return params, loss_fn, batch
 

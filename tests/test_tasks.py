@@ -9,6 +9,7 @@ import pytest
 from configs import synthetic_contact
 from configs import synthetic_phyre
 from slotformer_jax.data.convert import phyre_like
+from slotformer_jax.stages import contact as contact_stages
 from slotformer_jax.tasks import contact
 from slotformer_jax.tasks import phyre_planning
 from slotformer_jax.workdir import flat_differences
@@ -41,7 +42,7 @@ def test_condition_features():
 def test_contact_stage_names_the_missing_stage(tmp_path):
   config = synthetic_contact.get_config('tiny')
   with pytest.raises(FileNotFoundError, match='extract_slots'):
-    contact.load_split(config, str(tmp_path), 'readout_train')
+    contact_stages.load_split(config, str(tmp_path), 'readout_train')
 
 
 def test_planning_task_splits_are_disjoint_and_within_template():

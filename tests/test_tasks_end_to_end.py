@@ -10,8 +10,10 @@ import pytest
 from configs import synthetic_contact
 from configs import synthetic_phyre
 from slotformer_jax import stages
-from slotformer_jax import tasks
 from slotformer_jax.train import sharding
+from slotformer_jax.slot_models import savi as savi_slots
+from slotformer_jax.stages import extract
+from slotformer_jax.stages import dynamics
 
 
 def _micro_models(config):
@@ -27,10 +29,10 @@ def _micro_models(config):
 
 def _run(config, workdir, stage_names):
   mesh = sharding.make_mesh()
-  stages.train_savi(config, workdir, mesh)
-  stages.extract_slots(config, workdir, mesh)
-  stages.train_slotformer(config, workdir, mesh)
-  run = tasks.stages_for(config.task)
+  savi_slots.train_savi(config, workdir, mesh)
+  extract.extract_slots(config, workdir, mesh)
+  dynamics.train_slotformer(config, workdir, mesh)
+  run = stages.stage_table(config)
   return [run[name](config, workdir, mesh) for name in stage_names]
 
 

@@ -1,4 +1,4 @@
-"""benchmarks/vqa_pair_probe.py: slot of each object, features per input."""
+"""experiments/vqa_pair_probe.py: slot of each object, features per input."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import numpy as np
 def _probe():
   spec = importlib.util.spec_from_file_location(
       'vqa_pair_probe', os.path.join(os.path.dirname(__file__), '..',
-                                     'benchmarks', 'vqa_pair_probe.py'))
+                                     'experiments', 'vqa_pair_probe.py'))
   module = importlib.util.module_from_spec(spec)
   spec.loader.exec_module(module)
   return module

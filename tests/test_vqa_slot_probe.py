@@ -1,4 +1,4 @@
-"""benchmarks/vqa_slot_probe.py: slot -> object assignment and the probes."""
+"""experiments/vqa_slot_probe.py: slot -> object assignment and the probes."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import numpy as np
 def _probe():
   spec = importlib.util.spec_from_file_location(
       'vqa_slot_probe', os.path.join(os.path.dirname(__file__), '..',
-                                     'benchmarks', 'vqa_slot_probe.py'))
+                                     'experiments', 'vqa_slot_probe.py'))
   module = importlib.util.module_from_spec(spec)
   spec.loader.exec_module(module)
   return module

@@ -16,7 +16,7 @@ from slotformer_jax.train import sharding
 @pytest.mark.slow
 def test_train_and_evaluate_vqa_on_random_slots(tmp_path, monkeypatch):
   import importlib.util  # pylint: disable=g-import-not-at-top
-  from slotformer_jax import vqa_stages  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.stages import vqa as vqa_stages  # pylint: disable=g-import-not-at-top
   spec = importlib.util.spec_from_file_location(
       'synthetic_vqa', os.path.join(os.path.dirname(__file__), '..',
                                     'configs', 'synthetic_vqa.py'))
@@ -112,7 +112,7 @@ def test_big_variant_changes_only_data_size_and_schedules():
 def test_future_inputs_read_the_extracted_slots_of_the_real_future(tmp_path):
   # vqa.inputs='future' (the ground-truth-future ceiling) reads SAVi's slots
   # of the frames after the video from the extraction, not the rollout file.
-  from slotformer_jax import vqa_stages  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.stages import vqa as vqa_stages  # pylint: disable=g-import-not-at-top
   from slotformer_jax import workdir as workdir_lib  # pylint: disable=g-import-not-at-top
   from slotformer_jax.data.slots import SlotWriter  # pylint: disable=g-import-not-at-top
   config = _synthetic_vqa_config()
@@ -145,3 +145,15 @@ def test_deflect_variant_changes_only_the_predictive_design():
   from slotformer_jax.data import clevrer_like  # pylint: disable=g-import-not-at-top
   assert clevrer_like.config_from_data_config(
       _synthetic_vqa_config('deflect').data).predictive_design == 'deflected'
+
+
+def test_missing_vqa_inputs_are_one_line_errors(tmp_path):
+  from slotformer_jax.errors import UserError  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.stages import vqa as vqa_stages  # pylint: disable=g-import-not-at-top
+  from pipeline_helpers import load_config  # pylint: disable=g-import-not-at-top
+  config = load_config('clevrer_vqa')
+  config.vqa.questions_root = str(tmp_path / 'clevrer')
+  with pytest.raises(UserError, match='questions/train.json not found'):
+    vqa_stages.encoded_questions(config, 'train', None)
+  with pytest.raises(UserError, match='--mode=vqa_slots'):
+    vqa_stages.question_batches(config, str(tmp_path / 'run'), 'train', [])

@@ -1,4 +1,4 @@
-"""benchmarks/vqa_state_aloe.py: state slots, option objects and masking by hand."""
+"""experiments/vqa_state_aloe.py: state slots, option objects and masking by hand."""
 
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ from slotformer_jax.data.convert.synthetic import COLORS, SHAPES
 def _bench():
   spec = importlib.util.spec_from_file_location(
       'vqa_state_aloe', os.path.join(os.path.dirname(__file__), '..',
-                                     'benchmarks', 'vqa_state_aloe.py'))
+                                     'experiments', 'vqa_state_aloe.py'))
   module = importlib.util.module_from_spec(spec)
   spec.loader.exec_module(module)
   return module

@@ -1,4 +1,4 @@
-"""benchmarks/vqa_state_probe.py: the state features by hand."""
+"""experiments/vqa_state_probe.py: the state features by hand."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import numpy as np
 def _probe():
   spec = importlib.util.spec_from_file_location(
       'vqa_state_probe', os.path.join(os.path.dirname(__file__), '..',
-                                      'benchmarks', 'vqa_state_probe.py'))
+                                      'experiments', 'vqa_state_probe.py'))
   module = importlib.util.module_from_spec(spec)
   spec.loader.exec_module(module)
   return module

@@ -47,11 +47,16 @@ from typing import Any
 import numpy as np
 import pybullet
 
+from slotformer_jax.data import questions as question_generator
+from slotformer_jax.data import vqa
 from slotformer_jax.data.convert import synthetic
+from slotformer_jax.data.events import NUM_GAP_BINS
+from slotformer_jax.data.events import Collision
+from slotformer_jax.data.events import EventLog
 from slotformer_jax.data.convert.synthetic import COLORS, SHAPES, SIZES
 
 # The videos and event logs (the questions have their own version,
-# questions.VERSION). 2: future_collision_fraction.
+# questions.VERSION; the event-log types are in events.py). 2: future_collision_fraction.
 GENERATOR_VERSION = 2
 SPLITS = synthetic.SPLITS
 SUBSTEPS_PER_FRAME = synthetic.SUBSTEPS_PER_FRAME
@@ -84,7 +89,7 @@ VIEW_MARGIN = 0.05
 MAX_SCENE_TRIES = 30
 # predictive_design: 'direct', the scenes above (most future collisions are
 # objects already heading at each other: extrapolating the observed end
-# answers ~85% of the predictive options, benchmarks/
+# answers ~85% of the predictive options, experiments/
 # vqa_state_extrapolation.py); 'deflected', bank-shot scenes (below) drawn
 # until the future has an event that extrapolation gets wrong, and every
 # pair in view at the end carries the extrapolation's verdict
@@ -102,8 +107,8 @@ PREDICTIVE_DESIGNS = ('direct', 'deflected')
 # option, a logistic regression on the pair's end state 67-73%; docs/
 # vqa.md, round 4).
 EXTRAPOLATION_BINS = (-0.5, 0.05, 0.5)
-NUM_GAP_BINS = len(EXTRAPOLATION_BINS) + 1
-NUM_VERDICTS = 4 * NUM_GAP_BINS
+# events.NUM_GAP_BINS counts these bins.
+assert NUM_GAP_BINS == len(EXTRAPOLATION_BINS) + 1
 # 'deflected' scenes are built around a bank shot: a mover A slides at a
 # resting blocker C with a resting target B just behind it, all in view,
 # and reaches C only after the video (BANK_CONTACT_DELAY after it).
@@ -587,88 +592,6 @@ def simulate(scene: Scene, config: ClevrerLikeConfig, *,
   return out
 
 
-@dataclasses.dataclass(frozen=True)
-class Collision:
-  objects: tuple[int, int]  # (i, j), i < j
-  frame: int  # onset frame
-
-
-@dataclasses.dataclass
-class EventLog:
-  """Everything questions are generated from; JSON-serialisable (to_dict).
-
-  Attributes:
-    objects: per object, {'color', 'shape', 'size'} names.
-    observed_frames: frames of the video; events at frames >= this are in
-      the future (predictive questions).
-    num_frames: frames simulated.
-    collisions: every collision in onset order (observed and future).
-    entering: (object, frame) of objects coming into view after frame 0.
-    exiting: (object, frame) of objects leaving the view.
-    moving_at_end: per object, whether it moves at the last observed frame.
-    in_view_at_end: per object, whether it is in view at that frame.
-    final_positions: per object, its centre [x, y, z] at the last simulated
-      frame (None if it never appeared).
-    counterfactual: removed object -> collisions in the world without it.
-    extrapolated: predictive_design 'deflected' only (None otherwise, and
-      then not written by to_dict): (i, j, verdict) for every pair i < j of
-      objects in view at the last observed frame, verdict what extrapolating
-      their last two observed positions over predicted_frames says
-      (:func:`extrapolation_verdict`, 0 .. NUM_VERDICTS - 1).
-  """
-
-  objects: list[dict[str, str]]
-  observed_frames: int
-  num_frames: int
-  collisions: list[Collision]
-  entering: list[tuple[int, int]] = dataclasses.field(default_factory=list)
-  exiting: list[tuple[int, int]] = dataclasses.field(default_factory=list)
-  moving_at_end: list[bool] = dataclasses.field(default_factory=list)
-  in_view_at_end: list[bool] = dataclasses.field(default_factory=list)
-  final_positions: list[list[float] | None] = dataclasses.field(
-      default_factory=list)
-  counterfactual: dict[int, list[Collision]] = dataclasses.field(
-      default_factory=dict)
-  extrapolated: list[tuple[int, int, int]] | None = None
-
-  @property
-  def num_objects(self) -> int:
-    return len(self.objects)
-
-  def observed_collisions(self) -> list[Collision]:
-    return [c for c in self.collisions if c.frame < self.observed_frames]
-
-  def future_collisions(self) -> list[Collision]:
-    return [c for c in self.collisions if c.frame >= self.observed_frames]
-
-  def to_dict(self) -> dict[str, Any]:
-    d = dataclasses.asdict(self)
-    d['counterfactual'] = {str(k): [dataclasses.asdict(c) for c in v]
-                           for k, v in self.counterfactual.items()}
-    if d['extrapolated'] is None:
-      del d['extrapolated']  # the logs of the 'direct' design, as before
-    return d
-
-  @classmethod
-  def from_dict(cls, d: dict[str, Any]) -> EventLog:
-    def collisions(items):
-      return [Collision(tuple(c['objects']), int(c['frame'])) for c in items]
-    return cls(
-        objects=[dict(o) for o in d['objects']],
-        observed_frames=int(d['observed_frames']),
-        num_frames=int(d['num_frames']),
-        collisions=collisions(d['collisions']),
-        entering=[tuple(e) for e in d['entering']],
-        exiting=[tuple(e) for e in d['exiting']],
-        moving_at_end=list(d['moving_at_end']),
-        in_view_at_end=list(d['in_view_at_end']),
-        final_positions=list(d['final_positions']),
-        counterfactual={int(k): collisions(v)
-                        for k, v in d['counterfactual'].items()},
-        extrapolated=(None if d.get('extrapolated') is None
-                      else [tuple(p) for p in d['extrapolated']]))
-
-
 def _view_events(in_view: np.ndarray, present: np.ndarray
                  ) -> tuple[list[tuple[int, int]], list[tuple[int, int]]]:
   """(object, frame) of entering (out -> in, after frame 0) and exiting."""
@@ -940,9 +863,6 @@ def _video_for_worker(config: ClevrerLikeConfig, split: str, index: int
 
 def _write_questions(config: ClevrerLikeConfig, root: Path) -> None:
   """Questions of every split (from its stored event logs) and vocabulary."""
-  # Imported here: the question generator imports this module.
-  from slotformer_jax.data import questions as question_generator  # pylint: disable=g-import-not-at-top
-  from slotformer_jax.data import vqa  # pylint: disable=g-import-not-at-top
   (root / 'questions').mkdir(exist_ok=True)
   for split in SPLITS:
     with open(root / split / 'events.jsonl') as f:
@@ -969,7 +889,6 @@ def build_dataset(config: ClevrerLikeConfig,
   Returns the dataset folder. Deterministic: a pure function of ``config``
   (the worker count does not matter).
   """
-  from slotformer_jax.data import questions as question_generator  # pylint: disable=g-import-not-at-top
   root = dataset_dir(config, data_dir)
   complete = {**config.identity(),
               'questions_version': question_generator.VERSION}

@@ -12,6 +12,8 @@ Videos may have different lengths.
   run sees from step ``k``. Batches are built in a background thread.
 * :func:`eval_batches`: every video of the host's shard once, in order, in
   fixed-shape batches padded at the end and marked by a ``mask``.
+* :func:`host_batches`: the same plan as indices only (for loops that read
+  videos of different lengths themselves, e.g. slot extraction).
 
 Multi-host: host ``p`` of ``P`` owns videos ``p, p + P, p + 2P, ...``; batch
 sizes are per host.
@@ -288,17 +290,8 @@ def eval_batches(source: Source, *, batch_size: int,
     raise ValueError(f'num_frames must be >= 1, got {num_frames}')
   fields = tuple(fields)
   total = len(source) if max_videos is None else min(len(source), max_videos)
-  shard = shard_indices(total, process_index, process_count)
-  if total == 0:
-    return
-  num_batches = math.ceil(math.ceil(total / process_count) / batch_size)
-  # A host without videos (N < P) pads with video 0; all entries are masked.
-  pad_video = int(shard[-1]) if len(shard) else 0
-  for b in range(num_batches):
-    real = shard[b * batch_size:(b + 1) * batch_size]
-    indices = np.full(batch_size, pad_video, np.int64)
-    indices[:len(real)] = real
-    mask = np.arange(batch_size) < len(real)
+  for indices, mask in host_batches(total, batch_size, process_index,
+                                    process_count):
     parts = []
     cache: dict[int, dict[str, np.ndarray]] = {}  # padding repeats one video
     for index in indices:
@@ -314,6 +307,32 @@ def eval_batches(source: Source, *, batch_size: int,
     batch['index'] = indices.astype(np.int32)
     batch['mask'] = mask
     yield batch
+
+
+def host_batches(num_items: int, batch_size: int, process_index: int = 0,
+                 process_count: int = 1
+                 ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+  """This host's items in fixed-size batches: (indices int64 [B], valid
+  bool [B]) each.
+
+  Host ``p`` of ``P`` gets items p, p + P, ... in order; the last batch is
+  padded by repeating the host's last item (``valid`` False there). Every
+  host yields the same number of batches, ``ceil(ceil(N / P) / B)``, so
+  collective steps stay in lockstep; a host with no item at all (N < P)
+  pads with item 0, all entries invalid.
+  """
+  if batch_size < 1:
+    raise ValueError(f'batch_size must be >= 1, got {batch_size}')
+  shard = shard_indices(num_items, process_index, process_count)
+  if num_items == 0:
+    return
+  num_batches = math.ceil(math.ceil(num_items / process_count) / batch_size)
+  pad_item = int(shard[-1]) if len(shard) else 0
+  for b in range(num_batches):
+    real = shard[b * batch_size:(b + 1) * batch_size]
+    indices = np.full(batch_size, pad_item, np.int64)
+    indices[:len(real)] = real
+    yield indices, np.arange(batch_size) < len(real)
 
 
 def _eval_item(source: Source, index: int, fields: Sequence[str],

@@ -44,8 +44,9 @@ from typing import Any
 
 import numpy as np
 
-from slotformer_jax.data.clevrer_like import NUM_VERDICTS
-from slotformer_jax.data.clevrer_like import Collision, EventLog
+from slotformer_jax.data.events import NUM_VERDICTS
+from slotformer_jax.data.events import Collision
+from slotformer_jax.data.events import EventLog
 from slotformer_jax.data.convert.synthetic import COLORS, SHAPES
 
 # Bumped when the questions generated from an event log change; a built

@@ -31,6 +31,9 @@ from typing import Any
 
 import numpy as np
 
+from slotformer_jax.errors import MissingInputError
+from slotformer_jax.files import read_json
+
 PAD = 'PAD'
 QUESTION_TYPES: tuple[str, ...] = (
     'descriptive', 'explanatory', 'predictive', 'counterfactual')
@@ -201,8 +204,8 @@ def read_clevrer_questions(data_root: str | os.PathLike[str], split: str
   """``<data_root>/questions/<train|validation|test>.json`` of CLEVRER."""
   path = Path(data_root) / 'questions' / CLEVRER_SPLIT_FILES[split]
   if not path.is_file():
-    raise FileNotFoundError(
+    raise MissingInputError(
         f'{path} not found: CLEVRER keeps its questions in '
-        '<data_root>/questions/{train,validation,test}.json')
-  with open(path) as f:
-    return json.load(f)
+        '<data_root>/questions/{train,validation,test}.json (set '
+        'vqa.questions_root to the folder holding questions/)')
+  return read_json(path, fix='Restore it from the CLEVRER download.')

@@ -1,21 +1,28 @@
-"""Video-prediction evaluation on held-out videos.
+"""Video-prediction evaluation on held-out videos, for any slot model.
 
 Protocol (the paper's): observe the slots of the first `burn_in` frames,
 roll the dynamics model out for `rollout_steps` frames, decode the predicted
-slots with the frozen SAVi decoder and compare every decoded frame and its
-slot masks with the ground truth. Metrics are computed per rollout step,
-averaged over videos per step, then averaged over steps.
+slots with the frozen slot model (SAVi's decoder; STEVE generates the frames
+token by token) and compare every decoded frame and its slot masks with the
+ground truth. Metrics are computed per rollout step, averaged over videos per
+step, then averaged over steps.
 
 Methods in one table:
-* `slotformer`: the trained model.
+* `slotformer` (and `slot_lstm` when trained): the dynamics models.
 * `copy_last`: the last observed slots repeated (no dynamics at all).
-* `savi_reconstruction`: SAVi's own slots of the future frames decoded: the
-  best any dynamics model can do through this decoder (a reference, not a
-  prediction).
+* `<slot model>_reconstruction` (`savi_reconstruction`,
+  `steve_reconstruction`): the slot model's own slots of the future frames
+  decoded: the best any dynamics model can do through this decoder (a
+  reference, not a prediction).
 
-Also reported: SAVi's segmentation quality on the held-out videos (all
-frames, ARI / FG-ARI pooled over each whole video as SAVi reports them, and
-the per-frame mean).
+Also reported: the slot model's own segmentation of the held-out videos (all
+frames, ARI / FG-ARI pooled over each whole video as SAVi reports them, the
+per-frame FG-ARI and FG-mIoU) and, where it reconstructs frames, their PSNR.
+
+The slot model arrives as an object with `name`, `label`,
+`reference_method`, `slot_shape`, `mask_source`, `decode` and `observe`
+(`slot_models.base.SlotModel`), its trained parameters with it: evaluation
+never builds or loads one, so it imports no training code.
 """
 
 from __future__ import annotations
@@ -27,7 +34,7 @@ import math
 import os
 import time
 from collections.abc import Callable
-from typing import Any
+from typing import Any, Protocol
 
 import jax
 from jax.sharding import Mesh
@@ -36,10 +43,11 @@ import ml_collections
 import numpy as np
 import tqdm
 
-from slotformer_jax import config_checks
 from slotformer_jax import inference
 from slotformer_jax import models
 from slotformer_jax import workdir as workdir_lib
+from slotformer_jax.config.checks import FRAME_METRICS
+from slotformer_jax.config.checks import OBJECT_METRICS
 from slotformer_jax.data import pipeline
 from slotformer_jax.data.convert import clevrer
 from slotformer_jax.data.pipeline import ClipSource
@@ -55,8 +63,6 @@ from slotformer_jax.train import sharding
 
 logger = logging.getLogger(__name__)
 
-FRAME_METRICS = config_checks.FRAME_METRICS
-OBJECT_METRICS = config_checks.OBJECT_METRICS
 SEGMENTATION_FIELD = 'segmentations'
 # The dataset's per-object boxes (from each object's full mask) and whether
 # each object is visible: AR's official ground truth.
@@ -64,6 +70,34 @@ BOX_FIELDS = ('boxes', 'visible')
 
 
 eval_dir = workdir_lib.eval_dir
+
+
+class SlotDecoder(Protocol):
+  """What evaluation needs of a slot model (see slot_models/base.py)."""
+
+  name: str
+  label: str
+  reference_method: str
+  slot_shape: tuple[int, int]
+  mask_source: str
+
+  def decode(self, params: Any, slots: jax.Array) -> Any:
+    """slots [..., N, D] -> .recon [..., H, W, 3], .alpha_masks [..., N, H,
+    W, 1], .rgb [..., N, H, W, 3] or None."""
+
+  def observe(self, params: Any, slots: jax.Array, video: jax.Array,
+              carry: Any) -> tuple[jax.Array, jax.Array | None, Any]:
+    """-> (alpha_masks [B, T, N, H, W], recon [B, T, H, W, 3] or None,
+    carry)."""
+
+
+def predicted_segmentation(decoded, bg_threshold: float | None = None
+                           ) -> jax.Array:
+  """Decoded frames (alpha_masks [..., N, H, W, 1]) -> int32 [..., H, W]:
+  the slot with the largest alpha per pixel (`bg_threshold`: the official
+  post-processing, see `metrics.segmentation_from_alpha_masks`)."""
+  return metrics_lib.segmentation_from_alpha_masks(
+      decoded.alpha_masks[..., 0], bg_threshold=bg_threshold)
 
 
 def num_true_ids(data_config: ml_collections.ConfigDict) -> int:
@@ -103,8 +137,8 @@ def _frame_step_metrics(decoded, frames: jax.Array, segmentation: jax.Array,
   object_names = [n for n in names if n in OBJECT_METRICS]
   if not object_names:
     return out
-  pred_ids = inference.predicted_segmentation(
-      decoded, bg_threshold=background_threshold)
+  pred_ids = predicted_segmentation(decoded,
+                                    bg_threshold=background_threshold)
   true_ids = segmentation.astype(jnp.int32)
   table = metrics_lib.contingency_table(
       true_ids[:, None], pred_ids[:, None], num_true, num_slots)
@@ -146,11 +180,12 @@ def uses_dataset_boxes(eval_config: ml_collections.ConfigDict,
 def make_rollout_evaluator(config: ml_collections.ConfigDict, mesh: Mesh,
                            names: tuple[str, ...],
                            lpips_fn: Callable | None,
-                           dynamics_names: tuple[str, ...] = (
-                               models.SLOTFORMER,)):
-  """Jitted (dynamics_params, decoder_params, batch) -> per-step metrics.
+                           dynamics_names: tuple[str, ...],
+                           slot_model: SlotDecoder):
+  """Jitted (dynamics_params, slot_params, batch) -> per-step metrics.
 
-  dynamics_params: {name: params} for every name in `dynamics_names`.
+  dynamics_params: {name: params} for every name in `dynamics_names`;
+  slot_params: the slot model's (`slot_model.decode` takes them).
   batch: 'slots' [B, burn_in + R, N, D], 'video' uint8 [B, burn_in + R, H,
   W, 3] and, when an object metric is asked for, 'segmentations' [B,
   burn_in + R, H, W]. Returns {method: {name: (value [R, B], valid [R, B])}}
@@ -158,12 +193,11 @@ def make_rollout_evaluator(config: ml_collections.ConfigDict, mesh: Mesh,
   """
   models_by_name = {name: models.build_dynamics(config, name)
                     for name in dynamics_names}
-  decoder = models.build_decoder(config)
   burn_in = config.slotformer.burn_in
   rollout = config.evaluation.rollout_steps
   step_metrics = functools.partial(
       _frame_step_metrics, names=names,
-      num_true=num_true_ids(config.data), num_slots=config.savi.num_slots,
+      num_true=num_true_ids(config.data), num_slots=slot_model.slot_shape[0],
       lpips_fn=lpips_fn,
       background_threshold=config.evaluation.get('background_threshold'))
   needs_segmentation = any(name in OBJECT_METRICS for name in names)
@@ -171,16 +205,16 @@ def make_rollout_evaluator(config: ml_collections.ConfigDict, mesh: Mesh,
   # bfloat16: rollouts and decoding compute in it, metrics in float32.
   in_compute_dtype = functools.partial(precision.with_compute_dtype,
                                        compute_dtype=config.compute_dtype)
+  reference = slot_model.reference_method
 
-  def evaluate_batch(dynamics_params, decoder_params, batch):
+  def evaluate_batch(dynamics_params, slot_params, batch):
     history = batch['slots'][:, :burn_in]
     predictions = {
         name: in_compute_dtype(functools.partial(
             inference.rollout_slots, model=model, num_steps=rollout))(
                 dynamics_params[name], history)
         for name, model in models_by_name.items()}
-    predictions['savi_reconstruction'] = batch['slots'][
-        :, burn_in:burn_in + rollout]
+    predictions[reference] = batch['slots'][:, burn_in:burn_in + rollout]
     frames = batch['video'][:, burn_in:burn_in + rollout]
     if needs_segmentation:
       segmentation = batch[SEGMENTATION_FIELD][:, burn_in:burn_in + rollout]
@@ -191,8 +225,8 @@ def make_rollout_evaluator(config: ml_collections.ConfigDict, mesh: Mesh,
       boxes = {field: batch[field][:, burn_in:burn_in + rollout]
                for field in BOX_FIELDS}
     time_major = lambda x: jnp.swapaxes(x, 0, 1)
-    decode = in_compute_dtype(functools.partial(
-        inference.decode_slots, decoder_params, decoder=decoder))
+    decode = in_compute_dtype(functools.partial(slot_model.decode,
+                                                slot_params))
     # Copy-last predicts the same slots at every step: decode them once.
     copied = decode(inference.copy_last_rollout(history, 1)[:, 0])
     with_lpips = hasattr(lpips_fn, 'features') and 'lpips' in names
@@ -222,74 +256,97 @@ def make_rollout_evaluator(config: ml_collections.ConfigDict, mesh: Mesh,
                                sharding.batch_sharding(mesh)))
 
 
-def make_savi_evaluator(config: ml_collections.ConfigDict, mesh: Mesh,
-                        with_segmentation: bool = True):
-  """Jitted SAVi quality of a chunk of frames.
+def make_quality_evaluator(config: ml_collections.ConfigDict, mesh: Mesh,
+                           slot_model: SlotDecoder,
+                           with_segmentation: bool = True):
+  """Jitted quality of the slot model's account of a chunk of real frames.
 
-  (decoder_params, slots [B, T, N, D], video uint8 [B, T, H, W, 3],
+  (slot_params, slots [B, T, N, D], video uint8 [B, T, H, W, 3],
   segmentations [B, T, H, W] (ignored without `with_segmentation`),
-  frame_valid bool [B, T]) -> the sum of per-frame PSNR [B] and, with
-  segmentation, per-video contingency tables [B, C, K] summed over the valid
-  frames (chunks of one video add up) and per-frame FG-ARI sums and counts
-  [B].
+  frame_valid bool [B, T], carry) -> (out, carry): `out` has, summed over
+  the valid frames of the chunk (chunks of one video add up), 'psnr_sum' [B]
+  when the slot model reconstructs frames and, with segmentation, the
+  per-video contingency tables 'table' [B, C, K] and per-frame FG-ARI sums
+  and counts [B]; per frame, the FG-IoU matrices 'iou' [B, T, C-1, K] and
+  'present' [B, T, C-1] (False on invalid frames).
   """
-  decoder = models.build_decoder(config)
-  num_true, num_slots = num_true_ids(config.data), config.savi.num_slots
+  num_true, num_slots = num_true_ids(config.data), slot_model.slot_shape[0]
 
-  def evaluate_frame(decoder_params, slots, video, segmentation, valid):
-    """One frame of every video: slots [B, N, D] ... valid [B]."""
-    decoded = inference.decode_slots(decoder_params, slots, decoder=decoder)
-    frames = model_to_unit(frames_to_model(video))
-    psnr = metrics_lib.psnr(decoded.recon, frames)
-    out = {'psnr_sum': jnp.where(valid, psnr, 0.0)}
+  def evaluate_frame(alpha, recon, video, segmentation, valid):
+    """One frame of every video: alpha [B, N, H, W] ... valid [B]."""
+    out = {}
+    if recon is not None:
+      frames = model_to_unit(frames_to_model(video))
+      out['psnr_sum'] = jnp.where(valid, metrics_lib.psnr(recon, frames), 0.0)
     if not with_segmentation:
       return out
-    pred_ids = inference.predicted_segmentation(decoded)
+    pred_ids = metrics_lib.segmentation_from_alpha_masks(alpha)
     # Ids outside [0, C) are not counted: that drops the padded frames.
     true_ids = jnp.where(valid[:, None, None],
                          segmentation.astype(jnp.int32), -1)
     table = metrics_lib.contingency_table(
         true_ids[:, None], pred_ids[:, None], num_true, num_slots)  # [B,C,K]
     fg_ari = metrics_lib.ari_from_contingency(table, ignore_background=True)
+    iou, present = metrics_lib.fg_iou_matrix(
+        true_ids[:, None], pred_ids[:, None], num_true, num_slots)
     out.update(
         table=table,
         fg_ari_frame_sum=jnp.where(fg_ari.valid, fg_ari.value, 0.0),
-        fg_ari_frame_count=fg_ari.valid.astype(jnp.int32))
+        fg_ari_frame_count=fg_ari.valid.astype(jnp.int32),
+        iou=iou, present=present & valid[:, None])
     return out
 
-  def evaluate_chunk(decoder_params, slots, video, segmentation, frame_valid):
-    # lax.map over time: one frame's decoded slots in memory at a time,
-    # which is also much faster on a CPU than decoding the chunk at once.
+  def evaluate_chunk(slot_params, slots, video, segmentation, frame_valid,
+                     carry):
+    alpha, recon, carry = slot_model.observe(slot_params, slots, video, carry)
+    # lax.map over time: one frame's metrics in memory at a time.
     per_frame = jax.lax.map(
-        lambda inputs: evaluate_frame(decoder_params, *inputs),
-        tuple(jnp.swapaxes(x, 0, 1)
-              for x in (slots, video, segmentation, frame_valid)))
-    return jax.tree.map(lambda x: jnp.sum(x, axis=0), per_frame)
+        lambda inputs: evaluate_frame(*inputs),
+        tuple(None if x is None else jnp.swapaxes(x, 0, 1)
+              for x in (alpha, recon, video, segmentation, frame_valid)))
+    out = {key: jnp.sum(value, axis=0) for key, value in per_frame.items()
+           if key not in ('iou', 'present')}
+    for key in ('iou', 'present'):
+      if key in per_frame:
+        out[key] = jnp.swapaxes(per_frame[key], 0, 1)
+    return out, carry
 
   replicated = sharding.replicated_sharding(mesh)
   batched = sharding.batch_sharding(mesh)
   return jax.jit(evaluate_chunk,
-                 in_shardings=(replicated,) + (batched,) * 4)
+                 in_shardings=(replicated,) + (batched,) * 5,
+                 out_shardings=(batched, batched))
 
 
-def evaluate_savi(config: ml_collections.ConfigDict, mesh: Mesh,
-                  decoder_params: Any, source: Any, num_frames: int,
-                  with_segmentation: bool = True,
-                  **batch_args) -> dict[str, Any]:
-  """SAVi's reconstruction (and segmentation) of the first `num_frames`
-  frames of every held-out video, processed in chunks of `chunk_length`."""
-  evaluator = make_savi_evaluator(config, mesh, with_segmentation)
+def evaluate_slot_model(config: ml_collections.ConfigDict, mesh: Mesh,
+                        slot_model: SlotDecoder, slot_params: Any,
+                        source: Any, num_frames: int,
+                        with_segmentation: bool = True,
+                        **batch_args) -> dict[str, Any]:
+  """The slot model's reconstruction (where it has one) and segmentation of
+  the first `num_frames` frames of every held-out video, in chunks of
+  `evaluation.chunk_length` frames carrying its state.
+
+  Returns 'psnr' (reconstructing models), 'fg_ari' / 'ari' pooled over each
+  whole video and averaged over videos, 'fg_ari_per_frame' and
+  'fg_miou_per_frame' (with segmentation), 'num_videos', 'num_frames'.
+  """
+  evaluator = make_quality_evaluator(config, mesh, slot_model,
+                                     with_segmentation)
   chunk = config.evaluation.chunk_length
+  absent_ids = config.evaluation.get('miou_absent_ids', 'skip')
   fields = ('slots', 'video') + ((SEGMENTATION_FIELD,) if with_segmentation
                                  else ())
-  fg_ari_video, ari_video = [], []
+  fg_ari_video, ari_video, miou_frames = [], [], []
   psnr_sum, fg_ari_sum, fg_ari_count, num_valid_frames = 0.0, 0.0, 0, 0
+  has_psnr = False
   for batch in tqdm.tqdm(
       pipeline.eval_batches(source, num_frames=num_frames, **batch_args),
-      desc='evaluate SAVi', leave=False, disable=jax.process_index() != 0):
+      desc=f'evaluate {slot_model.label}', leave=False,
+      disable=jax.process_index() != 0):
     mask = sharding.gather_to_host(
         sharding.to_global_batch({'mask': batch['mask']}, mesh))['mask']
-    totals = {}
+    totals, carry = {}, None
     for start in range(0, num_frames, chunk):
       pieces = {field: _padded_time_slice(batch[field], start, chunk)
                 for field in fields}
@@ -300,12 +357,21 @@ def evaluate_savi(config: ml_collections.ConfigDict, mesh: Mesh,
       pieces['frame_valid'] = np.broadcast_to(
           frame_valid, (len(batch['mask']), chunk)).copy()
       pieces = sharding.to_global_batch(pieces, mesh)
-      out = sharding.gather_to_host(evaluator(
-          decoder_params, pieces['slots'], pieces['video'],
-          pieces[SEGMENTATION_FIELD], pieces['frame_valid']))
+      out, carry = evaluator(
+          slot_params, pieces['slots'], pieces['video'],
+          pieces[SEGMENTATION_FIELD], pieces['frame_valid'], carry)
+      out = sharding.gather_to_host(out)
+      if 'iou' in out:
+        # present is False on padded frames, so those frames are not valid.
+        score = metrics_lib.hungarian_mean_iou(
+            out.pop('iou')[mask], out.pop('present')[mask],
+            absent_ids=absent_ids)
+        miou_frames += list(np.asarray(score.value)[np.asarray(score.valid)])
       for key, value in out.items():
         totals[key] = totals.get(key, 0) + value
-    psnr_sum += float(totals['psnr_sum'][mask].sum())
+    if 'psnr_sum' in totals:
+      has_psnr = True
+      psnr_sum += float(totals['psnr_sum'][mask].sum())
     num_valid_frames += int(mask.sum()) * num_frames
     if with_segmentation:
       table = totals['table'][mask]
@@ -315,16 +381,18 @@ def evaluate_savi(config: ml_collections.ConfigDict, mesh: Mesh,
           metrics_lib.ari_from_contingency(table).value))
       fg_ari_sum += float(totals['fg_ari_frame_sum'][mask].sum())
       fg_ari_count += int(totals['fg_ari_frame_count'][mask].sum())
-  results = {
-      'psnr': psnr_sum / max(num_valid_frames, 1),
-      'num_videos': num_valid_frames // max(num_frames, 1),
-      'num_frames': num_frames,
-  }
+  results = {}
+  if has_psnr:
+    results['psnr'] = psnr_sum / max(num_valid_frames, 1)
+  results.update(num_videos=num_valid_frames // max(num_frames, 1),
+                 num_frames=num_frames)
   if with_segmentation:
     results.update(
         fg_ari=float(np.mean(fg_ari_video)),
         ari=float(np.mean(ari_video)),
-        fg_ari_per_frame=fg_ari_sum / max(fg_ari_count, 1))
+        fg_ari_per_frame=fg_ari_sum / max(fg_ari_count, 1),
+        fg_miou_per_frame=(float(np.mean(miou_frames)) if miou_frames
+                           else None))
   return results
 
 
@@ -338,8 +406,7 @@ def _padded_time_slice(x: np.ndarray, start: int, length: int) -> np.ndarray:
   return piece
 
 
-_METHOD_ORDER = (models.SLOTFORMER, models.SLOT_LSTM, 'copy_last',
-                 'savi_reconstruction')
+_METHOD_ORDER = (models.SLOTFORMER, models.SLOT_LSTM, 'copy_last')
 
 
 def _method_rank(method: str) -> tuple[int, str]:
@@ -401,25 +468,27 @@ def dynamics_to_evaluate(config: ml_collections.ConfigDict
   return names
 
 
-def evaluate(config: ml_collections.ConfigDict, workdir: str,
-             mesh: Mesh) -> dict[str, Any]:
-  """Evaluates SAVi and the rollouts; writes eval/metrics.json + per_step.csv."""
+def evaluate(config: ml_collections.ConfigDict, workdir: str, mesh: Mesh,
+             *, slot_model: SlotDecoder, slot_params: Any,
+             slot_steps: dict[str, int],
+             dynamics: dict[str, tuple[Any, int]],
+             identity: dict[str, Any]) -> dict[str, Any]:
+  """Evaluates the slot model and the rollouts on `evaluation.split`;
+  writes eval/metrics.json + per_step.csv (lead host) and returns them.
+
+  Args:
+    slot_model, slot_params: the trained slot model (see `SlotDecoder`).
+    slot_steps: its stage-1 checkpoint steps ({'savi': 4500}).
+    dynamics: {name: (params, step)} of every dynamics model to evaluate.
+    identity: what all of them are made from
+      (`workdir.evaluation_identity`), recorded with the metrics.
+  """
   started = time.time()
   eval_config = config.evaluation
   names = tuple(eval_config.metrics)
   with_segmentation = any(name in OBJECT_METRICS for name in names)
   lpips_fn = _lpips_or_none(names)
-  savi_params, savi_step = inference.load_savi_params(config, workdir, mesh)
-  dynamics_names = dynamics_to_evaluate(config)
-  dynamics_params, dynamics_steps = {}, {}
-  for name in dynamics_names:
-    dynamics_params[name], dynamics_steps[name] = inference.load_dynamics_params(
-        config, workdir, mesh, name)
-  # Never mix: SAVi, the slots and every dynamics model descend from each
-  # other, and the metrics record which ones they are.
-  identity = workdir_lib.evaluation_identity(
-      config, workdir, eval_config.split, savi_step, dynamics_steps)
-  decoder_params = savi_params['decoder']
+  dynamics_params = {name: params for name, (params, _) in dynamics.items()}
   burn_in = config.slotformer.burn_in
   rollout = eval_config.rollout_steps
   stride = config.slotformer.frame_stride
@@ -428,7 +497,7 @@ def evaluate(config: ml_collections.ConfigDict, workdir: str,
   if uses_dataset_boxes(eval_config, names):
     video_fields += BOX_FIELDS
   source = workdir_lib.slot_source_for(config, workdir, eval_config.split,
-                                  video_fields)
+                                       video_fields)
   if with_segmentation:
     _check_has_segmentations(source, names)
   num_videos = min(len(source), eval_config.num_videos or len(source))
@@ -439,20 +508,20 @@ def evaluate(config: ml_collections.ConfigDict, workdir: str,
                 fields=('slots',) + video_fields,
                 process_index=jax.process_index(),
                 process_count=jax.process_count(), max_videos=len(source))
-
   needed = (burn_in + rollout - 1) * stride + 1
-  savi_started = time.time()
+  _check_length(source, needed, burn_in, rollout, stride)
+
+  quality_started = time.time()
+  quality = {}
   if eval_config.savi_metrics:
-    savi_results = evaluate_savi(config, mesh, decoder_params, source, needed,
-                                 with_segmentation, **shared)
-  else:
-    savi_results = {}
-  savi_results['seconds'] = time.time() - savi_started
+    quality = evaluate_slot_model(config, mesh, slot_model, slot_params,
+                                  source, needed, with_segmentation, **shared)
+  quality_seconds = time.time() - quality_started
 
   # Rollouts.
   rollout_started = time.time()
   evaluator = make_rollout_evaluator(config, mesh, names, lpips_fn,
-                                     dynamics_names)
+                                     tuple(dynamics), slot_model)
   averager = _StepAverager()
   for batch in tqdm.tqdm(
       pipeline.eval_batches(source, num_frames=needed, **shared),
@@ -461,14 +530,8 @@ def evaluate(config: ml_collections.ConfigDict, workdir: str,
     batch.pop('index')
     for field in batch:
       batch[field] = batch[field][:, ::stride]
-    if batch['slots'].shape[1] < burn_in + rollout:
-      raise ValueError(
-          f'evaluation needs {needed} frames per video (burn-in {burn_in} + '
-          f'{rollout} rollout steps, stride {stride}), the videos have '
-          f'{batch["video"].shape[1]}; lower evaluation.rollout_steps')
     out = sharding.gather_to_host(evaluator(
-        dynamics_params, decoder_params,
-        sharding.to_global_batch(batch, mesh)))
+        dynamics_params, slot_params, sharding.to_global_batch(batch, mesh)))
     mask = sharding.gather_to_host(
         sharding.to_global_batch({'mask': mask}, mesh))['mask']
     for method, per_metric in out.items():
@@ -483,7 +546,8 @@ def evaluate(config: ml_collections.ConfigDict, workdir: str,
   rollout_results = averager.results()
 
   results = {
-      'savi': savi_results,
+      'slot_model': slot_model.name,
+      slot_model.name: quality,
       'rollout': rollout_results,
       'protocol': {'split': eval_config.split, 'num_videos': num_videos,
                    'num_clips': len(source), 'clips': eval_config.clips,
@@ -494,11 +558,13 @@ def evaluate(config: ml_collections.ConfigDict, workdir: str,
                    'ar_gt_boxes': eval_config.get('ar_gt_boxes',
                                                   'segmentation'),
                    'miou_absent_ids': eval_config.get('miou_absent_ids',
-                                                      'skip')},
-      'checkpoints': {'savi_step': savi_step, **{
-          f'{name}_step': step for name, step in dynamics_steps.items()}},
+                                                      'skip'),
+                   'masks': slot_model.mask_source},
+      'checkpoints': {
+          **{f'{key}_step': step for key, step in slot_steps.items()},
+          **{f'{name}_step': step for name, (_, step) in dynamics.items()}},
       'identity': identity,
-      'seconds': {'savi': savi_results.pop('seconds'),
+      'seconds': {slot_model.name: quality_seconds,
                   'rollout': time.time() - rollout_started,
                   'total': time.time() - started},
   }
@@ -506,6 +572,19 @@ def evaluate(config: ml_collections.ConfigDict, workdir: str,
     _write_results(eval_dir(workdir), results)
     print(format_table(results))
   return results
+
+
+def _check_length(source: Any, needed: int, burn_in: int, rollout: int,
+                  stride: int) -> None:
+  """The videos must cover burn-in + rollout (a one-line error if not)."""
+  if not len(source):
+    return
+  length = len(source[0]['slots'])
+  if length < needed:
+    raise ConfigError(
+        f'evaluation needs {needed} frames per video (burn-in {burn_in} + '
+        f'{rollout} rollout steps, stride {stride}), the videos have '
+        f'{length}; lower evaluation.rollout_steps')
 
 
 def evaluation_clips(config: ml_collections.ConfigDict, source: Any,
@@ -597,15 +676,21 @@ def format_table(results: dict[str, Any]) -> str:
       value = per_metric.get(name, {}).get('mean')
       cells.append(f'{"-" if value is None else f"{value:.4f}":>10}')
     lines.append(f'{method:<22}' + ''.join(cells))
-  savi = results['savi']
-  if not savi:
-    lines.append('SAVi on the whole videos: not evaluated '
-                 '(evaluation.savi_metrics=False)')
-  elif 'fg_ari' in savi:
-    lines.append(
-        f'SAVi on the whole videos: FG-ARI {savi["fg_ari"]:.4f} (per frame '
-        f'{savi["fg_ari_per_frame"]:.4f}), ARI {savi["ari"]:.4f}, '
-        f'PSNR {savi["psnr"]:.2f} dB')
+  name = results.get('slot_model', 'savi')
+  label = {'savi': 'SAVi', 'steve': 'STEVE'}.get(name, name)
+  quality = results.get(name, {})
+  parts = []
+  if 'fg_ari' in quality:
+    parts.append(f'FG-ARI {quality["fg_ari"]:.4f} (per frame '
+                 f'{quality["fg_ari_per_frame"]:.4f})')
+    if quality.get('fg_miou_per_frame') is not None:
+      parts.append(f'FG-mIoU per frame {quality["fg_miou_per_frame"]:.4f}')
+    parts.append(f'ARI {quality["ari"]:.4f}')
+  if 'psnr' in quality:
+    parts.append(f'PSNR {quality["psnr"]:.2f} dB')
+  if parts:
+    lines.append(f'{label} on the whole videos: ' + ', '.join(parts))
   else:
-    lines.append(f'SAVi on the whole videos: PSNR {savi["psnr"]:.2f} dB')
+    lines.append(f'{label} on the whole videos: not evaluated '
+                 '(evaluation.savi_metrics=False)')
   return '\n'.join(lines)

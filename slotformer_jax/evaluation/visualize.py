@@ -1,21 +1,25 @@
 """Pictures of rollouts: GIFs, PNG strips, metric curves, attention maps.
 
-Written by `--mode=render` under `<workdir>/render/`:
+Written by `--mode=render` under `<workdir>/render/`, for any slot model:
 
 * `rollout_<i>.gif` / `.png`: for a few held-out videos, side by side over
-  time: the ground truth, SlotFormer's frame (SAVi's reconstruction during
-  burn-in, the decoded prediction afterwards), the baselines (copy-last, and
-  Slot-LSTM when trained), and each SlotFormer slot's reconstruction weighted
-  by its alpha mask. A red border marks predicted (rollout) frames.
+  time, one labelled row (PNG) or column (GIF) each: the ground truth; the
+  slot model's own segmentation of it (each pixel tinted by its slot's
+  colour); every method's frames -- SlotFormer, Slot-LSTM when trained,
+  copy-last (during burn-in the slot model's reconstruction of the observed
+  slots, the decoded prediction afterwards) -- with SlotFormer's predicted
+  segmentation; and, for decoders with per-slot reconstructions (SAVi), each
+  SlotFormer slot's reconstruction weighted by its alpha mask. A red border
+  marks predicted (rollout) frames, a green one observed frames.
 * `per_step.png`: every per-step rollout metric of `eval/metrics.json`
   against the rollout step, methods overlaid (the paper's per-step figure).
-* `attention_<i>.png`: the paper's appendix attention analysis (see
-  `attention_maps`).
+* `attention_<i>.png` (decoders with per-slot reconstructions): the paper's
+  appendix attention analysis (see `attention_maps`).
+* `identity.json`: what the pictures were made from.
 """
 
 from __future__ import annotations
 
-import functools
 import logging
 import os
 from typing import Any
@@ -30,8 +34,8 @@ import numpy as np
 from PIL import Image
 from PIL import ImageDraw
 
-from slotformer_jax import models
 from slotformer_jax import inference
+from slotformer_jax import models
 from slotformer_jax import workdir as workdir_lib
 from slotformer_jax.evaluation import evaluate
 from slotformer_jax.files import read_json
@@ -82,37 +86,61 @@ def compose_frame(columns: list[np.ndarray], labels: list[str], *,
 
 _METHOD_LABELS = {'slotformer': 'SlotFormer', 'copy_last': 'copy-last',
                   'slot_lstm': 'Slot-LSTM',
-                  'savi_reconstruction': 'SAVi recon.'}
+                  'savi_reconstruction': 'SAVi recon.',
+                  'steve_reconstruction': 'STEVE recon.'}
+
+# Slot colours of the segmentation overlays (slot k: _PALETTE[k % 10]).
+_PALETTE = np.array([[230, 25, 75], [60, 180, 75], [255, 225, 25],
+                     [0, 130, 200], [245, 130, 48], [145, 30, 180],
+                     [70, 240, 240], [240, 50, 230], [210, 245, 60],
+                     [250, 190, 212]], np.float32) / 255.0
+
+
+def mask_overlay(frames: np.ndarray, alpha_masks: np.ndarray) -> np.ndarray:
+  """frames [..., H, W, 3] in [0, 1], alpha_masks [..., N, H, W] -> the
+  frames half-tinted by each pixel's argmax slot colour."""
+  ids = np.argmax(alpha_masks, axis=-3)
+  return 0.5 * frames + 0.5 * _PALETTE[ids % len(_PALETTE)]
 
 
 def make_renderer(config: ml_collections.ConfigDict,
-                  dynamics_names: tuple[str, ...] = (models.SLOTFORMER,)):
-  """Jitted (dynamics_params, decoder_params, slots [B, T, N, D]) -> pictures.
+                  dynamics_names: tuple[str, ...], slot_model: Any):
+  """Jitted (dynamics_params, slot_params, slots [B, T, N, D], video uint8
+  [B, T, H, W, 3]) -> pictures.
 
   Returns {method: recon [B, T, H, W, 3]} for every dynamics model and
-  copy-last (burn-in frames: SAVi's reconstruction), and 'slot_views' [B, T,
-  N, H, W, 3], SlotFormer's per-slot reconstructions on white.
+  copy-last (burn-in frames: the slot model's reconstruction of the observed
+  slots), 'slotformer_masks' [B, T, N, H, W] (SlotFormer's alpha masks),
+  'observed_masks' [B, T, N, H, W] (the slot model's own masks of the real
+  frames) and, for decoders with per-slot reconstructions, 'slot_views'
+  [B, T, N, H, W, 3] (SlotFormer's slots on white).
   """
   dynamics = {name: models.build_dynamics(config, name)
               for name in dynamics_names}
-  decoder = models.build_decoder(config)
   burn_in = config.slotformer.burn_in
   rollout = config.evaluation.rollout_steps
 
   @jax.jit
-  def render(dynamics_params, decoder_params, slots):
+  def render(dynamics_params, slot_params, slots, video):
     history = slots[:, :burn_in]
     futures = inference.rollouts(dynamics_params, dynamics, history, rollout)
-    with_history = lambda future: jnp.concatenate([history, future], axis=1)
-    decode = functools.partial(inference.decode_slots, decoder_params,
-                               decoder=decoder)
-    decoded = {name: decode(with_history(future))
-               for name, future in futures.items()}
-    out = {name: value.recon for name, value in decoded.items()}
-    slotformer = decoded[models.SLOTFORMER]
-    # Each slot's content where it is visible: rgb * alpha (+ white).
-    out['slot_views'] = (slotformer.rgb * slotformer.alpha_masks
-                         + (1.0 - slotformer.alpha_masks))
+    time_major = lambda x: jnp.swapaxes(x, 0, 1)
+    out = {}
+    for name, future in futures.items():
+      whole = jnp.concatenate([history, future], axis=1)
+      # One frame of every video at a time (STEVE generates token by token).
+      decoded = jax.tree.map(time_major, jax.lax.map(
+          lambda frame: slot_model.decode(slot_params, frame),
+          time_major(whole)))
+      out[name] = decoded.recon
+      if name == models.SLOTFORMER:
+        out['slotformer_masks'] = decoded.alpha_masks[..., 0]
+        if decoded.rgb is not None:
+          # Each slot's content where it is visible: rgb * alpha (+ white).
+          out['slot_views'] = (decoded.rgb * decoded.alpha_masks
+                               + (1.0 - decoded.alpha_masks))
+    out['observed_masks'], _, _ = slot_model.observe(
+        slot_params, slots, video, None)
     return out
 
   return render
@@ -151,22 +179,24 @@ def attention_maps(attention: jax.Array, slot_rgb: jax.Array,
   return jnp.einsum('bitj,btjhwc->bithwc', attention, views)
 
 
-def make_attention_renderer(config: ml_collections.ConfigDict):
-  """Jitted (params, decoder_params, history [B, T, N, D]) -> arrays of the
+def make_attention_renderer(config: ml_collections.ConfigDict,
+                            slot_model: Any):
+  """Jitted (params, slot_params, history [B, T, N, D]) -> arrays of the
   attention figure: 'maps' [B, N, T, H, W, 3], 'frames_recon' [B, T, H, W,
   3], 'predicted_views' [B, N, H, W, 3] (each predicted slot's
-  reconstruction on black) and 'predicted_recon' [B, H, W, 3]."""
+  reconstruction on black) and 'predicted_recon' [B, H, W, 3]; None for a
+  slot model whose decoder has no per-slot reconstructions."""
   model = models.build_slotformer(config)
-  decoder = models.build_decoder(config)
 
   @jax.jit
-  def render(params, decoder_params, history):
+  def render(params, slot_params, history):
     attention = last_layer_attention(params, history, model=model)
-    inputs = inference.decode_slots(decoder_params, history, decoder=decoder)
-    predicted = inference.decode_slots(
-        decoder_params, model.apply({'params': params}, history,
-                                    method=model.predict_next),
-        decoder=decoder)
+    inputs = slot_model.decode(slot_params, history)
+    predicted = slot_model.decode(
+        slot_params, model.apply({'params': params}, history,
+                                 method=model.predict_next))
+    if inputs.rgb is None:
+      return None
     return {
         'maps': attention_maps(attention, inputs.rgb, inputs.alpha_masks),
         'frames_recon': inputs.recon,
@@ -177,27 +207,33 @@ def make_attention_renderer(config: ml_collections.ConfigDict):
   return render
 
 
-def render(config: ml_collections.ConfigDict, workdir: str,
-           mesh: Mesh) -> list[str]:
+def render(config: ml_collections.ConfigDict, workdir: str, mesh: Mesh, *,
+           slot_model: Any, slot_params: Any,
+           dynamics: dict[str, tuple[Any, int]],
+           identity: dict[str, Any]) -> list[str]:
   """Writes GIFs, PNG strips, attention maps and the per-step curves of a few
   held-out rollouts; returns the paths. Rendered on one device of the lead
-  host."""
-  render_config = config.render
-  savi_params, savi_step = inference.load_savi_params(config, workdir, mesh)
-  dynamics_names = evaluate.dynamics_to_evaluate(config)
-  loaded = {name: inference.load_dynamics_params(config, workdir, mesh, name)
-            for name in dynamics_names}
-  dynamics_params = {name: params for name, (params, _) in loaded.items()}
-  identity = workdir_lib.evaluation_identity(
-      config, workdir, config.evaluation.split, savi_step,
-      {name: step for name, (_, step) in loaded.items()})
+  host.
+
+  Args:
+    slot_model, slot_params: the trained slot model (as for
+      `evaluate.evaluate`).
+    dynamics: {name: (params, step)} of every dynamics model shown.
+    identity: what all of them are made from (`workdir.evaluation_identity`).
+  """
+  del mesh  # one device of the lead host
   if jax.process_index() != 0:
     return []
+  render_config = config.render
+  dynamics_names = tuple(dynamics)
+  dynamics_params = jax.device_get(
+      {name: params for name, (params, _) in dynamics.items()})
+  slot_params = jax.device_get(slot_params)
   burn_in = config.slotformer.burn_in
   rollout = config.evaluation.rollout_steps
   stride = config.slotformer.frame_stride
-  source = workdir_lib.slot_source_for(config, workdir, config.evaluation.split,
-                                  ('video',))
+  source = workdir_lib.slot_source_for(config, workdir,
+                                       config.evaluation.split, ('video',))
   count = min(render_config.num_videos, len(source))
   frames_needed = (burn_in + rollout - 1) * stride + 1
   items = [source[i] for i in range(count)]
@@ -207,48 +243,49 @@ def render(config: ml_collections.ConfigDict, workdir: str,
     raise ValueError(
         f'rendering needs {frames_needed} frames per video, the videos have '
         f'{len(items[0]["slots"])}; lower evaluation.rollout_steps')
-  dynamics_params = jax.device_get(dynamics_params)
-  decoder_params = jax.device_get(savi_params['decoder'])
-  out = jax.device_get(make_renderer(config, dynamics_names)(
-      dynamics_params, decoder_params, slots))
-  attention = jax.device_get(make_attention_renderer(config)(
-      dynamics_params[models.SLOTFORMER], decoder_params, slots[:, :burn_in]))
+  out = jax.device_get(make_renderer(config, dynamics_names, slot_model)(
+      dynamics_params, slot_params, slots, videos))
+  attention = jax.device_get(make_attention_renderer(config, slot_model)(
+      dynamics_params[models.SLOTFORMER], slot_params, slots[:, :burn_in]))
 
   directory = render_dir(workdir)
   os.makedirs(directory, exist_ok=True)
   written = []
-  methods = [name for name in (*dynamics_names, 'copy_last')]
-  num_slots = config.savi.num_slots
-  labels = ['truth'] + [_METHOD_LABELS[m] for m in methods] + [
-      f'slot {n}' for n in range(num_slots)]
-  for video_index in range(count):
+  methods = [*dynamics_names, 'copy_last']
+  label = slot_model.label
+  for v in range(count):
+    truth = videos[v].astype(np.float32) / 255.0
+    rows = {'truth': truth,
+            f'{label} masks': mask_overlay(truth, out['observed_masks'][v])}
+    for method in methods:
+      rows[_METHOD_LABELS[method]] = out[method][v]
+    rows['SlotFormer masks'] = mask_overlay(out[models.SLOTFORMER][v],
+                                            out['slotformer_masks'][v])
+    if 'slot_views' in out:
+      for n in range(out['slot_views'].shape[2]):
+        rows[f'slot {n}'] = out['slot_views'][v, :, n]
+    rows = {name: _to_uint8(np.asarray(frames))
+            for name, frames in rows.items()}
     gif_frames = []
     for t in range(burn_in + rollout):
-      columns = [videos[video_index, t]]
-      columns += [_to_uint8(out[m][video_index, t]) for m in methods]
-      columns += [_to_uint8(out['slot_views'][video_index, t, n])
-                  for n in range(num_slots)]
       is_rollout = t >= burn_in
       text = (f'rollout step {t - burn_in + 1}/{rollout}' if is_rollout
               else f'burn-in frame {t + 1}/{burn_in}')
-      gif_frames.append(compose_frame(columns, labels, is_rollout=is_rollout,
-                                      step_text=text,
-                                      scale=render_config.scale))
-    gif_path = os.path.join(directory, f'rollout_{video_index:03d}.gif')
+      gif_frames.append(compose_frame(
+          [row[t] for row in rows.values()], list(rows),
+          is_rollout=is_rollout, step_text=text, scale=render_config.scale))
+    gif_path = os.path.join(directory, f'rollout_{v:03d}.gif')
     imageio.mimsave(gif_path, gif_frames, duration=1.0 / render_config.fps,
                     loop=0)
-    png_path = os.path.join(directory, f'rollout_{video_index:03d}.png')
-    rows = [videos[video_index]] + [
-        _to_uint8(out[m][video_index]) for m in methods] + [
-            _to_uint8(out['slot_views'][video_index, :, n])
-            for n in range(num_slots)]
-    _write_strip(png_path, rows, burn_in, render_config)
-    attention_path = os.path.join(directory,
-                                  f'attention_{video_index:03d}.png')
-    _write_attention_figure(attention_path, videos[video_index, :burn_in + 1],
-                            jax.tree.map(lambda x: x[video_index], attention),
-                            render_config.scale)
-    written += [gif_path, png_path, attention_path]
+    png_path = os.path.join(directory, f'rollout_{v:03d}.png')
+    write_strip(png_path, rows, burn_in, render_config)
+    written += [gif_path, png_path]
+    if attention is not None:
+      attention_path = os.path.join(directory, f'attention_{v:03d}.png')
+      _write_attention_figure(attention_path, videos[v, :burn_in + 1],
+                              jax.tree.map(lambda x: x[v], attention),
+                              render_config.scale)
+      written.append(attention_path)
   curves = write_per_step_figure(workdir, identity)
   if curves:
     written.append(curves)
@@ -259,18 +296,28 @@ def render(config: ml_collections.ConfigDict, workdir: str,
   return written
 
 
-def _write_strip(path: str, rows: list[np.ndarray], burn_in: int,
-                 render_config: ml_collections.ConfigDict) -> None:
-  """rows: uint8 [T, H, W, 3] each (truth, methods, slots); columns: time."""
-  num_frames = rows[0].shape[0]
+_LABEL_WIDTH = 92
+
+
+def write_strip(path: str, rows: dict[str, np.ndarray], burn_in: int,
+                render_config: ml_collections.ConfigDict) -> None:
+  """A PNG grid: one row per entry of `rows` ({label: uint8 [T, H, W, 3]}),
+  its label drawn at the left; columns are every `strip_every`-th frame,
+  green-bordered while observed (burn-in), red-bordered when predicted."""
+  num_frames = next(iter(rows.values())).shape[0]
   columns = list(range(0, num_frames, max(1, render_config.strip_every)))
-  grid = np.concatenate([
-      np.concatenate([
-          _tile(row[t], _ROLLOUT_COLOUR if t >= burn_in else _BURN_IN_COLOUR,
-                render_config.scale)
-          for t in columns], axis=1)
-      for row in rows], axis=0)
-  Image.fromarray(grid).save(path)
+  strips = [np.concatenate([
+      _tile(row[t], _ROLLOUT_COLOUR if t >= burn_in else _BURN_IN_COLOUR,
+            render_config.scale)
+      for t in columns], axis=1) for row in rows.values()]
+  tile_h, width = strips[0].shape[:2]
+  canvas = Image.new('RGB', (_LABEL_WIDTH + width, tile_h * len(strips)),
+                     (255, 255, 255))
+  draw = ImageDraw.Draw(canvas)
+  for i, (name, strip) in enumerate(zip(rows, strips)):
+    canvas.paste(Image.fromarray(strip), (_LABEL_WIDTH, i * tile_h))
+    draw.text((3, i * tile_h + tile_h // 2 - 5), name, fill=(0, 0, 0))
+  canvas.save(path)
 
 
 def _write_attention_figure(path: str, frames: np.ndarray,

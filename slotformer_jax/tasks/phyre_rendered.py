@@ -1,6 +1,7 @@
-"""PHYRE planning on the real, pre-rendered layout (data/convert/phyre.py).
+"""PHYRE planning on the real, pre-rendered layout (data/convert/phyre.py):
+the pure parts (the stages are in stages/planning_rendered.py).
 
-What the layout holds (scripts/render_phyre.py, the official selection):
+What the layout holds (tools/render_phyre.py, the official selection):
 rollouts of a *subset* of PHYRE's cached actions with their simulated
 outcome. Split 'train' has the fold's train + dev tasks (per task
 int(int(2000 * pos_ratio) * data_ratio) solving and int(int(2000 * (1 -
@@ -43,28 +44,15 @@ Workdir: ``planning/<condition>/seed_<s>/{params.msgpack, selection.json}``,
 from __future__ import annotations
 
 import dataclasses
-import json
-import logging
 import os
 from typing import Any
 
-from flax import serialization
-import jax
-from jax.sharding import Mesh
 import ml_collections
 import numpy as np
 
-from slotformer_jax import inference
-from slotformer_jax import models
-from slotformer_jax import workdir as workdir_lib
-from slotformer_jax.data.slots import SlotSource
-from slotformer_jax.data.sources import get_video_source
 from slotformer_jax.errors import ConfigError
 from slotformer_jax.modules import readouts
 from slotformer_jax.tasks import planning
-from slotformer_jax.tasks import readout as readout_lib
-
-logger = logging.getLogger(__name__)
 
 FIRST_FRAME, ROLLOUT = 'first_frame', 'rollout'
 RENDERED = 'rendered'
@@ -105,36 +93,9 @@ def check_candidates(config: ml_collections.ConfigDict) -> None:
         'the rendered rollouts of each test task; not the official protocol)')
 
 
-def _text(value: Any) -> str:
+def text(value: Any) -> str:
   value = value.item() if isinstance(value, np.ndarray) else value
   return value.decode('utf-8') if isinstance(value, bytes) else str(value)
-
-
-def load_rendered(config: ml_collections.ConfigDict, workdir: str,
-                  split: str) -> Rendered:
-  """First-frame slots, outcomes and task ids of a split's rollouts.
-
-  Raises:
-    MissingInputError: the split's slots were not extracted (names
-      --mode=extract_slots) or the dataset is not converted.
-  """
-  directory = workdir_lib.slots_dir(
-      workdir_lib.stage1_workdir(config, workdir), split)
-  slots = SlotSource(directory)
-  videos = get_video_source(config.data, split)
-  if len(videos) != len(slots):
-    raise ValueError(f'{directory} holds slots of {len(slots)} rollouts but '
-                     f'the {split} split has {len(videos)}; re-run '
-                     '--mode=extract_slots')
-  first, outcomes, tasks = [], [], []
-  for i in range(len(videos)):
-    item = videos[i]
-    first.append(slots[i]['slots'][0])
-    outcomes.append(planning.SOLVED if int(item['label']) == 1
-                    else planning.NOT_SOLVED)
-    tasks.append(_text(item['task']))
-  return Rendered(np.stack(first).astype(np.float32),
-                  np.asarray(outcomes, np.int64), tasks)
 
 
 def group_by_task(tasks: list[str]) -> dict[str, np.ndarray]:
@@ -178,34 +139,6 @@ def selected_steps(config: ml_collections.ConfigDict) -> tuple[int, ...]:
   return steps
 
 
-def rollout_features(config: ml_collections.ConfigDict, workdir: str,
-                     mesh: Mesh, first_slots: np.ndarray) -> np.ndarray:
-  """float32 [V, S, N, D]: [first-frame slots, SlotFormer's rollout] at
-  ``readout.selected_steps`` (S of them)."""
-  steps = selected_steps(config)
-  if config.slotformer.burn_in != 1:
-    raise ConfigError('planning observes the first frame only: set '
-                      'slotformer.burn_in = 1')
-  num_steps = max(steps)
-  if num_steps == 0:
-    return first_slots[:, None]
-  params, step = inference.load_dynamics_params(config, workdir, mesh)
-  logger.info('PHYRE rollouts from SlotFormer step %d', step)
-  model = models.build_slotformer(config)
-  run = jax.jit(lambda p, s: inference.rollout_slots(
-      p, s, model=model, num_steps=num_steps))
-  batch = config.readout.encode_batch_size
-  gather = np.asarray(steps[1:]) - 1
-  out = []
-  for i in range(0, len(first_slots), batch):
-    chunk = first_slots[i:i + batch]
-    pad = batch - len(chunk)  # one compiled batch shape
-    padded = np.concatenate([chunk, np.repeat(chunk[-1:], pad, 0)])
-    rollout = np.asarray(run(params, padded[:, None]))[:len(chunk)]
-    out.append(np.concatenate([chunk[:, None], rollout[:, gather]], axis=1))
-  return np.concatenate(out).astype(np.float32)
-
-
 def build_classifier(config: ml_collections.ConfigDict, condition: str,
                      num_selected: int) -> readouts.PhyreReadout:
   """The official classifier on pre-gathered frames."""
@@ -226,125 +159,10 @@ def condition_features(features: np.ndarray, condition: str) -> np.ndarray:
                     f'{FIRST_FRAME!r} or {ROLLOUT!r}')
 
 
-def _splits(config: ml_collections.ConfigDict) -> tuple[str, str]:
+def splits(config: ml_collections.ConfigDict) -> tuple[str, str]:
   splits = config.readout.get('splits') or {}
   return splits.get('train', 'train'), splits.get('test', 'val')
 
 
-def _run_dir(workdir: str, condition: str, seed: int) -> str:
+def run_dir(workdir: str, condition: str, seed: int) -> str:
   return os.path.join(workdir, 'planning', condition, f'seed_{seed}')
-
-
-def train_readout(config: ml_collections.ConfigDict, workdir: str,
-                  mesh: Mesh) -> None:
-  """Fits the classifiers on the training tasks' rollouts; the epoch is
-  chosen by AUCCESS over the dev tasks' rendered candidates."""
-  check_candidates(config)
-  train = load_rendered(config, workdir, _splits(config)[0])
-  dev = dev_tasks(train.tasks, config.readout.dev_share, config.seed)
-  is_dev = np.array([t in dev for t in train.tasks])
-  if is_dev.all() or not is_dev.any():
-    raise ConfigError(f'{len(set(train.tasks))} training tasks cannot be '
-                      f'split by readout.dev_share={config.readout.dev_share}')
-  features = rollout_features(config, workdir, mesh, train.first_slots)
-  dev_groups = {task: rows for task, rows in group_by_task(train.tasks).items()
-                if task in dev}
-  fit_rows = np.flatnonzero(~is_dev)
-  labels = (train.outcomes[fit_rows] == planning.SOLVED).astype(np.float32)
-  logger.info('classifier training set: %d rollouts of %d tasks (%.1f%% '
-              'solving); dev: %d tasks', len(fit_rows),
-              len(set(train.tasks)) - len(dev), 100 * labels.mean(), len(dev))
-  fit_config = readout_lib.FitConfig(
-      epochs=config.readout.epochs, batch_size=config.readout.batch_size,
-      learning_rate=config.readout.learning_rate,
-      warmup_fraction=config.readout.warmup_fraction)
-  num_selected = features.shape[1]
-  for condition in config.readout.conditions:
-    model = build_classifier(config, condition, num_selected)
-    inputs = condition_features(features, condition)
-    for seed in config.readout.seeds:
-      directory = _run_dir(workdir, condition, seed)
-      if os.path.exists(os.path.join(directory, 'selection.json')):
-        continue
-
-      def dev_auccess(params, model=model, inputs=inputs):
-        scores = np.full(len(inputs), -np.inf)
-        rows = np.flatnonzero(is_dev)
-        scores[rows] = readout_lib.predict(model, params, inputs[rows])
-        return task_auccess(scores, train.outcomes, dev_groups)
-
-      params, log = readout_lib.fit(model, (inputs[fit_rows], labels),
-                                    dev_auccess, fit_config, seed=seed)
-      os.makedirs(directory, exist_ok=True)
-      with open(os.path.join(directory, 'params.msgpack'), 'wb') as f:
-        f.write(serialization.msgpack_serialize(params))
-      with open(os.path.join(directory, 'selection.json'), 'w') as f:
-        json.dump({'dev_auccess_rendered': log['best_score'],
-                   'best_epoch': log['best_epoch'],
-                   'dev_tasks': sorted(dev),
-                   'dev_scores': log['scores'],
-                   'train_losses': log['losses']}, f, indent=1)
-      logger.info('classifier %s seed %d: dev AUCCESS (rendered candidates) '
-                  '%.3f (epoch %d)', condition, seed, log['best_score'],
-                  log['best_epoch'])
-
-
-def plan(config: ml_collections.ConfigDict, workdir: str,
-         mesh: Mesh) -> dict[str, Any]:
-  """Ranks the rendered candidates of every test task; AUCCESS per method
-  (random ranking, each classifier, oracle), with the protocol stated."""
-  check_candidates(config)
-  test = load_rendered(config, workdir, _splits(config)[1])
-  groups = group_by_task(test.tasks)
-  features = rollout_features(config, workdir, mesh, test.first_slots)
-  seeds = tuple(config.readout.seeds)
-  results: dict[str, list[float]] = {}
-  rng_scores = [np.random.default_rng(seed).random(len(test.outcomes))
-                for seed in seeds]
-  results['random'] = [task_auccess(s, test.outcomes, groups)
-                       for s in rng_scores]
-  for condition in config.readout.conditions:
-    model = build_classifier(config, condition, features.shape[1])
-    inputs = condition_features(features, condition)
-    values = []
-    for seed in seeds:
-      path = os.path.join(_run_dir(workdir, condition, seed),
-                          'params.msgpack')
-      if not os.path.exists(path):
-        raise FileNotFoundError(
-            f'no trained classifier at {path}; run --mode=train_readout')
-      with open(path, 'rb') as f:
-        params = serialization.msgpack_restore(f.read())
-      scores = readout_lib.predict(model, params, inputs)
-      values.append(task_auccess(scores, test.outcomes, groups))
-    results[condition] = values
-  results['oracle'] = [task_auccess(
-      (test.outcomes == planning.SOLVED).astype(np.float64), test.outcomes,
-      groups)]
-  summary: dict[str, Any] = {
-      name: {'auccess': values, 'mean': float(np.mean(values)),
-             'std': float(np.std(values))}
-      for name, values in results.items()}
-  sizes = [len(i) for i in groups.values()]
-  summary.update(
-      protocol=PROTOCOL_NOTE, candidates=RENDERED,
-      num_test_tasks=len(groups),
-      candidates_per_task=[int(min(sizes)), int(max(sizes))],
-      solving_share=float((test.outcomes == planning.SOLVED).mean()),
-      solvable_test_tasks=int(sum((test.outcomes[i] == planning.SOLVED).any()
-                                  for i in groups.values())))
-  directory = os.path.join(workdir, 'planning')
-  os.makedirs(directory, exist_ok=True)
-  with open(os.path.join(directory, 'results.json'), 'w') as f:
-    json.dump(summary, f, indent=1)
-  from slotformer_jax.tasks import phyre_planning  # pylint: disable=g-import-not-at-top
-  table = phyre_planning.format_table(summary, config.readout.get('fold', '?'))
-  header = (f'{PROTOCOL_NOTE}. {len(groups)} test tasks, '
-            f'{min(sizes)}-{max(sizes)} candidates each, '
-            f'{100 * summary["solving_share"]:.1f}% solving.')
-  with open(os.path.join(directory, 'results.md'), 'w') as f:
-    f.write(header + '\n\n' + table + '\n')
-  logger.warning('%s', header)
-  logger.info('planning on PHYRE (rendered candidates), AUCCESS x 100:\n%s',
-              table)
-  return summary

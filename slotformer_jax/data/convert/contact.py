@@ -509,7 +509,7 @@ def generate_states(config: ContactConfig, split: str, index: int
                     ) -> dict[str, np.ndarray]:
   """The simulator ground truth of video ``index`` without its frames (the
   dict of :func:`simulate` with ``render=False``): what
-  scripts/contact_state_ceiling.py trains on."""
+  experiments/contact_state_ceiling.py trains on."""
   return accepted_scene(config, split, index)[1]
 
 

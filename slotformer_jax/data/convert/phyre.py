@@ -1,7 +1,7 @@
 """PHYRE: pre-rendered rollouts (documented layout) and their conversion.
 
 The ``phyre`` simulator has no wheel for Python 3.11, so the project does not
-simulate; ``scripts/render_phyre.py`` (run where ``pip install phyre`` works)
+simulate; ``tools/render_phyre.py`` (run where ``pip install phyre`` works)
 renders the rollouts once into this layout::
 
     <source>/
@@ -69,7 +69,7 @@ LAYOUT = """\
 <source>/{train,val}/rollouts.jsonl   (one {"id", "task", "action",
                                         "success", "num_frames"} per line)
 <source>/{train,val}/frames/<id>.png  (frames stacked vertically, RGB)
-(written by scripts/render_phyre.py; see docs/datasets.md)"""
+(written by tools/render_phyre.py; see docs/datasets.md)"""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -124,7 +124,7 @@ def layout_error(source: Path, missing: Path,
   """The error for a missing part of the documented layout."""
   return FileNotFoundError(
       f'PHYRE: {missing} not found{detail}. Expected the layout written by '
-      f'scripts/render_phyre.py under --source={source}:\n{LAYOUT}')
+      f'tools/render_phyre.py under --source={source}:\n{LAYOUT}')
 
 
 def read_meta(source: Path) -> dict[str, Any]:

@@ -1,6 +1,7 @@
 r"""Rollout vs first-frame planning classifier, task by task (issue 11).
+Answered (numbers, commands, machine) in docs/experiments/planning.md.
 
-  python benchmarks/planning_per_task.py --split=test \
+  python experiments/planning_per_task.py --split=test \
       --workdir=runs/ramp_f0 --workdir=runs/ramp_f1 --workdir=runs/ramp_f2
 
 AUCCESS over 16-20 tasks per fold moves by several points between seeds, so

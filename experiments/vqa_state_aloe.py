@@ -1,6 +1,7 @@
 r"""Can Aloe learn the embedded predictive questions from perfect object states?
+Answered (numbers, commands, machine) in docs/experiments/vqa.md.
 
-  python benchmarks/vqa_state_aloe.py [--config=configs/synthetic_vqa.py]
+  python experiments/vqa_state_aloe.py [--config=configs/synthetic_vqa.py]
       [--num_train=600] [--inputs=future,observed] [--binding=words,given]
       [--seeds=0,1,2] [--steps=3000] [--dropout=0] [--choice_batch_size=32]
       [--split=test] [--out=result.json]
@@ -205,7 +206,8 @@ def train_and_evaluate(config: Any, train: SplitData, evaluation: SplitData,
                        ) -> dict[str, float]:
   """Trains Aloe for ``config.vqa.num_train_steps`` and scores it."""
   vqa = config.vqa
-  model = models.build_aloe(config, len(vocab.questions), len(vocab.answers))
+  model = models.build_aloe(config, len(vocab.questions), len(vocab.answers),
+                            num_slots=config.savi.num_slots)
   train_batches = train.batches(vqa)
   stream = train_batches.train_batches(vqa.open_batch_size,
                                        vqa.choice_batch_size, seed=seed)

@@ -5,7 +5,7 @@ this script once in an environment where ``pip install phyre`` works (phyre
 0.2.2 has Linux wheels for CPython 3.6-3.9; this script needs 3.7+ and only
 numpy, Pillow and phyre), then convert its output anywhere::
 
-    python scripts/render_phyre.py --out=/data/phyre_rollouts --fold=0
+    python tools/render_phyre.py --out=/data/phyre_rollouts --fold=0
     python -m slotformer_jax.data.prepare --dataset=phyre \\
         --source=/data/phyre_rollouts --data_dir=/data/slotformer
 

@@ -1,6 +1,7 @@
 r"""Are the embedded predictive questions answerable from the simulator state?
+Answered (numbers, commands, machine) in docs/experiments/vqa.md.
 
-  python benchmarks/vqa_state_probe.py [--config=configs/synthetic_vqa.py]
+  python experiments/vqa_state_probe.py [--config=configs/synthetic_vqa.py]
 
 For every predictive option "the X collides with the Y" of the train and val
 splits, re-simulates the video (physics only, no rendering) and fits, on

@@ -1,4 +1,4 @@
-"""Converters of the official Physion slot model: dVAE, STEVE, STEVESlotFormer.
+"""The official Physion families: dVAE, STEVE, STEVESlotFormer.
 
 Official modules (pairlab/SlotFormer): `base_slots/models/dVAE.py` (dVAE),
 `base_slots/models/steve.py` + `steve_transformer.py` (STEVE and its
@@ -13,7 +13,7 @@ state dict also holds frozen copies of the modules it was trained with:
 
 Here the pipeline reads those modules from the dVAE / STEVE stages of the
 workdir, so the copies are converted into `extras` and the writer
-(convert_official.py) requires them to equal, bit for bit, what the workdir
+(convert.py) requires them to equal, bit for bit, what the workdir
 already holds (convert in the order dVAE, STEVE, SlotFormer; one command
 with all three files does that).
 """
@@ -25,15 +25,15 @@ from typing import Any
 import ml_collections
 import numpy as np
 
-from slotformer_jax import steve_inference
-from slotformer_jax.official import families
+from slotformer_jax import inference
+from slotformer_jax import models
+from slotformer_jax.official import common
 from slotformer_jax.official import layers
-from slotformer_jax.official.families import ConversionError
-from slotformer_jax.official.families import Converted
+from slotformer_jax.official.common import ConversionError
+from slotformer_jax.official.common import Converted
+from slotformer_jax.official.common import Family
 from slotformer_jax.official.layers import StateDictMapper
-
-DVAE_STAGE = 'dvae'
-STEVE_STAGE = 'steve'
+from slotformer_jax.slot_models.steve import Steve
 
 # dVAE: official `nn.Sequential` index -> this project's layer. Pixel
 # shuffles (decoder.5, decoder.10) have no weights.
@@ -46,7 +46,7 @@ _DVAE_OUT = 11
 
 
 def _require_steve(config: ml_collections.ConfigDict, why: str) -> None:
-  families.require(config, 'slot_model', 'steve', why)
+  common.require(config, 'slot_model', 'steve', why)
 
 
 def _copy(state_dict: dict[str, np.ndarray], prefix: str,
@@ -88,7 +88,7 @@ def _assemble_dvae(state_dict: dict[str, np.ndarray],
   m = StateDictMapper(state_dict)
   map_dvae(m)
   try:
-    return families.assemble(m, steve_inference.dvae_param_shapes(config),
+    return common.assemble(m, Steve(config).dvae_param_shapes(),
                              hints={'': 'config.dvae'})
   except ConversionError as error:
     raise ConversionError(f'{what}: {error}') from error
@@ -98,7 +98,7 @@ def convert_dvae(state_dict: dict[str, np.ndarray],
                  config: ml_collections.ConfigDict) -> Converted:
   """Official dVAE (`dvae_physion_params/model_20.pth`) -> `dvae/`."""
   _require_steve(config, 'is the tokenizer of STEVE')
-  return Converted('dvae', DVAE_STAGE,
+  return Converted('dvae', common.DVAE_STAGE,
                    _assemble_dvae(state_dict, config, 'dVAE'))
 
 
@@ -153,15 +153,15 @@ def map_token_decoder(m: StateDictMapper, config: ml_collections.ConfigDict,
 
 def _require_official_steve(config: ml_collections.ConfigDict) -> None:
   _require_steve(config, 'is a STEVE')
-  families.require(config, 'steve.layer_norm_epsilon',
-                   families.PYTORCH_LN_EPSILON,
+  common.require(config, 'steve.layer_norm_epsilon',
+                   common.PYTORCH_LN_EPSILON,
                    "uses PyTorch's LayerNorm epsilon")
-  families.require(
+  common.require(
       config, 'steve.encoder.strides',
-      families.official_encoder_strides(config, 'steve'),
+      common.official_encoder_strides(config, 'steve'),
       f'strides its encoder so at {tuple(config.data.resolution)}')
   if max(config.steve.encoder.strides) > 1:
-    families.require(config, 'steve.encoder.padding', 'pytorch',
+    common.require(config, 'steve.encoder.padding', 'pytorch',
                      'pads its strided convolution by K // 2 on every side')
 
 
@@ -191,12 +191,12 @@ def convert_steve(state_dict: dict[str, np.ndarray],
   if latents is not None:
     m.put('initial_slots', latents[0], 'init_latents', latents.shape,
           'config.steve.num_slots / slot_size')
-  families.map_cnn_encoder(m, config, 'steve')
-  families.map_slot_attention(m, 'frame_step/corrector', 'steve')
+  common.map_cnn_encoder(m, config, 'steve')
+  common.map_slot_attention(m, 'frame_step/corrector', 'steve')
   _map_steve_predictor(m, config, 'frame_step/predictor')
   map_token_decoder(m, config)
   m.skip_prefix('dvae.')
-  params = families.assemble(m, steve_inference.steve_param_shapes(config),
+  params = common.assemble(m, Steve(config).steve_param_shapes(),
                              hints={
                                  'predictor.': 'config.steve.predictor',
                                  'trans_decoder.tf_dec.blocks':
@@ -207,7 +207,7 @@ def convert_steve(state_dict: dict[str, np.ndarray],
   if any(key.startswith('dvae.') for key in state_dict):
     extras['dvae'] = _assemble_dvae(_copy(state_dict, 'dvae.'), config,
                                     "STEVE's dVAE copy (dvae.*)")
-  return Converted('steve', STEVE_STAGE, params, extras=extras)
+  return Converted('steve', common.STEVE_STAGE, params, extras=extras)
 
 
 # --------------------------------------------------------------------------
@@ -222,11 +222,13 @@ def convert_steve_slotformer(state_dict: dict[str, np.ndarray],
   ('dvae', 'steve_decoder')."""
   _require_steve(config, 'runs on STEVE slots')
   m = StateDictMapper(state_dict)
-  families.map_rollouter(m, config)
+  common.map_rollouter(m, config)
   m.skip_prefix('dvae.')
   m.skip_prefix('decoder.')
-  params = families.assemble(
-      m, steve_inference.dynamics_param_shapes(config),
+  params = common.assemble(
+      m, inference.dynamics_param_shapes(
+          config, models.SLOTFORMER,
+          (config.steve.num_slots, config.steve.slot_size)),
       hints={'rollouter.transformer_encoder': 'config.slotformer.num_layers'})
   extras = {}
   if any(key.startswith('dvae.') for key in state_dict):
@@ -235,24 +237,40 @@ def convert_steve_slotformer(state_dict: dict[str, np.ndarray],
   if any(key.startswith('decoder.') for key in state_dict):
     decoder = StateDictMapper(_copy(state_dict, 'decoder.', 'trans_decoder.'))
     map_token_decoder(decoder, config)
-    abstract = {'decoder': steve_inference.steve_param_shapes(config)['decoder']}
+    abstract = {'decoder': Steve(config).steve_param_shapes()['decoder']}
     try:
-      extras['steve_decoder'] = families.assemble(
+      extras['steve_decoder'] = common.assemble(
           decoder, abstract, hints={})['decoder']
     except ConversionError as error:
       raise ConversionError(
           f"SlotFormer's token-decoder copy (decoder.*, named "
           f'trans_decoder.* above): {error}') from error
-  return Converted('steve_slotformer', families.SLOTFORMER_STAGE, params,
+  return Converted('steve_slotformer', common.SLOTFORMER_STAGE, params,
                    extras=extras)
 
 
-def max_difference(a: Any, b: Any) -> float:
-  """Largest |a - b| over two parameter trees of the same structure."""
-  flat_a, flat_b = families._flatten(a), families._flatten(b)  # pylint: disable=protected-access
-  if set(flat_a) != set(flat_b):
-    return float('inf')
-  return max(float(np.max(np.abs(np.asarray(flat_a[k]) -
-                                 np.asarray(flat_b[k]))))
-             for k in flat_a)
+def _is_steve_slotformer(keys: set[str]) -> bool:
+  """STEVESlotFormer: the rollouter plus copies of the dVAE and of STEVE's
+  token decoder."""
+  return 'rollouter.in_proj.weight' in keys and any(
+      k.startswith('dvae.') for k in keys)
 
+
+def _is_steve(keys: set[str]) -> bool:
+  """STEVE: SAVi's encoder and Slot Attention, a token decoder and a dVAE
+  copy (before 'savi', whose keys it also has)."""
+  return 'init_latents' in keys and any(
+      k.startswith(('dvae.', 'trans_decoder.')) for k in keys)
+
+
+def _is_dvae(keys: set[str]) -> bool:
+  """The dVAE: only `encoder.*` / `decoder.*`, with GroupNorm conv blocks
+  (`<i>.m.weight`, the bias-free conv of a Conv2dBlock)."""
+  return (bool(keys) and any(k.endswith('.m.weight') for k in keys)
+          and all(k.startswith(('encoder.', 'decoder.')) for k in keys))
+
+
+STEVE_SLOTFORMER_FAMILY = Family('steve_slotformer', _is_steve_slotformer,
+                                 convert_steve_slotformer)
+STEVE_FAMILY = Family('steve', _is_steve, convert_steve)
+DVAE_FAMILY = Family('dvae', _is_dvae, convert_dvae)

@@ -1,4 +1,5 @@
 """How much does the future tell, in simulator states? (issue 11, step 1)
+Answered (numbers, commands, machine) in docs/experiments/contact.md.
 
 Before blaming SAVi or SlotFormer for a rollout that does not help contact
 prediction, check the task itself: train the contact readout on SIMULATOR
@@ -14,7 +15,7 @@ states. Epoch and threshold are chosen on readout_val, accuracy is reported
 on readout_test (mean +- std over seeds). No rendering: every video is the
 accepted physics-only pass of data/convert/contact.generate_states.
 
-  nice -n 19 python scripts/contact_state_ceiling.py \
+  nice -n 19 python experiments/contact_state_ceiling.py \
       --config=configs/synthetic_contact.py:side
 """
 

@@ -1,4 +1,5 @@
 """Does the future tell more than the first frame, in simulator states? (issue 11)
+Answered (numbers, commands, machine) in docs/experiments/planning.md.
 
 The planning classifier on SAVi slots of the first frame (85.9 mean AUCCESS
 over 3 folds) is not beaten by the one on first frame + SlotFormer rollout
@@ -22,7 +23,7 @@ accuracy at p = 0.5 over every valid candidate of the test tasks. States come
 from phyre_like.simulate(record=True) (physics only, no rendering), whose
 outcome is the candidate's label.
 
-  nice -n 19 python scripts/planning_state_ceiling.py --folds 0 1 2
+  nice -n 19 python experiments/planning_state_ceiling.py --folds 0 1 2
 """
 
 from __future__ import annotations

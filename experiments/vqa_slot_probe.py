@@ -1,6 +1,7 @@
 r"""Is the object a question names held by ONE slot? (issue 12, diagnosis)
+Answered (numbers, commands, machine) in docs/experiments/vqa.md.
 
-  python benchmarks/vqa_slot_probe.py --workdir=runs/vqa [--frame=23]
+  python experiments/vqa_slot_probe.py --workdir=runs/vqa [--frame=23]
 
 Aloe answers "will the red cube collide with the blue sphere" only if it can
 find the slots of those objects. This probe asks whether SAVi's slots are
@@ -38,7 +39,7 @@ import jax.numpy as jnp
 import ml_collections
 import numpy as np
 
-from slotformer_jax import inference
+from slotformer_jax import slot_models
 from slotformer_jax import models
 from slotformer_jax import workdir as workdir_lib
 from slotformer_jax.data import clevrer_like
@@ -148,7 +149,8 @@ def main() -> None:
       clevrer_like.config_from_data_config(config.data),
       resolve_data_dir(config.data.get('data_dir', None))))
   mesh = sharding.make_mesh()
-  params, step = inference.load_savi_params(config, args.workdir, mesh)
+  loaded = slot_models.get(config).load(args.workdir, mesh)
+  params, step = loaded.params, loaded.step
   decoder_params = sharding.gather_to_host(params)['decoder']
   decoder = models.build_decoder(config)
 

@@ -1,6 +1,7 @@
 r"""Can extrapolating the observed end answer the predictive questions? (issue 12)
+Answered (numbers, commands, machine) in docs/experiments/vqa.md.
 
-  python benchmarks/vqa_state_extrapolation.py [--config=configs/synthetic_vqa.py]
+  python experiments/vqa_state_extrapolation.py [--config=configs/synthetic_vqa.py]
       [--variant=big] [--num_train=200 --num_val=100 --num_test=100]
 
 Generates the videos of the config's data settings (physics only: no
@@ -19,7 +20,7 @@ rules on the simulator's states:
   (``clevrer_like.future_clearance``): a sanity check of the rule's
   geometry (the labels come from bullet's contacts, so ~100%).
 * ``state probe``: a logistic regression (fitted on train options) on the
-  features of benchmarks/vqa_state_probe.py (X's and Y's positions and
+  features of experiments/vqa_state_probe.py (X's and Y's positions and
   velocities at the last two observed frames, distance, time and distance
   of closest approach): any learned reader of the observed end.
 

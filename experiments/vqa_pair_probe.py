@@ -1,6 +1,7 @@
 r"""Do the slots after the video tell whether X and Y will collide? (issue 12)
+Answered (numbers, commands, machine) in docs/experiments/vqa.md.
 
-  python benchmarks/vqa_pair_probe.py --workdir=runs/vqa [--split=val]
+  python experiments/vqa_pair_probe.py --workdir=runs/vqa [--split=val]
 
 Aloe must both find the slots of the objects a predictive choice names and
 read the future from them. This probe takes the first part away and asks
@@ -50,7 +51,7 @@ import jax.numpy as jnp
 import ml_collections
 import numpy as np
 
-from slotformer_jax import inference
+from slotformer_jax import slot_models
 from slotformer_jax import models
 from slotformer_jax import workdir as workdir_lib
 from slotformer_jax.data import clevrer_like
@@ -202,7 +203,8 @@ def main() -> None:
       resolve_data_dir(config.data.get('data_dir', None))))
   probe = _benchmark('vqa_slot_probe')
   mesh = sharding.make_mesh()
-  params, step = inference.load_savi_params(config, args.workdir, mesh)
+  loaded = slot_models.get(config).load(args.workdir, mesh)
+  params, step = loaded.params, loaded.step
   decoder_params = sharding.gather_to_host(params)['decoder']
   decoder = models.build_decoder(config)
 

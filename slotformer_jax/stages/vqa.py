@@ -37,10 +37,14 @@ import tqdm
 
 from slotformer_jax import inference
 from slotformer_jax import models
-from slotformer_jax import stages
+from slotformer_jax import slot_models
 from slotformer_jax import workdir as workdir_lib
 from slotformer_jax.data import vqa as vqa_data
 from slotformer_jax.data.slots import SlotSource
+from slotformer_jax.errors import ConfigError
+from slotformer_jax.errors import MissingInputError
+from slotformer_jax.files import read_json
+from slotformer_jax.files import write_json_atomic
 from slotformer_jax.tasks import vqa as task
 from slotformer_jax.train import sharding
 from slotformer_jax.train import steps
@@ -68,7 +72,7 @@ def variant_dir(config: ml_collections.ConfigDict, workdir: str) -> str:
 
 def _check_inputs(config: ml_collections.ConfigDict) -> None:
   if config.vqa.inputs not in INPUTS:
-    raise ValueError(f'vqa.inputs must be one of {INPUTS}, got '
+    raise ConfigError(f'vqa.inputs must be one of {INPUTS}, got '
                      f'{config.vqa.inputs!r}')
 
 
@@ -86,7 +90,7 @@ def _questions_root(config: ml_collections.ConfigDict) -> str:
         resolve_data_dir(config.data.get('data_dir', None)),
         num_workers=config.data.get('num_workers', None)))
   if not config.vqa.questions_root:
-    raise ValueError('set vqa.questions_root to the folder holding '
+    raise ConfigError('set vqa.questions_root to the folder holding '
                      "CLEVRER's questions/{train,validation,test}.json")
   return config.vqa.questions_root
 
@@ -123,18 +127,18 @@ def vqa_slots(config: ml_collections.ConfigDict, workdir: str,
   """Writes each split's observed slots followed by SlotFormer's rollout."""
   vqa = config.vqa
   dynamics = config.slotformer
-  params, step = stages.load_slotformer_params(config, workdir, mesh)
+  params, step = inference.load_dynamics_params(
+      config, workdir, mesh, models.SLOTFORMER,
+      slot_models.get(config).slot_shape)
   model = models.build_slotformer(config)
   meta_path = os.path.join(vqa_dir(workdir), 'slots', 'meta.json')
   meta = {'slotformer_step': step, 'video_length': vqa.video_length,
           'rollout_frames': vqa.rollout_frames}
-  if os.path.exists(meta_path):
-    with open(meta_path) as f:
-      if json.load(f) == meta and all(
-          os.path.exists(_slots_path(workdir, s))
-          for s in config.extraction.splits):
-        logger.info('VQA slots already rolled out (SlotFormer step %d)', step)
-        return
+  if os.path.exists(meta_path) and read_json(meta_path) == meta and all(
+      os.path.exists(_slots_path(workdir, s))
+      for s in config.extraction.splits):
+    logger.info('VQA slots already rolled out (SlotFormer step %d)', step)
+    return
   params = sharding.gather_to_host(params)
   roll = jax.jit(functools.partial(inference.rollout_slots, model=model),
                  static_argnames='num_steps')
@@ -154,8 +158,8 @@ def vqa_slots(config: ml_collections.ConfigDict, workdir: str,
       observed = np.stack([source[i]['slots'][:vqa.video_length]
                            for i in ids])
       if observed.shape[1] != vqa.video_length:
-        raise ValueError(f'{split} videos have {observed.shape[1]} frames of '
-                         f'slots, vqa.video_length is {vqa.video_length}')
+        raise ConfigError(f'{split} videos have {observed.shape[1]} frames '
+                          f'of slots, vqa.video_length is {vqa.video_length}')
       future = task.rollout_after_video(
           rollout, observed, burn_in=dynamics.burn_in,
           stride=dynamics.frame_stride, num_frames=vqa.rollout_frames)
@@ -169,8 +173,7 @@ def vqa_slots(config: ml_collections.ConfigDict, workdir: str,
     del out
     os.replace(_slots_path(workdir, split) + '.tmp.npy',
                _slots_path(workdir, split))
-  with open(meta_path, 'w') as f:
-    json.dump(meta, f)
+  write_json_atomic(meta_path, meta)
 
 
 def _filename_to_index(config: ml_collections.ConfigDict,
@@ -197,7 +200,7 @@ def _true_future_slots(config: ml_collections.ConfigDict, workdir: str,
   for i in range(len(source)):
     slots = source[i]['slots']
     if len(slots) < length:
-      raise ValueError(
+      raise ConfigError(
           f"vqa.inputs='future' needs slots of {length} frames per video "
           f'(the video and the frames after it), {split} video {i} has '
           f'{len(slots)}: extract slots over the whole simulated clip')
@@ -212,7 +215,7 @@ def question_batches(config: ml_collections.ConfigDict, workdir: str,
   vqa = config.vqa
   path = _slots_path(workdir, split)
   if not os.path.exists(path):
-    raise FileNotFoundError(f'{path} is missing: run --mode=vqa_slots first')
+    raise MissingInputError(f'{path} is missing: run --mode=vqa_slots first')
   slots = np.load(path, mmap_mode='r')
   if vqa.inputs == 'future':
     slots = _true_future_slots(config, workdir, split, slots.shape[1])
@@ -237,10 +240,11 @@ def question_batches(config: ml_collections.ConfigDict, workdir: str,
 def _model_and_init(config: ml_collections.ConfigDict,
                     vocab: vqa_data.Vocabulary):
   vqa = config.vqa
-  model = models.build_aloe(config, len(vocab.questions), len(vocab.answers))
+  slot_shape = slot_models.get(config).slot_shape
+  model = models.build_aloe(config, len(vocab.questions), len(vocab.answers),
+                            num_slots=slot_shape[0])
   length = vqa.max_question_len + vqa.max_choice_len
-  slots = jnp.zeros((1, vqa.num_frames, config.savi.num_slots,
-                     config.savi.slot_size))
+  slots = jnp.zeros((1, vqa.num_frames, *slot_shape))
 
   def init(rng: jax.Array) -> Any:
     return steps.init_params(
@@ -277,7 +281,7 @@ def _load_aloe(config: ml_collections.ConfigDict, workdir: str, mesh: Mesh,
   directory = variant_dir(config, workdir)
   checkpointer = checkpointer_for(directory, read_only=True)
   if checkpointer.latest_step() is None:
-    raise FileNotFoundError(f'no Aloe checkpoint under {directory}; run '
+    raise MissingInputError(f'no Aloe checkpoint under {directory}; run '
                             '--mode=train_vqa first')
   state = checkpointer.restore(abstract_train_state(
       lambda rng: {'params': init(rng)}, config.vqa, mesh))
@@ -322,19 +326,19 @@ def evaluate_vqa(config: ml_collections.ConfigDict, workdir: str,
     results['descriptive_per_template'] = task.open_accuracy_per_template(
         questions, open_answers)
   if jax.process_index() == 0:
-    os.makedirs(directory, exist_ok=True)
-    with open(os.path.join(directory, f'metrics_{split}.json'), 'w') as f:
-      json.dump(results, f, indent=1)
+    write_json_atomic(os.path.join(directory, f'metrics_{split}.json'),
+                      results, sort_keys=False)
     if not has_answers:
-      with open(os.path.join(directory, f'predictions_{split}.json'),
-                'w') as f:
-        json.dump(task.prediction_file(questions, open_answers,
-                                       choice_correct, vocab.answer_names), f)
+      write_json_atomic(
+          os.path.join(directory, f'predictions_{split}.json'),
+          task.prediction_file(questions, open_answers, choice_correct,
+                               vocab.answer_names), indent=None,
+          sort_keys=False)
     if has_answers:
       prior = task.evaluate_answer_prior(task.fit_answer_prior(
           encoded_questions(config, 'train', vocab)), questions)
-      with open(os.path.join(vqa_dir(workdir),
-                             f'answer_prior_{split}.json'), 'w') as f:
-        json.dump(prior, f, indent=1)
+      write_json_atomic(
+          os.path.join(vqa_dir(workdir), f'answer_prior_{split}.json'),
+          prior, sort_keys=False)
   logger.info('VQA %s on %s: %s', vqa.inputs, split, json.dumps(results))
   return results

@@ -1,6 +1,7 @@
 r"""What the wording alone tells about multiple-choice labels, per question type.
+Answered (numbers, commands, machine) in docs/experiments/vqa.md.
 
-  python benchmarks/vqa_wording_prior.py --root=<dataset folder with questions/>
+  python experiments/vqa_wording_prior.py --root=<dataset folder with questions/>
 
 A question-only baseline that needs no training: every choice gets a key
 from its text only, (template, choice kind, whether the choice names an

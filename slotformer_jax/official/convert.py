@@ -1,11 +1,11 @@
 r"""Imports the authors' released PyTorch checkpoints into a workdir.
 
-  python -m slotformer_jax.convert_official --config=configs/obj3d.py \
+  python -m slotformer_jax.official.convert --config=configs/obj3d.py \
       --workdir=runs/obj3d_official \
       --checkpoint=pretrained/savi_obj3d_params/model_40.pth \
       --checkpoint=pretrained/slotformer_obj3d_params/model_200.pth
 
-  python -m slotformer_jax.convert_official --config=configs/physion.py \
+  python -m slotformer_jax.official.convert --config=configs/physion.py \
       --workdir=runs/physion_official \
       --checkpoint=pretrained/dvae_physion_params/model_20.pth \
       --checkpoint=pretrained/steve_physion_params/model_10.pth \
@@ -43,22 +43,21 @@ import ml_collections
 from ml_collections import config_flags
 import numpy as np
 
-from slotformer_jax import inference
 from slotformer_jax import models
-from slotformer_jax import steve_inference
-from slotformer_jax import steve_workdir
 from slotformer_jax import workdir as workdir_lib
 from slotformer_jax.errors import UserError
 from slotformer_jax.files import write_json_atomic
+from slotformer_jax.official import common
 from slotformer_jax.official import families
 from slotformer_jax.official import pth_reader
-from slotformer_jax.official import steve_families
+from slotformer_jax.slot_models import savi as savi_slots
+from slotformer_jax.slot_models import steve as steve_slots
 from slotformer_jax.train import optim
 from slotformer_jax.train.state import TrainState
 from slotformer_jax.train.trainer import checkpointer_for
 
 # Not __name__: that is '__main__' under python -m.
-logger = logging.getLogger('slotformer_jax.convert_official')
+logger = logging.getLogger('slotformer_jax.official.convert')
 
 
 # Provenance of a converted stage, beside its model_config.json.
@@ -67,22 +66,22 @@ CONVERTED_FROM_FILE = 'converted_from.json'
 # The order in which checkpoints are written: each stage before the ones
 # whose frozen copies are checked against it (and whose identity names it as
 # parent).
-_ORDER = (steve_families.DVAE_STAGE, steve_families.STEVE_STAGE,
-          families.SAVI_STAGE, families.SLOTFORMER_STAGE)
+_ORDER = (common.DVAE_STAGE, common.STEVE_STAGE, common.SAVI_STAGE,
+          common.SLOTFORMER_STAGE)
 
 
 def check_channel_order(config: ml_collections.ConfigDict) -> None:
   """The official CLEVRER models saw BGR frames: refuse RGB; the other
   official models (OBJ3D, PHYRE, Physion) saw RGB: refuse BGR."""
   channel_order = config.data.get('channel_order', 'rgb')
-  if config.data.name in families.BGR_DATASETS and channel_order != 'bgr':
-    raise families.ConversionError(
+  if config.data.name in common.BGR_DATASETS and channel_order != 'bgr':
+    raise common.ConversionError(
         f'the official {config.data.name} models were trained on BGR frames '
         "(OpenCV); add --config.data.channel_order=bgr here and to every "
         'later command on this workdir (the SAVi model config records it)')
-  if (config.data.name in families.RGB_DATASETS
+  if (config.data.name in common.RGB_DATASETS
       and channel_order != 'rgb'):
-    raise families.ConversionError(
+    raise common.ConversionError(
         f'the official {config.data.name} models were trained on RGB frames '
         f'(read with PIL), not {channel_order!r}; drop '
         '--config.data.channel_order (or set it to rgb)')
@@ -93,15 +92,15 @@ def _stage_target(config: ml_collections.ConfigDict, workdir: str,
                                        ml_collections.ConfigDict]:
   """(directory, model-config fields, stage config) of `stage`."""
   root = workdir_lib.stage1_workdir(config, workdir)
-  if stage == steve_families.DVAE_STAGE:
-    return (steve_workdir.dvae_dir(root),
-            steve_workdir.dvae_model_fields(config), config.dvae)
-  if stage == steve_families.STEVE_STAGE:
-    return (steve_workdir.steve_dir(root),
-            steve_workdir.steve_model_fields(config), config.steve)
-  if stage == families.SAVI_STAGE:
-    return (workdir_lib.savi_dir(workdir_lib.stage1_workdir(config, workdir)),
-            workdir_lib.savi_model_fields(config), config.savi)
+  if stage == common.DVAE_STAGE:
+    return (steve_slots.dvae_dir(root),
+            steve_slots.dvae_model_fields(config), config.dvae)
+  if stage == common.STEVE_STAGE:
+    return (steve_slots.steve_dir(root),
+            steve_slots.steve_model_fields(config), config.steve)
+  if stage == common.SAVI_STAGE:
+    return (savi_slots.savi_dir(root), savi_slots.model_fields(config),
+            config.savi)
   return (workdir_lib.dynamics_dir(workdir, stage),
           workdir_lib.dynamics_model_fields(config, stage),
           models.dynamics_config(config, stage))
@@ -153,23 +152,23 @@ def _identity(config: ml_collections.ConfigDict, workdir: str,
   the workdir's dVAE at its last step, a SlotFormer from the workdir's SAVi
   or STEVE at its last step (the slots extracted later name the same
   parent)."""
-  if stage == steve_families.DVAE_STAGE:
+  if stage == common.DVAE_STAGE:
+    return workdir_lib.new_identity(steve_slots.dvae_identity_fields(config))
+  if stage == common.STEVE_STAGE:
     return workdir_lib.new_identity(
-        steve_workdir.dvae_identity_fields(config))
-  if stage == steve_families.STEVE_STAGE:
-    return workdir_lib.new_identity(
-        steve_workdir.steve_identity_fields(config),
-        steve_workdir.dvae_parent(steve_workdir.dvae_identity(config, workdir),
-                                  int(config.dvae.num_train_steps)))
-  if stage == families.SAVI_STAGE:
-    return workdir_lib.new_identity(workdir_lib.savi_identity_fields(config))
-  if config.slot_model == steve_workdir.STEVE:
+        steve_slots.steve_identity_fields(config),
+        steve_slots.dvae_parent(steve_slots.dvae_identity(config, workdir),
+                                int(config.dvae.num_train_steps)))
+  if stage == common.SAVI_STAGE:
+    return workdir_lib.new_identity(savi_slots.identity_fields(config))
+  if config.slot_model == steve_slots.NAME:
     parent = workdir_lib.slots_parent(
-        steve_workdir.steve_identity(config, workdir),
-        int(config.steve.num_train_steps), steve_workdir.STEVE)
+        steve_slots.steve_identity(config, workdir),
+        int(config.steve.num_train_steps), steve_slots.NAME)
   else:
-    parent = workdir_lib.slots_parent(workdir_lib.savi_identity(config, workdir),
-                                      int(config.savi.num_train_steps))
+    parent = workdir_lib.slots_parent(
+        savi_slots.Savi(config).check_identity(workdir),
+        int(config.savi.num_train_steps), savi_slots.NAME)
   return workdir_lib.new_identity(
       workdir_lib.dynamics_identity_fields(config, stage), parent)
 
@@ -185,22 +184,23 @@ def _sha256(path: str) -> str:
 def check_frozen_decoder(config: ml_collections.ConfigDict, workdir: str,
                          decoder: Any) -> None:
   """SlotFormer's frozen decoder copy must be the workdir's SAVi decoder."""
-  directory = workdir_lib.savi_dir(workdir_lib.stage1_workdir(config, workdir))
+  directory = savi_slots.savi_dir(
+      workdir_lib.stage1_workdir(config, workdir))
   mesh = jax.sharding.Mesh(np.array(jax.devices()[:1]), ('data',))
   try:
-    savi_params, _ = inference.load_savi_params(config, workdir, mesh)
+    savi_params = savi_slots.Savi(config).load(workdir, mesh).params
   except FileNotFoundError as error:
-    raise families.ConversionError(
+    raise common.ConversionError(
         f'no SAVi checkpoint in {directory}: convert the SAVi checkpoint the '
         'SlotFormer was trained on first (or in the same command, e.g. '
         'savi_obj3d_params/model_40.pth before slotformer_obj3d_params/...)'
     ) from error
-  flat_savi = families._flatten(savi_params['decoder'])  # pylint: disable=protected-access
-  flat_copy = families._flatten(decoder)  # pylint: disable=protected-access
+  flat_savi = common.flatten(savi_params['decoder'])
+  flat_copy = common.flatten(decoder)
   worst = max(float(np.max(np.abs(np.asarray(flat_savi[k]) - flat_copy[k])))
               for k in flat_copy)
   if worst > 0:
-    raise families.ConversionError(
+    raise common.ConversionError(
         f'the SlotFormer checkpoint\'s frozen decoder differs from the SAVi '
         f'decoder in {directory} (max |diff| {worst:.3g}): it was trained '
         'on another SAVi checkpoint')
@@ -210,13 +210,12 @@ def check_frozen_decoder(config: ml_collections.ConfigDict, workdir: str,
 # to read the workdir's own from (config, workdir, mesh)).
 _FROZEN_COPIES = {
     'dvae': ('dVAE', 'dvae_physion_params/model_20.pth',
-             lambda config, workdir, mesh: steve_inference.load_dvae_params(
-                 config, workdir, mesh)[0]),
+             lambda config, workdir, mesh: steve_slots.Steve(
+                 config).load_dvae(workdir, mesh)[0]),
     'steve_decoder': ("STEVE's token decoder",
                       'steve_physion_params/model_10.pth',
-                      lambda config, workdir, mesh:
-                      steve_inference.load_steve_params(
-                          config, workdir, mesh)[0]['decoder']),
+                      lambda config, workdir, mesh: steve_slots.Steve(
+                          config).load_steve(workdir, mesh)[0]['decoder']),
 }
 
 
@@ -230,13 +229,13 @@ def check_frozen_copy(config: ml_collections.ConfigDict, workdir: str,
   try:
     held = load(config, workdir, mesh)
   except FileNotFoundError as error:
-    raise families.ConversionError(
+    raise common.ConversionError(
         f'the official {family} checkpoint carries a frozen copy of the '
         f'{what}, but {workdir} has no {what} checkpoint yet: convert '
         f'{source} first (or in the same command)') from error
-  worst = steve_families.max_difference(held, copy)
+  worst = common.max_difference(held, copy)
   if worst > 0:
-    raise families.ConversionError(
+    raise common.ConversionError(
         f'the official {family} checkpoint\'s frozen copy of the {what} '
         f'differs from the {what} in {workdir} (max |diff| {worst:.3g}): it '
         f'was trained with another {what} checkpoint than {source}')
@@ -244,9 +243,9 @@ def check_frozen_copy(config: ml_collections.ConfigDict, workdir: str,
 
 # extras key -> (the stage holding the original, its part of the params).
 _COPY_SOURCES = {
-    'decoder': (families.SAVI_STAGE, 'decoder'),
-    'dvae': (steve_families.DVAE_STAGE, None),
-    'steve_decoder': (steve_families.STEVE_STAGE, 'decoder'),
+    'decoder': (common.SAVI_STAGE, 'decoder'),
+    'dvae': (common.DVAE_STAGE, None),
+    'steve_decoder': (common.STEVE_STAGE, 'decoder'),
 }
 
 
@@ -261,9 +260,9 @@ def _check_copies_within(converted: list[tuple[str, Any]]) -> None:
         continue
       source, original = by_stage[stage]
       held = original.params if part is None else original.params[part]
-      worst = steve_families.max_difference(held, copy)
+      worst = common.max_difference(held, copy)
       if worst > 0:
-        raise families.ConversionError(
+        raise common.ConversionError(
             f'{path}: its frozen copy of the {stage} '
             f'{"" if part is None else part + " "}differs from {source} '
             f'(max |diff| {worst:.3g}): they are not from the same official '
@@ -352,10 +351,10 @@ def main(argv, flag_holders: dict[str, Any]):
     convert_files(config, flag_holders['workdir'].value,
                   flag_holders['checkpoints'].value,
                   flag_holders['reader'].value)
-  except (families.ConversionError, FileExistsError, NotImplementedError,
+  except (common.ConversionError, FileExistsError, NotImplementedError,
           UserError) as error:
     # What to change is in the message; a traceback would only hide it.
-    sys.exit(f'convert_official: {error}')
+    sys.exit(f'error: {error}')
 
 
 if __name__ == '__main__':

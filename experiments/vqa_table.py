@@ -1,6 +1,7 @@
 r"""Mean +- std over seeds of the VQA variants of one workdir, as a table.
+Answered (numbers, commands, machine) in docs/experiments/vqa.md.
 
-  python benchmarks/vqa_table.py --workdir=runs/vqa [--workdir=...] [--split=test]
+  python experiments/vqa_table.py --workdir=runs/vqa [--workdir=...] [--split=test]
 
 Reads vqa/<inputs>_s<seed>/metrics_<split>.json (written by
 `--mode=evaluate_vqa`) and vqa/answer_prior_<split>.json of every workdir

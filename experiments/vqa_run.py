@@ -1,6 +1,7 @@
 r"""The whole embedded VQA comparison as one command, one stage at a time.
+Answered (numbers, commands, machine) in docs/experiments/vqa.md.
 
-  python benchmarks/vqa_run.py --workdir=runs/vqa [--seeds=0,1,2] \
+  python experiments/vqa_run.py --workdir=runs/vqa [--seeds=0,1,2] \
       [--inputs=future,rollout,observed,blind] [--split=test] \
       [--config=configs/synthetic_vqa.py:long_savi] [-- <flags>]
 
@@ -9,7 +10,7 @@ for is shared), the video pipeline of `configs/synthetic_vqa.py` (dataset if
 missing, SAVi, slot extraction, SlotFormer, the rollout after every video)
 and then `train_vqa` + `evaluate_vqa` for every Aloe input and seed, all in
 one workdir (vqa/<inputs>_s<seed>/); prints the table of
-benchmarks/vqa_table.py and writes the wall time of every step to
+experiments/vqa_table.py and writes the wall time of every step to
 <workdir>/vqa/run_times.json. Flags after `--` go to every stage (e.g.
 `--config.vqa.num_train_steps=500`). The dataset goes to
 $SLOTFORMER_DATA_DIR as usual (built by the first stage that needs it).

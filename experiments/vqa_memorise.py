@@ -1,6 +1,7 @@
 r"""Can Aloe memorise a fixed batch of multiple-choice questions?
+Answered (numbers, commands, machine) in docs/experiments/vqa.md.
 
-  python benchmarks/vqa_memorise.py --workdir=runs/vqa [--inputs=future]
+  python experiments/vqa_memorise.py --workdir=runs/vqa [--inputs=future]
       [--question_type=predictive] [--num_questions=32] [--steps=400]
 
 A wiring check for the multiple-choice path (tokens, question/choice flags,
@@ -32,7 +33,7 @@ import ml_collections
 import numpy as np
 import optax
 
-from slotformer_jax import vqa_stages
+from slotformer_jax.stages import vqa as vqa_stages
 from slotformer_jax.data.questions import QUESTION_TYPES
 from slotformer_jax.tasks import vqa as task
 

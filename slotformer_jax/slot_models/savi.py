@@ -1,0 +1,190 @@
+"""SAVi (and stochastic SAVi) as the slot model: `config.slot_model='savi'`.
+
+Stage 1 is one stage, `train_savi`: frame reconstruction (+ the KL of
+stochastic SAVi) on clips of `savi.clip_length` frames. Slots decode through
+SAVi's spatial-broadcast decoder, whose per-slot alpha masks are the
+segmentation and whose frozen copy gives SlotFormer's image loss L_I.
+
+Workdir (inside the stage-1 workdir)::
+
+    savi/checkpoints/<step>/   savi/identity.json (parent: null)
+    savi/model_config.json     savi/train_log.jsonl
+    slots/<split>/             meta 'parent' = SAVi run id + step
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import os
+from typing import Any
+
+import jax
+from jax.sharding import Mesh
+import jax.numpy as jnp
+import ml_collections
+
+from slotformer_jax import inference
+from slotformer_jax import losses
+from slotformer_jax import models
+from slotformer_jax import workdir as workdir_lib
+from slotformer_jax.data import pipeline
+from slotformer_jax.data.sources import get_video_source
+from slotformer_jax.frames import frames_to_model
+from slotformer_jax.frames import model_to_unit
+from slotformer_jax.modules import initializers
+from slotformer_jax.modules.savi import SAVi
+from slotformer_jax.slot_models.base import Decoded
+from slotformer_jax.slot_models.base import Loaded
+from slotformer_jax.slot_models.base import SlotModel
+from slotformer_jax.slot_models.base import uses_foreign_stage1
+from slotformer_jax.train import precision
+from slotformer_jax.train import sharding
+from slotformer_jax.train import steps
+from slotformer_jax.train.trainer import Stage
+from slotformer_jax.train.trainer import fit_stage
+
+NAME = 'savi'
+
+
+def savi_dir(workdir: str) -> str:
+  return os.path.join(workdir, NAME)
+
+
+def model_fields(config: ml_collections.ConfigDict) -> dict[str, Any]:
+  """The config values that determine SAVi's parameter shapes / behaviour."""
+  savi = config.savi.to_dict()
+  fields = {key: savi[key] for key in (
+      'num_slots', 'slot_size', 'encoder', 'slot_attention', 'predictor',
+      'decoder', 'stochastic', 'initial_slots', 'posterior_head',
+      'layer_norm_epsilon')}
+  fields['resolution'] = list(config.data.resolution)
+  # A SAVi that saw BGR frames (the official CLEVRER ones) needs
+  # BGR frames; recorded only when not RGB, so older workdirs still match.
+  channel_order = config.data.get('channel_order', 'rgb')
+  if channel_order != 'rgb':
+    fields['channel_order'] = channel_order
+  return json.loads(json.dumps(fields))  # tuples -> lists, for comparison
+
+
+def identity_fields(config: ml_collections.ConfigDict) -> dict[str, Any]:
+  """Everything that shapes SAVi's parameters: data, the savi section, seed."""
+  return workdir_lib.stage_identity_fields(config, NAME)
+
+
+def _example_clip(config: ml_collections.ConfigDict) -> jax.Array:
+  return jnp.zeros((1, config.savi.clip_length, *config.data.resolution, 3),
+                   jnp.float32)
+
+
+def train_savi(config: ml_collections.ConfigDict, workdir: str,
+               mesh: Mesh) -> None:
+  """Stage 1: SAVi on clips of the training videos (resumable)."""
+  slot_model = Savi(config)
+  if uses_foreign_stage1(slot_model, workdir, mesh, 'SAVi'):
+    return
+  model = slot_model.model
+  source = get_video_source(config.data, 'train')
+  stage_config = config.savi
+  local_batch_size = sharding.per_host_batch_size(stage_config.batch_size, mesh)
+  stage = Stage(
+      name=NAME,
+      directory=savi_dir(workdir),
+      config=stage_config,
+      loss_fn=precision.with_compute_dtype(functools.partial(
+          losses.savi_loss, model=model,
+          kl_weight=stage_config.kl_weight if stage_config.stochastic else 0.0),
+          config.compute_dtype),
+      init_params=lambda rng: initializers.initialize(
+          steps.init_params(model, rng, _example_clip(config)),
+          jax.random.fold_in(rng, 1), stage_config.init),
+      batches=lambda start_step: pipeline.train_batches(
+          source, batch_size=local_batch_size,
+          clip_length=stage_config.clip_length, seed=config.seed,
+          start_step=start_step, fields=('video',),
+          process_index=jax.process_index(),
+          process_count=jax.process_count()),
+  )
+  fit_stage(stage, mesh=mesh, seed=config.seed, what=slot_model.label,
+            identity_fields=identity_fields(config), parent=None,
+            model_fields=model_fields(config))
+
+
+class Savi(SlotModel):
+  """SAVi / stochastic SAVi: `config.savi`, params = SAVi's parameters."""
+
+  name = NAME
+  label = 'SAVi'
+  stage1 = {'train_savi': train_savi}
+  stage_labels = {NAME: 'SAVi'}
+  mask_source = 'decoder alpha masks'
+
+  def __init__(self, config: ml_collections.ConfigDict):
+    super().__init__(config)
+    self.model = models.build_savi(config)
+    self.decoder = models.build_decoder(config)
+
+  @property
+  def slot_shape(self) -> tuple[int, int]:
+    return self.config.savi.num_slots, self.config.savi.slot_size
+
+  @property
+  def num_train_steps(self) -> dict[str, int]:
+    return {NAME: self.config.savi.num_train_steps}
+
+  def param_shapes(self) -> Any:
+    return inference.param_shapes(self.model, _example_clip(self.config))
+
+  def check_identity(self, workdir: str) -> dict[str, Any]:
+    root = workdir_lib.stage1_workdir(self.config, workdir)
+    return workdir_lib.checked_identity(
+        savi_dir(root), identity_fields(self.config), self.label, root,
+        'train_savi')
+
+  def chain(self, workdir: str, steps: dict[str, int]
+            ) -> tuple[dict[str, Any], dict[str, Any]]:
+    identity, step = self.check_identity(workdir), int(steps[NAME])
+    return ({NAME: {'run_id': identity['run_id'], 'step': step,
+                    'fingerprint': identity['fingerprint']}},
+            workdir_lib.slots_parent(identity, step, NAME))
+
+  def load(self, workdir: str, mesh: Mesh) -> Loaded:
+    directory = savi_dir(workdir_lib.stage1_workdir(self.config, workdir))
+    workdir_lib.check_model_config(directory, model_fields(self.config),
+                                   self.label)
+    params, step = inference.restore(
+        directory, self.param_shapes(), mesh, what=self.label,
+        workdir=workdir, mode='train_savi',
+        num_train_steps=self.config.savi.num_train_steps)
+    identity, slots_parent = self.chain(workdir, {NAME: step})
+    return Loaded(params=params, steps={NAME: step}, identity=identity,
+                  step=step, slots_parent=slots_parent)
+
+  def encode(self, params: Any, video: jax.Array, rng: jax.Array,
+             carry: Any) -> tuple[jax.Array, Any]:
+    slots, _, carry = self.model.apply(
+        {'params': params}, frames_to_model(video), carry,
+        method=SAVi.encode, rngs={'sample': rng})
+    return slots, carry
+
+  def decode(self, params: Any, slots: jax.Array) -> Decoded:
+    decoded = self.decoder.apply({'params': params['decoder']}, slots)
+    return Decoded(recon=model_to_unit(decoded.recon),
+                   alpha_masks=decoded.alpha_masks,
+                   rgb=model_to_unit(decoded.rgb))
+
+  def observe(self, params: Any, slots: jax.Array, video: jax.Array,
+              carry: Any) -> tuple[jax.Array, jax.Array, Any]:
+    """SAVi's account of the real frames is its extracted slots decoded (a
+    frame at a time: one frame's decoder activations in memory)."""
+    del video
+
+    def frame(frame_slots):  # [B, N, D]
+      decoded = self.decode(params, frame_slots)
+      return decoded.alpha_masks[..., 0], decoded.recon
+
+    alpha, recon = jax.lax.map(frame, jnp.swapaxes(slots, 0, 1))
+    return jnp.swapaxes(alpha, 0, 1), jnp.swapaxes(recon, 0, 1), carry
+
+  def image_decoder(self, params: Any) -> tuple[Any, Any]:
+    return self.decoder, params['decoder']
