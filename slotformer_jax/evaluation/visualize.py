@@ -16,6 +16,7 @@ Written by `--mode=render` under `<workdir>/render/`:
 from __future__ import annotations
 
 import functools
+import io
 import logging
 import os
 from typing import Any
@@ -35,6 +36,7 @@ from slotformer_jax import inference
 from slotformer_jax import workdir as workdir_lib
 from slotformer_jax.evaluation import evaluate
 from slotformer_jax.files import read_json
+from slotformer_jax.files import write_atomic
 from slotformer_jax.files import write_json_atomic
 from slotformer_jax.modules.slotformer import SlotFormer
 
@@ -235,8 +237,10 @@ def render(config: ml_collections.ConfigDict, workdir: str,
                                       step_text=text,
                                       scale=render_config.scale))
     gif_path = os.path.join(directory, f'rollout_{video_index:03d}.gif')
-    imageio.mimsave(gif_path, gif_frames, duration=1.0 / render_config.fps,
-                    loop=0)
+    gif = io.BytesIO()
+    imageio.mimsave(gif, gif_frames, format='GIF',
+                    duration=1.0 / render_config.fps, loop=0)
+    write_atomic(gif_path, gif.getvalue())
     png_path = os.path.join(directory, f'rollout_{video_index:03d}.png')
     rows = [videos[video_index]] + [
         _to_uint8(out[m][video_index]) for m in methods] + [
@@ -270,7 +274,7 @@ def _write_strip(path: str, rows: list[np.ndarray], burn_in: int,
                 render_config.scale)
           for t in columns], axis=1)
       for row in rows], axis=0)
-  Image.fromarray(grid).save(path)
+  _write_png(path, grid)
 
 
 def _write_attention_figure(path: str, frames: np.ndarray,
@@ -297,7 +301,14 @@ def _write_attention_figure(path: str, frames: np.ndarray,
     tiles.append(_tile(_to_uint8(attention['predicted_views'][i]),
                        _ROLLOUT_COLOUR, scale))
     rows.append(np.concatenate(tiles, axis=1))
-  Image.fromarray(np.concatenate(rows, axis=0)).save(path)
+  _write_png(path, np.concatenate(rows, axis=0))
+
+
+def _write_png(path: str, image: np.ndarray) -> None:
+  """uint8 [H, W, 3] as a PNG, atomically (files.py)."""
+  buffer = io.BytesIO()
+  Image.fromarray(image).save(buffer, format='PNG')
+  write_atomic(path, buffer.getvalue())
 
 
 def write_per_step_figure(workdir: str,
@@ -348,6 +359,8 @@ def write_per_step_figure(workdir: str,
   figure.tight_layout()
   path = os.path.join(render_dir(workdir), 'per_step.png')
   os.makedirs(render_dir(workdir), exist_ok=True)
-  figure.savefig(path, dpi=120)
+  buffer = io.BytesIO()
+  figure.savefig(buffer, dpi=120, format='png')
+  write_atomic(path, buffer.getvalue())
   plt.close(figure)
   return path
