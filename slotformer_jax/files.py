@@ -4,6 +4,12 @@ torn or empty one (disk full, kill -9, power loss).
 Every JSON / CSV / index the project writes goes through `write_atomic`:
 the bytes go to a temporary file in the same folder, are fsynced, and the
 temporary file is renamed over the target (rename is atomic on POSIX).
+
+Files get the usual permissions, 0666 & ~umask (0644 under umask 022, 0664
+under 002), as `open(path, 'w')` would give, so a colleague or a server
+running as another user can read a run's results on a shared filesystem;
+`tempfile.mkstemp` would leave them 0600. Folders are made by
+`os.makedirs` (0777 & ~umask).
 """
 
 from __future__ import annotations
@@ -12,7 +18,7 @@ import contextlib
 import io
 import json
 import os
-import tempfile
+import secrets
 from typing import Any, Iterator
 
 from slotformer_jax.errors import UserError
@@ -25,8 +31,7 @@ def write_atomic(path: str | os.PathLike[str], data: bytes | str) -> None:
   os.makedirs(directory, exist_ok=True)
   if isinstance(data, str):
     data = data.encode('utf-8')
-  fd, tmp = tempfile.mkstemp(dir=directory,
-                             prefix=f'.{os.path.basename(path)}.tmp.')
+  fd, tmp = _create_temporary(directory, f'.{os.path.basename(path)}.tmp.')
   try:
     with os.fdopen(fd, 'wb') as f:
       f.write(data)
@@ -38,6 +43,27 @@ def write_atomic(path: str | os.PathLike[str], data: bytes | str) -> None:
       os.unlink(tmp)
     raise
   _fsync_dir(directory)
+
+
+# Mode of the temporary file before the umask (and any default ACL of the
+# folder) applies: what `open(path, 'w')` asks for.
+_FILE_MODE = 0o666
+
+
+def _create_temporary(directory: str, prefix: str) -> tuple[int, str]:
+  """(fd, path) of a new, empty file in `directory`, as `tempfile.mkstemp`
+  (O_EXCL under a random name) but created with mode 0666 so the kernel
+  applies the process umask: the renamed file ends up 0666 & ~umask. Its
+  name starts with '.', so folder listings of results skip it."""
+  flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, 'O_CLOEXEC', 0)
+  for _ in range(100):
+    path = os.path.join(directory, prefix + secrets.token_hex(6))
+    try:
+      return os.open(path, flags, _FILE_MODE), path
+    except FileExistsError:
+      continue
+  raise FileExistsError(f'no free temporary name for {prefix}* in '
+                        f'{directory}')
 
 
 def _fsync_dir(directory: str) -> None:

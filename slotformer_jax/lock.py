@@ -55,7 +55,9 @@ class FileLock:
       if attempts > 5 and not self.wait:
         break
       try:
-        fd = os.open(self.path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+        # 0666 & ~umask, like every file of a run (files.py): a colleague
+        # sharing the workdir can read who holds it.
+        fd = os.open(self.path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o666)
       except FileExistsError:
         holder = self._holder()
         if holder is None:  # being written right now: look again

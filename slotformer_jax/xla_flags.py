@@ -29,7 +29,10 @@ import os
 from pathlib import Path
 import subprocess
 import sys
-import tempfile
+
+# Light: files.py imports only the standard library (and errors.py), so this
+# module stays importable before jax.
+from slotformer_jax.files import write_json_atomic
 
 logger = logging.getLogger(__name__)
 
@@ -91,11 +94,7 @@ def _read_cache(path: Path) -> dict[str, bool]:
 def _write_cache(path: Path, cached: dict[str, bool]) -> None:
   """Atomic (write + rename): concurrent runs never read half a file."""
   try:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with tempfile.NamedTemporaryFile('w', dir=path.parent, delete=False,
-                                     suffix='.tmp') as f:
-      json.dump(cached, f, indent=1, sort_keys=True)
-    os.replace(f.name, path)
+    write_json_atomic(path, cached)
   except OSError as error:  # read-only home: probe again next time
     logger.debug('could not cache XLA flag probes: %s', error)
 

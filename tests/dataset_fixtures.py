@@ -101,3 +101,317 @@ def marker_video(num_frames: int, height: int, width: int,
   levels = offset + step * np.arange(num_frames)
   return np.broadcast_to(levels[:, None, None, None].astype(np.uint8),
                          (num_frames, height, width, 3)).copy()
+
+
+# ----------------------------------------------------------------------------
+# Kubric MOVi in its published TFDS layout (TFRecord shards + features.json
+# + dataset_info.json), written without TensorFlow
+# ----------------------------------------------------------------------------
+
+
+def movi_a_features(num_frames: int, height: int, width: int,
+                    video_as_sequence: bool = True):
+  """MOVi-A's feature tree (Kubric's challenges/movi/movi_a.py) built from
+  TFDS connectors. ``tfds.features.Video`` needs TensorFlow to be built, so
+  the videos are ``Sequence(Image)``, which is how a Video is serialized
+  (it is a Sequence of Images); :func:`write_movi` writes features.json
+  with the Video connector in their place."""
+  import tensorflow_datasets as tfds  # pylint: disable=g-import-not-at-top
+  s, h, w = num_frames, height, width
+  f32, u16 = np.float32, np.uint16
+
+  def video(dtype):
+    return tfds.features.Sequence(
+        tfds.features.Image(shape=(h, w, 3), dtype=dtype), length=s)
+
+  instance = {
+      'mass': f32, 'friction': f32, 'restitution': f32,
+      'positions': tfds.features.Tensor(shape=(s, 3), dtype=f32),
+      'quaternions': tfds.features.Tensor(shape=(s, 4), dtype=f32),
+      'velocities': tfds.features.Tensor(shape=(s, 3), dtype=f32),
+      'angular_velocities': tfds.features.Tensor(shape=(s, 3), dtype=f32),
+      'bboxes_3d': tfds.features.Tensor(shape=(s, 8, 3), dtype=f32),
+      'image_positions': tfds.features.Tensor(shape=(s, 2), dtype=f32),
+      'bboxes': tfds.features.Sequence(tfds.features.BBoxFeature()),
+      'bbox_frames': tfds.features.Sequence(
+          tfds.features.Tensor(shape=(), dtype=np.int32)),
+      'visibility': tfds.features.Tensor(shape=(s,), dtype=u16),
+      'shape_label': tfds.features.ClassLabel(
+          names=['cube', 'cylinder', 'sphere']),
+      'size_label': tfds.features.ClassLabel(names=['small', 'large']),
+      'color': tfds.features.Tensor(shape=(3,), dtype=f32),
+      'color_label': tfds.features.ClassLabel(
+          names=['blue', 'brown', 'cyan', 'gray', 'green', 'purple', 'red',
+                 'yellow']),
+      'material_label': tfds.features.ClassLabel(names=['metal', 'rubber']),
+  }
+  return tfds.features.FeaturesDict({
+      'metadata': {
+          'video_name': tfds.features.Text(), 'width': np.int32,
+          'height': np.int32, 'num_frames': np.int32,
+          'num_instances': np.uint16,
+          'depth_range': tfds.features.Tensor(shape=(2,), dtype=f32),
+          'forward_flow_range': tfds.features.Tensor(shape=(2,), dtype=f32),
+          'backward_flow_range': tfds.features.Tensor(shape=(2,), dtype=f32),
+      },
+      'instances': tfds.features.Sequence(feature=instance),
+      'camera': {
+          'focal_length': f32, 'sensor_width': f32, 'field_of_view': f32,
+          'positions': tfds.features.Tensor(shape=(s, 3), dtype=f32),
+          'quaternions': tfds.features.Tensor(shape=(s, 4), dtype=f32),
+      },
+      'events': {'collisions': tfds.features.Sequence({
+          'instances': tfds.features.Tensor(shape=(2,), dtype=u16),
+          'frame': np.int32, 'force': f32,
+          'position': tfds.features.Tensor(shape=(3,), dtype=f32),
+          'image_position': tfds.features.Tensor(shape=(2,), dtype=f32),
+          'contact_normal': tfds.features.Tensor(shape=(3,), dtype=f32),
+      })},
+      'video': video(np.uint8),
+      'segmentations': tfds.features.Sequence(
+          tfds.features.Image(shape=(h, w, 1), dtype=np.uint8), length=s),
+      'forward_flow': tfds.features.Sequence(
+          tfds.features.Tensor(shape=(h, w, 2), dtype=u16), length=s),
+      'backward_flow': tfds.features.Sequence(
+          tfds.features.Tensor(shape=(h, w, 2), dtype=u16), length=s),
+      'depth': tfds.features.Sequence(
+          tfds.features.Image(shape=(h, w, 1), dtype=u16), length=s),
+      'normal': video(u16),
+      'object_coordinates': video(u16),
+  })
+
+
+_VIDEO_KEYS = ('video', 'normal', 'object_coordinates')
+_IMAGE_KEYS = _VIDEO_KEYS + ('segmentations', 'depth')
+
+
+def png_bytes(image: np.ndarray) -> bytes:
+  """PNG of uint8 / uint16 [h, w, c] (c = 1 or 3), as TFDS stores images.
+
+  uint8 goes through PIL; PIL cannot write 16-bit RGB, so uint16 (MOVi's
+  depth, normals, object coordinates) is written here: one IDAT of
+  unfiltered big-endian rows (PNG spec, colour type 0 or 2).
+  """
+  import io  # pylint: disable=g-import-not-at-top
+  import struct  # pylint: disable=g-import-not-at-top
+  import zlib  # pylint: disable=g-import-not-at-top
+  if image.dtype == np.uint8:
+    buffer = io.BytesIO()
+    Image.fromarray(image[..., 0] if image.shape[-1] == 1 else image).save(
+        buffer, format='PNG')
+    return buffer.getvalue()
+  height, width, channels = image.shape
+  rows = image.astype('>u2').reshape(height, width * channels).view(np.uint8)
+  raw = np.concatenate([np.zeros((height, 1), np.uint8), rows], axis=1)
+
+  def chunk(kind: bytes, data: bytes) -> bytes:
+    return (struct.pack('>I', len(data)) + kind + data
+            + struct.pack('>I', zlib.crc32(kind + data) & 0xFFFFFFFF))
+
+  header = struct.pack('>IIBBBBB', width, height, 16,
+                       {1: 0, 3: 2}[channels], 0, 0, 0)
+  return (b'\x89PNG\r\n\x1a\n' + chunk(b'IHDR', header)
+          + chunk(b'IDAT', zlib.compress(raw.tobytes()))
+          + chunk(b'IEND', b''))
+
+
+def encode_movi_images(example: dict[str, Any]) -> dict[str, Any]:
+  """The example with its frames as PNG bytes (TFDS's Image connector
+  encodes arrays with TensorFlow; it passes bytes through)."""
+  out = dict(example)
+  for key in _IMAGE_KEYS:
+    out[key] = [png_bytes(frame) for frame in example[key]]
+  return out
+
+
+def movi_features_json(features, num_frames: int, height: int, width: int
+                       ) -> dict[str, Any]:
+  """features.json as TFDS writes it (``MessageToDict(features.to_proto())``)
+  with the three videos as ``tfds.features.Video`` nodes."""
+  from google.protobuf import json_format  # pylint: disable=g-import-not-at-top
+  from tensorflow_datasets.core.proto import feature_pb2  # pylint: disable=g-import-not-at-top
+  proto = features.to_proto()
+  for key in _VIDEO_KEYS:
+    node = proto.features_dict.features[key]
+    dtype = node.sequence.feature.image.dtype
+    node.Clear()
+    node.python_class_name = (
+        'tensorflow_datasets.core.features.video_feature.Video')
+    node.video.CopyFrom(feature_pb2.VideoFeature(
+        shape=feature_pb2.Shape(dimensions=[num_frames, height, width, 3]),
+        dtype=dtype, encoding_format='png'))
+  return json_format.MessageToDict(proto)
+
+
+def boxes_from_ids(ids: np.ndarray, k: int):
+  """Kubric's compute_bboxes for instance id k: (bboxes, bbox_frames)."""
+  boxes, frames = [], []
+  height, width = ids.shape[1:3]
+  for t, frame in enumerate(ids):
+    rows, cols = np.nonzero(frame == k)
+    if rows.size:
+      boxes.append((rows.min() / height, cols.min() / width,
+                    (rows.max() + 1) / height, (cols.max() + 1) / width))
+      frames.append(t)
+  return boxes, frames
+
+
+def movi_scene(rng: np.random.Generator, num_frames: int, height: int,
+               width: int, num_instances: int, name: str) -> dict[str, Any]:
+  """A MOVi-A-like example: moving coloured squares on grey (``video`` and
+  ``segmentations`` consistent), one instance leaving the view, and the
+  other fields random but of MOVi's shapes."""
+  s, h, w = num_frames, height, width
+  video = np.full((s, h, w, 3), 100, np.uint8)
+  ids = np.zeros((s, h, w), np.uint8)
+  size = max(2, h // 5)
+  start = rng.integers(0, [h - size, w - size], (num_instances, 2))
+  step = rng.integers(-1, 2, (num_instances, 2))
+  step[-1] = (0, size)  # the last one leaves the frame to the right
+  colours = rng.integers(0, 256, (num_instances, 3))
+  for t in range(s):
+    for k in range(num_instances):  # later instances are in front
+      y, x = start[k] + step[k] * t
+      y0, x0 = max(y, 0), max(x, 0)
+      y1, x1 = min(y + size, h), min(x + size, w)
+      if y0 < y1 and x0 < x1:
+        video[t, y0:y1, x0:x1] = colours[k]
+        ids[t, y0:y1, x0:x1] = k + 1
+  f32 = np.float32
+  instances = []
+  for k in range(num_instances):
+    boxes, frames = boxes_from_ids(ids, k + 1)
+    instances.append({
+        'mass': f32(rng.uniform(1, 3)), 'friction': f32(0.4),
+        'restitution': f32(0.3),
+        'positions': rng.normal(size=(s, 3)).astype(f32),
+        'quaternions': rng.normal(size=(s, 4)).astype(f32),
+        'velocities': rng.normal(size=(s, 3)).astype(f32),
+        'angular_velocities': rng.normal(size=(s, 3)).astype(f32),
+        'bboxes_3d': rng.normal(size=(s, 8, 3)).astype(f32),
+        'image_positions': rng.uniform(size=(s, 2)).astype(f32),
+        'bboxes': [np.asarray(b, f32) for b in boxes],
+        'bbox_frames': np.asarray(frames, np.int32),
+        'visibility': (ids == k + 1).sum(axis=(1, 2)).astype(np.uint16),
+        'shape_label': int(rng.integers(3)), 'size_label': 1,
+        'color': (colours[k] / 255).astype(f32), 'color_label': 2,
+        'material_label': 0,
+    })
+  u16 = np.uint16
+  example = {
+      'metadata': {'video_name': name, 'width': w, 'height': h,
+                   'num_frames': s, 'num_instances': num_instances,
+                   'depth_range': np.asarray([1, 9], f32),
+                   'forward_flow_range': np.asarray([-2, 2], f32),
+                   'backward_flow_range': np.asarray([-2, 2], f32)},
+      'instances': instances,
+      'camera': {'focal_length': f32(35), 'sensor_width': f32(32),
+                 'field_of_view': f32(0.85),
+                 'positions': np.zeros((s, 3), f32),
+                 'quaternions': np.zeros((s, 4), f32)},
+      'events': {'collisions': [{
+          'instances': np.asarray([0, 65535], u16), 'frame': 1,
+          'force': f32(2.5), 'position': np.zeros(3, f32),
+          'image_position': np.zeros(2, f32),
+          'contact_normal': np.asarray([0, 0, 1], f32)}]},
+      'video': video,
+      'segmentations': ids[..., None],
+      'forward_flow': rng.integers(0, 65535, (s, h, w, 2)).astype(u16),
+      'backward_flow': rng.integers(0, 65535, (s, h, w, 2)).astype(u16),
+      'depth': rng.integers(0, 65535, (s, h, w, 1)).astype(u16),
+      'normal': rng.integers(0, 65535, (s, h, w, 3)).astype(u16),
+      'object_coordinates': rng.integers(0, 65535, (s, h, w, 3)).astype(u16),
+  }
+  return example
+
+
+_RAGGED = ('bboxes', 'bbox_frames')
+
+
+def _with_ragged(serialized: bytes, example: dict[str, Any]) -> bytes:
+  """Adds instances/bboxes and instances/bbox_frames as TFDS stores ragged
+  tensors (sequence rank 2): the values of all instances concatenated, and
+  each instance's count."""
+  from tensorflow_datasets.proto import tf_example_pb2  # pylint: disable=g-import-not-at-top
+  proto = tf_example_pb2.Example.FromString(serialized)
+  feature = proto.features.feature
+  instances = example['instances']
+  boxes = [np.asarray(b, np.float32).reshape(4) for i in instances
+           for b in i['bboxes']]
+  frames = [int(f) for i in instances for f in i['bbox_frames']]
+  feature['instances/bboxes/ragged_flat_values'].float_list.value.extend(
+      np.asarray(boxes, np.float32).reshape(-1).tolist())
+  feature['instances/bboxes/ragged_row_lengths_0'].int64_list.value.extend(
+      [len(i['bboxes']) for i in instances])
+  feature['instances/bbox_frames/ragged_flat_values'].int64_list.value.extend(
+      frames)
+  feature['instances/bbox_frames/ragged_row_lengths_0'].int64_list.value.extend(
+      [len(i['bbox_frames']) for i in instances])
+  return proto.SerializeToString()
+
+
+def write_movi(folder: Path, *, name: str = 'movi_a',
+               shard_lengths: dict[str, list[int]] | None = None,
+               num_frames: int = 8, size: int = 32, seed: int = 0,
+               instances: tuple[int, int] = (3, 5)
+               ) -> dict[str, list[dict[str, Any]]]:
+  """Writes a MOVi-A-layout TFDS folder; returns its examples per split.
+
+  ``folder`` gets ``<name>-<split>.tfrecord-XXXXX-of-YYYYY`` shards of
+  serialized tf.train.Example protos (TFDS's example serializer, the
+  TFRecord framing of tfrecord.py), dataset_info.json (TFDS's
+  ``write_metadata``) and features.json (see :func:`movi_features_json`).
+  """
+  import tensorflow_datasets as tfds  # pylint: disable=g-import-not-at-top
+  from tensorflow_datasets.core import example_serializer  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.data.convert import tfrecord  # pylint: disable=g-import-not-at-top
+  shard_lengths = shard_lengths or {'train': [3, 2], 'validation': [2]}
+  folder.mkdir(parents=True, exist_ok=True)
+  features = movi_a_features(num_frames, size, size)
+  # TFDS 4.9's serializer reaches for TensorFlow on ragged features (the
+  # per-instance bboxes / bbox_frames); those two are added by hand, in its
+  # layout: <key>/ragged_flat_values + <key>/ragged_row_lengths_0.
+  info = features.get_serialized_info()
+  info['instances'] = {k: v for k, v in info['instances'].items()
+                       if k not in _RAGGED}
+  serializer = example_serializer.ExampleSerializer(info)
+  rng = np.random.default_rng(seed)
+  examples: dict[str, list[dict[str, Any]]] = {}
+  split_infos = []
+  counter = 0
+  for split, lengths in shard_lengths.items():
+    examples[split] = []
+    num_bytes = 0
+    for index, length in enumerate(lengths):
+      records = []
+      for _ in range(length):
+        example = movi_scene(rng, num_frames, size, size,
+                             int(rng.integers(instances[0],
+                                              instances[1] + 1)),
+                             name=str(counter))
+        counter += 1
+        examples[split].append(example)
+        encoded = features.encode_example(encode_movi_images(example))
+        for key in _RAGGED:
+          del encoded['instances'][key]
+        records.append(_with_ragged(serializer.serialize_example(encoded),
+                                    example))
+      path = folder / (f'{name}-{split}.tfrecord-{index:05d}-of-'
+                       f'{len(lengths):05d}')
+      tfrecord.write_records(path, records)
+      num_bytes += path.stat().st_size
+    split_infos.append(tfds.core.SplitInfo(
+        name=split, shard_lengths=list(lengths), num_bytes=num_bytes,
+        filename_template=tfds.core.ShardedFileTemplate(
+            data_dir=str(folder), dataset_name=name, split=split,
+            filetype_suffix='tfrecord')))
+  tfds.folder_dataset.write_metadata(
+      data_dir=str(folder), features=features, split_infos=split_infos,
+      version='1.0.0', check_data=False,
+      filename_template=tfds.core.ShardedFileTemplate(
+          data_dir=str(folder), dataset_name=name,
+          filetype_suffix='tfrecord'))
+  (folder / 'features.json').write_text(json.dumps(
+      movi_features_json(features, num_frames, size, size), indent=4,
+      sort_keys=True))
+  return examples

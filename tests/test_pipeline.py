@@ -282,7 +282,10 @@ def test_missing_real_dataset_error_names_the_path(tmp_path, name):
     sources.get_video_source(config, 'train')
   message = str(error.value)
   assert str(tmp_path / name) in message
-  assert f'python -m slotformer_jax.data.prepare --dataset={name}' in message
+  # MOVi: one converter for every variant (--dataset=movi).
+  command = 'movi' if name in sources.MOVI_DATASETS else name
+  assert f'python -m slotformer_jax.data.prepare --dataset={command} ' in (
+      message)
 
 
 def test_prepared_real_dataset_is_opened(data_root, tmp_path):

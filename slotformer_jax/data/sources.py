@@ -14,8 +14,9 @@ datasets and the embedded synthetic one share one reader.
 Data config fields (``ml_collections.ConfigDict``; all but ``name`` optional):
 
 * ``name``: ``'synthetic'`` (generated on first use, see ``convert/synthetic.py``) or
-  one of ``'obj3d' | 'clevrer' | 'physion' | 'phyre'`` (must have been converted
-  with ``python -m slotformer_jax.data.prepare`` into ``<data_dir>/<name>``).
+  one of ``'obj3d' | 'clevrer' | 'physion' | 'phyre' | 'movi_a' ... 'movi_f'``
+  (must have been converted with ``python -m slotformer_jax.data.prepare`` into
+  ``<data_dir>/<name>``; MOVi with ``--dataset=movi``).
 * ``data_dir``: root of the cache / converted data. Default:
   ``$SLOTFORMER_DATA_DIR``, else ``~/.cache/slotformer_jax``.
 * ``resolution``: (H, W) of the frames. Default (64, 64). For a real dataset
@@ -68,7 +69,10 @@ from slotformer_jax.errors import UserError
 
 logger = logging.getLogger(__name__)
 
-REAL_DATASETS: tuple[str, ...] = ('obj3d', 'clevrer', 'physion', 'phyre')
+# Kubric's MOVi variants: one converter (--dataset=movi), one name each.
+MOVI_DATASETS: tuple[str, ...] = tuple(f'movi_{v}' for v in 'abcdef')
+REAL_DATASETS: tuple[str, ...] = ('obj3d', 'clevrer', 'physion',
+                                  'phyre') + MOVI_DATASETS
 _DATASET_INFO = 'dataset_info.json'
 
 
@@ -285,19 +289,23 @@ def get_video_source(data_config: ml_collections.ConfigDict,
     return clevrer_like.NpyVideoSource(root, split)
   if name in REAL_DATASETS:
     path = prepared_dataset_path(data_dir, name)
+    # MOVi: one converter for every variant, the download names which.
+    command, download = (('movi', f'/path/to/{name}/128x128/1.0.0')
+                         if name in MOVI_DATASETS
+                         else (name, '/path/to/download'))
     if not path.is_dir() or not _find_dataset_dirs(path):
       raise MissingInputError(
           f'Dataset {name!r} is not prepared: expected an array_record TFDS '
           f'folder under {path}. Convert it first with\n'
-          f'  python -m slotformer_jax.data.prepare --dataset={name} '
-          f'--source=/path/to/download --data_dir={path.parent}')
+          f'  python -m slotformer_jax.data.prepare --dataset={command} '
+          f'--source={download} --data_dir={path.parent}')
     if data_config.get('prepared_config', None):
       path = path / data_config.prepared_config
     source = open_prepared_dataset(
         path, split, resolution=data_config.get('resolution', None))
     reconvert = (
-        f'python -m slotformer_jax.data.prepare --dataset={name} '
-        f'--source=/path/to/download --data_dir={resolve_data_dir(data_dir)} '
+        f'python -m slotformer_jax.data.prepare --dataset={command} '
+        f'--source={download} --data_dir={resolve_data_dir(data_dir)} '
         '--overwrite (with the options it was converted with)')
     source.fix = f'Convert it again: {reconvert}'
     try:

@@ -20,6 +20,7 @@ Written by `--mode=render` under `<workdir>/render/`, for any slot model:
 
 from __future__ import annotations
 
+import io
 import logging
 import os
 from typing import Any
@@ -39,6 +40,7 @@ from slotformer_jax import models
 from slotformer_jax import workdir as workdir_lib
 from slotformer_jax.evaluation import evaluate
 from slotformer_jax.files import read_json
+from slotformer_jax.files import write_atomic
 from slotformer_jax.files import write_json_atomic
 from slotformer_jax.modules.slotformer import SlotFormer
 
@@ -275,8 +277,10 @@ def render(config: ml_collections.ConfigDict, workdir: str, mesh: Mesh, *,
           [row[t] for row in rows.values()], list(rows),
           is_rollout=is_rollout, step_text=text, scale=render_config.scale))
     gif_path = os.path.join(directory, f'rollout_{v:03d}.gif')
-    imageio.mimsave(gif_path, gif_frames, duration=1.0 / render_config.fps,
-                    loop=0)
+    gif = io.BytesIO()
+    imageio.mimsave(gif, gif_frames, format='GIF',
+                    duration=1.0 / render_config.fps, loop=0)
+    write_atomic(gif_path, gif.getvalue())
     png_path = os.path.join(directory, f'rollout_{v:03d}.png')
     write_strip(png_path, rows, burn_in, render_config)
     written += [gif_path, png_path]
@@ -317,7 +321,7 @@ def write_strip(path: str, rows: dict[str, np.ndarray], burn_in: int,
   for i, (name, strip) in enumerate(zip(rows, strips)):
     canvas.paste(Image.fromarray(strip), (_LABEL_WIDTH, i * tile_h))
     draw.text((3, i * tile_h + tile_h // 2 - 5), name, fill=(0, 0, 0))
-  canvas.save(path)
+  _write_png(path, np.asarray(canvas))
 
 
 def _write_attention_figure(path: str, frames: np.ndarray,
@@ -344,7 +348,14 @@ def _write_attention_figure(path: str, frames: np.ndarray,
     tiles.append(_tile(_to_uint8(attention['predicted_views'][i]),
                        _ROLLOUT_COLOUR, scale))
     rows.append(np.concatenate(tiles, axis=1))
-  Image.fromarray(np.concatenate(rows, axis=0)).save(path)
+  _write_png(path, np.concatenate(rows, axis=0))
+
+
+def _write_png(path: str, image: np.ndarray) -> None:
+  """uint8 [H, W, 3] as a PNG, atomically (files.py)."""
+  buffer = io.BytesIO()
+  Image.fromarray(image).save(buffer, format='PNG')
+  write_atomic(path, buffer.getvalue())
 
 
 def write_per_step_figure(workdir: str,
@@ -395,6 +406,8 @@ def write_per_step_figure(workdir: str,
   figure.tight_layout()
   path = os.path.join(render_dir(workdir), 'per_step.png')
   os.makedirs(render_dir(workdir), exist_ok=True)
-  figure.savefig(path, dpi=120)
+  buffer = io.BytesIO()
+  figure.savefig(buffer, dpi=120, format='png')
+  write_atomic(path, buffer.getvalue())
   plt.close(figure)
   return path

@@ -5,12 +5,14 @@ Usage::
     python -m slotformer_jax.data.prepare --dataset=clevrer \\
         --source=/path/to/CLEVRER --data_dir=/path/to/data
 
-``--dataset`` is one of obj3d, clevrer, physion, phyre; ``--source`` is the
-folder holding the files in their published layout (see docs/datasets.md;
-a missing part is reported with the expected layout). The result goes to
-``<data_dir>/<dataset>/<config>/1.0.0`` where ``<config>`` encodes the
-conversion parameters, and is read by ``sources.get_video_source`` with data
-config ``name=<dataset>``, ``data_dir=<data_dir>``.
+``--dataset`` is one of obj3d, clevrer, physion, phyre, movi; ``--source``
+is the folder holding the files in their published layout (see
+docs/datasets.md; a missing part is reported with the expected layout). The
+result goes to ``<data_dir>/<name>/<config>/1.0.0`` where ``<config>``
+encodes the conversion parameters, and is read by
+``sources.get_video_source`` with data config ``name=<name>``,
+``data_dir=<data_dir>``; ``<name>`` is the dataset, or for MOVi the variant
+of the download (``movi_a`` ... ``movi_f``).
 
 Conversion runs in ``--num_workers`` processes with a progress bar and is
 resumable: re-running the same command after an interruption converts only
@@ -35,6 +37,7 @@ from types import ModuleType
 from typing import Any
 
 from slotformer_jax.data.convert import clevrer
+from slotformer_jax.data.convert import movi
 from slotformer_jax.data.convert import obj3d
 from slotformer_jax.data.convert import physion
 from slotformer_jax.data.convert import phyre
@@ -42,7 +45,8 @@ from slotformer_jax.data.convert import writer
 from slotformer_jax.data.data_dir import resolve_data_dir
 
 DATASETS: dict[str, ModuleType] = {
-    'obj3d': obj3d, 'clevrer': clevrer, 'physion': physion, 'phyre': phyre}
+    'obj3d': obj3d, 'clevrer': clevrer, 'physion': physion, 'phyre': phyre,
+    'movi': movi}
 
 # CLI flag -> Options field; a flag given for a dataset without that field is
 # an error rather than silently ignored.
@@ -84,12 +88,15 @@ def build_parser() -> argparse.ArgumentParser:
                       '(default: all)')
   parser.add_argument('--resolution', type=parse_resolution, default=None,
                       help='H or HxW of the stored frames (default: the '
-                      'paper\'s, 64 for obj3d/clevrer, 128 for physion/phyre)')
+                      'paper\'s, 64 for obj3d/clevrer/movi (the SAVi paper), '
+                      '128 for physion/phyre)')
   parser.add_argument('--num_frames', type=int, default=None,
                       help='frames kept per video (obj3d 50, clevrer 128, '
                       'physion 150, phyre 15)')
   parser.add_argument('--max_objects', type=int, default=None,
-                      help='clevrer: rows of the per-object arrays (6)')
+                      help='clevrer: rows of the per-object arrays (6); '
+                      'movi: rows of the per-instance arrays, ids above it '
+                      'dropped (10 for MOVi-A/B/C, 23 for D/E/F)')
   parser.add_argument('--masks', choices=clevrer.MASK_MODES, default=None,
                       help='clevrer: use derender_proposals if present '
                       '(auto), demand them (require) or skip them (ignore)')
@@ -132,8 +139,12 @@ def make_options(module: ModuleType, args: argparse.Namespace) -> Any:
   return module.Options(**kwargs)
 
 
-def selected_splits(module: ModuleType, text: str | None) -> tuple[str, ...]:
+def selected_splits(module: ModuleType, text: str | None,
+                    source: Path | None = None) -> tuple[str, ...]:
   if not text:
+    # A dataset whose splits depend on the download (MOVi-A has no 'test').
+    if source is not None and hasattr(module, 'available_splits'):
+      return module.available_splits(source)
     return module.SPLITS
   splits = tuple(s.strip() for s in text.split(',') if s.strip())
   unknown = [s for s in splits if s not in module.SPLITS]
@@ -152,7 +163,7 @@ def run(args: argparse.Namespace) -> writer.ConversionResult:
         f'--source={source} is not a folder. Expected the published '
         f'{args.dataset} layout:\n{module.LAYOUT}')
   options = make_options(module, args)
-  splits = selected_splits(module, args.splits)
+  splits = selected_splits(module, args.splits, source)
   spec = module.dataset_spec(options, source)
   if args.limit is not None:
     if args.limit < 1:
@@ -174,7 +185,7 @@ def run(args: argparse.Namespace) -> writer.ConversionResult:
       progress=not args.no_progress)
   print(writer.summary(result))
   if result.complete:
-    print(f'Read it with data config name={args.dataset!r}, '
+    print(f'Read it with data config name={spec.name!r}, '
           f'data_dir={str(data_dir)!r}'
           + (f', resolution={tuple(options.resolution)}'
              if hasattr(options, 'resolution') else ''))

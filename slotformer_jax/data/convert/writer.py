@@ -226,6 +226,8 @@ def _convert_shard(task: _ShardTask) -> dict[str, Any]:
         skipped.append({'key': job.key, 'reason': skip.reason,
                         'message': skip.message})
         continue
+      except ConversionError:
+        raise  # a damaged input: its message names the file and the fix
       except Exception as error:
         # Not an input problem we know how to classify: stop, naming the
         # video, rather than silently dropping it.

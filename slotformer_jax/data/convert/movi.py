@@ -1,0 +1,639 @@
+"""Kubric's MOVi (MOVi-A ... MOVi-F, TFDS): layout and conversion.
+
+Published layout: a TFDS version folder, as on Kubric's public bucket
+(``gs://kubric-public/tfds/movi_a/128x128/1.0.0``; 256x256 too)::
+
+    <source>/
+      dataset_info.json    # name ('movi_a'), splits and their shard lengths
+      features.json        # the feature tree (Kubric's challenges/movi/movi_*.py)
+      movi_a-train.tfrecord-00000-of-NNNNN ...        # ~9,750 videos
+      movi_a-validation.tfrecord-00000-of-NNNNN ...   #    250
+      movi_a-test.tfrecord-...   # MOVi-C/D/E only: held-out objects
+
+Every record is a serialized ``tf.train.Example``. What this converter
+reads (T = 24 frames, n = the video's instances, h x w the source size):
+
+* ``video``: T PNG frames (a ``tfds.features.Video``), RGB uint8.
+* ``segmentations``: T PNG frames uint8 [h, w, 1]: 0 = background, k =
+  instance k - 1.
+* ``instances/positions``, ``velocities``: float32 [n, T, 3], world
+  coordinates; ``instances/image_positions``: float32 [n, T, 2] in [0, 1].
+* ``instances/bboxes``: per instance the boxes (ymin, xmin, ymax, xmax),
+  normalised with pixel edges (Kubric's ``compute_bboxes``), of the frames
+  listed in ``instances/bbox_frames`` (where the instance is visible); both
+  ragged (``ragged_flat_values`` + ``ragged_row_lengths_0``).
+* ``metadata/num_instances``, ``metadata/video_name``.
+
+Everything else (depth, flows, normals, object coordinates, camera, events,
+labels) is left out. The records are read without TensorFlow: the framing
+and its CRC32C by ``tfrecord.py``, the Example protos by TFDS's NumPy
+parser (``tfds.core.example_parser.ExampleParserNp``) with tensor specs
+derived from the dataset's own ``features.json`` (read as JSON: TFDS's
+``Video`` connector cannot be built without TensorFlow), the PNGs by PIL.
+
+Stored item (one per record, records in shard order; M rows for instances,
+row k - 1 = segmentation id k):
+
+* ``video``: uint8 [T, H, W, 3], resized with PIL's antialiased bilinear
+  filter when H x W is not the source size (SAVi resizes with TF's bilinear).
+* ``segmentations``: uint8 [T, H, W], the MOVi ids, resized by nearest
+  neighbour (Kubric's own subsampling picks the same pixels at factors of 2);
+  ids above M become background, as SAVi's ``sparse_to_dense_annotation``.
+* ``boxes``: float32 [T, M, 4] MOVi's boxes (normalised, so resolution-free;
+  (0, 0, 0, 0) where the instance is not visible, SAVi's padding);
+  ``visible``: bool [T, M] (the frame is in the instance's bbox_frames). The
+  layout of CLEVRER's converted boxes, which AR reads (evaluation.ar_gt_boxes
+  = 'object_masks').
+* ``positions``, ``velocities``: float32 [T, M, 3]; ``image_positions``:
+  float32 [T, M, 2] (zeros for padding rows).
+* ``num_instances``: int32, the instances of the video (before any crop to
+  M); ``video_name``.
+
+Splits: MOVi's 'train', 'validation' and (C/D/E) 'test' become 'train',
+'val' and 'test'. M = ``--max_objects``, by default the variant's most
+instances per video (10 for MOVi-A/B/C, 23 for D/E/F, as SAVi's configs).
+
+A damaged download stops the conversion with one line naming the file: a
+shard missing from the list in dataset_info.json, a truncated shard or a
+failed length checksum (found before anything is converted), a failed data
+checksum or an unreadable Example / PNG in a record (found when it is
+converted; re-running after fixing the file resumes).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import io
+import json
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import tensorflow_datasets as tfds
+from google.protobuf.message import DecodeError
+from PIL import Image
+
+from slotformer_jax.data.convert import media
+from slotformer_jax.data.convert import tfrecord
+from slotformer_jax.data.convert import writer
+
+NAME = 'movi'
+SPLITS: tuple[str, ...] = ('train', 'val', 'test')
+# This project's split name -> MOVi's.
+SOURCE_SPLITS: Mapping[str, str] = {
+    'train': 'train', 'val': 'validation', 'test': 'test'}
+DEFAULT_RESOLUTION = (64, 64)  # the SAVi paper's (SAVi-S)
+# Most instances of a video per variant (Kubric's README; SAVi's configs use
+# max_instances = 10 for A-C, 23 for D-E).
+MAX_INSTANCES: Mapping[str, int] = {
+    'movi_a': 10, 'movi_b': 10, 'movi_c': 10, 'movi_d': 23, 'movi_e': 23,
+    'movi_f': 23}
+CONVERTER_VERSION = 1
+
+LAYOUT = """\
+<source>/dataset_info.json, <source>/features.json
+<source>/movi_X-train.tfrecord-00000-of-NNNNN ...
+<source>/movi_X-validation.tfrecord-00000-of-NNNNN ...
+<source>/movi_X-test.tfrecord-...   (MOVi-C/D/E)
+(a TFDS version folder of Kubric's MOVi, e.g. a copy of
+ gs://kubric-public/tfds/movi_a/128x128/1.0.0)"""
+
+_VIDEO = 'video'
+_SEGMENTATIONS = 'segmentations'
+_POSITIONS = 'instances/positions'
+_VELOCITIES = 'instances/velocities'
+_IMAGE_POSITIONS = 'instances/image_positions'
+_BBOXES = 'instances/bboxes'
+_BBOX_FRAMES = 'instances/bbox_frames'
+_NUM_INSTANCES = 'metadata/num_instances'
+_VIDEO_NAME = 'metadata/video_name'
+REQUIRED_FEATURES: tuple[str, ...] = (
+    _VIDEO, _SEGMENTATIONS, _POSITIONS, _VELOCITIES, _IMAGE_POSITIONS,
+    _BBOXES, _BBOX_FRAMES, _NUM_INSTANCES, _VIDEO_NAME)
+
+
+# ----------------------------------------------------------------------------
+# features.json -> the serialized tensor specs of the Example protos
+# ----------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class Leaf:
+  """How one feature of the tree is stored in the Example proto.
+
+  Attributes:
+    shape: the serialized shape (None: variable), sequence dimensions first;
+      for encoded images only the sequence dimensions.
+    dtype: numpy dtype name of the stored values ('bytes' for encoded images
+      and text).
+    sequence_rank: enclosing ``Sequence`` features (a ``Video`` counts one);
+      >= 2 is stored ragged (``<key>/ragged_flat_values`` and
+      ``<key>/ragged_row_lengths_<i>``), as TFDS's example serializer does.
+    image_shape: (h, w, c) of an encoded image (frame), else None.
+    image_dtype: dtype name of the decoded image, else ''.
+  """
+
+  shape: tuple[int | None, ...]
+  dtype: str
+  sequence_rank: int = 0
+  image_shape: tuple[int | None, ...] | None = None
+  image_dtype: str = ''
+
+
+def _class_name(node: Mapping[str, Any]) -> str:
+  return str(node.get('pythonClassName') or node.get('type', '')).rsplit(
+      '.', 1)[-1]
+
+
+def _dims(shape: Any) -> tuple[int | None, ...]:
+  """A shape of either format: [24, 128, None] or {'dimensions': ['24', ...]}
+  ('-1' / None: variable)."""
+  if isinstance(shape, Mapping):
+    shape = shape.get('dimensions', [])
+  out = []
+  for d in shape or ():
+    d = None if d is None else int(d)
+    out.append(None if d is None or d < 0 else d)
+  return tuple(out)
+
+
+def _content(node: Mapping[str, Any], class_name: str) -> tuple[Any, bool]:
+  """(content, is_proto_json) of a feature node of either features.json
+  format: TFDS >= 4.5 writes ``{"pythonClassName": ..., "<kind>": {...}}``
+  (a FeatureConnector proto as JSON); older versions wrote
+  ``{"type": ..., "content": ...}`` (``proto_cls`` set when the content is
+  that proto as JSON)."""
+  if 'pythonClassName' in node:
+    kinds = [k for k in node if k not in ('pythonClassName', 'description',
+                                          'valueRange')]
+    if len(kinds) != 1:
+      raise ValueError(f'features.json: cannot read the {class_name} node '
+                       f'with keys {sorted(node)}')
+    return node[kinds[0]], True
+  return node.get('content', {}), bool(node.get('proto_cls'))
+
+
+def feature_leaves(node: Mapping[str, Any], prefix: str = ''
+                   ) -> dict[str, Leaf]:
+  """Every stored feature of a features.json tree: {'a/b': Leaf}.
+
+  Handles the connectors MOVi uses (FeaturesDict, Sequence, Video, Image,
+  Tensor, Scalar, BBoxFeature, ClassLabel, Text) in both file formats.
+
+  Raises:
+    ValueError: an unknown connector or a node it cannot read.
+  """
+  name = _class_name(node)
+  content, proto = _content(node, name)
+  if name == 'FeaturesDict':
+    children = content.get('features', {}) if proto else content
+    out: dict[str, Leaf] = {}
+    for key, child in children.items():
+      out.update(feature_leaves(child, f'{prefix}{key}/'))
+    return out
+  key = prefix.rstrip('/')
+  if name == 'Sequence':
+    length = content.get('length')
+    length = None if length is None or int(length) < 0 else int(length)
+    inner = feature_leaves(content['feature'], prefix)
+    return {k: dataclasses.replace(leaf, shape=(length,) + leaf.shape,
+                                   sequence_rank=leaf.sequence_rank + 1)
+            for k, leaf in inner.items()}
+  if name in ('Video', 'Image'):
+    shape = _dims(content.get('shape'))
+    dtype = str(content.get('dtype') or 'uint8')
+    if name == 'Image':
+      return {key: Leaf(shape=(), dtype='bytes', image_shape=shape,
+                        image_dtype=dtype)}
+    if len(shape) != 4:
+      raise ValueError(f'features.json: {key}: a Video shape has 4 '
+                       f'dimensions, got {shape}')
+    return {key: Leaf(shape=shape[:1], dtype='bytes', sequence_rank=1,
+                      image_shape=shape[1:], image_dtype=dtype)}
+  if name in ('Tensor', 'Scalar'):
+    encoding = str(content.get('encoding') or 'none').lower()
+    if encoding != 'none':
+      return {key: Leaf(shape=(), dtype='bytes')}
+    return {key: Leaf(shape=_dims(content.get('shape')),
+                      dtype=str(content['dtype']))}
+  if name == 'BBoxFeature':
+    return {key: Leaf(shape=(4,), dtype='float32')}
+  if name == 'ClassLabel':
+    return {key: Leaf(shape=(), dtype='int64')}
+  if name == 'Text':
+    return {key: Leaf(shape=(), dtype='bytes')}
+  raise ValueError(f'features.json: {key}: unknown feature connector '
+                   f'{name!r}')
+
+
+# ----------------------------------------------------------------------------
+# The source folder
+# ----------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class SourceInfo:
+  """What the converter needs to know of a downloaded MOVi folder.
+
+  Attributes:
+    folder: the TFDS version folder.
+    name: the TFDS name, e.g. 'movi_a' (the output dataset's name).
+    version: e.g. '1.0.0'.
+    num_frames: T.
+    resolution: (h, w) of the stored frames.
+    shard_lengths: {MOVi split: records per shard}.
+    leaves: (key, Leaf) of the features the parser is given: the ones read
+      and every ragged one (the parser needs a spec for each of those).
+  """
+
+  folder: Path
+  name: str
+  version: str
+  num_frames: int
+  resolution: tuple[int, int]
+  shard_lengths: Mapping[str, tuple[int, ...]]
+  leaves: tuple[tuple[str, Leaf], ...]
+
+
+def layout_error(source: Path, missing: str) -> FileNotFoundError:
+  return FileNotFoundError(
+      f'MOVi: {missing}. Expected a TFDS version folder of MOVi under '
+      f'--source={source}:\n{LAYOUT}')
+
+
+def find_version_folder(source: Path) -> Path:
+  """``source`` itself or the one folder up to two levels below it that
+  holds dataset_info.json (e.g. ``movi_a/128x128`` -> ``.../1.0.0``)."""
+  if (source / 'dataset_info.json').is_file():
+    return source
+  found = sorted({p.parent for pattern in ('*/dataset_info.json',
+                                           '*/*/dataset_info.json')
+                  for p in source.glob(pattern)})
+  if len(found) == 1:
+    return found[0]
+  if not found:
+    raise layout_error(source, f'no dataset_info.json in {source}')
+  raise layout_error(source, 'several TFDS folders ('
+                     + ', '.join(str(p) for p in found)
+                     + '): pass one of them')
+
+
+def _load_json(path: Path) -> Any:
+  try:
+    with open(path, 'rb') as f:
+      return json.load(f)
+  except (OSError, ValueError) as error:
+    raise ValueError(f'{path} cannot be read ({error}): copy the MOVi '
+                     'folder again') from None
+
+
+@functools.lru_cache(maxsize=8)
+def read_source(source: Path) -> SourceInfo:
+  """Reads and checks dataset_info.json and features.json of ``source``.
+
+  Raises:
+    FileNotFoundError: not a TFDS folder.
+    ValueError: not MOVi (a required feature is missing).
+  """
+  folder = find_version_folder(Path(source))
+  info = _load_json(folder / 'dataset_info.json')
+  features_path = folder / 'features.json'
+  if not features_path.is_file():
+    raise layout_error(Path(source), f'{features_path} not found')
+  tree = _load_json(features_path)
+  if not isinstance(info, dict) or not isinstance(tree, dict):
+    raise ValueError(f'{folder}: dataset_info.json / features.json are not '
+                     'JSON objects')
+  name = str(info.get('name', ''))
+  leaves = feature_leaves(tree)
+  missing = [k for k in REQUIRED_FEATURES if k not in leaves]
+  if missing:
+    raise ValueError(
+        f'{features_path}: no {", ".join(missing)}: {name or "this"} is not '
+        "a MOVi dataset (Kubric's challenges/movi/movi_*.py features)")
+  video = leaves[_VIDEO]
+  num_frames = video.shape[0]
+  height, width = (video.image_shape or (None, None))[:2]
+  if num_frames is None or height is None or width is None:
+    raise ValueError(f'{features_path}: video shape {video.shape} + '
+                     f'{video.image_shape} is not fixed')
+  shard_lengths = {}
+  for split in info.get('splits', []):
+    shard_lengths[str(split['name'])] = tuple(
+        int(n) for n in split.get('shardLengths', split.get('shard_lengths',
+                                                            [])))
+  if not shard_lengths:
+    raise ValueError(f'{folder / "dataset_info.json"} lists no splits')
+  needed = set(REQUIRED_FEATURES) | {
+      k for k, leaf in leaves.items() if leaf.sequence_rank >= 2}
+  return SourceInfo(
+      folder=folder, name=name, version=str(info.get('version', '')),
+      num_frames=int(num_frames), resolution=(int(height), int(width)),
+      shard_lengths=shard_lengths,
+      leaves=tuple(sorted((k, v) for k, v in leaves.items() if k in needed)))
+
+
+def available_splits(source: Path) -> tuple[str, ...]:
+  """This project's names of the splits the download has."""
+  have = read_source(Path(source)).shard_lengths
+  return tuple(s for s in SPLITS if SOURCE_SPLITS[s] in have)
+
+
+# ----------------------------------------------------------------------------
+# Options, jobs, conversion
+# ----------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class Options:
+  """Conversion parameters.
+
+  Attributes:
+    resolution: (H, W) of the stored frames and segmentations.
+    max_objects: M, rows of the per-instance arrays; None: the variant's
+      most instances per video (MAX_INSTANCES).
+  """
+
+  resolution: tuple[int, int] = DEFAULT_RESOLUTION
+  max_objects: int | None = None
+
+  def __post_init__(self):
+    object.__setattr__(self, 'resolution',
+                       tuple(int(r) for r in self.resolution))
+    if len(self.resolution) != 2 or min(self.resolution) < 8:
+      raise ValueError(f'resolution must be (H, W) >= 8, got {self.resolution}')
+    if self.max_objects is not None and not 1 <= self.max_objects <= 255:
+      raise ValueError(f'max_objects must be in [1, 255], got '
+                       f'{self.max_objects}')
+
+
+def instance_rows(options: Options, source: SourceInfo) -> int:
+  """M for this download."""
+  if options.max_objects is not None:
+    return options.max_objects
+  if source.name not in MAX_INSTANCES:
+    raise ValueError(f'{source.folder}: unknown MOVi variant '
+                     f'{source.name!r}; pass --max_objects (rows for '
+                     'instances)')
+  return MAX_INSTANCES[source.name]
+
+
+@dataclasses.dataclass(frozen=True)
+class RecordJob:
+  """One video: a record of a shard."""
+
+  key: str  # '<shard file name>:<record index>'
+  shard: Path
+  span: tfrecord.RecordSpan
+
+
+@dataclasses.dataclass(frozen=True)
+class _Plan:
+  """What a worker needs (picklable)."""
+
+  leaves: tuple[tuple[str, Leaf], ...]
+  num_frames: int
+  source_resolution: tuple[int, int]
+  resolution: tuple[int, int]
+  rows: int
+
+
+def shard_paths(source: SourceInfo, split: str) -> list[Path]:
+  """The shard files of a MOVi split, checked against dataset_info.json.
+
+  Raises:
+    FileNotFoundError: a listed shard is missing.
+  """
+  lengths = source.shard_lengths[split]
+  count = len(lengths)
+  paths = [source.folder / f'{source.name}-{split}.tfrecord-{i:05d}-of-'
+           f'{count:05d}' for i in range(count)]
+  missing = [p.name for p in paths if not p.is_file()]
+  if missing:
+    raise FileNotFoundError(
+        f'{source.folder}: {len(missing)} of the {count} {split} shards '
+        f'listed in dataset_info.json are missing, e.g. {missing[0]} (an '
+        'incomplete download: copy the folder again, e.g. gsutil -m cp -r '
+        f'gs://kubric-public/tfds/{source.name}/<resolution>/'
+        f'{source.version or "1.0.0"} .)')
+  return paths
+
+
+def discover(source: Path, split: str, options: Options) -> list[RecordJob]:
+  """Every record of ``split``, in shard order.
+
+  Reads the record headers of every shard (their length checksums
+  included): a truncated or damaged shard fails here, before any video is
+  converted.
+
+  Raises:
+    FileNotFoundError: the split or a shard is missing.
+    tfrecord.TFRecordError: a truncated / damaged shard, or one whose record
+      count differs from dataset_info.json.
+  """
+  del options  # the listing does not depend on them
+  info = read_source(Path(source))
+  movi_split = SOURCE_SPLITS[split]
+  if movi_split not in info.shard_lengths:
+    raise layout_error(
+        Path(source), f'{info.name} has no {movi_split!r} split (it has '
+        f'{", ".join(sorted(info.shard_lengths))})')
+  jobs = []
+  for path, expected in zip(shard_paths(info, movi_split),
+                            info.shard_lengths[movi_split]):
+    spans = tfrecord.index_records(path)
+    if len(spans) != expected:
+      raise tfrecord.TFRecordError(
+          f'{path}: {len(spans)} records, dataset_info.json says {expected} '
+          '(a damaged or partial file: download it again)')
+    jobs += [RecordJob(key=f'{path.name}:{s.index}', shard=path, span=s)
+             for s in spans]
+  return jobs
+
+
+@functools.lru_cache(maxsize=4)
+def _parser(leaves: tuple[tuple[str, Leaf], ...]
+            ) -> tfds.core.example_parser.ExampleParserNp:
+  string = tfds.features.Text().get_serialized_info().np_dtype
+  specs = {key: tfds.features.TensorInfo(
+      shape=leaf.shape, dtype=string if leaf.dtype == 'bytes'
+      else np.dtype(leaf.dtype), sequence_rank=leaf.sequence_rank)
+           for key, leaf in leaves}
+  return tfds.core.example_parser.ExampleParserNp(specs)
+
+
+def _decode_png(data: bytes, shape: Sequence[int | None], where: str
+                ) -> np.ndarray:
+  with Image.open(io.BytesIO(data)) as image:
+    image.load()
+    array = np.asarray(image)
+  if array.ndim == 2:
+    array = array[..., None]
+  want = tuple(d for d in shape)
+  if array.shape[:2] != want[:2] or (want[2] is not None
+                                     and array.shape[2] < want[2]):
+    raise ValueError(f'{where}: a {array.shape} frame, features.json says '
+                     f'{want}')
+  return array[..., :want[2]] if want[2] is not None else array
+
+
+def _frames(example: Mapping[str, Any], key: str, leaf: Leaf, num_frames: int,
+            where: str) -> np.ndarray:
+  encoded = list(example[key])
+  if len(encoded) != num_frames:
+    raise ValueError(f'{where}: {key} has {len(encoded)} frames, '
+                     f'features.json says {num_frames}')
+  return np.stack([_decode_png(bytes(e), leaf.image_shape or (None,) * 3,
+                               f'{where} {key}') for e in encoded])
+
+
+def _per_instance(example: Mapping[str, Any], key: str, count: int,
+                  num_frames: int, width: int, where: str) -> np.ndarray:
+  """float32 [count, T, width] (an empty video gives [0, T, width])."""
+  values = np.asarray(example.get(key, np.zeros((0,))), np.float32)
+  if values.size != count * num_frames * width:
+    raise ValueError(f'{where}: {key} holds {values.size} values, '
+                     f'{count} instances x {num_frames} frames x {width} '
+                     'expected')
+  return values.reshape(count, num_frames, width)
+
+
+def _pad_rows(values: np.ndarray, rows: int) -> np.ndarray:
+  """[n, T, ...] instances -> [T, rows, ...] (zeros after n, cut at rows)."""
+  out = np.zeros((values.shape[1], rows) + values.shape[2:], np.float32)
+  kept = min(rows, values.shape[0])
+  out[:, :kept] = np.swapaxes(values[:kept], 0, 1)
+  return out
+
+
+def convert_record(job: RecordJob, plan: _Plan) -> dict[str, Any]:
+  """Reads, checks and converts one MOVi record.
+
+  Raises:
+    writer.ConversionError: a damaged record (checksum, Example proto, PNG,
+      or content that contradicts features.json), naming the file.
+  """
+  where = f'{job.shard} record {job.span.index}'
+  try:
+    data = tfrecord.read_record(job.shard, job.span)
+    example = _parser(plan.leaves).parse_example(data)
+    missing = [k for k in REQUIRED_FEATURES
+               if k not in example and k not in (_BBOXES, _BBOX_FRAMES)]
+    if missing:
+      raise ValueError(f'{where}: the Example has no {", ".join(missing)}')
+    leaves = dict(plan.leaves)
+    video = _frames(example, _VIDEO, leaves[_VIDEO], plan.num_frames, where)
+    segmentations = _frames(example, _SEGMENTATIONS, leaves[_SEGMENTATIONS],
+                            plan.num_frames, where)[..., 0]
+    count = int(example[_NUM_INSTANCES])
+    t = plan.num_frames
+    positions = _per_instance(example, _POSITIONS, count, t, 3, where)
+    velocities = _per_instance(example, _VELOCITIES, count, t, 3, where)
+    image_positions = _per_instance(example, _IMAGE_POSITIONS, count, t, 2,
+                                    where)
+    # Ragged: one array per instance ([] when no instance / never visible).
+    boxes_ragged = list(example.get(_BBOXES, []))
+    frames_ragged = list(example.get(_BBOX_FRAMES, []))
+    if len(boxes_ragged) not in (0, count) or len(frames_ragged) != len(
+        boxes_ragged):
+      raise ValueError(f'{where}: bboxes of {len(boxes_ragged)} and '
+                       f'bbox_frames of {len(frames_ragged)} instances, '
+                       f'num_instances is {count}')
+    largest = int(segmentations.max(initial=0))
+    if largest > count:
+      raise ValueError(f'{where}: segmentation id {largest} but only '
+                       f'{count} instances')
+  except tfrecord.TFRecordError as error:
+    raise writer.ConversionError(f'{error}: download this file again') from None
+  except (ValueError, KeyError, TypeError, OSError, DecodeError) as error:
+    # A record that passed its checksum but does not decode (protobuf, PNG,
+    # shapes): the file was written wrongly or is not MOVi; name it.
+    detail = str(error).splitlines()[0][:300] if str(error) else ''
+    raise writer.ConversionError(
+        f'{where}: unreadable MOVi example ({type(error).__name__}: '
+        f'{detail}); download this file again') from None
+
+  rows = plan.rows
+  boxes = np.zeros((t, rows, 4), np.float32)
+  visible = np.zeros((t, rows), bool)
+  for k, (frame_list, box_list) in enumerate(zip(frames_ragged,
+                                                 boxes_ragged)):
+    if k >= rows:
+      break
+    frame_list = np.asarray(frame_list, np.int64).reshape(-1)
+    box_list = np.asarray(box_list, np.float32).reshape(-1, 4)
+    if len(frame_list) != len(box_list) or (
+        len(frame_list) and not 0 <= frame_list.min() <= frame_list.max() < t):
+      raise writer.ConversionError(
+          f'{where}: instance {k} has {len(box_list)} boxes for frames '
+          f'{frame_list.tolist()}; download this file again')
+    boxes[frame_list, k] = box_list
+    visible[frame_list, k] = True
+  # Ids above M: background, as SAVi's sparse_to_dense_annotation.
+  segmentations = np.where(segmentations <= rows, segmentations, 0)
+  if tuple(plan.resolution) != tuple(video.shape[1:3]):
+    video = media.resize_frames(video, plan.resolution)
+    segmentations = media.resize_labels(segmentations, plan.resolution)
+  return {
+      'video': video.astype(np.uint8),
+      'segmentations': segmentations.astype(np.uint8),
+      'boxes': boxes, 'visible': visible,
+      'positions': _pad_rows(positions, rows),
+      'velocities': _pad_rows(velocities, rows),
+      'image_positions': _pad_rows(image_positions, rows),
+      'num_instances': np.int32(count),
+      'video_name': _text(example[_VIDEO_NAME]),
+  }
+
+
+def _text(value: Any) -> str:
+  if isinstance(value, np.ndarray):
+    value = value.reshape(-1)[0] if value.size else b''
+  return value.decode('utf-8') if isinstance(value, bytes) else str(value)
+
+
+def features(num_frames: int, resolution: Sequence[int], rows: int
+             ) -> tfds.features.FeaturesDict:
+  h, w = resolution
+  t = num_frames
+  return tfds.features.FeaturesDict({
+      'video': writer.tensor((t, h, w, 3), np.uint8),
+      'segmentations': writer.tensor((t, h, w), np.uint8),
+      'boxes': writer.tensor((t, rows, 4), np.float32),
+      'visible': writer.tensor((t, rows), np.bool_),
+      'positions': writer.tensor((t, rows, 3), np.float32),
+      'velocities': writer.tensor((t, rows, 3), np.float32),
+      'image_positions': writer.tensor((t, rows, 2), np.float32),
+      'num_instances': writer.tensor((), np.int32),
+      'video_name': tfds.features.Text(),
+  })
+
+
+def dataset_spec(options: Options, source: Path) -> writer.DatasetSpec:
+  info = read_source(Path(source))
+  rows = instance_rows(options, info)
+  h, w = options.resolution
+  params = {
+      'resolution': list(options.resolution), 'max_objects': rows,
+      'source': {'name': info.name, 'version': info.version,
+                 'resolution': list(info.resolution),
+                 'num_frames': info.num_frames},
+      'converter_version': CONVERTER_VERSION}
+  plan = _Plan(leaves=info.leaves, num_frames=info.num_frames,
+               source_resolution=info.resolution,
+               resolution=options.resolution, rows=rows)
+  sh, sw = info.resolution
+  return writer.DatasetSpec(
+      name=info.name,
+      config_name=writer.config_name(f'r{h}x{w}_t{info.num_frames}_m{rows}',
+                                     params),
+      description=(f'Kubric {info.name} {info.version} ({sh}x{sw} TFDS) at '
+                   f'{h}x{w}: video, instance segmentations (0 background, '
+                   f'k = instance k - 1, ids above {rows} dropped), boxes, '
+                   'positions, velocities.'),
+      params=params,
+      features_fn=functools.partial(features, info.num_frames,
+                                    options.resolution, rows),
+      convert_fn=functools.partial(convert_record, plan=plan))
