@@ -88,6 +88,7 @@ def _planning(config: ml_collections.ConfigDict) -> None:
   r.num_layers = 4
   r.num_heads = 8
   r.mlp_ratio = 4
+  r.layer_norm_epsilon = 1e-5    # PyTorch's LayerNorm
   r.seeds = (0, 1, 2)
   # Not official: it picks the checkpoint on the test tasks' rollouts; we
   # hold out 10% of every template's training tasks instead.

@@ -92,8 +92,13 @@ def _questions_root(config: ml_collections.ConfigDict) -> str:
 
 
 def vocabulary(config: ml_collections.ConfigDict) -> vqa_data.Vocabulary:
+  """`vqa.vocab_file` when set (e.g. the official CLEVRER_vocab.json, which
+  an official Aloe checkpoint's ids index), else the questions folder's
+  vocab.json, else one built from the training questions."""
+  if config.vqa.vocab_file:
+    return vqa_data.Vocabulary.load(config.vqa.vocab_file)
   root = _questions_root(config)
-  path = config.vqa.vocab_file or os.path.join(root, 'vocab.json')
+  path = os.path.join(root, 'vocab.json')
   if os.path.exists(path):
     return vqa_data.Vocabulary.load(path)
   return vqa_data.Vocabulary.from_scenes(

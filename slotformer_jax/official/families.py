@@ -522,17 +522,24 @@ register(Family('steve_slotformer', _is_steve_slotformer,
 register(Family('steve', _is_steve, _convert_steve_family('steve')))
 register(Family('savi', _is_savi, convert_savi))
 register(Family('slotformer', _is_slotformer, convert_slotformer))
-register(Family(
-    'phyre_readout', lambda keys: 'in_proj.weight' in keys and any(
-        k.startswith('cls_mlp.') for k in keys),
-    missing_reason='the PHYRE success readout: its converter is not written yet.'))
-register(Family(
-    'physion_readout', lambda keys: 'comb_idx' in keys
-    and 'linear1.weight' in keys,
-    missing_reason='the Physion contact readout: its converter is not written '
-    'yet.'))
-register(Family(
-    'aloe', lambda keys: any('cls_answer_mlp.' in k or 'mc_answer_mlp.' in k
-                             for k in keys),
-    missing_reason='Aloe (CLEVRER VQA): its converter is not written yet.'))
+
+
+def _lazy(module: str, function: str, detect_name: str):
+  """(detect, convert) of a family in official/<module>.py, which uses this
+  module's helpers: imported when first called."""
+
+  def load(name):
+    import importlib  # pylint: disable=g-import-not-at-top
+    return getattr(importlib.import_module(
+        f'slotformer_jax.official.{module}'), name)
+
+  return (lambda keys: load(detect_name)(keys),
+          lambda state_dict, config: load(function)(state_dict, config))
+
+
+register(Family('phyre_readout', *_lazy('readouts', 'convert_phyre_readout',
+                                        'is_phyre_readout')))
+register(Family('physion_readout', *_lazy(
+    'readouts', 'convert_physion_readout', 'is_physion_readout')))
+register(Family('aloe', *_lazy('aloe', 'convert_aloe', 'is_aloe')))
 register(Family('dvae', _is_dvae, _convert_steve_family('dvae')))
