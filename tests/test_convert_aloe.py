@@ -335,6 +335,76 @@ def test_aloe_writes_the_vqa_variant_the_config_selects(aloe_setup, tmp_path,
                    {'model_400.pth': state})
 
 
+def test_converted_aloe_writes_the_evaluation_server_file(
+    aloe_setup, tmp_path, monkeypatch):
+  """A converted Aloe in a CLEVRER workdir: evaluate_vqa on a test split
+  without answers writes CLEVRER's prediction file, whose answers are the
+  NumPy reference's on the same slot frames (the middle window; predictive
+  questions on the rollout)."""
+  config, vocab, state = aloe_setup
+  vqa = config.vqa
+  second = dict(SCENES[0], scene_index=10001,
+                video_filename='video_10001.mp4')
+  scenes = [json.loads(json.dumps(scene)) for scene in (second, SCENES[0])]
+  for scene in scenes:  # the test split has no answers
+    for q in scene['questions']:
+      q.pop('answer', None)
+      for choice in q.get('choices', ()):
+        choice.pop('answer')
+  os.makedirs(tmp_path / 'CLEVRER' / 'questions')
+  with open(tmp_path / 'CLEVRER' / 'questions' / 'test.json', 'w') as f:
+    json.dump(scenes, f)
+  config.data.name, config.data.channel_order = 'clevrer', 'bgr'
+  config.vqa.questions_root = str(tmp_path / 'CLEVRER')
+  config.vqa.eval_split = 'test'
+  workdir = str(tmp_path / 'run')
+  _convert_files(config, workdir, tmp_path, monkeypatch,
+                 {'model_400.pth': state})
+  # Slots of the two videos (file-name order), observed then rolled out.
+  slots = np.random.default_rng(4).standard_normal(
+      (2, vqa.video_length + vqa.rollout_frames, config.savi.num_slots,
+       config.savi.slot_size)).astype(np.float32)
+  os.makedirs(os.path.join(workdir, 'vqa', 'slots'))
+  np.save(os.path.join(workdir, 'vqa', 'slots', 'test.npy'), slots)
+  mesh = jax.sharding.Mesh(np.array(jax.devices()), ('data',))
+  assert vqa_stages.evaluate_vqa(config, workdir, mesh) == {}
+  with open(os.path.join(vqa_stages.variant_dir(config, workdir),
+                         'predictions_test.json')) as f:
+    predictions = json.load(f)
+  assert [s['scene_index'] for s in predictions] == [10000, 10001]
+  start = vqa_task.num_starts(vqa.video_length, vqa.num_frames,
+                              vqa.frame_stride) // 2
+  kwargs = dict(num_heads=vqa.num_heads, num_layers=vqa.num_layers)
+  checked = 0
+  for scene in scenes:
+    video = slots[int(scene['video_filename'] == 'video_10001.mp4')]
+    entries = {e['question_id']: e for s in predictions
+               if s['scene_index'] == scene['scene_index']
+               for e in s['questions']}
+    for q in scene['questions']:
+      encoded = vqa_data.encode_question(scene, q, vocab, vqa.max_question_len,
+                                         vqa.max_choice_len)
+      frames = vqa_task.question_frames(
+          start, video_length=vqa.video_length, available=len(video),
+          num_frames=vqa.num_frames, stride=vqa.frame_stride,
+          predictive=q['question_type'] == 'predictive')
+      rows = np.repeat(video[frames][None], len(encoded.tokens), axis=0)
+      if encoded.is_descriptive:
+        logits = aref.aloe_open_logits(rows, encoded.tokens, encoded.pad_mask,
+                                       state, **kwargs)
+        expected = vocab.answer_names[int(logits.argmax())]
+        assert entries[q['question_id']]['answer'] == expected
+      else:
+        logits = aref.aloe_choice_logits(
+            rows, encoded.tokens, encoded.pad_mask, state,
+            question_len=vqa.max_question_len, **kwargs)
+        assert entries[q['question_id']]['choices'] == [
+            {'choice_id': int(c), 'answer': 'correct' if x > 0 else 'wrong'}
+            for c, x in zip(encoded.choice_ids, logits)]
+      checked += 1
+  assert checked == 10
+
+
 def _convert_files(config, workdir, tmp_path, monkeypatch, states, **kwargs):
   """convert_official.convert_files on {file name: state dict}, the .pth
   reading replaced by the dicts (the reader has its own tests)."""
