@@ -405,6 +405,30 @@ def test_converted_aloe_writes_the_evaluation_server_file(
   assert checked == 10
 
 
+def test_aloe_after_savi_and_slotformer_in_one_command(tmp_path, monkeypatch):
+  """SAVi, SlotFormer and Aloe in one command (Aloe listed first): written
+  in pipeline order, Aloe's identity naming the SlotFormer whose rollouts
+  its slots are."""
+  import test_convert_official as tco  # pylint: disable=g-import-not-at-top
+  config = tco.tiny_config()
+  vocab = write_vocabulary(tmp_path / 'vocab.json')
+  small = aloe_config(tmp_path / 'vocab.json')
+  config.vqa = small.vqa
+  savi_state = tco.official_savi(config)
+  workdir = str(tmp_path / 'run')
+  directories = _convert_files(config, workdir, tmp_path, monkeypatch, {
+      'aloe.pth': official_aloe(config, vocab),
+      'slotformer.pth': tco.official_slotformer(config, savi_state),
+      'savi.pth': savi_state})
+  assert directories == [workdir_lib.savi_dir(workdir),
+                         workdir_lib.dynamics_dir(workdir),
+                         vqa_stages.variant_dir(config, workdir)]
+  slotformer = workdir_lib.read_identity(directories[1])
+  assert workdir_lib.read_identity(directories[2])['parent'] == {
+      'slotformer_run_id': slotformer['run_id'],
+      'slotformer_step': config.slotformer.num_train_steps}
+
+
 def _convert_files(config, workdir, tmp_path, monkeypatch, states, **kwargs):
   """convert_official.convert_files on {file name: state dict}, the .pth
   reading replaced by the dicts (the reader has its own tests)."""
@@ -518,14 +542,18 @@ def test_physion_readout_is_evaluated_from_its_seed_folder(tmp_path,
 # --------------------------------------------------------------------------
 
 
-def phyre_config():
+def _config_file(name, variant=''):
   import importlib.util  # pylint: disable=g-import-not-at-top
   spec = importlib.util.spec_from_file_location(
-      'phyre_config', os.path.join(os.path.dirname(__file__), '..',
-                                   'configs', 'phyre.py'))
+      name, os.path.join(os.path.dirname(__file__), '..', 'configs',
+                         f'{name}.py'))
   module = importlib.util.module_from_spec(spec)
   spec.loader.exec_module(module)
-  config = module.get_config('planning')
+  return module.get_config(variant) if variant else module.get_config()
+
+
+def phyre_config():
+  config = _config_file('phyre', 'planning')
   config.savi.num_slots, config.savi.slot_size = 3, 8
   r = config.readout
   r.embed_dim, r.num_layers, r.num_heads, r.mlp_ratio = 8, 2, 2, 2
@@ -588,3 +616,42 @@ def test_phyre_readout_errors():
                      match=r'in_proj.weight: checkpoint shape \(8, 8\).*'
                      'config.readout.embed_dim'):
     families.convert_state_dict(state, config)
+
+
+# --------------------------------------------------------------------------
+# The official configs take the official sizes
+# --------------------------------------------------------------------------
+
+
+def test_official_configs_convert_official_sized_checkpoints(tmp_path):
+  """State dicts of the official configs' sizes (aloe_clevrer_params-rollout
+  with CLEVRER's 82 words and 22 answers, readout_physion_params,
+  readout_phyre_params-fold0) convert with configs/clevrer_vqa.py,
+  configs/physion_contact.py and configs/phyre.py:planning."""
+  words = ['PAD'] + [f'w{i:02d}' for i in range(81)]
+  answers = ['PAD'] + [f'a{i:02d}' for i in range(21)]
+  with open(tmp_path / 'CLEVRER_vocab.json', 'w') as f:
+    json.dump({'q_vocab': {w: i for i, w in enumerate(words)},
+               'a_vocab': {a: i for i, a in enumerate(answers)}}, f)
+  config = _config_file('clevrer_vqa')
+  config.vqa.vocab_file = str(tmp_path / 'CLEVRER_vocab.json')
+  state = aref.aloe_state_dict(
+      0, vocab_size=82, num_answers=22, input_dim=16, num_heads=8,
+      slot_size=128, input_len=(6 + 1) * 25 + 20 + 12, num_layers=12,
+      ffn_dim=512, cls_mlp_size=128)
+  params = families.convert_state_dict(state, config).params['params']
+  assert params['position'].shape == (208, 144)
+  assert params['word_embedding']['embedding'].shape == (82, 14)
+  config = _config_file('physion_contact')
+  config.readout.conditions, config.readout.seeds = ('rollout',), (0,)
+  state = aref.physion_readout_state_dict(0, num_slots=6, slot_size=192,
+                                          feats_dim=192)
+  assert families.convert_state_dict(state, config).params['relation'][
+      'kernel'].shape == (384, 192)
+  config = _config_file('phyre', 'planning')
+  config.readout.conditions, config.readout.seeds = ('rollout',), (0,)
+  state = aref.phyre_readout_state_dict(0, slot_size=128, d_model=128,
+                                        num_layers=4, ffn_dim=512,
+                                        num_selected=2)
+  assert set(families.convert_state_dict(state, config).params[
+      'transformer']) == {f'block_{i}' for i in range(4)}

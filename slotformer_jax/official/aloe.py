@@ -87,7 +87,8 @@ def vocabulary(config: ml_collections.ConfigDict) -> vqa_data.Vocabulary:
         'an official Aloe\'s word and answer ids are those of the vocabulary '
         'it was trained with: set --config.vqa.vocab_file to the official '
         'clevrer_vqa/datasets/cache/CLEVRER_vocab.json (or '
-        f'vqa.questions_root to build the same one) ({error})') from error
+        'vqa.questions_root, CLEVRER\'s questions folder, to build the same '
+        'one from its training questions)') from error
 
 
 def model_fields(config: ml_collections.ConfigDict,

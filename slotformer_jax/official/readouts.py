@@ -61,8 +61,10 @@ PHYSION_READOUT_STAGE = 'readout'
 PHYRE_READOUT_STAGE = 'planning'
 READOUT_STAGES = (PHYSION_READOUT_STAGE, PHYRE_READOUT_STAGE)
 # The task (config.task) each readout belongs to, and the config to use.
-_TASKS = {PHYSION_READOUT_STAGE: ('contact', 'configs/physion_contact.py'),
-          PHYRE_READOUT_STAGE: ('planning', 'configs/phyre.py:planning')}
+_TASKS = {PHYSION_READOUT_STAGE: ('Physion contact', 'contact',
+                                  'configs/physion_contact.py'),
+          PHYRE_READOUT_STAGE: ('PHYRE success', 'planning',
+                                'configs/phyre.py:planning')}
 # A converted Physion readout's decision threshold on P(contact): the
 # logistic one. The official test script instead keeps the best of 0.4 ...
 # 0.65 on the test set itself; a user who knows the one it printed passes
@@ -82,10 +84,10 @@ def is_phyre_readout(keys: set[str]) -> bool:
 
 
 def _require_task(config: ml_collections.ConfigDict, stage: str) -> None:
-  task, config_file = _TASKS[stage]
+  what, task, config_file = _TASKS[stage]
   if config.get('task') != task or 'readout' not in config:
     raise ConversionError(
-        f'an official {stage} readout needs a config of the {task!r} task: '
+        f'an official {what} readout needs a config of the {task!r} task: '
         f'use --config={config_file}')
 
 
