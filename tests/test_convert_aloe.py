@@ -114,7 +114,8 @@ SCENES = [{
          'choices': [
              {'choice_id': 0, 'choice': 'The cube collides with the sphere',
               'answer': 'correct'},
-             {'choice_id': 1, 'choice': 'The sphere exits', 'answer': 'wrong'}]},
+             {'choice_id': 1, 'choice': 'The sphere exits',
+              'answer': 'wrong'}]},
         {'question_id': 4, 'question_type': 'explanatory',
          'question': 'Which of the following is responsible for the '
                      'collision?',

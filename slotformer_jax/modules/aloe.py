@@ -168,7 +168,8 @@ class Aloe(nn.Module):
                   pad_mask: jax.Array, *, deterministic: bool = True
                   ) -> jax.Array:
     """Open (descriptive) questions: tokens [B, L] -> logits [B, answers]."""
-    flags = jnp.broadcast_to(jnp.array(OPEN_QUESTION_FLAG), (self.text_length, 2))
+    flags = jnp.broadcast_to(jnp.array(OPEN_QUESTION_FLAG),
+                             (self.text_length, 2))
     cls = self.encode(slots, tokens, pad_mask, flags,
                       deterministic=deterministic)
     return self.open_head(cls)
@@ -179,7 +180,8 @@ class Aloe(nn.Module):
     """Multiple choice: tokens [B, C, L] -> one logit per choice [B, C]."""
     b, c, length = tokens.shape
     flags = jnp.concatenate([
-        jnp.broadcast_to(jnp.array(MC_QUESTION_FLAG), (self.question_length, 2)),
+        jnp.broadcast_to(jnp.array(MC_QUESTION_FLAG),
+                         (self.question_length, 2)),
         jnp.broadcast_to(jnp.array(MC_CHOICE_FLAG),
                          (length - self.question_length, 2))], axis=0)
     per_choice = jnp.repeat(slots, c, axis=0)  # [B*C, T, N, D]
