@@ -6,8 +6,16 @@ The video pipeline is configs/clevrer.py's (stochastic SAVi, SlotFormer);
 (= (14-d word embedding + 2 flags + 2 type) x 8 heads), FFN 512, answer MLPs
 of 128, learned per-token positions, 25 slot frames with stride 5 from a
 random start within the 128 observed frames, rollout to 160 frames read by
-predictive questions; Adam 1e-3, 10% warm-up, cosine, 400 epochs of batch
-256 (~240k steps).
+predictive questions; PyTorch's LayerNorm epsilon 1e-5; Adam 1e-3, 10%
+warm-up, cosine to lr / 100, 400 epochs of batch 256 (~240k steps).
+
+The authors' Aloe (`pretrained/aloe_clevrer_params-rollout/model_400.pth`)
+converts into this config's VQA variant folder (docs/official_weights.md):
+
+  python -m slotformer_jax.convert_official --config=configs/clevrer_vqa.py \
+      --config.data.channel_order=bgr --workdir=runs/clevrer \
+      --config.vqa.vocab_file=CLEVRER_vocab.json \
+      --checkpoint=pretrained/aloe_clevrer_params-rollout/model_400.pth
 
   python -m slotformer_jax.main --config=configs/clevrer_vqa.py \
       --workdir=runs/clevrer --config.vqa.questions_root=/data/CLEVRER \
@@ -33,7 +41,9 @@ def get_config(variant: str = ''):
   if variant:
     raise ValueError(f'unknown variant {variant!r}')
   config = _clevrer_config()
-  config.vqa = vqa_config()  # the defaults are the official values
+  config.vqa = vqa_config()  # the defaults are the official values, but:
+  config.vqa.layer_norm_epsilon = 1e-5  # PyTorch's LayerNorm
+  config.vqa.min_lr_fraction = 0.01  # the official cosine ends at lr / 100
   # The official rollout: SlotFormer from the last frames of the 128 observed,
   # every `slotformer.frame_stride`-th frame, interleaved (see
   # tasks/vqa.py:rollout_after_video), 32 frames to reach 160.

@@ -88,6 +88,11 @@ def _planning(config: ml_collections.ConfigDict) -> None:
   r.num_layers = 4
   r.num_heads = 8
   r.mlp_ratio = 4
+  r.layer_norm_epsilon = 1e-5    # PyTorch's LayerNorm
+  # The official readout trains with nn.TransformerEncoderLayer's dropout
+  # 0.1; 0.0 is what docs/downstream.md measured (--config.readout.
+  # dropout_rate=0.1 for the official value).
+  r.dropout_rate = 0.0
   r.seeds = (0, 1, 2)
   # Not official: it picks the checkpoint on the test tasks' rollouts; we
   # hold out 10% of every template's training tasks instead.

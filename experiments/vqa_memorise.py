@@ -33,6 +33,7 @@ import ml_collections
 import numpy as np
 import optax
 
+from slotformer_jax.data import vqa_questions
 from slotformer_jax.stages import vqa as vqa_stages
 from slotformer_jax.data.questions import QUESTION_TYPES
 from slotformer_jax.tasks import vqa as task
@@ -53,10 +54,10 @@ def main() -> None:
   with open(os.path.join(args.workdir, 'config.json')) as f:
     config = ml_collections.ConfigDict(json.load(f))
   config.vqa.inputs = args.inputs
-  vocab = vqa_stages.vocabulary(config)
+  vocab = vqa_questions.vocabulary(config)
   batches = vqa_stages.question_batches(
       config, args.workdir, 'train',
-      vqa_stages.encoded_questions(config, 'train', vocab))
+      vqa_questions.encoded_questions(config, 'train', vocab))
   chosen = [i for i, q in enumerate(batches.choice)
             if QUESTION_TYPES[q.question_type] == args.question_type
             ][:args.num_questions]

@@ -160,4 +160,5 @@ def build_aloe(config: ml_collections.ConfigDict, vocab_size: int,
       word_dim=vqa.word_dim, num_layers=vqa.num_layers,
       num_heads=vqa.num_heads, mlp_size=vqa.mlp_size,
       head_size=vqa.head_size, dropout_rate=vqa.dropout_rate,
-      positions=vqa.positions)
+      positions=vqa.positions,
+      layer_norm_epsilon=vqa.get('layer_norm_epsilon', 1e-6))

@@ -419,12 +419,13 @@ def test_slotformer_config_must_match():
     (('transformer_model.cls_answer_mlp.0.weight',
       'transformer_model.text_token'), 'aloe'),
 ])
-def test_unimplemented_families_are_recognised(keys, family):
-  """Official key layouts of the models not implemented here (see the
-  official modules) are recognised and refused with what is missing."""
+def test_downstream_families_are_recognised(keys, family):
+  """Official key layouts of the VQA model and the readouts (see the
+  official modules) are recognised; their converters (tests/
+  test_convert_aloe.py) refuse a config of another task."""
   state = {key: np.zeros(1) for key in keys}
   assert families.detect_family(state).name == family
-  with pytest.raises(NotImplementedError, match='converter is not written yet'):
+  with pytest.raises(families.ConversionError, match='--config=configs/'):
     families.convert_state_dict(state, tiny_config())
 
 

@@ -40,7 +40,8 @@ FLOORS = (
     ('slotformer_jax.slot_models',),
     ('slotformer_jax.official',),
     ('slotformer_jax.stages',),
-    ('slotformer_jax.main',),
+    # the entry points: the pipeline, the official-weights converter
+    ('slotformer_jax.main', 'slotformer_jax.official.convert'),
 )
 TRAINING = ('slotformer_jax.train.trainer', 'slotformer_jax.train.steps',
             'slotformer_jax.train.optim', 'slotformer_jax.train.state',

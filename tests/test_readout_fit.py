@@ -47,3 +47,21 @@ def test_fit_learns_and_keeps_the_best_validation_epoch():
   assert readout.best_threshold(probs, val[1])[1] == max(val_scores)
   assert max(val_scores) > 0.8
   assert log['losses'][-1] < log['losses'][0]
+
+
+def test_fit_trains_with_the_heads_dropout():
+  """The PHYRE readout with dropout_rate > 0 (the official 0.1) is trained
+  with dropout (other losses than without it, from the same seed and
+  batches) and predicts deterministically."""
+  x, y = _contact_like(64, 2)
+  config = readout.FitConfig(epochs=2, batch_size=16, learning_rate=1e-3)
+  logs = {}
+  for rate in (0.0, 0.3):
+    model = readouts.PhyreReadout(selected_steps=(0, 2), embed_dim=8,
+                                  num_layers=1, num_heads=2, mlp_size=16,
+                                  dropout_rate=rate)
+    params, logs[rate] = readout.fit(model, (x, y), lambda p: 0.0, config,
+                                     seed=0)
+    np.testing.assert_array_equal(readout.predict(model, params, x),
+                                  readout.predict(model, params, x))
+  assert logs[0.0]['losses'][0] != logs[0.3]['losses'][0]

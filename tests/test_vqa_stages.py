@@ -148,12 +148,13 @@ def test_deflect_variant_changes_only_the_predictive_design():
 
 
 def test_missing_vqa_inputs_are_one_line_errors(tmp_path):
+  from slotformer_jax.data import vqa_questions  # pylint: disable=g-import-not-at-top
   from slotformer_jax.errors import UserError  # pylint: disable=g-import-not-at-top
   from slotformer_jax.stages import vqa as vqa_stages  # pylint: disable=g-import-not-at-top
   from pipeline_helpers import load_config  # pylint: disable=g-import-not-at-top
   config = load_config('clevrer_vqa')
   config.vqa.questions_root = str(tmp_path / 'clevrer')
   with pytest.raises(UserError, match='questions/train.json not found'):
-    vqa_stages.encoded_questions(config, 'train', None)
+    vqa_questions.encoded_questions(config, 'train', None)
   with pytest.raises(UserError, match='--mode=vqa_slots'):
     vqa_stages.question_batches(config, str(tmp_path / 'run'), 'train', [])

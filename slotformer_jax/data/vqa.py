@@ -31,6 +31,7 @@ from typing import Any
 
 import numpy as np
 
+from slotformer_jax.errors import ConfigError
 from slotformer_jax.errors import MissingInputError
 from slotformer_jax.files import read_json
 
@@ -90,10 +91,38 @@ class Vocabulary:
 
   @classmethod
   def load(cls, path: str | os.PathLike[str]) -> Vocabulary:
-    with open(path) as f:
-      d = json.load(f)
-    return cls({k: int(v) for k, v in d['q_vocab'].items()},
-               {k: int(v) for k, v in d['a_vocab'].items()})
+    """A vocabulary file: ``{'q_vocab': {word: id}, 'a_vocab': {answer:
+    id}}``, as :meth:`save` writes it and as the official Aloe's
+    ``CLEVRER_vocab.json`` is (82 question words, 22 answers, PAD = 0 in
+    both).
+
+    Raises:
+      ConfigError: the file is not such a vocabulary (one line naming it).
+    """
+    try:
+      with open(path) as f:
+        d = json.load(f)
+    except (OSError, json.JSONDecodeError) as error:
+      raise ConfigError(f'vocabulary file {path}: {error}') from error
+    tables = []
+    for key in ('q_vocab', 'a_vocab'):
+      table = d.get(key) if isinstance(d, dict) else None
+      if not isinstance(table, dict):
+        raise ConfigError(f'vocabulary file {path} has no {key!r} mapping '
+                          "(expected {'q_vocab': {word: id}, 'a_vocab': "
+                          '{answer: id}})')
+      try:
+        table = {str(k): int(v) for k, v in table.items()}
+      except (TypeError, ValueError) as error:
+        raise ConfigError(f'vocabulary file {path}: {key} ids must be '
+                          f'integers ({error})') from error
+      # Ids index the embedding / answer logits: PAD = 0, then 1..n-1.
+      if table.get(PAD) != 0 or sorted(table.values()) != list(
+          range(len(table))):
+        raise ConfigError(f'vocabulary file {path}: {key} must map {PAD!r} '
+                          'to 0 and its words to distinct ids 0..n-1')
+      tables.append(table)
+    return cls(*tables)
 
   @property
   def answer_names(self) -> list[str]:

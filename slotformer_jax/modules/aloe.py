@@ -40,11 +40,14 @@ from slotformer_jax.modules.transformer import TransformerEncoder
 
 TOKEN = 'token'
 FRAME = 'frame'
-_TEXT = (1.0, 0.0)
-_VISION = (0.0, 1.0)
-_OPEN_QUESTION = (0.0, 1.0)
-_MC_QUESTION = (1.0, 0.0)
-_MC_CHOICE = (0.0, 1.0)
+# The fixed 2-d flags concatenated to the token features (the official
+# model's non-trainable `text_token`, `vision_token`, `cls_token` (the
+# open-question flag, not [CLS]), `mc_question_token`, `mc_choice_token`).
+TEXT_FLAG = (1.0, 0.0)
+VISION_FLAG = (0.0, 1.0)
+OPEN_QUESTION_FLAG = (0.0, 1.0)
+MC_QUESTION_FLAG = (1.0, 0.0)
+MC_CHOICE_FLAG = (0.0, 1.0)
 
 
 def _with_flag(x: jax.Array, flag: jax.Array) -> jax.Array:
@@ -69,6 +72,8 @@ class Aloe(nn.Module):
     head_size: hidden width of both answer MLPs (official 128).
     dropout_rate: PyTorch's nn.TransformerEncoderLayer default, 0.1.
     positions: 'token' (official) or 'frame' (see the module docstring).
+    layer_norm_epsilon: of the Transformer's LayerNorms: 1e-6 (flax) or
+      1e-5 (PyTorch's, the official model's; configs/clevrer_vqa.py).
   """
 
   vocab_size: int
@@ -85,6 +90,7 @@ class Aloe(nn.Module):
   head_size: int = 128
   dropout_rate: float = 0.1
   positions: str = TOKEN
+  layer_norm_epsilon: float = 1e-6
 
   def setup(self):
     if self.positions not in (TOKEN, FRAME):
@@ -110,7 +116,8 @@ class Aloe(nn.Module):
     self.encoder = TransformerEncoder(
         num_layers=self.num_layers, num_heads=self.num_heads,
         mlp_size=self.mlp_size, dropout_rate=self.dropout_rate,
-        pre_norm=True, name='encoder')
+        pre_norm=True, layer_norm_epsilon=self.layer_norm_epsilon,
+        name='encoder')
     self.open_head = nn.Sequential(
         [nn.Dense(self.head_size), nn.relu, nn.Dense(self.num_answers)],
         name='open_head')
@@ -143,10 +150,10 @@ class Aloe(nn.Module):
     if tokens.shape[-1] != self.text_length:
       raise ValueError(f'{tokens.shape[-1]} words, expected '
                        f'{self.text_length}')
-    vision = _with_flag(slots.reshape(b, t * n, -1), jnp.array(_VISION))
+    vision = _with_flag(slots.reshape(b, t * n, -1), jnp.array(VISION_FLAG))
     vision = self.slot_projection(vision)
     words = _with_flag(self.word_embedding(tokens), text_flags)
-    words = self.text_projection(_with_flag(words, jnp.array(_TEXT)))
+    words = self.text_projection(_with_flag(words, jnp.array(TEXT_FLAG)))
     cls = jnp.broadcast_to(self.cls.astype(vision.dtype), (b, 1, self.d_model))
     x = jnp.concatenate([cls, vision, words], axis=1) + self._positions()
     keep = jnp.concatenate(
@@ -161,7 +168,8 @@ class Aloe(nn.Module):
                   pad_mask: jax.Array, *, deterministic: bool = True
                   ) -> jax.Array:
     """Open (descriptive) questions: tokens [B, L] -> logits [B, answers]."""
-    flags = jnp.broadcast_to(jnp.array(_OPEN_QUESTION), (self.text_length, 2))
+    flags = jnp.broadcast_to(jnp.array(OPEN_QUESTION_FLAG),
+                             (self.text_length, 2))
     cls = self.encode(slots, tokens, pad_mask, flags,
                       deterministic=deterministic)
     return self.open_head(cls)
@@ -172,8 +180,9 @@ class Aloe(nn.Module):
     """Multiple choice: tokens [B, C, L] -> one logit per choice [B, C]."""
     b, c, length = tokens.shape
     flags = jnp.concatenate([
-        jnp.broadcast_to(jnp.array(_MC_QUESTION), (self.question_length, 2)),
-        jnp.broadcast_to(jnp.array(_MC_CHOICE),
+        jnp.broadcast_to(jnp.array(MC_QUESTION_FLAG),
+                         (self.question_length, 2)),
+        jnp.broadcast_to(jnp.array(MC_CHOICE_FLAG),
                          (length - self.question_length, 2))], axis=0)
     per_choice = jnp.repeat(slots, c, axis=0)  # [B*C, T, N, D]
     cls = self.encode(per_choice, tokens.reshape(b * c, length),

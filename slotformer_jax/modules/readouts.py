@@ -86,6 +86,8 @@ class PhyreReadout(nn.Module):
     embed_dim: d_model (the slot size, officially).
     num_layers, num_heads, mlp_size: the Pre-LN Transformer (4, 8, 4 d_model).
     dropout_rate: PyTorch's default 0.1 in the official readout.
+    layer_norm_epsilon: 1e-6 (flax) or 1e-5 (PyTorch's, the official
+      readout's; configs/phyre.py:planning).
   """
 
   selected_steps: Sequence[int] = (0, 3)
@@ -94,6 +96,7 @@ class PhyreReadout(nn.Module):
   num_heads: int = 8
   mlp_size: int = 512
   dropout_rate: float = 0.0
+  layer_norm_epsilon: float = 1e-6
 
   @nn.compact
   def __call__(self, slots: jax.Array, *,
@@ -119,6 +122,7 @@ class PhyreReadout(nn.Module):
     tokens = TransformerEncoder(
         num_layers=self.num_layers, num_heads=self.num_heads,
         mlp_size=self.mlp_size, dropout_rate=self.dropout_rate,
-        pre_norm=True, name='transformer')(tokens, deterministic=deterministic)
+        pre_norm=True, layer_norm_epsilon=self.layer_norm_epsilon,
+        name='transformer')(tokens, deterministic=deterministic)
     hidden = nn.relu(nn.Dense(self.embed_dim, name='cls_hidden')(tokens[:, 0]))
     return nn.Dense(1, name='cls_logit')(hidden)[:, 0]

@@ -11,15 +11,23 @@ r"""Imports the authors' released PyTorch checkpoints into a workdir.
       --checkpoint=pretrained/steve_physion_params/model_10.pth \
       --checkpoint=pretrained/slotformer_physion_params/model_25.pth
 
+  python -m slotformer_jax.convert_official --config=configs/clevrer_vqa.py \
+      --config.data.channel_order=bgr --workdir=runs/clevrer_official \
+      --config.vqa.vocab_file=CLEVRER_vocab.json \
+      --checkpoint=pretrained/aloe_clevrer_params-rollout/model_400.pth
+
 Each checkpoint's family (SAVi / stochastic SAVi, SlotFormer, dVAE, STEVE,
-SlotFormer on STEVE slots) is recognised from its keys; the converted
-parameters go where the pipeline reads them (`savi/`, `dvae/`, `steve/`,
-`slotformer/` checkpoints, each with its `model_config.json` and run
-identity), so `--mode=extract_slots`, `evaluate` and `render` run on them
-unchanged. Stage-1 checkpoints are written first (dVAE before STEVE); the
-frozen copies a later checkpoint carries (SlotFormer's SAVi decoder,
-STEVE's dVAE, STEVESlotFormer's dVAE and token decoder) must equal what the
-workdir already holds.
+SlotFormer on STEVE slots, Aloe, the Physion and PHYRE readouts) is
+recognised from its keys; the converted parameters go where the pipeline
+reads them (`savi/`, `dvae/`, `steve/`, `slotformer/` checkpoints, each with
+its `model_config.json` and run identity; Aloe in the VQA variant folder
+`vqa/<inputs>_s<seed>/` the config selects; a readout in
+`readout/<condition>/seed_<s>/` or `planning/<condition>/seed_<s>/`), so
+`--mode=extract_slots`, `evaluate`, `render`, `evaluate_vqa`,
+`evaluate_readout` and `plan` run on them unchanged. Stage-1 checkpoints
+are written first (dVAE before STEVE); the frozen copies a later checkpoint
+carries (SlotFormer's SAVi decoder, STEVE's dVAE, STEVESlotFormer's dVAE and
+token decoder) must equal what the workdir already holds.
 Reading `.pth` needs no torch (see official/pth_reader.py). The official
 optimizer state is not converted: a converted stage starts a fresh Adam state
 at its last step, so training does not resume it.
@@ -29,6 +37,7 @@ from __future__ import annotations
 
 import datetime
 import hashlib
+import json
 import logging
 import os
 import sys
@@ -47,11 +56,14 @@ from slotformer_jax import models
 from slotformer_jax import workdir as workdir_lib
 from slotformer_jax.errors import UserError
 from slotformer_jax.files import write_json_atomic
+from slotformer_jax.official import aloe as official_aloe
 from slotformer_jax.official import common
 from slotformer_jax.official import families
+from slotformer_jax.official import readouts as official_readouts
 from slotformer_jax.official import pth_reader
 from slotformer_jax.slot_models import savi as savi_slots
 from slotformer_jax.slot_models import steve as steve_slots
+from slotformer_jax.stages import vqa as vqa_stages
 from slotformer_jax.train import optim
 from slotformer_jax.train.state import TrainState
 from slotformer_jax.train.trainer import checkpointer_for
@@ -67,7 +79,10 @@ CONVERTED_FROM_FILE = 'converted_from.json'
 # whose frozen copies are checked against it (and whose identity names it as
 # parent).
 _ORDER = (common.DVAE_STAGE, common.STEVE_STAGE, common.SAVI_STAGE,
-          common.SLOTFORMER_STAGE)
+          common.SLOTFORMER_STAGE,
+          official_aloe.ALOE_STAGE) + official_readouts.READOUT_STAGES
+
+DEFAULT_READOUT_THRESHOLD = official_readouts.DEFAULT_THRESHOLD
 
 
 def check_channel_order(config: ml_collections.ConfigDict) -> None:
@@ -101,6 +116,11 @@ def _stage_target(config: ml_collections.ConfigDict, workdir: str,
   if stage == common.SAVI_STAGE:
     return (savi_slots.savi_dir(root), savi_slots.model_fields(config),
             config.savi)
+  if stage == official_aloe.ALOE_STAGE:  # vqa/<inputs>_s<seed>/
+    return (vqa_stages.variant_dir(config, workdir),
+            official_aloe.model_fields(config,
+                                       official_aloe.vocabulary(config)),
+            config.vqa)
   return (workdir_lib.dynamics_dir(workdir, stage),
           workdir_lib.dynamics_model_fields(config, stage),
           models.dynamics_config(config, stage))
@@ -161,6 +181,13 @@ def _identity(config: ml_collections.ConfigDict, workdir: str,
                                 int(config.dvae.num_train_steps)))
   if stage == common.SAVI_STAGE:
     return workdir_lib.new_identity(savi_slots.identity_fields(config))
+  if stage == official_aloe.ALOE_STAGE:
+    return workdir_lib.new_identity(
+        _section_fields(config, 'vqa'), _slots_parent_if_any(config, workdir))
+  if stage in official_readouts.READOUT_STAGES:
+    return workdir_lib.new_identity(
+        _section_fields(config, 'readout'),
+        _slots_parent_if_any(config, workdir))
   if config.slot_model == steve_slots.NAME:
     parent = workdir_lib.slots_parent(
         steve_slots.steve_identity(config, workdir),
@@ -171,6 +198,34 @@ def _identity(config: ml_collections.ConfigDict, workdir: str,
         int(config.savi.num_train_steps), savi_slots.NAME)
   return workdir_lib.new_identity(
       workdir_lib.dynamics_identity_fields(config, stage), parent)
+
+
+def _section_fields(config: ml_collections.ConfigDict,
+                    section: str) -> dict[str, Any]:
+  return json.loads(json.dumps({'seed': config.seed,
+                                section: config[section].to_dict()}))
+
+
+def _slots_parent_if_any(config: ml_collections.ConfigDict,
+                         workdir: str) -> dict[str, Any] | None:
+  """What a converted Aloe or readout reads the slots of: the workdir's
+  SlotFormer (its rollouts) at its last step, else its stage-1 model, else
+  None (the workdir holds neither yet; the official model was trained on
+  the authors' slots)."""
+  stage1 = workdir_lib.stage1_workdir(config, workdir)
+  if config.get('slot_model', 'savi') == steve_slots.NAME:
+    slot_model = (steve_slots.steve_dir(stage1), steve_slots.NAME,
+                  config.steve.num_train_steps)
+  else:
+    slot_model = (savi_slots.savi_dir(stage1), savi_slots.NAME,
+                  config.savi.num_train_steps)
+  for directory, name, step in (
+      (workdir_lib.dynamics_dir(workdir), common.SLOTFORMER_STAGE,
+       config.slotformer.num_train_steps), slot_model):
+    identity = workdir_lib.read_identity(directory)
+    if identity is not None:
+      return workdir_lib.slots_parent(identity, int(step), name)
+  return None
 
 
 def _sha256(path: str) -> str:
@@ -270,7 +325,9 @@ def _check_copies_within(converted: list[tuple[str, Any]]) -> None:
 
 
 def convert_files(config: ml_collections.ConfigDict, workdir: str,
-                  paths: list[str], reader: str = 'auto') -> list[str]:
+                  paths: list[str], reader: str = 'auto',
+                  readout_threshold: float = DEFAULT_READOUT_THRESHOLD
+                  ) -> list[str]:
   """Converts and writes every checkpoint in `paths`; returns directories.
 
   Every file is read and converted before anything is written, so a file
@@ -288,12 +345,13 @@ def convert_files(config: ml_collections.ConfigDict, workdir: str,
   with workdir_lib.workdir_lock(workdir):
     # Later pipeline commands on this workdir must use the same settings.
     workdir_lib.accept_config(config, workdir)
-    return [_write(config, workdir, path, result)
+    return [_write(config, workdir, path, result, readout_threshold)
             for path, result in converted]
 
 
 def _write(config: ml_collections.ConfigDict, workdir: str, path: str,
-           result: Any) -> str:
+           result: Any,
+           readout_threshold: float = DEFAULT_READOUT_THRESHOLD) -> str:
   if 'decoder' in result.extras:
     check_frozen_decoder(config, workdir, result.extras['decoder'])
   for key in ('dvae', 'steve_decoder'):
@@ -306,8 +364,13 @@ def _write(config: ml_collections.ConfigDict, workdir: str, path: str,
       'converted_at': datetime.datetime.now(datetime.timezone.utc)
                       .isoformat(timespec='seconds'),
   }
-  directory = write_converted(config, workdir, result.stage, result.params,
-                              provenance)
+  if result.stage in official_readouts.READOUT_STAGES:
+    directory = official_readouts.write_readout(
+        config, workdir, result.stage, result.params, provenance,
+        _identity(config, workdir, result.stage), readout_threshold)
+  else:
+    directory = write_converted(config, workdir, result.stage, result.params,
+                                provenance)
   logger.info('wrote %s', directory)
   return directory
 
@@ -330,6 +393,10 @@ def _define_flags() -> dict[str, Any]:
           'reader', 'auto', ('auto', 'numpy', 'torch'),
           'How to read .pth: numpy (no torch), torch (pip install -e '
           '.[torch]), auto (numpy for zip files).'),
+      readout_threshold=flags.DEFINE_float(
+          'readout_threshold', DEFAULT_READOUT_THRESHOLD,
+          'A converted Physion readout\'s decision threshold on P(contact) '
+          '(the official test script prints the one it picked).'),
   )
 
 
@@ -350,7 +417,8 @@ def main(argv, flag_holders: dict[str, Any]):
   try:
     convert_files(config, flag_holders['workdir'].value,
                   flag_holders['checkpoints'].value,
-                  flag_holders['reader'].value)
+                  flag_holders['reader'].value,
+                  flag_holders['readout_threshold'].value)
   except (common.ConversionError, FileExistsError, NotImplementedError,
           UserError) as error:
     # What to change is in the message; a traceback would only hide it.

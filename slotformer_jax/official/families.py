@@ -1,8 +1,9 @@
 """The registry of official model families: which one converts a state dict.
 
 One file per family (savi.py, slotformer.py, steve.py: dVAE, STEVE,
-STEVESlotFormer), their shared parts and checks in common.py. Families that
-are recognised but not convertible yet say so instead of failing on keys.
+STEVESlotFormer; aloe.py; readouts.py: the Physion and PHYRE readouts),
+their shared parts and checks in common.py. A family recognised but not
+convertible (`convert` None) says so instead of failing on keys.
 """
 
 from __future__ import annotations
@@ -10,6 +11,8 @@ from __future__ import annotations
 import ml_collections
 import numpy as np
 
+from slotformer_jax.official import aloe
+from slotformer_jax.official import readouts
 from slotformer_jax.official import savi
 from slotformer_jax.official import slotformer
 from slotformer_jax.official import steve
@@ -24,20 +27,11 @@ FAMILIES: tuple[Family, ...] = (
     steve.STEVE_FAMILY,
     savi.FAMILY,
     slotformer.FAMILY,
-    Family(
-        'phyre_readout', lambda keys: 'in_proj.weight' in keys and any(
-            k.startswith('cls_mlp.') for k in keys),
-        missing_reason='the PHYRE success readout: its converter is not '
-        'written yet.'),
-    Family(
-        'physion_readout', lambda keys: 'comb_idx' in keys
-        and 'linear1.weight' in keys,
-        missing_reason='the Physion contact readout: its converter is not '
-        'written yet.'),
-    Family(
-        'aloe', lambda keys: any('cls_answer_mlp.' in k or 'mc_answer_mlp.' in k
-                                 for k in keys),
-        missing_reason='Aloe (CLEVRER VQA): its converter is not written yet.'),
+    Family('phyre_readout', readouts.is_phyre_readout,
+           readouts.convert_phyre_readout),
+    Family('physion_readout', readouts.is_physion_readout,
+           readouts.convert_physion_readout),
+    Family('aloe', aloe.is_aloe, aloe.convert_aloe),
     steve.DVAE_FAMILY,
 )
 

@@ -166,10 +166,14 @@ def evaluate_readout(config: ml_collections.ConfigDict, workdir: str,
       accuracies.append(readout_lib.accuracy_at(probs, labels,
                                                 selection['threshold']))
       val_accuracies.append(selection['val_accuracy'])
+    # A converted official readout has no validation accuracy (None).
+    measured = [v for v in val_accuracies if v is not None]
     results[condition] = {
         'test_accuracy': accuracies,
         'mean': float(np.mean(accuracies)), 'std': float(np.std(accuracies)),
-        'val_accuracy_mean': float(np.mean(val_accuracies))}
+        'val_accuracy_mean': (float(np.mean(measured))
+                              if len(measured) == len(val_accuracies)
+                              else None)}
   positive = float(labels.mean())
   results['chance'] = {'mean': max(positive, 1.0 - positive), 'std': 0.0}
   results['num_test_videos'] = len(labels)

@@ -40,6 +40,7 @@ from slotformer_jax import models
 from slotformer_jax import slot_models
 from slotformer_jax import workdir as workdir_lib
 from slotformer_jax.data import vqa as vqa_data
+from slotformer_jax.data import vqa_questions
 from slotformer_jax.data.slots import SlotSource
 from slotformer_jax.errors import ConfigError
 from slotformer_jax.errors import MissingInputError
@@ -74,43 +75,6 @@ def _check_inputs(config: ml_collections.ConfigDict) -> None:
   if config.vqa.inputs not in INPUTS:
     raise ConfigError(f'vqa.inputs must be one of {INPUTS}, got '
                      f'{config.vqa.inputs!r}')
-
-
-# ----------------------------------------------------------------------------
-# Questions
-# ----------------------------------------------------------------------------
-
-
-def _questions_root(config: ml_collections.ConfigDict) -> str:
-  if config.data.name == 'clevrer_like':
-    from slotformer_jax.data import clevrer_like  # pylint: disable=g-import-not-at-top
-    from slotformer_jax.data.sources import resolve_data_dir  # pylint: disable=g-import-not-at-top
-    return str(clevrer_like.build_dataset(
-        clevrer_like.config_from_data_config(config.data),
-        resolve_data_dir(config.data.get('data_dir', None)),
-        num_workers=config.data.get('num_workers', None)))
-  if not config.vqa.questions_root:
-    raise ConfigError('set vqa.questions_root to the folder holding '
-                     "CLEVRER's questions/{train,validation,test}.json")
-  return config.vqa.questions_root
-
-
-def vocabulary(config: ml_collections.ConfigDict) -> vqa_data.Vocabulary:
-  root = _questions_root(config)
-  path = config.vqa.vocab_file or os.path.join(root, 'vocab.json')
-  if os.path.exists(path):
-    return vqa_data.Vocabulary.load(path)
-  return vqa_data.Vocabulary.from_scenes(
-      vqa_data.read_clevrer_questions(root, 'train'),
-      answers=vqa_data.CLEVRER_ANSWERS)
-
-
-def encoded_questions(config: ml_collections.ConfigDict, split: str,
-                      vocab: vqa_data.Vocabulary
-                      ) -> list[vqa_data.EncodedQuestion]:
-  scenes = vqa_data.read_clevrer_questions(_questions_root(config), split)
-  return vqa_data.encode_scenes(scenes, vocab, config.vqa.max_question_len,
-                                config.vqa.max_choice_len)
 
 
 # ----------------------------------------------------------------------------
@@ -176,19 +140,6 @@ def vqa_slots(config: ml_collections.ConfigDict, workdir: str,
   write_json_atomic(meta_path, meta)
 
 
-def _filename_to_index(config: ml_collections.ConfigDict,
-                       split: str) -> dict[str, int]:
-  scenes = vqa_data.read_clevrer_questions(_questions_root(config), split)
-  if config.data.name == 'clevrer_like':
-    from slotformer_jax.data import clevrer_like  # pylint: disable=g-import-not-at-top
-    offset = clevrer_like.SCENE_OFFSETS[split]
-    return {s['video_filename']: int(s['scene_index']) - offset
-            for s in scenes}
-  # CLEVRER: converted videos are in file-name order within a split.
-  names = sorted(s['video_filename'] for s in scenes)
-  return {name: k for k, name in enumerate(names)}
-
-
 def _true_future_slots(config: ml_collections.ConfigDict, workdir: str,
                        split: str, length: int) -> np.ndarray:
   """SAVi's slots of the video and of the real frames after it, float32
@@ -222,7 +173,7 @@ def question_batches(config: ml_collections.ConfigDict, workdir: str,
   elif vqa.inputs != 'rollout':
     slots = slots[:, :vqa.video_length]  # no rollout: predictive questions
     # read the end of the video like the others
-  index = _filename_to_index(config, split)
+  index = vqa_questions.filename_to_index(config, split)
   return task.QuestionBatches(
       questions, lambda name: slots[index[name]],
       video_length=vqa.video_length, num_frames=vqa.num_frames,
@@ -258,9 +209,10 @@ def train_vqa(config: ml_collections.ConfigDict, workdir: str,
               mesh: Mesh) -> None:
   """Trains Aloe on the training questions (resumable)."""
   vqa = config.vqa
-  vocab = vocabulary(config)
+  vocab = vqa_questions.vocabulary(config)
   batches = question_batches(config, workdir, 'train',
-                             encoded_questions(config, 'train', vocab))
+                             vqa_questions.encoded_questions(config, 'train',
+                                                             vocab))
   model, init = _model_and_init(config, vocab)
   open_size = sharding.per_host_batch_size(vqa.open_batch_size, mesh)
   choice_size = sharding.per_host_batch_size(vqa.choice_batch_size, mesh)
@@ -294,8 +246,8 @@ def evaluate_vqa(config: ml_collections.ConfigDict, workdir: str,
   on a split without answers (CLEVRER's test), the prediction file."""
   vqa = config.vqa
   split = vqa.eval_split
-  vocab = vocabulary(config)
-  questions = encoded_questions(config, split, vocab)
+  vocab = vqa_questions.vocabulary(config)
+  questions = vqa_questions.encoded_questions(config, split, vocab)
   batches = question_batches(config, workdir, split, questions)
   model, params = _load_aloe(config, workdir, mesh, vocab)
   replicated = sharding.replicated_sharding(mesh)
@@ -336,7 +288,8 @@ def evaluate_vqa(config: ml_collections.ConfigDict, workdir: str,
           sort_keys=False)
     if has_answers:
       prior = task.evaluate_answer_prior(task.fit_answer_prior(
-          encoded_questions(config, 'train', vocab)), questions)
+          vqa_questions.encoded_questions(config, 'train', vocab)),
+          questions)
       write_json_atomic(
           os.path.join(vqa_dir(workdir), f'answer_prior_{split}.json'),
           prior, sort_keys=False)

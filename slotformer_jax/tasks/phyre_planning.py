@@ -66,7 +66,9 @@ def build_classifier(config: ml_collections.ConfigDict, condition: str
   return readouts.PhyreReadout(
       selected_steps=selected, embed_dim=r.embed_dim,
       num_layers=r.num_layers, num_heads=r.num_heads,
-      mlp_size=r.mlp_ratio * r.embed_dim, dropout_rate=0.0)
+      mlp_size=r.mlp_ratio * r.embed_dim,
+      dropout_rate=r.get('dropout_rate', 0.0),
+      layer_norm_epsilon=r.get('layer_norm_epsilon', 1e-6))
 
 
 def task_splits(config: ml_collections.ConfigDict

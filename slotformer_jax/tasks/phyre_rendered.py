@@ -147,7 +147,9 @@ def build_classifier(config: ml_collections.ConfigDict, condition: str,
   return readouts.PhyreReadout(
       selected_steps=tuple(range(frames)), embed_dim=r.embed_dim,
       num_layers=r.num_layers, num_heads=r.num_heads,
-      mlp_size=r.mlp_ratio * r.embed_dim, dropout_rate=0.0)
+      mlp_size=r.mlp_ratio * r.embed_dim,
+      dropout_rate=r.get('dropout_rate', 0.0),
+      layer_norm_epsilon=r.get('layer_norm_epsilon', 1e-6))
 
 
 def condition_features(features: np.ndarray, condition: str) -> np.ndarray:

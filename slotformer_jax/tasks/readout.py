@@ -115,11 +115,20 @@ def fit(model: nn.Module, train: tuple[np.ndarray, np.ndarray],
   params = model.init(jax.random.key(seed),
                       jnp.asarray(features[:1]))['params']
   opt_state = optimizer.init(params)
+  # A head with dropout (the PHYRE readout's Transformer, officially 0.1)
+  # trains with it, one key per step derived from the seed; `predict` and
+  # the selection are deterministic.
+  dropout = getattr(model, 'dropout_rate', 0.0) > 0
+  dropout_key = jax.random.fold_in(jax.random.key(seed), 1)
 
   @jax.jit
-  def step(params, opt_state, x, y):
-    loss, grads = jax.value_and_grad(
-        lambda p: readout_bce(model.apply({'params': p}, x), y))(params)
+  def step(params, opt_state, x, y, step_index):
+    kwargs = {}
+    if dropout:
+      kwargs = {'deterministic': False, 'rngs': {
+          'dropout': jax.random.fold_in(dropout_key, step_index)}}
+    loss, grads = jax.value_and_grad(lambda p: readout_bce(
+        model.apply({'params': p}, x, **kwargs), y))(params)
     updates, opt_state = optimizer.update(grads, opt_state, params)
     return optax.apply_updates(params, updates), opt_state, loss
 
@@ -132,7 +141,8 @@ def fit(model: nn.Module, train: tuple[np.ndarray, np.ndarray],
       index = order[i * batch_size:(i + 1) * batch_size]
       params, opt_state, loss = step(params, opt_state,
                                      jnp.asarray(features[index]),
-                                     jnp.asarray(labels[index]))
+                                     jnp.asarray(labels[index]),
+                                     epoch * steps_per_epoch + i)
       losses.append(float(loss))
     score = float(select(params))
     log['scores'].append(score)
