@@ -12,7 +12,7 @@ warm-up, cosine to lr / 100, 400 epochs of batch 256 (~240k steps).
 The authors' Aloe (`pretrained/aloe_clevrer_params-rollout/model_400.pth`)
 converts into this config's VQA variant folder (docs/official_weights.md):
 
-  python -m slotformer_jax.convert_official --config=configs/clevrer_vqa.py \
+  python -m slotformer_jax.official.convert --config=configs/clevrer_vqa.py \
       --config.data.channel_order=bgr --workdir=runs/clevrer \
       --config.vqa.vocab_file=CLEVRER_vocab.json \
       --checkpoint=pretrained/aloe_clevrer_params-rollout/model_400.pth

@@ -187,13 +187,28 @@ def fingerprint(fields: dict[str, Any]) -> str:
                         ).hexdigest()[:16]
 
 
+# Fields added after workdirs were made, and the value their absence stands
+# for (what the code did before they existed): a workdir whose settings lack
+# one is read as having that value, so it stays usable; any other value is a
+# change like every other.
+ADDED_FIELDS: dict[str, Any] = {
+    'vqa.layer_norm_epsilon': 1e-6,
+    'vqa.min_lr_fraction': 0.0,
+    'readout.layer_norm_epsilon': 1e-6,
+    'readout.dropout_rate': 0.0,
+}
+
+
 def flat_differences(old: Any, new: Any, prefix: str = '') -> list[str]:
-  """['savi.learning_rate: 0.0002 -> 0.001', ...] between nested dicts."""
+  """['savi.learning_rate: 0.0002 -> 0.001', ...] between nested dicts (a
+  field of `ADDED_FIELDS` absent from `old` at its old value is none)."""
   if isinstance(old, dict) and isinstance(new, dict):
     out = []
     for key in sorted(set(old) | set(new)):
       name = f'{prefix}.{key}' if prefix else key
       if key not in old:
+        if name in ADDED_FIELDS and _plain(new[key]) == ADDED_FIELDS[name]:
+          continue
         out.append(f'{name}: (absent) -> {new[key]!r}')
       elif key not in new:
         out.append(f'{name}: {old[key]!r} -> (absent)')

@@ -247,6 +247,23 @@ def test_changed_settings_are_refused_and_config_json_kept(tmp_path):
   assert json.loads(history[-1])['config'] == json.loads(saved)
 
 
+def test_a_workdir_from_before_an_added_field_stays_usable(tmp_path):
+  config = pipeline_helpers.load_config('synthetic_vqa', 'tiny')
+  workdir = str(tmp_path / 'run')
+  workdir_lib.accept_config(config, workdir)
+  path = os.path.join(workdir, 'config.json')
+  saved = files.read_json(path)
+  for name in workdir_lib.ADDED_FIELDS:  # as written before these existed
+    section, field = name.split('.')
+    saved.get(section, {}).pop(field, None)
+  files.write_json_atomic(path, saved)
+  assert workdir_lib.accept_config(config, workdir) == []
+  # Another value than the one the old code used is a change.
+  config.vqa.layer_norm_epsilon = 1e-5
+  with pytest.raises(UserError, match=r'vqa.layer_norm_epsilon: \(absent\)'):
+    workdir_lib.accept_config(config, workdir)
+
+
 def test_a_stage_made_with_other_settings_is_set_aside(copied):
   config, workdir = copied
   config.seed = 1  # accepted with --allow_config_change

@@ -11,7 +11,7 @@ r"""Imports the authors' released PyTorch checkpoints into a workdir.
       --checkpoint=pretrained/steve_physion_params/model_10.pth \
       --checkpoint=pretrained/slotformer_physion_params/model_25.pth
 
-  python -m slotformer_jax.convert_official --config=configs/clevrer_vqa.py \
+  python -m slotformer_jax.official.convert --config=configs/clevrer_vqa.py \
       --config.data.channel_order=bgr --workdir=runs/clevrer_official \
       --config.vqa.vocab_file=CLEVRER_vocab.json \
       --checkpoint=pretrained/aloe_clevrer_params-rollout/model_400.pth

@@ -69,7 +69,7 @@ _TASKS = {PHYSION_READOUT_STAGE: ('Physion contact', 'contact',
 # A converted Physion readout's decision threshold on P(contact): the
 # logistic one. The official test script instead keeps the best of 0.4 ...
 # 0.65 on the test set itself; a user who knows the one it printed passes
-# it (convert_official --readout_threshold).
+# it (official.convert --readout_threshold).
 DEFAULT_THRESHOLD = 0.5
 # Beside the readout's files, as for the other converted stages.
 CONVERTED_FROM_FILE = 'converted_from.json'
