@@ -355,7 +355,7 @@ def main(argv, flag_holders: dict[str, Any]):
   except (families.ConversionError, FileExistsError, NotImplementedError,
           UserError) as error:
     # What to change is in the message; a traceback would only hide it.
-    sys.exit(f'convert_official: {error}')
+    sys.exit(f'error: {error}')
 
 
 if __name__ == '__main__':
