@@ -69,7 +69,9 @@ def encode_int(value: int) -> bytes:
   if -2**31 <= value < 2**31:
     return b'J' + struct.pack('<i', value)
   data = pickle.encode_long(value)
-  return b'\x8a' + bytes([len(data)]) + data
+  if len(data) < 256:
+    return b'\x8a' + bytes([len(data)]) + data
+  return b'\x8b' + struct.pack('<I', len(data)) + data  # LONG4
 
 
 def _emit(value: Any, out: io.BytesIO) -> None:

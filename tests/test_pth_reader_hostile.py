@@ -416,3 +416,39 @@ def test_fuzzed_checkpoints_are_read_right_or_refused(tmp_path):
   assert kinds >= {'int', 'view', 'type', 'delete', 'duplicate', 'memo',
                    'length', 'name', 'byteorder', 'bomb', 'lie', 'truncate',
                    'flip', 'depth'}, kinds
+
+
+def test_huge_ints_in_the_header_are_named_not_printed(tmp_path):
+  """Python refuses to print an int of more than 4300 digits; a header
+  full of them is still refused in one line."""
+  huge = 2**20000 + 1
+  for name, (numel, offset, size, stride) in {
+      'numel': (huge, 0, (2,), (1,)),
+      'offset': (4, huge, (2,), (1,)),
+      'size': (4, 0, (huge, 0), (1, 1)),
+      'stride': (4, 0, (2, 3), (huge, 1)),
+  }.items():
+    path = tmp_path / f'{name}.pth'
+    path.write_bytes(pf.archive_bytes(
+        pf.dumps({'w': pf.tensor('0', 'FloatStorage', numel, offset, size,
+                                 stride)}), {'0': bytes(16)}))
+    with pytest.raises(pth_reader.CheckpointError) as caught:
+      pth_reader.read_checkpoint(str(path))
+    assert '<20001-bit int>' in str(caught.value), caught.value
+
+
+def test_a_zip_directory_is_charged_before_zipfile_reads_it(tmp_path):
+  """60000 empty members: zipfile would build ~30 MB of ZipInfo objects."""
+  path = tmp_path / 'members.pth'
+  path.write_bytes(pf.raw_zip([pf.stored(f'archive/x{i}', b'')
+                               for i in range(60000)]))
+  tracemalloc.start()
+  try:
+    with pytest.raises(pth_reader.CheckpointError,
+                       match='the zip directory .as ZipInfo objects. needs'):
+      pth_reader.read_checkpoint(
+          str(path), limits=pth_reader.Limits(max_bytes=8 * _MIB))
+    peak = tracemalloc.get_traced_memory()[1]
+  finally:
+    tracemalloc.stop()
+  assert peak < 8 * _MIB, peak
