@@ -34,6 +34,7 @@ import zipfile
 import zlib
 from typing import Any
 
+import ml_dtypes  # pylint: disable=unused-import  (imported before tracing)
 import numpy as np
 
 import pth_files
