@@ -34,7 +34,7 @@ import zipfile
 import zlib
 from typing import Any
 
-import ml_dtypes  # pylint: disable=unused-import  (imported before tracing)
+import ml_dtypes  # before tracing: the reader imports it lazily
 import numpy as np
 
 import pth_files
@@ -124,7 +124,6 @@ class _RecordingUnpickler(pickle.Unpickler):
 
 def _np_dtype(type_name: str) -> np.dtype:
   if type_name == 'BFloat16Storage':
-    import ml_dtypes  # pylint: disable=g-import-not-at-top
     return np.dtype(ml_dtypes.bfloat16)
   return np.dtype(_DTYPES[type_name])
 
