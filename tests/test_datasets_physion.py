@@ -215,3 +215,39 @@ def test_label_file_parsing(tmp_path):
       'pilot_towers_nb2_fr015_SJ010_mono0_dis0_occ0_tdwroom-redyellow_0001_'
       'img.mp4') == 'pilot_towers_nb2_fr015_SJ010_mono0_dis0_occ0_tdwroom_0001'
   assert json.dumps(physion.Options().params)  # serialisable
+
+
+def test_label_file_not_utf8_is_one_line_naming_the_file(tmp_path, capsys):
+  root = make_source(tmp_path)
+  labels = root / physion.READOUT_LABELS
+  # A spreadsheet that saved the labels as Windows-1252 ('é' is 0xe9).
+  labels.write_bytes(labels.read_bytes() + 'caf\u00e9_0001,True\n'.encode(
+      'cp1252'))
+  assert convert(root, tmp_path / 'data', '--splits=readout_train') == 1
+  err = capsys.readouterr().err.strip()
+  assert len(err.splitlines()) == 1 and err.startswith('error: '), err
+  assert f'{labels}:18: not UTF-8 text (byte 0xe9)' in err, err
+  # A byte-order mark (also a spreadsheet export) is not an error.
+  labels.write_bytes(b'\xef\xbb\xbf' + f',{physion.LABEL_COLUMN}\n'
+                     'foo_img,True\n'.encode())
+  assert physion.read_labels(labels) == {'foo': 1}
+
+
+def test_empty_hashed_split_says_so(tmp_path, capsys):
+  root = make_source(tmp_path)
+  # 16 Training videos, none of whose names hashes below 0.02: 'val' is
+  # empty although every folder is there.
+  assert convert(root, tmp_path / 'data', '--splits=val',
+                 '--val_fraction=0.02') == 1
+  err = capsys.readouterr().err.strip()
+  assert len(err.splitlines()) == 1, err
+  assert 'not found' not in err, err
+  assert ("none of the 16 training videos falls in split 'val'" in err
+          and '--val_fraction=0.02' in err), err
+  # Empty folders are named as such.
+  for scenario in physion.SCENARIOS:
+    for video in (root / physion.TRAIN_DIR /
+                  f'{scenario}_readout_MP4s').glob('*.mp4'):
+      video.unlink()
+  with pytest.raises(FileNotFoundError, match='hold no .mp4'):
+    physion.discover(root, 'readout_val', physion.Options())

@@ -81,5 +81,6 @@ def test_bare_state_dict_and_bad_files(tmp_path):
     pth_reader.read_state_dict(path)
   not_zip = tmp_path / 'legacy.pth'
   not_zip.write_bytes(b'\x80\x02}q\x00.')
-  with pytest.raises(ValueError, match='not a zip-format'):
+  with pytest.raises(pth_reader.CheckpointError,
+                     match=r'not a PyTorch checkpoint \(a plain pickle'):
     pth_reader.read_checkpoint(str(not_zip), reader='numpy')

@@ -43,6 +43,7 @@ import csv
 import dataclasses
 import functools
 import hashlib
+import io
 import json
 import logging
 from collections.abc import Mapping
@@ -220,10 +221,21 @@ def read_labels(path: Path) -> dict[str, int]:
   """{stimulus name: 1 / 0} from a Physion label CSV.
 
   Raises:
-    FileNotFoundError / ValueError: missing or malformed file.
+    FileNotFoundError / ValueError: missing or malformed file (not UTF-8,
+      no label column, a label that is not True / False).
   """
+  data = Path(path).read_bytes()
+  try:
+    # utf-8-sig: a byte-order mark (spreadsheet exports) is not part of the
+    # first column's name.
+    text = data.decode('utf-8-sig')
+  except UnicodeDecodeError as error:
+    line = data[:error.start].count(b'\n') + 1
+    raise ValueError(
+        f'{path}:{line}: not UTF-8 text (byte {data[error.start]:#04x}); '
+        're-save the label file as UTF-8 CSV') from None
   labels = {}
-  with open(path, newline='') as f:
+  with io.StringIO(text, newline='') as f:
     rows = csv.reader(f)
     header = next(rows, None)
     if not header or LABEL_COLUMN not in header:
@@ -294,13 +306,42 @@ def _listed_files(source: Path, split: str,
   return files
 
 
+def _no_video_error(source: Path, split: str,
+                    options: Options) -> Exception:
+  """Why `split` has no video although its folders exist."""
+  subset, list_name = _SUBSETS[split]
+  if options.split_files is not None:
+    return ValueError(f'Physion: the split list '
+                      f'{Path(options.split_files) / list_name} lists no '
+                      f'video for split {split!r}')
+  folders = [_scenario_dir(source, subset, s) for s in SCENARIOS]
+  count = sum(1 for folder in folders for p in folder.iterdir()
+              if p.suffix == '.mp4' and not p.name.startswith('.'))
+  if not count:
+    return layout_error(source, _scenario_dir(source, subset, '<Scenario>')
+                        / '*.mp4', f' (the {len(folders)} scenario folders '
+                        'hold no .mp4)')
+  # The hashed split of a small subset can come out empty.
+  share = (options.val_fraction if split.endswith('val')
+           else 1 - options.val_fraction)
+  other = split[:-len('val')] + 'train' if split.endswith('val') else (
+      split[:-len('train')] + 'val')
+  return ValueError(
+      f'Physion: none of the {count} {subset} videos falls in split '
+      f'{split!r} (a hash of the file name puts a share of about {share:g} '
+      f'there, --val_fraction={options.val_fraction:g}; every other video '
+      f'went to {other!r}): with so few videos, change --val_fraction or '
+      f'leave {split!r} out of --splits')
+
+
 def discover(source: Path, split: str, options: Options) -> list[VideoJob]:
   """The videos of ``split`` with their labels.
 
   Raises:
     FileNotFoundError: a folder or label file of the published layout is
-      missing, or the split has no video.
-    ValueError: malformed label file or split list.
+      missing, or its folders hold no video.
+    ValueError: malformed label file or split list, or a hashed split that
+      comes out empty (a small subset).
   """
   subset, _ = _SUBSETS[split]
   top = source / (TEST_DIR if subset == 'test' else TRAIN_DIR)
@@ -314,8 +355,7 @@ def discover(source: Path, split: str, options: Options) -> list[VideoJob]:
     labels = read_labels(label_path)
   files = _listed_files(source, split, options)
   if not files:
-    raise layout_error(source, _scenario_dir(source, subset, '<Scenario>'),
-                       f' (no video for split {split!r})')
+    raise _no_video_error(source, split, options)
   jobs = []
   for scenario, path in files:
     name = stimulus_name(path.name)
