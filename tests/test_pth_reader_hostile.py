@@ -302,7 +302,7 @@ def test_a_refused_global_is_one_line_naming_key_and_global(tmp_path):
 
 @pytest.mark.parametrize('case', ['refused global', 'folder'])
 def test_the_converter_prints_reader_errors_as_one_line(tmp_path, case):
-  """`python -m slotformer_jax.convert_official` on a bad --checkpoint:
+  """`python -m slotformer_jax.official.convert` on a bad --checkpoint:
   exit 1, one `error:` line naming the file, no traceback, nothing
   written."""
   if case == 'refused global':
@@ -312,7 +312,7 @@ def test_the_converter_prints_reader_errors_as_one_line(tmp_path, case):
     checkpoint, named = tmp_path, 'a directory'
   workdir = tmp_path / 'run'
   done = subprocess.run(
-      [sys.executable, '-m', 'slotformer_jax.convert_official',
+      [sys.executable, '-m', 'slotformer_jax.official.convert',
        f'--config={os.path.join(ROOT, "configs", "obj3d.py")}',
        f'--workdir={workdir}', f'--checkpoint={checkpoint}'],
       capture_output=True, text=True, timeout=300, env=_child_env(),
