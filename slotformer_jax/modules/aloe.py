@@ -36,6 +36,7 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
+from slotformer_jax.modules import platform
 from slotformer_jax.modules.transformer import TransformerEncoder
 
 TOKEN = 'token'
@@ -74,6 +75,9 @@ class Aloe(nn.Module):
     positions: 'token' (official) or 'frame' (see the module docstring).
     layer_norm_epsilon: of the Transformer's LayerNorms: 1e-6 (flax) or
       1e-5 (PyTorch's, the official model's; configs/clevrer_vqa.py).
+    kernels: the attention's form, 'auto' (explicit on CPU, fused on GPU /
+      TPU when no attention dropout applies), 'cpu' or 'accelerator'
+      (`slotformer_jax.modules.transformer`).
   """
 
   vocab_size: int
@@ -91,6 +95,7 @@ class Aloe(nn.Module):
   dropout_rate: float = 0.1
   positions: str = TOKEN
   layer_norm_epsilon: float = 1e-6
+  kernels: str = platform.AUTO
 
   def setup(self):
     if self.positions not in (TOKEN, FRAME):
@@ -117,7 +122,7 @@ class Aloe(nn.Module):
         num_layers=self.num_layers, num_heads=self.num_heads,
         mlp_size=self.mlp_size, dropout_rate=self.dropout_rate,
         pre_norm=True, layer_norm_epsilon=self.layer_norm_epsilon,
-        name='encoder')
+        kernels=self.kernels, name='encoder')
     self.open_head = nn.Sequential(
         [nn.Dense(self.head_size), nn.relu, nn.Dense(self.num_answers)],
         name='open_head')

@@ -1,4 +1,5 @@
-"""A stride-1 2-D convolution whose kernel gradient reads a materialised input.
+"""A stride-1 2-D convolution whose kernel gradient, on CPU, reads a
+materialised input.
 
 XLA:CPU computes a convolution's kernel gradient as another convolution over
 the input transposed to [C_in, H, W, N]. When the input is the output of
@@ -9,6 +10,12 @@ fused transpose took 0.39 s per step, where a transpose of a materialised
 array of the same shape takes 0.09 s (docs/performance.md). `conv2d`
 computes the same gradient from `x @ I` (an exact identity product, which
 XLA cannot see through and so materialises) transposed.
+
+That form is for XLA:CPU only: on GPU / TPU it would replace the compiler's
+own weight-gradient convolution by a correlation whose "kernel" is the whole
+output-gradient map. `conv2d` and `SameConv` pick it on CPU and the plain
+`lax.conv_general_dilated` (autodiff's own gradient) elsewhere, when the
+computation is lowered (`slotformer_jax.modules.platform`).
 """
 
 from __future__ import annotations
@@ -18,6 +25,8 @@ import functools
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
+
+from slotformer_jax.modules import platform
 
 Padding = tuple[tuple[int, int], tuple[int, int]]
 _DIMENSIONS = ('NHWC', 'HWIO', 'NHWC')
@@ -29,9 +38,24 @@ def _convolve(x: jax.Array, kernel: jax.Array, padding: Padding) -> jax.Array:
       dimension_numbers=_DIMENSIONS)
 
 
+def conv2d(x: jax.Array, kernel: jax.Array, padding: Padding,
+           kernels: str = platform.AUTO) -> jax.Array:
+  """Stride-1 cross-correlation, `lax.conv_general_dilated`; on CPU with the
+  kernel gradient of `conv2d_cpu` (`kernels`: see `modules.platform`).
+
+  x [N, H, W, C_in], kernel [KH, KW, C_in, C_out]; padding and the output
+  shape as in `conv2d_cpu`.
+  """
+  return platform.by_platform(
+      kernels, lambda x, k: conv2d_cpu(x, k, padding),
+      lambda x, k: _convolve(x, k, padding), x, kernel)
+
+
 @functools.partial(jax.custom_vjp, nondiff_argnums=(2,))
-def conv2d(x: jax.Array, kernel: jax.Array, padding: Padding) -> jax.Array:
-  """Stride-1 cross-correlation, as `lax.conv_general_dilated`.
+def conv2d_cpu(x: jax.Array, kernel: jax.Array, padding: Padding) -> jax.Array:
+  """Stride-1 cross-correlation, as `lax.conv_general_dilated`, whose kernel
+  gradient is computed from a materialised `x @ I` (the XLA:CPU form, see
+  the module docstring).
 
   Args:
     x: [N, H, W, C_in].
@@ -69,7 +93,7 @@ def _conv2d_backward(padding, residuals, grad_out):
   return grad_x, jnp.transpose(grad_kernel, (1, 2, 0, 3))
 
 
-conv2d.defvjp(_conv2d_forward, _conv2d_backward)
+conv2d_cpu.defvjp(_conv2d_forward, _conv2d_backward)
 
 
 def odd_kernel_params(module: nn.Module, kernel_size: int, c_in: int,
@@ -89,10 +113,17 @@ class SameConv(nn.Module):
   """`nn.Conv(features, (K, K), padding='SAME')` at stride 1 and odd K, through
   `conv2d`. Same parameter tree and initialisers as `nn.Conv`, so checkpoints
   are interchangeable.
+
+  Attributes:
+    features: C_out.
+    kernel_size: K.
+    kernels: 'auto' (the CPU form on CPU, the plain one elsewhere), 'cpu' or
+      'accelerator' (`slotformer_jax.modules.platform`).
   """
 
   features: int
   kernel_size: int
+  kernels: str = platform.AUTO
 
   @nn.compact
   def __call__(self, x: jax.Array) -> jax.Array:
@@ -100,4 +131,4 @@ class SameConv(nn.Module):
     kernel, bias = odd_kernel_params(self, self.kernel_size, x.shape[-1],
                                      self.features)
     pad = self.kernel_size // 2
-    return conv2d(x, kernel, ((pad, pad), (pad, pad))) + bias
+    return conv2d(x, kernel, ((pad, pad), (pad, pad)), self.kernels) + bias

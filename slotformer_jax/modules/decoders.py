@@ -1,12 +1,15 @@
-"""Spatial-broadcast slot decoder with sub-pixel upsampling.
+"""Spatial-broadcast slot decoder with transposed-convolution upsampling.
 
+On CPU, every stride-s transposed convolution is evaluated as its exact
+sub-pixel re-parameterisation: one stride-1 convolution per output phase
+with the kernel taps that reach that phase, interleaved (depth-to-space).
 XLA:CPU runs strided transposed convolutions an order of magnitude slower
 than plain convolutions (the input-dilated form's gradient took 83 s where
-the form below takes 1.1 s, docs/performance.md), so every stride-s
-transposed convolution here is computed as its exact sub-pixel
-re-parameterisation: one stride-1 convolution per output phase with the
-kernel taps that reach that phase, interleaved (depth-to-space). The
-parameters are the transposed convolution's own kernel, so the layer *is* a
+the phase form takes 1.1 s, docs/performance.md). On GPU / TPU the layers
+are the plain input-dilated `lax.conv_general_dilated` that XLA maps onto
+the platform's own kernels; the choice is made when the computation is
+lowered (`slotformer_jax.modules.platform`). The parameters are the
+transposed convolution's own kernel whatever the form, so the layer *is* a
 transposed convolution (same parameter count, initialisation and outputs),
 only evaluated differently.
 """
@@ -23,6 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from slotformer_jax.modules import convolution
+from slotformer_jax.modules import platform
 from slotformer_jax.modules.encoders import SoftPositionEmbedding
 
 
@@ -55,7 +59,7 @@ def _sub_pixel_taps(kernel_size: int, stride: int, padding: int):
 def sub_pixel_conv_transpose(
     x: jax.Array, kernel: jax.Array, bias: jax.Array | None, stride: int
 ) -> jax.Array:
-  """A 'same' transposed convolution evaluated phase by phase.
+  """A 'same' transposed convolution evaluated phase by phase (the CPU form).
 
   Matches PyTorch's `ConvTranspose2d(kernel_size=K, stride=s, padding=K // 2,
   output_padding=s - 1)` (the layer of the official SAVi decoder), whose
@@ -103,7 +107,7 @@ def sub_pixel_conv_transpose(
       # d_first..d_last, i.e. padding -d_first below and d_last above.
       padding = ((-taps_y[0][0], taps_y[-1][0]),
                  (-taps_x[0][0], taps_x[-1][0]))
-      columns.append(convolution.conv2d(x, phase_kernel, padding))
+      columns.append(convolution.conv2d_cpu(x, phase_kernel, padding))
     rows.append(jnp.stack(columns, axis=3))  # [B, H, W, s_x, C_out]
   out = jnp.stack(rows, axis=2)  # [B, H, s_y, W, s_x, C_out]
   out = out.reshape(batch, height * stride, width * stride, c_out)
@@ -112,18 +116,61 @@ def sub_pixel_conv_transpose(
   return out
 
 
+def dilated_conv_transpose(x: jax.Array, kernel: jax.Array,
+                           stride: int) -> jax.Array:
+  """The same transposed convolution as `sub_pixel_conv_transpose` (no
+  bias), in the plain form: the input dilated by `stride` correlated with
+  the spatially flipped kernel, padding (K - 1 - K // 2) below and that +
+  s - 1 above (PyTorch's output_padding). What `lax.conv_transpose` and
+  `nn.ConvTranspose` lower to, and what GPU / TPU compilers have kernels
+  for.
+
+  x [B, H, W, C_in], kernel [K, K, C_in, C_out] (K odd) -> [B, s*H, s*W,
+  C_out].
+  """
+  kernel_size = kernel.shape[0]
+  low = kernel_size - 1 - kernel_size // 2
+  padding = ((low, low + stride - 1), (low, low + stride - 1))
+  return jax.lax.conv_general_dilated(
+      x, kernel[::-1, ::-1], window_strides=(1, 1), padding=padding,
+      lhs_dilation=(stride, stride),
+      dimension_numbers=('NHWC', 'HWIO', 'NHWC'))
+
+
+def conv_transpose(x: jax.Array, kernel: jax.Array, stride: int,
+                   kernels: str = platform.AUTO) -> jax.Array:
+  """`sub_pixel_conv_transpose` on CPU, `dilated_conv_transpose` elsewhere
+  (`kernels`: see `slotformer_jax.modules.platform`); no bias.
+
+  x [B, H, W, C_in], kernel [K, K, C_in, C_out] -> [B, s*H, s*W, C_out].
+  """
+  return platform.by_platform(
+      kernels, lambda x, k: sub_pixel_conv_transpose(x, k, None, stride),
+      lambda x, k: dilated_conv_transpose(x, k, stride), x, kernel)
+
+
 class SubPixelConvTranspose(nn.Module):
-  """Stride-s 'same' transposed convolution (see `sub_pixel_conv_transpose`)."""
+  """Stride-s 'same' transposed convolution (`conv_transpose`): phase by
+  phase on CPU, the input-dilated convolution on accelerators.
+
+  Attributes:
+    features: C_out.
+    kernel_size: K (odd).
+    stride: s.
+    kernels: 'auto', 'cpu' or 'accelerator' (`modules.platform`).
+  """
 
   features: int
   kernel_size: int = 5
   stride: int = 2
+  kernels: str = platform.AUTO
 
   @nn.compact
   def __call__(self, x: jax.Array) -> jax.Array:
+    """x [B, H, W, C_in] -> [B, s*H, s*W, features]."""
     kernel, bias = convolution.odd_kernel_params(
         self, self.kernel_size, x.shape[-1], self.features)
-    return sub_pixel_conv_transpose(x, kernel, bias, self.stride)
+    return conv_transpose(x, kernel, self.stride, self.kernels) + bias
 
 
 class PointwiseConv(nn.Module):
@@ -175,12 +222,15 @@ class SpatialBroadcastDecoder(nn.Module):
     features: channels of the transposed-conv layers. Layers upsample by 2
       until the output resolution is reached, the rest keep the resolution.
     kernel_size: of every transposed-conv layer.
+    kernels: 'auto' (the CPU forms on CPU, the plain convolutions on GPU /
+      TPU), 'cpu' or 'accelerator' (`slotformer_jax.modules.platform`).
   """
 
   output_resolution: tuple[int, int] = (64, 64)
   broadcast_resolution: tuple[int, int] = (8, 8)
   features: Sequence[int] = (64, 64, 64, 64)
   kernel_size: int = 5
+  kernels: str = platform.AUTO
 
   @nn.compact
   def __call__(self, slots: jax.Array) -> DecodedSlots:
@@ -193,10 +243,12 @@ class SpatialBroadcastDecoder(nn.Module):
     for i, channels in enumerate(self.features):
       if x.shape[1] < self.output_resolution[0]:
         x = SubPixelConvTranspose(channels, self.kernel_size, stride=2,
+                                  kernels=self.kernels,
                                   name=f'deconv_{i}')(x)
       else:
         # A stride-1 'same' transposed convolution is an ordinary one.
         x = convolution.SameConv(channels, self.kernel_size,
+                                 kernels=self.kernels,
                                  name=f'deconv_{i}')(x)
       x = nn.relu(x)
     if tuple(x.shape[1:3]) != tuple(self.output_resolution):

@@ -25,6 +25,7 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
+from slotformer_jax.modules import platform
 from slotformer_jax.modules.transformer import TransformerEncoder
 
 TEMPORAL = 'temporal'
@@ -71,6 +72,7 @@ class NextSlotPredictor(nn.Module):
   positional_encoding: str = TEMPORAL
   residual: bool = False
   layer_norm_epsilon: float = 1e-6
+  kernels: str = platform.AUTO
 
   @nn.compact
   def __call__(self, history: jax.Array, num_valid: jax.Array | None = None,
@@ -96,7 +98,7 @@ class NextSlotPredictor(nn.Module):
         num_layers=self.num_layers, num_heads=self.num_heads,
         mlp_size=self.mlp_size, dropout_rate=self.dropout_rate,
         pre_norm=True, layer_norm_epsilon=self.layer_norm_epsilon,
-        name='transformer')(tokens, mask, deterministic=deterministic)
+        kernels=self.kernels, name='transformer')(tokens, mask, deterministic=deterministic)
     if self.residual:
       # The paper's remark: refine the last input slots rather than predict
       # from scratch, which also keeps the slot order. The refinement starts
@@ -125,6 +127,9 @@ class SlotFormer(nn.Module):
       most frames the context grows to (see the module docstring; 6 in the
       official PHYRE model, whose burn_in is 1).
     layer_norm_epsilon: 1e-6 (flax) or 1e-5 (PyTorch, the official models).
+    kernels: the attention's form: 'auto' (explicit on CPU, fused
+      `jax.nn.dot_product_attention` on GPU / TPU), 'cpu' or 'accelerator'
+      (`slotformer_jax.modules.transformer`).
   """
 
   burn_in: int = 6
@@ -137,6 +142,7 @@ class SlotFormer(nn.Module):
   residual: bool = False
   max_context: int = 0
   layer_norm_epsilon: float = 1e-6
+  kernels: str = platform.AUTO
 
   def setup(self):
     if self.max_context and self.max_context < self.burn_in:
@@ -147,7 +153,7 @@ class SlotFormer(nn.Module):
         num_heads=self.num_heads, mlp_size=self.mlp_size,
         dropout_rate=self.dropout_rate,
         positional_encoding=self.positional_encoding, residual=self.residual,
-        layer_norm_epsilon=self.layer_norm_epsilon)
+        layer_norm_epsilon=self.layer_norm_epsilon, kernels=self.kernels)
 
   @property
   def context_length(self) -> int:

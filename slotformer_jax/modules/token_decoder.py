@@ -14,9 +14,11 @@ Two ways to run it:
   (generation, see `slotformer_jax.steve_inference`).
 
 Deviation from the official decoder: attention probabilities are not dropped
-out. Attention runs through `jax.nn.dot_product_attention` (cuDNN flash
-attention on GPU), which has no probability dropout; dropout stays on the
-position-embedded inputs, on every attention output and in the FFN, as there.
+out. Attention runs through `jax.nn.dot_product_attention`, which has no
+probability dropout; dropout stays on the position-embedded inputs, on every
+attention output and in the FFN, as there. (Its default implementation is
+XLA's on every platform in jax 0.10; cuDNN's flash attention would need
+`implementation='cudnn'`, bfloat16 / float16 only, not used here.)
 
 Shapes: slots [batch, num_slots, slot_size]; tokens int [batch, num_tokens];
 logits [batch, num_tokens, vocab_size].
