@@ -38,7 +38,7 @@ evaluation (issue 25 part B): `evaluation.skip_first_frame` and
 FG-ARI covers every frame of the video (the SAVi repository's convention).
 
 No MOVi run was measured for this project: these configs were only run end
-to end on the tiny fixture of tests/test_datasets_movi.py (`:fixture`).
+to end on the tiny fixture of tests/datasets/test_datasets_movi.py (`:fixture`).
 """
 
 from slotformer_jax.config.defaults import base_config
@@ -123,7 +123,7 @@ def get_config(variant: str = 'a'):
 
 def _fixture(config) -> None:
   """The end-to-end test's run on the tiny MOVi-layout fixture: 8 frames of
-  16x16 (tests/test_datasets_movi.py), the embedded demos' small SAVi, a
+  16x16 (tests/datasets/test_datasets_movi.py), the embedded demos' small SAVi, a
   few steps of everything; its numbers mean nothing."""
   num_frames = 8
   config.data.resolution = (16, 16)

@@ -17,7 +17,7 @@ Why the flag: with jaxlib 0.10 XLA:CPU hands convolutions to the YNNPACK
 fusion, whose kernel-gradient path is ~6x slower than the classic
 convolution emitter on the SAVi decoder's layers (see docs/performance.md).
 Disabling the fusion for individual convolutions changes which kernels run,
-not the math: ``tests/test_xla_flags.py`` checks outputs and gradients of a
+not the math: ``tests/reliability/test_xla_flags.py`` checks outputs and gradients of a
 SAVi step agree with the default path within float tolerance.
 """
 

@@ -1,6 +1,6 @@
 """Helpers that write tiny dataset fixtures in the published file formats.
 
-Used by tests/test_datasets_*.py: mp4 files through imageio-ffmpeg's bundled
+Used by tests/datasets/test_datasets_*.py: mp4 files through imageio-ffmpeg's bundled
 ffmpeg, COCO run-length-encoded masks, PNG frames.
 """
 

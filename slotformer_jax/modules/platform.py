@@ -11,7 +11,7 @@ Each such layer takes a `kernels` field:
   An ahead-of-time compile for a TPU from a CPU host (compile-only devices of
   `jax.experimental.topologies`) gets the accelerator form, a CPU run the CPU
   form. On CPU the results are bit for bit those of the layers before the
-  choice existed (tests/test_kernel_forms.py; the switch is resolved at
+  choice existed (tests/modules/test_kernel_forms.py; the switch is resolved at
   lowering, XLA never sees it).
 * 'cpu' / 'accelerator': that form on every platform (tests, comparisons).
 

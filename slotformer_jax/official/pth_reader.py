@@ -75,7 +75,7 @@ _MIB = 1 << 20
 # What the reader charges per pickle opcode for the Python objects the
 # unpickler makes (at most one per opcode) and what `_walk` keeps for each:
 # the most measured is ~390 bytes (a list of empty sets), see
-# tests/test_pth_reader_hostile.py::test_pickle_objects_stay_in_the_budget.
+# tests/official/test_pth_reader_hostile.py::test_pickle_objects_stay_in_the_budget.
 BYTES_PER_OPCODE = 512
 # zipfile makes a ZipInfo per central-directory entry: ~10x the entry's
 # bytes (measured with 1-character names, Python 3.11).

@@ -25,7 +25,7 @@ from slotformer_jax.modules.slotformer import SlotFormer
 from slotformer_jax.modules.stochastic_savi import GaussianSlotSampler
 from slotformer_jax.train import optim
 
-CONFIGS = os.path.join(os.path.dirname(__file__), '..', 'configs')
+CONFIGS = os.path.join(os.path.dirname(__file__), '..', '..', 'configs')
 
 
 def _load_config(name):

@@ -1,6 +1,6 @@
 """Kill and preemption checks that run real processes (minutes).
 
-    python -m pytest -q -m slow tests/test_reliability_slow.py
+    python -m pytest -q -m slow tests/reliability/test_reliability_slow.py
 
 * SIGTERM during training saves the current step and exits 143; the rerun
   finishes with parameters bit-identical to an uninterrupted run.
@@ -24,7 +24,7 @@ from slotformer_jax.train.checkpoint import Checkpointer
 
 import pipeline_helpers
 
-ROOT = os.path.abspath(os.path.join(os.path.dirname(__file__), '..'))
+ROOT = os.path.abspath(os.path.join(os.path.dirname(__file__), '..', '..'))
 SYNTHETIC = os.path.join(ROOT, 'configs', 'synthetic.py') + ':tiny'
 
 pytestmark = pytest.mark.slow

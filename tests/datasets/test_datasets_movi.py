@@ -19,7 +19,7 @@ from slotformer_jax.data.convert import movi
 from slotformer_jax.data.convert import prepare
 from slotformer_jax.errors import MissingInputError
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 T, SIZE = 8, 32  # fixture frames and size (MOVi: 24 x 128 or 256)
 SHARDS = {'train': [3, 2], 'validation': [2]}
 

@@ -29,7 +29,7 @@ import pytest
 import pth_files as pf
 from slotformer_jax.official import pth_reader
 
-TESTS = os.path.dirname(os.path.abspath(__file__))
+TESTS = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 ROOT = os.path.dirname(TESTS)
 FIXTURE = os.path.join(TESTS, 'data', 'official_tiny.pth')
 _MIB = 1 << 20

@@ -551,7 +551,7 @@ def test_physion_readout_is_evaluated_from_its_seed_folder(tmp_path,
 def _config_file(name, variant=''):
   import importlib.util  # pylint: disable=g-import-not-at-top
   spec = importlib.util.spec_from_file_location(
-      name, os.path.join(os.path.dirname(__file__), '..', 'configs',
+      name, os.path.join(os.path.dirname(__file__), '..', '..', 'configs',
                          f'{name}.py'))
   module = importlib.util.module_from_spec(spec)
   spec.loader.exec_module(module)

@@ -11,8 +11,8 @@ import pytest
 from slotformer_jax.train import precision
 from slotformer_jax.train import steps
 from slotformer_jax.train.state import TrainState
-from tests.test_training import _savi_setup
-from tests.test_training import _slotformer_setup
+from test_training import _savi_setup
+from test_training import _slotformer_setup
 
 
 def _step(params, loss_fn, batch, frozen):

@@ -18,7 +18,7 @@ def test_train_and_evaluate_vqa_on_random_slots(tmp_path, monkeypatch):
   import importlib.util  # pylint: disable=g-import-not-at-top
   from slotformer_jax.stages import vqa as vqa_stages  # pylint: disable=g-import-not-at-top
   spec = importlib.util.spec_from_file_location(
-      'synthetic_vqa', os.path.join(os.path.dirname(__file__), '..',
+      'synthetic_vqa', os.path.join(os.path.dirname(__file__), '..', '..',
                                     'configs', 'synthetic_vqa.py'))
   module = importlib.util.module_from_spec(spec)
   spec.loader.exec_module(module)
@@ -71,7 +71,7 @@ def test_vqa_inputs_and_seed_are_variants_of_one_workdir(tmp_path):
 def _synthetic_vqa_config(variant: str = ''):
   import importlib.util  # pylint: disable=g-import-not-at-top
   spec = importlib.util.spec_from_file_location(
-      'synthetic_vqa', os.path.join(os.path.dirname(__file__), '..',
+      'synthetic_vqa', os.path.join(os.path.dirname(__file__), '..', '..',
                                     'configs', 'synthetic_vqa.py'))
   module = importlib.util.module_from_spec(spec)
   spec.loader.exec_module(module)

@@ -17,7 +17,7 @@ import pytest
 
 from slotformer_jax.official import pth_reader
 
-FIXTURE = os.path.join(os.path.dirname(__file__), 'data', 'official_tiny.pth')
+FIXTURE = os.path.join(os.path.dirname(__file__), '..', 'data', 'official_tiny.pth')
 
 
 def test_reads_the_state_dict_exactly():

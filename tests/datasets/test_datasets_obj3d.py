@@ -241,7 +241,7 @@ def test_parallel_workers_match_serial(tmp_path, converted):
 # configs/obj3d.py on converted data
 # ----------------------------------------------------------------------------
 
-CONFIGS = Path(__file__).resolve().parent.parent / 'configs'
+CONFIGS = Path(__file__).resolve().parents[2] / 'configs'
 
 
 def tiny_obj3d_config(data_dir: Path) -> ml_collections.ConfigDict:

@@ -26,7 +26,7 @@ from slotformer_jax.data import sources
 SCENE = 16          # stand-in scene size (PHYRE: 256)
 MAX_FRAMES = 7      # render_phyre.py --max_frames (paper: 15)
 KEEP = 6            # --num_frames of the conversion (paper: 15)
-REPO = Path(__file__).resolve().parent.parent
+REPO = Path(__file__).resolve().parents[2]
 
 # A stand-in for the parts of the phyre package the script uses. Action
 # x < 0.5 gives a 3-frame simulation, otherwise 9 frames (cut to

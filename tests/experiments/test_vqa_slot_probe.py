@@ -10,7 +10,7 @@ import numpy as np
 
 def _probe():
   spec = importlib.util.spec_from_file_location(
-      'vqa_slot_probe', os.path.join(os.path.dirname(__file__), '..',
+      'vqa_slot_probe', os.path.join(os.path.dirname(__file__), '..', '..',
                                      'experiments', 'vqa_slot_probe.py'))
   module = importlib.util.module_from_spec(spec)
   spec.loader.exec_module(module)

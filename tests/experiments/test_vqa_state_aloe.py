@@ -14,7 +14,7 @@ from slotformer_jax.data.convert.synthetic import COLORS, SHAPES
 
 def _bench():
   spec = importlib.util.spec_from_file_location(
-      'vqa_state_aloe', os.path.join(os.path.dirname(__file__), '..',
+      'vqa_state_aloe', os.path.join(os.path.dirname(__file__), '..', '..',
                                      'experiments', 'vqa_state_aloe.py'))
   module = importlib.util.module_from_spec(spec)
   spec.loader.exec_module(module)

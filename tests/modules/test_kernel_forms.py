@@ -23,7 +23,7 @@ from slotformer_jax.modules.aloe import Aloe
 from slotformer_jax.modules.slotformer import SlotFormer
 
 CPU, ACCELERATOR, AUTO = platform.CPU, platform.ACCELERATOR, platform.AUTO
-ROOT = os.path.join(os.path.dirname(__file__), '..')
+ROOT = os.path.join(os.path.dirname(__file__), '..', '..')
 close = functools.partial(np.testing.assert_allclose, rtol=1e-4, atol=1e-5)
 
 

@@ -396,7 +396,7 @@ def test_synthetic_vqa_config_fits_every_template():
   import importlib.util  # pylint: disable=g-import-not-at-top
   import os  # pylint: disable=g-import-not-at-top
   spec = importlib.util.spec_from_file_location(
-      'synthetic_vqa', os.path.join(os.path.dirname(__file__), '..',
+      'synthetic_vqa', os.path.join(os.path.dirname(__file__), '..', '..',
                                     'configs', 'synthetic_vqa.py'))
   module = importlib.util.module_from_spec(spec)
   spec.loader.exec_module(module)

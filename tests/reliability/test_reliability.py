@@ -51,7 +51,7 @@ from slotformer_jax.stages import video_prediction
 
 import pipeline_helpers
 
-ROOT = os.path.join(os.path.dirname(__file__), '..')
+ROOT = os.path.join(os.path.dirname(__file__), '..', '..')
 
 
 def _config(data_dir):

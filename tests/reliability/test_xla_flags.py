@@ -15,7 +15,7 @@ import pytest
 
 from slotformer_jax import xla_flags
 
-REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 # Computes, in a fresh process, the outputs whose equality the test checks.
 _PROGRAM = r'''
