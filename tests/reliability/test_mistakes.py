@@ -405,3 +405,23 @@ def test_the_lock_still_refuses_a_live_holder(tmp_path):
       FileLock(str(tmp_path / 'lock'), what='the folder').acquire()
   finally:
     lock.release()
+
+
+def test_an_unwritable_prepare_output_is_one_line(tmp_path, capsys):
+  import dataset_fixtures as fx  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.data.convert import obj3d  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.data.convert import prepare  # pylint: disable=g-import-not-at-top
+  for split in ('train', 'val', 'test'):
+    for t in range(1, 7):
+      fx.write_png(tmp_path / 'OBJ3D' / split / '0'
+                   / obj3d.FRAME_TEMPLATE.format(t),
+                   np.full((24, 24, 3), 9 * t, np.uint8))
+  data_dir = _under_a_file(tmp_path)
+  assert prepare.main([
+      '--dataset=obj3d', f'--source={tmp_path / "OBJ3D"}',
+      f'--data_dir={data_dir}', '--resolution=16', '--num_frames=4',
+      '--num_workers=1', '--no_progress']) == 1
+  lines = capsys.readouterr().err.strip().splitlines()
+  assert len(lines) == 1 and lines[0].startswith(
+      f'error: cannot write the dataset folder {data_dir}/obj3d'), lines
+  assert '--data_dir' in lines[0]
