@@ -425,3 +425,16 @@ def test_an_unwritable_prepare_output_is_one_line(tmp_path, capsys):
   assert len(lines) == 1 and lines[0].startswith(
       f'error: cannot write the dataset folder {data_dir}/obj3d'), lines
   assert '--data_dir' in lines[0]
+
+
+def test_the_converter_reports_a_missing_config_in_one_line(tmp_path):
+  env = dict(os.environ, PYTHONPATH=ROOT, JAX_PLATFORMS='cpu')
+  env.pop('XLA_FLAGS', None)
+  result = subprocess.run(
+      [sys.executable, '-m', 'slotformer_jax.official.convert',
+       '--config=nope.py', f'--workdir={tmp_path / "run"}',
+       f'--checkpoint={tmp_path / "x.pth"}'], cwd=str(tmp_path), env=env,
+      capture_output=True, text=True, timeout=300)
+  line = _one_error_line(result)
+  assert result.returncode == 2
+  assert 'config file nope.py does not exist' in line
