@@ -188,7 +188,7 @@ def run_main(argv: list[str] | None = None) -> None:
     sys.exit(1)
 
 
-# With these absl answers without a --config (or finds it in the file).
+# absl answers these without a --config (a --flagfile may hold one).
 _HELP_AND_FLAGFILE = ('-h', '-?', '--help', '--helpshort', '--helpfull',
                       '--helpxml', '--flagfile', '--only_check_args')
 

@@ -93,21 +93,43 @@ def _one_error_line(result):
 # --------------------------------------------------------------------------
 
 
+def _write_broken_config(folder):
+  (folder / 'broken.py').write_text(
+      'def get_config():\n  config = dict(\n  return config +\n')
+
+
 @pytest.mark.parametrize('args, status, needles', [
     (['--config=missing/nope.py'], 2, ['missing/nope.py', 'does not exist']),
     (['--config=broken.py'], 1, ['broken.py, line 2: ']),
+    ([], 2, ['--config is required']),
+])
+def test_config_argument_mistakes_are_one_line(tmp_path, monkeypatch, capsys,
+                                               args, status, needles):
+  """In-process: these end before absl parses the flags."""
+  from slotformer_jax import main as main_lib  # pylint: disable=g-import-not-at-top
+  _write_broken_config(tmp_path)
+  monkeypatch.chdir(tmp_path)
+  with pytest.raises(SystemExit) as exit_info:
+    main_lib.run_main(['main.py', *args, f'--workdir={tmp_path / "run"}'])
+  assert exit_info.value.code == status
+  stderr = capsys.readouterr().err
+  assert len(stderr.strip().splitlines()) == 1, stderr
+  for needle in needles:
+    assert needle in stderr and stderr.startswith('error: '), stderr
+  assert not os.path.exists(tmp_path / 'run')
+
+
+@pytest.mark.parametrize('args, status, needles', [
     ([f'--config={SYNTHETIC}:tiny', '--config.savi.num_slots=abc'], 2,
      ['--config.savi.num_slots=abc', 'invalid literal']),
     ([f'--config={SYNTHETIC}:tiny', '--mode=bogus'], 2,
      ['--mode=bogus', 'train_savi']),
-    ([], 2, ['--config is required']),
     ([f'--config={SYNTHETIC}:tiny', '--config.savi.learning_rate=-1',
       '--mode=train_savi'], 1, ['savi.learning_rate must be a learning rate '
                                 '> 0, got -1.0']),
 ])
 def test_command_line_mistakes_are_one_line(tmp_path, args, status, needles):
-  (tmp_path / 'broken.py').write_text(
-      'def get_config():\n  config = dict(\n  return config +\n')
+  """In a subprocess: absl parses the flags once per process."""
   result = _main(*args, f'--workdir={tmp_path / "run"}', cwd=str(tmp_path))
   line = _one_error_line(result)
   assert result.returncode == status, result.stderr
