@@ -39,7 +39,8 @@ def _clevrer_config():
 
 def get_config(variant: str = ''):
   if variant:
-    raise ValueError(f'unknown variant {variant!r}')
+    raise ValueError(f'unknown variant {variant!r}; this config has none '
+                     '(use configs/clevrer_vqa.py)')
   config = _clevrer_config()
   config.vqa = vqa_config()  # the defaults are the official values, but:
   config.vqa.layer_norm_epsilon = 1e-5  # PyTorch's LayerNorm

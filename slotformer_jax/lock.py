@@ -38,14 +38,29 @@ class FileLock:
       may be left half done).
   """
 
-  def __init__(self, path: str, *, what: str, wait: bool = False):
+  def __init__(self, path: str, *, what: str, wait: bool = False,
+               fix: str = 'use a folder you can write'):
     self.path = path
     self.what = what
+    self.fix = fix  # what to do when the folder cannot be written
     self.wait = wait  # True: wait for a live holder instead of failing
     self.took_over = False
     self._held = False
 
   def acquire(self) -> None:
+    try:
+      self._acquire()
+    except (FileExistsError, UserError):
+      raise
+    except OSError as error:
+      # Read-only filesystem, no permission, a file where a folder should
+      # be: the first write of a run, so this is where it shows.
+      where = error.filename or self.path
+      where = '' if os.fspath(where) in self.what else f' at {where}'
+      raise UserError(f'cannot write {self.what} ({error.strerror or error}'
+                      f'{where}); {self.fix}') from None
+
+  def _acquire(self) -> None:
     os.makedirs(os.path.dirname(os.path.abspath(self.path)), exist_ok=True)
     me = {'pid': os.getpid(), 'host': socket.gethostname(),
           'started': time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime())}

@@ -164,18 +164,43 @@ def run_main(argv: list[str] | None = None) -> None:
   """The entry point: anticipated errors become one line and a non-zero
   exit; unexpected ones keep their traceback."""
   argv = sys.argv if argv is None else argv
-  problem = config_checks.check_overrides(argv[1:])
+  try:
+    # The config file and the --config.* names, before absl's tracebacks.
+    problem = config_checks.check_overrides(argv[1:])
+  except config_checks.ConfigFileError as error:
+    problem = _one_line(error)
+  except UserError as error:  # the file's own mistake, not the command's
+    print(f'error: {_one_line(error)}', file=sys.stderr)
+    sys.exit(1)
+  if not problem and config_checks.config_spec(argv[1:]) is None and not any(
+      arg.split('=')[0] in _HELP_AND_FLAGFILE for arg in argv[1:]):
+    problem = '--config is required, e.g. --config=configs/synthetic.py:tiny'
   if problem:
     print(f'error: {problem}', file=sys.stderr)
     sys.exit(2)
   try:
-    app.run(main, argv=argv)
+    app.run(main, argv=argv, flags_parser=_parse_flags)
   except Preempted as error:
     print(f'preempted: {_one_line(error)}', file=sys.stderr)
     sys.exit(128 + 15)
   except UserError as error:
     print(f'error: {_one_line(error)}', file=sys.stderr)
     sys.exit(1)
+
+
+# absl answers these without a --config (a --flagfile may hold one).
+_HELP_AND_FLAGFILE = ('-h', '-?', '--help', '--helpshort', '--helpfull',
+                      '--helpxml', '--flagfile', '--only_check_args')
+
+
+def _parse_flags(argv: list[str]) -> list[str]:
+  """absl's flag parsing, with a bad flag (a wrong type, an unknown --mode,
+  a missing --workdir) as one `error:` line and exit status 2."""
+  try:
+    return flags.FLAGS(argv)
+  except flags.Error as error:
+    print(f'error: {_one_line(error)} (see --helpshort)', file=sys.stderr)
+    sys.exit(2)
 
 
 def _one_line(error: BaseException) -> str:

@@ -390,7 +390,9 @@ def set_aside(stage_directory: str, identity: dict[str, Any] | None) -> str:
 
 
 def workdir_lock(workdir: str) -> FileLock:
-  return FileLock(os.path.join(workdir, LOCK_FILE), what=workdir)
+  return FileLock(os.path.join(workdir, LOCK_FILE),
+                  what=f'the workdir {workdir}',
+                  fix='give a --workdir you can write')
 
 
 def evaluation_identity(config: ml_collections.ConfigDict, workdir: str,

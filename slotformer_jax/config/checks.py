@@ -10,7 +10,11 @@ from __future__ import annotations
 
 import difflib
 import importlib.util
+import inspect
+import math
 import os
+import re
+import traceback
 from collections.abc import Sequence
 
 import ml_collections
@@ -25,14 +29,82 @@ _TRAINING_INTS = ('batch_size', 'num_train_steps', 'log_every',
                   'checkpoint_every')
 
 
+class ConfigFileError(ConfigError):
+  """The --config argument names no loadable config (a missing file, a
+  variant the file does not have): a mistake of the command line."""
+
+
 def load_config_file(spec: str) -> ml_collections.ConfigDict:
-  """'configs/synthetic.py:tiny' -> its get_config('tiny') (as absl does)."""
-  path, _, argument = spec.partition(':')
+  """'configs/synthetic.py:tiny' -> its get_config('tiny') (as absl does).
+
+  Every way this can fail is one ConfigError naming the file (and line):
+  ConfigFileError for the command line's part (no such file, a variant the
+  file does not take), ConfigError for the file's (a syntax error, a
+  get_config that raises).
+  """
+  path, colon, argument = spec.partition(':')
+  expanded = os.path.expanduser(path)
+  if not path:
+    raise ConfigFileError('--config is empty; give a config file, e.g. '
+                          '--config=configs/synthetic.py:tiny')
+  if not os.path.isfile(expanded):
+    what = 'is a folder' if os.path.isdir(expanded) else 'does not exist'
+    raise ConfigFileError(
+        f'config file {path} {what} (from {os.getcwd()}); e.g. '
+        '--config=configs/synthetic.py:tiny')
   module_spec = importlib.util.spec_from_file_location(
-      '_checked_config', os.path.expanduser(path))
+      '_checked_config', expanded)
+  if module_spec is None:
+    raise ConfigFileError(f'config file {path} is not a Python file (.py)')
   module = importlib.util.module_from_spec(module_spec)
-  module_spec.loader.exec_module(module)
-  return module.get_config(argument) if argument else module.get_config()
+  try:
+    module_spec.loader.exec_module(module)
+  except SyntaxError as error:
+    raise ConfigError(
+        f'config file {path}, line {error.lineno}: {error.msg}') from None
+  except Exception as error:  # pylint: disable=broad-except
+    raise ConfigError(f'config file {path}, line {_error_line(error, expanded)}'
+                      f': {_describe(error)}') from None
+  get_config = getattr(module, 'get_config', None)
+  if not callable(get_config):
+    raise ConfigError(f'config file {path} defines no get_config()')
+  if colon and not _takes_an_argument(get_config):
+    raise ConfigFileError(
+        f'config file {path} has no variants; drop ":{argument}"')
+  try:
+    return get_config(argument) if colon else get_config()
+  except Exception as error:  # pylint: disable=broad-except
+    call = f'get_config({argument!r})' if colon else 'get_config()'
+    if 'variant' in str(error) and colon:
+      raise ConfigFileError(
+          f'config file {path}: {" ".join(str(error).split())}') from None
+    raise ConfigError(
+        f'config file {path}, line {_error_line(error, expanded)}: {call} '
+        f'failed: {_describe(error)}') from None
+
+
+def _takes_an_argument(function) -> bool:
+  try:
+    parameters = inspect.signature(function).parameters.values()
+  except (TypeError, ValueError):
+    return True
+  return any(p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD,
+                        p.VAR_POSITIONAL) for p in parameters)
+
+
+def _error_line(error: BaseException, path: str) -> int | str:
+  """The line of `path` where `error` was raised last (deepest frame)."""
+  line = '?'
+  for frame in traceback.extract_tb(error.__traceback__):
+    if os.path.abspath(frame.filename) == os.path.abspath(path):
+      line = frame.lineno
+  return line
+
+
+def _describe(error: BaseException) -> str:
+  message = ' '.join(str(error).split())
+  return f'{type(error).__name__}: {message}' if message else \
+      type(error).__name__
 
 
 def unknown_override(config: ml_collections.ConfigDict, dotted: str
@@ -55,19 +127,25 @@ def unknown_override(config: ml_collections.ConfigDict, dotted: str
   return None
 
 
-def check_overrides(argv: Sequence[str]) -> str | None:
-  """The first unknown `--config.<field>` of the command line, as one line
-  (None when all are known or the config file cannot be loaded here)."""
+def config_spec(argv: Sequence[str]) -> str | None:
+  """The value of the command line's last --config (either form)."""
   spec = None
-  for arg in argv:
+  for i, arg in enumerate(argv):
     if arg.startswith('--config='):
       spec = arg[len('--config='):]
+    elif arg == '--config' and i + 1 < len(argv):
+      spec = argv[i + 1]
+  return spec
+
+
+def check_overrides(argv: Sequence[str]) -> str | None:
+  """The first unknown `--config.<field>` of the command line, as one line
+  (None when all are known or there is no --config). A config file that
+  cannot be loaded raises its ConfigError (see `load_config_file`)."""
+  spec = config_spec(argv)
   if spec is None:
     return None
-  try:
-    config = load_config_file(spec)
-  except Exception:  # pylint: disable=broad-except
-    return None  # absl reports it
+  config = load_config_file(spec)
   for arg in argv:
     if arg.startswith('--config.'):
       dotted = arg[len('--config.'):].split('=', 1)[0]
@@ -75,6 +153,122 @@ def check_overrides(argv: Sequence[str]) -> str | None:
       if problem:
         return problem
   return None
+
+
+# One rule per kind of field, by name (the last part of its dotted path):
+# every config section is checked by the same table, so a new
+# `foo_learning_rate` or `bar_batch_size` is covered without a new check.
+# (pattern, kind, lowest, highest, describes)
+_FIELD_KINDS = (
+    (r'(^|_)learning_rate$|^group_learning_rates\.', 'float', 0.0, None,
+     'a learning rate > 0'),
+    (r'_fraction$|_share$|^positive_ratio$', 'float', 0.0, 1.0, 'a fraction in [0, 1]'),
+    (r'dropout_rate$', 'float', 0.0, 1.0, 'a rate in [0, 1)'),
+    (r'(^|_)weight$|^grad_clip$', 'float', 0.0, None, 'a number >= 0'),
+    (r'epsilon$|^prior_sigma$|^gumbel_(start|final)$|_seconds$|'
+     r'^object_scale$', 'float', 0.0, None, 'a number > 0'),
+    (r'batch_size$|_every$|^num_(slots|layers|heads|iterations|train_steps|'
+     r'frames|candidates)$|^(slot|mlp|hidden|vocab|output|head|word)_size$|'
+     r'^(embed_dim|d_model|kernel_size|chunk_length|clip_length|burn_in|'
+     r'rollout|frame_stride|mlp_ratio|epochs|fps|scale|strip_every|'
+     r'rollout_steps|video_length|observed_frames|predicted_frames|'
+     r'rollout_frames|max_question_len|max_choice_len|max_choices|'
+     r'max_instances)$', 'int', 1, None, 'an integer >= 1'),
+    (r'^(lstm_size|max_context|num_videos|num_val|num_test|video_len|'
+     r'dynamics_layouts)$', 'int', 0, None, 'an integer >= 0'),
+    (r'^(features|strides|resolution|broadcast_resolution)$', 'ints', 1, None,
+     'integers >= 1'),
+)
+# A rate or fraction of exactly its lowest value that cannot work.
+_EXCLUSIVE_LOWEST = ('a learning rate > 0', 'a number > 0')
+
+
+def _leaves(config, prefix=''):
+  for key in config.keys():
+    value = config[key]
+    if isinstance(value, ml_collections.ConfigDict):
+      yield from _leaves(value, f'{prefix}{key}.')
+    else:
+      yield f'{prefix}{key}', value
+
+
+def _is_number(value) -> bool:
+  return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def check_field_kinds(config: ml_collections.ConfigDict) -> list[str]:
+  """One line per field whose value its kind (`_FIELD_KINDS`) rules out:
+  a rate <= 0, a negative clip norm or loss weight, a size < 1, a NaN ..."""
+  problems = []
+  for dotted, value in _leaves(config):
+    if value is None:  # an unset placeholder: its default applies
+      continue
+    parts = dotted.split('.')
+    name = parts[-1]
+    scoped = '.'.join(parts[-2:])
+    for pattern, kind, lowest, highest, describes in _FIELD_KINDS:
+      if not (re.search(pattern, name) or re.search(pattern, scoped)):
+        continue
+      if kind == 'int':
+        good = (isinstance(value, int) and not isinstance(value, bool)
+                and value >= lowest)
+        if not good:
+          problems.append(f'{dotted} must be an integer >= {lowest}, got '
+                          f'{value!r}')
+      elif kind == 'ints':
+        items = value if isinstance(value, (tuple, list)) else (value,)
+        good = all(isinstance(v, int) and not isinstance(v, bool)
+                   and v >= lowest for v in items)
+        if not good:
+          problems.append(f'{dotted} must be {describes}, got {value!r}')
+      else:
+        good = _is_number(value) and math.isfinite(value) and (
+            value > lowest if describes in _EXCLUSIVE_LOWEST
+            else value >= lowest)
+        if good and highest is not None:
+          good = (value < highest if describes == 'a rate in [0, 1)'
+                  else value <= highest)
+        if not good:
+          problems.append(f'{dotted} must be {describes}, got {value!r}')
+      break
+  return problems
+
+
+def decoder_resolutions(broadcast: Sequence[int], num_layers: int
+                        ) -> list[tuple[int, int]]:
+  """The frame sizes SpatialBroadcastDecoder can produce: its layers double
+  the broadcast grid until the frame height is reached (the rest keep the
+  size), so (h * 2^k, w * 2^k) for k = 0 .. num_layers."""
+  height, width = broadcast
+  return [(height * 2**k, width * 2**k) for k in range(num_layers + 1)]
+
+
+def _check_resolution(config: ml_collections.ConfigDict, problems) -> None:
+  """The frame size the decoders can produce (known from the config alone;
+  found at the first training step otherwise, after generating data)."""
+  resolution = tuple(config.data.resolution)
+  if config.slot_model == 'savi':
+    decoder = config.savi.decoder
+    sizes = decoder_resolutions(decoder.broadcast_resolution,
+                                len(decoder.features))
+    if resolution not in sizes:
+      listed = ', '.join(f'{h}x{w}' for h, w in sizes)
+      problems.append(
+          f'data.resolution {resolution} is not a size the SAVi decoder can '
+          f'produce: it doubles its {tuple(decoder.broadcast_resolution)} '
+          f'broadcast grid (savi.decoder.broadcast_resolution) once per '
+          f'layer, up to {len(decoder.features)} layers '
+          f'(savi.decoder.features), so {listed} work; change '
+          'data.resolution or savi.decoder.broadcast_resolution')
+  elif config.slot_model == 'steve':
+    # The dVAE encodes 4x4 pixels per token and decodes two x2 pixel
+    # shuffles, so only multiples of 4 come back at the frame size.
+    if any(side % 4 for side in resolution):
+      near = tuple(max(4, 4 * round(side / 4)) for side in resolution)
+      problems.append(
+          f'data.resolution {resolution} is not a size the dVAE can '
+          'reconstruct: it makes one token of every 4x4 pixels and decodes '
+          f'them back x4, so both sides must be multiples of 4 (e.g. {near})')
 
 
 def _video_length(config: ml_collections.ConfigDict, split: str
@@ -168,7 +362,10 @@ def validate(config: ml_collections.ConfigDict, stages: Sequence[str], *,
   if 'render' in stages:
     positive('render', ('num_videos', 'fps', 'scale', 'strip_every'))
 
-  if not problems:  # lengths need the integers above to be sane
+  problems.extend(check_field_kinds(config))
+  problems[:] = list(dict.fromkeys(problems))  # the same line from two checks
+  if not problems:  # sizes and lengths need the integers above to be sane
+    _check_resolution(config, problems)
     _check_lengths(config, stages, dynamics, problems)
   if problems:
     raise ConfigError('config: ' + '; '.join(problems))

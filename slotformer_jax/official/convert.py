@@ -54,6 +54,7 @@ import numpy as np
 
 from slotformer_jax import models
 from slotformer_jax import workdir as workdir_lib
+from slotformer_jax.config import checks as config_checks
 from slotformer_jax.errors import UserError
 from slotformer_jax.files import write_json_atomic
 from slotformer_jax.official import aloe as official_aloe
@@ -425,6 +426,20 @@ def main(argv, flag_holders: dict[str, Any]):
     sys.exit(f'error: {error}')
 
 
+def _check_config_argument(argv: list[str]) -> None:
+  """A --config that cannot be loaded, as one line before absl's traceback
+  (status 2 for the argument, 1 for the file's own error)."""
+  spec = config_checks.config_spec(argv)
+  if spec is None:
+    return
+  try:
+    config_checks.load_config_file(spec)
+  except UserError as error:
+    print(f'error: {error}', file=sys.stderr)
+    sys.exit(2 if isinstance(error, config_checks.ConfigFileError) else 1)
+
+
 if __name__ == '__main__':
   _holders = _define_flags()
+  _check_config_argument(sys.argv[1:])
   app.run(lambda argv: main(argv, _holders))

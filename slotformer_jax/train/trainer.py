@@ -249,7 +249,11 @@ def _diverged(name: str, metrics: dict[str, float], step: int,
   else:
     resume = 'there is no checkpoint yet.'
   if not math.isfinite(metrics['loss']):
-    what = f'the loss became {metrics["loss"]} at step {step}'
+    # Which term of the loss (recon_loss, kl, slot_loss, image_loss, ...).
+    terms = sorted(k for k, v in metrics.items() if not math.isfinite(v)
+                   and k not in ('loss', 'grad_norm', 'param_norm'))
+    what = (f'the loss became {metrics["loss"]} at step {step}'
+            + (f' (non-finite: {", ".join(terms)})' if terms else ''))
   else:
     what = (f'the parameters became non-finite in update {step} (norm '
             f'{metrics["param_norm"]}, loss before it {metrics["loss"]:.4g})')

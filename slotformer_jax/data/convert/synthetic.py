@@ -643,7 +643,9 @@ def build_synthetic_dataset(config: SyntheticConfig,
   # One generator per dataset; a generator killed earlier left its
   # temporary folder behind, which the lock holder may remove.
   with FileLock(os.fspath(path.parent / f'.{path.name}.lock'),
-                what=f'the synthetic dataset {path}', wait=True):
+                what=f'the synthetic dataset {path}', wait=True,
+                fix='set $SLOTFORMER_DATA_DIR or --config.data.data_dir to '
+                'a folder you can write'):
     if (path / 'dataset_info.json').is_file():  # built while we waited
       return path
     for leftover in path.parent.glob(f'incomplete.*_{path.name}'):

@@ -386,7 +386,13 @@ def convert(spec: DatasetSpec, jobs: Mapping[str, Sequence[Job]],
     logger.info('%s is already prepared (splits %s); pass --overwrite to '
                 'convert again.', dataset_dir, sorted(finished))
     return _result_from_report(dataset_dir, started)
-  _progress_dir(dataset_dir).mkdir(parents=True, exist_ok=True)
+  try:
+    _progress_dir(dataset_dir).mkdir(parents=True, exist_ok=True)
+  except OSError as error:  # read-only, no permission, a file in the path
+    raise ConversionError(
+        f'cannot write the dataset folder {dataset_dir} ({error.strerror}); '
+        'set --data_dir (or $SLOTFORMER_DATA_DIR) to a folder you can '
+        'write') from None
 
   plans: dict[str, int] = {}
   tasks: list[_ShardTask] = []
