@@ -343,7 +343,7 @@ def accept_config(config: ml_collections.ConfigDict, workdir: str, *,
 def _only_observation(change: str) -> bool:
   name = change.split(':', 1)[0]
   last = name.rsplit('.', 1)[-1]
-  return (last in _NOT_SHAPING or name.startswith('render.')
+  return (last in _NOT_SHAPING or name.startswith(('render.', 'explore.'))
           or name in _VARIANT_SELECTORS)
 
 
