@@ -384,6 +384,10 @@ def explore(config: ml_collections.ConfigDict, workdir: str, *,
   except KeyError:  # no ground-truth masks: frame metrics only
     source = workdir_lib.slot_source_for(config, workdir, split, ('video',))
   count = min(config.explore.num_videos, len(source))
+  if not count:
+    logger.warning('explore: the %s split has no videos; no page written',
+                   split)
+    return None
   frames_needed = (burn_in + rollout - 1) * stride + 1
   indices = list(range(count))
   items = [source[i] for i in indices]

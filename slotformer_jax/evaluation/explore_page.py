@@ -71,6 +71,7 @@ footer pre { font-size: 11px; white-space: pre-wrap; margin: 4px 0; }
 const D = JSON.parse(document.getElementById('explorer-data').textContent);
 const T = D.burn_in + D.rollout;
 const W = D.width, H = D.height, S = D.scale;
+const SLOT_SCALE = Math.max(1, S - 1);  // the slots' tiles a little smaller: all N in a row
 const state = {video: 0, frame: 0, playing: true, slot: 0, kind: 'remove'};
 let tiles = [];  // [canvas, image]
 const images = new Map();
@@ -100,8 +101,8 @@ function image(uri) {
   return images.get(uri);
 }
 
-function tile(label, uri, key) {
-  const canvas = el('canvas', {width: W * S, height: H * S});
+function tile(label, uri, key, scale) {
+  const canvas = el('canvas', {width: W * (scale || S), height: H * (scale || S)});
   if (key) canvas.dataset.source = key;
   tiles.push([canvas, image(uri)]);
   return el('figure', {class: 'tile'}, [el('figcaption', {text: label}), canvas]);
@@ -112,7 +113,7 @@ function draw(canvas, img) {
   ctx.imageSmoothingEnabled = false;
   ctx.clearRect(0, 0, canvas.width, canvas.height);
   if (img.complete && img.naturalWidth) {
-    ctx.drawImage(img, state.frame * W, 0, W, H, 0, 0, W * S, H * S);
+    ctx.drawImage(img, state.frame * W, 0, W, H, 0, 0, canvas.width, canvas.height);
   }
 }
 
@@ -149,7 +150,8 @@ function buildSlots() {
         document.createTextNode(`slot ${k}`)]);
     const card = el('div', {class: 'slot' + (k === state.slot ? ' selected' : ''),
                             'data-slot': String(k), id: `slot-${k}`}, [
-        name, el('div', {class: 'pair'}, [tile('view', slot.view), tile('alpha', slot.alpha)])]);
+        name, el('div', {class: 'pair'}, [tile('view', slot.view, null, SLOT_SCALE),
+                                          tile('alpha', slot.alpha, null, SLOT_SCALE)])]);
     card.addEventListener('click', () => selectSlot(k));
     return card;
   }));
