@@ -7,8 +7,10 @@ import numpy as np
 
 from explore_helpers import NUM_VIDEOS
 from explore_helpers import micro_explorer
+from pipeline_helpers import micro_config
 from slotformer_jax import inference
 from slotformer_jax import models
+from slotformer_jax import workdir as workdir_lib
 from slotformer_jax.evaluation import explore
 from slotformer_jax.modules.decoders import SpatialBroadcastDecoder
 from slotformer_jax.modules.decoders import composite
@@ -192,3 +194,14 @@ def test_explorer_is_jitted_once_per_shape_and_matches_the_rollouts(tmp_path):
     metrics = out['video_metrics'][method]
     assert metrics['psnr'].shape == metrics['fg_ari'].shape == (NUM_VIDEOS,
                                                                  rollout)
+
+
+def test_explore_settings_never_make_a_workdir_stale(tmp_path):
+  config = micro_config('savi', tmp_path / 'data')
+  workdir = str(tmp_path / 'run')
+  before_explorer = config.copy_and_resolve_references()
+  del before_explorer['explore']  # a workdir made before the explorer
+  assert workdir_lib.accept_config(before_explorer, workdir) == []
+  assert workdir_lib.accept_config(config, workdir) == []
+  config.explore.num_videos = 3
+  assert workdir_lib.accept_config(config, workdir) == []
