@@ -206,7 +206,7 @@ class Explorer:
 def _png_uri(image: np.ndarray) -> str:
   """uint8 [H, W, 3] -> a PNG data URI."""
   buffer = io.BytesIO()
-  Image.fromarray(image).save(buffer, format='PNG', optimize=True)
+  Image.fromarray(image).save(buffer, format='PNG')
   return 'data:image/png;base64,' + base64.b64encode(
       buffer.getvalue()).decode('ascii')
 

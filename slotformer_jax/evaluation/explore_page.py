@@ -81,6 +81,8 @@ const METHOD_COLOURS = {'SlotFormer': '#1f77b4', 'Slot-LSTM': '#2ca02c', 'copy-l
 const SPARE_COLOURS = ['#9467bd', '#8c564b', '#e377c2', '#17becf'];
 function colour(name, j) { return METHOD_COLOURS[name] || SPARE_COLOURS[j % SPARE_COLOURS.length]; }
 const KIND_TEXT = {remove: 'removed', freeze: 'frozen'};
+const METRIC_NAMES = {psnr: 'PSNR (dB)', ssim: 'SSIM', lpips: 'LPIPS', ari: 'ARI', fg_ari: 'FG-ARI',
+                      fg_miou: 'FG-mIoU', ar: 'AR'};
 
 function el(tag, attrs, children) {
   const node = document.createElement(tag);
@@ -228,7 +230,7 @@ function charts(target, curves) {
   const legend = names.map((name, j) =>
       `<span style="color:${colour(name, j)}">&#9473;&#9473; ${name}</span>`).join(' &nbsp; ');
   node.innerHTML = (names.length ? `<div class="legend">${legend}</div>` : '') + Object.entries(curves || {}).map(
-      ([metric, series]) => chart(metric.toUpperCase().replace('_', '-'), series)).join('');
+      ([metric, series]) => chart(METRIC_NAMES[metric] || metric, series)).join('');
 }
 
 function selectVideo(i) {
