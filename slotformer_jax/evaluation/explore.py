@@ -69,6 +69,12 @@ INTERVENTIONS = ('remove', 'freeze')
 DIFF_GAIN = 4.0
 # The per-video curves of the page (object metrics when the data has masks).
 VIDEO_METRICS = ('psnr', 'ssim', 'fg_ari')
+# render/'s colours, labels and conversion: the page matches its pictures.
+# pylint: disable=protected-access
+_PALETTE = visualize._PALETTE
+_METHOD_LABELS = visualize._METHOD_LABELS
+_to_uint8 = visualize._to_uint8
+# pylint: enable=protected-access
 
 
 def explore_dir(workdir: str) -> str:
@@ -214,14 +220,14 @@ def _png_uri(image: np.ndarray) -> str:
 def _strip(frames: np.ndarray) -> str:
   """[T, H, W, 3] in [0, 1] -> one data URI of the frames side by side
   (the page draws frame t from its t-th tile)."""
-  frames = visualize._to_uint8(np.asarray(frames))  # pylint: disable=protected-access
+  frames = _to_uint8(np.asarray(frames))
   return _png_uri(np.concatenate(list(frames), axis=1))
 
 
 def _alpha_view(alpha: np.ndarray, slot: int) -> np.ndarray:
   """alpha [T, H, W] -> [T, H, W, 3]: the slot's colour, weighted by its
   alpha, on black."""
-  colour = visualize._PALETTE[slot % len(visualize._PALETTE)]  # pylint: disable=protected-access
+  colour = _PALETTE[slot % len(_PALETTE)]
   return alpha[..., None] * colour
 
 
@@ -253,8 +259,8 @@ def run_curves(workdir: str, identity: dict[str, Any]
   for method, per_metric in results.get('rollout', {}).items():
     for name, value in per_metric.items():
       if isinstance(value, dict) and 'per_step' in value:
-        curves.setdefault(name, {})[visualize._METHOD_LABELS.get(  # pylint: disable=protected-access
-            method, method)] = _clean(value['per_step'])
+        label = _METHOD_LABELS.get(method, method)
+        curves.setdefault(name, {})[label] = _clean(value['per_step'])
   protocol = results.get('protocol', {})
   return curves, (f'the run: eval/metrics.json, mean over '
                   f'{protocol.get("num_videos", "the")} '
@@ -271,9 +277,9 @@ def page_data(config: ml_collections.ConfigDict, out: dict[str, Any],
   # jax returns dicts sorted by key: the page's order is the table's.
   methods = [name for name in (*models.DYNAMICS_MODELS, 'copy_last')
              if name in out['methods']]
-  labels = visualize._METHOD_LABELS  # pylint: disable=protected-access
+  labels = _METHOD_LABELS
   palette = ['#%02x%02x%02x' % tuple(int(c * 255 + 0.5) for c in colour)
-             for colour in visualize._PALETTE]  # pylint: disable=protected-access
+             for colour in _PALETTE]
   entries = []
   for v, index in enumerate(indices):
     truth = videos[v].astype(np.float32) / 255.0
@@ -298,19 +304,20 @@ def page_data(config: ml_collections.ConfigDict, out: dict[str, Any],
                     'alpha': _strip(_alpha_view(alpha, k))})
     counterfactual = {}
     for i, kind in enumerate(INTERVENTIONS):
-      frames = out['counterfactual'][v, i * num_slots:(i + 1) * num_slots]
-      masks = out['counterfactual_masks'][v, i * num_slots:(i + 1) * num_slots]
+      kind_rows = slice(i * num_slots, (i + 1) * num_slots)
+      frames = out['counterfactual'][v, kind_rows]
+      masks = out['counterfactual_masks'][v, kind_rows]
       counterfactual[kind] = [
           {'frames': _strip(frames[k]),
            'masks': _strip(visualize.mask_overlay(frames[k], masks[k])),
            'diff': _strip(_diff_view(frames[k], factual)),
            'max_diff': round(float(np.abs(frames[k] - factual).max()), 4)}
           for k in range(num_slots)]
-    metrics = {name: {labels[method]: _clean(out['video_metrics'][method][name][v])
-                      for method in methods
-                      if name in out['video_metrics'][method]}
+    per_video = out['video_metrics']
+    metrics = {name: {labels[method]: _clean(per_video[method][name][v])
+                      for method in methods}
                for name in VIDEO_METRICS
-               if name in out['video_metrics'][models.SLOTFORMER]}
+               if name in per_video[models.SLOTFORMER]}
     entries.append({
         'index': int(index),
         'rows': [{'key': key, 'label': row_label, 'strip': _strip(frames)}

@@ -1,6 +1,9 @@
 """The run explorer's interventions: removing a slot from the decoder and
 from SlotFormer's context, freezing one, and the batched jitted rollout."""
 
+import json
+import os
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -184,12 +187,12 @@ def test_explorer_is_jitted_once_per_shape_and_matches_the_rollouts(tmp_path):
   # Freeze slot k: the burn-in frames are the factual ones, the rollout
   # differs (an untrained non-residual SlotFormer moves every slot).
   frozen = out['counterfactual'][:, num_slots:]
-  np.testing.assert_allclose(frozen[:, :, :burn_in],
-                             np.broadcast_to(
-                                 out['methods']['slotformer'][:, None, :burn_in],
-                                 frozen[:, :, :burn_in].shape), atol=1e-6)
-  assert np.abs(frozen[:, :, burn_in:] - out['methods']['slotformer'][
-      :, None, burn_in:]).max() > 1e-3
+  factual = out['methods']['slotformer'][:, None]
+  np.testing.assert_allclose(
+      frozen[:, :, :burn_in],
+      np.broadcast_to(factual[:, :, :burn_in], frozen[:, :, :burn_in].shape),
+      atol=1e-6)
+  assert np.abs(frozen[:, :, burn_in:] - factual[:, :, burn_in:]).max() > 1e-3
   for method in ('slotformer', 'slot_lstm', 'copy_last'):
     metrics = out['video_metrics'][method]
     assert metrics['psnr'].shape == metrics['fg_ari'].shape == (NUM_VIDEOS,
@@ -205,3 +208,23 @@ def test_explore_settings_never_make_a_workdir_stale(tmp_path):
   assert workdir_lib.accept_config(config, workdir) == []
   config.explore.num_videos = 3
   assert workdir_lib.accept_config(config, workdir) == []
+
+
+def test_run_curves_only_from_the_same_models(tmp_path):
+  workdir = str(tmp_path)
+  identity = {'slotformer': {'run_id': 'a', 'step': 4}}
+  curves, note = explore.run_curves(workdir, identity)
+  assert curves is None and '--mode=evaluate' in note
+  os.makedirs(tmp_path / 'eval')
+  rollout = {'slotformer': {'psnr': {'mean': 20.0, 'per_step': [21.0, None]}},
+             'copy_last': {'psnr': {'mean': 19.0, 'per_step': [20.0, 18.0]}}}
+  for saved_identity, expected in (
+      ({'slotformer': {'run_id': 'b', 'step': 4}}, None),
+      (identity, {'psnr': {'SlotFormer': [21.0, None],
+                           'copy-last': [20.0, 18.0]}})):
+    with open(tmp_path / 'eval' / 'metrics.json', 'w') as f:
+      json.dump({'rollout': rollout, 'identity': saved_identity,
+                 'protocol': {'num_videos': 2, 'split': 'test'}}, f)
+    curves, note = explore.run_curves(workdir, identity)
+    assert curves == expected, note
+  assert note == 'the run: eval/metrics.json, mean over 2 test videos'

@@ -12,15 +12,19 @@ import pytest
 
 from explore_helpers import write_micro_page
 
+try:
+  from selenium import webdriver
+  from selenium.webdriver.chrome.service import Service
+  from selenium.webdriver.common.by import By
+except ImportError:
+  webdriver = None
+
 CHROMIUM = shutil.which('chromium') or '/usr/bin/chromium'
 CHROMEDRIVER = '/usr/bin/chromedriver'
 
 
 def _driver():
-  try:
-    from selenium import webdriver  # pylint: disable=g-import-not-at-top
-    from selenium.webdriver.chrome.service import Service  # pylint: disable=g-import-not-at-top
-  except ImportError:
+  if webdriver is None:
     pytest.skip('selenium is not installed (pip install -e ".[test]")')
   if not (os.path.exists(CHROMIUM) and os.path.exists(CHROMEDRIVER)):
     pytest.skip('no headless browser: apt-get install -y chromium '
@@ -57,7 +61,6 @@ def _wait_for(condition, timeout=10.0):
 
 def test_page_loads_without_console_errors(page):
   driver, data = page
-  from selenium.webdriver.common.by import By  # pylint: disable=g-import-not-at-top
   assert _wait_for(lambda: driver.find_element(By.TAG_NAME, 'body')
                    .get_attribute('data-frame') is not None)
   errors = [entry for entry in driver.get_log('browser')
@@ -73,7 +76,6 @@ def test_page_loads_without_console_errors(page):
 
 def test_videos_play(page):
   driver, _ = page
-  from selenium.webdriver.common.by import By  # pylint: disable=g-import-not-at-top
   body = driver.find_element(By.TAG_NAME, 'body')
   first = body.get_attribute('data-frame')
   assert _wait_for(lambda: body.get_attribute('data-frame') != first)
@@ -84,7 +86,6 @@ def test_videos_play(page):
 
 def test_clicking_a_slot_shows_its_counterfactual_rollout(page):
   driver, data = page
-  from selenium.webdriver.common.by import By  # pylint: disable=g-import-not-at-top
   play = driver.find_element(By.ID, 'play')
   if play.text == 'pause':
     play.click()  # a still frame, so the panel's pixels compare
