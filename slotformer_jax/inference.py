@@ -41,9 +41,14 @@ logger = logging.getLogger(__name__)
 
 def rollout_slots(params: Any, burn_in_slots: jax.Array, *,
                   model: SlotFormer | SlotLSTM,
-                  num_steps: int) -> jax.Array:
-  """[B, burn_in, N, D] -> [B, num_steps, N, D] (deterministic)."""
-  return model.apply({'params': params}, burn_in_slots, num_steps)
+                  num_steps: int, **interventions: jax.Array) -> jax.Array:
+  """[B, burn_in, N, D] -> [B, num_steps, N, D] (deterministic).
+
+  `interventions`: SlotFormer's `slot_presence` / `frozen` ([B, N] bool,
+  the counterfactual rollouts of the explorer).
+  """
+  return model.apply({'params': params}, burn_in_slots, num_steps,
+                     **interventions)
 
 
 def copy_last_rollout(burn_in_slots: jax.Array, num_steps: int) -> jax.Array:

@@ -343,7 +343,10 @@ def accept_config(config: ml_collections.ConfigDict, workdir: str, *,
 def _only_observation(change: str) -> bool:
   name = change.split(':', 1)[0]
   last = name.rsplit('.', 1)[-1]
-  return (last in _NOT_SHAPING or name.startswith('render.')
+  # The pictures' and the explorer's settings (a whole section too: a
+  # workdir from before the explorer has no `explore` section).
+  return (last in _NOT_SHAPING or name in ('render', 'explore')
+          or name.startswith(('render.', 'explore.'))
           or name in _VARIANT_SELECTORS)
 
 

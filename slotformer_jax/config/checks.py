@@ -333,7 +333,8 @@ def validate(config: ml_collections.ConfigDict, stages: Sequence[str], *,
   dynamics = [models.SLOTFORMER] + (
       [models.SLOT_LSTM] if config.slot_lstm.train else [])
   for name in dynamics:
-    if f'train_{name}' in stages or stages & {'evaluate', 'render'}:
+    if f'train_{name}' in stages or stages & {'evaluate', 'render',
+                                                'explore'}:
       section = models.dynamics_config(config, name)
       for key in ('burn_in', 'rollout', 'frame_stride', 'embed_dim',
                   'num_layers') + (_TRAINING_INTS if f'train_{name}' in stages
@@ -344,7 +345,7 @@ def validate(config: ml_collections.ConfigDict, stages: Sequence[str], *,
                           f'{value!r}')
       if f'train_{name}' in stages:
         divisible(f'{name}.batch_size', section.batch_size)
-  evaluating = bool(stages & {'evaluate', 'render'})
+  evaluating = bool(stages & {'evaluate', 'render', 'explore'})
   if evaluating:
     positive('evaluation', ('batch_size', 'rollout_steps', 'chunk_length'))
     positive('evaluation', ('num_videos',), allow_zero=('num_videos',))
@@ -361,6 +362,8 @@ def validate(config: ml_collections.ConfigDict, stages: Sequence[str], *,
                       f'{config.evaluation.clips!r}')
   if 'render' in stages:
     positive('render', ('num_videos', 'fps', 'scale', 'strip_every'))
+  if 'explore' in stages:
+    positive('explore', ('num_videos', 'fps', 'scale'))
 
   problems.extend(check_field_kinds(config))
   problems[:] = list(dict.fromkeys(problems))  # the same line from two checks
@@ -386,7 +389,7 @@ def _check_lengths(config, stages, dynamics, problems) -> None:
             f'{name}: burn_in {section.burn_in} + rollout {section.rollout} '
             f'(stride {section.frame_stride}) needs {needed} frames, the '
             f'videos have {train_length}')
-  if stages & {'evaluate', 'render'}:
+  if stages & {'evaluate', 'render', 'explore'}:
     length = _video_length(config, config.evaluation.split)
     section = config.slotformer
     needed = ((section.burn_in + config.evaluation.rollout_steps - 1)

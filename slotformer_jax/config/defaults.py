@@ -212,6 +212,11 @@ def base_config() -> ml_collections.ConfigDict:
   # ---- pictures -----------------------------------------------------------
   config.render = ml_collections.ConfigDict(dict(
       num_videos=4, fps=6, scale=2, strip_every=2))
+  # The run explorer (--mode=explore, explore/index.html): `num_videos`
+  # held-out videos with every slot's counterfactual rollouts; frames drawn
+  # `scale` times their size, played at `fps`.
+  config.explore = ml_collections.ConfigDict(dict(
+      num_videos=8, fps=4, scale=4))
   return config
 
 

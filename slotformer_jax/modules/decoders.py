@@ -233,8 +233,14 @@ class SpatialBroadcastDecoder(nn.Module):
   kernels: str = platform.AUTO
 
   @nn.compact
-  def __call__(self, slots: jax.Array) -> DecodedSlots:
-    """slots [..., N, D] -> DecodedSlots (see its docstring for shapes)."""
+  def __call__(self, slots: jax.Array,
+               presence: jax.Array | None = None) -> DecodedSlots:
+    """slots [..., N, D] -> DecodedSlots (see its docstring for shapes).
+
+    presence: optional bool [..., N]; an absent slot's alpha logits are
+      dropped from the softmax over slots (`composite`), so the frame is
+      decoded as if the slot were not there.
+    """
     *batch_shape, num_slots, slot_size = slots.shape
     height, width = self.broadcast_resolution
     x = slots.reshape(-1, 1, 1, slot_size)
@@ -260,8 +266,27 @@ class SpatialBroadcastDecoder(nn.Module):
     x = PointwiseConv(4, name='readout')(x)
     x = x.reshape(*batch_shape, num_slots, *x.shape[1:])
     rgb, alpha_logits = x[..., :3], x[..., 3:]
-    alpha_masks = jax.nn.softmax(alpha_logits, axis=-4)
-    recon = jnp.sum(rgb * alpha_masks, axis=-4)
+    recon, alpha_masks = composite(rgb, alpha_logits, presence)
     segmentation = jnp.argmax(alpha_masks[..., 0], axis=-3).astype(jnp.int32)
     return DecodedSlots(recon=recon, rgb=rgb, alpha_masks=alpha_masks,
                         segmentation=segmentation)
+
+
+def composite(rgb: jax.Array, alpha_logits: jax.Array,
+              presence: jax.Array | None = None
+              ) -> tuple[jax.Array, jax.Array]:
+  """Alpha compositing of per-slot images: the softmax over slots.
+
+  rgb [..., N, H, W, 3], alpha_logits [..., N, H, W, 1], presence optional
+  bool [..., N] -> (recon [..., H, W, 3], alpha_masks [..., N, H, W, 1]).
+  An absent slot's logits become the dtype's lowest value: its alpha is
+  exactly 0 and the others' renormalise among themselves, the frame the
+  present slots alone decode to (no NaN if every slot is absent: the
+  weights are then uniform).
+  """
+  if presence is not None:
+    lowest = jnp.finfo(alpha_logits.dtype).min
+    alpha_logits = jnp.where(presence[..., None, None, None], alpha_logits,
+                             lowest)
+  alpha_masks = jax.nn.softmax(alpha_logits, axis=-4)
+  return jnp.sum(rgb * alpha_masks, axis=-4), alpha_masks

@@ -76,11 +76,17 @@ class NextSlotPredictor(nn.Module):
 
   @nn.compact
   def __call__(self, history: jax.Array, num_valid: jax.Array | None = None,
-               *, deterministic: bool = True) -> jax.Array:
+               *, deterministic: bool = True,
+               slot_presence: jax.Array | None = None) -> jax.Array:
     """history [B, T, N, D] -> predicted next slots [B, N, D].
 
     num_valid: None (all T frames are context) or an int scalar: only the
       last `num_valid` frames are; the others are masked out as keys.
+    slot_presence: None or bool [B, N]: an absent slot's tokens (of every
+      frame) are masked out as keys, so no other slot attends to it. With
+      the temporal position encoding, LayerNorm and the MLP acting per
+      token, the present slots' predictions are then exactly those of the
+      model given the present slots alone (the counterfactual "remove").
     """
     batch, num_frames, num_slots, slot_size = history.shape
     tokens = nn.Dense(self.embed_dim, name='in_proj')(
@@ -88,11 +94,16 @@ class NextSlotPredictor(nn.Module):
     tokens = tokens + token_position_encoding(
         num_frames, num_slots, self.embed_dim, self.positional_encoding)
     mask = None
+    num_tokens = num_frames * num_slots
+    key_valid = jnp.ones((batch, num_tokens), bool)
     if num_valid is not None:
       frame_valid = jnp.arange(num_frames) >= num_frames - num_valid
-      key_valid = jnp.repeat(frame_valid, num_slots)  # [T * N]
-      num_tokens = num_frames * num_slots
-      mask = jnp.broadcast_to(key_valid[None, None, None, :],
+      key_valid &= jnp.repeat(frame_valid, num_slots)[None]  # [1, T * N]
+    if slot_presence is not None:
+      # Tokens are frame-major: (frame t, slot n).
+      key_valid &= jnp.tile(slot_presence.astype(bool), (1, num_frames))
+    if num_valid is not None or slot_presence is not None:
+      mask = jnp.broadcast_to(key_valid[:, None, None, :],
                               (batch, 1, num_tokens, num_tokens))
     tokens = TransformerEncoder(
         num_layers=self.num_layers, num_heads=self.num_heads,
@@ -176,7 +187,9 @@ class SlotFormer(nn.Module):
 
   def __call__(self, burn_in_slots: jax.Array, num_steps: int,
                teacher_slots: jax.Array | None = None, *,
-               deterministic: bool = True) -> jax.Array:
+               deterministic: bool = True,
+               slot_presence: jax.Array | None = None,
+               frozen: jax.Array | None = None) -> jax.Array:
     """Rolls out `num_steps` future frames.
 
     Args:
@@ -186,6 +199,12 @@ class SlotFormer(nn.Module):
         given (teacher forcing), the window is filled with them instead of
         the model's own predictions.
       deterministic: disables dropout (needs a 'dropout' RNG otherwise).
+      slot_presence: optional bool [B, N]; absent slots are removed from
+        every frame of the context (masked out of attention, see
+        `NextSlotPredictor`). Their own rows of the output are meaningless.
+      frozen: optional bool [B, N]; a frozen slot keeps its last observed
+        value in every predicted frame (and so in the context the others
+        are predicted from).
 
     Returns:
       [B, K, N, D] predicted slots.
@@ -200,10 +219,15 @@ class SlotFormer(nn.Module):
            *burn_in_slots.shape[2:]), burn_in_slots.dtype)
       window = jnp.concatenate([padding, burn_in_slots], axis=1)
 
+    last_observed = burn_in_slots[:, -1]
+
     def step(predictor, carry, teacher):
       window, num_valid = carry
       prediction = predictor(window, num_valid if growing else None,
-                             deterministic=deterministic)
+                             deterministic=deterministic,
+                             slot_presence=slot_presence)
+      if frozen is not None:
+        prediction = jnp.where(frozen[:, :, None], last_observed, prediction)
       fed_back = prediction if teacher is None else teacher
       window = jnp.concatenate([window[:, 1:], fed_back[:, None]], axis=1)
       num_valid = jnp.minimum(num_valid + 1, self.context_length)

@@ -143,12 +143,15 @@ class DecoderBlock(nn.Module):
     return self.cross_attention.keys_values(slots)
 
   def step(self, x: jax.Array, position: jax.Array, cache: tuple,
-           slot_keys_values: tuple) -> tuple[jax.Array, tuple, jax.Array]:
+           slot_keys_values: tuple, presence: jax.Array | None = None
+           ) -> tuple[jax.Array, tuple, jax.Array]:
     """One position: x [B, 1, dim] -> (x, updated cache, cross weights).
 
     cache: (keys, values) [B, L, H, Dh] of positions < `position` (later
-    entries are ignored). Returns the cross-attention weights over the
-    slots [B, H, N] (softmax over slots) for the attention masks.
+    entries are ignored). presence: optional bool [B, N]; absent slots are
+    dropped from the softmax over slots (weight exactly 0). Returns the
+    cross-attention weights over the slots [B, H, N] (softmax over slots)
+    for the attention masks.
     """
     normed = self.norm_self(x)
     if self.is_first:
@@ -168,6 +171,9 @@ class DecoderBlock(nn.Module):
     query = self.cross_attention.query(self.norm_cross(x))  # [B, 1, H, Dh]
     slot_keys, slot_values = slot_keys_values
     logits = jnp.einsum('bqhd,bnhd->bhqn', query, slot_keys)
+    if presence is not None:
+      logits = jnp.where(presence[:, None, None, :], logits,
+                         jnp.finfo(logits.dtype).min)
     weights = jax.nn.softmax(logits * query.shape[-1] ** -0.5, axis=-1)
     attended = jnp.einsum('bhqn,bnhd->bqhd', weights, slot_values)
     x = x + self.cross_attention.output(attended, True)
@@ -227,18 +233,23 @@ class TokenDecoder(nn.Module):
       x = block(x, slots, deterministic=deterministic)
     return self.head(self.final_norm(x))
 
-  def init_cache(self, slots: jax.Array) -> DecoderCache:
+  def init_cache(self, slots: jax.Array,
+                 presence: jax.Array | None = None) -> DecoderCache:
     """Slots [B, N, D] -> an empty self-attention cache and the slots'
-    per-layer keys/values."""
+    per-layer keys/values (and `presence`, optional bool [B, N]: which
+    slots the cross-attention may attend to)."""
     slots = self.slot_projection(slots)
     batch = slots.shape[0]
     head_size = self.dim // self.num_heads
     empty = jnp.zeros((batch, self.num_tokens, self.num_heads, head_size),
                       slots.dtype)
-    return {
+    cache = {
         'self': [(empty, empty) for _ in self.blocks],
         'slots': [block.slot_keys_values(slots) for block in self.blocks],
     }
+    if presence is not None:
+      cache['presence'] = presence.astype(bool)
+    return cache
 
   def decode_step(self, token: jax.Array, position: jax.Array,
                   cache: DecoderCache
@@ -251,8 +262,8 @@ class TokenDecoder(nn.Module):
     new_self = []
     for block, layer_cache, slot_kv in zip(self.blocks, cache['self'],
                                            cache['slots']):
-      x, layer_cache, weights = block.step(x, position, layer_cache, slot_kv)
+      x, layer_cache, weights = block.step(x, position, layer_cache, slot_kv,
+                                           cache.get('presence'))
       new_self.append(layer_cache)
     logits = self.head(self.final_norm(x))[:, 0]
-    return logits, weights.mean(axis=1), {'self': new_self,
-                                          'slots': cache['slots']}
+    return logits, weights.mean(axis=1), {**cache, 'self': new_self}

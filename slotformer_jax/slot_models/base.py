@@ -163,8 +163,15 @@ class SlotModel(abc.ABC):
     """
 
   @abc.abstractmethod
-  def decode(self, params: Any, slots: jax.Array) -> Decoded:
-    """slots [..., N, D] -> Decoded [...] (frames of predicted slots)."""
+  def decode(self, params: Any, slots: jax.Array,
+             presence: jax.Array | None = None) -> Decoded:
+    """slots [..., N, D] -> Decoded [...] (frames of predicted slots).
+
+    presence: optional bool [..., N] (broadcast to the slots' leading
+    dims): absent slots are dropped from the decoder's softmax over slots
+    (SAVi's alpha masks, STEVE's cross-attention), as if they were not
+    there; their alpha masks are 0.
+    """
 
   @abc.abstractmethod
   def observe(self, params: Any, slots: jax.Array, video: jax.Array,

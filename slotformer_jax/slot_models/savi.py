@@ -167,8 +167,10 @@ class Savi(SlotModel):
         method=SAVi.encode, rngs={'sample': rng})
     return slots, carry
 
-  def decode(self, params: Any, slots: jax.Array) -> Decoded:
-    decoded = self.decoder.apply({'params': params['decoder']}, slots)
+  def decode(self, params: Any, slots: jax.Array,
+             presence: jax.Array | None = None) -> Decoded:
+    decoded = self.decoder.apply({'params': params['decoder']}, slots,
+                                 presence)
     return Decoded(recon=model_to_unit(decoded.recon),
                    alpha_masks=decoded.alpha_masks,
                    rgb=model_to_unit(decoded.rgb))

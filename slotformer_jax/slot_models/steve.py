@@ -205,14 +205,18 @@ def decode_tokens(dvae_params: Any, tokens: jax.Array, *, dvae: DVAE,
 
 
 def generate_tokens(decoder_params: Any, slots: jax.Array, *,
-                    decoder: TokenDecoder) -> tuple[jax.Array, jax.Array]:
+                    decoder: TokenDecoder,
+                    presence: jax.Array | None = None
+                    ) -> tuple[jax.Array, jax.Array]:
   """Greedy decoding with a key/value cache (one token's work per step).
 
   slots [B, N, D] -> (tokens int32 [B, L], cross-attention of the last
-  layer over the slots [B, L, N], each row summing to 1).
+  layer over the slots [B, L, N], each row summing to 1); `presence`
+  (optional bool [B, N]) drops absent slots from every cross-attention.
   """
   variables = {'params': decoder_params}
-  cache = decoder.apply(variables, slots, method=TokenDecoder.init_cache)
+  cache = decoder.apply(variables, slots, presence,
+                        method=TokenDecoder.init_cache)
   batch = slots.shape[0]
 
   def step(carry, position):
@@ -253,14 +257,20 @@ def generate_tokens_recomputed(decoder_params: Any, slots: jax.Array, *,
 
 def generate_frames(decoder_params: Any, dvae_params: Any, slots: jax.Array,
                     *, decoder: TokenDecoder, dvae: DVAE,
-                    token_grid: tuple[int, int]
+                    token_grid: tuple[int, int],
+                    presence: jax.Array | None = None
                     ) -> tuple[jax.Array, jax.Array]:
   """slots [..., N, D] -> (frames [..., H, W, 3] in [0, 1], masks
   [..., N, h, w]: the decoder's last-layer cross-attention of each token
-  over the slots, the segmentation of a generated frame)."""
+  over the slots, the segmentation of a generated frame); `presence`
+  (optional bool [..., N]) drops absent slots from the cross-attention."""
   lead = slots.shape[:-2]
+  if presence is not None:
+    presence = jnp.broadcast_to(presence, slots.shape[:-1]).reshape(
+        -1, slots.shape[-2])
   tokens, weights = generate_tokens(
-      decoder_params, slots.reshape(-1, *slots.shape[-2:]), decoder=decoder)
+      decoder_params, slots.reshape(-1, *slots.shape[-2:]), decoder=decoder,
+      presence=presence)
   frames = decode_tokens(dvae_params, tokens, dvae=dvae,
                          token_grid=token_grid)
   masks = weights.transpose(0, 2, 1).reshape(-1, slots.shape[-2], *token_grid)
@@ -557,11 +567,12 @@ class Steve(SlotModel):
         method=STEVE.encode)
     return slots, carry
 
-  def decode(self, params: Any, slots: jax.Array) -> Decoded:
+  def decode(self, params: Any, slots: jax.Array,
+             presence: jax.Array | None = None) -> Decoded:
     frames, masks = generate_frames(
         params[NAME]['decoder'], params[DVAE_NAME], slots,
         decoder=self.token_decoder, dvae=self.dvae,
-        token_grid=self.model.token_grid)
+        token_grid=self.model.token_grid, presence=presence)
     return Decoded(recon=frames, alpha_masks=upsample_masks(
         masks, self.resolution)[..., None])
 

@@ -33,6 +33,7 @@ STAGE2: dict[str, StageFn] = {
 VIDEO_PREDICTION: dict[str, StageFn] = {
     'evaluate': video_prediction.evaluate,
     'render': video_prediction.render,
+    'explore': video_prediction.explore,
 }
 # Downstream tasks, by `config.task` ('vqa': a config with a `vqa` section).
 TASKS: dict[str, dict[str, StageFn]] = {

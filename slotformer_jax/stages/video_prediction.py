@@ -1,4 +1,5 @@
-"""The video-prediction stages: `evaluate` (metrics) and `render` (pictures).
+"""The video-prediction stages: `evaluate` (metrics), `render` (pictures)
+and `explore` (the run explorer page, with counterfactual rollouts).
 
 Both load the trained slot model and dynamics models of the workdir, check
 that they descend from each other and from the evaluated slots (nothing
@@ -15,6 +16,7 @@ import ml_collections
 from slotformer_jax import slot_models
 from slotformer_jax import workdir as workdir_lib
 from slotformer_jax.evaluation import evaluate as evaluate_lib
+from slotformer_jax.evaluation import explore as explore_lib
 from slotformer_jax.evaluation import visualize
 from slotformer_jax.stages.dynamics import load_dynamics
 
@@ -50,3 +52,12 @@ def render(config: ml_collections.ConfigDict, workdir: str,
   return visualize.render(config, workdir, mesh, slot_model=slot_model,
                           slot_params=loaded.params, dynamics=dynamics,
                           identity=identity)
+
+
+def explore(config: ml_collections.ConfigDict, workdir: str,
+            mesh: Mesh) -> str | None:
+  """explore/index.html (see evaluation/explore.py)."""
+  slot_model, loaded, dynamics, identity = _load(config, workdir, mesh)
+  return explore_lib.explore(config, workdir, slot_model=slot_model,
+                             slot_params=loaded.params, dynamics=dynamics,
+                             identity=identity)

@@ -89,6 +89,10 @@ def test_every_stage_writes_its_artifacts(trained):
   assert any(os.path.basename(p).startswith('attention_')
              for p in pictures) == (slot_model.name == 'savi')
   assert all(os.path.getsize(p) > 0 for p in pictures)
+  # The run explorer (its page is tested in tests/evaluation/test_explore*).
+  assert results['explore'] == os.path.join(workdir, 'explore', 'index.html')
+  with open(os.path.join(workdir, 'explore', 'identity.json')) as f:
+    assert json.load(f)['identity'] == saved['identity']
 
 
 def test_rerun_resumes_without_recomputing(trained):

@@ -1,0 +1,429 @@
+"""The run explorer: one offline page of a run's rollouts, slot by slot,
+with counterfactual rollouts computed by the model.
+
+Written by `--mode=explore` as `<workdir>/explore/index.html` (everything
+embedded: frames as PNG data URIs, the script and style inline; it opens
+from the file system, no server, no network) with `identity.json` beside it.
+For `explore.num_videos` held-out videos of `evaluation.split` it shows:
+
+* truth | the slot model's segmentation of it | SlotFormer | its predicted
+  segmentation | Slot-LSTM (when trained) | copy-last, playing in sync with a
+  frame slider (green border: observed burn-in frames, red: predicted);
+* each SlotFormer slot's decoded reconstruction (where it is visible) and
+  its alpha mask, colour-coded as the segmentation overlays (STEVE, which
+  has no per-slot reconstruction: its generated frame where the slot's
+  attention mask is);
+* the run's per-step metric curves (`eval/metrics.json`, when made from the
+  same models) and the same curves of this one video;
+* counterfactual rollouts of SlotFormer for every slot k, chosen by
+  clicking the slot:
+  - remove: slot k deleted from every burn-in frame and from the rollout.
+    In the dynamics model its tokens are masked out of attention as keys
+    (no other slot attends to it; with the temporal position encoding and
+    per-token LayerNorm / MLP the others are predicted exactly as from the
+    remaining slots alone); in the decoder it is dropped from the softmax
+    over slots (its alpha mask is 0, `SlotModel.decode(presence=...)`).
+  - freeze: slot k held at its last observed value in every predicted
+    frame (and so in the context the other slots are predicted from).
+  Each next to the factual rollout, with the per-pixel difference.
+
+Cost: all interventions of all videos are one batch of one jitted function
+(`Explorer`), compiled once per shape.
+
+Shapes: slots [V, T, N, D] (V videos, T = burn_in + rollout frames), video
+uint8 [V, T, H, W, 3], segmentation int [V, T, H, W].
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import io
+import json
+import logging
+import os
+import time
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import ml_collections
+import numpy as np
+from PIL import Image
+
+from slotformer_jax import inference
+from slotformer_jax import models
+from slotformer_jax import workdir as workdir_lib
+from slotformer_jax.evaluation import evaluate
+from slotformer_jax.evaluation import explore_page
+from slotformer_jax.evaluation import metrics as metrics_lib
+from slotformer_jax.evaluation import visualize
+from slotformer_jax.files import read_json
+from slotformer_jax.files import write_atomic
+from slotformer_jax.files import write_json_atomic
+
+logger = logging.getLogger(__name__)
+
+INTERVENTIONS = ('remove', 'freeze')
+# |intervention - factual| is small next to the frames' range: shown x4.
+DIFF_GAIN = 4.0
+# The per-video curves of the page (object metrics when the data has masks).
+VIDEO_METRICS = ('psnr', 'ssim', 'fg_ari')
+# render/'s colours, labels and conversion: the page matches its pictures.
+# pylint: disable=protected-access
+_PALETTE = visualize._PALETTE
+_METHOD_LABELS = visualize._METHOD_LABELS
+_to_uint8 = visualize._to_uint8
+# pylint: enable=protected-access
+
+
+def explore_dir(workdir: str) -> str:
+  return os.path.join(workdir, 'explore')
+
+
+def intervention_masks(num_slots: int) -> tuple[np.ndarray, np.ndarray]:
+  """(presence, frozen), bool [1 + 2N, N] each: row 0 is the factual
+  rollout, row 1 + k removes slot k, row 1 + N + k freezes it."""
+  eye = np.eye(num_slots, dtype=bool)
+  everyone = np.ones((1, num_slots), bool)
+  nobody = np.zeros((1, num_slots), bool)
+  presence = np.concatenate([everyone, ~eye, np.ones_like(eye)])
+  frozen = np.concatenate([nobody, np.zeros_like(eye), eye])
+  return presence, frozen
+
+
+def counterfactual_rollouts(params: Any, burn_in_slots: jax.Array, *,
+                            model: Any, num_steps: int
+                            ) -> tuple[jax.Array, jax.Array]:
+  """Every intervention of every video in one batch.
+
+  burn_in_slots [V, B, N, D] -> (slots [V, 1 + 2N, B + num_steps, N, D]:
+  the burn-in and rollout of the factual run and of each intervention (rows
+  as `intervention_masks`), presence bool [1 + 2N, N]).
+  """
+  videos, burn_in, num_slots, slot_size = burn_in_slots.shape
+  presence, frozen = (jnp.asarray(m) for m in intervention_masks(num_slots))
+  rows = presence.shape[0]
+  history = jnp.broadcast_to(burn_in_slots[:, None],
+                             (videos, rows, burn_in, num_slots, slot_size))
+  flat = history.reshape(videos * rows, burn_in, num_slots, slot_size)
+  tile = lambda mask: jnp.tile(mask, (videos, 1))
+  future = inference.rollout_slots(
+      params, flat, model=model, num_steps=num_steps,
+      slot_presence=tile(presence), frozen=tile(frozen))
+  whole = jnp.concatenate([flat, future], axis=1)
+  return whole.reshape(videos, rows, *whole.shape[1:]), presence
+
+
+class Explorer:
+  """Jitted (dynamics_params, slot_params, slots [V, T, N, D], video uint8
+  [V, T, H, W, 3], segmentation int [V, T, H, W] or None) -> the arrays of
+  the page (see `_explore`); `trace_count` counts its compilations."""
+
+  def __init__(self, config: ml_collections.ConfigDict, slot_model: Any,
+               dynamics_names: tuple[str, ...]):
+    self.slot_model = slot_model
+    self.dynamics_names = dynamics_names
+    self.slotformer = models.build_slotformer(config)
+    self.baselines = {name: models.build_dynamics(config, name)
+                      for name in dynamics_names if name != models.SLOTFORMER}
+    self.burn_in = config.slotformer.burn_in
+    self.rollout = config.evaluation.rollout_steps
+    self.num_true = evaluate.num_true_ids(config.data)
+    self.background_threshold = config.evaluation.get('background_threshold')
+    self.trace_count = 0
+    self._jitted = jax.jit(self._explore)
+
+  def __call__(self, dynamics_params, slot_params, slots, video,
+               segmentation=None):
+    return self._jitted(dynamics_params, slot_params, slots, video,
+                        segmentation)
+
+  def _explore(self, dynamics_params, slot_params, slots, video,
+               segmentation):
+    self.trace_count += 1  # runs only while tracing
+    burn_in = self.burn_in
+    history = slots[:, :burn_in]
+    num_slots = slots.shape[2]
+    counterfactual, presence = counterfactual_rollouts(
+        dynamics_params[models.SLOTFORMER], history, model=self.slotformer,
+        num_steps=self.rollout)
+    # The other methods' factual rollouts join the batch (always present).
+    others = inference.rollouts(dynamics_params, self.baselines, history,
+                                self.rollout)
+    names = [models.SLOTFORMER, *others]
+    other_slots = jnp.stack(
+        [jnp.concatenate([history, others[name]], axis=1) for name in others],
+        axis=1)
+    everything = jnp.concatenate([counterfactual, other_slots], axis=1)
+    rows_presence = jnp.concatenate(
+        [presence, jnp.ones((len(others), num_slots), bool)])
+    # One frame of every row at a time: [T, V, rows, N, D].
+    decoded = jax.lax.map(
+        lambda frame: self.slot_model.decode(slot_params, frame,
+                                             rows_presence),
+        jnp.moveaxis(everything, 2, 0))
+    move = lambda x: jnp.moveaxis(x, 0, 2)  # -> [V, rows, T, ...]
+    recon = move(decoded.recon)
+    alpha = move(decoded.alpha_masks)[..., 0]  # [V, rows, T, N, H, W]
+    num_cf = 1 + 2 * num_slots
+    method_rows = [0, *range(num_cf, num_cf + len(others))]
+    out = {
+        'methods': {name: recon[:, row] for name, row in
+                    zip(names, method_rows)},
+        'slotformer_masks': alpha[:, 0],
+        'counterfactual': recon[:, 1:num_cf],  # [V, 2N, T, H, W, 3]
+        'counterfactual_masks': alpha[:, 1:num_cf],
+    }
+    if decoded.rgb is not None:
+      out['slot_rgb'] = move(decoded.rgb)[:, 0]  # [V, T, N, H, W, 3]
+    out['observed_masks'], _, _ = self.slot_model.observe(
+        slot_params, slots, video, None)
+    frames = video.astype(jnp.float32) / 255.0
+    out['video_metrics'] = {
+        name: self._rollout_metrics(recon[:, row], alpha[:, row], frames,
+                                    segmentation)
+        for name, row in zip(names, method_rows)}
+    return out
+
+  def _rollout_metrics(self, recon, alpha, frames, segmentation):
+    """{metric: [V, rollout]} of one method's predicted frames."""
+    burn_in = self.burn_in
+    recon, alpha, frames = (x[:, burn_in:] for x in (recon, alpha, frames))
+    out = {'psnr': metrics_lib.psnr(recon, frames),
+           'ssim': metrics_lib.ssim(recon, frames)}
+    if segmentation is not None:
+      pred = metrics_lib.segmentation_from_alpha_masks(
+          alpha, bg_threshold=self.background_threshold)
+      true = segmentation[:, burn_in:].astype(jnp.int32)
+      # One clustering per frame, as the evaluation's per-step FG-ARI.
+      score = metrics_lib.adjusted_rand_index(
+          true[..., None, :, :], pred[..., None, :, :], self.num_true,
+          alpha.shape[-3], ignore_background=True)
+      out['fg_ari'] = jnp.where(score.valid, score.value, jnp.nan)
+    return out
+
+
+# --------------------------------------------------------------------------
+# The page
+# --------------------------------------------------------------------------
+
+
+def _png_uri(image: np.ndarray) -> str:
+  """uint8 [H, W, 3] -> a PNG data URI."""
+  buffer = io.BytesIO()
+  Image.fromarray(image).save(buffer, format='PNG')
+  return 'data:image/png;base64,' + base64.b64encode(
+      buffer.getvalue()).decode('ascii')
+
+
+def _strip(frames: np.ndarray) -> str:
+  """[T, H, W, 3] in [0, 1] -> one data URI of the frames side by side
+  (the page draws frame t from its t-th tile)."""
+  frames = _to_uint8(np.asarray(frames))
+  return _png_uri(np.concatenate(list(frames), axis=1))
+
+
+def _alpha_view(alpha: np.ndarray, slot: int) -> np.ndarray:
+  """alpha [T, H, W] -> [T, H, W, 3]: the slot's colour, weighted by its
+  alpha, on black."""
+  colour = _PALETTE[slot % len(_PALETTE)]
+  return alpha[..., None] * colour
+
+
+def _diff_view(intervened: np.ndarray, factual: np.ndarray) -> np.ndarray:
+  """Per-pixel |intervened - factual| (mean over RGB, x DIFF_GAIN) as a
+  grey image [T, H, W, 3]."""
+  diff = np.abs(intervened - factual).mean(axis=-1, keepdims=True)
+  return np.repeat(np.clip(diff * DIFF_GAIN, 0.0, 1.0), 3, axis=-1)
+
+
+def _clean(values) -> list[float | None]:
+  return [None if v is None or not np.isfinite(v) else round(float(v), 4)
+          for v in values]
+
+
+def run_curves(workdir: str, identity: dict[str, Any]
+               ) -> tuple[dict[str, Any] | None, str]:
+  """({metric: {method label: per-step values}}, note) of eval/metrics.json,
+  or (None, why not) when it is missing or from other models."""
+  path = os.path.join(evaluate.eval_dir(workdir), 'metrics.json')
+  if not os.path.exists(path):
+    return None, ('no eval/metrics.json: run --mode=evaluate for the run\'s '
+                  'curves')
+  results = read_json(path, fix='Re-run --mode=evaluate.')
+  if results.get('identity') != identity:
+    return None, ('eval/metrics.json is from other models than these: '
+                  're-run --mode=evaluate for the run\'s curves')
+  curves: dict[str, dict[str, list]] = {}
+  for method, per_metric in results.get('rollout', {}).items():
+    for name, value in per_metric.items():
+      if isinstance(value, dict) and 'per_step' in value:
+        label = _METHOD_LABELS.get(method, method)
+        curves.setdefault(name, {})[label] = _clean(value['per_step'])
+  protocol = results.get('protocol', {})
+  return curves, (f'the run: eval/metrics.json, mean over '
+                  f'{protocol.get("num_videos", "the")} '
+                  f'{protocol.get("split", "")} videos')
+
+
+def page_data(config: ml_collections.ConfigDict, out: dict[str, Any],
+              videos: np.ndarray, indices: list[int], *, label: str,
+              identity: dict[str, Any], curves: dict[str, Any] | None,
+              curves_note: str, seconds: float) -> dict[str, Any]:
+  """The page's JSON: every frame as strip data URIs, curves, identity."""
+  burn_in = config.slotformer.burn_in
+  num_slots = out['slotformer_masks'].shape[2]
+  # jax returns dicts sorted by key: the page's order is the table's.
+  methods = [name for name in (*models.DYNAMICS_MODELS, 'copy_last')
+             if name in out['methods']]
+  labels = _METHOD_LABELS
+  palette = ['#%02x%02x%02x' % tuple(int(c * 255 + 0.5) for c in colour)
+             for colour in _PALETTE]
+  entries = []
+  for v, index in enumerate(indices):
+    truth = videos[v].astype(np.float32) / 255.0
+    factual = out['methods'][models.SLOTFORMER][v]
+    rows = [('truth', 'truth', truth),
+            ('observed_masks', f'{label} masks',
+             visualize.mask_overlay(truth, out['observed_masks'][v])),
+            (models.SLOTFORMER, labels[models.SLOTFORMER], factual),
+            ('slotformer_masks', 'SlotFormer masks',
+             visualize.mask_overlay(factual, out['slotformer_masks'][v]))]
+    rows += [(name, labels[name], out['methods'][name][v])
+             for name in methods if name != models.SLOTFORMER]
+    slots = []
+    for k in range(num_slots):
+      alpha = out['slotformer_masks'][v, :, k]
+      if 'slot_rgb' in out:
+        rgb = out['slot_rgb'][v, :, k]
+      else:  # STEVE: its generated frame where the slot's mask is
+        rgb = factual
+      view = rgb * alpha[..., None] + (1.0 - alpha[..., None])
+      slots.append({'view': _strip(view),
+                    'alpha': _strip(_alpha_view(alpha, k))})
+    counterfactual = {}
+    for i, kind in enumerate(INTERVENTIONS):
+      kind_rows = slice(i * num_slots, (i + 1) * num_slots)
+      frames = out['counterfactual'][v, kind_rows]
+      masks = out['counterfactual_masks'][v, kind_rows]
+      counterfactual[kind] = [
+          {'frames': _strip(frames[k]),
+           'masks': _strip(visualize.mask_overlay(frames[k], masks[k])),
+           'diff': _strip(_diff_view(frames[k], factual)),
+           'max_diff': round(float(np.abs(frames[k] - factual).max()), 4)}
+          for k in range(num_slots)]
+    per_video = out['video_metrics']
+    metrics = {name: {labels[method]: _clean(per_video[method][name][v])
+                      for method in methods}
+               for name in VIDEO_METRICS
+               if name in per_video[models.SLOTFORMER]}
+    entries.append({
+        'index': int(index),
+        'rows': [{'key': key, 'label': row_label, 'strip': _strip(frames)}
+                 for key, row_label, frames in rows],
+        'slots': slots,
+        'factual_masks': _strip(visualize.mask_overlay(
+            factual, out['slotformer_masks'][v])),
+        'counterfactual': counterfactual,
+        'curves': metrics,
+    })
+  height, width = videos.shape[2:4]
+  return {
+      'title': f'{config.data.name}: {label} + SlotFormer',
+      'slot_model': label,
+      'slot_views': ('decoded reconstruction x alpha' if 'slot_rgb' in out
+                     else 'generated frame x attention mask'),
+      'burn_in': burn_in,
+      'rollout': config.evaluation.rollout_steps,
+      'num_slots': num_slots,
+      'height': int(height), 'width': int(width),
+      'scale': int(config.explore.scale),
+      'fps': float(config.explore.fps),
+      'split': config.evaluation.split,
+      'palette': palette,
+      'diff_gain': DIFF_GAIN,
+      'videos': entries,
+      'run_curves': curves,
+      'run_curves_note': curves_note,
+      'identity': identity,
+      'seconds': round(seconds, 1),
+  }
+
+
+def write_page(directory: str, data: dict[str, Any]) -> str:
+  """index.html with `data` embedded; returns its path."""
+  blob = json.dumps(data, separators=(',', ':'))
+  # Inside <script>, '</' could close the element early.
+  blob = blob.replace('</', '<\\/')
+  page = explore_page.TEMPLATE.replace(
+      '__TITLE__', html.escape(data['title'])).replace('__DATA__', blob)
+  path = os.path.join(directory, 'index.html')
+  write_atomic(path, page)
+  return path
+
+
+def explore(config: ml_collections.ConfigDict, workdir: str, *,
+            slot_model: Any, slot_params: Any,
+            dynamics: dict[str, tuple[Any, int]],
+            identity: dict[str, Any]) -> str | None:
+  """Writes explore/index.html (and identity.json); returns the page's path
+  (None on hosts other than the lead one). Runs on one device.
+
+  Args:
+    slot_model, slot_params: the trained slot model.
+    dynamics: {name: (params, step)} of every dynamics model (SlotFormer
+      first; Slot-LSTM when trained).
+    identity: what all of them are made from (`workdir.evaluation_identity`).
+  """
+  if jax.process_index() != 0:
+    return None
+  start = time.perf_counter()
+  burn_in = config.slotformer.burn_in
+  rollout = config.evaluation.rollout_steps
+  stride = config.slotformer.frame_stride
+  split = config.evaluation.split
+  try:
+    source = workdir_lib.slot_source_for(
+        config, workdir, split, ('video', evaluate.SEGMENTATION_FIELD))
+    if len(source):
+      source[0]
+  except KeyError:  # no ground-truth masks: frame metrics only
+    source = workdir_lib.slot_source_for(config, workdir, split, ('video',))
+  count = min(config.explore.num_videos, len(source))
+  if not count:
+    logger.warning('explore: the %s split has no videos; no page written',
+                   split)
+    return None
+  frames_needed = (burn_in + rollout - 1) * stride + 1
+  indices = list(range(count))
+  items = [source[i] for i in indices]
+  take = lambda key: np.stack([item[key][:frames_needed:stride]
+                               for item in items])
+  slots, videos = take('slots'), take('video')
+  segmentation = (take(evaluate.SEGMENTATION_FIELD)
+                  if evaluate.SEGMENTATION_FIELD in items[0] else None)
+  if slots.shape[1] < burn_in + rollout:
+    raise ValueError(
+        f'exploring needs {frames_needed} frames per video, the videos have '
+        f'{len(items[0]["slots"])}; lower evaluation.rollout_steps')
+  dynamics_params = jax.device_get(
+      {name: params for name, (params, _) in dynamics.items()})
+  explorer = Explorer(config, slot_model, tuple(dynamics))
+  out = jax.device_get(explorer(dynamics_params, jax.device_get(slot_params),
+                                slots, videos, segmentation))
+  computed = time.perf_counter() - start
+  curves, note = run_curves(workdir, identity)
+  directory = explore_dir(workdir)
+  os.makedirs(directory, exist_ok=True)
+  data = page_data(config, out, videos, indices, label=slot_model.label,
+                   identity=identity, curves=curves, curves_note=note,
+                   seconds=computed)
+  path = write_page(directory, data)
+  write_json_atomic(os.path.join(directory, 'identity.json'),
+                    {'identity': identity, 'videos': indices,
+                     'page': os.path.basename(path)})
+  print(f'wrote {path} ({count} videos x {2 * data["num_slots"]} '
+        f'counterfactual rollouts, computed in {computed:.1f} s, page in '
+        f'{time.perf_counter() - start - computed:.1f} s)')
+  return path

@@ -1,0 +1,230 @@
+"""The run explorer's interventions: removing a slot from the decoder and
+from SlotFormer's context, freezing one, and the batched jitted rollout."""
+
+import json
+import os
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from explore_helpers import NUM_VIDEOS
+from explore_helpers import micro_explorer
+from pipeline_helpers import micro_config
+from slotformer_jax import inference
+from slotformer_jax import models
+from slotformer_jax import workdir as workdir_lib
+from slotformer_jax.evaluation import explore
+from slotformer_jax.modules.decoders import SpatialBroadcastDecoder
+from slotformer_jax.modules.decoders import composite
+from slotformer_jax.modules.slotformer import SlotFormer
+from slotformer_jax.modules.token_decoder import TokenDecoder
+from slotformer_jax.slot_models import steve as steve_slots
+
+
+def _decoder_outputs():
+  """A real decoder's per-slot rgb and alpha logits of random slots."""
+  decoder = SpatialBroadcastDecoder(output_resolution=(8, 8),
+                                    broadcast_resolution=(4, 4),
+                                    features=(8, 8), kernel_size=3)
+  slots = jax.random.normal(jax.random.key(0), (2, 4, 6))
+  params = decoder.init(jax.random.key(1), slots)
+  return decoder, params, slots
+
+
+def test_removing_a_slot_whose_alpha_mask_is_zero_changes_nothing():
+  decoder, params, slots = _decoder_outputs()
+  decoded = decoder.apply(params, slots)
+  rgb = decoded.rgb
+  logits = jnp.log(decoded.alpha_masks)  # the logits, up to a constant
+  # Slot 2's logits far below the others': its alpha is exactly 0.
+  logits = logits.at[:, 2].set(-1e4)
+  recon, alpha = composite(rgb, logits)
+  assert float(jnp.max(alpha[:, 2])) == 0.0
+  presence = jnp.array([True, True, False, True])
+  removed_recon, removed_alpha = composite(rgb, logits, presence)
+  np.testing.assert_array_equal(removed_recon, recon)
+  np.testing.assert_array_equal(removed_alpha, alpha)
+  # A slot that is visible does change the frame when removed.
+  visible_removed, _ = composite(rgb, logits, jnp.array([False, True, True,
+                                                         True]))
+  assert float(jnp.max(jnp.abs(visible_removed - recon))) > 1e-3
+
+
+def test_removing_all_but_one_slot_decodes_that_slot_alone():
+  decoder, params, slots = _decoder_outputs()
+  for k in range(slots.shape[1]):
+    presence = jnp.arange(slots.shape[1]) == k
+    decoded = decoder.apply(params, slots, presence)
+    alone = decoder.apply(params, slots[:, k:k + 1])
+    np.testing.assert_allclose(decoded.alpha_masks[:, k], 1.0)
+    np.testing.assert_array_equal(
+        np.delete(np.asarray(decoded.alpha_masks), k, axis=1), 0.0)
+    np.testing.assert_allclose(decoded.recon, alone.recon, atol=1e-6)
+    np.testing.assert_allclose(decoded.recon, decoded.rgb[:, k], atol=1e-6)
+
+
+def test_removing_a_slot_decodes_as_the_other_slots_alone():
+  decoder, params, slots = _decoder_outputs()
+  presence = jnp.array([True, False, True, True])
+  decoded = decoder.apply(params, slots, presence)
+  others = decoder.apply(params, slots[:, np.array([0, 2, 3])])
+  np.testing.assert_allclose(decoded.recon, others.recon, atol=1e-6)
+  np.testing.assert_allclose(decoded.alpha_masks[:, np.array([0, 2, 3])],
+                             others.alpha_masks, atol=1e-6)
+  # Presence broadcasts over leading dims ([N] for slots [B, N, D]) too.
+  np.testing.assert_array_equal(
+      decoder.apply(params, slots, jnp.broadcast_to(presence, (2, 4))).recon,
+      decoded.recon)
+
+
+def test_steve_removing_a_slot_generates_from_the_other_slots_alone():
+  decoder = TokenDecoder(vocab_size=16, num_tokens=6, dim=16, num_layers=2,
+                         num_heads=2, dropout_rate=0.0)
+  slots = jax.random.normal(jax.random.key(0), (2, 3, 16))
+  params = decoder.init(jax.random.key(1), slots,
+                        jnp.zeros((2, 6), jnp.int32))['params']
+  presence = jnp.array([[True, False, True]] * 2)
+  tokens, weights = steve_slots.generate_tokens(params, slots,
+                                                decoder=decoder,
+                                                presence=presence)
+  alone_tokens, alone_weights = steve_slots.generate_tokens(
+      params, slots[:, np.array([0, 2])], decoder=decoder)
+  np.testing.assert_array_equal(tokens, alone_tokens)
+  np.testing.assert_array_equal(weights[..., 1], 0.0)
+  np.testing.assert_allclose(weights[..., np.array([0, 2])], alone_weights,
+                             atol=1e-6)
+  # All but one slot: every token attends to that slot only.
+  _, only = steve_slots.generate_tokens(
+      params, slots, decoder=decoder,
+      presence=jnp.array([[False, True, False]] * 2))
+  np.testing.assert_allclose(only[..., 1], 1.0)
+
+
+def _slotformer():
+  model = SlotFormer(burn_in=3, embed_dim=16, num_layers=2, num_heads=2,
+                     mlp_size=32)
+  history = jax.random.normal(jax.random.key(0), (2, 3, 4, 8))
+  params = model.init(jax.random.key(1), history, 1)['params']
+  return model, params, history
+
+
+def test_slotformer_without_a_slot_predicts_as_from_the_others_alone():
+  model, params, history = _slotformer()
+  presence = jnp.array([[True, True, False, True], [False, True, True, True]])
+  removed = model.apply({'params': params}, history, 4,
+                        slot_presence=presence)
+  for b, absent in enumerate((2, 0)):
+    keep = np.array([n for n in range(4) if n != absent])
+    alone = model.apply({'params': params}, history[b:b + 1, :, keep], 4)
+    np.testing.assert_allclose(removed[b:b + 1, :, keep], alone, atol=1e-5)
+  # Everyone present is the factual rollout.
+  np.testing.assert_allclose(
+      model.apply({'params': params}, history, 4,
+                  slot_presence=jnp.ones((2, 4), bool)),
+      model.apply({'params': params}, history, 4), atol=1e-6)
+
+
+def test_slotformer_freezing_a_slot_holds_it_and_the_others_see_it():
+  model, params, history = _slotformer()
+  frozen = jnp.array([[False, True, False, False]] * 2)
+  rollout = model.apply({'params': params}, history, 4, frozen=frozen)
+  np.testing.assert_array_equal(
+      rollout[:, :, 1], jnp.broadcast_to(history[:, -1:, 1], (2, 4, 8)))
+  # The same rollout by hand: predict, overwrite slot 1, feed back.
+  window = history
+  for step in range(4):
+    predicted = model.apply({'params': params}, window,
+                            method=model.predict_next)
+    predicted = predicted.at[:, 1].set(history[:, -1, 1])
+    np.testing.assert_allclose(rollout[:, step], predicted, atol=1e-5)
+    window = jnp.concatenate([window[:, 1:], predicted[:, None]], axis=1)
+  factual = model.apply({'params': params}, history, 4)
+  assert float(jnp.max(jnp.abs(factual[:, 1:, 0] - rollout[:, 1:, 0]))) > 1e-4
+
+
+def test_intervention_masks_rows():
+  presence, frozen = explore.intervention_masks(3)
+  assert presence.shape == frozen.shape == (7, 3)
+  assert presence[0].all() and not frozen[0].any()
+  for k in range(3):
+    assert list(presence[1 + k]) == [n != k for n in range(3)]
+    assert not frozen[1 + k].any()
+    assert presence[4 + k].all() and list(frozen[4 + k]) == [
+        n == k for n in range(3)]
+
+
+def test_explorer_is_jitted_once_per_shape_and_matches_the_rollouts(tmp_path):
+  config, slot_model, explorer, args = micro_explorer(tmp_path)
+  dynamics_params, slot_params, slots, video, segmentation = args
+  out = jax.device_get(explorer(*args))
+  assert explorer.trace_count == 1
+  explorer(dynamics_params, slot_params, slots + 1.0, video, segmentation)
+  assert explorer.trace_count == 1  # same shapes: no retrace
+  explorer(dynamics_params, slot_params, slots[:1], video[:1],
+           segmentation[:1])
+  assert explorer.trace_count == 2  # one video: a new shape
+
+  burn_in, rollout = config.slotformer.burn_in, config.evaluation.rollout_steps
+  num_slots = slot_model.slot_shape[0]
+  frames = burn_in + rollout
+  height, width = config.data.resolution
+  assert out['counterfactual'].shape == (NUM_VIDEOS, 2 * num_slots, frames,
+                                         height, width, 3)
+  # The factual row is the evaluation's rollout, decoded.
+  slotformer = models.build_slotformer(config)
+  future = inference.rollout_slots(dynamics_params['slotformer'],
+                                   slots[:, :burn_in], model=slotformer,
+                                   num_steps=rollout)
+  whole = jnp.concatenate([slots[:, :burn_in], future], axis=1)
+  np.testing.assert_allclose(out['methods']['slotformer'],
+                             slot_model.decode(slot_params, whole).recon,
+                             atol=1e-5)
+  # Remove slot k: its alpha mask is 0 in every frame, burn-in included.
+  masks = out['counterfactual_masks']
+  for k in range(num_slots):
+    np.testing.assert_array_equal(masks[:, k, :, k], 0.0)
+  # Freeze slot k: the burn-in frames are the factual ones, the rollout
+  # differs (an untrained non-residual SlotFormer moves every slot).
+  frozen = out['counterfactual'][:, num_slots:]
+  factual = out['methods']['slotformer'][:, None]
+  np.testing.assert_allclose(
+      frozen[:, :, :burn_in],
+      np.broadcast_to(factual[:, :, :burn_in], frozen[:, :, :burn_in].shape),
+      atol=1e-6)
+  assert np.abs(frozen[:, :, burn_in:] - factual[:, :, burn_in:]).max() > 1e-3
+  for method in ('slotformer', 'slot_lstm', 'copy_last'):
+    metrics = out['video_metrics'][method]
+    assert metrics['psnr'].shape == metrics['fg_ari'].shape == (NUM_VIDEOS,
+                                                                 rollout)
+
+
+def test_explore_settings_never_make_a_workdir_stale(tmp_path):
+  config = micro_config('savi', tmp_path / 'data')
+  workdir = str(tmp_path / 'run')
+  before_explorer = config.copy_and_resolve_references()
+  del before_explorer['explore']  # a workdir made before the explorer
+  assert workdir_lib.accept_config(before_explorer, workdir) == []
+  assert workdir_lib.accept_config(config, workdir) == []
+  config.explore.num_videos = 3
+  assert workdir_lib.accept_config(config, workdir) == []
+
+
+def test_run_curves_only_from_the_same_models(tmp_path):
+  workdir = str(tmp_path)
+  identity = {'slotformer': {'run_id': 'a', 'step': 4}}
+  curves, note = explore.run_curves(workdir, identity)
+  assert curves is None and '--mode=evaluate' in note
+  os.makedirs(tmp_path / 'eval')
+  rollout = {'slotformer': {'psnr': {'mean': 20.0, 'per_step': [21.0, None]}},
+             'copy_last': {'psnr': {'mean': 19.0, 'per_step': [20.0, 18.0]}}}
+  for saved_identity, expected in (
+      ({'slotformer': {'run_id': 'b', 'step': 4}}, None),
+      (identity, {'psnr': {'SlotFormer': [21.0, None],
+                           'copy-last': [20.0, 18.0]}})):
+    with open(tmp_path / 'eval' / 'metrics.json', 'w') as f:
+      json.dump({'rollout': rollout, 'identity': saved_identity,
+                 'protocol': {'num_videos': 2, 'split': 'test'}}, f)
+    curves, note = explore.run_curves(workdir, identity)
+    assert curves == expected, note
+  assert note == 'the run: eval/metrics.json, mean over 2 test videos'
