@@ -17,6 +17,7 @@ The flag checks and the watchdog's verdicts are unit tests here too.
 
 import json
 import os
+import shutil
 import signal
 import socket
 import subprocess
@@ -79,12 +80,13 @@ def _command(workdir, steps, mode='train_savi', extra=()):
 class Run:
   """N processes of one run; stderr of process i in <workdir>.<i>.log."""
 
-  def __init__(self, workdir, data_dir, steps, num_processes=2, extra=()):
+  def __init__(self, workdir, data_dir, steps, num_processes=2, extra=(),
+               mode='train_savi'):
     port = _free_port()
     self.logs = [f'{workdir}.{i}.log' for i in range(num_processes)]
     self.processes = []
     for i in range(num_processes):
-      command = _command(workdir, steps, extra=(
+      command = _command(workdir, steps, mode, extra=(
           f'--coordinator_address=localhost:{port}',
           f'--num_processes={num_processes}', f'--process_id={i}',
           f'--peer_timeout={PEER_TIMEOUT}', *extra))
@@ -317,3 +319,62 @@ def test_two_processes_match_one_process_with_two_devices(
   for key in a:
     np.testing.assert_allclose(a[key], b[key], rtol=1e-4, atol=1e-6,
                                err_msg=key)
+
+
+# pipeline_helpers' micro SlotFormer, as overrides; one validation and one
+# test video, fewer than the two processes.
+FEW_VIDEOS = [
+    '--config.data.num_val=1', '--config.data.num_test=1',
+    '--config.slotformer.burn_in=2', '--config.slotformer.rollout=2',
+    '--config.slotformer.num_train_steps=2', '--config.slot_lstm.train=False',
+    '--config.extraction.chunk_length=4', '--config.extraction.batch_size=2',
+    '--config.evaluation.rollout_steps=6', '--config.evaluation.batch_size=2',
+    '--config.evaluation.chunk_length=4',
+    "--config.evaluation.metrics=('psnr','ari')",
+    '--config.evaluation.savi_metrics=False',
+]
+
+
+def _numbers(tree, prefix=''):
+  """{path: float} of every number in a JSON tree, 'identity' left out."""
+  if isinstance(tree, dict):
+    out = {}
+    for key, value in tree.items():
+      if key != 'identity':
+        out.update(_numbers(value, f'{prefix}/{key}'))
+    return out
+  if isinstance(tree, list):
+    out = {}
+    for i, value in enumerate(tree):
+      out.update(_numbers(value, f'{prefix}/{i}'))
+    return out
+  if isinstance(tree, (int, float)) and not isinstance(tree, bool):
+    return {prefix: float(tree)}
+  return {}
+
+
+@pytest.mark.slow
+def test_more_processes_than_videos_extract_and_evaluate(data_dir, tmp_path):
+  """One process with two devices trains and evaluates; two processes
+  re-extract the slots (one video per split for two processes) and
+  re-evaluate: the same metrics."""
+  workdir = str(tmp_path / 'run')
+  env = _env(tmp_path / 'few_data', devices=2)
+  for mode in ('train_savi', 'extract_slots', 'train_slotformer', 'evaluate'):
+    result = subprocess.run(_command(workdir, 2, mode, FEW_VIDEOS), env=env,
+                            capture_output=True, text=True, timeout=900)
+    assert result.returncode == 0, result.stderr[-3000:]
+  with open(os.path.join(workdir, 'eval', 'metrics.json')) as f:
+    one = _numbers(json.load(f))
+  shutil.rmtree(os.path.join(workdir, 'slots'))
+  shutil.rmtree(os.path.join(workdir, 'eval'))
+  for mode in ('extract_slots', 'evaluate'):
+    _finished(Run(workdir, tmp_path / 'few_data', 2, mode=mode,
+                  extra=FEW_VIDEOS))
+  with open(os.path.join(workdir, 'eval', 'metrics.json')) as f:
+    two = _numbers(json.load(f))
+  assert one.keys() == two.keys() and one, (one, two)
+  for key in one:
+    if 'time' not in key and 'seconds' not in key:
+      np.testing.assert_allclose(two[key], one[key], rtol=1e-4, atol=1e-6,
+                                 err_msg=key)
