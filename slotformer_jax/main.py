@@ -215,7 +215,13 @@ def run_main(argv: list[str] | None = None) -> None:
   except UserError as error:
     print(f'error: {_one_line(error)}', file=sys.stderr)
     sys.exit(1)
-  except BaseException:
+  except KeyboardInterrupt:
+    # Ctrl-C outside a training loop (which saves and raises Preempted).
+    print('interrupted: Ctrl-C outside training; re-run the same command to '
+          'resume from what was saved.', file=sys.stderr)
+    status = 128 + 2
+    sys.exit(status)
+  except Exception:
     if _watchdog is not None:
       # A failed collective usually means another process was lost: let the
       # watchdog name it (and end this one) instead of a traceback.
