@@ -29,8 +29,8 @@ import jax
 import numpy as np
 import pytest
 
-from slotformer_jax import inference
 from slotformer_jax.errors import ConfigError
+from slotformer_jax.slot_models import savi as savi_slots
 from slotformer_jax.train import processes
 from slotformer_jax.train import sharding
 from slotformer_jax.train.checkpoint import Checkpointer
@@ -124,8 +124,8 @@ def _params(workdir, data_dir):
   """(step, {path: array}) of the newest SAVi checkpoint."""
   config = pipeline_helpers.micro_config('savi', data_dir)
   config.savi.num_train_steps = STEPS
-  params, step = inference.load_savi_params(config, str(workdir),
-                                            sharding.make_mesh())
+  loaded = savi_slots.Savi(config).load(str(workdir), sharding.make_mesh())
+  params, step = loaded.params, loaded.step
   leaves = jax.tree_util.tree_flatten_with_path(params)[0]
   return step, {jax.tree_util.keystr(k): np.asarray(v) for k, v in leaves}
 

@@ -174,7 +174,7 @@ def test_retrained_savi_rebuilds_slots_and_refuses_stale_dynamics(copied):
   shutil.rmtree(os.path.join(workdir, 'savi'))
   config.savi.learning_rate = 5e-4
   savi_slots.train_savi(config, workdir, mesh)
-  _, step = inference.load_savi_params(config, workdir, mesh)
+  step = savi_slots.Savi(config).load(workdir, mesh).step
   assert step == 4
   # The slots of the old SAVi are not used for anything.
   with pytest.raises(UserError, match='stale'):

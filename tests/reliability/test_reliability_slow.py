@@ -19,7 +19,7 @@ import jax
 import numpy as np
 import pytest
 
-from slotformer_jax import inference
+from slotformer_jax.slot_models import savi as savi_slots
 from slotformer_jax.train import sharding
 from slotformer_jax.train.checkpoint import Checkpointer
 
@@ -96,8 +96,9 @@ def test_sigterm_saves_the_current_step_and_the_rerun_is_bit_exact(
                  capture_output=True, timeout=900)
   config = _micro_config(data_dir)
   mesh = sharding.make_mesh()
-  a, step_a = inference.load_savi_params(config, str(uninterrupted), mesh)
-  b, step_b = inference.load_savi_params(config, str(preempted), mesh)
+  a = savi_slots.Savi(config).load(str(uninterrupted), mesh)
+  b = savi_slots.Savi(config).load(str(preempted), mesh)
+  (a, step_a), (b, step_b) = (a.params, a.step), (b.params, b.step)
   assert step_a == step_b == 30
   for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)):
     np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
