@@ -1,13 +1,18 @@
 """Two processes on localhost as one run (`jax.distributed`, gloo CPU
 collectives, one CPU device each, one shared workdir), SAVi's micro config:
 
-* the metrics equal those of one process with two devices;
 * SIGTERM to both, or to one only: both save the step they agree on and exit
   143, and the rerun ends bit-identical to an uninterrupted two-process run;
 * SIGKILL of one: the other names it in one line and exits within the
   heartbeat timeout; the rerun (past a leftover orbax temporary folder) ends
   bit-identical too;
-* more processes than videos in a split: extraction and evaluation work.
+* more processes than videos in a split: two processes re-extract the slots
+  and re-evaluate, and the metrics equal those of one process with two
+  devices.
+
+Training itself is not compared with one process: each host draws its own
+batches (`data.pipeline.train_batches`, a function of the step and the
+process index), so the global batch of two processes is another one.
 
     python -m pytest -q tests/reliability/test_multiprocess.py          # fast one
     python -m pytest -q -m slow tests/reliability/test_multiprocess.py  # all
@@ -135,11 +140,6 @@ def _assert_same_params(a, b, data_dir):
   assert step_a == step_b == STEPS and a.keys() == b.keys()
   for key in a:
     np.testing.assert_array_equal(a[key], b[key], err_msg=key)
-
-
-def _train_log(workdir):
-  with open(os.path.join(workdir, 'savi', 'train_log.jsonl')) as f:
-    return [json.loads(line) for line in f]
 
 
 STEPS = 12
@@ -288,6 +288,7 @@ def test_sigkill_of_one_process_stops_the_other_with_one_line(
   killed = time.time()
   status = run.processes[0].wait(timeout=120)
   took = time.time() - killed
+  print(f'the survivor stopped {took:.1f} s after the kill')
   log = run.log(0)
   assert status == processes.LOST_PROCESS_EXIT, log
   assert took < PEER_TIMEOUT + 15, took
@@ -301,24 +302,6 @@ def test_sigkill_of_one_process_stops_the_other_with_one_line(
               exist_ok=True)
   _finished(Run(workdir, data_dir, STEPS))
   _assert_same_params(workdir, uninterrupted, data_dir)
-
-
-@pytest.mark.slow
-def test_two_processes_match_one_process_with_two_devices(
-    data_dir, uninterrupted, tmp_path):
-  workdir = str(tmp_path / 'single')
-  subprocess.run(_command(workdir, STEPS), env=_env(data_dir, devices=2),
-                 check=True, capture_output=True, timeout=900)
-  one, two = _train_log(workdir), _train_log(uninterrupted)
-  assert [r['step'] for r in one] == [r['step'] for r in two]
-  for a, b in zip(one, two):
-    for key in ('loss', 'recon_loss', 'grad_norm', 'param_norm'):
-      np.testing.assert_allclose(a[key], b[key], rtol=1e-5, err_msg=key)
-  (_, a), (_, b) = (_params(workdir, data_dir),
-                    _params(uninterrupted, data_dir))
-  for key in a:
-    np.testing.assert_allclose(a[key], b[key], rtol=1e-4, atol=1e-6,
-                               err_msg=key)
 
 
 # pipeline_helpers' micro SlotFormer, as overrides; one validation and one
