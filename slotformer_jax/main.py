@@ -10,7 +10,9 @@ lock), changed settings on an existing workdir are refused unless
 --allow_config_change, and every config problem is reported before any work.
 A problem the user can fix ends the run with one line on stderr and exit
 status 1 (2 for a bad command line); SIGTERM during training saves a
-checkpoint first (exit status 143). See docs/reliability.md.
+checkpoint first (exit status 143), and so does Ctrl-C (SIGINT, 130). With
+several processes (--distributed) they stop after the same step, and a lost
+process is named by the others, which stop too. See docs/reliability.md.
 """
 
 from __future__ import annotations
@@ -36,6 +38,7 @@ from slotformer_jax.config import checks as config_checks
 from slotformer_jax.data.data_dir import default_data_dir
 from slotformer_jax.errors import UserError
 from slotformer_jax.files import append_line_atomic
+from slotformer_jax.train import processes
 from slotformer_jax.train import sharding
 from slotformer_jax.train.trainer import Preempted
 
@@ -49,7 +52,22 @@ _MODE = flags.DEFINE_enum('mode', 'all', stages.MODES,
                           'Which stage(s) to run.')
 _DISTRIBUTED = flags.DEFINE_bool(
     'distributed', False, 'Call jax.distributed.initialize() first (one '
-    'process per host on a TPU pod or multi-node GPU cluster).')
+    'process per host on a TPU pod or multi-node GPU cluster). It detects '
+    'the cluster (SLURM, TPU, ...) unless the next three flags are given.')
+_COORDINATOR_ADDRESS = flags.DEFINE_string(
+    'coordinator_address', None, 'HOST:PORT of process 0, which every '
+    'process connects to (implies --distributed; with --num_processes and '
+    '--process_id).')
+_NUM_PROCESSES = flags.DEFINE_integer(
+    'num_processes', None, 'How many processes the run has (with '
+    '--coordinator_address).')
+_PROCESS_ID = flags.DEFINE_integer(
+    'process_id', None, 'This process: 0 .. num_processes-1 (with '
+    '--coordinator_address).')
+_PEER_TIMEOUT = flags.DEFINE_float(
+    'peer_timeout', 30.0, 'With several processes: seconds without a '
+    'heartbeat from another process (in <workdir>/.processes/) after which '
+    'it counts as lost and this one stops too.')
 _ALLOW_CONFIG_CHANGE = flags.DEFINE_bool(
     'allow_config_change', False, 'Accept settings that differ from the ones '
     'this workdir was run with: the stages they affect are retrained or '
@@ -109,8 +127,15 @@ def main(argv):
   del argv
   # Before anything starts jax's backends ($SLOTFORMER_XLA_CPU_FLAGS=0: off).
   added_flags = xla_flags.apply_fast_cpu_flags()
-  if _DISTRIBUTED.value:
-    jax.distributed.initialize()
+  explicit = processes.check_flags(_COORDINATOR_ADDRESS.value,
+                                   _NUM_PROCESSES.value, _PROCESS_ID.value)
+  if _PEER_TIMEOUT.value <= 0:
+    raise UserError(f'--peer_timeout={_PEER_TIMEOUT.value} must be > 0')
+  if _DISTRIBUTED.value or explicit:
+    # jax's own heartbeat (a stack dump when it fires) comes after ours.
+    processes.initialize(
+        _COORDINATOR_ADDRESS.value, _NUM_PROCESSES.value, _PROCESS_ID.value,
+        heartbeat_timeout=max(100, int(3 * _PEER_TIMEOUT.value)))
   _configure_logging()
   _enable_compilation_cache()
   if added_flags:
@@ -122,6 +147,11 @@ def main(argv):
   # Every check before any work: a bad value costs seconds, not a stage.
   config_checks.validate(config, selected, num_devices=jax.device_count(),
                          num_processes=jax.process_count())
+  global _watchdog
+  if jax.process_count() > 1:
+    _watchdog = processes.PeerWatchdog(
+        os.path.join(workdir, '.processes'), jax.process_index(),
+        jax.process_count(), timeout=_PEER_TIMEOUT.value).start()
   lock = workdir_lib.workdir_lock(workdir)
   if jax.process_index() == 0:
     lock.acquire()
@@ -129,6 +159,9 @@ def main(argv):
     _run(config, workdir, selected)
   finally:
     lock.release()
+
+
+_watchdog: processes.PeerWatchdog | None = None
 
 
 def _run(config, workdir: str, selected: tuple[str, ...]) -> None:
@@ -178,14 +211,35 @@ def run_main(argv: list[str] | None = None) -> None:
   if problem:
     print(f'error: {problem}', file=sys.stderr)
     sys.exit(2)
+  status = 1
   try:
     app.run(main, argv=argv, flags_parser=_parse_flags)
+  except SystemExit as exit_:
+    status = 0 if exit_.code is None else (
+        exit_.code if isinstance(exit_.code, int) else 1)
+    raise
   except Preempted as error:
     print(f'preempted: {_one_line(error)}', file=sys.stderr)
-    sys.exit(128 + 15)
+    status = 128 + error.signal
+    sys.exit(status)
   except UserError as error:
     print(f'error: {_one_line(error)}', file=sys.stderr)
     sys.exit(1)
+  except KeyboardInterrupt:
+    # Ctrl-C outside a training loop (which saves and raises Preempted).
+    print('interrupted: Ctrl-C outside training; re-run the same command to '
+          'resume from what was saved.', file=sys.stderr)
+    status = 128 + 2
+    sys.exit(status)
+  except Exception:
+    if _watchdog is not None:
+      # A failed collective usually means another process was lost: let the
+      # watchdog name it (and end this one) instead of a traceback.
+      _watchdog.wait_for_verdict()
+    raise
+  finally:
+    if _watchdog is not None:
+      _watchdog.finish(status)
 
 
 # absl answers these without a --config (a --flagfile may hold one).

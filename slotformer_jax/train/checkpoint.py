@@ -139,9 +139,6 @@ class Checkpointer:
   def wait_until_finished(self) -> None:
     self._manager.wait_until_finished()
 
-  def reached_preemption(self, step: int) -> bool:
-    return self._manager.reached_preemption(step)
-
   def check_for_errors(self) -> None:
     self._manager.check_for_errors()
 

@@ -7,8 +7,10 @@ stream resumes at the same step (batches are a function of the step).
 
 Failures stop the loop at once with one line: a non-finite loss or updated
 state (never saved; the message names the last good checkpoint), a failed
-checkpoint save. SIGTERM (how SLURM and TPU pods preempt) saves a checkpoint
-at the current step and raises `Preempted`; the rerun resumes bit-exact.
+checkpoint save. SIGTERM (how SLURM and TPU pods preempt) and SIGINT (Ctrl-C)
+save a checkpoint at the current step and raise `Preempted`; the rerun
+resumes bit-exact. With several processes, a signal to any of them stops all
+after the same step (one small all-gather per step agrees on it).
 """
 
 from __future__ import annotations
@@ -36,6 +38,7 @@ from slotformer_jax import workdir as workdir_lib
 from slotformer_jax.errors import UserError
 from slotformer_jax.files import append_line_atomic
 from slotformer_jax.train import optim
+from slotformer_jax.train import processes
 from slotformer_jax.train import sharding
 from slotformer_jax.train.checkpoint import Checkpointer
 from slotformer_jax.train.checkpoint import abstract_like
@@ -75,32 +78,42 @@ class Stage:
 
 
 class Preempted(UserError):
-  """SIGTERM arrived; the state of the current step was saved."""
+  """SIGTERM or SIGINT arrived; the state of the current step was saved."""
+
+  def __init__(self, message: str, signal_number: int = signal.SIGTERM):
+    super().__init__(message)
+    self.signal = int(signal_number)
 
 
 class Diverged(UserError, FloatingPointError):
   """The loss or the updated parameters became non-finite."""
 
 
+_STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT)
+
+
 class _TermFlag:
-  """Notes SIGTERM instead of dying, while installed (main thread only)."""
+  """Notes SIGTERM / SIGINT instead of dying, while installed (main thread
+  only). `received`: the signal's number (SIGTERM wins), 0 while none."""
 
   def __init__(self):
-    self.received = False
-    self._previous = None
+    self.received = 0
+    self._previous = {}
 
   def __enter__(self) -> _TermFlag:
     if threading.current_thread() is threading.main_thread():
-      self._previous = signal.signal(signal.SIGTERM, self._note)
+      for signum in _STOP_SIGNALS:
+        self._previous[signum] = signal.signal(signum, self._note)
     return self
 
   def _note(self, signum, frame) -> None:
-    del signum, frame
-    self.received = True
+    del frame
+    self.received = max(self.received, int(signum))
 
   def __exit__(self, *exc) -> None:
-    if self._previous is not None:
-      signal.signal(signal.SIGTERM, self._previous)
+    for signum, previous in self._previous.items():
+      # None: a handler not set from Python; the default is what it did.
+      signal.signal(signum, signal.SIG_DFL if previous is None else previous)
 
 
 def checkpointer_for(stage_directory: str, **kwargs) -> Checkpointer:
@@ -166,7 +179,8 @@ def fit(stage: Stage, *, mesh: Mesh, seed: int) -> TrainState:
         state, metrics = update(state, batch, frozen_params)
         progress.update(1)
         done = step + 1
-        preempted = _preempted(term, checkpointer, done)
+        stop_signal, signalled = _stop_signal(term)
+        preempted = stop_signal != 0
         should_save = (done % config.checkpoint_every == 0
                        or done == num_steps or preempted)
         should_log = done % config.log_every == 0 or done == num_steps
@@ -195,9 +209,13 @@ def fit(stage: Stage, *, mesh: Mesh, seed: int) -> TrainState:
           failed = False
         if preempted:
           checkpointer.wait_until_finished()
+          by = signal.Signals(stop_signal).name
+          if jax.process_count() > 1:
+            by += ' to process ' + ', '.join(map(str, signalled))
           raise Preempted(
-              f'{stage.name}: stopped by SIGTERM after step {done}; its '
-              'checkpoint is saved. Re-run the same command to resume.')
+              f'{stage.name}: stopped by {by} after step {done}; its '
+              'checkpoint is saved. Re-run the same command to resume.',
+              stop_signal)
   finally:
     # Also on an exception or Ctrl-C: finish the save in flight so the next
     # run resumes from it (after a failed save, report that one failure).
@@ -229,13 +247,15 @@ def fit_stage(stage: Stage, *, mesh: Mesh, seed: int, what: str,
   return fit(stage, mesh=mesh, seed=seed)
 
 
-def _preempted(term: _TermFlag, checkpointer: Checkpointer, step: int
-               ) -> bool:
-  """Whether to save and stop after `step`. With several processes they must
-  agree on the step: orbax's preemption sync (jax.distributed) does that."""
+def _stop_signal(term: _TermFlag) -> tuple[int, list[int]]:
+  """(signal to save and stop on after this step or 0, the processes that
+  received it). Several processes must agree on the step: each notes its own
+  signals, and one all-gather per step (every process calls it after the
+  same step) makes the answer the same everywhere. Not orbax's preemption
+  sync: it relies on jax's own SIGTERM handler, which ours replaces."""
   if jax.process_count() > 1:
-    return bool(checkpointer.reached_preemption(step))
-  return term.received
+    return processes.agreed_signal(term.received)
+  return term.received, [jax.process_index()] if term.received else []
 
 
 def _diverged(name: str, metrics: dict[str, float], step: int,

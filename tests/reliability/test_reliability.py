@@ -14,12 +14,14 @@ The trained micro workdir is built once per module (~1 min on 2 cores) and
 copied by the tests that change it.
 """
 
+import dataclasses
 import errno
 import itertools
 import json
 import logging
 import os
 import shutil
+import signal
 import subprocess
 import sys
 
@@ -42,6 +44,7 @@ from slotformer_jax.lock import FileLock
 from slotformer_jax.train import checkpoint as checkpoint_lib
 from slotformer_jax.train import sharding
 from slotformer_jax.train.trainer import Diverged
+from slotformer_jax.train.trainer import Preempted
 from slotformer_jax.train.trainer import Stage
 from slotformer_jax.train.trainer import fit
 from slotformer_jax.slot_models import savi as savi_slots
@@ -171,7 +174,7 @@ def test_retrained_savi_rebuilds_slots_and_refuses_stale_dynamics(copied):
   shutil.rmtree(os.path.join(workdir, 'savi'))
   config.savi.learning_rate = 5e-4
   savi_slots.train_savi(config, workdir, mesh)
-  _, step = inference.load_savi_params(config, workdir, mesh)
+  step = savi_slots.Savi(config).load(workdir, mesh).step
   assert step == 4
   # The slots of the old SAVi are not used for anything.
   with pytest.raises(UserError, match='stale'):
@@ -472,6 +475,32 @@ def test_diverged_parameters_are_never_saved(tmp_path):
   assert checkpoint_lib.Checkpointer(
       str(tmp_path / 'late' / 'checkpoints'), read_only=True
   ).all_steps() == [1, 2]
+
+
+@pytest.mark.parametrize('signum', [signal.SIGINT, signal.SIGTERM])
+def test_a_signal_in_training_saves_that_step(tmp_path, signum):
+  """Ctrl-C (SIGINT) is treated as SIGTERM: the step is saved, `Preempted`
+  carries the signal (main exits 128 + it), the handlers are restored."""
+  mesh = Mesh(np.asarray(jax.devices()[:1]), ('data',))
+  stage = _linear_stage(tmp_path / 'linear', num_train_steps=50,
+                        checkpoint_every=1000)
+  plain = stage.batches
+
+  def batches(start_step):
+    for step, batch in zip(itertools.count(start_step), plain(start_step)):
+      if step == 3:  # while step 4 is being fetched
+        os.kill(os.getpid(), signum)
+      yield batch
+  stage = dataclasses.replace(stage, batches=batches)
+  with pytest.raises(Preempted, match=f'stopped by {signum.name} after step '
+                     '4;') as error:
+    fit(stage, mesh=mesh, seed=0)
+  assert error.value.signal == signum
+  assert checkpoint_lib.Checkpointer(
+      str(tmp_path / 'linear' / 'checkpoints'), read_only=True
+  ).all_steps() == [4]
+  assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+  assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL
 
 
 def test_a_failed_save_stops_training_with_one_line(tmp_path, monkeypatch):

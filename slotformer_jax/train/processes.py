@@ -1,0 +1,180 @@
+"""Several processes (one per host) as one run: starting them, agreeing on a
+stop, and noticing a lost one.
+
+* `initialize` calls `jax.distributed.initialize` with the given coordinator
+  address, process count and id (or auto-detection when none is given), with
+  gloo collectives for CPU devices and without jax's own preemption notifier:
+  the trainer notes SIGTERM/SIGINT itself, and `agreed_signal` tells every
+  process, after the same step, whether any of them was signalled.
+* `PeerWatchdog` is a heartbeat file per process in the shared workdir. A
+  process whose heartbeat stops (killed, its host gone) or that ended with an
+  error is named in one line by every survivor, which then exits at once
+  (within `timeout` seconds), instead of waiting in a collective until jax's
+  coordination service aborts it with a stack dump.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import threading
+import time
+
+import jax
+import numpy as np
+
+from slotformer_jax.errors import ConfigError
+
+# Exit statuses that end a process as planned (done, SIGINT, SIGTERM).
+CLEAN_EXITS = (0, 128 + 2, 128 + 15)
+LOST_PROCESS_EXIT = 1
+
+
+def check_flags(coordinator_address: str | None, num_processes: int | None,
+                process_id: int | None) -> bool:
+  """Whether explicit flags were given (all three, consistent).
+
+  Raises:
+    ConfigError: a partial set, or an id outside [0, num_processes).
+  """
+  given = {'--coordinator_address': coordinator_address,
+           '--num_processes': num_processes, '--process_id': process_id}
+  missing = [name for name, value in given.items() if value is None]
+  if len(missing) == len(given):
+    return False
+  if missing:
+    raise ConfigError(
+        '--coordinator_address, --num_processes and --process_id go '
+        f'together; missing {", ".join(missing)} (or give none of them to '
+        'let jax.distributed detect the cluster)')
+  if ':' not in coordinator_address:
+    raise ConfigError(f'--coordinator_address={coordinator_address} needs a '
+                    'port: HOST:PORT, e.g. 10.0.0.1:1234')
+  if num_processes < 1 or not 0 <= process_id < num_processes:
+    raise ConfigError(f'--process_id={process_id} must be in [0, '
+                    f'--num_processes={num_processes})')
+  return True
+
+
+def initialize(coordinator_address: str | None = None,
+               num_processes: int | None = None,
+               process_id: int | None = None, *,
+               heartbeat_timeout: int = 100) -> None:
+  """jax.distributed.initialize; before any jax backend is started."""
+  # Collectives between the CPU devices of several processes (a no-op for
+  # GPU/TPU devices); jax 0.10 has none on CPU unless one is chosen.
+  jax.config.update('jax_cpu_collectives_implementation', 'gloo')
+  # Its SIGTERM handler would swallow the signal outside training; the
+  # trainer agrees on a stop itself (`agreed_signal`).
+  jax.config.update('jax_enable_preemption_service', False)
+  jax.distributed.initialize(
+      coordinator_address=coordinator_address, num_processes=num_processes,
+      process_id=process_id, heartbeat_timeout_seconds=heartbeat_timeout)
+
+
+def agreed_signal(local_signal: int) -> tuple[int, list[int]]:
+  """(signal to stop on, indices of the signalled processes), the same on
+  every process; every process must call it after the same step. 0: none."""
+  # Imported here: multihost_utils is only needed with several processes.
+  from jax.experimental import multihost_utils  # pylint: disable=g-import-not-at-top
+  signals = np.asarray(multihost_utils.process_allgather(
+      np.int32(local_signal))).reshape(-1)
+  signalled = [int(i) for i in np.flatnonzero(signals)]
+  return int(signals.max()), signalled
+
+
+class PeerWatchdog:
+  """Heartbeats of every process under `directory` (shared by all).
+
+  Each process rewrites `<directory>/<index>` every `interval` seconds with a
+  counter, and ends it with `exit <status>`. A thread reads the others: a
+  counter unchanged for `timeout` seconds (by this host's clock: no clock
+  skew between hosts matters) or an unclean exit status makes this process
+  print one line naming that process and exit with status 1 at once.
+  """
+
+  def __init__(self, directory: str, process_id: int, num_processes: int, *,
+               timeout: float, interval: float = 1.0):
+    self.directory = directory
+    self.process_id = process_id
+    self.num_processes = num_processes
+    self.timeout = timeout
+    self.interval = min(interval, timeout / 4)
+    self._beats = 0
+    self._stop = threading.Event()
+    self._thread = threading.Thread(target=self._watch, daemon=True,
+                                    name='peer-watchdog')
+
+  def _path(self, index: int) -> str:
+    return os.path.join(self.directory, str(index))
+
+  def _write(self, text: str) -> None:
+    path = self._path(self.process_id)
+    temporary = f'{path}.{os.getpid()}.tmp'
+    with open(temporary, 'w') as f:
+      f.write(text)
+    os.replace(temporary, path)
+
+  def _read(self, index: int) -> str:
+    try:
+      with open(self._path(index)) as f:
+        return f.read()
+    except OSError:
+      return ''
+
+  def start(self) -> PeerWatchdog:
+    os.makedirs(self.directory, exist_ok=True)
+    self._write(f'{os.getpid()} 0')
+    self._thread.start()
+    return self
+
+  def finish(self, status: int) -> None:
+    """Stops beating and tells the others how this process ended."""
+    self._stop.set()
+    try:
+      self._write(f'exit {status}')
+    except OSError:
+      pass
+
+  def _watch(self) -> None:
+    peers = [i for i in range(self.num_processes) if i != self.process_id]
+    last_text = {i: self._read(i) for i in peers}
+    last_change = {i: time.monotonic() for i in peers}
+    while not self._stop.wait(self.interval):
+      self._beats += 1
+      try:
+        self._write(f'{os.getpid()} {self._beats}')
+      except OSError:
+        pass  # a full disk is the trainer's to report
+      now = time.monotonic()
+      for i in peers:
+        text = self._read(i)
+        if text.startswith('exit '):
+          status = int(text.split()[1])
+          if status in CLEAN_EXITS:
+            continue
+          self._lost(f'process {i} of {self.num_processes} ended with exit '
+                     f'status {status} (its log says why)')
+        if text != last_text[i]:
+          last_text[i], last_change[i] = text, now
+        elif now - last_change[i] > self.timeout:
+          self._lost(f'process {i} of {self.num_processes} is lost (no '
+                     f'heartbeat for {self.timeout:g} s: killed, or its host '
+                     'is down)')
+
+  def _lost(self, what: str) -> None:
+    if self._stop.is_set():
+      return
+    print(f'error: {what}; stopping process {self.process_id} too. Re-run '
+          'every process with the same command: training resumes from the '
+          'last saved checkpoint.', file=sys.stderr, flush=True)
+    self.finish(LOST_PROCESS_EXIT)
+    # Not sys.exit: the main thread may be blocked in a collective with the
+    # lost process, and jax's exit handlers would wait for it.
+    os._exit(LOST_PROCESS_EXIT)  # pylint: disable=protected-access
+
+  def wait_for_verdict(self) -> None:
+    """Blocks up to the timeout: the watchdog ends the process if a peer is
+    lost (an error in a collective usually means one is)."""
+    if self._thread.is_alive():
+      self._thread.join(self.timeout + 4 * self.interval)

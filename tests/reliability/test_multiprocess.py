@@ -1,0 +1,363 @@
+"""Two processes on localhost as one run (`jax.distributed`, gloo CPU
+collectives, one CPU device each, one shared workdir), SAVi's micro config:
+
+* SIGTERM to both, or to one only: both save the step they agree on and exit
+  143, and the rerun ends bit-identical to an uninterrupted two-process run;
+* SIGKILL of one: the other names it in one line and exits within the
+  heartbeat timeout; the rerun (past a leftover orbax temporary folder) ends
+  bit-identical too;
+* more processes than videos in a split: two processes re-extract the slots
+  and re-evaluate, and the metrics equal those of one process with two
+  devices.
+
+Training itself is not compared with one process: each host draws its own
+batches (`data.pipeline.train_batches`, a function of the step and the
+process index), so the global batch of two processes is another one.
+
+    python -m pytest -q tests/reliability/test_multiprocess.py          # fast one
+    python -m pytest -q -m slow tests/reliability/test_multiprocess.py  # all
+
+The flag checks and the watchdog's verdicts are unit tests here too.
+"""
+
+import json
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+
+import jax
+import numpy as np
+import pytest
+
+from slotformer_jax.errors import ConfigError
+from slotformer_jax.slot_models import savi as savi_slots
+from slotformer_jax.train import processes
+from slotformer_jax.train import sharding
+from slotformer_jax.train.checkpoint import Checkpointer
+
+import pipeline_helpers
+
+ROOT = os.path.abspath(os.path.join(os.path.dirname(__file__), '..', '..'))
+SYNTHETIC = os.path.join(ROOT, 'configs', 'synthetic.py') + ':tiny'
+PEER_TIMEOUT = 10  # seconds (--peer_timeout)
+
+# pipeline_helpers' SAVi micro config, as command-line overrides.
+MICRO = [
+    '--config.data.resolution=(16,16)', '--config.data.num_frames=8',
+    '--config.data.num_train=8', '--config.data.num_val=4',
+    '--config.data.num_test=4',
+    '--config.savi.decoder.features=(8,8)',
+    '--config.savi.encoder.features=(8,8)',
+    '--config.savi.encoder.strides=(1,1)',
+    '--config.savi.log_every=1', '--config.savi.checkpoint_every=1000',
+]
+
+
+def _free_port():
+  with socket.socket() as s:
+    s.bind(('localhost', 0))
+    return s.getsockname()[1]
+
+
+def _env(data_dir, devices=1):
+  env = dict(os.environ, PYTHONPATH=ROOT, JAX_PLATFORMS='cpu',
+             SLOTFORMER_DATA_DIR=str(data_dir),
+             # Shared by every run here: a rerun's steps are cache hits.
+             JAX_COMPILATION_CACHE_DIR=os.path.join(
+                 tempfile.gettempdir(), 'slotformer_jax_test_xla_cache_mp'))
+  env.pop('XLA_FLAGS', None)
+  if devices > 1:
+    env['XLA_FLAGS'] = f'--xla_force_host_platform_device_count={devices}'
+  return env
+
+
+def _command(workdir, steps, mode='train_savi', extra=()):
+  return [sys.executable, '-m', 'slotformer_jax.main', f'--config={SYNTHETIC}',
+          f'--workdir={workdir}', f'--mode={mode}', *MICRO,
+          f'--config.savi.num_train_steps={steps}', *extra]
+
+
+class Run:
+  """N processes of one run; stderr of process i in <workdir>.<i>.log."""
+
+  def __init__(self, workdir, data_dir, steps, num_processes=2, extra=(),
+               mode='train_savi'):
+    port = _free_port()
+    self.logs = [f'{workdir}.{i}.log' for i in range(num_processes)]
+    self.processes = []
+    for i in range(num_processes):
+      command = _command(workdir, steps, mode, extra=(
+          f'--coordinator_address=localhost:{port}',
+          f'--num_processes={num_processes}', f'--process_id={i}',
+          f'--peer_timeout={PEER_TIMEOUT}', *extra))
+      with open(self.logs[i], 'w') as log:
+        self.processes.append(subprocess.Popen(
+            command, env=_env(data_dir), stdout=log, stderr=log))
+
+  def log(self, i):
+    with open(self.logs[i]) as f:
+      return f.read()
+
+  def wait_for(self, text, i=0, timeout=600):
+    deadline = time.time() + timeout
+    while text not in self.log(i):
+      assert time.time() < deadline, self.log(i)[-3000:]
+      assert self.processes[i].poll() is None, self.log(i)[-3000:]
+      time.sleep(0.2)
+
+  def wait(self, timeout=600):
+    try:
+      return [p.wait(timeout=timeout) for p in self.processes]
+    finally:
+      for p in self.processes:
+        if p.poll() is None:
+          p.kill()
+
+
+def _finished(run):
+  statuses = run.wait()
+  assert statuses == [0] * len(statuses), [run.log(i)[-3000:]
+                                           for i in range(len(statuses))]
+
+
+def _params(workdir, data_dir):
+  """(step, {path: array}) of the newest SAVi checkpoint."""
+  config = pipeline_helpers.micro_config('savi', data_dir)
+  config.savi.num_train_steps = STEPS
+  loaded = savi_slots.Savi(config).load(str(workdir), sharding.make_mesh())
+  params, step = loaded.params, loaded.step
+  leaves = jax.tree_util.tree_flatten_with_path(params)[0]
+  return step, {jax.tree_util.keystr(k): np.asarray(v) for k, v in leaves}
+
+
+def _assert_same_params(a, b, data_dir):
+  (step_a, a), (step_b, b) = _params(a, data_dir), _params(b, data_dir)
+  assert step_a == step_b == STEPS and a.keys() == b.keys()
+  for key in a:
+    np.testing.assert_array_equal(a[key], b[key], err_msg=key)
+
+
+STEPS = 12
+
+
+@pytest.fixture(scope='module')
+def data_dir(tmp_path_factory):
+  return tmp_path_factory.mktemp('multiprocess_data')
+
+
+@pytest.fixture(scope='module')
+def uninterrupted(data_dir, tmp_path_factory):
+  workdir = str(tmp_path_factory.mktemp('uninterrupted') / 'run')
+  _finished(Run(workdir, data_dir, STEPS))
+  return workdir
+
+
+# --------------------------------------------------------------------------
+# without processes
+# --------------------------------------------------------------------------
+
+
+def test_explicit_flags_go_together():
+  assert not processes.check_flags(None, None, None)
+  assert processes.check_flags('localhost:1234', 2, 1)
+  with pytest.raises(ConfigError, match='missing --num_processes, '
+                     '--process_id'):
+    processes.check_flags('localhost:1234', None, None)
+  with pytest.raises(ConfigError, match='needs a port'):
+    processes.check_flags('localhost', 2, 0)
+  with pytest.raises(ConfigError, match=r'must be in \[0, '):
+    processes.check_flags('localhost:1234', 2, 2)
+
+
+def test_a_partial_set_of_flags_is_one_line(tmp_path):
+  result = subprocess.run(
+      _command(tmp_path / 'run', 2, extra=('--num_processes=2',)),
+      env=_env(tmp_path / 'data'), capture_output=True, text=True,
+      timeout=300)
+  assert result.returncode == 1 and 'Traceback' not in result.stderr
+  # (Other lines: libraries that print on import, e.g. pybullet's banner.)
+  assert [line for line in result.stderr.splitlines()
+          if line.startswith('error:')] == [
+      'error: --coordinator_address, --num_processes and --process_id go '
+      'together; missing --coordinator_address, --process_id (or give none '
+      'of them to let jax.distributed detect the cluster)'], result.stderr
+
+
+WATCH = '''
+import sys, time
+from slotformer_jax.train import processes
+index, peer_exit = int(sys.argv[2]), sys.argv[3]
+dog = processes.PeerWatchdog(sys.argv[1], index, 2, timeout=2,
+                             interval=0.2).start()
+if index == 1:
+  if peer_exit == 'kill':
+    time.sleep(1)
+    raise SystemExit(0)  # dies without saying how: as after SIGKILL
+  time.sleep(1)
+  dog.finish(int(peer_exit))
+  raise SystemExit(int(peer_exit))
+time.sleep(8)
+dog.finish(0)
+print('survived')
+'''
+
+
+@pytest.mark.parametrize('peer_exit, status, line', [
+    ('kill', 1, 'error: process 1 of 2 is lost (no heartbeat for 2 s'),
+    ('1', 1, 'error: process 1 of 2 ended with exit status 1'),
+    ('143', 0, 'survived'),
+    ('0', 0, 'survived'),
+])
+def test_the_watchdog_names_a_lost_process(tmp_path, peer_exit, status, line):
+  run = [subprocess.Popen(
+      [sys.executable, '-c', WATCH, str(tmp_path), str(i), peer_exit],
+      env=dict(os.environ, PYTHONPATH=ROOT), stdout=subprocess.PIPE,
+      stderr=subprocess.STDOUT, text=True) for i in (0, 1)]
+  run[1].wait(timeout=60)
+  peer_ended = time.time()
+  out, _ = run[0].communicate(timeout=60)
+  assert run[0].returncode == status, out
+  assert out.strip().splitlines()[0].startswith(line), out
+  assert len(out.strip().splitlines()) == 1, out
+  if status:  # within the timeout (2 s) of the peer's last sign of life
+    assert time.time() - peer_ended < 2 + 3, time.time() - peer_ended
+
+
+# --------------------------------------------------------------------------
+# two processes
+# --------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize('to', [
+    pytest.param('one', id='sigterm_to_one'),
+    pytest.param('both', id='sigterm_to_both', marks=pytest.mark.slow),
+])
+def test_sigterm_stops_both_processes_after_the_same_step(
+    data_dir, tmp_path, to):
+  workdir = str(tmp_path / 'run')
+  run = Run(workdir, data_dir, 200)
+  run.wait_for('savi step 2:', i=1)
+  targets = run.processes[1:] if to == 'one' else run.processes
+  for process in targets:
+    process.send_signal(signal.SIGTERM)
+  assert run.wait(timeout=300) == [143, 143], [run.log(0), run.log(1)]
+  stops = []
+  for i in (0, 1):
+    lines = [line for line in run.log(i).splitlines()
+             if line.startswith(('preempted:', 'error:', 'Traceback'))]
+    assert len(lines) == 1 and lines[0].startswith('preempted: savi: '
+                                                   'stopped by SIGTERM to '
+                                                   'process '), run.log(i)
+    stops.append(lines[0].split('after step ')[1].split(';')[0])
+  assert stops[0] == stops[1], stops
+  steps = Checkpointer(os.path.join(workdir, 'savi', 'checkpoints'),
+                       read_only=True).all_steps()
+  assert steps == [int(stops[0])] and 2 <= steps[0] < 200, (steps, stops)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize('to', ['one', 'both'])
+def test_the_rerun_after_sigterm_is_bit_exact(data_dir, uninterrupted,
+                                              tmp_path, to):
+  workdir = str(tmp_path / 'run')
+  run = Run(workdir, data_dir, STEPS)
+  run.wait_for('savi step 3:', i=0)
+  for process in run.processes[1:] if to == 'one' else run.processes:
+    process.send_signal(signal.SIGTERM)
+  statuses = run.wait(timeout=300)
+  # A signal after the last step's agreement lets the run finish (0).
+  assert statuses in ([143, 143], [0, 0]), [run.log(0), run.log(1)]
+  _finished(Run(workdir, data_dir, STEPS))
+  _assert_same_params(workdir, uninterrupted, data_dir)
+
+
+@pytest.mark.slow
+def test_sigkill_of_one_process_stops_the_other_with_one_line(
+    data_dir, uninterrupted, tmp_path):
+  workdir = str(tmp_path / 'run')
+  # Checkpoints every 4 steps, so the rerun resumes from one.
+  run = Run(workdir, data_dir, STEPS,
+            extra=['--config.savi.checkpoint_every=4'])
+  run.wait_for('savi step 5:', i=0)
+  run.processes[1].kill()
+  killed = time.time()
+  status = run.processes[0].wait(timeout=120)
+  took = time.time() - killed
+  print(f'the survivor stopped {took:.1f} s after the kill')
+  log = run.log(0)
+  assert status == processes.LOST_PROCESS_EXIT, log
+  assert took < PEER_TIMEOUT + 15, took
+  assert 'Traceback' not in log and 'Fatal' not in log, log
+  errors = [line for line in log.splitlines() if line.startswith('error:')]
+  assert len(errors) == 1 and errors[0].startswith(
+      'error: process 1 of 2 is lost'), log
+  # As a save cut short by the kill leaves it: the rerun must not mind.
+  checkpoints = os.path.join(workdir, 'savi', 'checkpoints')
+  os.makedirs(os.path.join(checkpoints, '7.orbax-checkpoint-tmp-0', 'default'),
+              exist_ok=True)
+  _finished(Run(workdir, data_dir, STEPS))
+  _assert_same_params(workdir, uninterrupted, data_dir)
+
+
+# pipeline_helpers' micro SlotFormer, as overrides; one validation and one
+# test video, fewer than the two processes.
+FEW_VIDEOS = [
+    '--config.data.num_val=1', '--config.data.num_test=1',
+    '--config.slotformer.burn_in=2', '--config.slotformer.rollout=2',
+    '--config.slotformer.num_train_steps=2', '--config.slot_lstm.train=False',
+    '--config.extraction.chunk_length=4', '--config.extraction.batch_size=2',
+    '--config.evaluation.rollout_steps=6', '--config.evaluation.batch_size=2',
+    '--config.evaluation.chunk_length=4',
+    "--config.evaluation.metrics=('psnr','ari')",
+    '--config.evaluation.savi_metrics=False',
+]
+
+
+def _numbers(tree, prefix=''):
+  """{path: float} of every number in a JSON tree, 'identity' left out."""
+  if isinstance(tree, dict):
+    out = {}
+    for key, value in tree.items():
+      if key != 'identity':
+        out.update(_numbers(value, f'{prefix}/{key}'))
+    return out
+  if isinstance(tree, list):
+    out = {}
+    for i, value in enumerate(tree):
+      out.update(_numbers(value, f'{prefix}/{i}'))
+    return out
+  if isinstance(tree, (int, float)) and not isinstance(tree, bool):
+    return {prefix: float(tree)}
+  return {}
+
+
+@pytest.mark.slow
+def test_more_processes_than_videos_extract_and_evaluate(data_dir, tmp_path):
+  """One process with two devices trains and evaluates; two processes
+  re-extract the slots (one video per split for two processes) and
+  re-evaluate: the same metrics."""
+  workdir = str(tmp_path / 'run')
+  env = _env(tmp_path / 'few_data', devices=2)
+  for mode in ('train_savi', 'extract_slots', 'train_slotformer', 'evaluate'):
+    result = subprocess.run(_command(workdir, 2, mode, FEW_VIDEOS), env=env,
+                            capture_output=True, text=True, timeout=900)
+    assert result.returncode == 0, result.stderr[-3000:]
+  with open(os.path.join(workdir, 'eval', 'metrics.json')) as f:
+    one = _numbers(json.load(f))
+  shutil.rmtree(os.path.join(workdir, 'slots'))
+  shutil.rmtree(os.path.join(workdir, 'eval'))
+  for mode in ('extract_slots', 'evaluate'):
+    _finished(Run(workdir, tmp_path / 'few_data', 2, mode=mode,
+                  extra=FEW_VIDEOS))
+  with open(os.path.join(workdir, 'eval', 'metrics.json')) as f:
+    two = _numbers(json.load(f))
+  assert one.keys() == two.keys() and one, (one, two)
+  for key in one:
+    if 'time' not in key and 'seconds' not in key:
+      np.testing.assert_allclose(two[key], one[key], rtol=1e-4, atol=1e-6,
+                                 err_msg=key)
