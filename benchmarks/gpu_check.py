@@ -60,7 +60,7 @@ def _random_like(tree, rng: np.random.Generator, token_limit: int):
 
 
 def run_case(config_name: str, step: str, dtype: str, per_device_batch,
-             repeats: int) -> dict:
+             repeats: int, compile_only: bool = False) -> dict | None:
   config = tpu_compile.load_config(config_name)
   config.compute_dtype = dtype
   section = tpu_compile.SECTIONS[step]
@@ -78,6 +78,8 @@ def run_case(config_name: str, step: str, dtype: str, per_device_batch,
   cost = compiled.cost_analysis()
   cost = cost[0] if isinstance(cost, (list, tuple)) else cost
   flops = float(cost['flops'])
+  if compile_only:  # fills the persistent compilation cache, if one is set
+    return None
 
   optimizer, _ = optim.make_optimizer(stage.config)
   replicated = sharding.replicated_sharding(mesh)
@@ -120,6 +122,8 @@ def main(argv=None) -> int:
   parser.add_argument('--repeats', type=int, default=10)
   parser.add_argument('--smoke', action='store_true',
                       help='the tiny synthetic config, 1 timed step')
+  parser.add_argument('--compile_only', action='store_true',
+                      help='compile (into $JAX_COMPILATION_CACHE_DIR) only')
   parser.add_argument('--json', default='', help='appends one JSON line')
   args = parser.parse_args(argv)
   config_name, repeats = args.config, args.repeats
@@ -127,7 +131,9 @@ def main(argv=None) -> int:
     config_name, repeats = SMOKE_CONFIGS[args.step], 1
   try:
     row = run_case(config_name, args.step, args.dtype, args.per_device_batch,
-                   repeats)
+                   repeats, args.compile_only)
+    if row is None:
+      return 0
   except Exception as error:  # pylint: disable=broad-except
     message = str(error).strip().splitlines()[0][:300] if str(error) else ''
     row = dict(config=config_name, step=args.step, dtype=args.dtype,

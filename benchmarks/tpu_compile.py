@@ -52,6 +52,9 @@ sys.path.insert(0, os.path.join(os.path.dirname(__file__), '..'))
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), '..', 'configs'))
 
 os.environ.setdefault('JAX_PLATFORMS', 'cpu')
+# Compile-only: no chip is opened, so libtpu's one-process-per-host lock
+# (/tmp/libtpu_lockfile) need not stop a second compile job.
+os.environ.setdefault('ALLOW_MULTIPLE_LIBTPU_LOAD', '1')
 
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402

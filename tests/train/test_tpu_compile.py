@@ -123,3 +123,29 @@ def test_tiny_savi_step_compiles_for_a_tpu_slice(tmp_path):
   # The donated state is aliased to the new one: counted once.
   assert row['alias_bytes'] > 0
   assert 0 < row['hbm_bytes'] < row['chip_hbm']
+
+
+@pytest.mark.slow
+def test_gpu_check_smoke_writes_its_table(tmp_path):
+  """benchmarks/gpu_check.sh --smoke on this machine's device (CPU here):
+  the cached-compile phase, the timed run and the table, one case."""
+  result = subprocess.run(
+      ['bash', os.path.join(ROOT, 'benchmarks', 'gpu_check.sh'), '--smoke',
+       str(tmp_path)], capture_output=True, text=True, timeout=1500,
+      check=False, env=dict(os.environ, GPU_CHECK_CASES='obj3d slotformer',
+                            GPU_CHECK_DTYPES='float32',
+                            GPU_CHECK_BUDGET_S='1200',
+                            GPU_CHECK_CASE_TIMEOUT_S='600'))
+  assert result.returncode == 0, result.stderr[-2000:]
+  (row,) = [json.loads(line)
+            for line in (tmp_path / 'gpu_check.jsonl').read_text().splitlines()]
+  assert 'error' not in row, row
+  assert row['step'] == 'slotformer' and row['steps_timed'] == 1
+  assert row['median_seconds'] > 0 and row['flops'] > 0
+  assert row['tflops_per_second'] == pytest.approx(
+      row['flops'] / row['median_seconds'] / 1e12)
+  assert np.isfinite(row['loss'])
+  # The compile phase filled the persistent cache the timed run read.
+  assert any((tmp_path / 'cache').iterdir())
+  table = (tmp_path / 'gpu_check.md').read_text()
+  assert '| synthetic:tiny | slotformer | float32 | 1 |' in table
