@@ -44,6 +44,7 @@ from __future__ import annotations
 import argparse
 import importlib.util
 import os
+import re
 import sys
 import time
 from typing import Any
@@ -246,13 +247,28 @@ def compile_row(config, step: str, mesh: Mesh) -> dict[str, Any]:
               compile_seconds=seconds)
 
 
+def _hbm_or_required(config, step: str, mesh: Mesh, chip: dict) -> int:
+  """HBM per chip of the step; when XLA:TPU refuses it at compile
+  (RESOURCE_EXHAUSTED: "... HLO temporaries (31.44G) exceeds available HBM
+  (15.75G)"), what it said was required (at least the chip's HBM + 1)."""
+  try:
+    return compile_row(config, step, mesh)['hbm_bytes']
+  except Exception as error:  # pylint: disable=broad-except
+    if 'RESOURCE_EXHAUSTED' not in str(error):
+      raise
+    found = re.search(r'temporaries \(([0-9.]+)G\)', str(error))
+    required = int(float(found.group(1)) * GiB) if found else 2 * chip['hbm']
+    return max(required, chip['hbm'] + 1)
+
+
 def largest_batch(config, step: str, mesh: Mesh, chip: dict,
                   log) -> dict[str, Any]:
   """The largest per-chip batch whose step fits the chip's HBM: a line
-  through the HBM at 1 and 2 per chip predicts it, compiles confirm it."""
+  through the HBM at 1 and 2 per chip predicts it, compiles confirm it
+  (stepping down, at most 6 compiles, while XLA:TPU says it does not fit)."""
   chips = mesh.devices.size
-  hbm = {b: compile_row(with_batch(config, step, b * chips), step,
-                        mesh)['hbm_bytes'] for b in (1, 2)}
+  hbm = {b: _hbm_or_required(with_batch(config, step, b * chips), step,
+                             mesh, chip) for b in (1, 2)}
   slope = hbm[2] - hbm[1]
   if hbm[1] > chip['hbm']:
     return dict(largest_per_chip=0, fit_hbm=hbm)
@@ -260,16 +276,20 @@ def largest_batch(config, step: str, mesh: Mesh, chip: dict,
     return dict(largest_per_chip=None, fit_hbm=hbm)
   guess = max(1, int((chip['hbm'] - (hbm[1] - slope)) // slope))
   tried = {}
-  while guess > 1:
-    tried[guess] = compile_row(with_batch(config, step, guess * chips),
-                               step, mesh)['hbm_bytes']
+  for _ in range(6):
+    if guess <= 2:
+      break
+    tried[guess] = _hbm_or_required(
+        with_batch(config, step, guess * chips), step, mesh, chip)
     log(f'    largest-batch search: {guess}/chip -> '
         f'{tried[guess] / GiB:.2f} GiB')
     if tried[guess] <= chip['hbm']:
       break
-    guess = max(1, int(guess * chip['hbm'] / tried[guess]))
-  return dict(largest_per_chip=guess, fit_hbm=hbm,
-              confirmed_hbm=tried.get(guess, hbm[1]))
+    guess = max(2, int(0.95 * guess * chip['hbm'] / tried[guess]))
+  if guess > 2 and (guess not in tried or tried[guess] > chip['hbm']):
+    return dict(largest_per_chip=None, fit_hbm=hbm, tried=tried)
+  return dict(largest_per_chip=guess, fit_hbm=hbm, tried=tried,
+              confirmed_hbm=tried.get(guess, hbm.get(guess)))
 
 
 def main(argv=None) -> int:
@@ -363,7 +383,8 @@ def main(argv=None) -> int:
           except Exception as error:  # pylint: disable=broad-except
             # XLA's own message says why (e.g. out of memory at compile).
             why = str(error).strip().splitlines()[0][:300]
-            row.update(status='compile failed', why=why)
+            row.update(status='does not fit' if 'RESOURCE_EXHAUSTED' in why
+                       else 'compile failed', why=why)
             rows.append(row)
             not_fitting.append(f'{topology} {name} {step} {dtype} ({why})')
             log(f'{topology:10s} {name:8s} {step:13s} {dtype:9s} '
