@@ -77,17 +77,14 @@ def _example_clip(config: ml_collections.ConfigDict) -> jax.Array:
                    jnp.float32)
 
 
-def train_savi(config: ml_collections.ConfigDict, workdir: str,
-               mesh: Mesh) -> None:
-  """Stage 1: SAVi on clips of the training videos (resumable)."""
-  slot_model = Savi(config)
-  if uses_foreign_stage1(slot_model, workdir, mesh, 'SAVi'):
-    return
-  model = slot_model.model
-  source = get_video_source(config.data, 'train')
+def savi_stage(config: ml_collections.ConfigDict, workdir: str, mesh: Mesh,
+               source: Any) -> Stage:
+  """SAVi's training stage on `source` (the 'train' videos; only its
+  `batches` read it)."""
+  model = models.build_savi(config)
   stage_config = config.savi
   local_batch_size = sharding.per_host_batch_size(stage_config.batch_size, mesh)
-  stage = Stage(
+  return Stage(
       name=NAME,
       directory=savi_dir(workdir),
       config=stage_config,
@@ -105,6 +102,16 @@ def train_savi(config: ml_collections.ConfigDict, workdir: str,
           process_index=jax.process_index(),
           process_count=jax.process_count()),
   )
+
+
+def train_savi(config: ml_collections.ConfigDict, workdir: str,
+               mesh: Mesh) -> None:
+  """Stage 1: SAVi on clips of the training videos (resumable)."""
+  slot_model = Savi(config)
+  if uses_foreign_stage1(slot_model, workdir, mesh, 'SAVi'):
+    return
+  stage = savi_stage(config, workdir, mesh,
+                     get_video_source(config.data, 'train'))
   fit_stage(stage, mesh=mesh, seed=config.seed, what=slot_model.label,
             identity_fields=identity_fields(config), parent=None,
             model_fields=model_fields(config))

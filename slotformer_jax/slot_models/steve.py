@@ -356,11 +356,11 @@ def _steve_example(config: ml_collections.ConfigDict) -> tuple[Any, ...]:
 
 
 def dvae_stage(config: ml_collections.ConfigDict, workdir: str,
-               mesh: Mesh) -> Stage:
-  """The dVAE's training stage (single frames, annealed Gumbel-softmax)."""
+               mesh: Mesh, source: Any) -> Stage:
+  """The dVAE's training stage (single frames, annealed Gumbel-softmax) on
+  `source` (the 'train' videos; only its `batches` read it)."""
   model = models.build_dvae(config)
   stage_config = config.dvae
-  source = get_video_source(config.data, 'train')
   local_batch_size = sharding.per_host_batch_size(stage_config.batch_size, mesh)
   schedule = dict(start=stage_config.gumbel_start,
                   final=stage_config.gumbel_final,
@@ -390,7 +390,8 @@ def train_dvae(config: ml_collections.ConfigDict, workdir: str,
   slot_model.check_compute_dtype()
   if uses_foreign_stage1(slot_model, workdir, mesh, 'dVAE'):
     return
-  stage = dvae_stage(config, workdir, mesh)
+  stage = dvae_stage(config, workdir, mesh,
+                     get_video_source(config.data, 'train'))
   fit_stage(stage, mesh=mesh, seed=config.seed, what='dVAE',
             identity_fields=dvae_identity_fields(config), parent=None,
             model_fields=dvae_model_fields(config))
@@ -434,12 +435,12 @@ def tokenize_frames(config: ml_collections.ConfigDict, workdir: str,
 
 
 def steve_stage(config: ml_collections.ConfigDict, workdir: str,
-                mesh: Mesh) -> Stage:
+                mesh: Mesh, source: Any) -> Stage:
+  """STEVE's training stage on `source` (the 'train' videos with their
+  tokens, see `train_steve`; only its `batches` read it)."""
   model = models.build_steve(config)
   stage_config = config.steve
   root = workdir_lib.stage1_workdir(config, workdir)
-  source = tokens_lib.TokenSource(tokens_dir(root, 'train'),
-                                  get_video_source(config.data, 'train'))
   local_batch_size = sharding.per_host_batch_size(stage_config.batch_size, mesh)
   return Stage(
       name=NAME, directory=steve_dir(root), config=stage_config,
@@ -466,7 +467,9 @@ def train_steve(config: ml_collections.ConfigDict, workdir: str,
   parent = dvae_parent(dvae_identity(config, workdir), dvae_step)
   for split in TOKENIZED_SPLITS:
     check_tokens_current(config, workdir, split, parent)
-  stage = steve_stage(config, workdir, mesh)
+  root = workdir_lib.stage1_workdir(config, workdir)
+  stage = steve_stage(config, workdir, mesh, tokens_lib.TokenSource(
+      tokens_dir(root, 'train'), get_video_source(config.data, 'train')))
   fit_stage(stage, mesh=mesh, seed=config.seed, what='STEVE',
             identity_fields=steve_identity_fields(config), parent=parent,
             model_fields=steve_model_fields(config))

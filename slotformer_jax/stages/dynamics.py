@@ -10,6 +10,7 @@ settings) is set aside and retrained from scratch.
 from __future__ import annotations
 
 import functools
+from typing import Any
 
 import jax
 from jax.sharding import Mesh
@@ -30,33 +31,42 @@ from slotformer_jax.train.trainer import Stage
 from slotformer_jax.train.trainer import fit_stage
 
 
-def train_dynamics(config: ml_collections.ConfigDict, workdir: str,
-                   mesh: Mesh, name: str) -> None:
-  """Trains dynamics model `name` on the current slots of the 'train' split."""
-  slot_model = slot_models.get(config)
-  slot_model.check_compute_dtype()
-  loaded = slot_model.load(workdir, mesh)
-  parent = workdir_lib.check_slots_current(config, workdir, 'train',
-                                           loaded.slots_parent,
-                                           slot_model.label)
+def image_loss_decoder(config: ml_collections.ConfigDict, name: str,
+                       slot_model: slot_models.SlotModel, slot_params: Any
+                       ) -> tuple[Any, Any]:
+  """(decoder, its frozen params) of L_I, or (None, None) without L_I.
+
+  Raises:
+    ConfigError: L_I is on but the slot model has no pixel decoder.
+  """
+  weight = models.dynamics_config(config, name).image_loss_weight
+  if weight <= 0:
+    return None, None
+  image_decoder = slot_model.image_decoder(slot_params)
+  if image_decoder is None:
+    raise ConfigError(
+        f'L_I needs a differentiable pixel decoder, which '
+        f'{slot_model.label} does not have (the paper trains SlotFormer on '
+        f'{slot_model.label} slots without it); set --config.{name}.'
+        f'image_loss_weight=0 (got {weight})')
+  return image_decoder
+
+
+def dynamics_stage(config: ml_collections.ConfigDict, workdir: str,
+                   mesh: Mesh, name: str, slot_model: slot_models.SlotModel,
+                   slot_params: Any, source: Any) -> Stage:
+  """Dynamics model `name`'s training stage on `source` (the slots of the
+  'train' split, with their videos when L_I is on; only its `batches` read
+  it). `slot_params`: the slot model's, for the frozen decoder of L_I."""
   stage_config = models.dynamics_config(config, name)
   rollout = stage_config.rollout
-  decoder, decoder_params = None, None
-  if stage_config.image_loss_weight > 0:
-    image_decoder = slot_model.image_decoder(loaded.params)
-    if image_decoder is None:
-      raise ConfigError(
-          f'L_I needs a differentiable pixel decoder, which '
-          f'{slot_model.label} does not have (the paper trains SlotFormer on '
-          f'{slot_model.label} slots without it); set --config.{name}.'
-          f'image_loss_weight=0 (got {stage_config.image_loss_weight})')
-    decoder, decoder_params = image_decoder
+  decoder, decoder_params = image_loss_decoder(config, name, slot_model,
+                                               slot_params)
   video_fields = ('video',) if decoder is not None else ()
   model = models.build_dynamics(config, name)
-  source = workdir_lib.slot_source_for(config, workdir, 'train', video_fields)
   local_batch_size = sharding.per_host_batch_size(stage_config.batch_size, mesh)
   example = inference.dynamics_example(config, name, slot_model.slot_shape)
-  stage = Stage(
+  return Stage(
       name=name,
       directory=workdir_lib.dynamics_dir(workdir, name),
       config=stage_config,
@@ -77,6 +87,22 @@ def train_dynamics(config: ml_collections.ConfigDict, workdir: str,
           process_count=jax.process_count()),
       frozen_params=decoder_params,
   )
+
+
+def train_dynamics(config: ml_collections.ConfigDict, workdir: str,
+                   mesh: Mesh, name: str) -> None:
+  """Trains dynamics model `name` on the current slots of the 'train' split."""
+  slot_model = slot_models.get(config)
+  slot_model.check_compute_dtype()
+  loaded = slot_model.load(workdir, mesh)
+  parent = workdir_lib.check_slots_current(config, workdir, 'train',
+                                           loaded.slots_parent,
+                                           slot_model.label)
+  decoder, _ = image_loss_decoder(config, name, slot_model, loaded.params)
+  video_fields = ('video',) if decoder is not None else ()
+  source = workdir_lib.slot_source_for(config, workdir, 'train', video_fields)
+  stage = dynamics_stage(config, workdir, mesh, name, slot_model,
+                         loaded.params, source)
   fit_stage(stage, mesh=mesh, seed=config.seed + 1, what=name,
             identity_fields=workdir_lib.dynamics_identity_fields(config, name),
             parent=parent,

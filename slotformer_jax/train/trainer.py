@@ -32,6 +32,7 @@ import jax
 from jax.sharding import Mesh
 import ml_collections
 import numpy as np
+import optax
 import tqdm
 
 from slotformer_jax import workdir as workdir_lib
@@ -130,6 +131,21 @@ def abstract_train_state(init_params: Callable[[jax.Array], Any],
   return abstract_like(shapes, sharding.replicated_sharding(mesh))
 
 
+def jit_update(stage: Stage, mesh: Mesh,
+               optimizer: optax.GradientTransformation, seed: int
+               ) -> Callable[..., tuple[TrainState, dict[str, jax.Array]]]:
+  """The jitted update `fit` runs: (state, global batch, frozen params) ->
+  (state, metrics), batch split on 'data', the rest replicated, the state
+  donated. benchmarks/tpu_compile.py compiles this same function."""
+  replicated = sharding.replicated_sharding(mesh)
+  return jax.jit(
+      functools.partial(train_step, loss_fn=stage.loss_fn,
+                        optimizer=optimizer, seed=seed),
+      in_shardings=(replicated, sharding.batch_sharding(mesh), replicated),
+      out_shardings=(replicated, replicated),
+      donate_argnums=(0,))
+
+
 def fit(stage: Stage, *, mesh: Mesh, seed: int) -> TrainState:
   """Trains `stage` to `config.num_train_steps`, resuming if possible."""
   config = stage.config
@@ -158,12 +174,7 @@ def fit(stage: Stage, *, mesh: Mesh, seed: int) -> TrainState:
   logger.info('%s: %s parameters, training steps %d -> %d on %d devices',
                stage.name, f'{num_params:,}', start_step, num_steps,
                mesh.devices.size)
-  update = jax.jit(
-      functools.partial(train_step, loss_fn=stage.loss_fn,
-                        optimizer=optimizer, seed=seed),
-      in_shardings=(replicated, sharding.batch_sharding(mesh), replicated),
-      out_shardings=(replicated, replicated),
-      donate_argnums=(0,))
+  update = jit_update(stage, mesh, optimizer, seed)
   frozen_params = sharding.replicate(stage.frozen_params, mesh)
 
   log_path = os.path.join(stage.directory, 'train_log.jsonl')

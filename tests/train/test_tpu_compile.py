@@ -1,0 +1,151 @@
+"""benchmarks/tpu_compile.py: the real train steps compiled for a TPU.
+
+The compile test needs libtpu (pip install -e '.[tpu]') and is skipped
+without it (the default install); the others run everywhere.
+"""
+
+import importlib.util
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from slotformer_jax import models
+from slotformer_jax.slot_models import savi as savi_lib
+from slotformer_jax.slot_models import steve as steve_lib
+from slotformer_jax.stages import dynamics
+from slotformer_jax.train import sharding
+from tests.pipeline_helpers import load_config
+
+ROOT = os.path.join(os.path.dirname(__file__), '..', '..')
+SCRIPT = os.path.join(ROOT, 'benchmarks', 'tpu_compile.py')
+
+
+def _benchmark():
+  spec = importlib.util.spec_from_file_location('tpu_compile', SCRIPT)
+  module = importlib.util.module_from_spec(spec)
+  spec.loader.exec_module(module)
+  return module
+
+
+def _source(config, fields, length, num_videos=4):
+  """Videos as the stages read them (a list of items works as a source)."""
+  rng = np.random.default_rng(0)
+  height, width = config.data.resolution
+  items = []
+  for _ in range(num_videos):
+    item = {'video': rng.integers(0, 256, (length, height, width, 3),
+                                  np.uint8)}
+    if 'tokens' in fields:
+      grid = models.build_steve(config).token_grid
+      item['tokens'] = rng.integers(0, 8, (length, grid[0] * grid[1]),
+                                    dtype=np.uint16)
+    if 'slots' in fields:
+      num_slots, slot_size = fields['slots']
+      item['slots'] = rng.normal(size=(length, num_slots, slot_size)).astype(
+          np.float32)
+    items.append(item)
+  return items
+
+
+@pytest.mark.parametrize('variant,step', [
+    ('tiny', 'savi'), ('tiny', 'slotformer'), ('steve_tiny', 'dvae'),
+    ('steve_tiny', 'steve')])
+def test_batch_spec_is_what_the_stage_yields(variant, step):
+  """The benchmark's abstract batch has the shapes and dtypes of the batch
+  the real stage's data stream yields (else it compiles another program)."""
+  bench = _benchmark()
+  config = load_config('synthetic', variant)
+  mesh = sharding.make_mesh()
+  length = 12
+  if step == 'savi':
+    stage = savi_lib.savi_stage(config, '/unused', mesh,
+                                _source(config, {}, length))
+  elif step == 'dvae':
+    stage = steve_lib.dvae_stage(config, '/unused', mesh,
+                                 _source(config, {}, length))
+  elif step == 'steve':
+    stage = steve_lib.steve_stage(config, '/unused', mesh,
+                                  _source(config, {'tokens': 1}, length))
+  else:
+    slot_model = savi_lib.Savi(config)
+    source = _source(config, {'slots': slot_model.slot_shape},
+                     (config.slotformer.burn_in + config.slotformer.rollout)
+                     * config.slotformer.frame_stride + 2)
+    stage = dynamics.dynamics_stage(config, '/unused', mesh, 'slotformer',
+                                    slot_model, slot_model.param_shapes(),
+                                    source)
+  batch = next(stage.batches(0))
+  spec = bench.batch_spec(config, step, stage.config.batch_size)
+  assert {k: (v.shape, np.dtype(v.dtype)) for k, v in batch.items()} == {
+      k: (v.shape, np.dtype(v.dtype)) for k, v in spec.items()}
+
+
+def test_without_libtpu_says_so_and_exits_0():
+  if importlib.util.find_spec('libtpu') is not None:
+    pytest.skip('libtpu is installed: the benchmark would compile')
+  result = subprocess.run([sys.executable, SCRIPT], capture_output=True,
+                          text=True, timeout=300, check=False)
+  assert result.returncode == 0, result.stderr
+  assert 'nothing compiled: libtpu is not installed' in result.stdout
+
+
+def test_unknown_config_is_one_error_line():
+  result = subprocess.run([sys.executable, SCRIPT, '--configs=nope'],
+                          capture_output=True, text=True, timeout=300,
+                          check=False)
+  assert result.returncode == 2
+  # (pybullet, imported by a data module, prints its build time first.)
+  assert result.stderr.strip().splitlines()[-1] == (
+      'error: --configs: no configs/nope.py')
+
+
+def test_tiny_savi_step_compiles_for_a_tpu_slice(tmp_path):
+  """With libtpu: the real SAVi train step of the tiny config, through the
+  benchmark's own code path, compiled by XLA:TPU for a v5e 2x2 slice."""
+  pytest.importorskip('libtpu')
+  out = tmp_path / 'rows.json'
+  result = subprocess.run(
+      [sys.executable, SCRIPT, '--topologies=v5e:2x2',
+       '--configs=synthetic:tiny', '--steps=savi', '--dtypes=float32',
+       f'--json={out}'],
+      capture_output=True, text=True, timeout=1200, check=False,
+      env=dict(os.environ, PYTHONPATH=ROOT))
+  assert result.returncode == 0, result.stderr[-2000:]
+  (row,) = json.loads(out.read_text())
+  assert row['status'] == 'compiled' and row['fits']
+  assert row['chips'] == 4 and row['batch'] == 4
+  assert row['device_kind'] == 'TPU v5 lite'
+  assert row['flops'] > 0 and row['bytes_accessed'] > 0
+  # The donated state is aliased to the new one: counted once.
+  assert row['alias_bytes'] > 0
+  assert 0 < row['hbm_bytes'] < row['chip_hbm']
+
+
+@pytest.mark.slow
+def test_gpu_check_smoke_writes_its_table(tmp_path):
+  """benchmarks/gpu_check.sh --smoke on this machine's device (CPU here):
+  the cached-compile phase, the timed run and the table, one case."""
+  result = subprocess.run(
+      ['bash', os.path.join(ROOT, 'benchmarks', 'gpu_check.sh'), '--smoke',
+       str(tmp_path)], capture_output=True, text=True, timeout=1500,
+      check=False, env=dict(os.environ, GPU_CHECK_CASES='obj3d slotformer',
+                            GPU_CHECK_DTYPES='float32',
+                            GPU_CHECK_BUDGET_S='1200',
+                            GPU_CHECK_CASE_TIMEOUT_S='600'))
+  assert result.returncode == 0, result.stderr[-2000:]
+  (row,) = [json.loads(line)
+            for line in (tmp_path / 'gpu_check.jsonl').read_text().splitlines()]
+  assert 'error' not in row, row
+  assert row['step'] == 'slotformer' and row['steps_timed'] == 1
+  assert row['median_seconds'] > 0 and row['flops'] > 0
+  assert row['tflops_per_second'] == pytest.approx(
+      row['flops'] / row['median_seconds'] / 1e12)
+  assert np.isfinite(row['loss'])
+  # The compile phase filled the persistent cache the timed run read.
+  assert any((tmp_path / 'cache').iterdir())
+  table = (tmp_path / 'gpu_check.md').read_text()
+  assert '| synthetic:tiny | slotformer | float32 | 1 |' in table
