@@ -196,6 +196,7 @@ ADDED_FIELDS: dict[str, Any] = {
     'vqa.min_lr_fraction': 0.0,
     'readout.layer_norm_epsilon': 1e-6,
     'readout.dropout_rate': 0.0,
+    'evaluation.skip_first_frame': False,
 }
 
 

@@ -208,6 +208,11 @@ def base_config() -> ml_collections.ConfigDict:
   # pixels) or 'zero' (an id below the frame's largest one but without
   # pixels counts IoU 0: the official convention).
   ev.miou_absent_ids = 'skip'
+  # The slot model's whole-video metrics (FG-ARI, ARI, FG-mIoU, PSNR): over
+  # every frame (False) or leaving out the first (True: the SAVi paper's
+  # MOVi convention, whose conditional SAVi sees that frame's boxes). The
+  # rollout metrics start after the burn-in either way.
+  ev.skip_first_frame = False
 
   # ---- pictures -----------------------------------------------------------
   config.render = ml_collections.ConfigDict(dict(
