@@ -345,6 +345,7 @@ def _only_observation(change: str) -> bool:
   name = change.split(':', 1)[0]
   last = name.rsplit('.', 1)[-1]
   return (last in _NOT_SHAPING or name.startswith('render.')
+          or name == 'logging' or name.startswith('logging.')
           or name in _VARIANT_SELECTORS)
 
 

@@ -214,6 +214,13 @@ def base_config() -> ml_collections.ConfigDict:
   # rollout metrics start after the burn-in either way.
   ev.skip_first_frame = False
 
+  # ---- TensorBoard (train/summaries.py) -----------------------------------
+  # Every training stage writes <stage dir>/tensorboard/ beside its JSONL
+  # log: the logged scalars, and every image_every steps (0: never) its
+  # labelled pictures (reconstruction, slot masks, rollout strip).
+  config.logging = ml_collections.ConfigDict(dict(
+      tensorboard=True, image_every=500))
+
   # ---- pictures -----------------------------------------------------------
   config.render = ml_collections.ConfigDict(dict(
       num_videos=4, fps=6, scale=2, strip_every=2))

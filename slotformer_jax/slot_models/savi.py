@@ -23,6 +23,7 @@ import jax
 from jax.sharding import Mesh
 import jax.numpy as jnp
 import ml_collections
+import numpy as np
 
 from slotformer_jax import inference
 from slotformer_jax import losses
@@ -42,7 +43,9 @@ from slotformer_jax.slot_models.base import SlotModel
 from slotformer_jax.slot_models.base import uses_foreign_stage1
 from slotformer_jax.train import precision
 from slotformer_jax.train import sharding
+from slotformer_jax.evaluation.visualize import mask_overlay
 from slotformer_jax.train import steps
+from slotformer_jax.train import summaries
 from slotformer_jax.train.trainer import Stage
 from slotformer_jax.train.trainer import fit_stage
 
@@ -143,10 +146,37 @@ def train_savi(config: ml_collections.ConfigDict, workdir: str,
           fields=('video',) + slot_model.conditioning_fields,
           process_index=jax.process_index(),
           process_count=jax.process_count()),
+      logging=config.get('logging'),
+      images=_training_images(model),
   )
   fit_stage(stage, mesh=mesh, seed=config.seed, what=slot_model.label,
             identity_fields=identity_fields(config), parent=None,
             model_fields=model_fields(config))
+
+
+def _training_images(model: SAVi):
+  """TensorBoard pictures of the first clip of a training batch: its frames,
+  SAVi's reconstruction and the slot masks over the frames."""
+
+  @jax.jit
+  def run(params, video, boxes):
+    output = model.apply({'params': params}, frames_to_model(video),
+                         boxes=boxes)
+    return (model_to_unit(output.decoded.recon),
+            output.decoded.alpha_masks[..., 0])
+
+  def images(params, batch):
+    video = batch['video'][:1]
+    boxes = batch['boxes'][:1, 0] if 'boxes' in batch else None
+    recon, alpha = jax.device_get(run(params, video, boxes))
+    frames = np.asarray(video[0], np.float32) / 255.0
+    return {'reconstruction': summaries.labelled_grid({
+        'input': video[0],
+        'reconstruction': summaries.to_uint8(recon[0]),
+        'slot masks': summaries.to_uint8(mask_overlay(frames, alpha[0])),
+    })}
+
+  return images
 
 
 class Savi(SlotModel):
