@@ -122,3 +122,27 @@ def test_labelled_grid_rows():
   assert grid.shape == (8, summaries._LABEL_WIDTH + 15, 3)
   np.testing.assert_array_equal(grid[:4, summaries._LABEL_WIDTH:], 0)
   np.testing.assert_array_equal(grid[4:, summaries._LABEL_WIDTH:], 255)
+
+
+def test_logging_settings_never_block_a_workdir(tmp_path):
+  """A workdir from before the logging section, or with TensorBoard turned
+  off or on later, is accepted without --allow_config_change."""
+  from pipeline_helpers import load_config
+  from slotformer_jax import files
+  from slotformer_jax import workdir as workdir_lib
+  config = load_config('synthetic', 'tiny')
+  workdir = str(tmp_path / 'run')
+  workdir_lib.accept_config(config, workdir)
+  path = os.path.join(workdir, 'config.json')
+  saved = files.read_json(path)
+  del saved['logging']
+  del saved['evaluation']['skip_first_frame']
+  files.write_json_atomic(path, saved)
+  assert workdir_lib.accept_config(config, workdir) == []
+  config.logging.tensorboard = False
+  config.logging.image_every = 7
+  assert workdir_lib.accept_config(config, workdir) == []
+  # skip_first_frame=True is a change like any other.
+  config.evaluation.skip_first_frame = True
+  with pytest.raises(Exception, match='evaluation.skip_first_frame'):
+    workdir_lib.accept_config(config, workdir)
