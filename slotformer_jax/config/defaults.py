@@ -49,7 +49,10 @@ def base_config() -> ml_collections.ConfigDict:
   savi.num_slots = 6
   savi.slot_size = 128
   # 'learned': a learned vector per slot (SlotFormer's SAVi); 'gaussian':
-  # slots sampled from one learned Gaussian (the original Slot Attention).
+  # slots sampled from one learned Gaussian (the original Slot Attention);
+  # 'boxes' / 'points': conditional SAVi, slots from the first frame's boxes
+  # (or their centres) through an MLP (hidden 256); slot 0 is a zero
+  # background box, slot 1 + i box row i, so num_slots >= box rows + 1.
   savi.initial_slots = 'learned'
   # padding: 'same' (XLA) or 'pytorch' (K//2 on both sides: the official
   # models; differs from 'same' only at stride 2).
