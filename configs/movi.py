@@ -33,9 +33,10 @@ whole 24-frame video, on MOVi's validation split ('val'; MOVi-A/B have no
 test split, C/D/E's test split holds held-out objects).
 
 Evaluation conventions of SAVi's MOVi numbers, recorded here for the
-evaluation (issue 25 part B): `evaluation.skip_first_frame` and
-`evaluation.fg_ari_protocol` are NOT read by `evaluation/` yet; today SAVi's
-FG-ARI covers every frame of the video (the SAVi repository's convention).
+evaluation: `evaluation.skip_first_frame=True` leaves the first frame out of
+SAVi's whole-video metrics (the SAVi paper's convention; False: every frame,
+the SAVi repository's released numbers); eval/metrics.json records it in
+`protocol.skip_first_frame`.
 
 No MOVi run was measured for this project: these configs were only run end
 to end on the tiny fixture of tests/datasets/test_datasets_movi.py (`:fixture`).
@@ -109,12 +110,11 @@ def get_config(variant: str = 'a'):
   # AR's ground-truth boxes: the converted MOVi boxes (fields boxes /
   # visible, Kubric's boxes of each instance's visible pixels).
   ev.ar_gt_boxes = 'object_masks'
-  # SAVi's MOVi evaluation (recorded, not yet read by evaluation/): FG-ARI
-  # per video over its frames, skipping the first one (the conditioning
-  # frame) as the SAVi paper; False: every frame, as the SAVi repository's
-  # released numbers. fg_ari_protocol names the convention in the results.
+  # SAVi's MOVi evaluation: FG-ARI per video over its frames, skipping the
+  # first one (the conditioning frame) as the SAVi paper; False: every
+  # frame, as the SAVi repository's released numbers. eval/metrics.json
+  # records the choice in protocol.skip_first_frame.
   ev.skip_first_frame = True
-  ev.fg_ari_protocol = 'savi_paper'  # 'savi_repo' with skip_first_frame=False
 
   if fixture:
     _fixture(config)

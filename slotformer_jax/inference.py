@@ -15,7 +15,7 @@ Shapes: slots [B, T, N, D]; video uint8 [B, T, H, W, 3].
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 import logging
 import math
 from typing import Any
@@ -155,7 +155,8 @@ def _padded_clip(video: np.ndarray, num_frames: int) -> np.ndarray:
 
 def encode_videos(source: pipeline.Source, encode_chunk: ChunkFn, *,
                   chunk_length: int, batch_size: int, mesh: Mesh,
-                  desc: str) -> Iterator[tuple[int, np.ndarray]]:
+                  desc: str, conditioning_fields: Sequence[str] = ()
+                  ) -> Iterator[tuple[int, np.ndarray]]:
   """`encode_chunk` over every video of `source`, chunk after chunk.
 
   Each host encodes its own videos (`pipeline.host_batches`: p, p + P, ...)
@@ -163,7 +164,9 @@ def encode_videos(source: pipeline.Source, encode_chunk: ChunkFn, *,
   number of chunks of `chunk_length` frames by repeating their last frame,
   every host running the same number of batches and chunks (the collectives
   of a multi-host run stay in lockstep, also on a host with no video). The
-  carry starts as None for every batch.
+  carry starts as None for every batch, or with `conditioning_fields` as
+  those fields of each video's first frame ({field: [B, ...]}, the fresh
+  start of a conditional slot model).
 
   Yields, on every host, (video index, out [T, ...]) of every video of the
   source (all hosts' results are gathered), T its own number of frames.
@@ -173,7 +176,8 @@ def encode_videos(source: pipeline.Source, encode_chunk: ChunkFn, *,
                                     process_count))
   for batch_index, (indices, valid) in enumerate(tqdm.tqdm(
       plan, desc=desc, disable=process_index != 0)):
-    videos = [source[int(i)]['video'] for i in indices]
+    items = [source[int(i)] for i in indices]
+    videos = [item['video'] for item in items]
     lengths = np.array([len(v) for v in videos])
     num_chunks = math.ceil(lengths.max() / chunk_length)
     if process_count > 1:  # all hosts must run the same number of chunks
@@ -182,6 +186,10 @@ def encode_videos(source: pipeline.Source, encode_chunk: ChunkFn, *,
     padded = np.stack([_padded_clip(v, num_chunks * chunk_length)
                        for v in videos])
     carry, chunks = None, []
+    if conditioning_fields:
+      carry = sharding.to_global_batch(
+          {field: np.stack([np.asarray(item[field][0]) for item in items])
+           for field in conditioning_fields}, mesh)
     for chunk in range(num_chunks):
       frames = padded[:, chunk * chunk_length:(chunk + 1) * chunk_length]
       out, carry = encode_chunk(
@@ -201,7 +209,8 @@ def encode_videos(source: pipeline.Source, encode_chunk: ChunkFn, *,
 
 def encode_videos_into(make_writer: Callable[[], Any], source: pipeline.Source,
                        encode_chunk: ChunkFn, *, chunk_length: int,
-                       batch_size: int, mesh: Mesh, desc: str) -> None:
+                       batch_size: int, mesh: Mesh, desc: str,
+                       conditioning_fields: Sequence[str] = ()) -> None:
   """`encode_videos`, each video's output added to the writer
   `make_writer()` builds on the lead host (a `SlotWriter`, `TokenWriter`:
   `add(index, out)`, `close()`); every host waits until it is closed."""
@@ -209,7 +218,8 @@ def encode_videos_into(make_writer: Callable[[], Any], source: pipeline.Source,
   for index, out in encode_videos(source, encode_chunk,
                                   chunk_length=chunk_length,
                                   batch_size=batch_size, mesh=mesh,
-                                  desc=desc):
+                                  desc=desc,
+                                  conditioning_fields=conditioning_fields):
     if writer is not None:
       writer.add(index, out)
   if writer is not None:

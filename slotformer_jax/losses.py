@@ -35,15 +35,19 @@ def savi_loss(params: Any, batch: Batch, frozen_params: Any, rng: jax.Array,
               *, model: SAVi, kl_weight: float) -> tuple[jax.Array, Metrics]:
   """Frame reconstruction MSE (+ kl_weight * KL for stochastic SAVi).
 
-  batch['video']: uint8 [B, T, H, W, 3]. The KL is summed over the slot
+  batch['video']: uint8 [B, T, H, W, 3] (+ 'boxes' float32 [B, T, O, 4]
+  for conditional SAVi). The KL is summed over the slot
   dimensions and averaged over batch, frames and slots.
   """
   del frozen_params
   video = frames_to_model(batch['video'])
   sample_rng, dropout_rng = jax.random.split(rng)
   # deterministic=False: the predictor's dropout (0.1 officially) is on.
+  # Conditional SAVi starts from the clip's first-frame boxes [B, O, 4].
+  boxes = batch['boxes'][:, 0] if 'boxes' in batch else None
   output = model.apply({'params': params}, video, deterministic=False,
-                       rngs={'sample': sample_rng, 'dropout': dropout_rng})
+                       rngs={'sample': sample_rng, 'dropout': dropout_rng},
+                       boxes=boxes)
   recon_loss = jnp.mean(jnp.square(output.decoded.recon - video))
   kl = jnp.mean(output.kl)
   loss = recon_loss + kl_weight * kl

@@ -196,6 +196,7 @@ ADDED_FIELDS: dict[str, Any] = {
     'vqa.min_lr_fraction': 0.0,
     'readout.layer_norm_epsilon': 1e-6,
     'readout.dropout_rate': 0.0,
+    'evaluation.skip_first_frame': False,
 }
 
 
@@ -343,10 +344,10 @@ def accept_config(config: ml_collections.ConfigDict, workdir: str, *,
 def _only_observation(change: str) -> bool:
   name = change.split(':', 1)[0]
   last = name.rsplit('.', 1)[-1]
-  # The pictures' and the explorer's settings (a whole section too: a
-  # workdir from before the explorer has no `explore` section).
-  return (last in _NOT_SHAPING or name in ('render', 'explore')
-          or name.startswith(('render.', 'explore.'))
+  # The pictures', the explorer's and the logging settings (a whole section
+  # too: a workdir from before the explorer has no `explore` section).
+  return (last in _NOT_SHAPING or name in ('render', 'explore', 'logging')
+          or name.startswith(('render.', 'explore.', 'logging.'))
           or name in _VARIANT_SELECTORS)
 
 

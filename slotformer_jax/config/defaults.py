@@ -49,7 +49,10 @@ def base_config() -> ml_collections.ConfigDict:
   savi.num_slots = 6
   savi.slot_size = 128
   # 'learned': a learned vector per slot (SlotFormer's SAVi); 'gaussian':
-  # slots sampled from one learned Gaussian (the original Slot Attention).
+  # slots sampled from one learned Gaussian (the original Slot Attention);
+  # 'boxes' / 'points': conditional SAVi, slots from the first frame's boxes
+  # (or their centres) through an MLP (hidden 256); slot 0 is a zero
+  # background box, slot 1 + i box row i, so num_slots >= box rows + 1.
   savi.initial_slots = 'learned'
   # padding: 'same' (XLA) or 'pytorch' (K//2 on both sides: the official
   # models; differs from 'same' only at stride 2).
@@ -208,6 +211,18 @@ def base_config() -> ml_collections.ConfigDict:
   # pixels) or 'zero' (an id below the frame's largest one but without
   # pixels counts IoU 0: the official convention).
   ev.miou_absent_ids = 'skip'
+  # The slot model's whole-video metrics (FG-ARI, ARI, FG-mIoU, PSNR): over
+  # every frame (False) or leaving out the first (True: the SAVi paper's
+  # MOVi convention, whose conditional SAVi sees that frame's boxes). The
+  # rollout metrics start after the burn-in either way.
+  ev.skip_first_frame = False
+
+  # ---- TensorBoard (train/summaries.py) -----------------------------------
+  # Every training stage writes <stage dir>/tensorboard/ beside its JSONL
+  # log: the logged scalars, and every image_every steps (0: never) its
+  # labelled pictures (reconstruction, slot masks, rollout strip).
+  config.logging = ml_collections.ConfigDict(dict(
+      tensorboard=True, image_every=500))
 
   # ---- pictures -----------------------------------------------------------
   config.render = ml_collections.ConfigDict(dict(

@@ -330,15 +330,23 @@ def evaluate_slot_model(config: ml_collections.ConfigDict, mesh: Mesh,
   Returns 'psnr' (reconstructing models), 'fg_ari' / 'ari' pooled over each
   whole video and averaged over videos, 'fg_ari_per_frame' and
   'fg_miou_per_frame' (with segmentation), 'num_videos', 'num_frames'.
+  With `evaluation.skip_first_frame` every one of them leaves out frame 0
+  (SAVi's MOVi convention: conditional SAVi is given that frame's boxes);
+  'num_frames' stays the frames encoded per video.
   """
   evaluator = make_quality_evaluator(config, mesh, slot_model,
                                      with_segmentation)
   chunk = config.evaluation.chunk_length
+  first_frame = 1 if config.evaluation.get('skip_first_frame', False) else 0
+  if num_frames <= first_frame:
+    raise ConfigError('evaluation.skip_first_frame=True needs videos of at '
+                      f'least 2 frames, these have {num_frames}')
   absent_ids = config.evaluation.get('miou_absent_ids', 'skip')
   fields = ('slots', 'video') + ((SEGMENTATION_FIELD,) if with_segmentation
                                  else ())
   fg_ari_video, ari_video, miou_frames = [], [], []
   psnr_sum, fg_ari_sum, fg_ari_count, num_valid_frames = 0.0, 0.0, 0, 0
+  num_videos = 0
   has_psnr = False
   for batch in tqdm.tqdm(
       pipeline.eval_batches(source, num_frames=num_frames, **batch_args),
@@ -353,7 +361,8 @@ def evaluate_slot_model(config: ml_collections.ConfigDict, mesh: Mesh,
       if not with_segmentation:
         pieces[SEGMENTATION_FIELD] = np.zeros(pieces['video'].shape[:2],
                                               np.uint8)
-      frame_valid = np.arange(start, start + chunk) < num_frames
+      frame_index = np.arange(start, start + chunk)
+      frame_valid = (frame_index < num_frames) & (frame_index >= first_frame)
       pieces['frame_valid'] = np.broadcast_to(
           frame_valid, (len(batch['mask']), chunk)).copy()
       pieces = sharding.to_global_batch(pieces, mesh)
@@ -372,7 +381,8 @@ def evaluate_slot_model(config: ml_collections.ConfigDict, mesh: Mesh,
     if 'psnr_sum' in totals:
       has_psnr = True
       psnr_sum += float(totals['psnr_sum'][mask].sum())
-    num_valid_frames += int(mask.sum()) * num_frames
+    num_videos += int(mask.sum())
+    num_valid_frames += int(mask.sum()) * (num_frames - first_frame)
     if with_segmentation:
       table = totals['table'][mask]
       fg_ari_video += list(np.asarray(metrics_lib.ari_from_contingency(
@@ -384,8 +394,7 @@ def evaluate_slot_model(config: ml_collections.ConfigDict, mesh: Mesh,
   results = {}
   if has_psnr:
     results['psnr'] = psnr_sum / max(num_valid_frames, 1)
-  results.update(num_videos=num_valid_frames // max(num_frames, 1),
-                 num_frames=num_frames)
+  results.update(num_videos=num_videos, num_frames=num_frames)
   if with_segmentation:
     results.update(
         fg_ari=float(np.mean(fg_ari_video)),
@@ -559,6 +568,10 @@ def evaluate(config: ml_collections.ConfigDict, workdir: str, mesh: Mesh,
                                                   'segmentation'),
                    'miou_absent_ids': eval_config.get('miou_absent_ids',
                                                       'skip'),
+                   # The slot model's whole-video metrics without frame 0
+                   # (SAVi paper) or over every frame.
+                   'skip_first_frame': bool(eval_config.get(
+                       'skip_first_frame', False)),
                    'masks': slot_model.mask_source},
       'checkpoints': {
           **{f'{key}_step': step for key, step in slot_steps.items()},
@@ -689,7 +702,9 @@ def format_table(results: dict[str, Any]) -> str:
   if 'psnr' in quality:
     parts.append(f'PSNR {quality["psnr"]:.2f} dB')
   if parts:
-    lines.append(f'{label} on the whole videos: ' + ', '.join(parts))
+    skipped = (' (first frame skipped)'
+               if protocol.get('skip_first_frame') else '')
+    lines.append(f'{label} on the whole videos{skipped}: ' + ', '.join(parts))
   else:
     lines.append(f'{label} on the whole videos: not evaluated '
                  '(evaluation.savi_metrics=False)')

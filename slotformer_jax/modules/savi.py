@@ -1,4 +1,5 @@
-"""SAVi: Slot Attention for Video (Kipf et al., 2022), unconditional variant.
+"""SAVi: Slot Attention for Video (Kipf et al., 2022), unconditional or
+conditioned on the first frame's boxes / centre points.
 
 SAVi is composed from its parts, each chosen by a field:
   encoder    CNN -> position embedding -> LayerNorm + MLP (`CNNEncoder`);
@@ -9,9 +10,11 @@ SAVi is composed from its parts, each chosen by a field:
   decoder    spatial broadcast (`SpatialBroadcastDecoder`).
 Per frame t: CNN features h_t; S~'_t = head(S~_t); slots S_t =
 SlotAttention(S~'_t, h_t); the next frame's initial slots S~_{t+1} =
-f_trans(S_t); S~_1 are learned vectors. Each frame's slots are decoded by
-the decoder. With `stochastic=True` the head samples from the Gaussian it
-predicts (stochastic SAVi). docs/official_architectures.md lists which
+f_trans(S_t); S~_1 are learned vectors, Gaussian draws, or (conditional
+SAVi, `initial_slots` 'boxes' / 'points') an MLP of the first frame's
+object boxes or their centres (`CoordinateSlotInit`). Each frame's slots
+are decoded by the decoder. With `stochastic=True` the head samples from
+the Gaussian it predicts (stochastic SAVi). docs/official_architectures.md lists which
 choices reproduce each official model.
 
 Shapes: video [batch, time, height, width, 3] in [-1, 1];
@@ -146,6 +149,55 @@ def build_predictor(kind: str, *, num_layers: int, num_heads: int,
       layer_norm_epsilon=layer_norm_epsilon, name=name)
 
 
+LEARNED = 'learned'
+GAUSSIAN = 'gaussian'
+BOXES = 'boxes'
+POINTS = 'points'
+INITIAL_SLOTS = (LEARNED, GAUSSIAN, BOXES, POINTS)
+CONDITIONAL = (BOXES, POINTS)
+
+
+def conditioning_coordinates(boxes: jax.Array, num_slots: int,
+                             kind: str) -> jax.Array:
+  """The per-slot coordinates conditional SAVi embeds.
+
+  boxes [B, O, 4] (ymin, xmin, ymax, xmax) normalised, an absent object all
+  zeros (SAVi's padding box) -> [B, num_slots, 4] ('boxes') or [B,
+  num_slots, 2] ('points': the box centres (y, x)). Slot 0 gets a zero
+  background box (as SAVi's `prepend_background`), slot 1 + i object row i,
+  rows past the objects zero boxes (as SAVi pads to its max_instances).
+  """
+  batch, rows = boxes.shape[:2]
+  if rows + 1 > num_slots:
+    raise ValueError(f'conditional SAVi needs a slot per box row plus one '
+                     f'for the background: {rows} box rows, {num_slots} '
+                     'slots')
+  coords = jnp.concatenate([
+      jnp.zeros((batch, 1, 4), boxes.dtype), boxes,
+      jnp.zeros((batch, num_slots - rows - 1, 4), boxes.dtype)], axis=1)
+  if kind == POINTS:
+    coords = jnp.stack([(coords[..., 0] + coords[..., 2]) / 2,
+                        (coords[..., 1] + coords[..., 3]) / 2], axis=-1)
+  return coords
+
+
+class CoordinateSlotInit(nn.Module):
+  """Initial slots from coordinates: Linear -> ReLU -> Linear, per slot.
+
+  SAVi's conditional initialiser (`CoordinateEncoderStateInit` with an MLP
+  of hidden size 256 and no LayerNorm in its MOVi configs).
+  """
+
+  slot_size: int
+  hidden_size: int = 256
+
+  @nn.compact
+  def __call__(self, coords: jax.Array) -> jax.Array:
+    """coords [B, N, 4 or 2] -> slots [B, N, slot_size]."""
+    hidden = nn.relu(nn.Dense(self.hidden_size, name='hidden')(coords))
+    return nn.Dense(self.slot_size, name='out')(hidden)
+
+
 class SAViStep(nn.Module):
   """One frame of SAVi: posterior head, correct, predict."""
 
@@ -215,7 +267,8 @@ class SAVi(nn.Module):
     posterior_head: 'none', 'linear' or 'mlp' (see GaussianSlotSampler).
     decoder_*: the spatial-broadcast decoder.
     stochastic, prior_sigma: stochastic SAVi (needs a posterior head).
-    initial_slots: 'learned' or 'gaussian' (see `initial_carry`).
+    initial_slots: one of INITIAL_SLOTS (see `initial_carry`).
+    conditioning_mlp_size: hidden size of the conditional initialiser.
     layer_norm_epsilon: of every LayerNorm (1e-5 in the official models).
   """
 
@@ -242,7 +295,8 @@ class SAVi(nn.Module):
   decoder_kernel_size: int = 5
   stochastic: bool = False
   prior_sigma: float = 0.1
-  initial_slots: str = 'learned'
+  initial_slots: str = LEARNED
+  conditioning_mlp_size: int = 256
   layer_norm_epsilon: float = 1e-6
 
   def setup(self):
@@ -257,11 +311,14 @@ class SAVi(nn.Module):
         strides=self.encoder_strides, output_size=self.encoder_size,
         padding=self.encoder_padding,
         layer_norm_epsilon=self.layer_norm_epsilon)
-    if self.initial_slots == 'learned':
+    if self.initial_slots == LEARNED:
       self.slot_init = self.param(
           'initial_slots', nn.initializers.normal(stddev=1.0),
           (self.num_slots, self.slot_size))
-    elif self.initial_slots == 'gaussian':
+    elif self.initial_slots in CONDITIONAL:
+      self.slot_init_mlp = CoordinateSlotInit(
+          self.slot_size, self.conditioning_mlp_size)
+    elif self.initial_slots == GAUSSIAN:
       self.slot_init_mean = self.param(
           'initial_slots_mean', nn.initializers.normal(stddev=1.0),
           (self.slot_size,))
@@ -290,16 +347,26 @@ class SAVi(nn.Module):
         broadcast_resolution=tuple(self.decoder_broadcast_resolution),
         features=self.decoder_features, kernel_size=self.decoder_kernel_size)
 
-  def initial_carry(self, batch_size: int) -> SAViCarry:
+  def initial_carry(self, batch_size: int,
+                    boxes: jax.Array | None = None) -> SAViCarry:
     """The first frame's initial slots (+ zero LSTM state).
 
     'learned': one learned vector per slot (SlotFormer's SAVi), so slot n
     starts the same way in every video. 'gaussian': every slot drawn from one
     learned Gaussian (the original Slot Attention; draws from the 'sample'
     RNG), so slots are exchangeable and cannot specialise by position.
+    'boxes' / 'points' (conditional SAVi): slot 1 + i embeds the first
+    frame's box i [B, O, 4] (or its centre), slot 0 the background (see
+    `conditioning_coordinates`); `boxes` is required then, ignored otherwise.
     """
     shape = (batch_size, self.num_slots, self.slot_size)
-    if self.initial_slots == 'learned':
+    if self.initial_slots in CONDITIONAL:
+      if boxes is None:
+        raise ValueError(f"initial_slots={self.initial_slots!r} needs the "
+                         "first frame's boxes")
+      slots = self.slot_init_mlp(conditioning_coordinates(
+          boxes.astype(jnp.float32), self.num_slots, self.initial_slots))
+    elif self.initial_slots == LEARNED:
       slots = jnp.broadcast_to(self.slot_init, shape)
     else:
       noise = jax.random.normal(self.make_rng('sample'), shape)
@@ -309,17 +376,18 @@ class SAVi(nn.Module):
     return slots, initial_lstm_state(slots, lstm_size)
 
   def encode(self, video: jax.Array, carry: SAViCarry | None = None, *,
-             deterministic: bool = True):
+             deterministic: bool = True, boxes: jax.Array | None = None):
     """video [B, T, H, W, 3] -> (slots [B,T,N,D], kl [B,T,N], carry).
 
-    `carry` continues a video from an earlier chunk (None: start fresh).
+    `carry` continues a video from an earlier chunk (None: start fresh, from
+    `boxes` [B, O, 4] of the first frame for conditional SAVi).
     `deterministic=False` enables the predictor's dropout ('dropout' RNG).
     """
     batch, time = video.shape[:2]
     features = self.encoder(video.reshape(batch * time, *video.shape[2:]))
     features = features.reshape(batch, time, *features.shape[1:])
     if carry is None:
-      carry = self.initial_carry(batch)
+      carry = self.initial_carry(batch, boxes)
     scan = nn.scan(
         lambda step, c, x: step(c, x, deterministic=deterministic),
         variable_broadcast='params',
@@ -334,7 +402,9 @@ class SAVi(nn.Module):
 
   def __call__(self, video: jax.Array, carry: SAViCarry | None = None,
                decode: bool = True, *,
-               deterministic: bool = True) -> SAViOutput:
-    slots, kl, carry = self.encode(video, carry, deterministic=deterministic)
+               deterministic: bool = True,
+               boxes: jax.Array | None = None) -> SAViOutput:
+    slots, kl, carry = self.encode(video, carry, deterministic=deterministic,
+                                   boxes=boxes)
     decoded = self.decode(slots) if decode else None
     return SAViOutput(slots=slots, kl=kl, decoded=decoded, carry=carry)

@@ -92,6 +92,8 @@ class SlotModel(abc.ABC):
       {mode: (config, workdir, mesh) -> None}.
     mask_source: where the alpha masks of `decode` and `observe` come from.
     compute_dtypes: the `compute_dtype` values its decoding supports.
+    conditioning_fields: video fields whose first frame starts its slots
+      (conditional SAVi: ('boxes',)); () for an unconditional model.
   """
 
   name: ClassVar[str]
@@ -108,6 +110,10 @@ class SlotModel(abc.ABC):
     self.config = config
 
   # ---- what it is --------------------------------------------------------
+
+  @property
+  def conditioning_fields(self) -> tuple[str, ...]:
+    return ()
 
   @property
   @abc.abstractmethod
@@ -158,8 +164,10 @@ class SlotModel(abc.ABC):
              carry: Any) -> tuple[jax.Array, Any]:
     """uint8 video [B, T, H, W, 3] -> (slots [B, T, N, D], carry).
 
-    `carry` (None: fresh) continues the state of the previous chunk of the
-    same videos; `rng` is for stochastic models (same key: same slots).
+    `carry` continues the state of the previous chunk of the same videos;
+    a fresh start is None, or, for a model with `conditioning_fields`, a
+    dict of those fields of the first frame ({'boxes': [B, O, 4]}). `rng` is
+    for stochastic models (same key: same slots).
     """
 
   @abc.abstractmethod

@@ -23,6 +23,7 @@ import jax
 from jax.sharding import Mesh
 import jax.numpy as jnp
 import ml_collections
+import numpy as np
 
 from slotformer_jax import inference
 from slotformer_jax import losses
@@ -30,9 +31,11 @@ from slotformer_jax import models
 from slotformer_jax import workdir as workdir_lib
 from slotformer_jax.data import pipeline
 from slotformer_jax.data.sources import get_video_source
+from slotformer_jax.errors import ConfigError
 from slotformer_jax.frames import frames_to_model
 from slotformer_jax.frames import model_to_unit
 from slotformer_jax.modules import initializers
+from slotformer_jax.modules import savi as savi_modules
 from slotformer_jax.modules.savi import SAVi
 from slotformer_jax.slot_models.base import Decoded
 from slotformer_jax.slot_models.base import Loaded
@@ -40,7 +43,9 @@ from slotformer_jax.slot_models.base import SlotModel
 from slotformer_jax.slot_models.base import uses_foreign_stage1
 from slotformer_jax.train import precision
 from slotformer_jax.train import sharding
+from slotformer_jax.evaluation.visualize import mask_overlay
 from slotformer_jax.train import steps
+from slotformer_jax.train import summaries
 from slotformer_jax.train.trainer import Stage
 from slotformer_jax.train.trainer import fit_stage
 
@@ -77,11 +82,46 @@ def _example_clip(config: ml_collections.ConfigDict) -> jax.Array:
                    jnp.float32)
 
 
+def is_conditional(config: ml_collections.ConfigDict) -> bool:
+  """Conditional SAVi: slots start from the first frame's boxes / points."""
+  return config.savi.initial_slots in savi_modules.CONDITIONAL
+
+
+def _example_inputs(config: ml_collections.ConfigDict) -> dict[str, Any]:
+  """Keyword inputs besides the clip that `SAVi.init` needs (the shapes of
+  the conditional initialiser do not depend on the number of box rows)."""
+  if not is_conditional(config):
+    return {}
+  return {'boxes': jnp.zeros((1, config.savi.num_slots - 1, 4), jnp.float32)}
+
+
+def check_conditioning(config: ml_collections.ConfigDict, source: Any,
+                       split: str) -> None:
+  """Conditional SAVi needs boxes in the data and a slot per box row plus
+  the background slot."""
+  if not is_conditional(config) or not len(source):
+    return
+  item = source[0]
+  option = f'savi.initial_slots={config.savi.initial_slots!r}'
+  if 'boxes' not in item:
+    raise ConfigError(
+        f'{option} conditions the slots on boxes, but the {split} videos of '
+        f'data.name={config.data.name!r} have none; use '
+        "--config.savi.initial_slots=learned")
+  rows = item['boxes'].shape[1]
+  if rows + 1 > config.savi.num_slots:
+    raise ConfigError(
+        f'{option}: the data has {rows} box rows, which with the background '
+        f'slot need savi.num_slots >= {rows + 1} (it is '
+        f'{config.savi.num_slots}); set --config.savi.num_slots={rows + 1}')
+
+
 def savi_stage(config: ml_collections.ConfigDict, workdir: str, mesh: Mesh,
                source: Any) -> Stage:
   """SAVi's training stage on `source` (the 'train' videos; only its
   `batches` read it)."""
-  model = models.build_savi(config)
+  slot_model = Savi(config)
+  model = slot_model.model
   stage_config = config.savi
   local_batch_size = sharding.per_host_batch_size(stage_config.batch_size, mesh)
   return Stage(
@@ -93,14 +133,18 @@ def savi_stage(config: ml_collections.ConfigDict, workdir: str, mesh: Mesh,
           kl_weight=stage_config.kl_weight if stage_config.stochastic else 0.0),
           config.compute_dtype),
       init_params=lambda rng: initializers.initialize(
-          steps.init_params(model, rng, _example_clip(config)),
+          steps.init_params(model, rng, _example_clip(config),
+                            **_example_inputs(config)),
           jax.random.fold_in(rng, 1), stage_config.init),
       batches=lambda start_step: pipeline.train_batches(
           source, batch_size=local_batch_size,
           clip_length=stage_config.clip_length, seed=config.seed,
-          start_step=start_step, fields=('video',),
+          start_step=start_step,
+          fields=('video',) + slot_model.conditioning_fields,
           process_index=jax.process_index(),
           process_count=jax.process_count()),
+      logging=config.get('logging'),
+      images=_training_images(model),
   )
 
 
@@ -110,11 +154,37 @@ def train_savi(config: ml_collections.ConfigDict, workdir: str,
   slot_model = Savi(config)
   if uses_foreign_stage1(slot_model, workdir, mesh, 'SAVi'):
     return
-  stage = savi_stage(config, workdir, mesh,
-                     get_video_source(config.data, 'train'))
+  source = get_video_source(config.data, 'train')
+  check_conditioning(config, source, 'train')
+  stage = savi_stage(config, workdir, mesh, source)
   fit_stage(stage, mesh=mesh, seed=config.seed, what=slot_model.label,
             identity_fields=identity_fields(config), parent=None,
             model_fields=model_fields(config))
+
+
+def _training_images(model: SAVi):
+  """TensorBoard pictures of the first clip of a training batch: its frames,
+  SAVi's reconstruction and the slot masks over the frames."""
+
+  @jax.jit
+  def run(params, video, boxes):
+    output = model.apply({'params': params}, frames_to_model(video),
+                         boxes=boxes)
+    return (model_to_unit(output.decoded.recon),
+            output.decoded.alpha_masks[..., 0])
+
+  def images(params, batch):
+    video = batch['video'][:1]
+    boxes = batch['boxes'][:1, 0] if 'boxes' in batch else None
+    recon, alpha = jax.device_get(run(params, video, boxes))
+    frames = np.asarray(video[0], np.float32) / 255.0
+    return {'reconstruction': summaries.labelled_grid({
+        'input': video[0],
+        'reconstruction': summaries.to_uint8(recon[0]),
+        'slot masks': summaries.to_uint8(mask_overlay(frames, alpha[0])),
+    })}
+
+  return images
 
 
 class Savi(SlotModel):
@@ -139,8 +209,13 @@ class Savi(SlotModel):
   def num_train_steps(self) -> dict[str, int]:
     return {NAME: self.config.savi.num_train_steps}
 
+  @property
+  def conditioning_fields(self) -> tuple[str, ...]:
+    return ('boxes',) if is_conditional(self.config) else ()
+
   def param_shapes(self) -> Any:
-    return inference.param_shapes(self.model, _example_clip(self.config))
+    return inference.param_shapes(self.model, _example_clip(self.config),
+                                  **_example_inputs(self.config))
 
   def check_identity(self, workdir: str) -> dict[str, Any]:
     root = workdir_lib.stage1_workdir(self.config, workdir)
@@ -169,9 +244,12 @@ class Savi(SlotModel):
 
   def encode(self, params: Any, video: jax.Array, rng: jax.Array,
              carry: Any) -> tuple[jax.Array, Any]:
+    boxes = None
+    if isinstance(carry, dict):  # a fresh start, conditioned on these
+      boxes, carry = carry.get('boxes'), None
     slots, _, carry = self.model.apply(
         {'params': params}, frames_to_model(video), carry,
-        method=SAVi.encode, rngs={'sample': rng})
+        method=SAVi.encode, rngs={'sample': rng}, boxes=boxes)
     return slots, carry
 
   def decode(self, params: Any, slots: jax.Array,

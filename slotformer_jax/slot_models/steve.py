@@ -381,7 +381,7 @@ def dvae_stage(config: ml_collections.ConfigDict, workdir: str,
       loss_fn=functools.partial(losses.dvae_loss, model=model),
       init_params=lambda rng: steps.init_params(model, rng,
                                                 *_dvae_example(config)),
-      batches=batches)
+      batches=batches, logging=config.get('logging'))
 
 
 def train_dvae(config: ml_collections.ConfigDict, workdir: str,
@@ -452,7 +452,8 @@ def steve_stage(config: ml_collections.ConfigDict, workdir: str,
           clip_length=stage_config.clip_length, seed=config.seed,
           start_step=start_step, fields=('video', 'tokens'),
           process_index=jax.process_index(),
-          process_count=jax.process_count()))
+          process_count=jax.process_count()),
+      logging=config.get('logging'))
 
 
 def train_steve(config: ml_collections.ConfigDict, workdir: str,

@@ -14,7 +14,9 @@ from typing import Any
 
 import jax
 from jax.sharding import Mesh
+import jax.numpy as jnp
 import ml_collections
+import numpy as np
 
 from slotformer_jax import inference
 from slotformer_jax import losses
@@ -27,6 +29,7 @@ from slotformer_jax.modules import initializers
 from slotformer_jax.train import precision
 from slotformer_jax.train import sharding
 from slotformer_jax.train import steps
+from slotformer_jax.train import summaries
 from slotformer_jax.train.trainer import Stage
 from slotformer_jax.train.trainer import fit_stage
 
@@ -86,6 +89,11 @@ def dynamics_stage(config: ml_collections.ConfigDict, workdir: str,
           process_index=jax.process_index(),
           process_count=jax.process_count()),
       frozen_params=decoder_params,
+      logging=config.get('logging'),
+      images=(_rollout_images(slot_model, loaded.params, model,
+                              stage_config.burn_in, rollout, name)
+              if slot_model.image_decoder(loaded.params) is not None
+              else None),
   )
 
 
@@ -107,6 +115,33 @@ def train_dynamics(config: ml_collections.ConfigDict, workdir: str,
             identity_fields=workdir_lib.dynamics_identity_fields(config, name),
             parent=parent,
             model_fields=workdir_lib.dynamics_model_fields(config, name))
+
+
+def _rollout_images(slot_model, slot_params, model, burn_in: int,
+                    rollout: int, name: str):
+  """TensorBoard rollout strip of the first clip of a training batch: its
+  frames (when the batch has them), its extracted slots decoded, and the
+  burn-in slots followed by the model's rollout, decoded (slot models with
+  a pixel decoder only)."""
+
+  @jax.jit
+  def run(params, slots):
+    predicted = inference.rollout_slots(params, slots[:, :burn_in],
+                                        model=model, num_steps=rollout)
+    both = jnp.concatenate([slots, jnp.concatenate(
+        [slots[:, :burn_in], predicted], axis=1)])
+    return slot_model.decode(slot_params, both).recon
+
+  def images(params, batch):
+    recon = np.asarray(jax.device_get(run(params, batch['slots'][:1])))
+    rows = {}
+    if 'video' in batch:
+      rows['real frames'] = batch['video'][0]
+    rows['slots decoded'] = summaries.to_uint8(recon[0])
+    rows[f'burn-in {burn_in} + {name}'] = summaries.to_uint8(recon[1])
+    return {'rollout': summaries.labelled_grid(rows)}
+
+  return images
 
 
 def train_slotformer(config: ml_collections.ConfigDict, workdir: str,

@@ -68,6 +68,7 @@ def extract_slots(config: ml_collections.ConfigDict, workdir: str,
         lambda: SlotWriter(directory, len(source), num_slots, slot_size,
                            loaded.step, parent=parent, fields=slot_fields),
         source, encode_chunk, chunk_length=config.extraction.chunk_length,
-        batch_size=local_batch_size, mesh=mesh, desc=f'extract {split}')
+        batch_size=local_batch_size, mesh=mesh, desc=f'extract {split}',
+        conditioning_fields=slot_model.conditioning_fields)
     logger.info('extracted %s slots of %d %s videos', slot_model.label,
                 len(source), split)

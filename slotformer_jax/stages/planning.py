@@ -50,6 +50,10 @@ class SlotFeatures:
       raise ConfigError('planning observes the first frame only: set '
                         'slotformer.burn_in = 1')
     slot_model = slot_models.get(config)
+    if slot_model.conditioning_fields:
+      raise ConfigError(
+          'planning observes rendered first frames without boxes: it needs '
+          'an unconditional slot model (savi.initial_slots=learned)')
     slot_params = slot_model.load(workdir, mesh).params
     dynamics_params, step = inference.load_dynamics_params(
         config, workdir, mesh, models.SLOTFORMER, slot_model.slot_shape)

@@ -223,7 +223,8 @@ def train_vqa(config: ml_collections.ConfigDict, workdir: str,
       init_params=lambda rng: {'params': init(rng)},
       batches=lambda start_step: batches.train_batches(
           open_size, choice_size, seed=seed + jax.process_index() * 7919,
-          start_step=start_step))
+          start_step=start_step),
+      logging=config.get('logging'))
   fit(stage, mesh=mesh, seed=seed)
 
 

@@ -44,6 +44,7 @@ from slotformer_jax.train import sharding
 from slotformer_jax.train.checkpoint import Checkpointer
 from slotformer_jax.train.checkpoint import abstract_like
 from slotformer_jax.train.state import TrainState
+from slotformer_jax.train.summaries import Summaries
 from slotformer_jax.train.steps import LossFn
 from slotformer_jax.train.steps import train_step
 
@@ -67,6 +68,10 @@ class Stage:
     init_params: rng -> params.
     batches: start_step -> iterator of this host's batches.
     frozen_params: parameters used but not trained (SAVi's decoder).
+    logging: the root config's `logging` section (TensorBoard; None: off).
+    images: (params on the host, this step's host batch) -> {name: uint8
+      [H, W, 3] labelled picture}, written to TensorBoard every
+      `logging.image_every` steps; None: scalars only.
   """
 
   name: str
@@ -76,6 +81,9 @@ class Stage:
   init_params: Callable[[jax.Array], Any]
   batches: Callable[[int], Iterator[dict[str, np.ndarray]]]
   frozen_params: Any = None
+  logging: ml_collections.ConfigDict | None = None
+  images: Callable[[Any, dict[str, np.ndarray]],
+                   dict[str, np.ndarray]] | None = None
 
 
 class Preempted(UserError):
@@ -178,6 +186,7 @@ def fit(stage: Stage, *, mesh: Mesh, seed: int) -> TrainState:
   frozen_params = sharding.replicate(stage.frozen_params, mesh)
 
   log_path = os.path.join(stage.directory, 'train_log.jsonl')
+  summaries = Summaries(stage.directory, stage.logging, is_lead_host)
   batches = stage.batches(start_step)
   last_log_time, last_log_step = time.time(), start_step
   failed = False
@@ -186,7 +195,8 @@ def fit(stage: Stage, *, mesh: Mesh, seed: int) -> TrainState:
                    disable=not is_lead_host, dynamic_ncols=True) as progress, \
          _TermFlag() as term:
       for step in range(start_step, num_steps):
-        batch = sharding.to_global_batch(next(batches), mesh)
+        host_batch = next(batches)
+        batch = sharding.to_global_batch(host_batch, mesh)
         state, metrics = update(state, batch, frozen_params)
         progress.update(1)
         done = step + 1
@@ -214,6 +224,10 @@ def fit(stage: Stage, *, mesh: Mesh, seed: int) -> TrainState:
               f'{k}={v:.4g}' for k, v in sorted(metrics.items())))
           if is_lead_host:
             append_line_atomic(log_path, json.dumps({'step': done, **metrics}))
+          summaries.scalars(done, metrics)
+        if stage.images is not None and summaries.wants_images(done):
+          summaries.images(done, stage.images(
+              _host_copy(state.params), host_batch))
         if should_save:
           failed = True  # until the save is handed over without error
           checkpointer.save(done, state, force=done == num_steps or preempted)
@@ -242,7 +256,13 @@ def fit(stage: Stage, *, mesh: Mesh, seed: int) -> TrainState:
             f'step ({checkpointer.last_saved_step()}).') from None
     finally:
       checkpointer.close()
+      summaries.close()
   return state
+
+
+def _host_copy(params: Any) -> Any:
+  """This host's copy of replicated parameters, as numpy (no collective)."""
+  return jax.tree.map(lambda x: np.asarray(x.addressable_data(0)), params)
 
 
 def fit_stage(stage: Stage, *, mesh: Mesh, seed: int, what: str,

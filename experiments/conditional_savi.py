@@ -1,0 +1,130 @@
+"""Conditional vs unconditional SAVi on the embedded data (issue 25).
+Answered (numbers, commands, machine) in docs/experiments/conditional_savi.md.
+
+Trains SAVi on configs/synthetic.py (32x32, 2-3 static objects + a launched
+sphere) with `savi.initial_slots` 'learned' (unconditional, SlotFormer's
+SAVi) and 'boxes' (slots started from the first frame's boxes, SAVi's
+conditional model) at the same budget (`--steps` updates, same batch, clip
+and learning rate) for each seed, extracts the slots of the test videos
+through the pipeline's own stages and scores them with the pipeline's own
+whole-video evaluation (`evaluation.evaluate_slot_model`), once over every
+frame and once skipping the first (SAVi paper). Prints a markdown table and
+writes every number to --out/results.json.
+
+  nice -n 10 python experiments/conditional_savi.py --steps=500 --seeds=0,1 \\
+      --out=/work/scratch-cond/conditional_savi
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import json
+import os
+import time
+
+import numpy as np
+
+from slotformer_jax import slot_models
+from slotformer_jax import workdir as workdir_lib
+from slotformer_jax.evaluation import evaluate
+from slotformer_jax.stages import extract
+from slotformer_jax.train import sharding
+
+KINDS = ('learned', 'boxes')
+METRICS = ('fg_ari', 'fg_ari_per_frame', 'fg_miou_per_frame', 'ari', 'psnr')
+
+
+def _config(kind: str, seed: int, steps: int):
+  spec = importlib.util.spec_from_file_location(
+      'synthetic', os.path.join(os.path.dirname(__file__), '..', 'configs',
+                                'synthetic.py'))
+  module = importlib.util.module_from_spec(spec)
+  spec.loader.exec_module(module)
+  config = module.get_config()
+  config.seed = seed
+  config.savi.initial_slots = kind
+  config.savi.num_train_steps = steps
+  config.savi.checkpoint_every = steps
+  config.extraction.splits = ('test',)
+  return config
+
+
+def run(kind: str, seed: int, steps: int, out: str) -> dict:
+  config = _config(kind, seed, steps)
+  workdir = os.path.join(out, f'{kind}_seed{seed}')
+  mesh = sharding.make_mesh()
+  workdir_lib.accept_config(config, workdir)
+  slot_model = slot_models.get(config)
+  started = time.time()
+  slot_model.stage1['train_savi'](config, workdir, mesh)
+  train_seconds = time.time() - started
+  extract.extract_slots(config, workdir, mesh)
+  params = slot_model.load(workdir, mesh).params
+  split = config.evaluation.split
+  source = workdir_lib.slot_source_for(config, workdir, split,
+                                       ('video', 'segmentations'))
+  num_frames = config.data.num_frames
+  result = {'kind': kind, 'seed': seed, 'steps': steps,
+            'train_seconds': train_seconds, 'num_videos': len(source)}
+  for skip in (False, True):
+    config.evaluation.skip_first_frame = skip
+    scores = evaluate.evaluate_slot_model(
+        config, mesh, slot_model, params, source, num_frames,
+        batch_size=sharding.per_host_batch_size(
+            config.evaluation.batch_size, mesh),
+        fields=('slots', 'video', 'segmentations'))
+    result['skip_first' if skip else 'all_frames'] = {
+        name: scores[name] for name in METRICS}
+  print(json.dumps(result), flush=True)
+  return result
+
+
+def _table(results: list[dict]) -> str:
+  lines = ['| initial slots | seed | FG-ARI (all frames) | FG-ARI (skip '
+           'first) | FG-ARI per frame | FG-mIoU per frame | ARI | PSNR |',
+           '|---|---|---|---|---|---|---|---|']
+  for r in results:
+    a, s = r['all_frames'], r['skip_first']
+    lines.append(f'| {r["kind"]} | {r["seed"]} | {a["fg_ari"]:.3f} | '
+                 f'{s["fg_ari"]:.3f} | {a["fg_ari_per_frame"]:.3f} | '
+                 f'{a["fg_miou_per_frame"]:.3f} | {a["ari"]:.3f} | '
+                 f'{a["psnr"]:.2f} |')
+  for kind in KINDS:
+    rows = [r for r in results if r['kind'] == kind]
+    if not rows:
+      continue
+    cells = []
+    for convention, name in (('all_frames', 'fg_ari'),
+                             ('skip_first', 'fg_ari'),
+                             ('all_frames', 'fg_ari_per_frame'),
+                             ('all_frames', 'fg_miou_per_frame'),
+                             ('all_frames', 'ari')):
+      values = [r[convention][name] for r in rows]
+      cells.append(f'{np.mean(values):.3f} +- {np.std(values):.3f}')
+    psnr = [r['all_frames']['psnr'] for r in rows]
+    lines.append(f'| **{kind}, mean +- std** | {len(rows)} seeds | '
+                 + ' | '.join(cells) + f' | {np.mean(psnr):.2f} |')
+  return '\n'.join(lines)
+
+
+def main() -> None:
+  parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+  parser.add_argument('--steps', type=int, default=500)
+  parser.add_argument('--seeds', default='0,1')
+  parser.add_argument('--kinds', default=','.join(KINDS))
+  parser.add_argument('--out', required=True)
+  args = parser.parse_args()
+  results = []
+  path = os.path.join(args.out, 'results.json')
+  for seed in [int(s) for s in args.seeds.split(',')]:
+    for kind in args.kinds.split(','):
+      results.append(run(kind, seed, args.steps, args.out))
+      os.makedirs(args.out, exist_ok=True)
+      with open(path, 'w') as f:
+        json.dump(results, f, indent=1)
+  print(_table(results))
+
+
+if __name__ == '__main__':
+  main()

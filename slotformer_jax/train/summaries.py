@@ -1,0 +1,111 @@
+"""TensorBoard summaries of a training stage, beside its JSONL log.
+
+`<stage dir>/tensorboard/` gets, at every logged step, the scalars of the
+JSONL line (losses, learning rate, grad / param norms, steps per second and
+seconds per step) under `train/<name>`, and every `logging.image_every`
+steps the stage's pictures (`Stage.images`: a reconstruction, its slot
+masks, a rollout strip) as labelled grids under `images/<name>`. Written
+with tensorboardX (it needs no TensorFlow); `logging.tensorboard = False`
+writes nothing. Only the lead host writes.
+
+    tensorboard --logdir <workdir>
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+import os
+from typing import Any
+
+import ml_collections
+import numpy as np
+from PIL import Image
+from PIL import ImageDraw
+
+from slotformer_jax.errors import UserError
+
+DIRECTORY = 'tensorboard'
+_LABEL_WIDTH = 96
+
+
+def labelled_grid(rows: Mapping[str, np.ndarray], scale: int = 2
+                  ) -> np.ndarray:
+  """{row label: uint8 [T, H, W, 3]} -> uint8 [R * H', L + T * W', 3]: one
+  row of frames per entry, its label written at the left (H' = scale * H)."""
+  strips = []
+  for frames in rows.values():
+    frames = np.asarray(frames)
+    if scale > 1:
+      frames = frames.repeat(scale, axis=1).repeat(scale, axis=2)
+    strips.append(np.concatenate(list(frames), axis=1))
+  height = max(s.shape[0] for s in strips)
+  width = max(s.shape[1] for s in strips)
+  canvas = Image.new('RGB', (_LABEL_WIDTH + width, height * len(strips)),
+                     (255, 255, 255))
+  draw = ImageDraw.Draw(canvas)
+  for i, (label, strip) in enumerate(zip(rows, strips)):
+    canvas.paste(Image.fromarray(strip), (_LABEL_WIDTH, i * height))
+    draw.text((3, i * height + height // 2 - 5), label, fill=(0, 0, 0))
+  return np.asarray(canvas)
+
+
+def to_uint8(frames: Any) -> np.ndarray:
+  """Frames in [0, 1] -> uint8."""
+  return (np.clip(np.asarray(frames, np.float32), 0.0, 1.0) * 255 + 0.5
+          ).astype(np.uint8)
+
+
+class Summaries:
+  """The TensorBoard writer of one stage (a no-op when disabled)."""
+
+  def __init__(self, stage_directory: str,
+               logging_config: ml_collections.ConfigDict | None,
+               is_lead_host: bool = True):
+    enabled = bool(logging_config is not None
+                   and logging_config.get('tensorboard', False)
+                   and is_lead_host)
+    self.image_every = int(logging_config.get('image_every', 0)
+                           if logging_config is not None else 0)
+    self.directory = os.path.join(stage_directory, DIRECTORY)
+    self._writer = None
+    if enabled:
+      try:
+        import tensorboardX  # pylint: disable=import-outside-toplevel
+      except ImportError:
+        raise UserError(
+            'logging.tensorboard=True needs tensorboardX: pip install '
+            'tensorboardX, or pass --config.logging.tensorboard=False'
+        ) from None
+      self._writer = tensorboardX.SummaryWriter(self.directory,
+                                                flush_secs=30)
+
+  @property
+  def enabled(self) -> bool:
+    return self._writer is not None
+
+  def wants_images(self, step: int) -> bool:
+    return (self.enabled and self.image_every > 0
+            and step % self.image_every == 0)
+
+  def scalars(self, step: int, metrics: Mapping[str, float]) -> None:
+    """One logged step's metrics (+ seconds per step)."""
+    if not self.enabled:
+      return
+    for name, value in sorted(metrics.items()):
+      self._writer.add_scalar(f'train/{name}', float(value), step)
+    rate = metrics.get('steps_per_second')
+    if rate:
+      self._writer.add_scalar('train/seconds_per_step', 1.0 / rate, step)
+
+  def images(self, step: int, grids: Mapping[str, np.ndarray]) -> None:
+    """{name: uint8 [H, W, 3]} pictures (see `labelled_grid`)."""
+    if not self.enabled:
+      return
+    for name, image in grids.items():
+      self._writer.add_image(f'images/{name}', np.asarray(image), step,
+                             dataformats='HWC')
+
+  def close(self) -> None:
+    if self._writer is not None:
+      self._writer.close()
+      self._writer = None
