@@ -90,9 +90,9 @@ def dynamics_stage(config: ml_collections.ConfigDict, workdir: str,
           process_count=jax.process_count()),
       frozen_params=decoder_params,
       logging=config.get('logging'),
-      images=(_rollout_images(slot_model, loaded.params, model,
+      images=(_rollout_images(slot_model, slot_params, model,
                               stage_config.burn_in, rollout, name)
-              if slot_model.image_decoder(loaded.params) is not None
+              if slot_model.image_decoder(slot_params) is not None
               else None),
   )
 
