@@ -40,6 +40,7 @@ from slotformer_jax import models
 from slotformer_jax import workdir as workdir_lib
 from slotformer_jax.evaluation import evaluate
 from slotformer_jax.files import read_json
+from slotformer_jax.frames import labelled_rows
 from slotformer_jax.files import write_atomic
 from slotformer_jax.files import write_json_atomic
 from slotformer_jax.modules.slotformer import SlotFormer
@@ -310,18 +311,11 @@ def write_strip(path: str, rows: dict[str, np.ndarray], burn_in: int,
   green-bordered while observed (burn-in), red-bordered when predicted."""
   num_frames = next(iter(rows.values())).shape[0]
   columns = list(range(0, num_frames, max(1, render_config.strip_every)))
-  strips = [np.concatenate([
+  strips = {name: np.concatenate([
       _tile(row[t], _ROLLOUT_COLOUR if t >= burn_in else _BURN_IN_COLOUR,
             render_config.scale)
-      for t in columns], axis=1) for row in rows.values()]
-  tile_h, width = strips[0].shape[:2]
-  canvas = Image.new('RGB', (_LABEL_WIDTH + width, tile_h * len(strips)),
-                     (255, 255, 255))
-  draw = ImageDraw.Draw(canvas)
-  for i, (name, strip) in enumerate(zip(rows, strips)):
-    canvas.paste(Image.fromarray(strip), (_LABEL_WIDTH, i * tile_h))
-    draw.text((3, i * tile_h + tile_h // 2 - 5), name, fill=(0, 0, 0))
-  _write_png(path, np.asarray(canvas))
+      for t in columns], axis=1) for name, row in rows.items()}
+  _write_png(path, labelled_rows(strips, _LABEL_WIDTH))
 
 
 def _write_attention_figure(path: str, frames: np.ndarray,

@@ -19,10 +19,8 @@ from typing import Any
 
 import ml_collections
 import numpy as np
-from PIL import Image
-from PIL import ImageDraw
-
 from slotformer_jax.errors import UserError
+from slotformer_jax.frames import labelled_rows
 
 DIRECTORY = 'tensorboard'
 _LABEL_WIDTH = 96
@@ -32,21 +30,13 @@ def labelled_grid(rows: Mapping[str, np.ndarray], scale: int = 2
                   ) -> np.ndarray:
   """{row label: uint8 [T, H, W, 3]} -> uint8 [R * H', L + T * W', 3]: one
   row of frames per entry, its label written at the left (H' = scale * H)."""
-  strips = []
-  for frames in rows.values():
+  strips = {}
+  for label, frames in rows.items():
     frames = np.asarray(frames)
     if scale > 1:
       frames = frames.repeat(scale, axis=1).repeat(scale, axis=2)
-    strips.append(np.concatenate(list(frames), axis=1))
-  height = max(s.shape[0] for s in strips)
-  width = max(s.shape[1] for s in strips)
-  canvas = Image.new('RGB', (_LABEL_WIDTH + width, height * len(strips)),
-                     (255, 255, 255))
-  draw = ImageDraw.Draw(canvas)
-  for i, (label, strip) in enumerate(zip(rows, strips)):
-    canvas.paste(Image.fromarray(strip), (_LABEL_WIDTH, i * height))
-    draw.text((3, i * height + height // 2 - 5), label, fill=(0, 0, 0))
-  return np.asarray(canvas)
+    strips[label] = np.concatenate(list(frames), axis=1)
+  return labelled_rows(strips, _LABEL_WIDTH)
 
 
 def to_uint8(frames: Any) -> np.ndarray:
