@@ -225,8 +225,11 @@ def make_rollout_evaluator(config: ml_collections.ConfigDict, mesh: Mesh,
       boxes = {field: batch[field][:, burn_in:burn_in + rollout]
                for field in BOX_FIELDS}
     time_major = lambda x: jnp.swapaxes(x, 0, 1)
-    decode = in_compute_dtype(functools.partial(slot_model.decode,
-                                                slot_params))
+    # The slot model's parameters are an argument of the wrapped decode, so
+    # they are cast too: bound in a partial they would stay float32 and the
+    # decoder would mix bfloat16 activations with float32 kernels.
+    decode_in_dtype = in_compute_dtype(slot_model.decode)
+    decode = lambda slots: decode_in_dtype(slot_params, slots)
     # Copy-last predicts the same slots at every step: decode them once.
     copied = decode(inference.copy_last_rollout(history, 1)[:, 0])
     with_lpips = hasattr(lpips_fn, 'features') and 'lpips' in names
