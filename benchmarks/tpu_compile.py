@@ -22,7 +22,19 @@ project runs, built by the project's own code:
   eval_rollout         `evaluation.evaluate.make_rollout_evaluator`: the
                        SlotFormer rollout + decoding + per-step metrics of
                        one evaluation batch, without LPIPS (its VGG weights
-                       are a download) and without the object metrics.
+                       are a download) and without the object metrics;
+  aloe                 (clevrer: configs/clevrer_vqa.py) Aloe's train step,
+                       the `Stage` of `stages.vqa.aloe_stage`, same jit, on
+                       a stand-in vocabulary of STANDIN_WORDS question words
+                       and CLEVRER's answers (the real one is read from the
+                       questions at run time); the batch is built by
+                       `tasks.vqa.QuestionBatches.batch` itself;
+  readout              (physion: configs/physion_contact.py, phyre:
+                       configs/phyre.py:planning; synthetic_contact:tiny and
+                       synthetic_phyre:tiny too) the readout head's step
+                       that `tasks.readout.fit` runs, `make_train_step`, on
+                       the 'rollout' condition's features (the longest). Its
+                       loop is not sharded: one chip.
 
 The global batch is the config's (the paper's). A slice whose chip count
 does not divide it (a 256-chip pod slice and batch 64) compiles at one
@@ -30,11 +42,18 @@ sample per chip instead, and the row says so. Per chip: HBM = arguments +
 outputs + temporaries - aliased (`memory_analysis()`) against the chip's
 HBM, FLOPs and bytes accessed (`cost_analysis()`), the roofline floor
 max(FLOPs / peak, bytes / HBM bandwidth) and the compile seconds.
-`--largest_batch` also finds the largest per-chip batch that fits: HBM is
-fitted linearly through compiles at 1 and 2 per chip, the predicted
-largest is compiled, and stepped down until it fits.
+`--largest_batch` also finds the largest per-chip batch that fits, by
+compiles only: from the paper batch's row it grows the batch (a line
+through the two largest batches that fit predicts the next) until one does
+not fit, then bisects between the largest that fits and the smallest that
+does not until they are within `--largest_batch_tolerance` (10 %) of each
+other or `--largest_batch_compiles` (8) are spent. HBM is not monotonic in
+the batch near the limit (XLA:TPU's layouts change), so the answer is "this
+batch compiles within the chip's HBM and that one does not": a batch
+between them may fit too.
 
-Exit status 1 when a step does not fit its chip's HBM at the paper's batch.
+Exit status 1 when a step does not fit its chip's HBM at the paper's batch
+or does not compile.
 Without libtpu it prints why and exits 0. jax itself runs on CPU
 (JAX_PLATFORMS=cpu unless set); only the compile targets the TPU.
 """
@@ -66,10 +85,17 @@ from jax.sharding import NamedSharding  # noqa: E402
 from slotformer_jax import files  # noqa: E402
 from slotformer_jax import models  # noqa: E402
 from slotformer_jax import slot_models  # noqa: E402
+from slotformer_jax.data import vqa as vqa_data  # noqa: E402
 from slotformer_jax.evaluation import evaluate  # noqa: E402
 from slotformer_jax.slot_models import savi as savi_lib  # noqa: E402
 from slotformer_jax.slot_models import steve as steve_lib  # noqa: E402
 from slotformer_jax.stages import dynamics  # noqa: E402
+from slotformer_jax.stages import vqa as vqa_stages  # noqa: E402
+from slotformer_jax.tasks import contact  # noqa: E402
+from slotformer_jax.tasks import phyre_planning  # noqa: E402
+from slotformer_jax.tasks import phyre_rendered  # noqa: E402
+from slotformer_jax.tasks import readout as readout_lib  # noqa: E402
+from slotformer_jax.tasks import vqa as vqa_task  # noqa: E402
 from slotformer_jax.train import optim  # noqa: E402
 from slotformer_jax.train import precision  # noqa: E402
 from slotformer_jax.train import sharding  # noqa: E402
@@ -90,9 +116,21 @@ CHIPS = {
 
 # The config's stage section of each step's batch size.
 SECTIONS = {'savi': 'savi', 'dvae': 'dvae', 'steve': 'steve',
-            'slotformer': 'slotformer', 'eval_rollout': 'evaluation'}
+            'slotformer': 'slotformer', 'eval_rollout': 'evaluation',
+            'aloe': 'vqa', 'readout': 'readout'}
 DEFAULT_CONFIGS = ('obj3d', 'clevrer', 'phyre', 'physion')
-DEFAULT_STEPS = ('savi', 'dvae', 'steve', 'slotformer', 'eval_rollout')
+DEFAULT_STEPS = ('savi', 'dvae', 'steve', 'slotformer', 'eval_rollout',
+                 'aloe', 'readout')
+# The downstream step of a video config, and the config that runs it.
+DOWNSTREAM = {'clevrer': ('aloe', 'clevrer_vqa'),
+              'physion': ('readout', 'physion_contact'),
+              'phyre': ('readout', 'phyre:planning'),
+              'synthetic_vqa': ('aloe', 'synthetic_vqa'),
+              'synthetic_contact:tiny': ('readout', 'synthetic_contact:tiny'),
+              'synthetic_phyre:tiny': ('readout', 'synthetic_phyre:tiny')}
+# Aloe's question vocabulary is read from the questions at run time; its
+# size only changes the word-embedding table (STANDIN_WORDS x word_dim).
+STANDIN_WORDS = 100
 NOWHERE = '/nonexistent/tpu_compile'  # stages only name their directories
 
 
@@ -119,10 +157,26 @@ def load_config(name: str):
   return module.get_config(variant) if variant else module.get_config()
 
 
-def steps_of(config) -> tuple[str, ...]:
-  """The train / evaluation steps a config's pipeline runs."""
+def steps_of(config, name: str = '') -> tuple[str, ...]:
+  """The train / evaluation steps a config's pipeline runs (+ the
+  downstream step of `name`, run by its DOWNSTREAM config)."""
   first = (('dvae', 'steve') if config.slot_model == 'steve' else ('savi',))
-  return first + ('slotformer', 'eval_rollout')
+  downstream = (DOWNSTREAM[name][0],) if name in DOWNSTREAM else ()
+  return first + ('slotformer', 'eval_rollout') + downstream
+
+
+def config_of(name: str, step: str) -> str:
+  """The config that runs `step` of video config `name`."""
+  if name in DOWNSTREAM and DOWNSTREAM[name][0] == step:
+    return DOWNSTREAM[name][1]
+  return name
+
+
+def batch_of(config, step: str) -> int:
+  """The global batch of `step` (Aloe: open + multiple-choice questions)."""
+  if step == 'aloe':
+    return config.vqa.open_batch_size + config.vqa.choice_batch_size
+  return config[SECTIONS[step]].batch_size
 
 
 def _place(tree: Any, sharding_: NamedSharding) -> Any:
@@ -137,6 +191,13 @@ def batch_spec(config, step: str, batch_size: int) -> dict[str, Any]:
   frame = (*config.data.resolution, 3)
   u8 = lambda *shape: jax.ShapeDtypeStruct(shape, jnp.uint8)
   f32 = lambda *shape: jax.ShapeDtypeStruct(shape, jnp.float32)
+  if step == 'aloe':
+    return aloe_batch_spec(config, batch_size)
+  if step == 'readout':
+    _, frames = readout_model(config)
+    num_slots, slot_size = slot_models.get(config).slot_shape
+    return {'features': f32(batch_size, frames, num_slots, slot_size),
+            'labels': f32(batch_size)}
   if step == 'savi':
     return {'video': u8(batch_size, config.savi.clip_length, *frame)}
   if step == 'dvae':
@@ -161,6 +222,89 @@ def batch_spec(config, step: str, batch_size: int) -> dict[str, Any]:
           'video': u8(batch_size, length, *frame)}
 
 
+def aloe_batch_spec(config, batch_size: int) -> dict[str, Any]:
+  """One Aloe batch of `batch_size` questions (half open, half multiple
+  choice), made by `QuestionBatches.batch` from two stand-in questions."""
+  vqa = config.vqa
+  length = vqa.max_question_len + vqa.max_choice_len
+  choices = vqa.max_choices
+  questions = [
+      vqa_data.EncodedQuestion(
+          0, 'video', 0, 0, '', np.zeros((1, length), np.int32),
+          np.zeros((1, length), bool), answer=0),
+      vqa_data.EncodedQuestion(
+          0, 'video', 1, 1, '', np.zeros((choices, length), np.int32),
+          np.zeros((choices, length), bool),
+          choice_ids=np.arange(choices, dtype=np.int32),
+          choice_labels=np.zeros(choices, np.int32))]
+  frames = vqa.video_length + vqa.rollout_frames
+  slots = np.zeros((frames, *slot_models.get(config).slot_shape), np.float32)
+  batches = vqa_task.QuestionBatches(
+      questions, lambda name: slots, video_length=vqa.video_length,
+      num_frames=vqa.num_frames, stride=vqa.frame_stride,
+      max_choices=choices)
+  batch = batches.batch([0], [0], np.zeros(2, np.int64), batch_size // 2,
+                        batch_size // 2)
+  return {k: jax.ShapeDtypeStruct(v.shape, v.dtype) for k, v in batch.items()}
+
+
+def standin_vocabulary() -> vqa_data.Vocabulary:
+  return vqa_data.Vocabulary(
+      vqa_data.make_vocabulary(f'w{i}' for i in range(STANDIN_WORDS - 1)),
+      vqa_data.make_vocabulary(vqa_data.CLEVRER_ANSWERS))
+
+
+def readout_model(config) -> tuple[Any, int]:
+  """(the readout head of `config`'s task, frames per example of its
+  'rollout' condition)."""
+  if config.get('task') == 'contact':
+    # The whole clip, cut to readout.video_len when set (the embedded
+    # data's videos have data.num_frames).
+    frames = (config.readout.get('video_len')
+              or config.data.get('num_frames'))
+    if not frames:
+      raise ValueError('neither readout.video_len nor data.num_frames is '
+                       'set: the frames per example are only known from '
+                       'the data')
+    slot_size = slot_models.get(config).slot_shape[1]
+    return contact.build_readout(config, slot_size), int(frames)
+  if (config.get('task') == 'planning'
+      and config.readout.get('candidates') == 'rendered'):
+    frames = len(phyre_rendered.selected_steps(config))
+    return phyre_rendered.build_classifier(
+        config, phyre_rendered.ROLLOUT, frames), frames
+  if config.get('task') == 'planning':  # features [1 + rollout_steps, ...]
+    return (phyre_planning.build_classifier(config, phyre_planning.ROLLOUT),
+            1 + config.readout.rollout_steps)
+  raise ValueError(f"no readout step for task {config.get('task')!r}")
+
+
+def readout_fit_config(config) -> readout_lib.FitConfig:
+  if config.task == 'contact':
+    return contact.fit_config(config)
+  r = config.readout  # as stages/planning_rendered.py builds it
+  return readout_lib.FitConfig(epochs=r.epochs, batch_size=r.batch_size,
+                               learning_rate=r.learning_rate,
+                               warmup_fraction=r.warmup_fraction)
+
+
+def readout_program(config, mesh: Mesh) -> tuple[Any, tuple]:
+  """`tasks.readout.fit`'s jitted step on one chip (the first of `mesh`)."""
+  one_chip = sharding.replicated_sharding(
+      Mesh(np.array(mesh.devices.flat[:1]), (sharding.DATA_AXIS,)))
+  model, _ = readout_model(config)
+  batch = batch_spec(config, 'readout', config.readout.batch_size)
+  optimizer = readout_lib.make_optimizer(readout_fit_config(config),
+                                         steps_per_epoch=100)
+  step = readout_lib.make_train_step(model, optimizer, seed=0)
+  example = jnp.zeros((1, *batch['features'].shape[1:]), jnp.float32)
+  params = jax.eval_shape(
+      lambda key: model.init(key, example)['params'], jax.random.key(0))
+  opt_state = jax.eval_shape(optimizer.init, params)
+  return step, _place((params, opt_state, batch['features'], batch['labels'],
+                       jax.ShapeDtypeStruct((), jnp.int32)), one_chip)
+
+
 def slot_param_shapes(slot_model) -> Any:
   if isinstance(slot_model, steve_lib.Steve):
     return {steve_lib.NAME: slot_model.steve_param_shapes(),
@@ -171,13 +315,13 @@ def slot_param_shapes(slot_model) -> Any:
 def step_program(config, step: str, mesh: Mesh) -> tuple[Any, tuple]:
   """(the jitted step `step` of `config` for `mesh`, its abstract arguments
   placed on `mesh`): what the trainer / the evaluation run, unexecuted."""
+  if step == 'readout':
+    return readout_program(config, mesh)
   replicated = sharding.replicated_sharding(mesh)
   batched = sharding.batch_sharding(mesh)
   slot_model = slot_models.get(config)
   slot_model.check_compute_dtype()
-  section = SECTIONS[step]
-  batch = _place(batch_spec(config, step, config[section].batch_size),
-                 batched)
+  batch = _place(batch_spec(config, step, batch_of(config, step)), batched)
   if step == 'eval_rollout':
     names = tuple(name for name in config.evaluation.metrics
                   if name != 'lpips' and name not in evaluate.OBJECT_METRICS)
@@ -209,6 +353,8 @@ def train_stage(config, step: str, mesh: Mesh) -> trainer.Stage:
     return steve_lib.dvae_stage(config, NOWHERE, mesh, None)
   if step == 'steve':
     return steve_lib.steve_stage(config, NOWHERE, mesh, None)
+  if step == 'aloe':
+    return vqa_stages.aloe_stage(config, NOWHERE, standin_vocabulary(), None)
   slot_model = slot_models.get(config)
   return dynamics.dynamics_stage(
       config, NOWHERE, mesh, models.SLOTFORMER, slot_model,
@@ -223,8 +369,22 @@ def lowered_step(config, step: str, mesh: Mesh):
 
 def with_batch(config, step: str, global_batch: int):
   config = config.copy_and_resolve_references()
-  config[SECTIONS[step]].batch_size = global_batch
+  if step == 'aloe':  # half open, half multiple-choice questions
+    config.vqa.open_batch_size = config.vqa.choice_batch_size = (
+        global_batch // 2)
+  else:
+    config[SECTIONS[step]].batch_size = global_batch
   return config
+
+
+def chips_of(step: str, mesh: Mesh) -> int:
+  """Chips the step runs on (the readout's loop: one)."""
+  return 1 if step == 'readout' else mesh.devices.size
+
+
+def batch_unit(step: str) -> int:
+  """Aloe's batch is open + multiple-choice questions, in equal numbers."""
+  return 2 if step == 'aloe' else 1
 
 
 def compile_row(config, step: str, mesh: Mesh) -> dict[str, Any]:
@@ -261,35 +421,71 @@ def _hbm_or_required(config, step: str, mesh: Mesh, chip: dict) -> int:
     return max(required, chip['hbm'] + 1)
 
 
-def largest_batch(config, step: str, mesh: Mesh, chip: dict,
-                  log) -> dict[str, Any]:
-  """The largest per-chip batch whose step fits the chip's HBM: a line
-  through the HBM at 1 and 2 per chip predicts it, compiles confirm it
-  (stepping down, at most 6 compiles, while XLA:TPU says it does not fit)."""
-  chips = mesh.devices.size
-  hbm = {b: _hbm_or_required(with_batch(config, step, b * chips), step,
-                             mesh, chip) for b in (1, 2)}
-  slope = hbm[2] - hbm[1]
-  if hbm[1] > chip['hbm']:
-    return dict(largest_per_chip=0, fit_hbm=hbm)
-  if slope <= 0:
-    return dict(largest_per_chip=None, fit_hbm=hbm)
-  guess = max(1, int((chip['hbm'] - (hbm[1] - slope)) // slope))
-  tried = {}
-  for _ in range(6):
-    if guess <= 2:
+def largest_batch(config, step: str, mesh: Mesh, chip: dict, log, *,
+                  known: dict[int, int], tolerance: float = 0.1,
+                  max_compiles: int = 8, limit: int = 1 << 16
+                  ) -> dict[str, Any]:
+  """The largest per-chip batch whose step compiles within the chip's HBM.
+
+  `known`: {per-chip batch: HBM bytes} already compiled (the paper
+  batch's row). Grows the batch while it fits (a line through the two
+  largest fitting batches, or HBM proportional to the batch from one,
+  predicts the largest; at least +25 % per compile), then bisects between
+  the largest batch that fits and the smallest that does not until they
+  are within `tolerance` of each other or `max_compiles` are spent.
+  Returns largest_per_chip (the largest that fitted, 0 if none did),
+  smallest_not_fitting (None if none was found: the search ran out or hit
+  `limit`), and every compile's HBM (`tried`).
+  """
+  chips, unit = chips_of(step, mesh), batch_unit(step)
+  tried = dict(known)
+  fits = lambda b: tried[b] <= chip['hbm']
+
+  def compile_at(per_chip: int) -> None:
+    tried[per_chip] = _hbm_or_required(
+        with_batch(config, step, per_chip * chips), step, mesh, chip)
+    log(f'    largest-batch search: {per_chip}/chip -> '
+        f'{tried[per_chip] / GiB:.2f} GiB'
+        f'{"" if fits(per_chip) else " (does not fit)"}')
+
+  compiles = 0
+  while compiles < max_compiles:
+    fitting = sorted(b for b in tried if fits(b))
+    above = sorted(b for b in tried if not fits(b)
+                   and (not fitting or b > fitting[-1]))
+    low = fitting[-1] if fitting else 0
+    high = above[0] if above else None
+    if high is not None and (high - low <= unit
+                             or high <= low * (1 + tolerance)):
       break
-    tried[guess] = _hbm_or_required(
-        with_batch(config, step, guess * chips), step, mesh, chip)
-    log(f'    largest-batch search: {guess}/chip -> '
-        f'{tried[guess] / GiB:.2f} GiB')
-    if tried[guess] <= chip['hbm']:
+    if high is None:
+      if low >= limit:
+        break
+      if not fitting:  # nothing known fits: start at one example per chip
+        guess = unit
+      elif len(fitting) >= 2:
+        (b1, b2) = fitting[-2:]
+        slope = (tried[b2] - tried[b1]) / (b2 - b1)
+        guess = (b2 + (chip['hbm'] - tried[b2]) / slope if slope > 0
+                 else 2 * b2)
+      else:
+        guess = low * chip['hbm'] / max(tried[low], 1)
+      guess = int(max(guess, low * 1.25, low + unit))
+      guess = min(guess, limit)
+    else:
+      guess = (low + high) // 2
+    guess = max(unit, guess // unit * unit)
+    if guess in tried:
       break
-    guess = max(2, int(0.95 * guess * chip['hbm'] / tried[guess]))
-  if guess > 2 and (guess not in tried or tried[guess] > chip['hbm']):
-    return dict(largest_per_chip=None, fit_hbm=hbm, tried=tried)
-  return dict(largest_per_chip=guess, fit_hbm=hbm, tried=tried,
-              confirmed_hbm=tried.get(guess, hbm.get(guess)))
+    compile_at(guess)
+    compiles += 1
+  fitting = sorted(b for b in tried if fits(b))
+  low = fitting[-1] if fitting else 0
+  above = sorted(b for b in tried if not fits(b) and b > low)
+  return dict(largest_per_chip=low,
+              smallest_not_fitting=above[0] if above else None,
+              search_compiles=compiles,
+              tried={str(b): tried[b] for b in sorted(tried)})
 
 
 def main(argv=None) -> int:
@@ -299,6 +495,8 @@ def main(argv=None) -> int:
   parser.add_argument('--steps', default=','.join(DEFAULT_STEPS))
   parser.add_argument('--dtypes', default='float32,bfloat16')
   parser.add_argument('--largest_batch', action='store_true')
+  parser.add_argument('--largest_batch_tolerance', type=float, default=0.1)
+  parser.add_argument('--largest_batch_compiles', type=int, default=8)
   parser.add_argument('--config_overrides', default='',
                       help='name=value,... applied to every config (tests)')
   parser.add_argument('--json', default='')
@@ -325,10 +523,10 @@ def main(argv=None) -> int:
     print(f'tpu_compile: nothing compiled: {why}')
     return 0
 
-  rows, not_fitting = [], []
+  rows, not_fitting, failed = [], [], []
   log = lambda line: print(line, flush=True)
-  log('topology   config   step          dtype     batch(/chip)  fits  '
-      'HBM GiB/chip  GFLOP/chip  GB/chip  floor ms  compile s')
+  log('topology   config          step          dtype     batch(/chip)  '
+      'fits  HBM GiB/chip  GFLOP/chip  GB/chip  floor ms  compile s')
   for topology in args.topologies.split(','):
     try:
       devices = tpu_devices(topology)
@@ -341,84 +539,110 @@ def main(argv=None) -> int:
             f'{devices[0].device_kind!r} in CHIPS', file=sys.stderr)
       return 2
     mesh = Mesh(np.array(devices), (sharding.DATA_AXIS,))
-    chips = len(devices)
     for name in configs:
-      base = load_config(name)
-      for override in filter(None, args.config_overrides.split(',')):
-        key, value = override.split('=', 1)
-        section, field = key.rsplit('.', 1)
-        target = base
-        for part in section.split('.'):
-          target = target[part]
-        target[field] = type(target[field])(value)
       for dtype in dtypes:
-        config = base.copy_and_resolve_references()
-        config.compute_dtype = dtype
-        for step in steps_of(config):
+        config = configured(name, dtype, args.config_overrides)
+        for step in steps_of(config, name):
           if step not in wanted_steps:
             continue
-          row = dict(topology=topology, chips=chips, config=name, step=step,
-                     dtype=dtype, device_kind=devices[0].device_kind,
-                     chip_hbm=chip['hbm'])
-          paper_batch = config[SECTIONS[step]].batch_size
-          row['paper_batch'] = paper_batch
-          if paper_batch % chips:
-            row['note'] = (f'paper batch {paper_batch} does not split over '
-                           f'{chips} chips: compiled at 1 per chip')
-            global_batch = chips
-          else:
-            global_batch = paper_batch
-          row['batch'] = global_batch
-          try:
-            slot_models.get(config).check_compute_dtype()
-          except Exception as error:  # pylint: disable=broad-except
-            row.update(status='not built', why=str(error))
-            rows.append(row)
-            log(f'{topology:10s} {name:8s} {step:13s} {dtype:9s} '
-                f'not built: {error}')
-            continue
-          try:
-            row.update(compile_row(with_batch(config, step, global_batch),
-                                   step, mesh))
-          except Exception as error:  # pylint: disable=broad-except
-            # XLA's own message says why (e.g. out of memory at compile).
-            why = str(error).strip().splitlines()[0][:300]
-            row.update(status='does not fit' if 'RESOURCE_EXHAUSTED' in why
-                       else 'compile failed', why=why)
-            rows.append(row)
-            not_fitting.append(f'{topology} {name} {step} {dtype} ({why})')
-            log(f'{topology:10s} {name:8s} {step:13s} {dtype:9s} '
-                f'compile failed: {why}')
-            continue
-          row['fits'] = row['hbm_bytes'] <= chip['hbm']
-          row['floor_seconds'] = max(row['flops'] / chip['peak_flops'],
-                                     row['bytes_accessed']
-                                     / chip['hbm_bandwidth'])
-          row['status'] = 'compiled'
-          if not row['fits'] and 'note' not in row:
-            not_fitting.append(f'{topology} {name} {step} {dtype}')
-          if args.largest_batch:
-            row.update(largest_batch(config, step, mesh, chip, log))
+          step_config = config_of(name, step)
+          row = one_row(configured(step_config, dtype, args.config_overrides),
+                        step_config, step, dtype, topology, mesh, chip,
+                        args, log)
           rows.append(row)
-          log(f'{topology:10s} {name:8s} {step:13s} {dtype:9s} '
-              f'{global_batch:5d}({global_batch // chips:3d})  '
-              f'{"yes" if row["fits"] else "NO":4s}  '
-              f'{row["hbm_bytes"] / GiB:12.2f}  {row["flops"] / 1e9:10.1f}  '
-              f'{row["bytes_accessed"] / 1e9:7.2f}  '
-              f'{row["floor_seconds"] * 1e3:8.2f}  '
-              f'{row["compile_seconds"]:9.1f}'
-              + (f'  largest {row["largest_per_chip"]}/chip'
-                 if 'largest_per_chip' in row else '')
-              + (f'  ({row["note"]})' if 'note' in row else ''))
+          label = f'{topology} {step_config} {step} {dtype}'
+          if row['status'] == 'compile failed':
+            failed.append(f'{label} ({row["why"]})')
+          elif row['status'] == 'does not fit' or (
+              row['status'] == 'compiled' and not row['fits']
+              and 'note' not in row):
+            not_fitting.append(label)
           if args.json:  # after every row: partial results survive
             files.write_json_atomic(args.json, rows)
   if args.json:
     files.write_json_atomic(args.json, rows)
+  if failed:
+    print('error: did not compile: ' + '; '.join(failed), file=sys.stderr)
   if not_fitting:
     print('error: does not fit its chip at the paper batch: '
           + '; '.join(not_fitting), file=sys.stderr)
-    return 1
-  return 0
+  return 1 if failed or not_fitting else 0
+
+
+def configured(name: str, dtype: str, overrides: str):
+  """configs/<name>.py's config with `overrides` (section.field=value,...)
+  and `compute_dtype`."""
+  config = load_config(name)
+  for override in filter(None, overrides.split(',')):
+    key, value = override.split('=', 1)
+    section, field = key.rsplit('.', 1)
+    target = config
+    for part in section.split('.'):
+      target = target[part]
+    target[field] = type(target[field])(value)
+  config.compute_dtype = dtype
+  return config
+
+
+def one_row(config, name: str, step: str, dtype: str, topology: str,
+            mesh: Mesh, chip: dict, args, log) -> dict[str, Any]:
+  """Compiles `step` of `config` at its paper batch for `mesh` (and
+  searches the largest batch when asked): the table's row."""
+  chips = chips_of(step, mesh)
+  row = dict(topology=topology, chips=chips, config=name, step=step,
+             dtype=dtype, device_kind=mesh.devices.flat[0].device_kind,
+             chip_hbm=chip['hbm'])
+  head = f'{topology:10s} {name:15s} {step:13s} {dtype:9s}'
+  if step == 'readout':
+    row['note'] = "the readout's loop is not sharded: one chip"
+  paper_batch = batch_of(config, step)
+  row['paper_batch'] = paper_batch
+  unit = batch_unit(step)
+  if paper_batch % (chips * unit):
+    row['note'] = (f'paper batch {paper_batch} does not split over '
+                   f'{chips} chips: compiled at {unit} per chip')
+    global_batch = chips * unit
+  else:
+    global_batch = paper_batch
+  row['batch'] = global_batch
+  try:
+    slot_models.get(config).check_compute_dtype()
+    if step == 'readout':
+      readout_model(config)
+  except Exception as error:  # pylint: disable=broad-except
+    row.update(status='not built', why=str(error))
+    log(f'{head} not built: {error}')
+    return row
+  try:
+    row.update(compile_row(with_batch(config, step, global_batch), step,
+                           mesh))
+  except Exception as error:  # pylint: disable=broad-except
+    # XLA's own message says why (e.g. out of memory at compile).
+    why = str(error).strip().splitlines()[0][:300]
+    row.update(status='does not fit' if 'RESOURCE_EXHAUSTED' in why
+               else 'compile failed', why=why)
+    log(f'{head} {row["status"]}: {why}')
+    return row
+  row['fits'] = row['hbm_bytes'] <= chip['hbm']
+  row['floor_seconds'] = max(row['flops'] / chip['peak_flops'],
+                             row['bytes_accessed'] / chip['hbm_bandwidth'])
+  row['status'] = 'compiled'
+  if args.largest_batch:
+    row.update(largest_batch(
+        config, step, mesh, chip, log,
+        known={global_batch // chips: row['hbm_bytes']},
+        tolerance=args.largest_batch_tolerance,
+        max_compiles=args.largest_batch_compiles))
+  log(f'{head} {global_batch:5d}({global_batch // chips:3d})  '
+      f'{"yes" if row["fits"] else "NO":4s}  '
+      f'{row["hbm_bytes"] / GiB:12.2f}  {row["flops"] / 1e9:10.1f}  '
+      f'{row["bytes_accessed"] / 1e9:7.2f}  '
+      f'{row["floor_seconds"] * 1e3:8.2f}  {row["compile_seconds"]:9.1f}'
+      + (f'  largest {row["largest_per_chip"]}/chip (not '
+         f'{row["smallest_not_fitting"]})' if 'largest_per_chip' in row
+         else '')
+      + (f'  ({row["note"]})' if 'note' in row else ''))
+  return row
 
 
 if __name__ == '__main__':

@@ -205,6 +205,20 @@ def _model_and_init(config: ml_collections.ConfigDict,
   return model, init
 
 
+def aloe_stage(config: ml_collections.ConfigDict, workdir: str,
+               vocab: vqa_data.Vocabulary, batches) -> Stage:
+  """Aloe's training stage for `vocab`; `batches` (start step -> this
+  host's question batches, `task.QuestionBatches.train_batches`) is only
+  read by `fit`."""
+  vqa = config.vqa
+  model, init = _model_and_init(config, vocab)
+  return Stage(
+      name=f'vqa_{vqa.inputs}', directory=variant_dir(config, workdir),
+      config=vqa, loss_fn=functools.partial(task.vqa_loss, model=model),
+      init_params=lambda rng: {'params': init(rng)}, batches=batches,
+      logging=config.get('logging'))
+
+
 def train_vqa(config: ml_collections.ConfigDict, workdir: str,
               mesh: Mesh) -> None:
   """Trains Aloe on the training questions (resumable)."""
@@ -213,18 +227,14 @@ def train_vqa(config: ml_collections.ConfigDict, workdir: str,
   batches = question_batches(config, workdir, 'train',
                              vqa_questions.encoded_questions(config, 'train',
                                                              vocab))
-  model, init = _model_and_init(config, vocab)
   open_size = sharding.per_host_batch_size(vqa.open_batch_size, mesh)
   choice_size = sharding.per_host_batch_size(vqa.choice_batch_size, mesh)
   seed = config.seed * 1000 + vqa.seed
-  stage = Stage(
-      name=f'vqa_{vqa.inputs}', directory=variant_dir(config, workdir),
-      config=vqa, loss_fn=functools.partial(task.vqa_loss, model=model),
-      init_params=lambda rng: {'params': init(rng)},
-      batches=lambda start_step: batches.train_batches(
+  stage = aloe_stage(
+      config, workdir, vocab,
+      lambda start_step: batches.train_batches(
           open_size, choice_size, seed=seed + jax.process_index() * 7919,
-          start_step=start_step),
-      logging=config.get('logging'))
+          start_step=start_step))
   fit(stage, mesh=mesh, seed=seed)
 
 

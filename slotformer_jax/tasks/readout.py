@@ -82,6 +82,42 @@ def _jitted_apply(model: nn.Module) -> Callable:
   return _APPLY_CACHE[key]
 
 
+def make_optimizer(fit_config: FitConfig, steps_per_epoch: int
+                   ) -> optax.GradientTransformation:
+  """Adam with the cosine schedule (after a linear warm-up when
+  `fit_config.warmup_fraction` > 0) over all `fit_config.epochs`."""
+  total = max(1, steps_per_epoch * fit_config.epochs)
+  if fit_config.warmup_fraction == 0.0:
+    return optax.adam(optax.cosine_decay_schedule(fit_config.learning_rate,
+                                                  total))
+  return optax.adam(optax.warmup_cosine_decay_schedule(
+      0.0, fit_config.learning_rate,
+      max(1, int(fit_config.warmup_fraction * total)), max(total, 2), 0.0))
+
+
+def make_train_step(model: nn.Module, optimizer: optax.GradientTransformation,
+                    seed: int) -> Callable:
+  """The jitted step (params, opt_state, features [B, ...], labels [B],
+  step index) -> (params, opt_state, loss) that `fit` runs."""
+  # A head with dropout (the PHYRE readout's Transformer, officially 0.1)
+  # trains with it, one key per step derived from the seed; `predict` and
+  # the selection are deterministic.
+  dropout = getattr(model, 'dropout_rate', 0.0) > 0
+  dropout_key = jax.random.fold_in(jax.random.key(seed), 1)
+
+  @jax.jit
+  def step(params, opt_state, x, y, step_index):
+    kwargs = {}
+    if dropout:
+      kwargs = {'deterministic': False, 'rngs': {
+          'dropout': jax.random.fold_in(dropout_key, step_index)}}
+    loss, grads = jax.value_and_grad(lambda p: readout_bce(
+        model.apply({'params': p}, x, **kwargs), y))(params)
+    updates, opt_state = optimizer.update(grads, opt_state, params)
+    return optax.apply_updates(params, updates), opt_state, loss
+  return step
+
+
 def fit(model: nn.Module, train: tuple[np.ndarray, np.ndarray],
         select: Callable[[Any], float], fit_config: FitConfig, seed: int
         ) -> tuple[Any, dict[str, Any]]:
@@ -105,32 +141,11 @@ def fit(model: nn.Module, train: tuple[np.ndarray, np.ndarray],
   rng = np.random.default_rng(seed)
   batch_size = min(fit_config.batch_size, len(features))
   steps_per_epoch = len(features) // batch_size
-  total = max(1, steps_per_epoch * fit_config.epochs)
-  schedule = optax.warmup_cosine_decay_schedule(
-      0.0, fit_config.learning_rate,
-      max(1, int(fit_config.warmup_fraction * total)), max(total, 2), 0.0)
-  if fit_config.warmup_fraction == 0.0:
-    schedule = optax.cosine_decay_schedule(fit_config.learning_rate, total)
-  optimizer = optax.adam(schedule)
+  optimizer = make_optimizer(fit_config, steps_per_epoch)
   params = model.init(jax.random.key(seed),
                       jnp.asarray(features[:1]))['params']
   opt_state = optimizer.init(params)
-  # A head with dropout (the PHYRE readout's Transformer, officially 0.1)
-  # trains with it, one key per step derived from the seed; `predict` and
-  # the selection are deterministic.
-  dropout = getattr(model, 'dropout_rate', 0.0) > 0
-  dropout_key = jax.random.fold_in(jax.random.key(seed), 1)
-
-  @jax.jit
-  def step(params, opt_state, x, y, step_index):
-    kwargs = {}
-    if dropout:
-      kwargs = {'deterministic': False, 'rngs': {
-          'dropout': jax.random.fold_in(dropout_key, step_index)}}
-    loss, grads = jax.value_and_grad(lambda p: readout_bce(
-        model.apply({'params': p}, x, **kwargs), y))(params)
-    updates, opt_state = optimizer.update(grads, opt_state, params)
-    return optax.apply_updates(params, updates), opt_state, loss
+  step = make_train_step(model, optimizer, seed)
 
   best = (-np.inf, None, -1)
   log: dict[str, Any] = {'scores': [], 'losses': []}

@@ -149,3 +149,79 @@ def test_gpu_check_smoke_writes_its_table(tmp_path):
   assert any((tmp_path / 'cache').iterdir())
   table = (tmp_path / 'gpu_check.md').read_text()
   assert '| synthetic:tiny | slotformer | float32 | 1 |' in table
+
+
+@pytest.mark.parametrize('name', ['synthetic_vqa', 'synthetic_contact:tiny',
+                                  'synthetic_phyre:tiny'])
+def test_downstream_steps_lower_on_this_machine(name):
+  """Aloe's train step and the readouts' (the benchmark's `aloe` /
+  `readout` rows) build and lower through the project's code; a CPU mesh
+  stands in for the TPU slice."""
+  bench = _benchmark()
+  step = bench.DOWNSTREAM[name][0]
+  config = bench.configured(bench.config_of(name, step), 'float32', '')
+  assert step in bench.steps_of(config, name)
+  run, args = bench.step_program(config, step, sharding.make_mesh())
+  assert 'dot_general' in run.lower(*args).as_text()
+
+
+def test_aloe_batch_spec_is_what_the_question_stream_yields():
+  """The abstract Aloe batch has the keys, shapes and dtypes of a batch of
+  `QuestionBatches.train_batches` over real embedded questions."""
+  bench = _benchmark()
+  config = load_config('synthetic_vqa', 'tiny')
+  vqa = config.vqa
+  from slotformer_jax.data import vqa_questions  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.tasks import vqa as vqa_task  # pylint: disable=g-import-not-at-top
+  vocab = vqa_questions.vocabulary(config)
+  questions = vqa_questions.encoded_questions(config, 'train', vocab)
+  num_slots, slot_size = savi_lib.Savi(config).slot_shape
+  slots = np.zeros((vqa.video_length + vqa.rollout_frames, num_slots,
+                    slot_size), np.float32)
+  batches = vqa_task.QuestionBatches(
+      questions, lambda name: slots, video_length=vqa.video_length,
+      num_frames=vqa.num_frames, stride=vqa.frame_stride,
+      max_choices=vqa.max_choices)
+  batch = next(batches.train_batches(vqa.open_batch_size,
+                                     vqa.choice_batch_size, seed=0))
+  spec = bench.batch_spec(config, 'aloe', bench.batch_of(config, 'aloe'))
+  assert {k: (v.shape, np.dtype(v.dtype)) for k, v in batch.items()} == {
+      k: (v.shape, np.dtype(v.dtype)) for k, v in spec.items()}
+
+
+@pytest.mark.parametrize('hbm_of,largest', [
+    # HBM linear in the per-chip batch: 1 GiB + 0.25 GiB per example.
+    (lambda b: (1 + 0.25 * b) * 2**30, 60),
+    # Not monotonic near the limit: 52-55 need more than 56-60.
+    (lambda b: (17 if 52 <= b <= 55 else 1 + 0.25 * b) * 2**30, 60),
+    # A fixed part larger than the per-example one, refused far above.
+    (lambda b: (6 + 0.01 * b) * 2**30 if b < 5000 else 40 * 2**30, 1000),
+])
+def test_largest_batch_search_brackets_the_limit(monkeypatch, hbm_of,
+                                                 largest):
+  """The search reports a batch that fits and one above it that does not,
+  within the tolerance, in a bounded number of compiles."""
+  bench = _benchmark()
+  compiled = []
+
+  def fake_hbm(config, step, mesh, chip):
+    per_chip = config.savi.batch_size // 4
+    compiled.append(per_chip)
+    return int(hbm_of(per_chip))
+
+  monkeypatch.setattr(bench, '_hbm_or_required', fake_hbm)
+  chip = dict(hbm=16 * 2**30)
+  mesh = np.empty((4,))  # only its size is read
+
+  class FakeMesh:
+    devices = mesh
+  config = load_config('synthetic', 'tiny')
+  out = bench.largest_batch(config, 'savi', FakeMesh(), chip, lambda _: None,
+                            known={2: int(hbm_of(2))}, tolerance=0.1,
+                            max_compiles=12)
+  low, high = out['largest_per_chip'], out['smallest_not_fitting']
+  assert hbm_of(low) <= chip['hbm'] < hbm_of(high)
+  assert low < high <= max(low + 1, low * 1.1)
+  assert low <= largest
+  assert out['search_compiles'] == len(compiled) <= 12
+  assert len(set(compiled)) == len(compiled)  # no batch compiled twice
