@@ -225,3 +225,32 @@ def test_largest_batch_search_brackets_the_limit(monkeypatch, hbm_of,
   assert low <= largest
   assert out['search_compiles'] == len(compiled) <= 12
   assert len(set(compiled)) == len(compiled)  # no batch compiled twice
+
+
+def test_table_merges_rows_and_keeps_a_search(tmp_path):
+  """benchmarks/tpu_compile_table.py: a later file's row wins; a plain
+  recompile of the same program keeps the earlier row's largest batch."""
+  spec = importlib.util.spec_from_file_location(
+      'tpu_compile_table', os.path.join(ROOT, 'benchmarks',
+                                        'tpu_compile_table.py'))
+  module = importlib.util.module_from_spec(spec)
+  spec.loader.exec_module(module)
+  row = dict(topology='v5e:2x4', config='obj3d', step='savi',
+             dtype='float32', chips=8, batch=64, status='compiled',
+             fits=True, hbm_bytes=2 * 2**30, chip_hbm=16 * 2**30,
+             flops=1.3e12, bytes_accessed=15e9, floor_seconds=15e9 / 819e9,
+             compile_seconds=50.0, device_kind='TPU v5 lite')
+  searched = dict(row, largest_per_chip=40, smallest_not_fitting=44,
+                  tried={'8': 1, '40': 2, '44': 3}, search_compiles=3)
+  failed = dict(row, step='slotformer', status='compile failed',
+                why='some XLA error')
+  (tmp_path / 'a.json').write_text(json.dumps([searched]))
+  (tmp_path / 'b.json').write_text(json.dumps([dict(row, compile_seconds=9.0),
+                                               failed]))
+  rows = module.merge([str(tmp_path / 'a.json'), str(tmp_path / 'b.json')])
+  assert [r['step'] for r in rows] == ['savi', 'slotformer']
+  assert rows[0]['compile_seconds'] == 9.0
+  assert rows[0]['largest_per_chip'] == 40
+  table = module.table(rows).splitlines()
+  assert '| 40 (not 44) |' in table[2] and '| bytes 2.7x |' in table[2]
+  assert 'compile failed: some XLA error' in table[3]

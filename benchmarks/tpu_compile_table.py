@@ -1,0 +1,117 @@
+r"""The markdown table of `benchmarks/tpu_compile.py`'s JSON rows.
+
+  python benchmarks/tpu_compile_table.py rows_a.json rows_b.json ... \
+      [--json=merged.json]
+
+Rows are keyed by (topology, config, step, dtype); a later file's row
+replaces an earlier one's, except that a row without a largest-batch search
+keeps the search of the row it replaces when both compiled the same program
+(same FLOPs and HBM). Rows are sorted by config, step, slice and dtype.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from typing import Any
+
+sys.path.insert(0, os.path.join(os.path.dirname(__file__), '..'))
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+
+import tpu_compile  # noqa: E402  (its CHIPS: the spec-sheet peaks)
+
+from slotformer_jax import files  # noqa: E402
+
+GiB = 2**30
+CONFIG_ORDER = ('obj3d', 'clevrer', 'clevrer_vqa', 'phyre', 'phyre:planning',
+                'physion', 'physion_contact')
+STEP_ORDER = ('savi', 'dvae', 'steve', 'slotformer', 'eval_rollout', 'aloe',
+              'readout')
+TOPOLOGY_ORDER = ('v5e:2x4', 'v4:2x2x1', 'v5e:16x16')
+SEARCH_FIELDS = ('largest_per_chip', 'smallest_not_fitting', 'tried',
+                 'search_compiles')
+
+
+def _key(row: dict[str, Any]) -> tuple:
+  return (row['topology'], row['config'], row['step'], row['dtype'])
+
+
+def _rank(order: tuple[str, ...], value: str) -> tuple[int, str]:
+  return (order.index(value) if value in order else len(order), value)
+
+
+def merge(paths: list[str]) -> list[dict[str, Any]]:
+  rows: dict[tuple, dict[str, Any]] = {}
+  for path in paths:
+    for row in files.read_json(path):
+      old = rows.get(_key(row))
+      if (old is not None and 'largest_per_chip' in old
+          and 'largest_per_chip' not in row
+          and old.get('flops') == row.get('flops')
+          and old.get('hbm_bytes') == row.get('hbm_bytes')):
+        row = dict(row, **{f: old[f] for f in SEARCH_FIELDS if f in old})
+      rows[_key(row)] = row
+  return sorted(rows.values(), key=lambda r: (
+      _rank(CONFIG_ORDER, r['config']), _rank(STEP_ORDER, r['step']),
+      _rank(TOPOLOGY_ORDER, r['topology']), r['dtype']))
+
+
+def _largest(row: dict[str, Any]) -> str:
+  if 'largest_per_chip' not in row:
+    return 'not searched'
+  above = row.get('smallest_not_fitting')
+  return (f"{row['largest_per_chip']} (not {above})" if above is not None
+          else f">= {row['largest_per_chip']} (search stopped)")
+
+
+def table(rows: list[dict[str, Any]]) -> str:
+  lines = ['| config | step | slice (chips) | dtype | batch (/chip) | fits '
+           '| HBM GiB / chip | largest batch / chip (first that does not '
+           'fit) | GFLOP / chip | GB / chip | floor ms | bound by | '
+           'compile s |', '|' + '---|' * 13]
+  for r in rows:
+    head = (f"| {r['config']} | {r['step']} | {r['topology']} "
+            f"({r['chips']}) | {r['dtype']} |")
+    if r.get('status') != 'compiled':
+      lines.append(f"{head} {r.get('batch', '')} | {r.get('status')}: "
+                   f"{r.get('why', '')[:120]} |" + ' |' * 8)
+      continue
+    per_chip = r['batch'] // r['chips']
+    star = ' *' if 'note' in r and 'does not split' in r['note'] else ''
+    lines.append(
+        f"{head} {r['batch']} ({per_chip}){star} | "
+        f"{'yes' if r['fits'] else 'NO'} | "
+        f"{r['hbm_bytes'] / GiB:.2f} of {r['chip_hbm'] / GiB:.0f} | "
+        f"{_largest(r)} | {r['flops'] / 1e9:.1f} | "
+        f"{r['bytes_accessed'] / 1e9:.2f} | {r['floor_seconds'] * 1e3:.2f} | "
+        f"{_bound_by(r)} | "
+        f"{r['compile_seconds']:.0f} |")
+  return '\n'.join(lines)
+
+
+def _bound_by(row: dict[str, Any]) -> str:
+  """Which roofline term sets the floor, and by how much it exceeds the
+  other (with tpu_compile.py's spec-sheet peaks)."""
+  chip = tpu_compile.CHIPS[row['device_kind']]
+  t_flops = row['flops'] / chip['peak_flops']
+  t_bytes = row['bytes_accessed'] / chip['hbm_bandwidth']
+  if t_bytes >= t_flops:
+    return f'bytes {t_bytes / max(t_flops, 1e-12):.1f}x'
+  return f'FLOPs {t_flops / max(t_bytes, 1e-12):.1f}x'
+
+
+def main(argv=None) -> int:
+  parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+  parser.add_argument('inputs', nargs='+')
+  parser.add_argument('--json', default='')
+  args = parser.parse_args(argv)
+  rows = merge(args.inputs)
+  if args.json:
+    files.write_json_atomic(args.json, rows)
+  print(table(rows))
+  return 0
+
+
+if __name__ == '__main__':
+  sys.exit(main())
