@@ -252,5 +252,5 @@ def test_table_merges_rows_and_keeps_a_search(tmp_path):
   assert rows[0]['compile_seconds'] == 9.0
   assert rows[0]['largest_per_chip'] == 40
   table = module.table(rows).splitlines()
-  assert '| 40 (not 44) |' in table[2] and '| bytes 2.7x |' in table[2]
+  assert '| 40 (not 44) |' in table[2] and '| bytes 2.8x |' in table[2]
   assert 'compile failed: some XLA error' in table[3]
