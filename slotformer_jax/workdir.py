@@ -141,7 +141,8 @@ CONFIG_FILE = 'config.json'
 CONFIG_HISTORY_FILE = 'config_history.jsonl'
 
 # Settings that change how a run is observed, not what it computes.
-_NOT_SHAPING = ('log_every', 'checkpoint_every', 'num_workers', 'data_dir')
+_NOT_SHAPING = ('log_every', 'checkpoint_every', 'stop_check_every',
+                'num_workers', 'data_dir')
 # Settings that pick a variant with its own folder (vqa/<inputs>_s<seed>/):
 # one workdir holds every Aloe input and seed of a comparison.
 _VARIANT_SELECTORS = ('vqa.inputs', 'vqa.seed', 'vqa.eval_split')

@@ -91,6 +91,11 @@ def base_config() -> ml_collections.ConfigDict:
   savi.grad_clip = 0.05  # max global gradient norm
   savi.log_every = 100
   savi.checkpoint_every = 1000
+  # Several processes: how often (in steps) they agree whether a SIGTERM /
+  # SIGINT reached one of them (one small all-gather, a host sync on an
+  # accelerator); a signal is acted on up to stop_check_every - 1 steps late,
+  # after the same step everywhere. Not part of a run's identity.
+  savi.stop_check_every = 1
 
   # ---- stage 1 with slot_model='steve': dVAE, then STEVE -----------------
   # The official Physion values (dvae_physion_params, steve_physion_params).
@@ -109,6 +114,7 @@ def base_config() -> ml_collections.ConfigDict:
   dvae.tokenize_batch_size = 16  # videos per batch when tokenizing
   dvae.log_every = 100
   dvae.checkpoint_every = 1000
+  dvae.stop_check_every = 1  # see savi.stop_check_every
   config.steve = steve = ml_collections.ConfigDict()
   steve.num_slots = 6
   steve.slot_size = 192
@@ -135,6 +141,7 @@ def base_config() -> ml_collections.ConfigDict:
   steve.grad_clip = 0.05
   steve.log_every = 100
   steve.checkpoint_every = 1000
+  steve.stop_check_every = 1  # see savi.stop_check_every
 
   # ---- slot extraction ----------------------------------------------------
   config.extraction = ml_collections.ConfigDict(dict(
@@ -173,6 +180,7 @@ def base_config() -> ml_collections.ConfigDict:
   dyn.grad_clip = 0.0  # the paper uses none
   dyn.log_every = 100
   dyn.checkpoint_every = 1000
+  dyn.stop_check_every = 1  # see savi.stop_check_every
 
   # ---- baseline: Slot-LSTM (the paper's appendix) --------------------------
   # The same per-frame Transformer followed by a per-slot LSTM, trained on the
@@ -337,6 +345,7 @@ def vqa_config() -> ml_collections.ConfigDict:
   vqa.grad_clip = 0.0
   vqa.log_every = 100
   vqa.checkpoint_every = 2000
+  vqa.stop_check_every = 1  # see savi.stop_check_every
   vqa.eval_split = 'val'
   vqa.eval_batch_size = 64
   # Where CLEVRER's questions/ and vocabulary live (real data); the embedded

@@ -6,17 +6,28 @@ or extracted slots ``{'slots': float32 [T, N, D], ...}``); 0-d entries
 (per-video scalars such as ``num_objects``) are passed through unsliced.
 Videos may have different lengths.
 
-* :func:`train_batches`: an infinite stream of random clips; the batch of
-  global step ``s`` is a pure function of ``(seed, s, process_index)``, so a
-  run resumed at ``start_step=k`` sees exactly the batches an uninterrupted
-  run sees from step ``k``. Batches are built in a background thread.
+* :func:`train_batches`: an infinite stream of random clips; the global
+  batch of step ``s`` is a pure function of ``(seed, s, global batch size)``
+  and the data, so a run resumed at ``start_step=k`` sees exactly the
+  batches an uninterrupted run sees from step ``k``, and the split of the
+  global batch over hosts does not change it. Batches are built in a
+  background thread.
 * :func:`eval_batches`: every video of the host's shard once, in order, in
   fixed-shape batches padded at the end and marked by a ``mask``.
 * :func:`host_batches`: the same plan as indices only (for loops that read
   videos of different lengths themselves, e.g. slot extraction).
 
-Multi-host: host ``p`` of ``P`` owns videos ``p, p + P, p + 2P, ...``; batch
-sizes are per host.
+Multi-host (batch sizes are per host, ``B``; the global batch is ``P * B``):
+
+* training: every host computes the same plan of the global batch (videos
+  drawn from all videos, start frames for every row) and reads only its own
+  rows ``[p * B, (p + 1) * B)``, the rows `train.sharding.to_global_batch`
+  places on its devices (the trainer checks this). So 2 hosts x 1 device
+  train on the batches of 1 host x 2 devices, and any host may read any
+  video: all hosts need the whole dataset (a shared data dir, as the launch
+  scripts assume).
+* evaluation and extraction: host ``p`` of ``P`` owns videos
+  ``p, p + P, p + 2P, ...``.
 
 Dtypes are kept as stored (videos stay uint8); convert on device.
 """
@@ -48,12 +59,17 @@ class Source(Protocol):
     ...
 
 
-def shard_indices(num_items: int, process_index: int,
-                  process_count: int) -> np.ndarray:
-  """int64 [ceil((num_items - p) / P)]: the items of host ``p``: p, p+P, ..."""
+def _check_host(process_index: int, process_count: int) -> None:
   if process_count < 1 or not 0 <= process_index < process_count:
     raise ValueError(f'need 0 <= process_index < process_count, got '
                      f'{process_index} / {process_count}')
+
+
+def shard_indices(num_items: int, process_index: int,
+                  process_count: int) -> np.ndarray:
+  """int64 [ceil((num_items - p) / P)]: the items of host ``p``: p, p+P, ...
+  (evaluation and extraction; training reads rows of a global plan)."""
+  _check_host(process_index, process_count)
   return np.arange(process_index, num_items, process_count, dtype=np.int64)
 
 
@@ -105,33 +121,41 @@ def _stack(parts: Sequence[Mapping[str, np.ndarray]], fields: Sequence[str]
   return {field: np.stack([p[field] for p in parts]) for field in fields}
 
 
-def _epoch_order(seed: int, process_index: int, epoch: int,
-                 size: int) -> np.ndarray:
-  rng = np.random.default_rng([seed, _TAG_ORDER, process_index, epoch])
+def _epoch_order(seed: int, epoch: int, size: int) -> np.ndarray:
+  """int64 [size]: the order of all videos in ``epoch``."""
+  # The 0 stands where the process index was when each host drew its own
+  # batches: with it, single-process streams stay what they were.
+  rng = np.random.default_rng([seed, _TAG_ORDER, 0, epoch])
   return rng.permutation(size)
 
 
-def _train_plan(seed: int, step: int, batch_size: int, process_index: int,
-                shard: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-  """Video indices int64 [B] and start-frame fractions float64 [B] of a step.
+def _train_plan(seed: int, step: int, global_batch_size: int,
+                num_videos: int) -> tuple[np.ndarray, np.ndarray]:
+  """Video indices int64 [G] and start-frame fractions float64 [G] of the
+  global batch of a step (G: ``global_batch_size``); the same on every host.
 
   Videos are drawn without replacement within an epoch (a fresh permutation
-  of the shard per epoch), so every video is seen once per epoch; position
-  ``q`` of the stream lies in epoch ``q // len(shard)``, which makes step
+  of all videos per epoch), so every video is seen once per epoch; position
+  ``q`` of the stream lies in epoch ``q // num_videos``, which makes step
   ``s`` computable without replaying steps ``< s``.
   """
-  size = len(shard)
-  positions = np.arange(step * batch_size, (step + 1) * batch_size,
-                        dtype=np.int64)
-  epochs, offsets = np.divmod(positions, size)
-  videos = np.empty(batch_size, np.int64)
+  positions = np.arange(step * global_batch_size,
+                        (step + 1) * global_batch_size, dtype=np.int64)
+  epochs, offsets = np.divmod(positions, num_videos)
+  videos = np.empty(global_batch_size, np.int64)
   for epoch in np.unique(epochs):
     selected = epochs == epoch
-    order = _epoch_order(seed, process_index, int(epoch), size)
-    videos[selected] = shard[order[offsets[selected]]]
+    videos[selected] = _epoch_order(seed, int(epoch), num_videos)[
+        offsets[selected]]
   # Fractions, not frame numbers: each video maps them to its own length.
-  rng = np.random.default_rng([seed, _TAG_START, process_index, step])
-  return videos, rng.random(batch_size)
+  rng = np.random.default_rng([seed, _TAG_START, 0, step])
+  return videos, rng.random(global_batch_size)
+
+
+def host_rows(batch_size: int, process_index: int) -> slice:
+  """Host ``p``'s rows of a global batch of per-host size ``batch_size``:
+  ``[p * B, (p + 1) * B)``."""
+  return slice(process_index * batch_size, (process_index + 1) * batch_size)
 
 
 def make_train_batch(source: Source, step: int, *, batch_size: int,
@@ -139,15 +163,17 @@ def make_train_batch(source: Source, step: int, *, batch_size: int,
                      fields: Sequence[str] = ('video',), frame_stride: int = 1,
                      process_index: int = 0, process_count: int = 1
                      ) -> dict[str, np.ndarray]:
-  """The batch of global step ``step`` (see :func:`train_batches`)."""
-  shard = shard_indices(len(source), process_index, process_count)
-  if len(shard) == 0:
-    raise ValueError(f'host {process_index}/{process_count} has no videos '
-                     f'(source has {len(source)})')
-  videos, fractions = _train_plan(seed, step, batch_size, process_index, shard)
+  """This host's rows of the global batch of step ``step`` (see
+  :func:`train_batches`); ``batch_size`` is per host."""
+  _check_host(process_index, process_count)
+  if len(source) == 0:
+    raise ValueError('the source has no videos to train on')
+  videos, fractions = _train_plan(seed, step, batch_size * process_count,
+                                  len(source))
+  rows = host_rows(batch_size, process_index)
   span = (clip_length - 1) * frame_stride + 1
   parts = []
-  for video, fraction in zip(videos, fractions):
+  for video, fraction in zip(videos[rows], fractions[rows]):
     item = source[int(video)]
     num_frames = _num_frames(item, fields, int(video))
     if num_frames < span:
@@ -169,19 +195,21 @@ def train_batches(source: Source, *, batch_size: int, clip_length: int,
 
   Args:
     source: the videos (see the module docstring).
-    batch_size: B, clips per batch on this host.
+    batch_size: B, clips per batch on this host (the global batch is
+      ``process_count * B``).
     clip_length: L, frames per clip.
     seed: seed of the whole stream.
     start_step: global step of the first batch (for resuming).
     fields: item keys to return; non-scalar ones must have time first.
     frame_stride: take every ``frame_stride``-th frame.
-    process_index, process_count: this host and the number of hosts.
+    process_index, process_count: this host and the number of hosts; host
+      ``p`` gets rows ``[p * B, (p + 1) * B)`` of the global batch.
     prefetch: batches built ahead in a background thread (0: no thread).
 
   Yields:
     ``{field: [B, L, ...]}`` (scalar fields: ``[B]``), dtypes as stored. The
-    batch of step ``s`` depends only on ``(seed, s, process_index)`` and the
-    data.
+    global batch of step ``s`` depends only on ``(seed, s, P * B)`` and the
+    data, not on ``P``; with one host it is the batch itself.
 
   Raises:
     ValueError: bad arguments, or a video shorter than a clip.
@@ -192,7 +220,7 @@ def train_batches(source: Source, *, batch_size: int, clip_length: int,
   if start_step < 0:
     raise ValueError(f'start_step must be >= 0, got {start_step}')
   fields = tuple(fields)
-  shard_indices(len(source), process_index, process_count)  # validate early
+  _check_host(process_index, process_count)  # validate early
 
   def make(step: int) -> dict[str, np.ndarray]:
     return make_train_batch(

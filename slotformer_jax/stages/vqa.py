@@ -233,8 +233,9 @@ def train_vqa(config: ml_collections.ConfigDict, workdir: str,
   stage = aloe_stage(
       config, workdir, vocab,
       lambda start_step: batches.train_batches(
-          open_size, choice_size, seed=seed + jax.process_index() * 7919,
-          start_step=start_step))
+          open_size, choice_size, seed=seed, start_step=start_step,
+          process_index=jax.process_index(),
+          process_count=jax.process_count()))
   fit(stage, mesh=mesh, seed=seed)
 
 

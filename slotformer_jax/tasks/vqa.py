@@ -30,6 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from slotformer_jax.data.pipeline import host_rows
 from slotformer_jax.data.vqa import DESCRIPTIVE, QUESTION_TYPES
 from slotformer_jax.data.vqa import EncodedQuestion
 from slotformer_jax.modules.aloe import Aloe
@@ -224,19 +225,33 @@ class QuestionBatches:
     }
 
   def train_batches(self, open_size: int, choice_size: int, seed: int,
-                    start_step: int = 0) -> Iterator[dict[str, np.ndarray]]:
-    """Random questions and window starts; batch ``s`` depends only on
-    (seed, s), so a resumed run sees the same stream."""
+                    start_step: int = 0, process_index: int = 0,
+                    process_count: int = 1
+                    ) -> Iterator[dict[str, np.ndarray]]:
+    """Random questions and window starts, this host's rows of the global
+    batch. ``open_size`` / ``choice_size`` are per host; every host draws the
+    same global batch of ``P * open_size`` / ``P * choice_size`` questions and
+    keeps rows ``[p * size, (p + 1) * size)`` of each, so batch ``s`` depends
+    only on (seed, s, the global sizes): a resumed run sees the same stream,
+    and so does the same run on another number of hosts."""
+    open_rows = host_rows(open_size, process_index)
+    choice_rows = host_rows(choice_size, process_index)
+    open_total = process_count * open_size
+    choice_total = process_count * choice_size
     step = start_step
     while True:
       rng = np.random.default_rng([seed, step])
-      open_ids = rng.integers(0, len(self.open), open_size)
+      open_ids = rng.integers(0, len(self.open), open_total)
       if self.choice_p is None:
-        choice_ids = rng.integers(0, len(self.choice), choice_size)
+        choice_ids = rng.integers(0, len(self.choice), choice_total)
       else:  # e.g. more predictive questions per step
-        choice_ids = rng.choice(len(self.choice), choice_size, p=self.choice_p)
-      starts = rng.integers(0, self.num_starts, open_size + choice_size)
-      yield self.batch(list(open_ids), list(choice_ids), starts, open_size,
+        choice_ids = rng.choice(len(self.choice), choice_total,
+                                p=self.choice_p)
+      starts = rng.integers(0, self.num_starts, open_total + choice_total)
+      starts = np.concatenate([starts[:open_total][open_rows],
+                               starts[open_total:][choice_rows]])
+      yield self.batch(list(open_ids[open_rows]),
+                       list(choice_ids[choice_rows]), starts, open_size,
                        choice_size)
       step += 1
 

@@ -44,6 +44,26 @@ def per_host_batch_size(global_batch_size: int, mesh: Mesh) -> int:
   return global_batch_size // jax.process_count()
 
 
+def check_host_rows(mesh: Mesh) -> None:
+  """Checks that this process's devices hold rows ``[p * B, (p + 1) * B)``
+  of a batch-sharded global array (B: the per-host batch), the rows
+  `data.pipeline.train_batches` gives host ``p``.
+
+  Raises:
+    ValueError: the mesh orders the devices of the processes otherwise.
+  """
+  num_rows = mesh.devices.size  # one row per device
+  indices = batch_sharding(mesh).addressable_devices_indices_map((num_rows,))
+  rows = sorted(index[0].indices(num_rows)[0] for index in indices.values())
+  first = jax.process_index() * len(rows)
+  if rows != list(range(first, first + len(rows))):
+    raise ValueError(
+        f'process {jax.process_index()} holds rows {rows} of the global '
+        f'batch (one row per device), not the block {first}..'
+        f'{first + len(rows) - 1} its training batches are drawn for; the '
+        'mesh must list the devices of process 0 first, then 1, ...')
+
+
 def to_global_batch(local_batch: dict[str, np.ndarray], mesh: Mesh
                     ) -> dict[str, jax.Array]:
   """Assembles each host's slice into global arrays sharded on 'data'."""

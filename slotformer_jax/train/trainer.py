@@ -10,7 +10,9 @@ state (never saved; the message names the last good checkpoint), a failed
 checkpoint save. SIGTERM (how SLURM and TPU pods preempt) and SIGINT (Ctrl-C)
 save a checkpoint at the current step and raise `Preempted`; the rerun
 resumes bit-exact. With several processes, a signal to any of them stops all
-after the same step (one small all-gather per step agrees on it).
+after the same step: one small all-gather agrees on it every
+`stop_check_every` steps of the stage's config (default 1) and after the
+last step, so a signal is acted on at most `stop_check_every - 1` steps late.
 """
 
 from __future__ import annotations
@@ -63,7 +65,7 @@ class Stage:
     directory: where checkpoints and the training log go.
     config: the stage's config section (batch_size, num_train_steps,
       learning_rate, warmup_fraction, grad_clip, log_every,
-      checkpoint_every).
+      checkpoint_every; stop_check_every, 1 if absent).
     loss_fn: (params, batch, frozen_params, rng) -> (loss, metrics).
     init_params: rng -> params.
     batches: start_step -> iterator of this host's batches.
@@ -182,7 +184,10 @@ def fit(stage: Stage, *, mesh: Mesh, seed: int) -> TrainState:
   logger.info('%s: %s parameters, training steps %d -> %d on %d devices',
                stage.name, f'{num_params:,}', start_step, num_steps,
                mesh.devices.size)
+  if jax.process_count() > 1:
+    sharding.check_host_rows(mesh)
   update = jit_update(stage, mesh, optimizer, seed)
+  stop_check_every = config.get('stop_check_every', 1)
   frozen_params = sharding.replicate(stage.frozen_params, mesh)
 
   log_path = os.path.join(stage.directory, 'train_log.jsonl')
@@ -200,7 +205,8 @@ def fit(stage: Stage, *, mesh: Mesh, seed: int) -> TrainState:
         state, metrics = update(state, batch, frozen_params)
         progress.update(1)
         done = step + 1
-        stop_signal, signalled = _stop_signal(term)
+        stop_signal, signalled = _stop_signal(term, done, num_steps,
+                                              stop_check_every)
         preempted = stop_signal != 0
         should_save = (done % config.checkpoint_every == 0
                        or done == num_steps or preempted)
@@ -278,13 +284,25 @@ def fit_stage(stage: Stage, *, mesh: Mesh, seed: int, what: str,
   return fit(stage, mesh=mesh, seed=seed)
 
 
-def _stop_signal(term: _TermFlag) -> tuple[int, list[int]]:
-  """(signal to save and stop on after this step or 0, the processes that
-  received it). Several processes must agree on the step: each notes its own
-  signals, and one all-gather per step (every process calls it after the
-  same step) makes the answer the same everywhere. Not orbax's preemption
-  sync: it relies on jax's own SIGTERM handler, which ours replaces."""
+def agrees_after(done: int, num_steps: int, every: int) -> bool:
+  """Whether several processes agree on a stop after update `done` (1-based):
+  every `every` updates and after the last one."""
+  return done % every == 0 or done == num_steps
+
+
+def _stop_signal(term: _TermFlag, done: int, num_steps: int,
+                 every: int = 1) -> tuple[int, list[int]]:
+  """(signal to save and stop on after update `done` or 0, the processes
+  that received it). Several processes must agree on the step: each notes
+  its own signals, and an all-gather after the updates of `agrees_after`
+  (every process calls it after the same one) makes the answer the same
+  everywhere; between them a signal waits, since a collective per step is a
+  host sync per step on an accelerator. One process acts on its own signal
+  at once. Not orbax's preemption sync: it relies on jax's own SIGTERM
+  handler, which ours replaces."""
   if jax.process_count() > 1:
+    if not agrees_after(done, num_steps, every):
+      return 0, []
     return processes.agreed_signal(term.received)
   return term.received, [jax.process_index()] if term.received else []
 

@@ -116,17 +116,54 @@ def test_every_video_once_per_epoch():
   assert (videos[:12] != videos[12:]).any()      # reshuffled
 
 
-def test_train_sharding_per_host():
-  source = FakeSource([6] * 10)
-  seen = []
-  for p in range(3):
-    batches = _take(pipeline.train_batches(
-        source, batch_size=2, clip_length=2, seed=0, fields=('code',),
-        process_index=p, process_count=3), 4)
-    videos = {int(v) for b in batches for v in _decode(b['code'])[0][:, 0]}
-    assert videos == set(range(p, 10, 3))
-    seen.append(videos)
-  assert set.union(*seen) == set(range(10))
+@pytest.mark.parametrize('process_count', [2, 4])
+def test_hosts_rows_concatenate_to_the_one_host_batch(process_count):
+  # 10 videos, 3 rows per host: with 2 hosts step 1 (positions 6..11) holds
+  # the end of epoch 0 and the start of epoch 1; with 4 (12 rows) every
+  # step holds two epochs.
+  source = FakeSource([8, 11, 9, 30, 6, 10, 7, 12, 9, 14])
+  kwargs = dict(clip_length=3, seed=4, frame_stride=2,
+                fields=('code', 'slots', 'num_objects'))
+  steps = 7
+  one = _take(pipeline.train_batches(
+      source, batch_size=3 * process_count, **kwargs), steps)
+  hosts = [_take(pipeline.train_batches(
+      source, batch_size=3, process_index=p, process_count=process_count,
+      **kwargs), steps) for p in range(process_count)]
+  for s in range(steps):
+    for key in kwargs['fields']:
+      np.testing.assert_array_equal(
+          np.concatenate([host[s][key] for host in hosts]), one[s][key],
+          err_msg=f'step {s} {key}')
+
+
+def _old_plan(seed, step, batch_size, num_videos):
+  """The single-process plan before hosts shared one global plan."""
+  positions = np.arange(step * batch_size, (step + 1) * batch_size)
+  epochs, offsets = np.divmod(positions, num_videos)
+  videos = np.array([np.random.default_rng([seed, 0, 0, e]).permutation(
+      num_videos)[o] for e, o in zip(epochs, offsets)])
+  return videos, np.random.default_rng([seed, 1, 0, step]).random(batch_size)
+
+
+def test_one_host_stream_is_the_old_plan():
+  lengths = [12, 9, 20, 7, 15, 30, 8]
+  source = FakeSource(lengths)
+  batches = _take(pipeline.train_batches(
+      source, batch_size=4, clip_length=3, seed=9, frame_stride=2,
+      fields=('code',)), 9)
+  span = (3 - 1) * 2 + 1
+  for s, batch in enumerate(batches):
+    videos, fractions = _old_plan(9, s, 4, len(lengths))
+    starts = (fractions * (np.array(lengths)[videos] - span + 1)).astype(int)
+    np.testing.assert_array_equal(batch['code'][:, 0], 100 * videos + starts,
+                                  err_msg=f'step {s}')
+
+
+def test_train_hosts_check_their_index():
+  with pytest.raises(ValueError, match='process_index < process_count'):
+    pipeline.train_batches(FakeSource([6] * 4), batch_size=2, clip_length=2,
+                           seed=0, process_index=2, process_count=2)
 
 
 def test_short_video_raises():

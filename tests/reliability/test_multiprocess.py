@@ -2,27 +2,27 @@
 collectives, one CPU device each, one shared workdir), SAVi's micro config:
 
 * SIGTERM to both, or to one only: both save the step they agree on and exit
-  143, and the rerun ends bit-identical to an uninterrupted two-process run;
+  143 (with `stop_check_every=5`: a multiple of 5), and the rerun ends
+  bit-identical to an uninterrupted two-process run;
 * SIGKILL of one: the other names it in one line and exits within the
   heartbeat timeout; the rerun (past a leftover orbax temporary folder) ends
   bit-identical too;
-* more processes than videos in a split: two processes re-extract the slots
-  and re-evaluate, and the metrics equal those of one process with two
-  devices.
-
-Training itself is not compared with one process: each host draws its own
-batches (`data.pipeline.train_batches`, a function of the step and the
-process index), so the global batch of two processes is another one.
+* training: the per-step metrics of two processes equal those of one process
+  with two devices (every host reads its rows of one global batch plan,
+  `data.pipeline.train_batches`);
+* more processes than videos in a split: two processes train SAVi and
+  SlotFormer, extract the slots and evaluate, and the training logs and
+  metrics equal those of one process with two devices.
 
     python -m pytest -q tests/reliability/test_multiprocess.py          # fast one
     python -m pytest -q -m slow tests/reliability/test_multiprocess.py  # all
 
-The flag checks and the watchdog's verdicts are unit tests here too.
+The default run: the SIGTERM-to-one test, the flag checks, the watchdog's
+verdicts and the stop-agreement decision (unit tests without processes).
 """
 
 import json
 import os
-import shutil
 import signal
 import socket
 import subprocess
@@ -34,10 +34,13 @@ import jax
 import numpy as np
 import pytest
 
+from slotformer_jax import workdir as workdir_lib
+from slotformer_jax.config import checks
 from slotformer_jax.errors import ConfigError
 from slotformer_jax.slot_models import savi as savi_slots
 from slotformer_jax.train import processes
 from slotformer_jax.train import sharding
+from slotformer_jax.train import trainer
 from slotformer_jax.train.checkpoint import Checkpointer
 
 import pipeline_helpers
@@ -174,6 +177,50 @@ def test_explicit_flags_go_together():
     processes.check_flags('localhost:1234', 2, 2)
 
 
+def test_processes_agree_on_a_stop_every_k_steps(monkeypatch):
+  agreements = []
+
+  def agreed_signal(local_signal):
+    agreements.append(local_signal)
+    return local_signal, [0] if local_signal else []
+
+  monkeypatch.setattr(processes, 'agreed_signal', agreed_signal)
+  term = trainer._TermFlag()
+  term.received = signal.SIGTERM  # before update 1
+  monkeypatch.setattr(jax, 'process_count', lambda: 2)
+  stops = [trainer._stop_signal(term, done, 12, every=5)[0]
+           for done in range(1, 13)]
+  # Only after updates 5, 10 and the last (12) do the processes agree.
+  assert agreements == [signal.SIGTERM] * 3
+  assert [d for d, stop in enumerate(stops, 1) if stop] == [5, 10, 12]
+  assert [trainer.agrees_after(d, 12, 1) for d in range(1, 13)] == [True] * 12
+  # One process: its own flag after every update, no collective.
+  agreements.clear()
+  monkeypatch.setattr(jax, 'process_count', lambda: 1)
+  assert [trainer._stop_signal(term, d, 12, every=5)[0]
+          for d in (1, 2, 3)] == [signal.SIGTERM] * 3
+  assert agreements == []
+
+
+def test_stop_check_every_is_checked_and_not_part_of_a_run(tmp_path):
+  config = pipeline_helpers.micro_config('savi', tmp_path / 'data')
+  assert config.savi.stop_check_every == 1
+  config.savi.stop_check_every = 0
+  assert checks.check_field_kinds(config) == [
+      'savi.stop_check_every must be an integer >= 1, got 0']
+  config.savi.stop_check_every = 5
+  assert 'stop_check_every' not in workdir_lib.stage_identity_fields(
+      config, 'savi')['savi']
+  # A workdir from before the field existed stays usable.
+  saved = config.to_dict()
+  for section in saved.values():
+    if isinstance(section, dict):
+      section.pop('stop_check_every', None)
+  with open(tmp_path / workdir_lib.CONFIG_FILE, 'w') as f:
+    json.dump(saved, f, default=list)
+  assert workdir_lib.accept_config(config, str(tmp_path)) == []
+
+
 def test_a_partial_set_of_flags_is_one_line(tmp_path):
   result = subprocess.run(
       _command(tmp_path / 'run', 2, extra=('--num_processes=2',)),
@@ -233,14 +280,17 @@ def test_the_watchdog_names_a_lost_process(tmp_path, peer_exit, status, line):
 # --------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize('to', [
-    pytest.param('one', id='sigterm_to_one'),
-    pytest.param('both', id='sigterm_to_both', marks=pytest.mark.slow),
+@pytest.mark.parametrize('to, every', [
+    pytest.param('one', 1, id='sigterm_to_one'),
+    pytest.param('both', 1, id='sigterm_to_both', marks=pytest.mark.slow),
+    pytest.param('one', 5, id='sigterm_to_one_every_5',
+                 marks=pytest.mark.slow),
 ])
 def test_sigterm_stops_both_processes_after_the_same_step(
-    data_dir, tmp_path, to):
+    data_dir, tmp_path, to, every):
   workdir = str(tmp_path / 'run')
-  run = Run(workdir, data_dir, 200)
+  run = Run(workdir, data_dir, 200,
+            extra=[f'--config.savi.stop_check_every={every}'])
   run.wait_for('savi step 2:', i=1)
   targets = run.processes[1:] if to == 'one' else run.processes
   for process in targets:
@@ -258,6 +308,7 @@ def test_sigterm_stops_both_processes_after_the_same_step(
   steps = Checkpointer(os.path.join(workdir, 'savi', 'checkpoints'),
                        read_only=True).all_steps()
   assert steps == [int(stops[0])] and 2 <= steps[0] < 200, (steps, stops)
+  assert steps[0] % every == 0, steps  # processes agree every `every` steps
 
 
 @pytest.mark.slow
@@ -304,6 +355,39 @@ def test_sigkill_of_one_process_stops_the_other_with_one_line(
   _assert_same_params(workdir, uninterrupted, data_dir)
 
 
+def _train_log(workdir, stage='savi'):
+  """{step: {metric: value}} of a stage's train_log.jsonl, timing left out."""
+  with open(os.path.join(workdir, stage, 'train_log.jsonl')) as f:
+    rows = [json.loads(line) for line in f]
+  return {row.pop('step'): {k: v for k, v in row.items()
+                            if k != 'steps_per_second'} for row in rows}
+
+
+@pytest.mark.slow
+def test_two_processes_train_as_one_process_with_two_devices(
+    data_dir, uninterrupted, tmp_path):
+  """The global batch of a step does not depend on how it is split over
+  hosts (`data.pipeline.train_batches`), so 2 processes x 1 device and
+  1 process x 2 devices log the same losses, step by step."""
+  workdir = str(tmp_path / 'run')
+  result = subprocess.run(_command(workdir, STEPS),
+                          env=_env(data_dir, devices=2), capture_output=True,
+                          text=True, timeout=600)
+  assert result.returncode == 0, result.stderr[-3000:]
+  one, two = _train_log(workdir), _train_log(uninterrupted)
+  assert sorted(one) == sorted(two) == list(range(1, STEPS + 1))
+  worst = 0.0
+  for step in one:
+    assert one[step].keys() == two[step].keys(), step
+    for key in sorted(one[step], key=lambda k: (k != 'loss', k)):
+      value = one[step][key]
+      np.testing.assert_allclose(two[step][key], value, rtol=1e-5,
+                                 err_msg=f'step {step} {key}')
+      worst = max(worst, abs(two[step][key] - value) / max(abs(value), 1e-30))
+  print(f'step 1 loss: {two[1]["loss"]!r} (2 processes), {one[1]["loss"]!r} '
+        f'(1 process); largest relative difference {worst:.3g}')
+
+
 # pipeline_helpers' micro SlotFormer, as overrides; one validation and one
 # test video, fewer than the two processes.
 FEW_VIDEOS = [
@@ -316,6 +400,9 @@ FEW_VIDEOS = [
     "--config.evaluation.metrics=('psnr','ari')",
     '--config.evaluation.savi_metrics=False',
 ]
+
+
+MODES = ('train_savi', 'extract_slots', 'train_slotformer', 'evaluate')
 
 
 def _numbers(tree, prefix=''):
@@ -336,26 +423,36 @@ def _numbers(tree, prefix=''):
   return {}
 
 
+def _metrics(workdir):
+  with open(os.path.join(workdir, 'eval', 'metrics.json')) as f:
+    return _numbers(json.load(f))
+
+
 @pytest.mark.slow
 def test_more_processes_than_videos_extract_and_evaluate(data_dir, tmp_path):
-  """One process with two devices trains and evaluates; two processes
-  re-extract the slots (one video per split for two processes) and
-  re-evaluate: the same metrics."""
-  workdir = str(tmp_path / 'run')
-  env = _env(tmp_path / 'few_data', devices=2)
-  for mode in ('train_savi', 'extract_slots', 'train_slotformer', 'evaluate'):
-    result = subprocess.run(_command(workdir, 2, mode, FEW_VIDEOS), env=env,
-                            capture_output=True, text=True, timeout=900)
+  """One process with two devices, then two processes, train SAVi and
+  SlotFormer, extract the slots (one video per split for two processes) and
+  evaluate: the same training logs and metrics."""
+  few_data = tmp_path / 'few_data'
+  one_process = str(tmp_path / 'one')
+  env = _env(few_data, devices=2)
+  for mode in MODES:
+    result = subprocess.run(_command(one_process, 2, mode, FEW_VIDEOS),
+                            env=env, capture_output=True, text=True,
+                            timeout=900)
     assert result.returncode == 0, result.stderr[-3000:]
-  with open(os.path.join(workdir, 'eval', 'metrics.json')) as f:
-    one = _numbers(json.load(f))
-  shutil.rmtree(os.path.join(workdir, 'slots'))
-  shutil.rmtree(os.path.join(workdir, 'eval'))
-  for mode in ('extract_slots', 'evaluate'):
-    _finished(Run(workdir, tmp_path / 'few_data', 2, mode=mode,
-                  extra=FEW_VIDEOS))
-  with open(os.path.join(workdir, 'eval', 'metrics.json')) as f:
-    two = _numbers(json.load(f))
+  two_processes = str(tmp_path / 'two')
+  for mode in MODES:
+    _finished(Run(two_processes, few_data, 2, mode=mode, extra=FEW_VIDEOS))
+  for stage in ('savi', 'slotformer'):
+    one, two = _train_log(one_process, stage), _train_log(two_processes,
+                                                           stage)
+    assert one.keys() == two.keys() and one, (stage, one, two)
+    for step in one:
+      for key in one[step]:
+        np.testing.assert_allclose(two[step][key], one[step][key], rtol=1e-5,
+                                   err_msg=f'{stage} step {step} {key}')
+  one, two = _metrics(one_process), _metrics(two_processes)
   assert one.keys() == two.keys() and one, (one, two)
   for key in one:
     if 'time' not in key and 'seconds' not in key:

@@ -117,6 +117,26 @@ def test_batches_shapes_masks_and_rollout_window():
     np.testing.assert_array_equal(a[key], b[key])
 
 
+@pytest.mark.parametrize('weights', [None, {'predictive': 3.0}])
+def test_hosts_rows_concatenate_to_the_one_host_batch(weights):
+  scenes = _scenes()
+  vocab = vqa.Vocabulary.from_scenes(scenes, answers=vqa.CLEVRER_ANSWERS)
+  questions = vqa.encode_scenes(scenes, vocab, 8, 6)
+  frames = np.arange(30, dtype=np.float32)[:, None, None] * np.ones((1, 3, 2))
+  batches = task.QuestionBatches(
+      questions, lambda name: frames, video_length=20, num_frames=4,
+      stride=5, max_choices=4, choice_weights=weights)
+  one = batches.train_batches(6, 4, seed=3, start_step=2)
+  hosts = [batches.train_batches(3, 2, seed=3, start_step=2, process_index=p,
+                                 process_count=2) for p in (0, 1)]
+  for _ in range(4):
+    expected, parts = next(one), [next(host) for host in hosts]
+    for key in expected:
+      np.testing.assert_array_equal(
+          np.concatenate([part[key] for part in parts]), expected[key],
+          err_msg=key)
+
+
 def test_choice_type_weights_set_the_share_of_each_type():
   scenes = _scenes()
   vocab = vqa.Vocabulary.from_scenes(scenes, answers=vqa.CLEVRER_ANSWERS)
