@@ -128,6 +128,8 @@ DOWNSTREAM = {'clevrer': ('aloe', 'clevrer_vqa'),
               'synthetic_vqa': ('aloe', 'synthetic_vqa'),
               'synthetic_contact:tiny': ('readout', 'synthetic_contact:tiny'),
               'synthetic_phyre:tiny': ('readout', 'synthetic_phyre:tiny')}
+# Steps whose losses are not wrapped in `precision.with_compute_dtype`.
+FLOAT32_ONLY = ('aloe', 'readout')
 # Aloe's question vocabulary is read from the questions at run time; its
 # size only changes the word-embedding table (STANDIN_WORDS x word_dim).
 STANDIN_WORDS = 100
@@ -606,6 +608,11 @@ def one_row(config, name: str, step: str, dtype: str, topology: str,
     global_batch = paper_batch
   row['batch'] = global_batch
   try:
+    if step in FLOAT32_ONLY and dtype != precision.FLOAT32:
+      raise ValueError(
+          f'the {step} step computes in float32 whatever '
+          'config.compute_dtype says (it applies to the slot model and '
+          'dynamics steps): the same program as the float32 row')
     slot_models.get(config).check_compute_dtype()
     if step == 'readout':
       readout_model(config)

@@ -254,3 +254,16 @@ def test_table_merges_rows_and_keeps_a_search(tmp_path):
   table = module.table(rows).splitlines()
   assert '| 40 (not 44) |' in table[2] and '| bytes 2.8x |' in table[2]
   assert 'compile failed: some XLA error' in table[3]
+
+
+@pytest.mark.parametrize('name', ['synthetic_vqa', 'synthetic_contact:tiny'])
+def test_float32_only_steps_have_no_bfloat16_row(name):
+  """Aloe and the readouts ignore compute_dtype: a bfloat16 row would be
+  the float32 program under another name, so it is 'not built'."""
+  bench = _benchmark()
+  step = bench.DOWNSTREAM[name][0]
+  config = bench.configured(name, 'bfloat16', '')
+  row = bench.one_row(config, name, step, 'bfloat16', 'cpu',
+                      sharding.make_mesh(), dict(hbm=2**34), None, print)
+  assert row['status'] == 'not built'
+  assert 'computes in float32' in row['why']
