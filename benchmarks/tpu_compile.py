@@ -329,9 +329,11 @@ def step_program(config, step: str, mesh: Mesh) -> tuple[Any, tuple]:
                   if name != 'lpips' and name not in evaluate.OBJECT_METRICS)
     run = evaluate.make_rollout_evaluator(config, mesh, names, None,
                                           (models.SLOTFORMER,), slot_model)
+    # Only its parameter shapes are read: its own batch need not split
+    # over this slice (a 256-chip slice and SlotFormer's batch of 128).
     dyn_stage = dynamics.dynamics_stage(
-        config, NOWHERE, mesh, models.SLOTFORMER, slot_model,
-        slot_param_shapes(slot_model), None)
+        with_batch(config, 'slotformer', mesh.devices.size), NOWHERE, mesh,
+        models.SLOTFORMER, slot_model, slot_param_shapes(slot_model), None)
     dynamics_params = {models.SLOTFORMER: _place(
         jax.eval_shape(dyn_stage.init_params, jax.random.key(0)),
         replicated)}

@@ -267,3 +267,18 @@ def test_float32_only_steps_have_no_bfloat16_row(name):
                       sharding.make_mesh(), dict(hbm=2**34), None, print)
   assert row['status'] == 'not built'
   assert 'computes in float32' in row['why']
+
+
+@pytest.mark.parametrize('dtype', ['float32', 'bfloat16'])
+def test_eval_rollout_lowers_when_slotformer_batch_does_not_split(dtype):
+  """The benchmark's eval_rollout row on a mesh that SlotFormer's training
+  batch does not split over (a 256-chip slice, batch 128, failed before):
+  the dynamics stage is only read for its parameter shapes."""
+  bench = _benchmark()
+  config = bench.configured('synthetic:tiny', dtype, '')
+  mesh = sharding.make_mesh()
+  config.slotformer.batch_size = mesh.devices.size + 1  # does not split
+  run, args = bench.step_program(
+      bench.with_batch(config, 'eval_rollout', mesh.devices.size),
+      'eval_rollout', mesh)
+  assert 'conv' in run.lower(*args).as_text()
