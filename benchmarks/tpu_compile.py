@@ -70,6 +70,7 @@ from typing import Any
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), '..'))
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), '..', 'configs'))
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 os.environ.setdefault('JAX_PLATFORMS', 'cpu')
 # Compile-only: no chip is opened, so libtpu's one-process-per-host lock
@@ -100,19 +101,10 @@ from slotformer_jax.train import optim  # noqa: E402
 from slotformer_jax.train import precision  # noqa: E402
 from slotformer_jax.train import sharding  # noqa: E402
 from slotformer_jax.train import trainer  # noqa: E402
+from tpu_chips import CHIPS  # noqa: E402  (the spec-sheet peaks)
 
 GiB = 2**30
 
-# Public spec sheets (cloud.google.com/tpu/docs/v5e, /v4): HBM per chip,
-# peak bf16 matmul FLOP/s per chip, HBM bandwidth per chip. No float32
-# peak is published: XLA:TPU runs float32 matmuls at the default precision
-# as bfloat16 passes, so the bf16 peak is the floor used for both dtypes.
-CHIPS = {
-    'TPU v5 lite': dict(name='v5e', hbm=16 * GiB, peak_flops=197e12,
-                        hbm_bandwidth=819e9),
-    'TPU v4': dict(name='v4', hbm=32 * GiB, peak_flops=275e12,
-                   hbm_bandwidth=1228e9),
-}
 
 # The config's stage section of each step's batch size.
 SECTIONS = {'savi': 'savi', 'dvae': 'dvae', 'steve': 'steve',
@@ -189,7 +181,7 @@ def _place(tree: Any, sharding_: NamedSharding) -> Any:
 
 def batch_spec(config, step: str, batch_size: int) -> dict[str, Any]:
   """Shapes and dtypes of one global batch as the data pipeline yields it
-  (tests/benchmarks/test_tpu_compile.py checks SAVi's against the pipeline)."""
+  (tests/train/test_tpu_compile.py checks SAVi's against the pipeline)."""
   frame = (*config.data.resolution, 3)
   u8 = lambda *shape: jax.ShapeDtypeStruct(shape, jnp.uint8)
   f32 = lambda *shape: jax.ShapeDtypeStruct(shape, jnp.float32)

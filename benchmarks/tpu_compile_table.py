@@ -19,7 +19,7 @@ from typing import Any
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), '..'))
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
-import tpu_compile  # noqa: E402  (its CHIPS: the spec-sheet peaks)
+from tpu_chips import CHIPS  # noqa: E402  (the spec-sheet peaks)
 
 from slotformer_jax import files  # noqa: E402
 
@@ -75,7 +75,7 @@ def table(rows: list[dict[str, Any]]) -> str:
             f"({r['chips']}) | {r['dtype']} |")
     if r.get('status') != 'compiled':
       lines.append(f"{head} {r.get('batch', '')} | {r.get('status')}: "
-                   f"{r.get('why', '')[:120]} |" + ' |' * 8)
+                   f"{r.get('why', '')} |" + ' |' * 8)
       continue
     per_chip = r['batch'] // r['chips']
     star = ' *' if 'note' in r and 'does not split' in r['note'] else ''
@@ -92,8 +92,8 @@ def table(rows: list[dict[str, Any]]) -> str:
 
 def _bound_by(row: dict[str, Any]) -> str:
   """Which roofline term sets the floor, and by how much it exceeds the
-  other (with tpu_compile.py's spec-sheet peaks)."""
-  chip = tpu_compile.CHIPS[row['device_kind']]
+  other (with tpu_chips.py's spec-sheet peaks)."""
+  chip = CHIPS[row['device_kind']]
   t_flops = row['flops'] / chip['peak_flops']
   t_bytes = row['bytes_accessed'] / chip['hbm_bandwidth']
   if t_bytes >= t_flops:
