@@ -90,15 +90,21 @@ class PeerWatchdog:
   counter, and ends it with `exit <status>`. A thread reads the others: a
   counter unchanged for `timeout` seconds (by this host's clock: no clock
   skew between hosts matters) or an unclean exit status makes this process
-  print one line naming that process and exit with status 1 at once.
+  print one line naming that process and exit with status 1 at once. A
+  peer that has written no heartbeat yet (slower to start: imports, config
+  loading on a loaded host) is given `startup_timeout` (default
+  max(60 s, 10 x timeout)) before it counts as lost.
   """
 
   def __init__(self, directory: str, process_id: int, num_processes: int, *,
-               timeout: float, interval: float = 1.0):
+               timeout: float, interval: float = 1.0,
+               startup_timeout: float | None = None):
     self.directory = directory
     self.process_id = process_id
     self.num_processes = num_processes
     self.timeout = timeout
+    self.startup_timeout = (max(60.0, 10 * timeout) if startup_timeout is None
+                            else max(startup_timeout, timeout))
     self.interval = min(interval, timeout / 4)
     self._beats = 0
     self._stop = threading.Event()
@@ -157,7 +163,10 @@ class PeerWatchdog:
                      f'status {status} (its log says why)')
         if text != last_text[i]:
           last_text[i], last_change[i] = text, now
-        elif now - last_change[i] > self.timeout:
+        elif not text and now - last_change[i] > self.startup_timeout:
+          self._lost(f'process {i} of {self.num_processes} never started '
+                     f'(no heartbeat within {self.startup_timeout:g} s)')
+        elif text and now - last_change[i] > self.timeout:
           self._lost(f'process {i} of {self.num_processes} is lost (no '
                      f'heartbeat for {self.timeout:g} s: killed, or its host '
                      'is down)')

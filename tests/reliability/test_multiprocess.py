@@ -458,3 +458,39 @@ def test_more_processes_than_videos_extract_and_evaluate(data_dir, tmp_path):
     if 'time' not in key and 'seconds' not in key:
       np.testing.assert_allclose(two[key], one[key], rtol=1e-4, atol=1e-6,
                                  err_msg=key)
+
+
+LATE = '''
+import sys, time
+from slotformer_jax.train import processes
+index, delay = int(sys.argv[2]), float(sys.argv[3])
+if index == 1:
+  if delay < 0:
+    raise SystemExit(0)  # never starts its watchdog
+  time.sleep(delay)
+dog = processes.PeerWatchdog(sys.argv[1], index, 2, timeout=1, interval=0.2,
+                             startup_timeout=4).start()
+time.sleep(6 if index == 0 else 6 - delay)
+dog.finish(0)
+print('survived')
+'''
+
+
+@pytest.mark.parametrize('delay, status, line', [
+    (2.5, 0, 'survived'),  # starts after `timeout`, within `startup_timeout`
+    (-1, 1, 'error: process 1 of 2 never started (no heartbeat within 4 s)'),
+])
+def test_the_watchdog_waits_for_a_peer_slow_to_start(tmp_path, delay, status,
+                                                     line):
+  """A peer that has not written its first heartbeat (a loaded host still
+  importing) is not 'lost' after `timeout`, only after `startup_timeout`.
+  Before the grace, process 0 declared process 1 lost when it started more
+  than `timeout` later."""
+  run = [subprocess.Popen(
+      [sys.executable, '-c', LATE, str(tmp_path), str(i), str(delay)],
+      env=dict(os.environ, PYTHONPATH=ROOT), stdout=subprocess.PIPE,
+      stderr=subprocess.STDOUT, text=True) for i in (0, 1)]
+  run[1].communicate(timeout=60)
+  out, _ = run[0].communicate(timeout=60)
+  assert run[0].returncode == status, out
+  assert out.strip().splitlines()[0].startswith(line), out
