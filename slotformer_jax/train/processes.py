@@ -93,7 +93,8 @@ class PeerWatchdog:
   print one line naming that process and exit with status 1 at once. A
   peer that has written no heartbeat yet (slower to start: imports, config
   loading on a loaded host) is given `startup_timeout` (default
-  max(60 s, 10 x timeout)) before it counts as lost.
+  max(60 s, 2 x timeout): under the 3 x timeout, at least 100 s, of
+  jax's own heartbeat) before it counts as lost.
   """
 
   def __init__(self, directory: str, process_id: int, num_processes: int, *,
@@ -103,7 +104,7 @@ class PeerWatchdog:
     self.process_id = process_id
     self.num_processes = num_processes
     self.timeout = timeout
-    self.startup_timeout = (max(60.0, 10 * timeout) if startup_timeout is None
+    self.startup_timeout = (max(60.0, 2 * timeout) if startup_timeout is None
                             else max(startup_timeout, timeout))
     self.interval = min(interval, timeout / 4)
     self._beats = 0
