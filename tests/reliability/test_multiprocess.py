@@ -461,12 +461,15 @@ def test_more_processes_than_videos_extract_and_evaluate(data_dir, tmp_path):
 
 
 LATE = '''
-import sys, time
+import os, sys, time
 from slotformer_jax.train import processes
 index, delay = int(sys.argv[2]), float(sys.argv[3])
 if index == 1:
   if delay < 0:
     raise SystemExit(0)  # never starts its watchdog
+  # `delay` after process 0's watchdog started, whatever the imports took.
+  while not os.path.exists(os.path.join(sys.argv[1], '0')):
+    time.sleep(0.01)
   time.sleep(delay)
 dog = processes.PeerWatchdog(sys.argv[1], index, 2, timeout=1, interval=0.2,
                              startup_timeout=4).start()
