@@ -35,7 +35,7 @@ import numpy as np  # noqa: E402
 from jax.sharding import Mesh  # noqa: E402
 
 from slotformer_jax.train import optim  # noqa: E402
-from slotformer_jax.train import sharding  # noqa: E402
+from slotformer_jax.runtime import sharding  # noqa: E402
 from slotformer_jax.train.state import TrainState  # noqa: E402
 
 # The paper (Sec. "Implementation details") trains on servers with 4 GPUs:

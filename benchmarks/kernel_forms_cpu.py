@@ -28,7 +28,7 @@ import time
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), '..'))
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), '..', 'configs'))
 
-from slotformer_jax import xla_flags  # noqa: E402  (imports no jax)
+from slotformer_jax.runtime import xla_flags  # noqa: E402  (imports no jax)
 
 ADDED_FLAGS = xla_flags.apply_fast_cpu_flags()
 

@@ -7,7 +7,7 @@ Prints one line per case with the time of the official PyTorch
 implementation on the same shapes (torch 2.13 CPU, 2 threads; the defaults
 are idle-machine figures measured earlier, --reference takes your own, see
 docs/performance.md) and the ratio (< 1: this project is faster). The faster XLA:CPU flags of
-`slotformer_jax.xla_flags` are on unless $SLOTFORMER_XLA_CPU_FLAGS=0.
+`slotformer_jax.runtime.xla_flags` are on unless $SLOTFORMER_XLA_CPU_FLAGS=0.
 
 Cases (shapes as the official configs):
   savi              StoSAVi CLEVRER config train step, batch 4 x 6 frames 64x64
@@ -35,7 +35,7 @@ import time
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), '..'))
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), '..', 'configs'))
 
-from slotformer_jax import xla_flags  # noqa: E402  (imports no jax)
+from slotformer_jax.runtime import xla_flags  # noqa: E402  (imports no jax)
 
 # Before jax starts its backend.
 ADDED_FLAGS = xla_flags.apply_fast_cpu_flags()
@@ -51,7 +51,7 @@ from slotformer_jax import losses  # noqa: E402
 from slotformer_jax import models  # noqa: E402
 from slotformer_jax.evaluation import metrics  # noqa: E402
 from slotformer_jax.train import optim  # noqa: E402
-from slotformer_jax.train import precision  # noqa: E402
+from slotformer_jax.runtime import precision  # noqa: E402
 from slotformer_jax.train import steps  # noqa: E402
 from slotformer_jax.train.state import TrainState  # noqa: E402
 

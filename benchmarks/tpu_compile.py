@@ -98,8 +98,8 @@ from slotformer_jax.tasks import phyre_rendered  # noqa: E402
 from slotformer_jax.tasks import readout as readout_lib  # noqa: E402
 from slotformer_jax.tasks import vqa as vqa_task  # noqa: E402
 from slotformer_jax.train import optim  # noqa: E402
-from slotformer_jax.train import precision  # noqa: E402
-from slotformer_jax.train import sharding  # noqa: E402
+from slotformer_jax.runtime import precision  # noqa: E402
+from slotformer_jax.runtime import sharding  # noqa: E402
 from slotformer_jax.train import trainer  # noqa: E402
 from tpu_chips import CHIPS  # noqa: E402  (the spec-sheet peaks)
 

@@ -58,7 +58,7 @@ import obj3d  # noqa: E402  (configs/obj3d.py)
 from slotformer_jax import files  # noqa: E402
 from slotformer_jax import models  # noqa: E402
 from slotformer_jax.modules import platform  # noqa: E402
-from slotformer_jax.train import precision  # noqa: E402
+from slotformer_jax.runtime import precision  # noqa: E402
 
 CONFIGS = {'obj3d': obj3d.get_config, 'clevrer': clevrer.get_config}
 FORMS = (platform.CPU, platform.ACCELERATOR, platform.AUTO)

@@ -29,7 +29,7 @@ from slotformer_jax import slot_models
 from slotformer_jax import workdir as workdir_lib
 from slotformer_jax.evaluation import evaluate
 from slotformer_jax.stages import extract
-from slotformer_jax.train import sharding
+from slotformer_jax.runtime import sharding
 
 KINDS = ('learned', 'boxes')
 METRICS = ('fg_ari', 'fg_ari_per_frame', 'fg_miou_per_frame', 'ari', 'psnr')

@@ -27,7 +27,7 @@ from flax import serialization
 
 from slotformer_jax.tasks import phyre_planning
 from slotformer_jax.tasks import planning
-from slotformer_jax.train import sharding
+from slotformer_jax.runtime import sharding
 
 
 def per_task_auccess(config: ml_collections.ConfigDict, workdir: str,

@@ -22,7 +22,7 @@ import json
 import os
 import time
 
-from slotformer_jax import xla_flags
+from slotformer_jax.runtime import xla_flags
 
 xla_flags.apply_fast_cpu_flags()
 

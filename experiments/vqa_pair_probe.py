@@ -41,7 +41,7 @@ import importlib.util
 import json
 import os
 
-from slotformer_jax import xla_flags
+from slotformer_jax.runtime import xla_flags
 
 xla_flags.apply_fast_cpu_flags()
 
@@ -57,7 +57,7 @@ from slotformer_jax import workdir as workdir_lib
 from slotformer_jax.data import clevrer_like
 from slotformer_jax.data.slots import SlotSource
 from slotformer_jax.data.sources import resolve_data_dir
-from slotformer_jax.train import sharding
+from slotformer_jax.runtime import sharding
 
 _QUESTION_FILES = {'train': 'train', 'val': 'validation', 'test': 'test'}
 INPUTS = ('observed', 'copy-last', 'rollout', 'future')

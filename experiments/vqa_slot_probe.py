@@ -29,7 +29,7 @@ import argparse
 import json
 import os
 
-from slotformer_jax import xla_flags
+from slotformer_jax.runtime import xla_flags
 
 xla_flags.apply_fast_cpu_flags()
 
@@ -46,7 +46,7 @@ from slotformer_jax.data import clevrer_like
 from slotformer_jax.data.convert.synthetic import COLORS, SHAPES
 from slotformer_jax.data.slots import SlotSource
 from slotformer_jax.data.sources import resolve_data_dir
-from slotformer_jax.train import sharding
+from slotformer_jax.runtime import sharding
 
 
 def assign_slots(winner: np.ndarray, segmentation: np.ndarray,

@@ -45,7 +45,7 @@ import time
 from collections.abc import Mapping, Sequence
 from typing import Any
 
-from slotformer_jax import xla_flags
+from slotformer_jax.runtime import xla_flags
 
 xla_flags.apply_fast_cpu_flags()
 

@@ -33,8 +33,8 @@ from slotformer_jax import workdir as workdir_lib
 from slotformer_jax.data import pipeline
 from slotformer_jax.modules.slot_lstm import SlotLSTM
 from slotformer_jax.modules.slotformer import SlotFormer
-from slotformer_jax.train import sharding
-from slotformer_jax.train.checkpoint import restore_params
+from slotformer_jax.runtime import sharding
+from slotformer_jax.runtime.checkpoint import restore_params
 
 logger = logging.getLogger(__name__)
 

@@ -33,13 +33,13 @@ import tqdm
 from slotformer_jax import slot_models
 from slotformer_jax import stages
 from slotformer_jax import workdir as workdir_lib
-from slotformer_jax import xla_flags
+from slotformer_jax.runtime import xla_flags
 from slotformer_jax.config import checks as config_checks
 from slotformer_jax.data.data_dir import default_data_dir
 from slotformer_jax.errors import UserError
 from slotformer_jax.files import append_line_atomic
-from slotformer_jax.train import processes
-from slotformer_jax.train import sharding
+from slotformer_jax.runtime import processes
+from slotformer_jax.runtime import sharding
 from slotformer_jax.train.trainer import Preempted
 
 _CONFIG = config_flags.DEFINE_config_file(

@@ -12,7 +12,7 @@ if _FLAG not in os.environ.get('XLA_FLAGS', ''):
 os.environ.setdefault('JAX_PLATFORMS', 'cpu')
 
 # The faster XLA:CPU convolution path, as main.py uses it (imports no jax).
-from slotformer_jax import xla_flags  # noqa: E402
+from slotformer_jax.runtime import xla_flags  # noqa: E402
 xla_flags.apply_fast_cpu_flags()
 
 import tempfile  # noqa: E402

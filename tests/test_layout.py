@@ -27,7 +27,9 @@ FLOORS = (
     # plumbing every floor may use
     ('slotformer_jax', 'slotformer_jax.errors', 'slotformer_jax.files',
      'slotformer_jax.frames', 'slotformer_jax.lock',
-     'slotformer_jax.xla_flags', 'slotformer_jax.data.data_dir'),
+     'slotformer_jax.data.data_dir'),
+    # run-time pieces shared by training, evaluation and the tasks
+    ('slotformer_jax.runtime',),
     ('slotformer_jax.data',),
     ('slotformer_jax.modules',),
     # what reads a config: building modules, a run's paths, the checks

@@ -16,7 +16,7 @@ def base_config() -> ml_collections.ConfigDict:
   config.seed = 0
   # 'float32' or 'bfloat16': the dtype the training losses and the rollout
   # evaluation compute in; parameters, optimiser state and checkpoints stay
-  # float32 either way (slotformer_jax/train/precision.py).
+  # float32 either way (slotformer_jax/runtime/precision.py).
   config.compute_dtype = 'float32'
   # Which stage-1 model extracts the slots: 'savi' (incl. stochastic SAVi)
   # or 'steve' (dVAE + STEVE, `config.dvae` / `config.steve`).

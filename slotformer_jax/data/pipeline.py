@@ -21,7 +21,7 @@ Multi-host (batch sizes are per host, ``B``; the global batch is ``P * B``):
 
 * training: every host computes the same plan of the global batch (videos
   drawn from all videos, start frames for every row) and reads only its own
-  rows ``[p * B, (p + 1) * B)``, the rows `train.sharding.to_global_batch`
+  rows ``[p * B, (p + 1) * B)``, the rows `runtime.sharding.to_global_batch`
   places on its devices (the trainer checks this). So 2 hosts x 1 device
   train on the batches of 1 host x 2 devices, and any host may read any
   video: all hosts need the whole dataset (a shared data dir, as the launch

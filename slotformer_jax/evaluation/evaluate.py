@@ -58,8 +58,8 @@ from slotformer_jax.files import atomic_text
 from slotformer_jax.files import write_json_atomic
 from slotformer_jax.frames import frames_to_model
 from slotformer_jax.frames import model_to_unit
-from slotformer_jax.train import precision
-from slotformer_jax.train import sharding
+from slotformer_jax.runtime import precision
+from slotformer_jax.runtime import sharding
 
 logger = logging.getLogger(__name__)
 

@@ -57,7 +57,7 @@ from slotformer_jax.slot_models.base import Decoded
 from slotformer_jax.slot_models.base import Loaded
 from slotformer_jax.slot_models.base import SlotModel
 from slotformer_jax.slot_models.base import uses_foreign_stage1
-from slotformer_jax.train import sharding
+from slotformer_jax.runtime import sharding
 from slotformer_jax.train import steps
 from slotformer_jax.train.trainer import Stage
 from slotformer_jax.train.trainer import fit_stage

@@ -26,8 +26,8 @@ from slotformer_jax import workdir as workdir_lib
 from slotformer_jax.data import pipeline
 from slotformer_jax.errors import ConfigError
 from slotformer_jax.modules import initializers
-from slotformer_jax.train import precision
-from slotformer_jax.train import sharding
+from slotformer_jax.runtime import precision
+from slotformer_jax.runtime import sharding
 from slotformer_jax.train import steps
 from slotformer_jax.train import summaries
 from slotformer_jax.train.trainer import Stage

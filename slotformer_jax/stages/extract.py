@@ -21,7 +21,7 @@ from slotformer_jax.data.slots import SlotWriter
 from slotformer_jax.data.slots import read_meta
 from slotformer_jax.data.sources import get_video_source
 from slotformer_jax.slot_models.base import uses_foreign_stage1
-from slotformer_jax.train import sharding
+from slotformer_jax.runtime import sharding
 
 logger = logging.getLogger(__name__)
 

@@ -47,7 +47,7 @@ from slotformer_jax.errors import MissingInputError
 from slotformer_jax.files import read_json
 from slotformer_jax.files import write_json_atomic
 from slotformer_jax.tasks import vqa as task
-from slotformer_jax.train import sharding
+from slotformer_jax.runtime import sharding
 from slotformer_jax.train import steps
 from slotformer_jax.train.trainer import Stage
 from slotformer_jax.train.trainer import abstract_train_state

@@ -41,10 +41,10 @@ from slotformer_jax import workdir as workdir_lib
 from slotformer_jax.errors import UserError
 from slotformer_jax.files import append_line_atomic
 from slotformer_jax.train import optim
-from slotformer_jax.train import processes
-from slotformer_jax.train import sharding
-from slotformer_jax.train.checkpoint import Checkpointer
-from slotformer_jax.train.checkpoint import abstract_like
+from slotformer_jax.runtime import processes
+from slotformer_jax.runtime import sharding
+from slotformer_jax.runtime.checkpoint import Checkpointer
+from slotformer_jax.runtime.checkpoint import abstract_like
 from slotformer_jax.train.state import TrainState
 from slotformer_jax.train.summaries import Summaries
 from slotformer_jax.train.steps import LossFn

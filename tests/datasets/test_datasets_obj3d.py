@@ -303,7 +303,7 @@ def test_obj3d_config_runs_the_pipeline_on_converted_data(converted, tmp_path):
   from slotformer_jax.stages import dynamics  # pylint: disable=g-import-not-at-top
   from slotformer_jax.stages import extract  # pylint: disable=g-import-not-at-top
   from slotformer_jax import workdir as workdir_lib  # pylint: disable=g-import-not-at-top
-  from slotformer_jax.train import sharding  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.runtime import sharding  # pylint: disable=g-import-not-at-top
   _, data_dir = converted
   config = tiny_obj3d_config(data_dir)
   workdir = str(tmp_path / 'run')

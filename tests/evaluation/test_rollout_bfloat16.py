@@ -14,7 +14,7 @@ from slotformer_jax import slot_models
 from slotformer_jax.evaluation import evaluate
 from slotformer_jax.slot_models import savi as savi_lib
 from slotformer_jax.stages import dynamics
-from slotformer_jax.train import sharding
+from slotformer_jax.runtime import sharding
 from tests.pipeline_helpers import load_config
 
 

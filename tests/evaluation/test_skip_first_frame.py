@@ -10,7 +10,7 @@ from sklearn.metrics import adjusted_rand_score
 
 from slotformer_jax.errors import ConfigError
 from slotformer_jax.evaluation import evaluate
-from slotformer_jax.train import sharding
+from slotformer_jax.runtime import sharding
 
 NUM_SLOTS, T, H, W = 3, 5, 6, 6
 

@@ -407,7 +407,7 @@ def test_converted_steve_workdir_runs_extract_evaluate_render(tmp_path,
   training stage run (the embedded data, 16x16, the official architecture
   with the micro widths of the STEVE pipeline test)."""
   import pipeline_helpers  # pylint: disable=g-import-not-at-top
-  from slotformer_jax.train import sharding  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.runtime import sharding  # pylint: disable=g-import-not-at-top
   config = pipeline_helpers.micro_config('steve', tmp_path / 'data')
   steve = config.steve
   steve.encoder.strides = (1,) * len(steve.encoder.features)

@@ -16,7 +16,7 @@ from slotformer_jax import slot_models
 from slotformer_jax import workdir as workdir_lib
 from slotformer_jax.data.sources import get_video_source
 from slotformer_jax.errors import ConfigError
-from slotformer_jax.train import sharding
+from slotformer_jax.runtime import sharding
 
 
 @pytest.fixture(scope='module')

@@ -415,7 +415,7 @@ def test_encoding_videos_on_a_host_without_any(monkeypatch):
   import jax.numpy as jnp  # pylint: disable=g-import-not-at-top
   from jax.experimental import multihost_utils  # pylint: disable=g-import-not-at-top
   from slotformer_jax import inference  # pylint: disable=g-import-not-at-top
-  from slotformer_jax.train import sharding  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.runtime import sharding  # pylint: disable=g-import-not-at-top
   source = [{'video': np.full((5, 2, 2, 3), 7, np.uint8)}]
   mesh = jax.sharding.Mesh(np.array(jax.devices()[:1]), ('data',))
   calls = []

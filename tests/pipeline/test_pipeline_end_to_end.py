@@ -27,7 +27,7 @@ from slotformer_jax.slot_models import savi as savi_slots
 from slotformer_jax.slot_models import steve as steve_slots
 from slotformer_jax.stages import dynamics
 from slotformer_jax.stages import video_prediction
-from slotformer_jax.train import sharding
+from slotformer_jax.runtime import sharding
 
 
 @pytest.fixture(scope='module', params=SLOT_MODELS)

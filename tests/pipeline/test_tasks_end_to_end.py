@@ -10,7 +10,7 @@ import pytest
 from configs import synthetic_contact
 from configs import synthetic_phyre
 from slotformer_jax import stages
-from slotformer_jax.train import sharding
+from slotformer_jax.runtime import sharding
 from slotformer_jax.slot_models import savi as savi_slots
 from slotformer_jax.stages import extract
 from slotformer_jax.stages import dynamics

@@ -10,7 +10,7 @@ import pytest
 
 from slotformer_jax.data import clevrer_like
 from slotformer_jax.data.sources import resolve_data_dir
-from slotformer_jax.train import sharding
+from slotformer_jax.runtime import sharding
 
 
 @pytest.mark.slow

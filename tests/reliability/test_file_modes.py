@@ -8,7 +8,7 @@ import pytest
 
 from slotformer_jax import files
 from slotformer_jax import lock as lock_lib
-from slotformer_jax import xla_flags
+from slotformer_jax.runtime import xla_flags
 
 
 @contextlib.contextmanager

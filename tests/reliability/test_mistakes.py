@@ -34,7 +34,7 @@ from slotformer_jax.errors import UserError
 from slotformer_jax.lock import FileLock
 from slotformer_jax.modules.decoders import SpatialBroadcastDecoder
 from slotformer_jax.official import convert as convert_official
-from slotformer_jax.train import checkpoint as checkpoint_lib
+from slotformer_jax.runtime import checkpoint as checkpoint_lib
 from slotformer_jax.train.trainer import Diverged
 from slotformer_jax.train.trainer import Stage
 from slotformer_jax.train.trainer import fit

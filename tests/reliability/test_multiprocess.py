@@ -38,10 +38,10 @@ from slotformer_jax import workdir as workdir_lib
 from slotformer_jax.config import checks
 from slotformer_jax.errors import ConfigError
 from slotformer_jax.slot_models import savi as savi_slots
-from slotformer_jax.train import processes
-from slotformer_jax.train import sharding
+from slotformer_jax.runtime import processes
+from slotformer_jax.runtime import sharding
 from slotformer_jax.train import trainer
-from slotformer_jax.train.checkpoint import Checkpointer
+from slotformer_jax.runtime.checkpoint import Checkpointer
 
 import pipeline_helpers
 
@@ -237,7 +237,7 @@ def test_a_partial_set_of_flags_is_one_line(tmp_path):
 
 WATCH = '''
 import sys, time
-from slotformer_jax.train import processes
+from slotformer_jax.runtime import processes
 index, peer_exit = int(sys.argv[2]), sys.argv[3]
 dog = processes.PeerWatchdog(sys.argv[1], index, 2, timeout=2,
                              interval=0.2).start()
@@ -462,7 +462,7 @@ def test_more_processes_than_videos_extract_and_evaluate(data_dir, tmp_path):
 
 LATE = '''
 import os, sys, time
-from slotformer_jax.train import processes
+from slotformer_jax.runtime import processes
 index, delay = int(sys.argv[2]), float(sys.argv[3])
 if index == 1:
   if delay < 0:

@@ -20,8 +20,8 @@ import numpy as np
 import pytest
 
 from slotformer_jax.slot_models import savi as savi_slots
-from slotformer_jax.train import sharding
-from slotformer_jax.train.checkpoint import Checkpointer
+from slotformer_jax.runtime import sharding
+from slotformer_jax.runtime.checkpoint import Checkpointer
 
 import pipeline_helpers
 

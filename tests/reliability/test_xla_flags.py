@@ -1,4 +1,4 @@
-"""The XLA:CPU flag handling (slotformer_jax/xla_flags.py).
+"""The XLA:CPU flag handling (slotformer_jax/runtime/xla_flags.py).
 
 The flag changes which convolution kernels XLA:CPU runs, never the math: a
 SAVi training loss + gradients and the OBJ3D decoder's forward + backward are
@@ -13,7 +13,7 @@ import sys
 import numpy as np
 import pytest
 
-from slotformer_jax import xla_flags
+from slotformer_jax.runtime import xla_flags
 
 REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 

@@ -15,7 +15,7 @@ from slotformer_jax import slot_models
 from slotformer_jax import stages
 from slotformer_jax.data.slots import read_meta
 from slotformer_jax.tasks import contact
-from slotformer_jax.train import sharding
+from slotformer_jax.runtime import sharding
 
 
 def steve_micro_config(data_dir):

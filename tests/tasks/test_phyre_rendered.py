@@ -23,7 +23,7 @@ from slotformer_jax.errors import ConfigError
 from slotformer_jax.errors import MissingInputError
 from slotformer_jax.tasks import phyre_rendered
 from slotformer_jax.tasks import planning
-from slotformer_jax.train import sharding
+from slotformer_jax.runtime import sharding
 from slotformer_jax.slot_models import savi as savi_slots
 from slotformer_jax.stages import extract
 from slotformer_jax.stages import planning_rendered

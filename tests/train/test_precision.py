@@ -8,7 +8,7 @@ import numpy as np
 import optax
 import pytest
 
-from slotformer_jax.train import precision
+from slotformer_jax.runtime import precision
 from slotformer_jax.train import steps
 from slotformer_jax.train.state import TrainState
 from test_training import _savi_setup

@@ -15,7 +15,7 @@ from slotformer_jax.data import pipeline
 from slotformer_jax.modules.dvae import DVAE
 from slotformer_jax.modules.steve import STEVE
 from slotformer_jax.train import optim
-from slotformer_jax.train import sharding
+from slotformer_jax.runtime import sharding
 from slotformer_jax.train import steps
 from slotformer_jax import losses
 from slotformer_jax.slot_models import steve as steve_slots

@@ -13,7 +13,7 @@ import pytest
 
 from pipeline_helpers import micro_config
 from pipeline_helpers import run_stages
-from slotformer_jax.train import sharding
+from slotformer_jax.runtime import sharding
 from slotformer_jax.train import summaries
 
 SCALARS = ('train/loss', 'train/recon_loss', 'train/grad_norm',

@@ -17,7 +17,7 @@ from slotformer_jax import models
 from slotformer_jax.slot_models import savi as savi_lib
 from slotformer_jax.slot_models import steve as steve_lib
 from slotformer_jax.stages import dynamics
-from slotformer_jax.train import sharding
+from slotformer_jax.runtime import sharding
 from tests.pipeline_helpers import load_config
 
 ROOT = os.path.join(os.path.dirname(__file__), '..', '..')

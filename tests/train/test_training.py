@@ -15,7 +15,7 @@ import pytest
 from slotformer_jax.modules.decoders import SpatialBroadcastDecoder
 from slotformer_jax.modules.savi import SAVi
 from slotformer_jax.modules.slotformer import SlotFormer
-from slotformer_jax.train import sharding
+from slotformer_jax.runtime import sharding
 from slotformer_jax import losses
 from slotformer_jax.train import steps
 from slotformer_jax.train.state import TrainState
