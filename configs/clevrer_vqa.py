@@ -42,6 +42,7 @@ def get_config(variant: str = ''):
     raise ValueError(f'unknown variant {variant!r}; this config has none '
                      '(use configs/clevrer_vqa.py)')
   config = _clevrer_config()
+  config.task = 'vqa'
   config.vqa = vqa_config()  # the defaults are the official values, but:
   config.vqa.layer_norm_epsilon = 1e-5  # PyTorch's LayerNorm
   config.vqa.min_lr_fraction = 0.01  # the official cosine ends at lr / 100

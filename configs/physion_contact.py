@@ -18,31 +18,21 @@ evaluate_readout, and the readout reads STEVE's 192-d slots;
 `--config.slot_model=savi` swaps SAVi in.
 """
 
-import ml_collections
+import os
 
-from configs import physion
+from slotformer_jax.config.checks import load_config_file
+from slotformer_jax.config.defaults import contact_readout_config
 
 
 def get_config():
-  config = physion.get_config()
+  # By path, not `from configs import physion`: the file works from any
+  # folder, whatever is on sys.path.
+  config = load_config_file(
+      os.path.join(os.path.dirname(os.path.abspath(__file__)), 'physion.py'))
   config.extraction.splits = ('train', 'readout_train', 'readout_val', 'test')
   config.task = 'contact'
-  config.readout = r = ml_collections.ConfigDict()
-  r.observed_frames = 45
+  # The defaults are the official readout (config/defaults.py); besides:
+  config.readout = r = contact_readout_config()
   r.video_len = 75
-  r.label_field = 'label'
-  r.splits = ml_collections.ConfigDict(dict(
-      train='readout_train', val='readout_val', test='test'))
-  r.conditions = ('observed', 'rollout', 'copy_last', 'ground_truth')
-  r.seeds = (0, 1, 2)
-  # None: the slot size (192), as the official readout (typed, so that
-  # --config.readout.features=N can set it).
-  r.features = ml_collections.config_dict.placeholder(int)
-  r.pairs = 'unordered'
-  r.epochs = 50
-  r.batch_size = 64
-  r.learning_rate = 1e-3
-  r.warmup_fraction = 0.0
-  r.rollout_batch_size = 32
   r.num_pictures = 4
   return config

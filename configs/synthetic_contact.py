@@ -24,6 +24,7 @@ import ml_collections
 
 from slotformer_jax.config.defaults import base_config
 from slotformer_jax.config.defaults import use_cpu_demo_savi
+from slotformer_jax.config.defaults import contact_readout_config
 
 
 def get_config(variant: str = ''):
@@ -74,7 +75,7 @@ def get_config(variant: str = ''):
 
   # ---- the downstream task ----------------------------------------------
   config.task = 'contact'
-  config.readout = r = ml_collections.ConfigDict()
+  config.readout = r = contact_readout_config()
   r.observed_frames = data.observed_frames
   r.label_field = 'contact'
   r.splits = ml_collections.ConfigDict(dict(

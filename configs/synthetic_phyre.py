@@ -29,6 +29,7 @@ import ml_collections
 
 from slotformer_jax.config.defaults import base_config
 from slotformer_jax.config.defaults import use_cpu_demo_savi
+from slotformer_jax.config.defaults import planning_readout_config
 
 
 def get_config(variant: str = ''):
@@ -85,7 +86,7 @@ def get_config(variant: str = ''):
 
   # ---- the downstream task ----------------------------------------------
   config.task = 'planning'
-  config.readout = r = ml_collections.ConfigDict()
+  config.readout = r = planning_readout_config()
   r.conditions = ('first_frame', 'rollout')
   r.rollout_steps = 10           # frames 1..10 (5 s at 2 fps)
   r.selected_steps = (0, 2, 4, 10)

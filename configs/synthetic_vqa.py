@@ -78,6 +78,7 @@ def get_config(variant: str = ''):
   dyn.log_every = 100
   dyn.checkpoint_every = 500
 
+  config.task = 'vqa'
   config.vqa = vqa = vqa_config()
   vqa.video_length = data.observed_frames
   vqa.rollout_frames = data.predicted_frames

@@ -2,7 +2,8 @@
 
 * rollouts of the dynamics models (SlotFormer, Slot-LSTM) and the copy-last
   baseline: pure functions of the parameters (the caller jits them);
-* reading trained parameters from a workdir without building an optimizer;
+* reading trained parameters from a stage folder without building an
+  optimizer;
 * `encode_videos`: a jitted function over every video of a source, in
   fixed-shape host batches and chunks of frames that carry a state (slot
   extraction, STEVE's tokenization).
@@ -24,12 +25,9 @@ import jax
 from jax.experimental import multihost_utils
 from jax.sharding import Mesh
 import jax.numpy as jnp
-import ml_collections
 import numpy as np
 import tqdm
 
-from slotformer_jax import models
-from slotformer_jax import workdir as workdir_lib
 from slotformer_jax.data import pipeline
 from slotformer_jax.modules.slot_lstm import SlotLSTM
 from slotformer_jax.modules.slotformer import SlotFormer
@@ -84,56 +82,22 @@ def param_shapes(module, *args, **kwargs) -> Any:
       lambda: module.init(rngs, *args, **kwargs)['params'])
 
 
-def dynamics_example(config: ml_collections.ConfigDict, name: str,
-                     slot_shape: tuple[int, int]) -> tuple[jax.Array, int]:
-  """(history zeros [1, burn_in, N, D], rollout): the example inputs stage-2
-  model `name` is initialised with, for slots of `slot_shape` (N, D)."""
-  stage_config = models.dynamics_config(config, name)
-  history = jnp.zeros((1, stage_config.burn_in, *slot_shape), jnp.float32)
-  return history, stage_config.rollout
-
-
-def dynamics_param_shapes(config: ml_collections.ConfigDict, name: str,
-                          slot_shape: tuple[int, int]) -> Any:
-  return param_shapes(models.build_dynamics(config, name),
-                      *dynamics_example(config, name, slot_shape))
-
-
-def train_command(workdir: str, mode: str) -> str:
-  return ('python -m slotformer_jax.main --config=<config> '
-          f'--workdir={workdir} --mode={mode}')
-
-
 def restore(directory: str, shapes: Any, mesh: Mesh, *, what: str,
-            workdir: str, mode: str, num_train_steps: int
-            ) -> tuple[Any, int]:
+            train_command: str, num_train_steps: int) -> tuple[Any, int]:
   """The newest parameters of the stage folder `directory` (replicated) and
   their step; a warning when it was trained for fewer steps than asked.
 
   Raises:
-    UserError: no checkpoint (the message names `mode`), or none fits.
+    UserError: no checkpoint (the message names `train_command`), or none
+      fits.
   """
   params, step = restore_params(
       directory, shapes, sharding.replicated_sharding(mesh), what=what,
-      train_command=train_command(workdir, mode))
+      train_command=train_command)
   if step < num_train_steps:
     logger.warning('%s was trained for %d of %d steps only', what, step,
                    num_train_steps)
   return params, step
-
-
-def load_dynamics_params(config: ml_collections.ConfigDict, workdir: str,
-                         mesh: Mesh, name: str, slot_shape: tuple[int, int]
-                         ) -> tuple[Any, int]:
-  """The newest parameters of stage-2 model `name` (trained on slots of
-  `slot_shape`) and their step."""
-  directory = workdir_lib.dynamics_dir(workdir, name)
-  workdir_lib.check_model_config(
-      directory, workdir_lib.dynamics_model_fields(config, name), name)
-  return restore(directory, dynamics_param_shapes(config, name, slot_shape),
-                 mesh, what=name, workdir=workdir, mode=f'train_{name}',
-                 num_train_steps=models.dynamics_config(
-                     config, name).num_train_steps)
 
 
 # --------------------------------------------------------------------------

@@ -13,6 +13,7 @@ rng) -> (loss, metrics)`.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import jax
@@ -56,9 +57,10 @@ def savi_loss(params: Any, batch: Batch, frozen_params: Any, rng: jax.Array,
 
 def slotformer_loss(params: Any, batch: Batch, decoder_params: Any,
                     rng: jax.Array, *, model: SlotFormer | SlotLSTM,
-                    decoder: SpatialBroadcastDecoder, rollout: int,
-                    image_loss_weight: float, teacher_forcing: bool
-                    ) -> tuple[jax.Array, Metrics]:
+                    decoder: SpatialBroadcastDecoder | None, rollout: int,
+                    image_loss_weight: float, teacher_forcing: bool,
+                    to_model: Callable[[jax.Array], jax.Array] = (
+                        frames_to_model)) -> tuple[jax.Array, Metrics]:
   """L = L_S + lambda * L_I on the model's own rollout.
 
   batch['slots']: float32 [B, burn_in + rollout, N, D];
@@ -66,7 +68,8 @@ def slotformer_loss(params: Any, batch: Batch, decoder_params: Any,
   lambda > 0). L_S is the MSE between predicted and extracted slots, L_I
   the MSE between frames decoded from the predicted slots by the *frozen*
   SAVi decoder and the real frames (both averaged over every element, as the
-  official implementation).
+  official implementation), in the pixel range of the slot model
+  (`to_model`: uint8 frames -> the decoder's range).
   """
   burn_in = model.burn_in
   history = batch['slots'][:, :burn_in]
@@ -79,7 +82,7 @@ def slotformer_loss(params: Any, batch: Batch, decoder_params: Any,
   metrics = {'slot_loss': slot_loss}
   loss = slot_loss
   if image_loss_weight > 0:
-    frames = frames_to_model(batch['video'][:, burn_in:burn_in + rollout])
+    frames = to_model(batch['video'][:, burn_in:burn_in + rollout])
     decoded = decoder.apply({'params': jax.lax.stop_gradient(decoder_params)},
                             predicted)
     image_loss = jnp.mean(jnp.square(decoded.recon - frames))

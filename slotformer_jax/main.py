@@ -30,17 +30,19 @@ import jax
 from ml_collections import config_flags
 import tqdm
 
-from slotformer_jax import slot_models
 from slotformer_jax import stages
-from slotformer_jax import workdir as workdir_lib
-from slotformer_jax.runtime import xla_flags
 from slotformer_jax.config import checks as config_checks
 from slotformer_jax.data.data_dir import default_data_dir
+from slotformer_jax.data.sources import get_video_source
 from slotformer_jax.errors import UserError
 from slotformer_jax.files import append_line_atomic
+from slotformer_jax.run import Run
 from slotformer_jax.runtime import processes
-from slotformer_jax.runtime import sharding
+from slotformer_jax.runtime import xla_flags
+from slotformer_jax.slot_models import chain
 from slotformer_jax.train.trainer import Preempted
+from slotformer_jax.workdir.lock import workdir_lock
+from slotformer_jax.workdir.settings import accept_config
 
 _CONFIG = config_flags.DEFINE_config_file(
     'config', None, 'Config file, e.g. configs/obj3d.py or '
@@ -48,8 +50,11 @@ _CONFIG = config_flags.DEFINE_config_file(
 _WORKDIR = flags.DEFINE_string(
     'workdir', None, 'Folder for checkpoints, slots, metrics and pictures.',
     required=True)
-_MODE = flags.DEFINE_enum('mode', 'all', stages.MODES,
-                          'Which stage(s) to run.')
+_MODE = flags.DEFINE_string(
+    'mode', 'all', "Which stage to run, or 'all': a stage of the config's "
+    'table (its slot model, e.g. train_savi or train_dvae, tokenize_frames, '
+    'train_steve; extract_slots, train_slotformer, train_slot_lstm; then '
+    'evaluate, render, explore, or the task\'s stages); docs/running.md.')
 _DISTRIBUTED = flags.DEFINE_bool(
     'distributed', False, 'Call jax.distributed.initialize() first (one '
     'process per host on a TPU pod or multi-node GPU cluster). It detects '
@@ -143,20 +148,25 @@ def main(argv):
   config, workdir, mode = _CONFIG.value, _WORKDIR.value, _MODE.value
   if config is None:
     raise app.UsageError('--config is required, e.g. configs/synthetic.py')
-  selected = stages.selected_stages(config, mode)
+  # The config is checked once and the run built once; every stage gets it.
+  run = Run.create(config, workdir)
+  selected = stages.selected_stages(run, mode)
   # Every check before any work: a bad value costs seconds, not a stage.
-  config_checks.validate(config, selected, num_devices=jax.device_count(),
-                         num_processes=jax.process_count())
+  config_checks.validate(
+      config, selected, num_devices=jax.device_count(),
+      num_processes=jax.process_count(),
+      slot_model_problems=run.slot_model.check_config(frozenset(selected)),
+      video_length=lambda split: _video_length(config, split))
   global _watchdog
   if jax.process_count() > 1:
     _watchdog = processes.PeerWatchdog(
-        os.path.join(workdir, '.processes'), jax.process_index(),
-        jax.process_count(), timeout=_PEER_TIMEOUT.value).start()
-  lock = workdir_lib.workdir_lock(workdir)
+        run.paths.heartbeats, jax.process_index(), jax.process_count(),
+        timeout=_PEER_TIMEOUT.value).start()
+  lock = workdir_lock(run.paths)
   if jax.process_index() == 0:
     lock.acquire()
   try:
-    _run(config, workdir, selected)
+    _run(run, selected)
   finally:
     lock.release()
 
@@ -164,33 +174,42 @@ def main(argv):
 _watchdog: processes.PeerWatchdog | None = None
 
 
-def _run(config, workdir: str, selected: tuple[str, ...]) -> None:
-  slot_model = slot_models.get(config)
-  slot_model.check_compute_dtype()
-  if workdir_lib.uses_foreign_stage1(config, workdir):
-    # Before any data is generated: the read-only stage 1 must fit.
-    slot_model.check_identity(workdir)
+def _video_length(config, split: str) -> int | None:
+  """Frames per video when known without making data: the synthetic
+  config's value, or the first video of data already there."""
+  if config.data.name == 'synthetic':
+    return int(config.data.num_frames)
+  try:
+    source = get_video_source(config.data, split)
+    return len(source[0]['video']) if len(source) else None
+  except Exception:  # pylint: disable=broad-except
+    return None  # missing data is reported by the stage with its fix
+
+
+def _run(run: Run, selected: tuple[str, ...]) -> None:
+  if run.paths.foreign_stage1:
+    # Before any data is made: the read-only stage 1 must fit.
+    chain.check_identities(run.slot_model, run.paths)
   # config.json only ever records settings that are used from here on.
-  changes = workdir_lib.accept_config(
-      config, workdir, allow_change=_ALLOW_CONFIG_CHANGE.value)
+  changes = accept_config(run.config.to_dict(), run.paths,
+                          allow_change=_ALLOW_CONFIG_CHANGE.value)
   if changes:
     logger.warning('accepted changed settings (--allow_config_change): %s',
                    '; '.join(changes))
-  mesh = sharding.make_mesh()
   logger.info('%d processes, %d devices (%s)', jax.process_count(),
                jax.device_count(), jax.devices()[0].platform)
 
-  run = stages.stage_table(config)
+  table = stages.stage_table(run)
   wall_times = {}
   for stage in selected:
     started = time.time()
     logger.info('=== %s ===', stage)
-    run[stage](config, workdir, mesh)
+    table[stage](run)
+    run.forget()  # a later stage reads what this one trained
     wall_times[stage] = round(time.time() - started, 1)
     logger.info('%s took %.1f s', stage, wall_times[stage])
   if jax.process_index() == 0:
-    append_line_atomic(os.path.join(workdir, 'wall_times.json'),
-                       json.dumps(wall_times))
+    append_line_atomic(run.paths.wall_times, json.dumps(wall_times))
 
 
 def run_main(argv: list[str] | None = None) -> None:

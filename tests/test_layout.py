@@ -6,13 +6,13 @@ function-local ones included (a lazy import still ties two modules). Rules:
 * no import circle, between any number of modules;
 * data flows one way: every module sits on a floor (`FLOORS`, lowest first)
   and imports only modules on its own floor or below -- nothing runs back up;
-* evaluation and the downstream tasks never reach training code (the
-  trainer, the update step, the optimiser, the losses, the stages and the
-  slot models, which train themselves), nor do `inference` and `workdir`.
+* the boundaries (`BOUNDARIES`): who must never reach whom, even on the
+  floors' terms (reading never writes; evaluation, inference, the tasks and
+  the run bookkeeping never reach training code; ...).
 
-`test_the_checker_catches_*` run the same checks on small fake packages with
-a deliberate circle / upward import, so the rules cannot pass by seeing
-nothing.
+`test_the_checker_catches_*` and `test_each_boundary_catches_a_violation`
+run the same checks with a deliberate circle / upward import / forbidden
+edge, so the rules cannot pass by seeing nothing.
 """
 
 from __future__ import annotations
@@ -26,29 +26,60 @@ PACKAGE = pathlib.Path(__file__).resolve().parent.parent / 'slotformer_jax'
 FLOORS = (
     # plumbing every floor may use
     ('slotformer_jax', 'slotformer_jax.errors', 'slotformer_jax.files',
-     'slotformer_jax.frames', 'slotformer_jax.lock',
-     'slotformer_jax.data.data_dir'),
+     'slotformer_jax.frames'),
+    # run bookkeeping: paths, identities, settings, locks (plain files)
+    ('slotformer_jax.workdir',),
     # run-time pieces shared by training, evaluation and the tasks
     ('slotformer_jax.runtime',),
     ('slotformer_jax.data',),
     ('slotformer_jax.modules',),
-    # what reads a config: building modules, a run's paths, the checks
-    ('slotformer_jax.models', 'slotformer_jax.workdir',
-     'slotformer_jax.config'),
+    ('slotformer_jax.config',),
     ('slotformer_jax.losses',),
     ('slotformer_jax.train',),
     ('slotformer_jax.inference',),
+    # the models as the pipeline uses them (built, declared, loaded)
+    ('slotformer_jax.dynamics', 'slotformer_jax.slot_models'),
     ('slotformer_jax.evaluation', 'slotformer_jax.tasks'),
-    ('slotformer_jax.slot_models',),
-    ('slotformer_jax.official',),
+    # one run: config, paths, mesh, slot model, loaded models
+    ('slotformer_jax.run',),
     ('slotformer_jax.stages',),
+    ('slotformer_jax.official',),
     # the entry points: the pipeline, the official-weights converter
     ('slotformer_jax.main', 'slotformer_jax.official.convert'),
 )
-TRAINING = ('slotformer_jax.train.trainer', 'slotformer_jax.train.steps',
-            'slotformer_jax.train.optim', 'slotformer_jax.train.state',
-            'slotformer_jax.losses', 'slotformer_jax.stages',
-            'slotformer_jax.slot_models')
+TRAINING = ('slotformer_jax.train', 'slotformer_jax.losses',
+            'slotformer_jax.stages')
+
+# (who, must never reach, why): `who` and `forbidden` are module prefixes;
+# reaching is through any chain of imports.
+BOUNDARIES = (
+    ('slotformer_jax.data.sources', 'slotformer_jax.data.convert',
+     'reading never writes: opening data never makes it'),
+    ('slotformer_jax.evaluation', 'slotformer_jax.train',
+     'evaluation uses the run-time pieces, never training code'),
+    ('slotformer_jax.evaluation', 'slotformer_jax.data.convert',
+     'a run-time rule (CLEVRER\'s evaluation clips) lives with evaluation'),
+    ('slotformer_jax.tasks', 'slotformer_jax.data.convert',
+     'a task simulates with run-time code, not a converter'),
+    ('slotformer_jax.slot_models', 'slotformer_jax.evaluation',
+     'a model draws its pictures with frames.py, not evaluation code'),
+    ('slotformer_jax.train', 'slotformer_jax.workdir',
+     'the trainer knows nothing of run identities (stages stamp them)'),
+    ('slotformer_jax.official.convert', 'slotformer_jax.stages',
+     'the converter writes where the run\'s paths say, not via a stage'),
+    ('slotformer_jax.workdir', 'slotformer_jax.data',
+     'run bookkeeping reads no data'),
+    ('slotformer_jax.config', 'slotformer_jax.modules',
+     'checking a config builds no model'),
+    ('slotformer_jax.config', 'slotformer_jax.data',
+     'checking a config opens no data (main hands it what it needs)'),
+    ('slotformer_jax.inference', 'slotformer_jax.train',
+     'inference loads parameters without training code'),
+    ('slotformer_jax.tasks', 'slotformer_jax.train',
+     'the downstream tasks are pure: no training code'),
+    ('slotformer_jax.workdir', 'slotformer_jax.train',
+     'run bookkeeping knows no training'),
+)
 
 
 def modules_of(package: pathlib.Path) -> dict[str, pathlib.Path]:
@@ -147,8 +178,20 @@ def reachable(graph: dict[str, set[str]], start: str) -> set[str]:
   return seen
 
 
-def _is_training(module: str) -> bool:
-  return any(module == t or module.startswith(t + '.') for t in TRAINING)
+def _under(module: str, prefix: str) -> bool:
+  return module == prefix or module.startswith(prefix + '.')
+
+
+def boundary_violations(graph: dict[str, set[str]],
+                        boundaries=BOUNDARIES) -> list[tuple[str, str, str]]:
+  """(module, forbidden module it reaches, why) for every boundary crossed."""
+  out = []
+  for who, forbidden, why in boundaries:
+    for name in sorted(graph):
+      if _under(name, who):
+        out += [(name, other, why) for other in sorted(reachable(graph, name))
+                if _under(other, forbidden)]
+  return out
 
 
 GRAPH = import_graph(PACKAGE)
@@ -162,13 +205,20 @@ def test_no_import_runs_back_up():
   assert upward_imports(GRAPH) == []
 
 
-def test_evaluation_and_tasks_reach_no_training_code():
-  for name in GRAPH:
-    if name.startswith(('slotformer_jax.evaluation', 'slotformer_jax.tasks')
-                       ) or name in ('slotformer_jax.inference',
-                                     'slotformer_jax.workdir'):
-      reached = {m for m in reachable(GRAPH, name) if _is_training(m)}
-      assert not reached, (name, reached)
+def test_no_boundary_is_crossed():
+  assert boundary_violations(GRAPH) == []
+
+
+def test_each_boundary_catches_a_violation():
+  """One edge added per boundary, from a module of `who` straight to one of
+  `forbidden`: the check names it."""
+  for who, forbidden, why in BOUNDARIES:
+    source = next(n for n in sorted(GRAPH) if _under(n, who))
+    target = next(n for n in sorted(GRAPH) if _under(n, forbidden))
+    graph = {name: set(edges) for name, edges in GRAPH.items()}
+    graph[source].add(target)
+    assert (source, target, why) in boundary_violations(graph), (who,
+                                                                 forbidden)
 
 
 def test_offline_writers_do_not_import_the_readers_sources():
@@ -206,8 +256,8 @@ def test_the_graph_sees_imports():
       GRAPH, 'slotformer_jax.stages.dynamics')
   assert 'slotformer_jax.slot_models.steve' in GRAPH[
       'slotformer_jax.slot_models']
-  assert 'slotformer_jax.data.convert.synthetic' in reachable(
-      GRAPH, 'slotformer_jax.data.sources')
+  assert 'slotformer_jax.runtime.sharding' in reachable(
+      GRAPH, 'slotformer_jax.evaluation.evaluate')
   assert len(GRAPH) > 80
 
 

@@ -15,11 +15,13 @@ import math
 import os
 import re
 import traceback
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import ml_collections
 
-from slotformer_jax import models
+from slotformer_jax.config.sections import DYNAMICS_MODELS
+from slotformer_jax.config.sections import dynamics_section
+from slotformer_jax.config.sections import trained_dynamics
 from slotformer_jax.errors import ConfigError
 
 FRAME_METRICS = ('psnr', 'ssim', 'lpips')
@@ -234,61 +236,18 @@ def check_field_kinds(config: ml_collections.ConfigDict) -> list[str]:
   return problems
 
 
-def decoder_resolutions(broadcast: Sequence[int], num_layers: int
-                        ) -> list[tuple[int, int]]:
-  """The frame sizes SpatialBroadcastDecoder can produce: its layers double
-  the broadcast grid until the frame height is reached (the rest keep the
-  size), so (h * 2^k, w * 2^k) for k = 0 .. num_layers."""
-  height, width = broadcast
-  return [(height * 2**k, width * 2**k) for k in range(num_layers + 1)]
-
-
-def _check_resolution(config: ml_collections.ConfigDict, problems) -> None:
-  """The frame size the decoders can produce (known from the config alone;
-  found at the first training step otherwise, after generating data)."""
-  resolution = tuple(config.data.resolution)
-  if config.slot_model == 'savi':
-    decoder = config.savi.decoder
-    sizes = decoder_resolutions(decoder.broadcast_resolution,
-                                len(decoder.features))
-    if resolution not in sizes:
-      listed = ', '.join(f'{h}x{w}' for h, w in sizes)
-      problems.append(
-          f'data.resolution {resolution} is not a size the SAVi decoder can '
-          f'produce: it doubles its {tuple(decoder.broadcast_resolution)} '
-          f'broadcast grid (savi.decoder.broadcast_resolution) once per '
-          f'layer, up to {len(decoder.features)} layers '
-          f'(savi.decoder.features), so {listed} work; change '
-          'data.resolution or savi.decoder.broadcast_resolution')
-  elif config.slot_model == 'steve':
-    # The dVAE encodes 4x4 pixels per token and decodes two x2 pixel
-    # shuffles, so only multiples of 4 come back at the frame size.
-    if any(side % 4 for side in resolution):
-      near = tuple(max(4, 4 * round(side / 4)) for side in resolution)
-      problems.append(
-          f'data.resolution {resolution} is not a size the dVAE can '
-          'reconstruct: it makes one token of every 4x4 pixels and decodes '
-          f'them back x4, so both sides must be multiples of 4 (e.g. {near})')
-
-
-def _video_length(config: ml_collections.ConfigDict, split: str
-                  ) -> int | None:
-  """Frames per video when known without generating data: the synthetic
-  config's value, or the first video of an already converted dataset."""
-  if config.data.name == 'synthetic':
-    return int(config.data.get('num_frames', 40))
-  try:
-    # Imported here: reading needs tensorflow_datasets.
-    from slotformer_jax.data import sources  # pylint: disable=g-import-not-at-top
-    source = sources.get_video_source(config.data, split)
-    return len(source[0]['video']) if len(source) else None
-  except Exception:  # pylint: disable=broad-except
-    return None  # a missing dataset is reported by the stage with its fix
-
-
 def validate(config: ml_collections.ConfigDict, stages: Sequence[str], *,
-             num_devices: int, num_processes: int = 1) -> None:
-  """Raises one UserError listing every problem of `stages` (main's modes)."""
+             num_devices: int, num_processes: int = 1,
+             slot_model_problems: Sequence[str] = (),
+             video_length: Callable[[str], int | None] = lambda split: None
+             ) -> None:
+  """Raises one UserError listing every problem of `stages` (main's modes).
+
+  Args:
+    slot_model_problems: the slot model's own (`SlotModel.check_config`).
+    video_length: split -> frames per video when known without making data
+      (None: unknown, checked later by the stage that reads them).
+  """
   problems = []
 
   def positive(section: str, names: Sequence[str], allow_zero=()) -> None:
@@ -313,29 +272,25 @@ def validate(config: ml_collections.ConfigDict, stages: Sequence[str], *,
                       f'{num_processes} processes')
 
   stages = set(stages)
-  if config.slot_model not in ('savi', 'steve'):
-    problems.append(
-        f"slot_model must be 'savi' (incl. stochastic SAVi) or 'steve', got "
-        f'{config.slot_model!r}')
-  if config.slot_model == 'steve':
-    for section in ('dvae', 'steve'):
-      if 'train_' + section in stages:
-        positive(section, _TRAINING_INTS)
-        divisible(f'{section}.batch_size', config[section].batch_size)
+  dynamics = trained_dynamics(config)
+  # Every stage-1 part trained here (`train_<section>`): its section's
+  # training integers, and a batch that splits over the devices.
+  for stage in sorted(stages):
+    section = stage[len('train_'):]
+    if (stage.startswith('train_') and section not in DYNAMICS_MODELS
+        and isinstance(config.get(section), ml_collections.ConfigDict)
+        and 'batch_size' in config[section]):
+      positive(section, _TRAINING_INTS)
+      divisible(f'{section}.batch_size', config[section].batch_size)
   positive('savi', ('num_slots', 'slot_size', 'clip_length'))
   positive('data', ('max_instances',))
-  if 'train_savi' in stages:
-    positive('savi', _TRAINING_INTS)
-    divisible('savi.batch_size', config.savi.batch_size)
   if 'extract_slots' in stages:
     positive('extraction', ('batch_size', 'chunk_length'))
     divisible('extraction.batch_size', config.extraction.batch_size)
-  dynamics = [models.SLOTFORMER] + (
-      [models.SLOT_LSTM] if config.slot_lstm.train else [])
   for name in dynamics:
     if f'train_{name}' in stages or stages & {'evaluate', 'render',
                                                 'explore'}:
-      section = models.dynamics_config(config, name)
+      section = dynamics_section(config, name)
       for key in ('burn_in', 'rollout', 'frame_stride', 'embed_dim',
                   'num_layers') + (_TRAINING_INTS if f'train_{name}' in stages
                                    else ()):
@@ -368,21 +323,21 @@ def validate(config: ml_collections.ConfigDict, stages: Sequence[str], *,
   problems.extend(check_field_kinds(config))
   problems[:] = list(dict.fromkeys(problems))  # the same line from two checks
   if not problems:  # sizes and lengths need the integers above to be sane
-    _check_resolution(config, problems)
-    _check_lengths(config, stages, dynamics, problems)
+    problems.extend(slot_model_problems)
+    _check_lengths(config, stages, dynamics, problems, video_length)
   if problems:
     raise ConfigError('config: ' + '; '.join(problems))
 
 
-def _check_lengths(config, stages, dynamics, problems) -> None:
-  train_length = _video_length(config, 'train') if stages & {
+def _check_lengths(config, stages, dynamics, problems, video_length) -> None:
+  train_length = video_length('train') if stages & {
       'train_savi', 'train_slotformer', 'train_slot_lstm'} else None
   if train_length is not None:
     if 'train_savi' in stages and config.savi.clip_length > train_length:
       problems.append(f'savi.clip_length={config.savi.clip_length} is longer '
                       f'than the {train_length}-frame videos')
     for name in dynamics:
-      section = models.dynamics_config(config, name)
+      section = dynamics_section(config, name)
       needed = (section.burn_in + section.rollout - 1) * section.frame_stride + 1
       if f'train_{name}' in stages and needed > train_length:
         problems.append(
@@ -390,7 +345,7 @@ def _check_lengths(config, stages, dynamics, problems) -> None:
             f'(stride {section.frame_stride}) needs {needed} frames, the '
             f'videos have {train_length}')
   if stages & {'evaluate', 'render', 'explore'}:
-    length = _video_length(config, config.evaluation.split)
+    length = video_length(config.evaluation.split)
     section = config.slotformer
     needed = ((section.burn_in + config.evaluation.rollout_steps - 1)
               * section.frame_stride + 1)

@@ -24,6 +24,10 @@ def base_config() -> ml_collections.ConfigDict:
   # Another run's workdir whose SAVi checkpoint and extracted slots this run
   # uses (e.g. for stage-2 ablations); None: this run's own --workdir.
   config.stage1_workdir = ml_collections.config_dict.placeholder(str)
+  # The downstream task after stage 2: None (video prediction: evaluate,
+  # render, explore), 'contact' (`config.readout = contact_readout_config()`),
+  # 'planning' (`planning_readout_config()`) or 'vqa' (`vqa_config()`).
+  config.task = ml_collections.config_dict.placeholder(str)
 
   # ---- data (see slotformer_jax/data/sources.py for every field) ----------
   config.data = ml_collections.ConfigDict()
@@ -353,3 +357,70 @@ def vqa_config() -> ml_collections.ConfigDict:
   vqa.questions_root = ml_collections.config_dict.placeholder(str)
   vqa.vocab_file = ml_collections.config_dict.placeholder(str)
   return vqa
+
+
+def contact_readout_config() -> ml_collections.ConfigDict:
+  """The contact-prediction readout (`config.readout` with task='contact').
+
+  Defaults are the official Physion readout (readout_physion_params):
+  configs/physion_contact.py; configs/synthetic_contact.py sets the
+  embedded family's splits and a smaller readout.
+  """
+  r = ml_collections.ConfigDict()
+  r.observed_frames = 45  # frames observed; the rest is rolled out
+  r.video_len = 0  # frames of slots read per video (0: every frame)
+  r.label_field = 'label'  # the video field holding the 0/1 contact label
+  r.splits = ml_collections.ConfigDict(dict(
+      train='readout_train', val='readout_val', test='test'))
+  # 'observed', 'rollout' (+ SlotFormer), 'copy_last', 'ground_truth'.
+  r.conditions = ('observed', 'rollout', 'copy_last', 'ground_truth')
+  r.seeds = (0, 1, 2)  # one readout per seed; results are mean +- std
+  # None: the slot size, as the official readout (typed, so that
+  # --config.readout.features=N can set it).
+  r.features = ml_collections.config_dict.placeholder(int)
+  # 'unordered' (official) or 'both_orders' (invariant to the slot order).
+  r.pairs = 'unordered'
+  r.epochs = 50
+  r.batch_size = 64
+  r.learning_rate = 1e-3
+  r.warmup_fraction = 0.0
+  r.rollout_batch_size = 32  # videos per SlotFormer rollout call
+  r.num_pictures = 0  # readout/test_<i>.png strips
+  return r
+
+
+def planning_readout_config() -> ml_collections.ConfigDict:
+  """The planning success classifier (`config.readout` with
+  task='planning').
+
+  Defaults are the official PHYRE classifier (readout_phyre_params):
+  configs/phyre.py (the rendered layout); configs/synthetic_phyre.py sets
+  the embedded tasks' values.
+  """
+  r = ml_collections.ConfigDict()
+  r.conditions = ('first_frame', 'rollout')
+  # Embedded tasks: SlotFormer's frames after the first; the classifier
+  # reads the frames `selected_steps` of [first frame, rollout].
+  r.rollout_steps = 10
+  r.selected_steps = (0, 3)
+  r.embed_dim = 128
+  r.num_layers = 4
+  r.num_heads = 8
+  r.mlp_ratio = 4
+  r.layer_norm_epsilon = 1e-6  # 1e-5: PyTorch's, the official classifier
+  # The official classifier trains with nn.TransformerEncoderLayer's 0.1.
+  r.dropout_rate = 0.0
+  r.seeds = (0, 1, 2)
+  r.dev_share = 0.1  # training tasks held out to choose the epoch
+  r.negatives_per_task = 40  # embedded tasks: failing actions kept per task
+  r.epochs = 50
+  r.batch_size = 256
+  r.learning_rate = 1e-3
+  r.warmup_fraction = 0.1
+  r.encode_batch_size = 256  # candidates per slot-model / rollout call
+  r.num_pictures = 0  # planning/test_task_<k>.png rankings (embedded tasks)
+  # The rendered PHYRE layout: its fold, the candidates ranked, its splits.
+  r.fold = 0
+  r.candidates = 'rendered'
+  r.splits = ml_collections.ConfigDict(dict(train='train', test='val'))
+  return r

@@ -20,9 +20,12 @@ frames, ARI / FG-ARI pooled over each whole video as SAVi reports them, the
 per-frame FG-ARI and FG-mIoU) and, where it reconstructs frames, their PSNR.
 
 The slot model arrives as an object with `name`, `label`,
-`reference_method`, `slot_shape`, `mask_source`, `decode` and `observe`
-(`slot_models.base.SlotModel`), its trained parameters with it: evaluation
-never builds or loads one, so it imports no training code.
+`reference_method`, `slot_shape`, `mask_source`, `decodes_pixels`, `decode`
+and `observe` (`slot_models.base.SlotModel`), the dynamics models as
+(module, params, step), every one trained: evaluation never builds or loads
+a model and reads only the config sections it is given, so it imports no
+training code. A slot model that decodes no pixels is scored on its masks:
+the frame metrics (PSNR, SSIM, LPIPS) are skipped, and the metrics say so.
 """
 
 from __future__ import annotations
@@ -44,14 +47,13 @@ import numpy as np
 import tqdm
 
 from slotformer_jax import inference
-from slotformer_jax import models
-from slotformer_jax import workdir as workdir_lib
 from slotformer_jax.config.checks import FRAME_METRICS
 from slotformer_jax.config.checks import OBJECT_METRICS
+from slotformer_jax.config.sections import SLOT_LSTM
+from slotformer_jax.config.sections import SLOTFORMER
 from slotformer_jax.data import pipeline
 from slotformer_jax.data.convert import clevrer
 from slotformer_jax.data.pipeline import ClipSource
-from slotformer_jax.data.sources import get_video_source
 from slotformer_jax.errors import ConfigError
 from slotformer_jax.evaluation import metrics as metrics_lib
 from slotformer_jax.files import atomic_text
@@ -69,9 +71,6 @@ SEGMENTATION_FIELD = 'segmentations'
 BOX_FIELDS = ('boxes', 'visible')
 
 
-eval_dir = workdir_lib.eval_dir
-
-
 class SlotDecoder(Protocol):
   """What evaluation needs of a slot model (see slot_models/base.py)."""
 
@@ -80,6 +79,7 @@ class SlotDecoder(Protocol):
   reference_method: str
   slot_shape: tuple[int, int]
   mask_source: str
+  decodes_pixels: bool
 
   def decode(self, params: Any, slots: jax.Array) -> Any:
     """slots [..., N, D] -> .recon [..., H, W, 3], .alpha_masks [..., N, H,
@@ -100,9 +100,10 @@ def predicted_segmentation(decoded, bg_threshold: float | None = None
       decoded.alpha_masks[..., 0], bg_threshold=bg_threshold)
 
 
-def num_true_ids(data_config: ml_collections.ConfigDict) -> int:
-  """Ground-truth segmentation ids, background (0) included."""
-  return int(data_config.max_instances) + 1
+def num_true_ids(max_instances: int) -> int:
+  """Ground-truth segmentation ids, background (0) included, of a dataset
+  whose largest instance id is `max_instances` (`data.max_instances`)."""
+  return int(max_instances) + 1
 
 
 def _frame_step_metrics(decoded, frames: jax.Array, segmentation: jax.Array,
@@ -170,41 +171,44 @@ def _frame_step_metrics(decoded, frames: jax.Array, segmentation: jax.Array,
 def uses_dataset_boxes(eval_config: ml_collections.ConfigDict,
                        names: tuple[str, ...]) -> bool:
   """Whether AR reads the dataset's per-object boxes (see the config)."""
-  kind = eval_config.get('ar_gt_boxes', 'segmentation')
+  kind = eval_config.ar_gt_boxes
   if kind not in ('segmentation', 'object_masks'):
     raise ValueError("evaluation.ar_gt_boxes must be 'segmentation' or "
                      f"'object_masks', got {kind!r}")
   return 'ar' in names and kind == 'object_masks'
 
 
-def make_rollout_evaluator(config: ml_collections.ConfigDict, mesh: Mesh,
+def make_rollout_evaluator(eval_config: ml_collections.ConfigDict, mesh: Mesh,
                            names: tuple[str, ...],
                            lpips_fn: Callable | None,
-                           dynamics_names: tuple[str, ...],
-                           slot_model: SlotDecoder):
+                           dynamics_modules: dict[str, Any],
+                           slot_model: SlotDecoder, *, burn_in: int,
+                           num_true: int, compute_dtype: str):
   """Jitted (dynamics_params, slot_params, batch) -> per-step metrics.
 
-  dynamics_params: {name: params} for every name in `dynamics_names`;
+  eval_config: the `evaluation` section (rollout_steps, background
+  threshold, AR's boxes); dynamics_modules: {name: module} of the dynamics
+  models rolled out after `burn_in` frames; num_true: ground-truth ids
+  (`num_true_ids`).
+  dynamics_params: {name: params} for every name in `dynamics_modules`;
   slot_params: the slot model's (`slot_model.decode` takes them).
   batch: 'slots' [B, burn_in + R, N, D], 'video' uint8 [B, burn_in + R, H,
   W, 3] and, when an object metric is asked for, 'segmentations' [B,
   burn_in + R, H, W]. Returns {method: {name: (value [R, B], valid [R, B])}}
   (fg_miou: (iou, present)).
   """
-  models_by_name = {name: models.build_dynamics(config, name)
-                    for name in dynamics_names}
-  burn_in = config.slotformer.burn_in
-  rollout = config.evaluation.rollout_steps
+  models_by_name = dict(dynamics_modules)
+  rollout = eval_config.rollout_steps
   step_metrics = functools.partial(
       _frame_step_metrics, names=names,
-      num_true=num_true_ids(config.data), num_slots=slot_model.slot_shape[0],
+      num_true=num_true, num_slots=slot_model.slot_shape[0],
       lpips_fn=lpips_fn,
-      background_threshold=config.evaluation.get('background_threshold'))
+      background_threshold=eval_config.background_threshold)
   needs_segmentation = any(name in OBJECT_METRICS for name in names)
-  boxes_from_dataset = uses_dataset_boxes(config.evaluation, names)
+  boxes_from_dataset = uses_dataset_boxes(eval_config, names)
   # bfloat16: rollouts and decoding compute in it, metrics in float32.
   in_compute_dtype = functools.partial(precision.with_compute_dtype,
-                                       compute_dtype=config.compute_dtype)
+                                       compute_dtype=compute_dtype)
   reference = slot_model.reference_method
 
   def evaluate_batch(dynamics_params, slot_params, batch):
@@ -259,7 +263,7 @@ def make_rollout_evaluator(config: ml_collections.ConfigDict, mesh: Mesh,
                                sharding.batch_sharding(mesh)))
 
 
-def make_quality_evaluator(config: ml_collections.ConfigDict, mesh: Mesh,
+def make_quality_evaluator(num_true: int, mesh: Mesh,
                            slot_model: SlotDecoder,
                            with_segmentation: bool = True):
   """Jitted quality of the slot model's account of a chunk of real frames.
@@ -273,7 +277,7 @@ def make_quality_evaluator(config: ml_collections.ConfigDict, mesh: Mesh,
   and counts [B]; per frame, the FG-IoU matrices 'iou' [B, T, C-1, K] and
   'present' [B, T, C-1] (False on invalid frames).
   """
-  num_true, num_slots = num_true_ids(config.data), slot_model.slot_shape[0]
+  num_slots = slot_model.slot_shape[0]
 
   def evaluate_frame(alpha, recon, video, segmentation, valid):
     """One frame of every video: alpha [B, N, H, W] ... valid [B]."""
@@ -321,7 +325,8 @@ def make_quality_evaluator(config: ml_collections.ConfigDict, mesh: Mesh,
                  out_shardings=(batched, batched))
 
 
-def evaluate_slot_model(config: ml_collections.ConfigDict, mesh: Mesh,
+def evaluate_slot_model(eval_config: ml_collections.ConfigDict,
+                        num_true: int, mesh: Mesh,
                         slot_model: SlotDecoder, slot_params: Any,
                         source: Any, num_frames: int,
                         with_segmentation: bool = True,
@@ -337,14 +342,14 @@ def evaluate_slot_model(config: ml_collections.ConfigDict, mesh: Mesh,
   (SAVi's MOVi convention: conditional SAVi is given that frame's boxes);
   'num_frames' stays the frames encoded per video.
   """
-  evaluator = make_quality_evaluator(config, mesh, slot_model,
+  evaluator = make_quality_evaluator(num_true, mesh, slot_model,
                                      with_segmentation)
-  chunk = config.evaluation.chunk_length
-  first_frame = 1 if config.evaluation.get('skip_first_frame', False) else 0
+  chunk = eval_config.chunk_length
+  first_frame = 1 if eval_config.skip_first_frame else 0
   if num_frames <= first_frame:
     raise ConfigError('evaluation.skip_first_frame=True needs videos of at '
                       f'least 2 frames, these have {num_frames}')
-  absent_ids = config.evaluation.get('miou_absent_ids', 'skip')
+  absent_ids = eval_config.miou_absent_ids
   fields = ('slots', 'video') + ((SEGMENTATION_FIELD,) if with_segmentation
                                  else ())
   fg_ari_video, ari_video, miou_frames = [], [], []
@@ -418,7 +423,7 @@ def _padded_time_slice(x: np.ndarray, start: int, length: int) -> np.ndarray:
   return piece
 
 
-_METHOD_ORDER = (models.SLOTFORMER, models.SLOT_LSTM, 'copy_last')
+_METHOD_ORDER = (SLOTFORMER, SLOT_LSTM, 'copy_last')
 
 
 def _method_rank(method: str) -> tuple[int, str]:
@@ -471,53 +476,76 @@ def _lpips_or_none(names: tuple[str, ...]) -> Callable | None:
     return None
 
 
-def dynamics_to_evaluate(config: ml_collections.ConfigDict
-                         ) -> tuple[str, ...]:
-  """SlotFormer, plus Slot-LSTM when the config trains it."""
-  names = (models.SLOTFORMER,)
-  if config.slot_lstm.train:
-    names += (models.SLOT_LSTM,)
-  return names
+def video_fields(eval_config: ml_collections.ConfigDict) -> tuple[str, ...]:
+  """The video fields the metrics of `eval_config` read besides the slots."""
+  names = tuple(eval_config.metrics)
+  fields = ('video',)
+  if any(name in OBJECT_METRICS for name in names):
+    fields += (SEGMENTATION_FIELD,)
+  if uses_dataset_boxes(eval_config, names):
+    fields += BOX_FIELDS
+  return fields
 
 
-def evaluate(config: ml_collections.ConfigDict, workdir: str, mesh: Mesh,
-             *, slot_model: SlotDecoder, slot_params: Any,
-             slot_steps: dict[str, int],
-             dynamics: dict[str, tuple[Any, int]],
-             identity: dict[str, Any]) -> dict[str, Any]:
+def scored_metrics(names: tuple[str, ...], slot_model: SlotDecoder
+                   ) -> tuple[tuple[str, ...], dict[str, str]]:
+  """(the metrics of `names` the slot model can be scored on, {skipped
+  metric: why}): a model that decodes no pixels has no frame metrics."""
+  if slot_model.decodes_pixels:
+    return names, {}
+  why = f'{slot_model.label} decodes no pixels'
+  return (tuple(n for n in names if n not in FRAME_METRICS),
+          {n: why for n in names if n in FRAME_METRICS})
+
+
+def evaluate(eval_config: ml_collections.ConfigDict,
+             dynamics_config: ml_collections.ConfigDict, mesh: Mesh, *,
+             slot_model: SlotDecoder, slot_params: Any,
+             slot_steps: dict[str, int], dynamics: dict[str, Any],
+             identity: dict[str, Any], source: Any, videos: Any,
+             num_true: int, compute_dtype: str,
+             output_dir: str | None) -> dict[str, Any]:
   """Evaluates the slot model and the rollouts on `evaluation.split`;
-  writes eval/metrics.json + per_step.csv (lead host) and returns them.
+  writes metrics.json + per_step.csv to `output_dir` (lead host) and
+  returns them.
 
   Args:
+    eval_config: the `evaluation` section.
+    dynamics_config: SlotFormer's section (its burn_in and frame_stride set
+      the protocol for every dynamics model).
     slot_model, slot_params: the trained slot model (see `SlotDecoder`).
     slot_steps: its stage-1 checkpoint steps ({'savi': 4500}).
-    dynamics: {name: (params, step)} of every dynamics model to evaluate.
-    identity: what all of them are made from
-      (`workdir.evaluation_identity`), recorded with the metrics.
+    dynamics: {name: object with `module`, `params`, `step`} of every
+      dynamics model to evaluate (`dynamics.Loaded`).
+    identity: what all of them are made from (stages/lineage.py), recorded
+      with the metrics.
+    source: the slots of the split with the `video_fields(eval_config)`.
+    videos: the split's videos (read for the CLEVRER clips only).
+    num_true: ground-truth segmentation ids (`num_true_ids`).
+    compute_dtype: 'float32' or 'bfloat16' (rollouts and decoding).
+    output_dir: where to write (None: nowhere).
   """
   started = time.time()
-  eval_config = config.evaluation
-  names = tuple(eval_config.metrics)
+  names, skipped = scored_metrics(tuple(eval_config.metrics), slot_model)
+  if skipped:
+    logger.info('%s skipped: %s', ', '.join(skipped),
+                next(iter(skipped.values())))
   with_segmentation = any(name in OBJECT_METRICS for name in names)
   lpips_fn = _lpips_or_none(names)
-  dynamics_params = {name: params for name, (params, _) in dynamics.items()}
-  burn_in = config.slotformer.burn_in
+  dynamics_params = {name: model.params for name, model in dynamics.items()}
+  burn_in = dynamics_config.burn_in
   rollout = eval_config.rollout_steps
-  stride = config.slotformer.frame_stride
-  video_fields = ('video',) + ((SEGMENTATION_FIELD,) if with_segmentation
-                               else ())
-  if uses_dataset_boxes(eval_config, names):
-    video_fields += BOX_FIELDS
-  source = workdir_lib.slot_source_for(config, workdir, eval_config.split,
-                                       video_fields)
+  stride = dynamics_config.frame_stride
+  fields = video_fields(eval_config)
   if with_segmentation:
     _check_has_segmentations(source, names)
   num_videos = min(len(source), eval_config.num_videos or len(source))
-  source = evaluation_clips(config, source, ('slots',) + video_fields,
-                            num_videos)
+  source = evaluation_clips(
+      eval_config.clips, source, ('slots',) + fields, num_videos,
+      videos=videos, burn_in=burn_in, rollout=rollout, frame_stride=stride)
   local_batch_size = sharding.per_host_batch_size(eval_config.batch_size, mesh)
   shared = dict(batch_size=local_batch_size,
-                fields=('slots',) + video_fields,
+                fields=('slots',) + fields,
                 process_index=jax.process_index(),
                 process_count=jax.process_count(), max_videos=len(source))
   needed = (burn_in + rollout - 1) * stride + 1
@@ -526,14 +554,17 @@ def evaluate(config: ml_collections.ConfigDict, workdir: str, mesh: Mesh,
   quality_started = time.time()
   quality = {}
   if eval_config.savi_metrics:
-    quality = evaluate_slot_model(config, mesh, slot_model, slot_params,
-                                  source, needed, with_segmentation, **shared)
+    quality = evaluate_slot_model(eval_config, num_true, mesh, slot_model,
+                                  slot_params, source, needed,
+                                  with_segmentation, **shared)
   quality_seconds = time.time() - quality_started
 
   # Rollouts.
   rollout_started = time.time()
-  evaluator = make_rollout_evaluator(config, mesh, names, lpips_fn,
-                                     tuple(dynamics), slot_model)
+  evaluator = make_rollout_evaluator(
+      eval_config, mesh, names, lpips_fn,
+      {name: model.module for name, model in dynamics.items()}, slot_model,
+      burn_in=burn_in, num_true=num_true, compute_dtype=compute_dtype)
   averager = _StepAverager()
   for batch in tqdm.tqdm(
       pipeline.eval_batches(source, num_frames=needed, **shared),
@@ -550,43 +581,41 @@ def evaluate(config: ml_collections.ConfigDict, workdir: str, mesh: Mesh,
       for name, (values, valid) in per_metric.items():
         if name == 'fg_miou':
           score = metrics_lib.hungarian_mean_iou(
-              values, valid,
-              absent_ids=eval_config.get('miou_absent_ids', 'skip'))
+              values, valid, absent_ids=eval_config.miou_absent_ids)
           values, valid = score.value, score.valid
         averager.add(method, name, np.asarray(values),
                      np.asarray(valid) & mask[None, :])
   rollout_results = averager.results()
 
+  protocol = {'split': eval_config.split, 'num_videos': num_videos,
+              'num_clips': len(source), 'clips': eval_config.clips,
+              'burn_in': burn_in, 'rollout_steps': rollout,
+              'frame_stride': stride,
+              'background_threshold': eval_config.background_threshold,
+              'ar_gt_boxes': eval_config.ar_gt_boxes,
+              'miou_absent_ids': eval_config.miou_absent_ids,
+              # The slot model's whole-video metrics without frame 0
+              # (SAVi paper) or over every frame.
+              'skip_first_frame': bool(eval_config.skip_first_frame),
+              'masks': slot_model.mask_source}
+  if skipped:
+    protocol['skipped_metrics'] = skipped
   results = {
       'slot_model': slot_model.name,
       slot_model.name: quality,
       'rollout': rollout_results,
-      'protocol': {'split': eval_config.split, 'num_videos': num_videos,
-                   'num_clips': len(source), 'clips': eval_config.clips,
-                   'burn_in': burn_in, 'rollout_steps': rollout,
-                   'frame_stride': stride,
-                   'background_threshold': eval_config.get(
-                       'background_threshold'),
-                   'ar_gt_boxes': eval_config.get('ar_gt_boxes',
-                                                  'segmentation'),
-                   'miou_absent_ids': eval_config.get('miou_absent_ids',
-                                                      'skip'),
-                   # The slot model's whole-video metrics without frame 0
-                   # (SAVi paper) or over every frame.
-                   'skip_first_frame': bool(eval_config.get(
-                       'skip_first_frame', False)),
-                   'masks': slot_model.mask_source},
+      'protocol': protocol,
       'checkpoints': {
           **{f'{key}_step': step for key, step in slot_steps.items()},
-          **{f'{name}_step': step for name, (_, step) in dynamics.items()}},
+          **{f'{name}_step': model.step for name, model in dynamics.items()}},
       'identity': identity,
       'seconds': {slot_model.name: quality_seconds,
                   'rollout': time.time() - rollout_started,
                   'total': time.time() - started},
   }
-  if jax.process_index() == 0:
-    _write_results(eval_dir(workdir), results)
-    print(format_table(results))
+  if jax.process_index() == 0 and output_dir is not None:
+    _write_results(output_dir, results)
+    print(format_table(results, slot_model.label))
   return results
 
 
@@ -603,26 +632,23 @@ def _check_length(source: Any, needed: int, burn_in: int, rollout: int,
         f'{length}; lower evaluation.rollout_steps')
 
 
-def evaluation_clips(config: ml_collections.ConfigDict, source: Any,
-                     time_fields: tuple[str, ...], num_videos: int) -> Any:
+def evaluation_clips(kind: str, source: Any, time_fields: tuple[str, ...],
+                     num_videos: int, *, videos: Any, burn_in: int,
+                     rollout: int, frame_stride: int) -> Any:
   """The evaluated clips of the first `num_videos` videos.
 
-  `evaluation.clips`: 'first' evaluates each video from its first frame;
-  'clevrer' takes the official CLEVRER clips (per half-clip block of the
-  video, the first start where no object enters late; see
-  `data.clevrer.eval_clip_starts`), which needs the stored `in_view`.
+  `kind` (`evaluation.clips`): 'first' evaluates each video from its first
+  frame; 'clevrer' takes the official CLEVRER clips (per half-clip block of
+  the video, the first start where no object enters late; see
+  `clevrer_clips`), which reads the stored `in_view` of `videos`.
   """
-  kind = config.evaluation.clips
   if kind == 'first':
     return ClipSource(source, [(i, 0) for i in range(num_videos)],
                       time_fields)
   if kind != 'clevrer':
     raise ValueError(f"evaluation.clips must be 'first' or 'clevrer', got "
                      f'{kind!r}')
-  videos = get_video_source(config.data, config.evaluation.split)
-  clips = clevrer_clips(videos, num_videos, config.slotformer.burn_in,
-                        config.evaluation.rollout_steps,
-                        config.slotformer.frame_stride)
+  clips = clevrer_clips(videos, num_videos, burn_in, rollout, frame_stride)
   return ClipSource(source, clips, time_fields)
 
 
@@ -675,8 +701,9 @@ def _write_results(directory: str, results: dict[str, Any]) -> None:
           writer.writerow([method, name, step, value])
 
 
-def format_table(results: dict[str, Any]) -> str:
-  """A method x metric table of the step-averaged rollout metrics."""
+def format_table(results: dict[str, Any], label: str) -> str:
+  """A method x metric table of the step-averaged rollout metrics; `label`
+  names the slot model ('SAVi')."""
   rollout = results['rollout']
   names = [n for n in (*FRAME_METRICS, *OBJECT_METRICS)
            if any(n in m for m in rollout.values())]
@@ -692,14 +719,12 @@ def format_table(results: dict[str, Any]) -> str:
       value = per_metric.get(name, {}).get('mean')
       cells.append(f'{"-" if value is None else f"{value:.4f}":>10}')
     lines.append(f'{method:<22}' + ''.join(cells))
-  name = results.get('slot_model', 'savi')
-  label = {'savi': 'SAVi', 'steve': 'STEVE'}.get(name, name)
-  quality = results.get(name, {})
+  quality = results.get(results['slot_model'], {})
   parts = []
   if 'fg_ari' in quality:
     parts.append(f'FG-ARI {quality["fg_ari"]:.4f} (per frame '
                  f'{quality["fg_ari_per_frame"]:.4f})')
-    if quality.get('fg_miou_per_frame') is not None:
+    if quality['fg_miou_per_frame'] is not None:
       parts.append(f'FG-mIoU per frame {quality["fg_miou_per_frame"]:.4f}')
     parts.append(f'ARI {quality["ari"]:.4f}')
   if 'psnr' in quality:

@@ -52,12 +52,13 @@ import numpy as np
 from PIL import Image
 
 from slotformer_jax import inference
-from slotformer_jax import models
-from slotformer_jax import workdir as workdir_lib
+from slotformer_jax.config.sections import DYNAMICS_MODELS
+from slotformer_jax.config.sections import SLOTFORMER
 from slotformer_jax.evaluation import evaluate
 from slotformer_jax.evaluation import explore_page
 from slotformer_jax.evaluation import metrics as metrics_lib
 from slotformer_jax.evaluation import visualize
+from slotformer_jax import frames as frames_lib
 from slotformer_jax.files import read_json
 from slotformer_jax.files import write_atomic
 from slotformer_jax.files import write_json_atomic
@@ -71,14 +72,8 @@ DIFF_GAIN = 4.0
 VIDEO_METRICS = ('psnr', 'ssim', 'fg_ari')
 # render/'s colours, labels and conversion: the page matches its pictures.
 # pylint: disable=protected-access
-_PALETTE = visualize._PALETTE
-_METHOD_LABELS = visualize._METHOD_LABELS
-_to_uint8 = visualize._to_uint8
-# pylint: enable=protected-access
-
-
-def explore_dir(workdir: str) -> str:
-  return os.path.join(workdir, 'explore')
+_PALETTE = frames_lib.SLOT_COLOURS
+_to_uint8 = frames_lib.to_uint8
 
 
 def intervention_masks(num_slots: int) -> tuple[np.ndarray, np.ndarray]:
@@ -120,17 +115,19 @@ class Explorer:
   [V, T, H, W, 3], segmentation int [V, T, H, W] or None) -> the arrays of
   the page (see `_explore`); `trace_count` counts its compilations."""
 
-  def __init__(self, config: ml_collections.ConfigDict, slot_model: Any,
-               dynamics_names: tuple[str, ...]):
+  def __init__(self, dynamics_modules: dict[str, Any], slot_model: Any, *,
+               burn_in: int, rollout: int, num_true: int,
+               background_threshold: float | None):
     self.slot_model = slot_model
-    self.dynamics_names = dynamics_names
-    self.slotformer = models.build_slotformer(config)
-    self.baselines = {name: models.build_dynamics(config, name)
-                      for name in dynamics_names if name != models.SLOTFORMER}
-    self.burn_in = config.slotformer.burn_in
-    self.rollout = config.evaluation.rollout_steps
-    self.num_true = evaluate.num_true_ids(config.data)
-    self.background_threshold = config.evaluation.get('background_threshold')
+    self.dynamics_names = tuple(dynamics_modules)
+    self.slotformer = dynamics_modules[SLOTFORMER]
+    self.baselines = {name: module
+                      for name, module in dynamics_modules.items()
+                      if name != SLOTFORMER}
+    self.burn_in = burn_in
+    self.rollout = rollout
+    self.num_true = num_true
+    self.background_threshold = background_threshold
     self.trace_count = 0
     self._jitted = jax.jit(self._explore)
 
@@ -146,12 +143,12 @@ class Explorer:
     history = slots[:, :burn_in]
     num_slots = slots.shape[2]
     counterfactual, presence = counterfactual_rollouts(
-        dynamics_params[models.SLOTFORMER], history, model=self.slotformer,
+        dynamics_params[SLOTFORMER], history, model=self.slotformer,
         num_steps=self.rollout)
     # The other methods' factual rollouts join the batch (always present).
     others = inference.rollouts(dynamics_params, self.baselines, history,
                                 self.rollout)
-    names = [models.SLOTFORMER, *others]
+    names = [SLOTFORMER, *others]
     other_slots = jnp.stack(
         [jnp.concatenate([history, others[name]], axis=1) for name in others],
         axis=1)
@@ -243,11 +240,11 @@ def _clean(values) -> list[float | None]:
           for v in values]
 
 
-def run_curves(workdir: str, identity: dict[str, Any]
+def run_curves(path: str, identity: dict[str, Any], labels: dict[str, str]
                ) -> tuple[dict[str, Any] | None, str]:
-  """({metric: {method label: per-step values}}, note) of eval/metrics.json,
-  or (None, why not) when it is missing or from other models."""
-  path = os.path.join(evaluate.eval_dir(workdir), 'metrics.json')
+  """({metric: {method label: per-step values}}, note) of the evaluation's
+  metrics.json at `path`, or (None, why not) when it is missing or from
+  other models. `labels`: how the page names each method."""
   if not os.path.exists(path):
     return None, ('no eval/metrics.json: run --mode=evaluate for the run\'s '
                   'curves')
@@ -259,7 +256,7 @@ def run_curves(workdir: str, identity: dict[str, Any]
   for method, per_metric in results.get('rollout', {}).items():
     for name, value in per_metric.items():
       if isinstance(value, dict) and 'per_step' in value:
-        label = _METHOD_LABELS.get(method, method)
+        label = labels.get(method, method)
         curves.setdefault(name, {})[label] = _clean(value['per_step'])
   protocol = results.get('protocol', {})
   return curves, (f'the run: eval/metrics.json, mean over '
@@ -267,31 +264,32 @@ def run_curves(workdir: str, identity: dict[str, Any]
                   f'{protocol.get("split", "")} videos')
 
 
-def page_data(config: ml_collections.ConfigDict, out: dict[str, Any],
-              videos: np.ndarray, indices: list[int], *, label: str,
+def page_data(out: dict[str, Any], videos: np.ndarray, indices: list[int],
+              *, slot_model: Any, title: str, burn_in: int, rollout: int,
+              split: str, explore_config: ml_collections.ConfigDict,
               identity: dict[str, Any], curves: dict[str, Any] | None,
               curves_note: str, seconds: float) -> dict[str, Any]:
   """The page's JSON: every frame as strip data URIs, curves, identity."""
-  burn_in = config.slotformer.burn_in
+  label = slot_model.label
   num_slots = out['slotformer_masks'].shape[2]
   # jax returns dicts sorted by key: the page's order is the table's.
-  methods = [name for name in (*models.DYNAMICS_MODELS, 'copy_last')
+  methods = [name for name in (*DYNAMICS_MODELS, 'copy_last')
              if name in out['methods']]
-  labels = _METHOD_LABELS
+  labels = visualize.method_labels(slot_model)
   palette = ['#%02x%02x%02x' % tuple(int(c * 255 + 0.5) for c in colour)
              for colour in _PALETTE]
   entries = []
   for v, index in enumerate(indices):
     truth = videos[v].astype(np.float32) / 255.0
-    factual = out['methods'][models.SLOTFORMER][v]
+    factual = out['methods'][SLOTFORMER][v]
     rows = [('truth', 'truth', truth),
             ('observed_masks', f'{label} masks',
-             visualize.mask_overlay(truth, out['observed_masks'][v])),
-            (models.SLOTFORMER, labels[models.SLOTFORMER], factual),
+             frames_lib.mask_overlay(truth, out['observed_masks'][v])),
+            (SLOTFORMER, labels[SLOTFORMER], factual),
             ('slotformer_masks', 'SlotFormer masks',
-             visualize.mask_overlay(factual, out['slotformer_masks'][v]))]
+             frames_lib.mask_overlay(factual, out['slotformer_masks'][v]))]
     rows += [(name, labels[name], out['methods'][name][v])
-             for name in methods if name != models.SLOTFORMER]
+             for name in methods if name != SLOTFORMER]
     slots = []
     for k in range(num_slots):
       alpha = out['slotformer_masks'][v, :, k]
@@ -309,7 +307,7 @@ def page_data(config: ml_collections.ConfigDict, out: dict[str, Any],
       masks = out['counterfactual_masks'][v, kind_rows]
       counterfactual[kind] = [
           {'frames': _strip(frames[k]),
-           'masks': _strip(visualize.mask_overlay(frames[k], masks[k])),
+           'masks': _strip(frames_lib.mask_overlay(frames[k], masks[k])),
            'diff': _strip(_diff_view(frames[k], factual)),
            'max_diff': round(float(np.abs(frames[k] - factual).max()), 4)}
           for k in range(num_slots)]
@@ -317,30 +315,33 @@ def page_data(config: ml_collections.ConfigDict, out: dict[str, Any],
     metrics = {name: {labels[method]: _clean(per_video[method][name][v])
                       for method in methods}
                for name in VIDEO_METRICS
-               if name in per_video[models.SLOTFORMER]}
+               if name in per_video[SLOTFORMER]}
     entries.append({
         'index': int(index),
         'rows': [{'key': key, 'label': row_label, 'strip': _strip(frames)}
                  for key, row_label, frames in rows],
         'slots': slots,
-        'factual_masks': _strip(visualize.mask_overlay(
+        'factual_masks': _strip(frames_lib.mask_overlay(
             factual, out['slotformer_masks'][v])),
         'counterfactual': counterfactual,
         'curves': metrics,
     })
   height, width = videos.shape[2:4]
   return {
-      'title': f'{config.data.name}: {label} + SlotFormer',
+      'title': title,
       'slot_model': label,
+      # The charts' colour of the slot model's own reconstruction.
+      'reference': {'label': slot_model.reference_label,
+                    'colour': slot_model.colour},
       'slot_views': ('decoded reconstruction x alpha' if 'slot_rgb' in out
                      else 'generated frame x attention mask'),
       'burn_in': burn_in,
-      'rollout': config.evaluation.rollout_steps,
+      'rollout': rollout,
       'num_slots': num_slots,
       'height': int(height), 'width': int(width),
-      'scale': int(config.explore.scale),
-      'fps': float(config.explore.fps),
-      'split': config.evaluation.split,
+      'scale': int(explore_config.scale),
+      'fps': float(explore_config.fps),
+      'split': split,
       'palette': palette,
       'diff_gain': DIFF_GAIN,
       'videos': entries,
@@ -363,34 +364,46 @@ def write_page(directory: str, data: dict[str, Any]) -> str:
   return path
 
 
-def explore(config: ml_collections.ConfigDict, workdir: str, *,
-            slot_model: Any, slot_params: Any,
-            dynamics: dict[str, tuple[Any, int]],
-            identity: dict[str, Any]) -> str | None:
-  """Writes explore/index.html (and identity.json); returns the page's path
-  (None on hosts other than the lead one). Runs on one device.
+def explore(explore_config: ml_collections.ConfigDict,
+            eval_config: ml_collections.ConfigDict,
+            dynamics_config: ml_collections.ConfigDict, *,
+            slot_model: Any, slot_params: Any, dynamics: dict[str, Any],
+            identity: dict[str, Any], open_slots: Any, num_true: int,
+            metrics_file: str, output_dir: str, title: str) -> str | None:
+  """Writes `output_dir`/index.html (and identity.json); returns the page's
+  path (None on hosts other than the lead one). Runs on one device.
 
   Args:
+    explore_config: the `explore` section; eval_config: the `evaluation`
+      section (split, rollout length, background threshold);
+      dynamics_config: SlotFormer's (burn-in, frame stride).
     slot_model, slot_params: the trained slot model.
-    dynamics: {name: (params, step)} of every dynamics model (SlotFormer
+    dynamics: {name: `dynamics.Loaded`} of every dynamics model (SlotFormer
       first; Slot-LSTM when trained).
-    identity: what all of them are made from (`workdir.evaluation_identity`).
+    identity: what all of them are made from, recorded with the page.
+    open_slots: fields -> the evaluation split's slots served with those
+      video fields.
+    num_true: ground-truth segmentation ids (`evaluate.num_true_ids`).
+    metrics_file: the evaluation's metrics.json (the run's curves).
+    title: the page's title.
   """
   if jax.process_index() != 0:
     return None
+  if not slot_model.decodes_pixels:
+    logger.info('explore skipped: %s decodes no pixels', slot_model.label)
+    return None
   start = time.perf_counter()
-  burn_in = config.slotformer.burn_in
-  rollout = config.evaluation.rollout_steps
-  stride = config.slotformer.frame_stride
-  split = config.evaluation.split
+  burn_in = dynamics_config.burn_in
+  rollout = eval_config.rollout_steps
+  stride = dynamics_config.frame_stride
+  split = eval_config.split
   try:
-    source = workdir_lib.slot_source_for(
-        config, workdir, split, ('video', evaluate.SEGMENTATION_FIELD))
+    source = open_slots(('video', evaluate.SEGMENTATION_FIELD))
     if len(source):
       source[0]
   except KeyError:  # no ground-truth masks: frame metrics only
-    source = workdir_lib.slot_source_for(config, workdir, split, ('video',))
-  count = min(config.explore.num_videos, len(source))
+    source = open_slots(('video',))
+  count = min(explore_config.num_videos, len(source))
   if not count:
     logger.warning('explore: the %s split has no videos; no page written',
                    split)
@@ -408,17 +421,22 @@ def explore(config: ml_collections.ConfigDict, workdir: str, *,
         f'exploring needs {frames_needed} frames per video, the videos have '
         f'{len(items[0]["slots"])}; lower evaluation.rollout_steps')
   dynamics_params = jax.device_get(
-      {name: params for name, (params, _) in dynamics.items()})
-  explorer = Explorer(config, slot_model, tuple(dynamics))
+      {name: model.params for name, model in dynamics.items()})
+  explorer = Explorer(
+      {name: model.module for name, model in dynamics.items()}, slot_model,
+      burn_in=burn_in, rollout=rollout, num_true=num_true,
+      background_threshold=eval_config.background_threshold)
   out = jax.device_get(explorer(dynamics_params, jax.device_get(slot_params),
                                 slots, videos, segmentation))
   computed = time.perf_counter() - start
-  curves, note = run_curves(workdir, identity)
-  directory = explore_dir(workdir)
+  curves, note = run_curves(metrics_file, identity,
+                            visualize.method_labels(slot_model))
+  directory = output_dir
   os.makedirs(directory, exist_ok=True)
-  data = page_data(config, out, videos, indices, label=slot_model.label,
-                   identity=identity, curves=curves, curves_note=note,
-                   seconds=computed)
+  data = page_data(out, videos, indices, slot_model=slot_model, title=title,
+                   burn_in=burn_in, rollout=rollout, split=split,
+                   explore_config=explore_config, identity=identity,
+                   curves=curves, curves_note=note, seconds=computed)
   path = write_page(directory, data)
   write_json_atomic(os.path.join(directory, 'identity.json'),
                     {'identity': identity, 'videos': indices,

@@ -77,7 +77,7 @@ let tiles = [];  // [canvas, image]
 const images = new Map();
 // One colour per method in every chart (dashed: the slot model's own reconstruction).
 const METHOD_COLOURS = {'SlotFormer': '#1f77b4', 'Slot-LSTM': '#2ca02c', 'copy-last': '#ff7f0e',
-                        'SAVi recon.': '#777777', 'STEVE recon.': '#777777'};
+                        [D.reference.label]: D.reference.colour};
 const SPARE_COLOURS = ['#9467bd', '#8c564b', '#e377c2', '#17becf'];
 function colour(name, j) { return METHOD_COLOURS[name] || SPARE_COLOURS[j % SPARE_COLOURS.length]; }
 const KIND_TEXT = {remove: 'removed', freeze: 'frozen'};

@@ -28,7 +28,6 @@ from typing import Any
 import einops
 import imageio.v2 as imageio
 import jax
-from jax.sharding import Mesh
 import jax.numpy as jnp
 import ml_collections
 import numpy as np
@@ -36,13 +35,14 @@ from PIL import Image
 from PIL import ImageDraw
 
 from slotformer_jax import inference
-from slotformer_jax import models
-from slotformer_jax import workdir as workdir_lib
+from slotformer_jax.config.sections import SLOTFORMER
 from slotformer_jax.evaluation import evaluate
 from slotformer_jax.files import read_json
-from slotformer_jax.frames import labelled_rows
 from slotformer_jax.files import write_atomic
 from slotformer_jax.files import write_json_atomic
+from slotformer_jax.frames import labelled_rows
+from slotformer_jax.frames import mask_overlay
+from slotformer_jax.frames import to_uint8
 from slotformer_jax.modules.slotformer import SlotFormer
 
 logger = logging.getLogger(__name__)
@@ -51,12 +51,6 @@ _BORDER = 2
 _ROLLOUT_COLOUR = (220, 40, 40)
 _BURN_IN_COLOUR = (60, 160, 60)
 
-
-render_dir = workdir_lib.render_dir
-
-
-def _to_uint8(frames: np.ndarray) -> np.ndarray:
-  return (np.clip(frames, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
 
 
 def _tile(image: np.ndarray, colour: tuple[int, int, int], scale: int
@@ -88,26 +82,18 @@ def compose_frame(columns: list[np.ndarray], labels: list[str], *,
 
 
 _METHOD_LABELS = {'slotformer': 'SlotFormer', 'copy_last': 'copy-last',
-                  'slot_lstm': 'Slot-LSTM',
-                  'savi_reconstruction': 'SAVi recon.',
-                  'steve_reconstruction': 'STEVE recon.'}
-
-# Slot colours of the segmentation overlays (slot k: _PALETTE[k % 10]).
-_PALETTE = np.array([[230, 25, 75], [60, 180, 75], [255, 225, 25],
-                     [0, 130, 200], [245, 130, 48], [145, 30, 180],
-                     [70, 240, 240], [240, 50, 230], [210, 245, 60],
-                     [250, 190, 212]], np.float32) / 255.0
+                  'slot_lstm': 'Slot-LSTM'}
 
 
-def mask_overlay(frames: np.ndarray, alpha_masks: np.ndarray) -> np.ndarray:
-  """frames [..., H, W, 3] in [0, 1], alpha_masks [..., N, H, W] -> the
-  frames half-tinted by each pixel's argmax slot colour."""
-  ids = np.argmax(alpha_masks, axis=-3)
-  return 0.5 * frames + 0.5 * _PALETTE[ids % len(_PALETTE)]
+def method_labels(slot_model: Any) -> dict[str, str]:
+  """How pictures name each method, the slot model's reference included
+  ('savi_reconstruction': 'SAVi recon.')."""
+  return {**_METHOD_LABELS,
+          slot_model.reference_method: slot_model.reference_label}
 
 
-def make_renderer(config: ml_collections.ConfigDict,
-                  dynamics_names: tuple[str, ...], slot_model: Any):
+def make_renderer(dynamics_modules: dict[str, Any], slot_model: Any, *,
+                  burn_in: int, rollout: int):
   """Jitted (dynamics_params, slot_params, slots [B, T, N, D], video uint8
   [B, T, H, W, 3]) -> pictures.
 
@@ -118,10 +104,7 @@ def make_renderer(config: ml_collections.ConfigDict,
   frames) and, for decoders with per-slot reconstructions, 'slot_views'
   [B, T, N, H, W, 3] (SlotFormer's slots on white).
   """
-  dynamics = {name: models.build_dynamics(config, name)
-              for name in dynamics_names}
-  burn_in = config.slotformer.burn_in
-  rollout = config.evaluation.rollout_steps
+  dynamics = dict(dynamics_modules)
 
   @jax.jit
   def render(dynamics_params, slot_params, slots, video):
@@ -136,7 +119,7 @@ def make_renderer(config: ml_collections.ConfigDict,
           lambda frame: slot_model.decode(slot_params, frame),
           time_major(whole)))
       out[name] = decoded.recon
-      if name == models.SLOTFORMER:
+      if name == SLOTFORMER:
         out['slotformer_masks'] = decoded.alpha_masks[..., 0]
         if decoded.rgb is not None:
           # Each slot's content where it is visible: rgb * alpha (+ white).
@@ -182,14 +165,13 @@ def attention_maps(attention: jax.Array, slot_rgb: jax.Array,
   return jnp.einsum('bitj,btjhwc->bithwc', attention, views)
 
 
-def make_attention_renderer(config: ml_collections.ConfigDict,
-                            slot_model: Any):
+def make_attention_renderer(model: SlotFormer, slot_model: Any):
   """Jitted (params, slot_params, history [B, T, N, D]) -> arrays of the
   attention figure: 'maps' [B, N, T, H, W, 3], 'frames_recon' [B, T, H, W,
   3], 'predicted_views' [B, N, H, W, 3] (each predicted slot's
   reconstruction on black) and 'predicted_recon' [B, H, W, 3]; None for a
-  slot model whose decoder has no per-slot reconstructions."""
-  model = models.build_slotformer(config)
+  slot model whose decoder has no per-slot reconstructions. `model`:
+  SlotFormer."""
 
   @jax.jit
   def render(params, slot_params, history):
@@ -210,33 +192,40 @@ def make_attention_renderer(config: ml_collections.ConfigDict,
   return render
 
 
-def render(config: ml_collections.ConfigDict, workdir: str, mesh: Mesh, *,
-           slot_model: Any, slot_params: Any,
-           dynamics: dict[str, tuple[Any, int]],
-           identity: dict[str, Any]) -> list[str]:
+def render(render_config: ml_collections.ConfigDict,
+           eval_config: ml_collections.ConfigDict,
+           dynamics_config: ml_collections.ConfigDict, *,
+           slot_model: Any, slot_params: Any, dynamics: dict[str, Any],
+           identity: dict[str, Any], source: Any, metrics_file: str,
+           output_dir: str) -> list[str]:
   """Writes GIFs, PNG strips, attention maps and the per-step curves of a few
-  held-out rollouts; returns the paths. Rendered on one device of the lead
-  host.
+  held-out rollouts to `output_dir`; returns the paths. Rendered on one
+  device of the lead host.
 
   Args:
+    render_config: the `render` section; eval_config: the `evaluation`
+      section (its rollout length); dynamics_config: SlotFormer's (burn-in,
+      frame stride).
     slot_model, slot_params: the trained slot model (as for
       `evaluate.evaluate`).
-    dynamics: {name: (params, step)} of every dynamics model shown.
-    identity: what all of them are made from (`workdir.evaluation_identity`).
+    dynamics: {name: `dynamics.Loaded`} of every dynamics model shown.
+    identity: what all of them are made from, recorded with the pictures.
+    source: the evaluation split's slots with their 'video'.
+    metrics_file: the evaluation's metrics.json (the per-step curves).
   """
-  del mesh  # one device of the lead host
   if jax.process_index() != 0:
     return []
-  render_config = config.render
+  if not slot_model.decodes_pixels:
+    logger.info('render skipped: %s decodes no pixels', slot_model.label)
+    return []
   dynamics_names = tuple(dynamics)
   dynamics_params = jax.device_get(
-      {name: params for name, (params, _) in dynamics.items()})
+      {name: model.params for name, model in dynamics.items()})
   slot_params = jax.device_get(slot_params)
-  burn_in = config.slotformer.burn_in
-  rollout = config.evaluation.rollout_steps
-  stride = config.slotformer.frame_stride
-  source = workdir_lib.slot_source_for(config, workdir,
-                                       config.evaluation.split, ('video',))
+  burn_in = dynamics_config.burn_in
+  rollout = eval_config.rollout_steps
+  stride = dynamics_config.frame_stride
+  labels = method_labels(slot_model)
   count = min(render_config.num_videos, len(source))
   frames_needed = (burn_in + rollout - 1) * stride + 1
   items = [source[i] for i in range(count)]
@@ -246,12 +235,15 @@ def render(config: ml_collections.ConfigDict, workdir: str, mesh: Mesh, *,
     raise ValueError(
         f'rendering needs {frames_needed} frames per video, the videos have '
         f'{len(items[0]["slots"])}; lower evaluation.rollout_steps')
-  out = jax.device_get(make_renderer(config, dynamics_names, slot_model)(
-      dynamics_params, slot_params, slots, videos))
-  attention = jax.device_get(make_attention_renderer(config, slot_model)(
-      dynamics_params[models.SLOTFORMER], slot_params, slots[:, :burn_in]))
+  out = jax.device_get(make_renderer(
+      {name: model.module for name, model in dynamics.items()}, slot_model,
+      burn_in=burn_in, rollout=rollout)(
+          dynamics_params, slot_params, slots, videos))
+  attention = jax.device_get(make_attention_renderer(
+      dynamics[SLOTFORMER].module, slot_model)(
+          dynamics_params[SLOTFORMER], slot_params, slots[:, :burn_in]))
 
-  directory = render_dir(workdir)
+  directory = output_dir
   os.makedirs(directory, exist_ok=True)
   written = []
   methods = [*dynamics_names, 'copy_last']
@@ -261,13 +253,13 @@ def render(config: ml_collections.ConfigDict, workdir: str, mesh: Mesh, *,
     rows = {'truth': truth,
             f'{label} masks': mask_overlay(truth, out['observed_masks'][v])}
     for method in methods:
-      rows[_METHOD_LABELS[method]] = out[method][v]
-    rows['SlotFormer masks'] = mask_overlay(out[models.SLOTFORMER][v],
+      rows[labels[method]] = out[method][v]
+    rows['SlotFormer masks'] = mask_overlay(out[SLOTFORMER][v],
                                             out['slotformer_masks'][v])
     if 'slot_views' in out:
       for n in range(out['slot_views'].shape[2]):
         rows[f'slot {n}'] = out['slot_views'][v, :, n]
-    rows = {name: _to_uint8(np.asarray(frames))
+    rows = {name: to_uint8(np.asarray(frames))
             for name, frames in rows.items()}
     gif_frames = []
     for t in range(burn_in + rollout):
@@ -291,7 +283,8 @@ def render(config: ml_collections.ConfigDict, workdir: str, mesh: Mesh, *,
                               jax.tree.map(lambda x: x[v], attention),
                               render_config.scale)
       written.append(attention_path)
-  curves = write_per_step_figure(workdir, identity)
+  curves = write_per_step_figure(metrics_file, directory, labels,
+                                 slot_model.reference_method, identity)
   if curves:
     written.append(curves)
   write_json_atomic(os.path.join(directory, 'identity.json'),
@@ -332,14 +325,14 @@ def _write_attention_figure(path: str, frames: np.ndarray,
   num_slots, num_frames = maps.shape[:2]
   white = (255, 255, 255)
   top = [_tile(frames[t], _BURN_IN_COLOUR, scale) for t in range(num_frames)]
-  top.append(_tile(_to_uint8(attention['predicted_recon']), _ROLLOUT_COLOUR,
+  top.append(_tile(to_uint8(attention['predicted_recon']), _ROLLOUT_COLOUR,
                    scale))
   rows = [np.concatenate(top, axis=1)]
   for i in range(num_slots):
     row_maps = maps[i] / max(float(maps[i].max()), 1e-8)
-    tiles = [_tile(_to_uint8(row_maps[t]), white, scale)
+    tiles = [_tile(to_uint8(row_maps[t]), white, scale)
              for t in range(num_frames)]
-    tiles.append(_tile(_to_uint8(attention['predicted_views'][i]),
+    tiles.append(_tile(to_uint8(attention['predicted_views'][i]),
                        _ROLLOUT_COLOUR, scale))
     rows.append(np.concatenate(tiles, axis=1))
   _write_png(path, np.concatenate(rows, axis=0))
@@ -352,14 +345,15 @@ def _write_png(path: str, image: np.ndarray) -> None:
   write_atomic(path, buffer.getvalue())
 
 
-def write_per_step_figure(workdir: str,
+def write_per_step_figure(metrics_path: str, directory: str,
+                          labels: dict[str, str], reference_method: str,
                           identity: dict[str, Any] | None = None
                           ) -> str | None:
-  """`render/per_step.png` from `eval/metrics.json`: one panel per metric,
-  value against rollout step, methods overlaid. None (and a log line) when
-  the evaluation has not been run, or (given `identity`, what the other
+  """`<directory>/per_step.png` from the evaluation's `metrics_path`: one
+  panel per metric, value against rollout step, methods overlaid (named by
+  `labels`, the reference method dashed). None (and a log line) when the
+  evaluation has not been run, or (given `identity`, what the other
   pictures were made from) was made from other models."""
-  metrics_path = os.path.join(evaluate.eval_dir(workdir), 'metrics.json')
   if not os.path.exists(metrics_path):
     logger.warning('no %s: run --mode=evaluate first for the per-step '
                    'figure', metrics_path)
@@ -391,15 +385,15 @@ def write_per_step_figure(workdir: str,
       values = [np.nan if v is None else v
                 for v in per_metric[name]['per_step']]
       axis.plot(np.arange(1, len(values) + 1), values,
-                label=_METHOD_LABELS.get(method, method),
-                linestyle='--' if method == 'savi_reconstruction' else '-')
+                label=labels.get(method, method),
+                linestyle='--' if method == reference_method else '-')
     axis.set_title(name.upper().replace('_', '-'))
     axis.set_xlabel('rollout step')
     axis.grid(alpha=0.3)
   axes[0][0].legend(fontsize=7)
   figure.tight_layout()
-  path = os.path.join(render_dir(workdir), 'per_step.png')
-  os.makedirs(render_dir(workdir), exist_ok=True)
+  path = os.path.join(directory, 'per_step.png')
+  os.makedirs(directory, exist_ok=True)
   buffer = io.BytesIO()
   figure.savefig(buffer, dpi=120, format='png')
   write_atomic(path, buffer.getvalue())

@@ -38,7 +38,6 @@ import jax.numpy as jnp
 import ml_collections
 import numpy as np
 
-from slotformer_jax import models
 from slotformer_jax.data import vqa_questions
 from slotformer_jax.data import vqa as vqa_data
 from slotformer_jax.errors import ConfigError
@@ -51,6 +50,7 @@ from slotformer_jax.official.common import Converted
 from slotformer_jax.official.common import assemble
 from slotformer_jax.official.common import require
 from slotformer_jax.official.layers import StateDictMapper
+from slotformer_jax.tasks import vqa as vqa_task
 
 # The pipeline stage a converted Aloe belongs to (vqa/<inputs>_s<seed>/).
 ALOE_STAGE = 'vqa'
@@ -98,7 +98,7 @@ def model_fields(config: ml_collections.ConfigDict,
       'num_frames', 'max_question_len', 'max_choice_len', 'word_dim',
       'd_model', 'num_layers', 'num_heads', 'mlp_size', 'head_size',
       'positions')}
-  fields.update(layer_norm_epsilon=vqa.get('layer_norm_epsilon', 1e-6),
+  fields.update(layer_norm_epsilon=vqa.layer_norm_epsilon,
                 vocab_size=len(vocab.questions),
                 num_answers=len(vocab.answers),
                 num_slots=config.savi.num_slots,
@@ -108,10 +108,10 @@ def model_fields(config: ml_collections.ConfigDict,
 
 def aloe_abstract_params(config: ml_collections.ConfigDict,
                          vocab: vqa_data.Vocabulary) -> Any:
-  """Shapes of the Aloe the VQA stage builds (vqa_stages._model_and_init)."""
+  """Shapes of the Aloe the VQA stage builds (stages.vqa.model_and_init)."""
   vqa = config.vqa
-  model = models.build_aloe(config, len(vocab.questions), len(vocab.answers),
-                            num_slots=config.savi.num_slots)
+  model = vqa_task.build_aloe(vqa, len(vocab.questions), len(vocab.answers),
+                              num_slots=config.savi.num_slots)
   length = vqa.max_question_len + vqa.max_choice_len
   slots = jnp.zeros((1, vqa.num_frames, config.savi.num_slots,
                      config.savi.slot_size))

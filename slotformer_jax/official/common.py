@@ -22,14 +22,14 @@ import jax.numpy as jnp
 import ml_collections
 import numpy as np
 
-from slotformer_jax import models
+from slotformer_jax.config.sections import SLOTFORMER
 from slotformer_jax.modules import slotformer as slotformer_module
 from slotformer_jax.official import layers
 from slotformer_jax.official.layers import StateDictMapper
 
 # The pipeline stage (workdir folder) each converted model belongs to.
 SAVI_STAGE = 'savi'
-SLOTFORMER_STAGE = models.SLOTFORMER
+SLOTFORMER_STAGE = SLOTFORMER
 DVAE_STAGE = 'dvae'
 STEVE_STAGE = 'steve'
 
@@ -305,7 +305,7 @@ def map_rollouter(m: StateDictMapper,
     history_len, dim = encoding.shape[1:]
     # The encoding covers the longest context: history_len frames, or
     # cond_len for the growing context of the PHYRE model.
-    context = max(dynamics.burn_in, dynamics.get('max_context', 0))
+    context = max(dynamics.burn_in, dynamics.max_context)
     if history_len != context:
       raise ConversionError(
           f'rollouter.enc_t_pe covers {history_len} frames, the config\'s '

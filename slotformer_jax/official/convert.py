@@ -52,8 +52,7 @@ import ml_collections
 from ml_collections import config_flags
 import numpy as np
 
-from slotformer_jax import models
-from slotformer_jax import workdir as workdir_lib
+from slotformer_jax import dynamics
 from slotformer_jax.config import checks as config_checks
 from slotformer_jax.errors import UserError
 from slotformer_jax.files import write_json_atomic
@@ -62,12 +61,14 @@ from slotformer_jax.official import common
 from slotformer_jax.official import families
 from slotformer_jax.official import readouts as official_readouts
 from slotformer_jax.official import pth_reader
-from slotformer_jax.slot_models import savi as savi_slots
-from slotformer_jax.slot_models import steve as steve_slots
-from slotformer_jax.stages import vqa as vqa_stages
+from slotformer_jax.run import Run
+from slotformer_jax.slot_models import chain
 from slotformer_jax.train import optim
 from slotformer_jax.train.state import TrainState
 from slotformer_jax.train.trainer import checkpointer_for
+from slotformer_jax.workdir import identity as identity_lib
+from slotformer_jax.workdir.lock import workdir_lock
+from slotformer_jax.workdir.settings import accept_config
 
 # Not __name__: that is '__main__' under python -m.
 logger = logging.getLogger('slotformer_jax.official.convert')
@@ -89,7 +90,7 @@ DEFAULT_READOUT_THRESHOLD = official_readouts.DEFAULT_THRESHOLD
 def check_channel_order(config: ml_collections.ConfigDict) -> None:
   """The official CLEVRER models saw BGR frames: refuse RGB; the other
   official models (OBJ3D, PHYRE, Physion) saw RGB: refuse BGR."""
-  channel_order = config.data.get('channel_order', 'rgb')
+  channel_order = config.data.channel_order
   if config.data.name in common.BGR_DATASETS and channel_order != 'bgr':
     raise common.ConversionError(
         f'the official {config.data.name} models were trained on BGR frames '
@@ -103,33 +104,37 @@ def check_channel_order(config: ml_collections.ConfigDict) -> None:
         '--config.data.channel_order (or set it to rgb)')
 
 
-def _stage_target(config: ml_collections.ConfigDict, workdir: str,
-                  stage: str) -> tuple[str, dict[str, Any],
-                                       ml_collections.ConfigDict]:
+def _part(run: Run, stage: str):
+  """The slot model's part `stage`, or a ConversionError naming the config
+  that has it."""
+  try:
+    return run.slot_model.part(stage)
+  except KeyError:
+    raise common.ConversionError(
+        f'an official {stage} checkpoint belongs to a slot model with a '
+        f'{stage!r} part; this config trains {run.slot_model.label} '
+        f'(slot_model={run.slot_model.name!r})') from None
+
+
+def _stage_target(run: Run, stage: str) -> tuple[str, dict[str, Any],
+                                                 ml_collections.ConfigDict]:
   """(directory, model-config fields, stage config) of `stage`."""
-  root = workdir_lib.stage1_workdir(config, workdir)
-  if stage == common.DVAE_STAGE:
-    return (steve_slots.dvae_dir(root),
-            steve_slots.dvae_model_fields(config), config.dvae)
-  if stage == common.STEVE_STAGE:
-    return (steve_slots.steve_dir(root),
-            steve_slots.steve_model_fields(config), config.steve)
-  if stage == common.SAVI_STAGE:
-    return (savi_slots.savi_dir(root), savi_slots.model_fields(config),
-            config.savi)
+  config = run.config
+  if stage in (common.DVAE_STAGE, common.STEVE_STAGE, common.SAVI_STAGE):
+    part = _part(run, stage)
+    return run.paths.model(stage), dict(part.model_fields), part.section
   if stage == official_aloe.ALOE_STAGE:  # vqa/<inputs>_s<seed>/
-    return (vqa_stages.variant_dir(config, workdir),
+    return (run.paths.aloe(config.vqa.inputs, config.vqa.seed),
             official_aloe.model_fields(config,
                                        official_aloe.vocabulary(config)),
             config.vqa)
-  return (workdir_lib.dynamics_dir(workdir, stage),
-          workdir_lib.dynamics_model_fields(config, stage),
-          models.dynamics_config(config, stage))
+  section = run.dynamics_section(stage)
+  return (run.paths.dynamics(stage), dynamics.model_fields(section, stage),
+          section)
 
 
-def write_converted(config: ml_collections.ConfigDict, workdir: str,
-                    stage: str, params: Any, provenance: dict[str, Any]
-                    ) -> str:
+def write_converted(run: Run, stage: str, params: Any,
+                    provenance: dict[str, Any]) -> str:
   """Writes `params` as stage `stage`'s checkpoint; returns its directory.
 
   The one place that writes into a workdir: a TrainState at step
@@ -140,17 +145,16 @@ def write_converted(config: ml_collections.ConfigDict, workdir: str,
   Raises:
     FileExistsError: the stage already has a checkpoint (never overwritten).
   """
-  directory, fields, stage_config = _stage_target(config, workdir, stage)
+  directory, fields, stage_config = _stage_target(run, stage)
   checkpointer = checkpointer_for(directory)
   try:
     if checkpointer.latest_step() is not None:
       raise FileExistsError(
           f'{directory} already holds a {stage} checkpoint (step '
           f'{checkpointer.latest_step()}); convert into a fresh --workdir')
-    workdir_lib.check_model_config(directory, fields, stage)
-    workdir_lib.write_model_config(directory, fields)
-    identity = _identity(config, workdir, stage)
-    workdir_lib.write_identity(directory, identity)
+    identity_lib.check_model_config(directory, fields, stage)
+    identity_lib.write_model_config(directory, fields)
+    identity_lib.write_identity(directory, _identity(run, stage))
     optimizer, _ = optim.make_optimizer(stage_config)
     params = jax.tree.map(jnp.asarray, params)
     step = int(stage_config.num_train_steps)
@@ -166,39 +170,35 @@ def write_converted(config: ml_collections.ConfigDict, workdir: str,
   return directory
 
 
-def _identity(config: ml_collections.ConfigDict, workdir: str,
-              stage: str) -> dict[str, Any]:
+def _identity(run: Run, stage: str) -> dict[str, Any]:
   """The run identity the pipeline checks, as training would stamp it: a
   converted SAVi or dVAE is a new run without parent; STEVE descends from
   the workdir's dVAE at its last step, a SlotFormer from the workdir's SAVi
   or STEVE at its last step (the slots extracted later name the same
   parent)."""
-  if stage == common.DVAE_STAGE:
-    return workdir_lib.new_identity(steve_slots.dvae_identity_fields(config))
-  if stage == common.STEVE_STAGE:
-    return workdir_lib.new_identity(
-        steve_slots.steve_identity_fields(config),
-        steve_slots.dvae_parent(steve_slots.dvae_identity(config, workdir),
-                                int(config.dvae.num_train_steps)))
-  if stage == common.SAVI_STAGE:
-    return workdir_lib.new_identity(savi_slots.identity_fields(config))
+  config = run.config
+  if stage in (common.DVAE_STAGE, common.STEVE_STAGE, common.SAVI_STAGE):
+    part = _part(run, stage)
+    parent = None
+    if part.parent is not None:
+      parent_part = run.slot_model.part(part.parent)
+      parent = identity_lib.parent_of(
+          chain.part_identity(parent_part, run.paths),
+          int(parent_part.section.num_train_steps), parent_part.name)
+    return identity_lib.new_identity(dict(part.identity_fields), parent)
   if stage == official_aloe.ALOE_STAGE:
-    return workdir_lib.new_identity(
-        _section_fields(config, 'vqa'), _slots_parent_if_any(config, workdir))
+    return identity_lib.new_identity(
+        _section_fields(config, 'vqa'), _slots_parent_if_any(run))
   if stage in official_readouts.READOUT_STAGES:
-    return workdir_lib.new_identity(
-        _section_fields(config, 'readout'),
-        _slots_parent_if_any(config, workdir))
-  if config.slot_model == steve_slots.NAME:
-    parent = workdir_lib.slots_parent(
-        steve_slots.steve_identity(config, workdir),
-        int(config.steve.num_train_steps), steve_slots.NAME)
-  else:
-    parent = workdir_lib.slots_parent(
-        savi_slots.Savi(config).check_identity(workdir),
-        int(config.savi.num_train_steps), savi_slots.NAME)
-  return workdir_lib.new_identity(
-      workdir_lib.dynamics_identity_fields(config, stage), parent)
+    return identity_lib.new_identity(
+        _section_fields(config, 'readout'), _slots_parent_if_any(run))
+  last = run.slot_model.parts[-1]
+  parent = identity_lib.parent_of(
+      chain.part_identity(last, run.paths),
+      int(last.section.num_train_steps), last.name)
+  return identity_lib.new_identity(
+      dynamics.identity_fields(config.seed, run.dynamics_section(stage),
+                               stage), parent)
 
 
 def _section_fields(config: ml_collections.ConfigDict,
@@ -207,25 +207,19 @@ def _section_fields(config: ml_collections.ConfigDict,
                                 section: config[section].to_dict()}))
 
 
-def _slots_parent_if_any(config: ml_collections.ConfigDict,
-                         workdir: str) -> dict[str, Any] | None:
+def _slots_parent_if_any(run: Run) -> dict[str, Any] | None:
   """What a converted Aloe or readout reads the slots of: the workdir's
   SlotFormer (its rollouts) at its last step, else its stage-1 model, else
   None (the workdir holds neither yet; the official model was trained on
   the authors' slots)."""
-  stage1 = workdir_lib.stage1_workdir(config, workdir)
-  if config.get('slot_model', 'savi') == steve_slots.NAME:
-    slot_model = (steve_slots.steve_dir(stage1), steve_slots.NAME,
-                  config.steve.num_train_steps)
-  else:
-    slot_model = (savi_slots.savi_dir(stage1), savi_slots.NAME,
-                  config.savi.num_train_steps)
+  last = run.slot_model.parts[-1]
   for directory, name, step in (
-      (workdir_lib.dynamics_dir(workdir), common.SLOTFORMER_STAGE,
-       config.slotformer.num_train_steps), slot_model):
-    identity = workdir_lib.read_identity(directory)
+      (run.paths.dynamics(common.SLOTFORMER_STAGE), common.SLOTFORMER_STAGE,
+       run.config.slotformer.num_train_steps),
+      (run.paths.model(last.name), last.name, last.section.num_train_steps)):
+    identity = identity_lib.read_identity(directory)
     if identity is not None:
-      return workdir_lib.slots_parent(identity, int(step), name)
+      return identity_lib.parent_of(identity, int(step), name)
   return None
 
 
@@ -237,14 +231,12 @@ def _sha256(path: str) -> str:
   return digest.hexdigest()
 
 
-def check_frozen_decoder(config: ml_collections.ConfigDict, workdir: str,
-                         decoder: Any) -> None:
+def check_frozen_decoder(run: Run, decoder: Any) -> None:
   """SlotFormer's frozen decoder copy must be the workdir's SAVi decoder."""
-  directory = savi_slots.savi_dir(
-      workdir_lib.stage1_workdir(config, workdir))
-  mesh = jax.sharding.Mesh(np.array(jax.devices()[:1]), ('data',))
+  directory = run.paths.model(common.SAVI_STAGE)
   try:
-    savi_params = savi_slots.Savi(config).load(workdir, mesh).params
+    savi_params, _ = chain.load_part(_part(run, common.SAVI_STAGE),
+                                     run.paths, run.mesh)
   except FileNotFoundError as error:
     raise common.ConversionError(
         f'no SAVi checkpoint in {directory}: convert the SAVi checkpoint the '
@@ -262,39 +254,38 @@ def check_frozen_decoder(config: ml_collections.ConfigDict, workdir: str,
         'on another SAVi checkpoint')
 
 
-# extras key -> (what it is a copy of, the checkpoint to convert first, how
-# to read the workdir's own from (config, workdir, mesh)).
+# extras key -> (what it is a copy of, the checkpoint to convert first, the
+# part holding it, its sub-tree there or None).
 _FROZEN_COPIES = {
-    'dvae': ('dVAE', 'dvae_physion_params/model_20.pth',
-             lambda config, workdir, mesh: steve_slots.Steve(
-                 config).load_dvae(workdir, mesh)[0]),
+    'dvae': ('dVAE', 'dvae_physion_params/model_20.pth', common.DVAE_STAGE,
+             None),
     'steve_decoder': ("STEVE's token decoder",
                       'steve_physion_params/model_10.pth',
-                      lambda config, workdir, mesh: steve_slots.Steve(
-                          config).load_steve(workdir, mesh)[0]['decoder']),
+                      common.STEVE_STAGE, 'decoder'),
 }
 
 
-def check_frozen_copy(config: ml_collections.ConfigDict, workdir: str,
-                      key: str, copy: Any, family: str) -> None:
+def check_frozen_copy(run: Run, key: str, copy: Any, family: str) -> None:
   """A frozen module copy inside a STEVE / STEVESlotFormer checkpoint must
   equal, bit for bit, the one the workdir already holds (the same official
   run), since the pipeline uses the workdir's."""
-  what, source, load = _FROZEN_COPIES[key]
-  mesh = jax.sharding.Mesh(np.array(jax.devices()[:1]), ('data',))
+  what, source, stage, subtree = _FROZEN_COPIES[key]
   try:
-    held = load(config, workdir, mesh)
+    held, _ = chain.load_part(_part(run, stage), run.paths, run.mesh)
   except FileNotFoundError as error:
     raise common.ConversionError(
         f'the official {family} checkpoint carries a frozen copy of the '
-        f'{what}, but {workdir} has no {what} checkpoint yet: convert '
+        f'{what}, but {run.paths.root} has no {what} checkpoint yet: convert '
         f'{source} first (or in the same command)') from error
+  if subtree is not None:
+    held = held[subtree]
   worst = common.max_difference(held, copy)
   if worst > 0:
     raise common.ConversionError(
         f'the official {family} checkpoint\'s frozen copy of the {what} '
-        f'differs from the {what} in {workdir} (max |diff| {worst:.3g}): it '
-        f'was trained with another {what} checkpoint than {source}')
+        f'differs from the {what} in {run.paths.root} (max |diff| '
+        f'{worst:.3g}): it was trained with another {what} checkpoint than '
+        f'{source}')
 
 
 # extras key -> (the stage holding the original, its part of the params).
@@ -343,22 +334,22 @@ def convert_files(config: ml_collections.ConfigDict, workdir: str,
     converted.append((path, result))
   converted.sort(key=lambda item: _ORDER.index(item[1].stage))
   _check_copies_within(converted)
-  with workdir_lib.workdir_lock(workdir):
+  run = Run.create(config, workdir, mesh=jax.sharding.Mesh(
+      np.array(jax.devices()[:1]), ('data',)))
+  with workdir_lock(run.paths):
     # Later pipeline commands on this workdir must use the same settings.
-    workdir_lib.accept_config(config, workdir)
-    return [_write(config, workdir, path, result, readout_threshold)
+    accept_config(config.to_dict(), run.paths)
+    return [_write(run, path, result, readout_threshold)
             for path, result in converted]
 
 
-def _write(config: ml_collections.ConfigDict, workdir: str, path: str,
-           result: Any,
+def _write(run: Run, path: str, result: Any,
            readout_threshold: float = DEFAULT_READOUT_THRESHOLD) -> str:
   if 'decoder' in result.extras:
-    check_frozen_decoder(config, workdir, result.extras['decoder'])
+    check_frozen_decoder(run, result.extras['decoder'])
   for key in ('dvae', 'steve_decoder'):
     if key in result.extras:
-      check_frozen_copy(config, workdir, key, result.extras[key],
-                        result.family)
+      check_frozen_copy(run, key, result.extras[key], result.family)
   provenance = {
       'file': os.path.abspath(path), 'sha256': _sha256(path),
       'family': result.family,
@@ -367,11 +358,10 @@ def _write(config: ml_collections.ConfigDict, workdir: str, path: str,
   }
   if result.stage in official_readouts.READOUT_STAGES:
     directory = official_readouts.write_readout(
-        config, workdir, result.stage, result.params, provenance,
-        _identity(config, workdir, result.stage), readout_threshold)
+        run.config, run.paths, result.stage, result.params, provenance,
+        _identity(run, result.stage), readout_threshold)
   else:
-    directory = write_converted(config, workdir, result.stage, result.params,
-                                provenance)
+    directory = write_converted(run, result.stage, result.params, provenance)
   logger.info('wrote %s', directory)
   return directory
 

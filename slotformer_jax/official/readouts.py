@@ -42,7 +42,8 @@ import ml_collections
 import numpy as np
 
 from slotformer_jax import slot_models
-from slotformer_jax import workdir as workdir_lib
+from slotformer_jax.workdir import identity as identity_lib
+from slotformer_jax.workdir.paths import Paths
 from slotformer_jax.files import write_atomic
 from slotformer_jax.files import write_json_atomic
 from slotformer_jax.modules import readouts as readout_modules
@@ -86,7 +87,7 @@ def is_phyre_readout(keys: set[str]) -> bool:
 
 def _require_task(config: ml_collections.ConfigDict, stage: str) -> None:
   what, task, config_file = _TASKS[stage]
-  if config.get('task') != task or 'readout' not in config:
+  if config.task != task or 'readout' not in config:
     raise ConversionError(
         f'an official {what} readout needs a config of the {task!r} task: '
         f'use --config={config_file}')
@@ -151,7 +152,7 @@ def convert_physion_readout(state_dict: dict[str, np.ndarray],
            f'config.{section}.slot_size')
   layers.linear(m, 'linear1', 'relation', field)
   layers.linear(m, 'linear2', 'logit', field)
-  params = assemble(m, _abstract(contact.build_readout(config, slot_size),
+  params = assemble(m, _abstract(contact.build_readout(config.readout, slot_size),
                                  (1, 1, num_slots, slot_size)), hints={})
   return Converted('physion_readout', PHYSION_READOUT_STAGE, params)
 
@@ -198,7 +199,7 @@ def convert_phyre_readout(state_dict: dict[str, np.ndarray],
       raise ConversionError(
           "enc_t_pe is not the sinusoidal encoding (t_pe='learnable'?); "
           "only t_pe='sin' is implemented here")
-  model = phyre_planning.build_classifier(config, condition)
+  model = phyre_planning.build_classifier(config.readout, condition)
   params = assemble(m, _abstract(model, (
       1, max(model.selected_steps) + 1, config.savi.num_slots,
       config.savi.slot_size)), hints={
@@ -213,17 +214,16 @@ def convert_phyre_readout(state_dict: dict[str, np.ndarray],
 # --------------------------------------------------------------------------
 
 
-def run_directory(config: ml_collections.ConfigDict, workdir: str,
+def run_directory(config: ml_collections.ConfigDict, paths: Paths,
                   stage: str) -> str:
   """`readout/<condition>/seed_<s>/` (Physion) or
   `planning/<condition>/seed_<s>/` (PHYRE), as train_readout writes them."""
   condition, seed = destination(config)
-  root = (contact.readout_dir(workdir) if stage == PHYSION_READOUT_STAGE
-          else phyre_planning.planning_dir(workdir))
-  return os.path.join(root, condition, f'seed_{seed}')
+  return (paths.readout(condition, seed) if stage == PHYSION_READOUT_STAGE
+          else paths.planner(condition, seed))
 
 
-def write_readout(config: ml_collections.ConfigDict, workdir: str,
+def write_readout(config: ml_collections.ConfigDict, paths: Paths,
                   stage: str, params: Any, provenance: dict[str, Any],
                   identity: dict[str, Any],
                   threshold: float = DEFAULT_THRESHOLD) -> str:
@@ -237,7 +237,7 @@ def write_readout(config: ml_collections.ConfigDict, workdir: str,
   Raises:
     FileExistsError: the folder already holds a readout (never overwritten).
   """
-  directory = run_directory(config, workdir, stage)
+  directory = run_directory(config, paths, stage)
   if any(os.path.exists(os.path.join(directory, name))
          for name in ('params.msgpack', 'selection.json')):
     raise FileExistsError(f'{directory} already holds a readout; convert '
@@ -253,7 +253,7 @@ def write_readout(config: ml_collections.ConfigDict, workdir: str,
     write_atomic(os.path.join(directory, 'params.msgpack'),
                  serialization.msgpack_serialize(
                      jax.tree.map(np.asarray, params)))
-    workdir_lib.write_identity(directory, identity)
+    identity_lib.write_identity(directory, identity)
     write_json_atomic(os.path.join(directory, CONVERTED_FROM_FILE),
                       provenance)
     # Last: train_readout takes a folder with selection.json as trained.

@@ -16,11 +16,13 @@ from slotformer_jax.official import layers
 from slotformer_jax.official.common import Converted
 from slotformer_jax.official.common import Family
 from slotformer_jax.official.layers import StateDictMapper
+from slotformer_jax.slot_models import chain
+from slotformer_jax.slot_models.savi import NAME as SAVI
 from slotformer_jax.slot_models.savi import Savi
 
 
 def abstract_params(config: ml_collections.ConfigDict) -> Any:
-  return Savi(config).param_shapes()
+  return chain.param_shapes(Savi(config).part(SAVI))
 
 
 def _map_savi_predictor(m: StateDictMapper, config: ml_collections.ConfigDict,

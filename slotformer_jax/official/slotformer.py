@@ -11,8 +11,9 @@ import jax.numpy as jnp
 import ml_collections
 import numpy as np
 
-from slotformer_jax import inference
-from slotformer_jax import models
+from slotformer_jax import dynamics
+from slotformer_jax.config.sections import SLOTFORMER
+from slotformer_jax.slot_models.savi import build_decoder
 from slotformer_jax.official import common
 from slotformer_jax.official.common import Converted
 from slotformer_jax.official.common import Family
@@ -20,8 +21,8 @@ from slotformer_jax.official.layers import StateDictMapper
 
 
 def abstract_params(config: ml_collections.ConfigDict) -> Any:
-  return inference.dynamics_param_shapes(
-      config, models.SLOTFORMER,
+  return dynamics.param_shapes(
+      config.slotformer, SLOTFORMER,
       (config.savi.num_slots, config.savi.slot_size))
 
 
@@ -41,7 +42,8 @@ def convert_slotformer(state_dict: dict[str, np.ndarray],
   params = common.assemble(m, abstract_params(config), hints={
       'rollouter.transformer_encoder': 'config.slotformer.num_layers',
   })
-  decoder_model = models.build_decoder(config)
+  decoder_model = build_decoder(config.savi.decoder,
+                                tuple(config.data.resolution))
   decoder_abstract = jax.eval_shape(lambda: decoder_model.init(
       jax.random.key(0), jnp.zeros((1, config.savi.num_slots,
                                     config.savi.slot_size))))['params']

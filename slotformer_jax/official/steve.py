@@ -25,14 +25,17 @@ from typing import Any
 import ml_collections
 import numpy as np
 
-from slotformer_jax import inference
-from slotformer_jax import models
+from slotformer_jax import dynamics
+from slotformer_jax.config.sections import SLOTFORMER
 from slotformer_jax.official import common
 from slotformer_jax.official import layers
 from slotformer_jax.official.common import ConversionError
 from slotformer_jax.official.common import Converted
 from slotformer_jax.official.common import Family
 from slotformer_jax.official.layers import StateDictMapper
+from slotformer_jax.slot_models import chain
+from slotformer_jax.slot_models.steve import DVAE_NAME
+from slotformer_jax.slot_models.steve import NAME as STEVE_NAME
 from slotformer_jax.slot_models.steve import Steve
 
 # dVAE: official `nn.Sequential` index -> this project's layer. Pixel
@@ -88,7 +91,7 @@ def _assemble_dvae(state_dict: dict[str, np.ndarray],
   m = StateDictMapper(state_dict)
   map_dvae(m)
   try:
-    return common.assemble(m, Steve(config).dvae_param_shapes(),
+    return common.assemble(m, chain.param_shapes(Steve(config).part(DVAE_NAME)),
                              hints={'': 'config.dvae'})
   except ConversionError as error:
     raise ConversionError(f'{what}: {error}') from error
@@ -196,7 +199,7 @@ def convert_steve(state_dict: dict[str, np.ndarray],
   _map_steve_predictor(m, config, 'frame_step/predictor')
   map_token_decoder(m, config)
   m.skip_prefix('dvae.')
-  params = common.assemble(m, Steve(config).steve_param_shapes(),
+  params = common.assemble(m, chain.param_shapes(Steve(config).part(STEVE_NAME)),
                              hints={
                                  'predictor.': 'config.steve.predictor',
                                  'trans_decoder.tf_dec.blocks':
@@ -226,8 +229,8 @@ def convert_steve_slotformer(state_dict: dict[str, np.ndarray],
   m.skip_prefix('dvae.')
   m.skip_prefix('decoder.')
   params = common.assemble(
-      m, inference.dynamics_param_shapes(
-          config, models.SLOTFORMER,
+      m, dynamics.param_shapes(
+          config.slotformer, SLOTFORMER,
           (config.steve.num_slots, config.steve.slot_size)),
       hints={'rollouter.transformer_encoder': 'config.slotformer.num_layers'})
   extras = {}
@@ -237,7 +240,7 @@ def convert_steve_slotformer(state_dict: dict[str, np.ndarray],
   if any(key.startswith('decoder.') for key in state_dict):
     decoder = StateDictMapper(_copy(state_dict, 'decoder.', 'trans_decoder.'))
     map_token_decoder(decoder, config)
-    abstract = {'decoder': Steve(config).steve_param_shapes()['decoder']}
+    abstract = {'decoder': chain.param_shapes(Steve(config).part(STEVE_NAME))['decoder']}
     try:
       extras['steve_decoder'] = common.assemble(
           decoder, abstract, hints={})['decoder']

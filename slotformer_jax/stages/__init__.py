@@ -1,29 +1,31 @@
-"""The stage table: which stages a config runs, in which order.
+"""The stage table: which stages a run executes, in which order.
 
-A run is stage 1 (the slot model's own stages, `slot_models/`), slot
+A run is stage 1 (the slot model's own parts, `stages/stage1.py`), slot
 extraction, stage 2 (SlotFormer; the Slot-LSTM baseline when the config
 trains it), then either the video-prediction evaluation and pictures, or a
 downstream task: contact prediction, planning, or VQA. `--mode=all` runs
-them in table order; `--mode=<stage>` runs one. The `--mode` values are the
-union of every table, derived from the registries below.
+them in table order; `--mode=<stage>` runs one.
 
-Every stage function is `(config, workdir, mesh) -> None | results`.
+Every stage function is `(run: Run) -> None | results` (run.py).
 """
 
 from __future__ import annotations
 
-import ml_collections
+from collections.abc import Callable
+from typing import Any
 
-from slotformer_jax import slot_models
 from slotformer_jax.errors import UserError
-from slotformer_jax.slot_models.base import StageFn
+from slotformer_jax.run import Run
 from slotformer_jax.stages import contact
 from slotformer_jax.stages import dynamics
 from slotformer_jax.stages import extract
 from slotformer_jax.stages import planning
 from slotformer_jax.stages import planning_rendered
+from slotformer_jax.stages import stage1
 from slotformer_jax.stages import video_prediction
 from slotformer_jax.stages import vqa
+
+StageFn = Callable[[Run], Any]
 
 STAGE2: dict[str, StageFn] = {
     'extract_slots': extract.extract_slots,
@@ -35,7 +37,7 @@ VIDEO_PREDICTION: dict[str, StageFn] = {
     'render': video_prediction.render,
     'explore': video_prediction.explore,
 }
-# Downstream tasks, by `config.task` ('vqa': a config with a `vqa` section).
+# Downstream tasks, by `config.task`.
 TASKS: dict[str, dict[str, StageFn]] = {
     'contact': {'train_readout': contact.train_readout,
                 'evaluate_readout': contact.evaluate_readout},
@@ -49,35 +51,21 @@ PLANNING_RENDERED: dict[str, StageFn] = {
     'train_readout': planning_rendered.train_readout,
     'plan': planning_rendered.plan,
 }
+# Where each task's stages come from, for messages.
+TASK_CONFIGS = {'contact': 'configs/synthetic_contact.py',
+                'planning': 'configs/synthetic_phyre.py',
+                'vqa': 'configs/synthetic_vqa.py',
+                None: 'configs/synthetic.py'}
 
 
-def _modes() -> tuple[str, ...]:
-  names = []
-  for table in ([m.stage1 for m in slot_models.SLOT_MODELS.values()]
-                + [STAGE2, VIDEO_PREDICTION, *TASKS.values()]):
-    names += [name for name in table if name not in names]
-  return ('all', *names)
-
-
-# Every value `--mode` accepts.
-MODES = _modes()
-
-
-def task_of(config: ml_collections.ConfigDict) -> str | None:
-  """The downstream task of `config` (None: video prediction)."""
-  if 'vqa' in config:
-    return 'vqa'
-  return config.get('task') or None
-
-
-def stage_table(config: ml_collections.ConfigDict) -> dict[str, StageFn]:
-  """The stages `config` can run, in the order `--mode=all` runs them."""
-  table = dict(slot_models.get(config).stage1)
+def stage_table(run: Run) -> dict[str, StageFn]:
+  """The stages `run` can execute, in the order `--mode=all` runs them."""
+  table = dict(stage1.stage_functions(run))
   table.update(STAGE2)
-  task = task_of(config)
+  task = run.task
   if task is None:
     table.update(VIDEO_PREDICTION)
-  elif task == 'planning' and config.data.name == 'phyre':
+  elif task == 'planning' and run.config.data.name == 'phyre':
     table.update(PLANNING_RENDERED)
   elif task in TASKS:
     table.update(TASKS[task])
@@ -87,19 +75,27 @@ def stage_table(config: ml_collections.ConfigDict) -> dict[str, StageFn]:
   return table
 
 
-def selected_stages(config: ml_collections.ConfigDict,
-                    mode: str) -> tuple[str, ...]:
-  """The stages `--mode=<mode>` runs for `config`, in order."""
-  table = stage_table(config)
+def selected_stages(run: Run, mode: str) -> tuple[str, ...]:
+  """The stages `--mode=<mode>` runs for `run`, in order."""
+  table = stage_table(run)
   if mode == 'all':
     # The Slot-LSTM baseline only when the config asks for it.
     return tuple(m for m in table
-                 if m != 'train_slot_lstm' or config.slot_lstm.train)
+                 if m != 'train_slot_lstm' or run.config.slot_lstm.train)
   if mode not in table:
-    raise UserError(
-        f'--mode={mode} does not apply to this config (slot_model='
-        f'{config.slot_model!r}, task={task_of(config)!r}); it runs '
-        f'{", ".join(table)}. Task stages need a task config, e.g. '
-        'configs/synthetic_contact.py, configs/synthetic_phyre.py or '
-        'configs/synthetic_vqa.py.')
+    raise UserError(_not_a_stage(run, mode, table))
   return (mode,)
+
+
+def _not_a_stage(run: Run, mode: str, table: dict[str, StageFn]) -> str:
+  """One line: what `--mode=<mode>` is not, and where it belongs."""
+  line = (f'--mode={mode} does not apply to this config (slot_model='
+          f'{run.config.slot_model!r}, task={run.task!r}); it runs '
+          f'{", ".join(table)}')
+  owners = [task for task, stages in TASKS.items() if mode in stages]
+  if mode in VIDEO_PREDICTION:
+    owners = [None]
+  if owners:
+    line += (f'. --mode={mode} belongs to ' + ' or '.join(
+        TASK_CONFIGS[task] for task in owners))
+  return line + '.'

@@ -10,6 +10,7 @@ parts). Every file is written atomically; a readout seed whose
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import logging
 import os
@@ -17,49 +18,81 @@ from typing import Any
 
 from flax import serialization
 import jax
-from jax.sharding import Mesh
 import jax.numpy as jnp
-import ml_collections
 import numpy as np
 from PIL import Image
 from PIL import ImageDraw
 
 from slotformer_jax import inference
-from slotformer_jax import models
-from slotformer_jax import slot_models
-from slotformer_jax import workdir as workdir_lib
+from slotformer_jax.config.sections import SLOTFORMER
 from slotformer_jax.data.slots import SlotSource
-from slotformer_jax.data.sources import get_video_source
 from slotformer_jax.errors import ConfigError
 from slotformer_jax.errors import MissingInputError
 from slotformer_jax.files import read_json
 from slotformer_jax.files import write_atomic
 from slotformer_jax.files import write_json_atomic
+from slotformer_jax.run import Run
 from slotformer_jax.tasks import contact
 from slotformer_jax.tasks import readout as readout_lib
 
 logger = logging.getLogger(__name__)
 
 
-def load_split(config: ml_collections.ConfigDict, workdir: str, split: str
-               ) -> tuple[np.ndarray, np.ndarray]:
+@dataclasses.dataclass(frozen=True)
+class Readout:
+  """A trained contact readout of a run.
+
+  Attributes:
+    module: the readout (`tasks.contact.build_readout`).
+    params: its parameters at the epoch chosen on validation.
+    threshold: the decision threshold chosen on validation.
+    selection: everything `train_readout` recorded (selection.json).
+  """
+
+  module: Any
+  params: Any
+  threshold: float
+  selection: dict[str, Any]
+
+
+def load_readout(run: Run, condition: str, seed: int) -> Readout:
+  """The readout of `condition` ('observed', 'rollout', ...) and `seed`.
+
+  Raises:
+    MissingInputError: not trained (the message names the stage).
+  """
+  directory = run.paths.readout(condition, seed)
+  selection_path = os.path.join(directory, 'selection.json')
+  if not os.path.exists(selection_path):
+    raise MissingInputError(
+        f'no trained readout in {directory}; run --mode=train_readout')
+  selection = read_json(selection_path, fix=f'Delete {directory} and '
+                        're-run --mode=train_readout.')
+  with open(os.path.join(directory, 'params.msgpack'), 'rb') as f:
+    params = serialization.msgpack_restore(f.read())
+  module = contact.build_readout(run.config.readout,
+                                 run.slot_model.slot_shape[1])
+  return Readout(module=module, params=params,
+                 threshold=selection['threshold'], selection=selection)
+
+
+def load_split(run: Run, split: str) -> tuple[np.ndarray, np.ndarray]:
   """(slots float32 [V, T, N, D], labels float32 [V]) of a readout split.
 
   T is cut to ``readout.video_len`` when set (the official Physion readout
   reads the first 75 frames). Videos whose label is negative (unlabelled)
   are an error.
   """
-  directory = workdir_lib.slots_dir(
-      workdir_lib.stage1_workdir(config, workdir), split)
-  source = SlotSource(directory)  # names --mode=extract_slots when missing
-  video_len = config.readout.get('video_len') or None
+  readout = run.config.readout
+  source = SlotSource(run.paths.slots(split))  # names extract_slots if missing
+  video_len = readout.video_len or None
   slots = np.stack([source[i]['slots'][:video_len]
                     for i in range(len(source))])
-  videos = get_video_source(config.data, split)
-  field = config.readout.label_field
+  videos = run.videos(split)
+  field = readout.label_field
   if field not in videos[0]:
     raise ConfigError(f'readout.label_field={field!r}: the {split} videos '
-                      f'of {config.data.name!r} have no such labels')
+                      f'of {run.config.data.name!r} have no such labels')
   labels = np.array([videos[i][field] for i in range(len(videos))],
                     np.float32)
   if (labels < 0).any():
@@ -68,52 +101,48 @@ def load_split(config: ml_collections.ConfigDict, workdir: str, split: str
   return slots, labels
 
 
-def rollout_fn(config: ml_collections.ConfigDict, workdir: str, mesh: Mesh):
+def rollout_fn(run: Run):
   """observed slots [V, O, N, D], steps -> SlotFormer's rollout [V, K, N, D]
   at the slots' frame rate (interleaved when SlotFormer was trained on
   every ``slotformer.frame_stride``-th frame)."""
-  params, step = inference.load_dynamics_params(
-      config, workdir, mesh, models.SLOTFORMER,
-      slot_models.get(config).slot_shape)
-  logger.info('rollouts from SlotFormer step %d', step)
-  model = models.build_slotformer(config)
-  batch = config.readout.rollout_batch_size
+  slotformer = run.dynamics(SLOTFORMER)
+  logger.info('rollouts from SlotFormer step %d', slotformer.step)
+  batch = run.config.readout.rollout_batch_size
+  section = run.dynamics_section(SLOTFORMER)
 
   def predict(context: np.ndarray, num_steps: int) -> np.ndarray:
-    run = jax.jit(functools.partial(inference.rollout_slots, model=model,
-                                    num_steps=num_steps))
-    return np.concatenate([np.asarray(run(params, context[i:i + batch]))
-                           for i in range(0, len(context), batch)])
+    roll = jax.jit(functools.partial(inference.rollout_slots,
+                                     model=slotformer.module,
+                                     num_steps=num_steps))
+    return np.concatenate([
+        np.asarray(roll(slotformer.params, context[i:i + batch]))
+        for i in range(0, len(context), batch)])
 
   def rollout(observed: np.ndarray, num_steps: int) -> np.ndarray:
     return contact.interleaved_rollout(
-        observed, num_steps, config.slotformer.burn_in,
-        config.slotformer.frame_stride, predict)
+        observed, num_steps, section.burn_in, section.frame_stride, predict)
   return rollout
 
 
-def _features_by_condition(config, workdir, mesh, split, conditions):
-  slots, labels = load_split(config, workdir, split)
-  rollout = (rollout_fn(config, workdir, mesh)
-             if contact.ROLLOUT in conditions else None)
+def _features_by_condition(run: Run, split: str, conditions):
+  slots, labels = load_split(run, split)
+  rollout = rollout_fn(run) if contact.ROLLOUT in conditions else None
   return {c: contact.condition_features(
-      slots, c, config.readout.observed_frames, rollout)
+      slots, c, run.config.readout.observed_frames, rollout)
           for c in conditions}, labels
 
 
-def train_readout(config: ml_collections.ConfigDict, workdir: str,
-                  mesh: Mesh) -> None:
+def train_readout(run: Run) -> None:
   """Fits the readout per condition and seed; selection on validation."""
-  conditions = tuple(config.readout.conditions)
-  train_split, val_split, _ = contact.readout_splits(config)
-  train, train_labels = _features_by_condition(config, workdir, mesh,
-                                               train_split, conditions)
-  val, val_labels = _features_by_condition(config, workdir, mesh, val_split,
-                                           conditions)
-  model = contact.build_readout(config, slot_models.get(config).slot_shape[1])
+  readout = run.config.readout
+  conditions = tuple(readout.conditions)
+  train_split, val_split, _ = contact.readout_splits(readout)
+  train, train_labels = _features_by_condition(run, train_split, conditions)
+  val, val_labels = _features_by_condition(run, val_split, conditions)
+  model = contact.build_readout(readout, run.slot_model.slot_shape[1])
   for condition in conditions:
-    for seed in config.readout.seeds:
-      directory = contact.run_dir(workdir, condition, seed)
+    for seed in readout.seeds:
+      directory = run.paths.readout(condition, seed)
       if os.path.exists(os.path.join(directory, 'selection.json')):
         logger.info('readout %s seed %d already trained', condition, seed)
         continue
@@ -124,7 +153,7 @@ def train_readout(config: ml_collections.ConfigDict, workdir: str,
 
       params, log = readout_lib.fit(
           model, (train[condition], train_labels), val_accuracy,
-          contact.fit_config(config), seed=seed)
+          contact.fit_config(readout), seed=seed)
       probs = readout_lib.predict(model, params, val[condition])
       threshold, accuracy = readout_lib.best_threshold(probs, val_labels)
       # params first: a seed counts as trained once selection.json exists.
@@ -139,33 +168,24 @@ def train_readout(config: ml_collections.ConfigDict, workdir: str,
                   log['best_epoch'], threshold)
 
 
-def evaluate_readout(config: ml_collections.ConfigDict, workdir: str,
-                     mesh: Mesh) -> dict[str, Any]:
+def evaluate_readout(run: Run) -> dict[str, Any]:
   """Test accuracy at the validation-chosen checkpoint and threshold."""
-  conditions = tuple(config.readout.conditions)
-  test_split = contact.readout_splits(config)[2]
-  test, labels = _features_by_condition(config, workdir, mesh, test_split,
-                                        conditions)
-  model = contact.build_readout(config, slot_models.get(config).slot_shape[1])
+  readout = run.config.readout
+  conditions = tuple(readout.conditions)
+  test_split = contact.readout_splits(readout)[2]
+  test, labels = _features_by_condition(run, test_split, conditions)
   results: dict[str, Any] = {}
   first_seed_probs = {}
   for condition in conditions:
     accuracies, val_accuracies = [], []
-    for seed in config.readout.seeds:
-      directory = contact.run_dir(workdir, condition, seed)
-      selection_path = os.path.join(directory, 'selection.json')
-      if not os.path.exists(selection_path):
-        raise MissingInputError(
-            f'no trained readout in {directory}; run --mode=train_readout')
-      selection = read_json(selection_path, fix=f'Delete {directory} and '
-                            're-run --mode=train_readout.')
-      with open(os.path.join(directory, 'params.msgpack'), 'rb') as f:
-        params = serialization.msgpack_restore(f.read())
-      probs = readout_lib.predict(model, params, test[condition])
+    for seed in readout.seeds:
+      trained = load_readout(run, condition, seed)
+      probs = readout_lib.predict(trained.module, trained.params,
+                                  test[condition])
       first_seed_probs.setdefault(condition, probs)
       accuracies.append(readout_lib.accuracy_at(probs, labels,
-                                                selection['threshold']))
-      val_accuracies.append(selection['val_accuracy'])
+                                                trained.threshold))
+      val_accuracies.append(trained.selection['val_accuracy'])
     # A converted official readout has no validation accuracy (None).
     measured = [v for v in val_accuracies if v is not None]
     results[condition] = {
@@ -177,31 +197,36 @@ def evaluate_readout(config: ml_collections.ConfigDict, workdir: str,
   positive = float(labels.mean())
   results['chance'] = {'mean': max(positive, 1.0 - positive), 'std': 0.0}
   results['num_test_videos'] = len(labels)
-  directory = contact.readout_dir(workdir)
+  directory = run.paths.readouts
   write_json_atomic(os.path.join(directory, 'results.json'), results,
                     sort_keys=False)
   table = contact.format_table(results, conditions)
   write_atomic(os.path.join(directory, 'results.md'), table + '\n')
   logger.info('contact prediction, test accuracy (%d seeds):\n%s',
-              len(config.readout.seeds), table)
-  if contact.ROLLOUT in conditions and config.readout.get('num_pictures', 0):
-    write_pictures(config, workdir, mesh, test[contact.ROLLOUT],
+              len(readout.seeds), table)
+  if contact.ROLLOUT in conditions and readout.num_pictures:
+    write_pictures(run, test[contact.ROLLOUT],
                    first_seed_probs[contact.ROLLOUT], labels)
   return results
 
 
-def write_pictures(config: ml_collections.ConfigDict, workdir: str,
-                   mesh: Mesh, rollout_slots: np.ndarray,
+def write_pictures(run: Run, rollout_slots: np.ndarray,
                    probabilities: np.ndarray, labels: np.ndarray) -> None:
   """readout/test_<i>.png: real frames over the slot model's decoding of
   [observed, SlotFormer rollout] slots (green border: observed, red: rolled
   out), with the readout's contact probability (first seed) and the truth.
   STEVE's frames are generated token by token."""
-  decode = _frame_decoder(config, workdir, mesh)
-  videos = get_video_source(config.data, contact.readout_splits(config)[2])
-  observed = config.readout.observed_frames
+  readout = run.config.readout
+  if not run.slot_model.decodes_pixels:
+    logger.info('contact pictures skipped: %s decodes no pixels',
+                run.slot_model.label)
+    return
+  slot_model, params = run.slot_model, run.stage1.params
+  decode = jax.jit(lambda slots: slot_model.decode(params, slots).recon)
+  videos = run.videos(contact.readout_splits(readout)[2])
+  observed = readout.observed_frames
   scale, every = 3, 2
-  for i in range(min(config.readout.num_pictures, len(labels))):
+  for i in range(min(readout.num_pictures, len(labels))):
     video = videos[i]
     truth = video['video'][:len(rollout_slots[i])]
     predicted = np.asarray(decode(jnp.asarray(rollout_slots[i])))
@@ -227,13 +252,4 @@ def write_pictures(config: ml_collections.ConfigDict, workdir: str,
         (3, 2), f'test video {i}: p(contact | observed + rollout) = '
         f'{probabilities[i]:.2f}; truth: {"contact" if labels[i] else "none"}'
         + (f' (onset frame {onset})' if onset >= 0 else ''), fill=(0, 0, 0))
-    canvas.save(os.path.join(contact.readout_dir(workdir), f'test_{i}.png'))
-
-
-def _frame_decoder(config: ml_collections.ConfigDict, workdir: str,
-                   mesh: Mesh):
-  """Jitted slots [T, N, D] -> frames [T, H, W, 3] in [0, 1], decoded by the
-  slot model (STEVE generates them token by token)."""
-  slot_model = slot_models.get(config)
-  params = slot_model.load(workdir, mesh).params
-  return jax.jit(lambda slots: slot_model.decode(params, slots).recon)
+    canvas.save(os.path.join(run.paths.readouts, f'test_{i}.png'))

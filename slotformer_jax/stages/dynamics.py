@@ -18,31 +18,35 @@ import jax.numpy as jnp
 import ml_collections
 import numpy as np
 
+from slotformer_jax import dynamics as dynamics_lib
 from slotformer_jax import inference
 from slotformer_jax import losses
-from slotformer_jax import models
-from slotformer_jax import slot_models
-from slotformer_jax import workdir as workdir_lib
+from slotformer_jax.config.sections import SLOT_LSTM
+from slotformer_jax.config.sections import SLOTFORMER
 from slotformer_jax.data import pipeline
 from slotformer_jax.errors import ConfigError
+from slotformer_jax.frames import labelled_grid
+from slotformer_jax.frames import to_uint8
 from slotformer_jax.modules import initializers
+from slotformer_jax.run import Run
 from slotformer_jax.runtime import precision
 from slotformer_jax.runtime import sharding
+from slotformer_jax.slot_models import chain
+from slotformer_jax.slot_models.base import SlotModel
+from slotformer_jax.stages.fit import fit_stage
 from slotformer_jax.train import steps
-from slotformer_jax.train import summaries
 from slotformer_jax.train.trainer import Stage
-from slotformer_jax.train.trainer import fit_stage
 
 
-def image_loss_decoder(config: ml_collections.ConfigDict, name: str,
-                       slot_model: slot_models.SlotModel, slot_params: Any
+def image_loss_decoder(section: ml_collections.ConfigDict, name: str,
+                       slot_model: SlotModel, slot_params: Any
                        ) -> tuple[Any, Any]:
   """(decoder, its frozen params) of L_I, or (None, None) without L_I.
 
   Raises:
     ConfigError: L_I is on but the slot model has no pixel decoder.
   """
-  weight = models.dynamics_config(config, name).image_loss_weight
+  weight = section.image_loss_weight
   if weight <= 0:
     return None, None
   image_decoder = slot_model.image_decoder(slot_params)
@@ -55,66 +59,70 @@ def image_loss_decoder(config: ml_collections.ConfigDict, name: str,
   return image_decoder
 
 
-def dynamics_stage(config: ml_collections.ConfigDict, workdir: str,
-                   mesh: Mesh, name: str, slot_model: slot_models.SlotModel,
-                   slot_params: Any, source: Any) -> Stage:
-  """Dynamics model `name`'s training stage on `source` (the slots of the
-  'train' split, with their videos when L_I is on; only its `batches` read
-  it). `slot_params`: the slot model's, for the frozen decoder of L_I."""
-  stage_config = models.dynamics_config(config, name)
-  rollout = stage_config.rollout
-  decoder, decoder_params = image_loss_decoder(config, name, slot_model,
+def dynamics_stage(section: ml_collections.ConfigDict, name: str,
+                   directory: str, mesh: Mesh, slot_model: SlotModel,
+                   slot_params: Any, source: Any, *, seed: int,
+                   compute_dtype: str,
+                   logging_config: ml_collections.ConfigDict | None = None
+                   ) -> Stage:
+  """Dynamics model `name`'s training stage (settings `section`) on
+  `source` (the slots of the 'train' split, with their videos when L_I is
+  on; only its `batches` read it). `slot_params`: the slot model's, for the
+  frozen decoder of L_I."""
+  rollout = section.rollout
+  decoder, decoder_params = image_loss_decoder(section, name, slot_model,
                                                slot_params)
   video_fields = ('video',) if decoder is not None else ()
-  model = models.build_dynamics(config, name)
-  local_batch_size = sharding.per_host_batch_size(stage_config.batch_size, mesh)
-  example = inference.dynamics_example(config, name, slot_model.slot_shape)
+  model = dynamics_lib.build(section, name)
+  local_batch_size = sharding.per_host_batch_size(section.batch_size, mesh)
+  example = dynamics_lib.example(section, slot_model.slot_shape)
   return Stage(
       name=name,
-      directory=workdir_lib.dynamics_dir(workdir, name),
-      config=stage_config,
+      directory=directory,
+      config=section,
       loss_fn=precision.with_compute_dtype(functools.partial(
           losses.slotformer_loss, model=model, decoder=decoder,
-          rollout=rollout,
-          image_loss_weight=stage_config.image_loss_weight if decoder else 0.0,
-          teacher_forcing=stage_config.teacher_forcing), config.compute_dtype),
+          rollout=rollout, to_model=slot_model.to_model,
+          image_loss_weight=section.image_loss_weight if decoder else 0.0,
+          teacher_forcing=section.teacher_forcing), compute_dtype),
       init_params=lambda rng: initializers.initialize(
           steps.init_params(model, rng, *example),
-          jax.random.fold_in(rng, 1), stage_config.get('init', 'flax')),
+          jax.random.fold_in(rng, 1), section.init),
       batches=lambda start_step: pipeline.train_batches(
           source, batch_size=local_batch_size,
-          clip_length=stage_config.burn_in + rollout, seed=config.seed + 1,
+          clip_length=section.burn_in + rollout, seed=seed,
           start_step=start_step, fields=('slots',) + video_fields,
-          frame_stride=stage_config.frame_stride,
+          frame_stride=section.frame_stride,
           process_index=jax.process_index(),
           process_count=jax.process_count()),
       frozen_params=decoder_params,
-      logging=config.get('logging'),
+      logging=logging_config,
       images=(_rollout_images(slot_model, slot_params, model,
-                              stage_config.burn_in, rollout, name)
+                              section.burn_in, rollout, name)
               if slot_model.image_decoder(slot_params) is not None
               else None),
   )
 
 
-def train_dynamics(config: ml_collections.ConfigDict, workdir: str,
-                   mesh: Mesh, name: str) -> None:
+def train_dynamics(run: Run, name: str) -> None:
   """Trains dynamics model `name` on the current slots of the 'train' split."""
-  slot_model = slot_models.get(config)
-  slot_model.check_compute_dtype()
-  loaded = slot_model.load(workdir, mesh)
-  parent = workdir_lib.check_slots_current(config, workdir, 'train',
-                                           loaded.slots_parent,
-                                           slot_model.label)
-  decoder, _ = image_loss_decoder(config, name, slot_model, loaded.params)
-  video_fields = ('video',) if decoder is not None else ()
-  source = workdir_lib.slot_source_for(config, workdir, 'train', video_fields)
-  stage = dynamics_stage(config, workdir, mesh, name, slot_model,
-                         loaded.params, source)
-  fit_stage(stage, mesh=mesh, seed=config.seed + 1, what=name,
-            identity_fields=workdir_lib.dynamics_identity_fields(config, name),
-            parent=parent,
-            model_fields=workdir_lib.dynamics_model_fields(config, name))
+  section, slot_model, loaded = (run.dynamics_section(name), run.slot_model,
+                                 run.stage1)
+  parent = chain.check_slots_current(run.paths, 'train', loaded.slots_parent,
+                                     run.slots_fields, slot_model.label)
+  decoder, _ = image_loss_decoder(section, name, slot_model, loaded.params)
+  source = run.slots('train', ('video',) if decoder is not None else ())
+  # The dynamics' own stream of batches: seed + 1, apart from stage 1's.
+  seed = run.config.seed + 1
+  stage = dynamics_stage(section, name, run.paths.dynamics(name), run.mesh,
+                         slot_model, loaded.params, source, seed=seed,
+                         compute_dtype=run.config.compute_dtype,
+                         logging_config=run.config.logging)
+  fit_stage(stage, mesh=run.mesh, seed=seed, what=name,
+            identity_fields=dynamics_lib.identity_fields(
+                run.config.seed, section, name),
+            parent=parent, model_fields=dynamics_lib.model_fields(section,
+                                                                  name))
 
 
 def _rollout_images(slot_model, slot_params, model, burn_in: int,
@@ -122,10 +130,10 @@ def _rollout_images(slot_model, slot_params, model, burn_in: int,
   """TensorBoard rollout strip of the first clip of a training batch: its
   frames (when the batch has them), its extracted slots decoded, and the
   burn-in slots followed by the model's rollout, decoded (slot models with
-  a pixel decoder only)."""
+  a pixel decoder only: STEVE would generate every frame token by token)."""
 
   @jax.jit
-  def run(params, slots):
+  def decode(params, slots):
     predicted = inference.rollout_slots(params, slots[:, :burn_in],
                                         model=model, num_steps=rollout)
     both = jnp.concatenate([slots, jnp.concatenate(
@@ -133,33 +141,21 @@ def _rollout_images(slot_model, slot_params, model, burn_in: int,
     return slot_model.decode(slot_params, both).recon
 
   def images(params, batch):
-    recon = np.asarray(jax.device_get(run(params, batch['slots'][:1])))
+    recon = np.asarray(jax.device_get(decode(params, batch['slots'][:1])))
     rows = {}
     if 'video' in batch:
       rows['real frames'] = batch['video'][0]
-    rows['slots decoded'] = summaries.to_uint8(recon[0])
-    rows[f'burn-in {burn_in} + {name}'] = summaries.to_uint8(recon[1])
-    return {'rollout': summaries.labelled_grid(rows)}
+    rows['slots decoded'] = to_uint8(recon[0])
+    rows[f'burn-in {burn_in} + {name}'] = to_uint8(recon[1])
+    return {'rollout': labelled_grid(rows)}
 
   return images
 
 
-def train_slotformer(config: ml_collections.ConfigDict, workdir: str,
-                     mesh: Mesh) -> None:
-  train_dynamics(config, workdir, mesh, models.SLOTFORMER)
+def train_slotformer(run: Run) -> None:
+  train_dynamics(run, SLOTFORMER)
 
 
-def train_slot_lstm(config: ml_collections.ConfigDict, workdir: str,
-                    mesh: Mesh) -> None:
+def train_slot_lstm(run: Run) -> None:
   """The Slot-LSTM baseline, with SlotFormer's data, losses and schedule."""
-  train_dynamics(config, workdir, mesh, models.SLOT_LSTM)
-
-
-def load_dynamics(config: ml_collections.ConfigDict, workdir: str,
-                  mesh: Mesh, slot_shape: tuple[int, int],
-                  names: tuple[str, ...] = (models.SLOTFORMER,)
-                  ) -> dict[str, tuple]:
-  """{name: (params, step)} of the trained dynamics models `names`."""
-  return {name: inference.load_dynamics_params(config, workdir, mesh, name,
-                                               slot_shape)
-          for name in names}
+  train_dynamics(run, SLOT_LSTM)

@@ -11,48 +11,41 @@ from __future__ import annotations
 import logging
 
 import jax
-from jax.sharding import Mesh
-import ml_collections
 
 from slotformer_jax import inference
-from slotformer_jax import slot_models
-from slotformer_jax import workdir as workdir_lib
 from slotformer_jax.data.slots import SlotWriter
 from slotformer_jax.data.slots import read_meta
-from slotformer_jax.data.sources import get_video_source
-from slotformer_jax.slot_models.base import uses_foreign_stage1
+from slotformer_jax.run import Run
 from slotformer_jax.runtime import sharding
+from slotformer_jax.stages.stage1 import uses_foreign_stage1
 
 logger = logging.getLogger(__name__)
 
 
-def extract_slots(config: ml_collections.ConfigDict, workdir: str,
-                  mesh: Mesh) -> None:
+def extract_slots(run: Run) -> None:
   """Writes slots/<split>/ of every `extraction.splits` split."""
-  slot_model = slot_models.get(config)
-  if uses_foreign_stage1(slot_model, workdir, mesh, 'slots'):
+  if uses_foreign_stage1(run, 'slots'):
     return
-  loaded = slot_model.load(workdir, mesh)
-  parent = loaded.slots_parent
-  slot_fields = workdir_lib.slots_identity_fields(config)
-  batched = sharding.batch_sharding(mesh)
-  replicated = sharding.replicated_sharding(mesh)
+  slot_model, extraction = run.slot_model, run.config.extraction
+  loaded = run.stage1
+  parent, slot_fields = loaded.slots_parent, run.slots_fields
+  batched = sharding.batch_sharding(run.mesh)
+  replicated = sharding.replicated_sharding(run.mesh)
   encode = jax.jit(slot_model.encode,
                    in_shardings=(replicated, batched, replicated, batched),
                    out_shardings=(batched, batched))
-  seed = jax.random.key(config.seed)
+  seed = jax.random.key(run.config.seed)
 
   def encode_chunk(batch_index, chunk, frames, carry):
     # Stochastic SAVi samples: a key per (batch, chunk), the same on rerun.
     rng = jax.random.fold_in(seed, batch_index * 10_000 + chunk)
     return encode(loaded.params, frames, rng, carry)
 
-  local_batch_size = sharding.per_host_batch_size(
-      config.extraction.batch_size, mesh)
+  local_batch_size = sharding.per_host_batch_size(extraction.batch_size,
+                                                  run.mesh)
   num_slots, slot_size = slot_model.slot_shape
-  for split in config.extraction.splits:
-    directory = workdir_lib.slots_dir(
-        workdir_lib.stage1_workdir(config, workdir), split)
+  for split in extraction.splits:
+    directory = run.paths.slots(split)
     meta = read_meta(directory)
     if (meta and meta.get('complete') and meta.get('parent') == parent
         and meta.get('fields') == slot_fields):
@@ -63,12 +56,12 @@ def extract_slots(config: ml_collections.ConfigDict, workdir: str,
       logger.info('slots of %s are stale (from %s, now %s %s): '
                   're-extracting', split, meta.get('parent'),
                   slot_model.label, parent)
-    source = get_video_source(config.data, split)
+    source = run.videos(split)
     inference.encode_videos_into(
         lambda: SlotWriter(directory, len(source), num_slots, slot_size,
                            loaded.step, parent=parent, fields=slot_fields),
-        source, encode_chunk, chunk_length=config.extraction.chunk_length,
-        batch_size=local_batch_size, mesh=mesh, desc=f'extract {split}',
+        source, encode_chunk, chunk_length=extraction.chunk_length,
+        batch_size=local_batch_size, mesh=run.mesh, desc=f'extract {split}',
         conditioning_fields=slot_model.conditioning_fields)
     logger.info('extracted %s slots of %d %s videos', slot_model.label,
                 len(source), split)

@@ -17,20 +17,18 @@ from typing import Any
 
 from flax import serialization
 import jax
-from jax.sharding import Mesh
 import jax.numpy as jnp
-import ml_collections
 import numpy as np
 
 from slotformer_jax import inference
-from slotformer_jax import models
-from slotformer_jax import slot_models
+from slotformer_jax.config.sections import SLOTFORMER
 from slotformer_jax.data.convert import phyre_like
 from slotformer_jax.data.sources import resolve_data_dir
 from slotformer_jax.errors import ConfigError
 from slotformer_jax.errors import MissingInputError
 from slotformer_jax.files import write_atomic
 from slotformer_jax.files import write_json_atomic
+from slotformer_jax.run import Run
 from slotformer_jax.tasks import phyre_planning
 from slotformer_jax.tasks import planning
 from slotformer_jax.tasks import readout as readout_lib
@@ -43,24 +41,22 @@ FIRST_FRAME, ROLLOUT = phyre_planning.FIRST_FRAME, phyre_planning.ROLLOUT
 class SlotFeatures:
   """[first-frame slots, SlotFormer rollout] of (task, action) pairs."""
 
-  def __init__(self, config: ml_collections.ConfigDict, workdir: str,
-               mesh: Mesh):
-    self._resolution = tuple(config.data.resolution)
-    if config.slotformer.burn_in != 1:
+  def __init__(self, run: Run):
+    self._resolution = tuple(run.config.data.resolution)
+    if run.dynamics_section(SLOTFORMER).burn_in != 1:
       raise ConfigError('planning observes the first frame only: set '
                         'slotformer.burn_in = 1')
-    slot_model = slot_models.get(config)
+    slot_model = run.slot_model
     if slot_model.conditioning_fields:
       raise ConfigError(
           'planning observes rendered first frames without boxes: it needs '
           'an unconditional slot model (savi.initial_slots=learned)')
-    slot_params = slot_model.load(workdir, mesh).params
-    dynamics_params, step = inference.load_dynamics_params(
-        config, workdir, mesh, models.SLOTFORMER, slot_model.slot_shape)
-    logger.info('planning with SlotFormer step %d', step)
-    slotformer = models.build_slotformer(config)
-    num_steps = config.readout.rollout_steps
-    self._batch = config.readout.encode_batch_size
+    slot_params = run.stage1.params
+    trained = run.dynamics(SLOTFORMER)
+    dynamics_params, slotformer = trained.params, trained.module
+    logger.info('planning with SlotFormer step %d', trained.step)
+    num_steps = run.config.readout.rollout_steps
+    self._batch = run.config.readout.encode_batch_size
 
     @jax.jit
     def features(frames):
@@ -96,13 +92,14 @@ def _task_features(features: SlotFeatures, tasks, labels, actions):
   return out
 
 
-def _setup(config, workdir, mesh, split_names):
+def _setup(run: Run, split_names):
+  config = run.config
   generation = phyre_like.config_from_data_config(config.data)
   labels = phyre_like.task_labels(
-      generation, resolve_data_dir(config.data.get('data_dir', None)))
+      generation, resolve_data_dir(config.data.data_dir))
   actions = phyre_like.candidate_actions(generation)
-  splits = phyre_planning.task_splits(config)
-  features = SlotFeatures(config, workdir, mesh)
+  splits = phyre_planning.task_splits(config.data, config.readout)
+  features = SlotFeatures(run)
   by_split = {name: _task_features(features, splits[name], labels, actions)
               for name in split_names}
   outcomes = {name: [labels[(t.template, t.index)] for t in splits[name]]
@@ -110,11 +107,10 @@ def _setup(config, workdir, mesh, split_names):
   return by_split, outcomes, generation
 
 
-def train_readout(config: ml_collections.ConfigDict, workdir: str,
-                  mesh: Mesh) -> None:
+def train_readout(run: Run) -> None:
   """Fits the success classifiers; the epoch is chosen by dev AUCCESS."""
-  by_split, outcomes, generation = _setup(config, workdir, mesh,
-                                          ('train', 'dev'))
+  config = run.config
+  by_split, outcomes, generation = _setup(run, ('train', 'dev'))
   rng = np.random.default_rng(config.seed)
   rows, labels = [], []
   for (valid, feats), task_outcomes in zip(by_split['train'],
@@ -134,9 +130,9 @@ def train_readout(config: ml_collections.ConfigDict, workdir: str,
       learning_rate=config.readout.learning_rate,
       warmup_fraction=config.readout.warmup_fraction)
   for condition in config.readout.conditions:
-    model = phyre_planning.build_classifier(config, condition)
+    model = phyre_planning.build_classifier(config.readout, condition)
     for seed in config.readout.seeds:
-      directory = phyre_planning.run_dir(workdir, condition, seed)
+      directory = run.paths.planner(condition, seed)
       if os.path.exists(os.path.join(directory, 'selection.json')):
         continue
 
@@ -158,10 +154,26 @@ def train_readout(config: ml_collections.ConfigDict, workdir: str,
                   condition, seed, log['best_score'], log['best_epoch'])
 
 
-def plan(config: ml_collections.ConfigDict, workdir: str,
-         mesh: Mesh) -> dict[str, Any]:
+def load_classifier(run: Run, condition: str, seed: int) -> Any:
+  """(module, params) of the success classifier of `condition` and `seed`.
+
+  Raises:
+    MissingInputError: not trained (the message names the stage).
+  """
+  directory = run.paths.planner(condition, seed)
+  path = os.path.join(directory, 'params.msgpack')
+  if not os.path.exists(path):
+    raise MissingInputError(
+        f'no trained classifier in {directory}; run --mode=train_readout')
+  with open(path, 'rb') as f:
+    params = serialization.msgpack_restore(f.read())
+  return phyre_planning.build_classifier(run.config.readout, condition), params
+
+
+def plan(run: Run) -> dict[str, Any]:
   """Ranks every candidate of every test task; AUCCESS per method."""
-  by_split, outcomes, generation = _setup(config, workdir, mesh, ('test',))
+  config = run.config
+  by_split, outcomes, generation = _setup(run, ('test',))
   test, test_outcomes = by_split['test'], outcomes['test']
   seeds = tuple(config.readout.seeds)
   results: dict[str, Any] = {}
@@ -170,16 +182,9 @@ def plan(config: ml_collections.ConfigDict, workdir: str,
                        for seed in seeds]
   first_seed_scores = {}
   for condition in config.readout.conditions:
-    model = phyre_planning.build_classifier(config, condition)
     values = []
     for seed in seeds:
-      directory = phyre_planning.run_dir(workdir, condition, seed)
-      path = os.path.join(directory, 'params.msgpack')
-      if not os.path.exists(path):
-        raise MissingInputError(
-            f'no trained classifier in {directory}; run --mode=train_readout')
-      with open(path, 'rb') as f:
-        params = serialization.msgpack_restore(f.read())
+      model, params = load_classifier(run, condition, seed)
       scores = phyre_planning.candidate_scores(model, params, test,
                                                generation.num_candidates)
       first_seed_scores.setdefault(condition, scores)
@@ -194,7 +199,7 @@ def plan(config: ml_collections.ConfigDict, workdir: str,
   summary['fold'] = generation.fold
   summary['solvable_test_tasks'] = int(sum(
       (o == planning.SOLVED).any() for o in test_outcomes))
-  directory = phyre_planning.planning_dir(workdir)
+  directory = run.paths.planning
   write_json_atomic(os.path.join(directory, 'results.json'), summary,
                     sort_keys=False)
   table = phyre_planning.format_table(summary, generation.fold)
@@ -202,11 +207,10 @@ def plan(config: ml_collections.ConfigDict, workdir: str,
   logger.info('planning, AUCCESS x 100 on %d test tasks:\n%s',
               len(test_outcomes), table)
   condition = ROLLOUT if ROLLOUT in first_seed_scores else FIRST_FRAME
-  for k in range(min(config.readout.get('num_pictures', 0),
-                     len(test_outcomes))):
+  for k in range(min(config.readout.num_pictures, len(test_outcomes))):
     phyre_planning.write_ranking_picture(
         os.path.join(directory, f'test_task_{k}.png'),
-        phyre_planning.task_splits(config)['test'][k],
+        phyre_planning.task_splits(config.data, config.readout)['test'][k],
         first_seed_scores[condition][k],
         test_outcomes[k], generation)
   return summary

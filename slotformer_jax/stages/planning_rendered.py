@@ -15,20 +15,16 @@ from typing import Any
 
 from flax import serialization
 import jax
-from jax.sharding import Mesh
-import ml_collections
 import numpy as np
 
 from slotformer_jax import inference
-from slotformer_jax import models
-from slotformer_jax import slot_models
-from slotformer_jax import workdir as workdir_lib
+from slotformer_jax.config.sections import SLOTFORMER
 from slotformer_jax.data.slots import SlotSource
-from slotformer_jax.data.sources import get_video_source
 from slotformer_jax.errors import ConfigError
 from slotformer_jax.errors import MissingInputError
 from slotformer_jax.files import write_atomic
 from slotformer_jax.files import write_json_atomic
+from slotformer_jax.run import Run
 from slotformer_jax.tasks import phyre_planning
 from slotformer_jax.tasks import phyre_rendered
 from slotformer_jax.tasks import planning
@@ -38,18 +34,16 @@ from slotformer_jax.tasks.phyre_rendered import Rendered
 logger = logging.getLogger(__name__)
 
 
-def load_rendered(config: ml_collections.ConfigDict, workdir: str,
-                  split: str) -> Rendered:
+def load_rendered(run: Run, split: str) -> Rendered:
   """First-frame slots, outcomes and task ids of a split's rollouts.
 
   Raises:
     MissingInputError: the split's slots were not extracted (names
       --mode=extract_slots) or the dataset is not converted.
   """
-  directory = workdir_lib.slots_dir(
-      workdir_lib.stage1_workdir(config, workdir), split)
+  directory = run.paths.slots(split)
   slots = SlotSource(directory)
-  videos = get_video_source(config.data, split)
+  videos = run.videos(split)
   if len(videos) != len(slots):
     raise ValueError(f'{directory} holds slots of {len(slots)} rollouts but '
                      f'the {split} split has {len(videos)}; re-run '
@@ -65,49 +59,46 @@ def load_rendered(config: ml_collections.ConfigDict, workdir: str,
                   np.asarray(outcomes, np.int64), tasks)
 
 
-def rollout_features(config: ml_collections.ConfigDict, workdir: str,
-                     mesh: Mesh, first_slots: np.ndarray) -> np.ndarray:
+def rollout_features(run: Run, first_slots: np.ndarray) -> np.ndarray:
   """float32 [V, S, N, D]: [first-frame slots, SlotFormer's rollout] at
   ``readout.selected_steps`` (S of them)."""
-  steps = phyre_rendered.selected_steps(config)
-  if config.slotformer.burn_in != 1:
+  steps = phyre_rendered.selected_steps(run.config.readout)
+  if run.dynamics_section(SLOTFORMER).burn_in != 1:
     raise ConfigError('planning observes the first frame only: set '
                       'slotformer.burn_in = 1')
   num_steps = max(steps)
   if num_steps == 0:
     return first_slots[:, None]
-  params, step = inference.load_dynamics_params(
-      config, workdir, mesh, models.SLOTFORMER,
-      slot_models.get(config).slot_shape)
-  logger.info('PHYRE rollouts from SlotFormer step %d', step)
-  model = models.build_slotformer(config)
-  run = jax.jit(lambda p, s: inference.rollout_slots(
-      p, s, model=model, num_steps=num_steps))
-  batch = config.readout.encode_batch_size
+  trained = run.dynamics(SLOTFORMER)
+  logger.info('PHYRE rollouts from SlotFormer step %d', trained.step)
+  params = trained.params
+  roll = jax.jit(lambda p, s: inference.rollout_slots(
+      p, s, model=trained.module, num_steps=num_steps))
+  batch = run.config.readout.encode_batch_size
   gather = np.asarray(steps[1:]) - 1
   out = []
   for i in range(0, len(first_slots), batch):
     chunk = first_slots[i:i + batch]
     pad = batch - len(chunk)  # one compiled batch shape
     padded = np.concatenate([chunk, np.repeat(chunk[-1:], pad, 0)])
-    rollout = np.asarray(run(params, padded[:, None]))[:len(chunk)]
+    rollout = np.asarray(roll(params, padded[:, None]))[:len(chunk)]
     out.append(np.concatenate([chunk[:, None], rollout[:, gather]], axis=1))
   return np.concatenate(out).astype(np.float32)
 
 
-def train_readout(config: ml_collections.ConfigDict, workdir: str,
-                  mesh: Mesh) -> None:
+def train_readout(run: Run) -> None:
   """Fits the classifiers on the training tasks' rollouts; the epoch is
   chosen by AUCCESS over the dev tasks' rendered candidates."""
-  phyre_rendered.check_candidates(config)
-  train = load_rendered(config, workdir, phyre_rendered.splits(config)[0])
+  config = run.config
+  phyre_rendered.check_candidates(config.readout)
+  train = load_rendered(run, phyre_rendered.splits(config.readout)[0])
   dev = phyre_rendered.dev_tasks(train.tasks, config.readout.dev_share,
                                  config.seed)
   is_dev = np.array([t in dev for t in train.tasks])
   if is_dev.all() or not is_dev.any():
     raise ConfigError(f'{len(set(train.tasks))} training tasks cannot be '
                       f'split by readout.dev_share={config.readout.dev_share}')
-  features = rollout_features(config, workdir, mesh, train.first_slots)
+  features = rollout_features(run, train.first_slots)
   dev_groups = {task: rows for task, rows
                 in phyre_rendered.group_by_task(train.tasks).items()
                 if task in dev}
@@ -122,10 +113,11 @@ def train_readout(config: ml_collections.ConfigDict, workdir: str,
       warmup_fraction=config.readout.warmup_fraction)
   num_selected = features.shape[1]
   for condition in config.readout.conditions:
-    model = phyre_rendered.build_classifier(config, condition, num_selected)
+    model = phyre_rendered.build_classifier(config.readout, condition,
+                                            num_selected)
     inputs = phyre_rendered.condition_features(features, condition)
     for seed in config.readout.seeds:
-      directory = phyre_rendered.run_dir(workdir, condition, seed)
+      directory = run.paths.planner(condition, seed)
       if os.path.exists(os.path.join(directory, 'selection.json')):
         continue
 
@@ -150,14 +142,14 @@ def train_readout(config: ml_collections.ConfigDict, workdir: str,
                   log['best_epoch'])
 
 
-def plan(config: ml_collections.ConfigDict, workdir: str,
-         mesh: Mesh) -> dict[str, Any]:
+def plan(run: Run) -> dict[str, Any]:
   """Ranks the rendered candidates of every test task; AUCCESS per method
   (random ranking, each classifier, oracle), with the protocol stated."""
-  phyre_rendered.check_candidates(config)
-  test = load_rendered(config, workdir, phyre_rendered.splits(config)[1])
+  config = run.config
+  phyre_rendered.check_candidates(config.readout)
+  test = load_rendered(run, phyre_rendered.splits(config.readout)[1])
   groups = phyre_rendered.group_by_task(test.tasks)
-  features = rollout_features(config, workdir, mesh, test.first_slots)
+  features = rollout_features(run, test.first_slots)
   seeds = tuple(config.readout.seeds)
   results: dict[str, list[float]] = {}
   rng_scores = [np.random.default_rng(seed).random(len(test.outcomes))
@@ -165,12 +157,12 @@ def plan(config: ml_collections.ConfigDict, workdir: str,
   results['random'] = [phyre_rendered.task_auccess(s, test.outcomes, groups)
                        for s in rng_scores]
   for condition in config.readout.conditions:
-    model = phyre_rendered.build_classifier(config, condition,
+    model = phyre_rendered.build_classifier(config.readout, condition,
                                             features.shape[1])
     inputs = phyre_rendered.condition_features(features, condition)
     values = []
     for seed in seeds:
-      path = os.path.join(phyre_rendered.run_dir(workdir, condition, seed),
+      path = os.path.join(run.paths.planner(condition, seed),
                           'params.msgpack')
       if not os.path.exists(path):
         raise MissingInputError(
@@ -195,10 +187,10 @@ def plan(config: ml_collections.ConfigDict, workdir: str,
       solving_share=float((test.outcomes == planning.SOLVED).mean()),
       solvable_test_tasks=int(sum((test.outcomes[i] == planning.SOLVED).any()
                                   for i in groups.values())))
-  directory = phyre_planning.planning_dir(workdir)
+  directory = run.paths.planning
   write_json_atomic(os.path.join(directory, 'results.json'), summary,
                     sort_keys=False)
-  table = phyre_planning.format_table(summary, config.readout.get('fold', '?'))
+  table = phyre_planning.format_table(summary, config.readout.fold)
   header = (f'{phyre_rendered.PROTOCOL_NOTE}. {len(groups)} test tasks, '
             f'{min(sizes)}-{max(sizes)} candidates each, '
             f'{100 * summary["solving_share"]:.1f}% solving.')

@@ -1,63 +1,122 @@
 """The video-prediction stages: `evaluate` (metrics), `render` (pictures)
 and `explore` (the run explorer page, with counterfactual rollouts).
 
-Both load the trained slot model and dynamics models of the workdir, check
-that they descend from each other and from the evaluated slots (nothing
-mixes), and hand them to `evaluation/`, which never loads a model itself.
+Each takes the run's trained slot model and dynamics models, checks that
+they descend from each other and from the evaluated slots (nothing mixes),
+and hands them with the config sections they need to `evaluation/`, which
+never loads a model itself.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import os
 from typing import Any
 
-from jax.sharding import Mesh
-import ml_collections
-
-from slotformer_jax import slot_models
-from slotformer_jax import workdir as workdir_lib
+from slotformer_jax import dynamics as dynamics_lib
+from slotformer_jax.config.sections import SLOTFORMER
+from slotformer_jax.config.sections import trained_dynamics
+from slotformer_jax.errors import UserError
 from slotformer_jax.evaluation import evaluate as evaluate_lib
 from slotformer_jax.evaluation import explore as explore_lib
 from slotformer_jax.evaluation import visualize
-from slotformer_jax.stages.dynamics import load_dynamics
+from slotformer_jax.run import Run
+from slotformer_jax.slot_models import chain
+from slotformer_jax.workdir import identity as identity_lib
+from slotformer_jax.workdir.paths import command
 
 
-def _load(config: ml_collections.ConfigDict, workdir: str, mesh: Mesh):
-  """(slot model, its Loaded, {name: (params, step)}, identity)."""
-  slot_model = slot_models.get(config)
-  slot_model.check_compute_dtype()
-  loaded = slot_model.load(workdir, mesh)
-  dynamics = load_dynamics(config, workdir, mesh, slot_model.slot_shape,
-                           evaluate_lib.dynamics_to_evaluate(config))
-  identity = workdir_lib.evaluation_identity(
-      config, workdir, config.evaluation.split, loaded.identity,
-      loaded.slots_parent, slot_model.label,
-      {name: step for name, (_, step) in dynamics.items()})
-  return slot_model, loaded, dynamics, identity
+@dataclasses.dataclass(frozen=True)
+class Evaluated:
+  """What an evaluation reads: the trained models and their lineage.
+
+  Attributes:
+    stage1: the slot model's `Loaded`.
+    dynamics: {name: `dynamics.Loaded`} of every dynamics model compared.
+    identity: what all of them descend from, as the results record it.
+  """
+
+  stage1: Any
+  dynamics: dict[str, Any]
+  identity: dict[str, Any]
 
 
-def evaluate(config: ml_collections.ConfigDict, workdir: str,
-             mesh: Mesh) -> dict[str, Any]:
+def evaluated(run: Run) -> Evaluated:
+  """The run's trained models for the evaluation split, checked to descend
+  from each other and from that split's slots.
+
+  Raises:
+    UserError: something is stale or missing; the message names the stage
+      to rerun.
+  """
+  stage1 = run.stage1
+  dynamics = {name: run.dynamics(name) for name in trained_dynamics(run.config)}
+  parent = chain.check_slots_current(
+      run.paths, run.config.evaluation.split, stage1.slots_parent,
+      run.slots_fields, run.slot_model.label)
+  identity = {**stage1.identity, 'slots': parent}
+  for name, model in dynamics.items():
+    directory = run.paths.dynamics(name)
+    found = identity_lib.read_identity(directory)
+    retrain = command(run.paths.root, f'train_{name}')
+    if found is None:
+      raise UserError(f'{directory} has no identity.json: it is from an '
+                      f'older version or incomplete; retrain it: {retrain}')
+    identity_lib.check_identity_fields(
+        found, dynamics_lib.identity_fields(
+            run.config.seed, run.dynamics_section(name), name),
+        name, directory)
+    if found.get('parent') != parent:
+      raise UserError(
+          f'{name} in {directory} was trained on the slots of '
+          f'{run.slot_model.label} {found.get("parent")}, but stage 1 is now '
+          f'{parent}; evaluating would mix them. Retrain it (it is set aside '
+          f'and retrained): {retrain}')
+    identity[name] = {'run_id': found['run_id'], 'step': int(model.step),
+                      'fingerprint': found['fingerprint'], 'parent': parent}
+  return Evaluated(stage1=stage1, dynamics=dynamics, identity=identity)
+
+
+def evaluate(run: Run) -> dict[str, Any]:
   """eval/metrics.json and eval/per_step.csv (see evaluation/evaluate.py)."""
-  slot_model, loaded, dynamics, identity = _load(config, workdir, mesh)
+  trained = evaluated(run)
+  split = run.config.evaluation.split
   return evaluate_lib.evaluate(
-      config, workdir, mesh, slot_model=slot_model,
-      slot_params=loaded.params, slot_steps=loaded.steps, dynamics=dynamics,
-      identity=identity)
+      run.config.evaluation, run.dynamics_section(SLOTFORMER), run.mesh,
+      slot_model=run.slot_model, slot_params=trained.stage1.params,
+      slot_steps=trained.stage1.steps, dynamics=trained.dynamics,
+      identity=trained.identity,
+      source=run.slots(split, evaluate_lib.video_fields(
+          run.config.evaluation)),
+      videos=run.videos(split),
+      num_true=evaluate_lib.num_true_ids(run.config.data.max_instances),
+      compute_dtype=run.config.compute_dtype, output_dir=run.paths.eval)
 
 
-def render(config: ml_collections.ConfigDict, workdir: str,
-           mesh: Mesh) -> list[str]:
+def render(run: Run) -> list[str]:
   """render/: GIFs, labelled strips, curves (see evaluation/visualize.py)."""
-  slot_model, loaded, dynamics, identity = _load(config, workdir, mesh)
-  return visualize.render(config, workdir, mesh, slot_model=slot_model,
-                          slot_params=loaded.params, dynamics=dynamics,
-                          identity=identity)
+  trained = evaluated(run)
+  return visualize.render(
+      run.config.render, run.config.evaluation,
+      run.dynamics_section(SLOTFORMER), slot_model=run.slot_model,
+      slot_params=trained.stage1.params, dynamics=trained.dynamics,
+      identity=trained.identity,
+      source=run.slots(run.config.evaluation.split, ('video',)),
+      metrics_file=os.path.join(run.paths.eval, 'metrics.json'),
+      output_dir=run.paths.render)
 
 
-def explore(config: ml_collections.ConfigDict, workdir: str,
-            mesh: Mesh) -> str | None:
+def explore(run: Run) -> str | None:
   """explore/index.html (see evaluation/explore.py)."""
-  slot_model, loaded, dynamics, identity = _load(config, workdir, mesh)
-  return explore_lib.explore(config, workdir, slot_model=slot_model,
-                             slot_params=loaded.params, dynamics=dynamics,
-                             identity=identity)
+  trained = evaluated(run)
+  return explore_lib.explore(
+      run.config.explore, run.config.evaluation,
+      run.dynamics_section(SLOTFORMER), slot_model=run.slot_model,
+      slot_params=trained.stage1.params, dynamics=trained.dynamics,
+      identity=trained.identity,
+      open_slots=lambda fields: run.slots(run.config.evaluation.split,
+                                          fields),
+      num_true=evaluate_lib.num_true_ids(run.config.data.max_instances),
+      metrics_file=os.path.join(run.paths.eval, 'metrics.json'),
+      output_dir=run.paths.explore,
+      title=f'{run.config.data.name}: {run.slot_model.label} + SlotFormer')

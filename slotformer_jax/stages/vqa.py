@@ -22,6 +22,7 @@ training questions and CLEVRER's answers).
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import json
 import logging
@@ -29,16 +30,13 @@ import os
 from typing import Any
 
 import jax
-from jax.sharding import Mesh
 import jax.numpy as jnp
 import ml_collections
 import numpy as np
 import tqdm
 
 from slotformer_jax import inference
-from slotformer_jax import models
-from slotformer_jax import slot_models
-from slotformer_jax import workdir as workdir_lib
+from slotformer_jax.config.sections import SLOTFORMER
 from slotformer_jax.data import vqa as vqa_data
 from slotformer_jax.data import vqa_questions
 from slotformer_jax.data.slots import SlotSource
@@ -46,8 +44,9 @@ from slotformer_jax.errors import ConfigError
 from slotformer_jax.errors import MissingInputError
 from slotformer_jax.files import read_json
 from slotformer_jax.files import write_json_atomic
-from slotformer_jax.tasks import vqa as task
+from slotformer_jax.run import Run
 from slotformer_jax.runtime import sharding
+from slotformer_jax.tasks import vqa as task
 from slotformer_jax.train import steps
 from slotformer_jax.train.trainer import Stage
 from slotformer_jax.train.trainer import abstract_train_state
@@ -62,19 +61,10 @@ logger = logging.getLogger(__name__)
 INPUTS = ('observed', 'rollout', 'blind', 'future')
 
 
-def vqa_dir(workdir: str) -> str:
-  return os.path.join(workdir, 'vqa')
-
-
-def variant_dir(config: ml_collections.ConfigDict, workdir: str) -> str:
-  return os.path.join(vqa_dir(workdir),
-                      f'{config.vqa.inputs}_s{config.vqa.seed}')
-
-
-def _check_inputs(config: ml_collections.ConfigDict) -> None:
-  if config.vqa.inputs not in INPUTS:
+def _check_inputs(vqa: ml_collections.ConfigDict) -> None:
+  if vqa.inputs not in INPUTS:
     raise ConfigError(f'vqa.inputs must be one of {INPUTS}, got '
-                     f'{config.vqa.inputs!r}')
+                      f'{vqa.inputs!r}')
 
 
 # ----------------------------------------------------------------------------
@@ -82,24 +72,22 @@ def _check_inputs(config: ml_collections.ConfigDict) -> None:
 # ----------------------------------------------------------------------------
 
 
-def _slots_path(workdir: str, split: str) -> str:
-  return os.path.join(vqa_dir(workdir), 'slots', f'{split}.npy')
+def _slots_path(run: Run, split: str) -> str:
+  return os.path.join(run.paths.vqa, 'slots', f'{split}.npy')
 
 
-def vqa_slots(config: ml_collections.ConfigDict, workdir: str,
-              mesh: Mesh) -> None:
+def vqa_slots(run: Run) -> None:
   """Writes each split's observed slots followed by SlotFormer's rollout."""
+  config = run.config
   vqa = config.vqa
-  dynamics = config.slotformer
-  params, step = inference.load_dynamics_params(
-      config, workdir, mesh, models.SLOTFORMER,
-      slot_models.get(config).slot_shape)
-  model = models.build_slotformer(config)
-  meta_path = os.path.join(vqa_dir(workdir), 'slots', 'meta.json')
+  dynamics = run.dynamics_section(SLOTFORMER)
+  trained = run.dynamics(SLOTFORMER)
+  params, step, model = trained.params, trained.step, trained.module
+  meta_path = os.path.join(run.paths.vqa, 'slots', 'meta.json')
   meta = {'slotformer_step': step, 'video_length': vqa.video_length,
           'rollout_frames': vqa.rollout_frames}
   if os.path.exists(meta_path) and read_json(meta_path) == meta and all(
-      os.path.exists(_slots_path(workdir, s))
+      os.path.exists(_slots_path(run, s))
       for s in config.extraction.splits):
     logger.info('VQA slots already rolled out (SlotFormer step %d)', step)
     return
@@ -113,8 +101,7 @@ def vqa_slots(config: ml_collections.ConfigDict, workdir: str,
   os.makedirs(os.path.dirname(meta_path), exist_ok=True)
   batch_size = config.extraction.batch_size
   for split in config.extraction.splits:
-    source = SlotSource(workdir_lib.slots_dir(
-        workdir_lib.stage1_workdir(config, workdir), split))
+    source = SlotSource(run.paths.slots(split))
     out = None
     for first in tqdm.trange(0, len(source), batch_size,
                              desc=f'vqa rollout {split}'):
@@ -130,23 +117,21 @@ def vqa_slots(config: ml_collections.ConfigDict, workdir: str,
       both = np.concatenate([observed, future], axis=1).astype(np.float32)
       if out is None:
         out = np.lib.format.open_memmap(
-            _slots_path(workdir, split) + '.tmp.npy', mode='w+',
+            _slots_path(run, split) + '.tmp.npy', mode='w+',
             dtype=np.float32, shape=(len(source),) + both.shape[1:])
       out[first:first + len(both)] = both
     out.flush()
     del out
-    os.replace(_slots_path(workdir, split) + '.tmp.npy',
-               _slots_path(workdir, split))
+    os.replace(_slots_path(run, split) + '.tmp.npy',
+               _slots_path(run, split))
   write_json_atomic(meta_path, meta)
 
 
-def _true_future_slots(config: ml_collections.ConfigDict, workdir: str,
-                       split: str, length: int) -> np.ndarray:
+def _true_future_slots(run: Run, split: str, length: int) -> np.ndarray:
   """SAVi's slots of the video and of the real frames after it, float32
   [V, length, N, D] (length = video_length + rollout_frames): the input of
   the ground-truth-future ceiling (`vqa.inputs='future'`)."""
-  source = SlotSource(workdir_lib.slots_dir(
-      workdir_lib.stage1_workdir(config, workdir), split))
+  source = SlotSource(run.paths.slots(split))
   out = []
   for i in range(len(source)):
     slots = source[i]['slots']
@@ -159,17 +144,18 @@ def _true_future_slots(config: ml_collections.ConfigDict, workdir: str,
   return np.stack(out).astype(np.float32)
 
 
-def question_batches(config: ml_collections.ConfigDict, workdir: str,
-                     split: str, questions: list[vqa_data.EncodedQuestion]
+def question_batches(run: Run, split: str,
+                     questions: list[vqa_data.EncodedQuestion]
                      ) -> task.QuestionBatches:
-  _check_inputs(config)
+  config = run.config
   vqa = config.vqa
-  path = _slots_path(workdir, split)
+  _check_inputs(vqa)
+  path = _slots_path(run, split)
   if not os.path.exists(path):
     raise MissingInputError(f'{path} is missing: run --mode=vqa_slots first')
   slots = np.load(path, mmap_mode='r')
   if vqa.inputs == 'future':
-    slots = _true_future_slots(config, workdir, split, slots.shape[1])
+    slots = _true_future_slots(run, split, slots.shape[1])
   elif vqa.inputs != 'rollout':
     slots = slots[:, :vqa.video_length]  # no rollout: predictive questions
     # read the end of the video like the others
@@ -188,12 +174,12 @@ def question_batches(config: ml_collections.ConfigDict, workdir: str,
 # ----------------------------------------------------------------------------
 
 
-def _model_and_init(config: ml_collections.ConfigDict,
-                    vocab: vqa_data.Vocabulary):
-  vqa = config.vqa
-  slot_shape = slot_models.get(config).slot_shape
-  model = models.build_aloe(config, len(vocab.questions), len(vocab.answers),
-                            num_slots=slot_shape[0])
+def model_and_init(vqa: ml_collections.ConfigDict,
+                   vocab: vqa_data.Vocabulary, slot_shape: tuple[int, int]):
+  """(Aloe, rng -> its initial parameters) for `vocab` over slots of
+  `slot_shape` (N, D)."""
+  model = task.build_aloe(vqa, len(vocab.questions), len(vocab.answers),
+                          num_slots=slot_shape[0])
   length = vqa.max_question_len + vqa.max_choice_len
   slots = jnp.zeros((1, vqa.num_frames, *slot_shape))
 
@@ -205,63 +191,93 @@ def _model_and_init(config: ml_collections.ConfigDict,
   return model, init
 
 
-def aloe_stage(config: ml_collections.ConfigDict, workdir: str,
-               vocab: vqa_data.Vocabulary, batches) -> Stage:
-  """Aloe's training stage for `vocab`; `batches` (start step -> this
-  host's question batches, `task.QuestionBatches.train_batches`) is only
-  read by `fit`."""
-  vqa = config.vqa
-  model, init = _model_and_init(config, vocab)
+def aloe_stage(vqa: ml_collections.ConfigDict, directory: str,
+               vocab: vqa_data.Vocabulary, slot_shape: tuple[int, int],
+               batches, logging_config: ml_collections.ConfigDict | None = None
+               ) -> Stage:
+  """Aloe's training stage (the `vqa` section) for `vocab` in `directory`;
+  `batches` (start step -> this host's question batches,
+  `task.QuestionBatches.train_batches`) is only read by `fit`."""
+  model, init = model_and_init(vqa, vocab, slot_shape)
   return Stage(
-      name=f'vqa_{vqa.inputs}', directory=variant_dir(config, workdir),
+      name=f'vqa_{vqa.inputs}', directory=directory,
       config=vqa, loss_fn=functools.partial(task.vqa_loss, model=model),
       init_params=lambda rng: {'params': init(rng)}, batches=batches,
-      logging=config.get('logging'))
+      logging=logging_config)
 
 
-def train_vqa(config: ml_collections.ConfigDict, workdir: str,
-              mesh: Mesh) -> None:
+def train_vqa(run: Run) -> None:
   """Trains Aloe on the training questions (resumable)."""
+  config, mesh = run.config, run.mesh
   vqa = config.vqa
   vocab = vqa_questions.vocabulary(config)
-  batches = question_batches(config, workdir, 'train',
-                             vqa_questions.encoded_questions(config, 'train',
-                                                             vocab))
+  batches = question_batches(run, 'train', vqa_questions.encoded_questions(
+      config, 'train', vocab))
   open_size = sharding.per_host_batch_size(vqa.open_batch_size, mesh)
   choice_size = sharding.per_host_batch_size(vqa.choice_batch_size, mesh)
   seed = config.seed * 1000 + vqa.seed
   stage = aloe_stage(
-      config, workdir, vocab,
+      vqa, run.paths.aloe(vqa.inputs, vqa.seed), vocab,
+      run.slot_model.slot_shape,
       lambda start_step: batches.train_batches(
           open_size, choice_size, seed=seed, start_step=start_step,
           process_index=jax.process_index(),
-          process_count=jax.process_count()))
+          process_count=jax.process_count()), config.logging)
   fit(stage, mesh=mesh, seed=seed)
 
 
-def _load_aloe(config: ml_collections.ConfigDict, workdir: str, mesh: Mesh,
-               vocab: vqa_data.Vocabulary):
-  model, init = _model_and_init(config, vocab)
-  directory = variant_dir(config, workdir)
+@dataclasses.dataclass(frozen=True)
+class Aloe:
+  """A trained Aloe of a run.
+
+  Attributes:
+    module: Aloe (`tasks.vqa.build_aloe`).
+    params: its newest parameters ({'params': ...}, replicated).
+    step: their step.
+    vocab: the vocabulary its word and answer ids index.
+  """
+
+  module: Any
+  params: Any
+  step: int
+  vocab: vqa_data.Vocabulary
+
+
+def load_aloe(run: Run, inputs: str | None = None,
+              seed: int | None = None) -> Aloe:
+  """The Aloe trained on `inputs` with `seed` (default: the config's
+  `vqa.inputs` and `vqa.seed`).
+
+  Raises:
+    MissingInputError: not trained (the message names the stage).
+  """
+  vqa = run.config.vqa
+  inputs = vqa.inputs if inputs is None else inputs
+  seed = vqa.seed if seed is None else seed
+  vocab = vqa_questions.vocabulary(run.config)
+  model, init = model_and_init(vqa, vocab, run.slot_model.slot_shape)
+  directory = run.paths.aloe(inputs, seed)
   checkpointer = checkpointer_for(directory, read_only=True)
   if checkpointer.latest_step() is None:
     raise MissingInputError(f'no Aloe checkpoint under {directory}; run '
                             '--mode=train_vqa first')
   state = checkpointer.restore(abstract_train_state(
-      lambda rng: {'params': init(rng)}, config.vqa, mesh))
-  return model, state.params
+      lambda rng: {'params': init(rng)}, vqa, run.mesh))
+  return Aloe(module=model, params=state.params, step=int(state.step),
+              vocab=vocab)
 
 
-def evaluate_vqa(config: ml_collections.ConfigDict, workdir: str,
-                 mesh: Mesh) -> dict[str, Any]:
+def evaluate_vqa(run: Run) -> dict[str, Any]:
   """Metrics per question type on `vqa.eval_split` (+ the answer prior);
   on a split without answers (CLEVRER's test), the prediction file."""
+  config, mesh = run.config, run.mesh
   vqa = config.vqa
   split = vqa.eval_split
-  vocab = vqa_questions.vocabulary(config)
+  aloe = load_aloe(run)
+  vocab = aloe.vocab
   questions = vqa_questions.encoded_questions(config, split, vocab)
-  batches = question_batches(config, workdir, split, questions)
-  model, params = _load_aloe(config, workdir, mesh, vocab)
+  batches = question_batches(run, split, questions)
+  model, params = aloe.module, aloe.params
   replicated = sharding.replicated_sharding(mesh)
   run = jax.jit(functools.partial(task.predict, model=model),
                 in_shardings=(replicated, sharding.batch_sharding(mesh)))
@@ -283,7 +299,7 @@ def evaluate_vqa(config: ml_collections.ConfigDict, workdir: str,
     for k, i in enumerate(choice_ids):
       n = int(valid[k].sum())
       choice_correct[choice_index[i]] = (logits[k, :n] > 0).tolist()
-  directory = variant_dir(config, workdir)
+  directory = run.paths.aloe(vqa.inputs, vqa.seed)
   has_answers = all(q.answer >= 0 for q in questions if q.is_descriptive)
   results = metrics.results() if has_answers else {}
   if has_answers:
@@ -303,7 +319,7 @@ def evaluate_vqa(config: ml_collections.ConfigDict, workdir: str,
           vqa_questions.encoded_questions(config, 'train', vocab)),
           questions)
       write_json_atomic(
-          os.path.join(vqa_dir(workdir), f'answer_prior_{split}.json'),
+          os.path.join(run.paths.vqa, f'answer_prior_{split}.json'),
           prior, sort_keys=False)
   logger.info('VQA %s on %s: %s', vqa.inputs, split, json.dumps(results))
   return results

@@ -23,7 +23,6 @@ and models and write those files are in ``stages/contact.py``.
 
 from __future__ import annotations
 
-import os
 from typing import Any
 
 import ml_collections
@@ -37,31 +36,24 @@ OBSERVED, ROLLOUT, COPY_LAST, GROUND_TRUTH = (
 CONDITIONS = (OBSERVED, ROLLOUT, COPY_LAST, GROUND_TRUTH)
 
 
-def readout_splits(config: ml_collections.ConfigDict) -> tuple[str, str, str]:
-  """(train, val, test) data splits of the readout (Physion's converter
-  writes the Testing videos as 'test', the embedded family 'readout_test')."""
-  splits = config.readout.splits
+def readout_splits(readout: ml_collections.ConfigDict
+                   ) -> tuple[str, str, str]:
+  """(train, val, test) data splits of the readout section `readout`
+  (Physion's converter writes the Testing videos as 'test', the embedded
+  family 'readout_test')."""
+  splits = readout.splits
   return splits.train, splits.val, splits.test
 
 
-def readout_dir(workdir: str) -> str:
-  return os.path.join(workdir, 'readout')
-
-
-def run_dir(workdir: str, condition: str, seed: int) -> str:
-  return os.path.join(readout_dir(workdir), condition, f'seed_{seed}')
-
-
-def build_readout(config: ml_collections.ConfigDict, slot_size: int
+def build_readout(readout: ml_collections.ConfigDict, slot_size: int
                   ) -> readouts.PhysionReadout:
   """The readout over slots of `slot_size` (`readout.features` overrides)."""
-  return readouts.PhysionReadout(
-      features=config.readout.features or slot_size,
-      pairs=config.readout.pairs)
+  return readouts.PhysionReadout(features=readout.features or slot_size,
+                                 pairs=readout.pairs)
 
 
-def fit_config(config: ml_collections.ConfigDict) -> readout_lib.FitConfig:
-  r = config.readout
+def fit_config(r: ml_collections.ConfigDict) -> readout_lib.FitConfig:
+  """The readout section's training settings."""
   return readout_lib.FitConfig(epochs=r.epochs, batch_size=r.batch_size,
                                learning_rate=r.learning_rate,
                                warmup_fraction=r.warmup_fraction)

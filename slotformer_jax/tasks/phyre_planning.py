@@ -34,7 +34,6 @@ Workdir: ``planning/<condition>/seed_<s>/{params.msgpack, selection.json}``,
 
 from __future__ import annotations
 
-import os
 from typing import Any
 
 import ml_collections
@@ -51,35 +50,28 @@ FIRST_FRAME, ROLLOUT = 'first_frame', 'rollout'
 CONDITIONS = (FIRST_FRAME, ROLLOUT)
 
 
-def planning_dir(workdir: str) -> str:
-  return os.path.join(workdir, 'planning')
-
-
-def run_dir(workdir: str, condition: str, seed: int) -> str:
-  return os.path.join(planning_dir(workdir), condition, f'seed_{seed}')
-
-
-def build_classifier(config: ml_collections.ConfigDict, condition: str
+def build_classifier(r: ml_collections.ConfigDict, condition: str
                      ) -> readouts.PhyreReadout:
-  r = config.readout
+  """The success classifier of `condition` (readout section `r`)."""
   selected = (0,) if condition == FIRST_FRAME else tuple(r.selected_steps)
   return readouts.PhyreReadout(
       selected_steps=selected, embed_dim=r.embed_dim,
       num_layers=r.num_layers, num_heads=r.num_heads,
       mlp_size=r.mlp_ratio * r.embed_dim,
-      dropout_rate=r.get('dropout_rate', 0.0),
-      layer_norm_epsilon=r.get('layer_norm_epsilon', 1e-6))
+      dropout_rate=r.dropout_rate, layer_norm_epsilon=r.layer_norm_epsilon)
 
 
-def task_splits(config: ml_collections.ConfigDict
+def task_splits(data: ml_collections.ConfigDict,
+                readout: ml_collections.ConfigDict
                 ) -> dict[str, list[phyre_like.Task]]:
-  """'train', 'dev' (from the training tasks) and 'test' tasks."""
-  generation = phyre_like.config_from_data_config(config.data)
+  """'train', 'dev' (`readout.dev_share` of the training tasks) and 'test'
+  tasks of the embedded tasks of the `data` section."""
+  generation = phyre_like.config_from_data_config(data)
   splits = phyre_like.split_tasks(generation)
   rng = np.random.default_rng([generation.seed, 19, generation.fold])
   train = list(splits['train'])
   order = rng.permutation(len(train))
-  num_dev = int(round(config.readout.dev_share * len(train)))
+  num_dev = int(round(readout.dev_share * len(train)))
   return {'train': [train[i] for i in sorted(order[num_dev:])],
           'dev': [train[i] for i in sorted(order[:num_dev])],
           'test': list(splits['test'])}

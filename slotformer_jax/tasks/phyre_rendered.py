@@ -44,7 +44,6 @@ Workdir: ``planning/<condition>/seed_<s>/{params.msgpack, selection.json}``,
 from __future__ import annotations
 
 import dataclasses
-import os
 from typing import Any
 
 import ml_collections
@@ -77,13 +76,13 @@ class Rendered:
   tasks: list[str]
 
 
-def check_candidates(config: ml_collections.ConfigDict) -> None:
+def check_candidates(readout: ml_collections.ConfigDict) -> None:
   """Only the rendered candidates can be ranked without `phyre`.
 
   Raises:
     ConfigError: another candidate set, in one line.
   """
-  candidates = config.readout.get('candidates', RENDERED)
+  candidates = readout.candidates
   if candidates != RENDERED:
     raise ConfigError(
         f'readout.candidates={candidates!r}: ranking PHYRE\'s cached actions '
@@ -131,25 +130,23 @@ def task_auccess(scores: np.ndarray, outcomes: np.ndarray,
                                [outcomes[i] for i in groups.values()])
 
 
-def selected_steps(config: ml_collections.ConfigDict) -> tuple[int, ...]:
-  steps = tuple(int(s) for s in config.readout.selected_steps)
+def selected_steps(readout: ml_collections.ConfigDict) -> tuple[int, ...]:
+  steps = tuple(int(s) for s in readout.selected_steps)
   if not steps or steps[0] != 0 or list(steps) != sorted(set(steps)):
     raise ConfigError(f'readout.selected_steps={steps}: must start with 0 '
                       '(the observed first frame) and increase')
   return steps
 
 
-def build_classifier(config: ml_collections.ConfigDict, condition: str,
+def build_classifier(r: ml_collections.ConfigDict, condition: str,
                      num_selected: int) -> readouts.PhyreReadout:
-  """The official classifier on pre-gathered frames."""
-  r = config.readout
+  """The official classifier on pre-gathered frames (readout section `r`)."""
   frames = 1 if condition == FIRST_FRAME else num_selected
   return readouts.PhyreReadout(
       selected_steps=tuple(range(frames)), embed_dim=r.embed_dim,
       num_layers=r.num_layers, num_heads=r.num_heads,
       mlp_size=r.mlp_ratio * r.embed_dim,
-      dropout_rate=r.get('dropout_rate', 0.0),
-      layer_norm_epsilon=r.get('layer_norm_epsilon', 1e-6))
+      dropout_rate=r.dropout_rate, layer_norm_epsilon=r.layer_norm_epsilon)
 
 
 def condition_features(features: np.ndarray, condition: str) -> np.ndarray:
@@ -161,10 +158,6 @@ def condition_features(features: np.ndarray, condition: str) -> np.ndarray:
                     f'{FIRST_FRAME!r} or {ROLLOUT!r}')
 
 
-def splits(config: ml_collections.ConfigDict) -> tuple[str, str]:
-  splits = config.readout.get('splits') or {}
-  return splits.get('train', 'train'), splits.get('test', 'val')
-
-
-def run_dir(workdir: str, condition: str, seed: int) -> str:
-  return os.path.join(workdir, 'planning', condition, f'seed_{seed}')
+def splits(readout: ml_collections.ConfigDict) -> tuple[str, str]:
+  """(train, test) splits of the rendered layout."""
+  return readout.splits.train, readout.splits.test

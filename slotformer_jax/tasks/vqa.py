@@ -27,6 +27,7 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
+import ml_collections
 import numpy as np
 import optax
 
@@ -484,3 +485,17 @@ def prediction_file(questions: Sequence[EncodedQuestion],
   return [{'scene_index': s, 'questions': sorted(
       entries, key=lambda e: e['question_id'])}
           for s, entries in sorted(scenes.items())]
+
+
+def build_aloe(vqa: ml_collections.ConfigDict, vocab_size: int,
+               num_answers: int, *, num_slots: int) -> Aloe:
+  """Aloe for the `vqa` section, over `num_slots` slots per frame."""
+  return Aloe(
+      vocab_size=vocab_size, num_answers=num_answers,
+      num_frames=vqa.num_frames, num_slots=num_slots,
+      text_length=vqa.max_question_len + vqa.max_choice_len,
+      question_length=vqa.max_question_len, d_model=vqa.d_model,
+      word_dim=vqa.word_dim, num_layers=vqa.num_layers,
+      num_heads=vqa.num_heads, mlp_size=vqa.mlp_size,
+      head_size=vqa.head_size, dropout_rate=vqa.dropout_rate,
+      positions=vqa.positions, layer_norm_epsilon=vqa.layer_norm_epsilon)

@@ -13,38 +13,14 @@ writes nothing. Only the lead host writes.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
 import os
 from typing import Any
 
 import ml_collections
 import numpy as np
 from slotformer_jax.errors import UserError
-from slotformer_jax.frames import labelled_rows
 
 DIRECTORY = 'tensorboard'
-_LABEL_WIDTH = 96
-
-
-def labelled_grid(rows: Mapping[str, np.ndarray], scale: int = 2
-                  ) -> np.ndarray:
-  """{row label: uint8 [T, H, W, 3]} -> uint8 [R * H', L + T * W', 3]: one
-  row of frames per entry, its label written at the left (H' = scale * H)."""
-  strips = {}
-  for label, frames in rows.items():
-    frames = np.asarray(frames)
-    if scale > 1:
-      frames = frames.repeat(scale, axis=1).repeat(scale, axis=2)
-    strips[label] = np.concatenate(list(frames), axis=1)
-  return labelled_rows(strips, _LABEL_WIDTH)
-
-
-def to_uint8(frames: Any) -> np.ndarray:
-  """Frames in [0, 1] -> uint8."""
-  return (np.clip(np.asarray(frames, np.float32), 0.0, 1.0) * 255 + 0.5
-          ).astype(np.uint8)
-
-
 class Summaries:
   """The TensorBoard writer of one stage (a no-op when disabled)."""
 

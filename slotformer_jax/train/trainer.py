@@ -37,7 +37,6 @@ import numpy as np
 import optax
 import tqdm
 
-from slotformer_jax import workdir as workdir_lib
 from slotformer_jax.errors import UserError
 from slotformer_jax.files import append_line_atomic
 from slotformer_jax.train import optim
@@ -269,19 +268,6 @@ def fit(stage: Stage, *, mesh: Mesh, seed: int) -> TrainState:
 def _host_copy(params: Any) -> Any:
   """This host's copy of replicated parameters, as numpy (no collective)."""
   return jax.tree.map(lambda x: np.asarray(x.addressable_data(0)), params)
-
-
-def fit_stage(stage: Stage, *, mesh: Mesh, seed: int, what: str,
-              identity_fields: dict[str, Any], parent: dict[str, Any] | None,
-              model_fields: dict[str, Any]) -> TrainState:
-  """`fit` for a stage of the pipeline, after stamping its run identity (a
-  stage made with other settings or from another parent is set aside and
-  retrained; see `workdir.start_stage`) and checking that its checkpoints
-  have the architecture of `model_fields`."""
-  workdir_lib.start_stage(stage.directory, identity_fields, parent, what)
-  workdir_lib.check_model_config(stage.directory, model_fields, what)
-  workdir_lib.write_model_config(stage.directory, model_fields)
-  return fit(stage, mesh=mesh, seed=seed)
 
 
 def agrees_after(done: int, num_steps: int, every: int) -> bool:

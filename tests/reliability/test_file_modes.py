@@ -7,7 +7,7 @@ import stat
 import pytest
 
 from slotformer_jax import files
-from slotformer_jax import lock as lock_lib
+from slotformer_jax.workdir import lock as lock_lib
 from slotformer_jax.runtime import xla_flags
 
 

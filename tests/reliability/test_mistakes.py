@@ -31,7 +31,7 @@ import pytest
 from slotformer_jax.config import checks as config_checks
 from slotformer_jax.data import sources
 from slotformer_jax.errors import UserError
-from slotformer_jax.lock import FileLock
+from slotformer_jax.workdir.lock import FileLock
 from slotformer_jax.modules.decoders import SpatialBroadcastDecoder
 from slotformer_jax.official import convert as convert_official
 from slotformer_jax.runtime import checkpoint as checkpoint_lib

@@ -40,7 +40,7 @@ from slotformer_jax.data import integrity
 from slotformer_jax.data import sources
 from slotformer_jax.data.slots import SlotSource
 from slotformer_jax.errors import UserError
-from slotformer_jax.lock import FileLock
+from slotformer_jax.workdir.lock import FileLock
 from slotformer_jax.runtime import checkpoint as checkpoint_lib
 from slotformer_jax.runtime import sharding
 from slotformer_jax.train.trainer import Diverged

@@ -14,6 +14,7 @@ import pytest
 from pipeline_helpers import micro_config
 from pipeline_helpers import run_stages
 from slotformer_jax.runtime import sharding
+from slotformer_jax import frames as frames_lib
 from slotformer_jax.train import summaries
 
 SCALARS = ('train/loss', 'train/recon_loss', 'train/grad_norm',
@@ -84,10 +85,10 @@ def test_savi_stage_writes_scalars_and_labelled_images(tiny_run):
   # at scale 2 after the label column.
   height, width = config.data.resolution
   assert picture.shape[0] == 3 * 2 * height
-  assert picture.shape[1] == (summaries._LABEL_WIDTH
+  assert picture.shape[1] == (frames_lib.GRID_LABEL_WIDTH
                               + config.savi.clip_length * 2 * width)
   # The label column has text drawn in it (not blank).
-  assert (picture[:, :summaries._LABEL_WIDTH] < 128).any()
+  assert (picture[:, :frames_lib.GRID_LABEL_WIDTH] < 128).any()
 
 
 def test_dynamics_stage_writes_a_rollout_strip(tiny_run):
@@ -100,7 +101,7 @@ def test_dynamics_stage_writes_a_rollout_strip(tiny_run):
   height, width = config.data.resolution
   # Rows: real frames, extracted slots decoded, burn-in + rollout decoded.
   assert strip.shape[0] == 3 * 2 * height
-  assert strip.shape[1] == summaries._LABEL_WIDTH + frames * 2 * width
+  assert strip.shape[1] == frames_lib.GRID_LABEL_WIDTH + frames * 2 * width
 
 
 def test_off_by_config_writes_no_event_file(tmp_path):
@@ -118,10 +119,10 @@ def test_off_by_config_writes_no_event_file(tmp_path):
 def test_labelled_grid_rows():
   rows = {'a': np.zeros((3, 4, 5, 3), np.uint8),
           'b': np.full((3, 4, 5, 3), 255, np.uint8)}
-  grid = summaries.labelled_grid(rows, scale=1)
-  assert grid.shape == (8, summaries._LABEL_WIDTH + 15, 3)
-  np.testing.assert_array_equal(grid[:4, summaries._LABEL_WIDTH:], 0)
-  np.testing.assert_array_equal(grid[4:, summaries._LABEL_WIDTH:], 255)
+  grid = frames_lib.labelled_grid(rows, scale=1)
+  assert grid.shape == (8, frames_lib.GRID_LABEL_WIDTH + 15, 3)
+  np.testing.assert_array_equal(grid[:4, frames_lib.GRID_LABEL_WIDTH:], 0)
+  np.testing.assert_array_equal(grid[4:, frames_lib.GRID_LABEL_WIDTH:], 255)
 
 
 def test_logging_settings_never_block_a_workdir(tmp_path):

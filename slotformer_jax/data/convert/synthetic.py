@@ -44,7 +44,7 @@ import tensorflow_datasets as tfds
 from slotformer_jax.data import integrity
 from slotformer_jax.data.convert.pool import ordered_map
 from slotformer_jax.data.data_dir import resolve_data_dir
-from slotformer_jax.lock import FileLock
+from slotformer_jax.workdir.lock import FileLock
 
 # Bump whenever the generator's output changes for identical parameters: it is
 # part of the cache folder name, so stale caches are never reused.

@@ -16,6 +16,7 @@ import time
 from typing import Any
 
 from slotformer_jax.errors import UserError
+from slotformer_jax.workdir.paths import Paths
 
 logger = logging.getLogger(__name__)
 
@@ -127,3 +128,9 @@ class FileLock:
 
   def __exit__(self, *exc) -> None:
     self.release()
+
+
+def workdir_lock(paths: Paths) -> FileLock:
+  """The lock of a run's workdir: one writing run at a time."""
+  return FileLock(paths.lock, what=f'the workdir {paths.root}',
+                  fix='give a --workdir you can write')

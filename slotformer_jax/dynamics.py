@@ -1,0 +1,116 @@
+"""The dynamics models of stage 2 (SlotFormer, the Slot-LSTM baseline) as the
+pipeline uses them: built from their config section, the fields that shape
+them, and their trained parameters loaded from a workdir.
+
+A dynamics model reads slots [B, T, N, D] and rolls them out; it knows
+nothing of the slot model but its slot shape (N, D).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import jax
+from jax.sharding import Mesh
+import jax.numpy as jnp
+import ml_collections
+
+from slotformer_jax import inference
+from slotformer_jax.config.sections import SLOT_LSTM
+from slotformer_jax.config.sections import SLOTFORMER
+from slotformer_jax.modules.slot_lstm import SlotLSTM
+from slotformer_jax.modules.slotformer import SlotFormer
+from slotformer_jax.workdir import identity as identity_lib
+from slotformer_jax.workdir.paths import Paths
+from slotformer_jax.workdir.paths import command
+
+DynamicsModel = SlotFormer | SlotLSTM
+
+
+def build(section: ml_collections.ConfigDict, name: str) -> DynamicsModel:
+  """Dynamics model `name` from its resolved section
+  (`config.sections.dynamics_section`)."""
+  shared = dict(
+      burn_in=section.burn_in, embed_dim=section.embed_dim,
+      num_layers=section.num_layers, num_heads=section.num_heads,
+      mlp_size=section.mlp_ratio * section.embed_dim,
+      dropout_rate=section.dropout_rate, residual=section.residual)
+  if name == SLOTFORMER:
+    return SlotFormer(positional_encoding=section.positional_encoding,
+                      max_context=section.max_context,
+                      layer_norm_epsilon=section.layer_norm_epsilon, **shared)
+  if name == SLOT_LSTM:
+    return SlotLSTM(**shared)
+  raise ValueError(f'unknown dynamics model {name!r}')
+
+
+def model_fields(section: ml_collections.ConfigDict,
+                 name: str) -> dict[str, Any]:
+  """The settings that determine the model's parameters (model_config.json)."""
+  keys = ['burn_in', 'embed_dim', 'num_layers', 'num_heads', 'mlp_ratio',
+          'residual']
+  if name == SLOTFORMER:
+    keys += ['positional_encoding', 'max_context', 'layer_norm_epsilon']
+  return identity_lib.plain({key: section[key] for key in keys})
+
+
+def identity_fields(seed: int, section: ml_collections.ConfigDict,
+                    name: str) -> dict[str, Any]:
+  """Everything that shapes the trained model besides the slots it reads
+  (recorded as its parent)."""
+  return identity_lib.plain({'seed': seed, name: identity_lib.shaping(
+      section.to_dict())})
+
+
+def example(section: ml_collections.ConfigDict,
+            slot_shape: tuple[int, int]) -> tuple[jax.Array, int]:
+  """(history zeros [1, burn_in, N, D], rollout): the example inputs the
+  model is initialised with, for slots of `slot_shape` (N, D)."""
+  history = jnp.zeros((1, section.burn_in, *slot_shape), jnp.float32)
+  return history, section.rollout
+
+
+def param_shapes(section: ml_collections.ConfigDict, name: str,
+                 slot_shape: tuple[int, int]) -> Any:
+  """The parameter shapes of dynamics model `name` over slots of
+  `slot_shape` (no compute)."""
+  return inference.param_shapes(build(section, name),
+                                *example(section, slot_shape))
+
+
+@dataclasses.dataclass(frozen=True)
+class Loaded:
+  """A trained dynamics model of a workdir.
+
+  Attributes:
+    name: 'slotformer' or 'slot_lstm'.
+    module: the linen module (apply with {'params': params}).
+    params: its newest parameters (replicated over the mesh).
+    step: the step they were saved at.
+  """
+
+  name: str
+  module: DynamicsModel
+  params: Any
+  step: int
+
+
+def load(paths: Paths, mesh: Mesh, name: str,
+         section: ml_collections.ConfigDict,
+         slot_shape: tuple[int, int]) -> Loaded:
+  """The newest parameters of dynamics model `name` of the run `paths`,
+  trained on slots of `slot_shape` with `section`'s architecture.
+
+  Raises:
+    UserError: never trained (the message names the stage), or trained with
+      another architecture.
+  """
+  directory = paths.dynamics(name)
+  identity_lib.check_model_config(directory, model_fields(section, name),
+                                  name)
+  params, step = inference.restore(
+      directory, param_shapes(section, name, slot_shape), mesh, what=name, train_command=command(paths.root, f'train_{name}'),
+      num_train_steps=section.num_train_steps)
+  return Loaded(name=name, module=build(section, name), params=params,
+                step=step)

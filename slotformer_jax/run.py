@@ -1,0 +1,158 @@
+"""One run of the pipeline: what every stage receives.
+
+`main` checks the config once and builds one `Run`: the config (its
+sections are what the stages and their helpers read), every path of the
+workdir (`workdir.paths.Paths`), the device mesh, this process's place among
+the run's processes, the slot model, and the trained models of the workdir,
+loaded (and checked against each other) the first time a stage asks::
+
+    run = Run.create(config, '/path/to/workdir')    # or Run.open(workdir)
+    run.slot_model.encode(run.stage1.params, video, rng, None)
+    slotformer = run.dynamics('slotformer')          # dynamics.Loaded
+
+A stage is `(run) -> None | results` (stages/__init__.py). Nothing below the
+stages builds its own view of the run: a helper gets the section it needs.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import os
+from typing import Any
+
+import jax
+from jax.sharding import Mesh
+import ml_collections
+
+from slotformer_jax import dynamics as dynamics_lib
+from slotformer_jax import slot_models
+from slotformer_jax.config.sections import dynamics_section
+from slotformer_jax.data.slots import SlotSource
+from slotformer_jax.data.sources import VideoSource
+from slotformer_jax.data.sources import get_video_source
+from slotformer_jax.errors import ConfigError
+from slotformer_jax.errors import MissingInputError
+from slotformer_jax.files import read_json
+from slotformer_jax.runtime import sharding
+from slotformer_jax.slot_models import chain
+from slotformer_jax.slot_models.base import Loaded
+from slotformer_jax.slot_models.base import SlotModel
+from slotformer_jax.workdir import identity as identity_lib
+from slotformer_jax.workdir.paths import Paths
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Run:
+  """A run: its settings, its folders, its devices and its models.
+
+  Attributes:
+    config: the checked settings (read-only). Stages pass sections of it to
+      the code they call.
+    paths: every path of the workdir (and of a read-only stage 1).
+    mesh: the devices, batches split on its 'data' axis.
+    slot_model: the configured slot model (`config.slot_model`).
+  """
+
+  config: ml_collections.ConfigDict
+  paths: Paths
+  mesh: Mesh
+  slot_model: SlotModel
+  _loaded: dict[str, Any] = dataclasses.field(default_factory=dict,
+                                              repr=False)
+
+  @classmethod
+  def create(cls, config: ml_collections.ConfigDict, workdir: str,
+             mesh: Mesh | None = None) -> Run:
+    """The run of `config` in `workdir` (on every device by default)."""
+    slot_model = slot_models.get(config)
+    if config.compute_dtype not in slot_model.compute_dtypes:
+      raise ConfigError(
+          f'compute_dtype={config.compute_dtype!r} is not implemented for '
+          f'slot_model={slot_model.name!r}; use --config.compute_dtype='
+          f'{slot_model.compute_dtypes[0]}')
+    return cls(config=config,
+               paths=Paths.of(workdir, config.stage1_workdir),
+               mesh=mesh if mesh is not None else sharding.make_mesh(),
+               slot_model=slot_model)
+
+  @classmethod
+  def open(cls, workdir: str, mesh: Mesh | None = None) -> Run:
+    """The run a workdir was made by, with the settings its config.json
+    records: for loading its trained models outside the pipeline."""
+    path = os.path.join(workdir, 'config.json')
+    if not os.path.exists(path):
+      raise MissingInputError(f'{workdir} has no config.json: not a run')
+    config = ml_collections.ConfigDict(read_json(path))
+    return cls.create(config, workdir, mesh)
+
+  # ---- who this process is ------------------------------------------------
+
+  @property
+  def process_index(self) -> int:
+    return jax.process_index()
+
+  @property
+  def process_count(self) -> int:
+    return jax.process_count()
+
+  @property
+  def is_lead(self) -> bool:
+    """The process that writes the run's shared files."""
+    return jax.process_index() == 0
+
+  # ---- what the config asks for ----------------------------------------------
+
+  @property
+  def task(self) -> str | None:
+    """The downstream task ('contact', 'planning', 'vqa'), or None for
+    video prediction."""
+    return self.config.task
+
+  def dynamics_section(self, name: str) -> ml_collections.ConfigDict:
+    """The resolved settings of dynamics model `name` (Slot-LSTM's over
+    SlotFormer's, see config/sections.py)."""
+    return dynamics_section(self.config, name)
+
+  @functools.cached_property
+  def slots_fields(self) -> dict[str, Any]:
+    """What shapes the extracted slots besides the slot model."""
+    return identity_lib.slots_fields(self.config.seed,
+                                     self.config.extraction.to_dict())
+
+  # ---- data ------------------------------------------------------------------
+
+  def videos(self, split: str) -> VideoSource:
+    """The videos of `split` (opened, never made: see stages/data.py)."""
+    return get_video_source(self.config.data, split)
+
+  def slots(self, split: str, video_fields: tuple[str, ...] = ()
+            ) -> SlotSource:
+    """The extracted slots of `split`, served with `video_fields` of its
+    videos (e.g. ('video',) for the image loss)."""
+    videos = self.videos(split) if video_fields else None
+    return SlotSource(self.paths.slots(split), videos, video_fields)
+
+  # ---- trained models, loaded once and checked ---------------------------------
+
+  @property
+  def stage1(self) -> Loaded:
+    """The trained slot model (every part of its chain), checked."""
+    if 'stage1' not in self._loaded:
+      self._loaded['stage1'] = chain.load(self.slot_model, self.paths,
+                                          self.mesh)
+    return self._loaded['stage1']
+
+  def dynamics(self, name: str) -> dynamics_lib.Loaded:
+    """Trained dynamics model `name` ('slotformer', 'slot_lstm')."""
+    key = f'dynamics/{name}'
+    if key not in self._loaded:
+      self._loaded[key] = dynamics_lib.load(
+          self.paths, self.mesh, name, self.dynamics_section(name),
+          self.slot_model.slot_shape)
+    return self._loaded[key]
+
+  def forget(self) -> None:
+    """Drops the loaded models (a later stage that retrained one reads it
+    again)."""
+    self._loaded.clear()

@@ -1,0 +1,176 @@
+"""A slot model's stage 1 as one checked chain, for any slot model.
+
+From the parts a slot model declares (`base.Part`), this finds each part's
+folder, checks its identity against the config and against the part it was
+trained on, restores its parameters, and checks that the extracted slots
+descend from the part that encodes. SAVi is a chain of one; STEVE of two
+(dVAE -> STEVE, the dVAE's tokens in between).
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+from jax.sharding import Mesh
+
+from slotformer_jax import inference
+from slotformer_jax.data.slots import read_meta
+from slotformer_jax.errors import MissingInputError
+from slotformer_jax.errors import UserError
+from slotformer_jax.slot_models.base import Loaded
+from slotformer_jax.slot_models.base import Part
+from slotformer_jax.slot_models.base import SlotModel
+from slotformer_jax.workdir import identity as identity_lib
+from slotformer_jax.workdir.paths import Paths
+from slotformer_jax.workdir.paths import command
+
+logger = logging.getLogger(__name__)
+
+
+def part_identity(part: Part, paths: Paths) -> dict[str, Any]:
+  """The identity of `part` in the stage-1 workdir, made with this config.
+
+  Raises:
+    MissingInputError: never trained (the message names its stage).
+    UserError: trained with other settings.
+  """
+  return identity_lib.checked_identity(
+      paths.model(part.name), dict(part.identity_fields), part.label,
+      command(paths.stage1, part.mode))
+
+
+def check_identities(slot_model: SlotModel, paths: Paths
+                     ) -> dict[str, dict[str, Any]]:
+  """{part name: identity} of every part, checked against this config
+  without reading parameters (e.g. a read-only stage 1 before any work)."""
+  return {part.name: part_identity(part, paths) for part in slot_model.parts}
+
+
+def parent_of(slot_model: SlotModel, part: Part, identities: dict[str, Any],
+              steps: dict[str, int]) -> dict[str, Any] | None:
+  """What `part` is (to be) trained on: its parent part's run id and step."""
+  if part.parent is None:
+    return None
+  return identity_lib.parent_of(identities[part.parent], steps[part.parent],
+                                part.parent)
+
+
+def chain(slot_model: SlotModel, paths: Paths, steps: dict[str, int]
+          ) -> tuple[dict[str, Any], dict[str, Any]]:
+  """(identity entries, slots parent) of the parts at `steps` (the
+  `Loaded.identity` and `Loaded.slots_parent` of checkpoints at those
+  steps), checked to descend from each other.
+
+  Raises:
+    UserError: a part was never trained, trained with other settings, or
+      trained on another parent (the message names the stage to rerun).
+  """
+  identities, entries = {}, {}
+  for part in slot_model.parts:
+    identity = part_identity(part, paths)
+    expected = parent_of(slot_model, part, identities, steps)
+    if part.parent is not None and identity.get('parent') != expected:
+      parent_label = slot_model.stage_labels[part.parent]
+      raise UserError(
+          f'{part.label} in {paths.model(part.name)} was trained with '
+          f'{parent_label} {identity.get("parent")}, the current '
+          f'{parent_label} is {expected}; using both would mix them. Retrain '
+          f'{part.label} (it is set aside and retrained): '
+          f'{command(paths.root, part.mode)}')
+    identities[part.name] = identity
+    entries[part.name] = {'run_id': identity['run_id'],
+                          'step': int(steps[part.name]),
+                          'fingerprint': identity['fingerprint']}
+    if part.parent is not None:
+      entries[part.name]['parent'] = identity['parent']
+  last = slot_model.parts[-1]
+  return entries, identity_lib.parent_of(identities[last.name],
+                                         steps[last.name], last.name)
+
+
+def param_shapes(part: Part) -> Any:
+  """The parameter shapes of `part` (no compute)."""
+  return inference.param_shapes(part.module, *part.example,
+                                **part.example_kwargs)
+
+
+def load_part(part: Part, paths: Paths, mesh: Mesh) -> tuple[Any, int]:
+  """The newest parameters of `part` (replicated) and their step.
+
+  Raises:
+    UserError: no checkpoint, or one of another architecture.
+  """
+  directory = paths.model(part.name)
+  identity_lib.check_model_config(directory, dict(part.model_fields),
+                                  part.label)
+  return inference.restore(
+      directory, param_shapes(part), mesh, what=part.label, train_command=command(paths.stage1, part.mode),
+      num_train_steps=part.section.num_train_steps)
+
+
+def load(slot_model: SlotModel, paths: Paths, mesh: Mesh) -> Loaded:
+  """The trained stage 1 of the run `paths` (its `stage1` folder), checked.
+
+  Raises:
+    UserError: missing, trained with another architecture or settings, or
+      its parts do not descend from each other.
+  """
+  params, steps = {}, {}
+  for part in reversed(slot_model.parts):  # the one that encodes first
+    params[part.name], steps[part.name] = load_part(part, paths, mesh)
+  steps = {part.name: steps[part.name] for part in slot_model.parts}
+  identity, slots_parent = chain(slot_model, paths, steps)
+  last = slot_model.parts[-1].name
+  return Loaded(params={p.name: params[p.name] for p in slot_model.parts},
+                steps=steps, identity=identity, step=steps[last],
+                slots_parent=slots_parent)
+
+
+def check_slots_current(paths: Paths, split: str, expected: dict[str, Any],
+                        fields: dict[str, Any], what: str) -> dict[str, Any]:
+  """The slots of `split` must descend from `expected` (the slot model's
+  `Loaded.slots_parent`; `what` names that model) and have been extracted
+  with `fields` (`identity.slots_fields`); returns their parent.
+
+  Raises:
+    UserError: missing or stale slots, with the command that rebuilds them.
+  """
+  directory = paths.slots(split)
+  meta = read_meta(directory)
+  rebuild = command(paths.stage1, 'extract_slots')
+  if not (meta and meta.get('complete')):
+    raise MissingInputError(f'no complete slots in {directory}; extract them: '
+                            f'{rebuild}')
+  if meta.get('parent') != expected or meta.get('fields') != fields:
+    raise UserError(
+        f'the slots in {directory} are stale: made by {what} '
+        f'{meta.get("parent")}, the current {what} is {expected}. Re-extract '
+        f'them: {rebuild}')
+  return expected
+
+
+def check_foreign_stage1(slot_model: SlotModel, paths: Paths, mesh: Mesh,
+                         splits: tuple[str, ...],
+                         slots_fields: dict[str, Any]) -> Loaded:
+  """A stage 1 read from another workdir (`config.stage1_workdir`) is
+  read-only: its parts must be trained to their full length with this
+  config's settings, the slots of `splits` complete and made by it.
+
+  Raises:
+    UserError: what is missing or different, and where to fix it.
+  """
+  loaded = load(slot_model, paths, mesh)
+  for key, step in loaded.steps.items():
+    total = slot_model.num_train_steps[key]
+    if step < total:
+      raise UserError(
+          f'stage 1 in stage1_workdir={paths.stage1} is incomplete '
+          f'({slot_model.stage_labels[key]} step {step} of {total}); this '
+          'run never trains there. Finish it with its own run: '
+          f'python -m slotformer_jax.main --config=<its config> '
+          f'--workdir={paths.stage1}')
+  for split in splits:
+    check_slots_current(paths, split, loaded.slots_parent, slots_fields,
+                        slot_model.label)
+  return loaded

@@ -1,0 +1,235 @@
+"""Run identity: what each artifact of a workdir was made from.
+
+Every trained stage folder (savi/, dvae/, steve/, slotformer/, slot_lstm/)
+holds identity.json:
+  run_id       random, stamped when the stage starts training from scratch
+  fields       the config values that shaped it (`stage_fields`)
+  parent       the identity of what it was trained on (dynamics: the slot
+               model's run_id + step whose slots it read; STEVE: the dVAE's),
+               or null
+and model_config.json, the fields that shape its parameters (checked before a
+checkpoint is restored). Extracted slots and tokens record their parent in
+their meta.json, the metrics and pictures record every identity they used. A
+child whose parent changed is rebuilt (slots, tokens) or refused (dynamics,
+evaluation): nothing mixes.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+import time
+from typing import Any
+import uuid
+
+import jax
+
+from slotformer_jax.errors import ConfigError
+from slotformer_jax.errors import MissingInputError
+from slotformer_jax.errors import UserError
+from slotformer_jax.files import read_json
+from slotformer_jax.files import write_json_atomic
+
+logger = logging.getLogger(__name__)
+
+IDENTITY_FILE = 'identity.json'
+MODEL_CONFIG_FILE = 'model_config.json'
+
+# Settings that change how a run is observed, not what it computes.
+NOT_SHAPING = ('log_every', 'checkpoint_every', 'stop_check_every',
+               'num_workers', 'data_dir')
+
+# Fields added after workdirs were made, and the value their absence stands
+# for (what the code did before they existed): a workdir whose settings lack
+# one is read as having that value, so it stays usable; any other value is a
+# change like every other. A whole section added later is listed by its name
+# with None (its absence stands for its defaults, whatever they are).
+ADDED_FIELDS: dict[str, Any] = {
+    'vqa.layer_norm_epsilon': 1e-6,
+    'vqa.min_lr_fraction': 0.0,
+    'readout.layer_norm_epsilon': 1e-6,
+    'readout.dropout_rate': 0.0,
+    'evaluation.skip_first_frame': False,
+    'task': None,
+}
+
+
+def plain(value: Any) -> Any:
+  """Tuples -> lists (as JSON stores them), for comparisons."""
+  return json.loads(json.dumps(value))
+
+
+def shaping(section: dict[str, Any]) -> dict[str, Any]:
+  """A config section without the fields that only change how it is
+  observed (`NOT_SHAPING`)."""
+  return {key: value for key, value in section.items()
+          if key not in NOT_SHAPING}
+
+
+def stage_fields(seed: int, data: dict[str, Any], name: str,
+                 section: dict[str, Any]) -> dict[str, Any]:
+  """Everything that shapes a model trained from the videos of `data` with
+  the settings `section` (the config section `name`: 'savi', 'dvae',
+  'steve', ...) and `seed`."""
+  return plain({'seed': seed, 'data': shaping(data), name: shaping(section)})
+
+
+def slots_fields(seed: int, extraction: dict[str, Any]) -> dict[str, Any]:
+  """What shapes extracted slots besides the slot model that made them: the
+  extraction settings (all but which splits) and the seed (stochastic SAVi
+  samples with it)."""
+  extraction = dict(extraction)
+  extraction.pop('splits', None)
+  return plain({'seed': seed, 'extraction': extraction})
+
+
+def fingerprint(fields: dict[str, Any]) -> str:
+  return hashlib.sha256(json.dumps(fields, sort_keys=True).encode()
+                        ).hexdigest()[:16]
+
+
+def flat_differences(old: Any, new: Any, prefix: str = '') -> list[str]:
+  """['savi.learning_rate: 0.0002 -> 0.001', ...] between nested dicts (a
+  field of `ADDED_FIELDS` absent from `old` at its old value is none)."""
+  if isinstance(old, dict) and isinstance(new, dict):
+    out = []
+    for key in sorted(set(old) | set(new)):
+      name = f'{prefix}.{key}' if prefix else key
+      if key not in old:
+        if name in ADDED_FIELDS and (ADDED_FIELDS[name] is None
+                                     or plain(new[key]) == ADDED_FIELDS[name]):
+          continue
+        out.append(f'{name}: (absent) -> {new[key]!r}')
+      elif key not in new:
+        out.append(f'{name}: {old[key]!r} -> (absent)')
+      else:
+        out += flat_differences(old[key], new[key], name)
+    return out
+  return [] if old == new else [f'{prefix}: {old!r} -> {new!r}']
+
+
+# --------------------------------------------------------------------------
+# identity.json
+# --------------------------------------------------------------------------
+
+
+def read_identity(stage_directory: str) -> dict[str, Any] | None:
+  path = os.path.join(stage_directory, IDENTITY_FILE)
+  if not os.path.exists(path):
+    return None
+  return read_json(path, fix=f'Delete {os.path.dirname(path)} to retrain '
+                   'that stage.')
+
+
+def new_identity(fields: dict[str, Any],
+                 parent: dict[str, Any] | None = None) -> dict[str, Any]:
+  return {'run_id': uuid.uuid4().hex[:12], 'fingerprint': fingerprint(fields),
+          'fields': fields, 'parent': parent,
+          'created': time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime())}
+
+
+def write_identity(stage_directory: str, identity: dict[str, Any]) -> None:
+  if jax.process_index() == 0:
+    write_json_atomic(os.path.join(stage_directory, IDENTITY_FILE), identity)
+
+
+def check_identity_fields(identity: dict[str, Any], fields: dict[str, Any],
+                          what: str, directory: str) -> None:
+  changes = flat_differences(identity['fields'], fields)
+  if changes:
+    raise UserError(
+        f'the {what} in {directory} was made with other settings '
+        f'({"; ".join(changes[:8])}'
+        f'{f"; and {len(changes) - 8} more" if len(changes) > 8 else ""}). '
+        'Use the settings it was made with, or another --workdir.')
+
+
+def checked_identity(directory: str, fields: dict[str, Any], what: str,
+                     train_command: str) -> dict[str, Any]:
+  """The identity of the stage in `directory`, made with `fields`.
+
+  Raises:
+    MissingInputError: the stage has no identity (never trained); the
+      message names `train_command`.
+    UserError: it was trained with other settings (the fields are listed).
+  """
+  identity = read_identity(directory)
+  if identity is None:
+    raise MissingInputError(
+        f'no trained {what} in {directory}. Train it first: {train_command}')
+  check_identity_fields(identity, fields, what, directory)
+  return identity
+
+
+def parent_of(identity: dict[str, Any], step: int,
+              name: str) -> dict[str, Any]:
+  """What is made from the model `name` ('savi', 'dvae', 'steve') of
+  `identity` at `step` records as its parent: {name_run_id, name_step}."""
+  return {f'{name}_run_id': identity['run_id'], f'{name}_step': int(step)}
+
+
+def start_stage(directory: str, fields: dict[str, Any],
+                parent: dict[str, Any] | None, what: str) -> dict[str, Any]:
+  """The stage's identity, stamped before training starts. A stage made with
+  other settings or from another parent is stale: set aside, then retrained
+  from scratch (so nothing mixes)."""
+  identity = read_identity(directory)
+  has_checkpoints = os.path.isdir(os.path.join(directory, 'checkpoints')) and (
+      os.listdir(os.path.join(directory, 'checkpoints')))
+  if identity is None and has_checkpoints:
+    # A workdir from before identities: its checkpoints are the ones it was
+    # trained with under config.json (which the settings check accepted).
+    logger.warning('%s in %s has no identity.json (older version); '
+                   'stamping one for the current settings', what, directory)
+  elif identity is not None:
+    changes = flat_differences(identity['fields'], fields)
+    if identity.get('parent') != parent:
+      changes.append(f'trained on {identity.get("parent")}, its parent is '
+                     f'now {parent}')
+    if not changes:
+      return identity
+    moved = set_aside(directory, identity)
+    logger.warning('%s in %s is stale (%s): set aside as %s and retrained',
+                   what, directory, '; '.join(changes), moved)
+  identity = new_identity(fields, parent)
+  write_identity(directory, identity)
+  return identity
+
+
+def set_aside(stage_directory: str, identity: dict[str, Any] | None) -> str:
+  """Renames a stale stage folder out of the way (never deletes results)."""
+  tag = identity['run_id'] if identity else uuid.uuid4().hex[:12]
+  target = f'{stage_directory}.stale-{tag}'
+  if jax.process_index() == 0:
+    os.replace(stage_directory, target)
+  return target
+
+
+# --------------------------------------------------------------------------
+# model_config.json: the fields that shape a checkpoint's parameters
+# --------------------------------------------------------------------------
+
+
+def write_model_config(directory: str, fields: dict[str, Any]) -> None:
+  if jax.process_index() == 0:
+    write_json_atomic(os.path.join(directory, MODEL_CONFIG_FILE), fields)
+
+
+def check_model_config(directory: str, fields: dict[str, Any],
+                       what: str) -> None:
+  """Fails clearly when a checkpoint was trained with another architecture."""
+  path = os.path.join(directory, MODEL_CONFIG_FILE)
+  if not os.path.exists(path):
+    return
+  saved = read_json(path)
+  differences = [
+      f'{key}: checkpoint {saved.get(key)!r} vs config {fields.get(key)!r}'
+      for key in sorted(set(saved) | set(fields))
+      if saved.get(key) != fields.get(key)]
+  if differences:
+    raise ConfigError(
+        f'the {what} checkpoint in {directory} was trained with a different '
+        'model configuration: ' + '; '.join(differences) +
+        '. Use the config it was trained with, or another --workdir.')
