@@ -38,8 +38,9 @@ import numpy as np  # noqa: E402
 
 import clevrer  # noqa: E402  (configs/clevrer.py)
 import obj3d  # noqa: E402  (configs/obj3d.py)
-from slotformer_jax import models  # noqa: E402
 from slotformer_jax.modules import platform  # noqa: E402
+from slotformer_jax import dynamics as dynamics_lib
+from slotformer_jax.slot_models.savi import build_decoder
 
 FORMS = (platform.CPU, platform.ACCELERATOR)
 
@@ -50,7 +51,7 @@ def decoder_case(num_images: int = 4 * 6):
   rng = np.random.default_rng(0)
   slots = jnp.asarray(rng.normal(size=(
       num_images, config.savi.num_slots, config.savi.slot_size)), jnp.float32)
-  base = models.build_decoder(config)
+  base = build_decoder(config.savi.decoder, config.data.resolution)
   params = base.init(jax.random.key(0), slots[:1])['params']
   runs = {}
   for form in FORMS:
@@ -73,7 +74,7 @@ def slotformer_case(batch_size: int = 32):
       batch_size, dyn.burn_in + dyn.rollout, config.savi.num_slots,
       config.savi.slot_size)), jnp.float32)
   burn_in, future = slots[:, :dyn.burn_in], slots[:, dyn.burn_in:]
-  base = models.build_slotformer(config)
+  base = dynamics_lib.build(config.slotformer, 'slotformer')
   params = base.init(jax.random.key(0), burn_in[:1], dyn.rollout)['params']
   runs = {}
   for form in FORMS:

@@ -48,12 +48,14 @@ import clevrer  # noqa: E402  (configs/clevrer.py)
 import obj3d  # noqa: E402  (configs/obj3d.py)
 from slotformer_jax import inference  # noqa: E402
 from slotformer_jax import losses  # noqa: E402
-from slotformer_jax import models  # noqa: E402
 from slotformer_jax.evaluation import metrics  # noqa: E402
 from slotformer_jax.train import optim  # noqa: E402
 from slotformer_jax.runtime import precision  # noqa: E402
 from slotformer_jax.train import steps  # noqa: E402
 from slotformer_jax.train.state import TrainState  # noqa: E402
+from slotformer_jax import dynamics as dynamics_lib
+from slotformer_jax.slot_models.savi import build_decoder
+from slotformer_jax.slot_models.savi import build_savi
 
 # Seconds per call of the official PyTorch code (torch 2.13 CPU, 2 threads)
 # on the same shapes, as measured on an idle 2-core Intel Xeon
@@ -96,7 +98,7 @@ def train_step_runner(loss_fn, params, batch, frozen, stage_config):
 
 def savi_case(dtype, batch_size=4, clip_length=6):
   config = clevrer.get_config()
-  model = models.build_savi(config)
+  model = build_savi(config.savi, config.data.resolution)
   video = np.random.default_rng(0).integers(
       0, 256, (batch_size, clip_length, *config.data.resolution, 3), np.uint8)
   params = steps.init_params(model, jax.random.key(0),
@@ -111,7 +113,7 @@ def savi_case(dtype, batch_size=4, clip_length=6):
 def decoder_case(dtype, num_images=4 * 6):
   """Forward + backward (parameters and slots) of the CLEVRER decoder."""
   config = clevrer.get_config()
-  decoder = models.build_decoder(config)
+  decoder = build_decoder(config.savi.decoder, config.data.resolution)
   slots = jnp.asarray(np.random.default_rng(0).normal(size=(
       num_images, config.savi.num_slots, config.savi.slot_size)), jnp.float32)
   params = decoder.init(jax.random.key(0), slots[:1])['params']
@@ -129,8 +131,8 @@ def slotformer_case(dtype, batch_size, image_loss_weight):
   config = obj3d.get_config()
   config.slotformer.image_loss_weight = image_loss_weight
   dyn = config.slotformer
-  model = models.build_slotformer(config)
-  decoder = models.build_decoder(config)
+  model = dynamics_lib.build(config.slotformer, 'slotformer')
+  decoder = build_decoder(config.savi.decoder, config.data.resolution)
   length = dyn.burn_in + dyn.rollout
   rng = np.random.default_rng(0)
   batch = {'slots': rng.normal(size=(batch_size, length, config.savi.num_slots,
@@ -152,7 +154,7 @@ def slotformer_case(dtype, batch_size, image_loss_weight):
 
 def _rollout_inputs(batch_size):
   config = obj3d.get_config()
-  model = models.build_slotformer(config)
+  model = dynamics_lib.build(config.slotformer, 'slotformer')
   history = jnp.asarray(np.random.default_rng(0).normal(size=(
       batch_size, config.slotformer.burn_in, config.savi.num_slots,
       config.savi.slot_size)), jnp.float32)
@@ -169,7 +171,7 @@ def rollout_case(dtype, batch_size=8, num_steps=44):
 
 def rollout_decode_case(dtype, batch_size=8, num_steps=44):
   config, model, history, params = _rollout_inputs(batch_size)
-  decoder = models.build_decoder(config)
+  decoder = build_decoder(config.savi.decoder, config.data.resolution)
   decoder_params = decoder.init(jax.random.key(1), history[:1, 0])['params']
 
   def rollout_and_decode(params, decoder_params, history):

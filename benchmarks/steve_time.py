@@ -34,12 +34,13 @@ import numpy as np
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), '..', 'configs'))
 
 import physion  # noqa: E402  (configs/physion.py)
-from slotformer_jax import models  # noqa: E402
 from slotformer_jax import losses  # noqa: E402
 from slotformer_jax.slot_models import steve as steve_slots  # noqa: E402
 from slotformer_jax.train import optim  # noqa: E402
 from slotformer_jax.train import steps  # noqa: E402
 from slotformer_jax.train.state import TrainState  # noqa: E402
+from slotformer_jax.slot_models.steve import build_steve
+from slotformer_jax.slot_models.steve import build_dvae
 
 
 def timed(compiled, args, repeats):
@@ -65,7 +66,7 @@ def memory_mib(compiled) -> str:
 
 
 def steve_train_case(config, batch_size, clip_length, repeats):
-  model = models.build_steve(config)
+  model = build_steve(config.steve, config.data.resolution, config.dvae.vocab_size)
   height, width = model.token_grid
   rng = np.random.default_rng(0)
   batch = {
@@ -89,9 +90,9 @@ def steve_train_case(config, batch_size, clip_length, repeats):
 
 
 def generation_cases(config, batch_size, repeats, recompute_steps):
-  steve = models.build_steve(config)
+  steve = build_steve(config.steve, config.data.resolution, config.dvae.vocab_size)
   decoder = steve_slots.token_decoder(config)
-  dvae = models.build_dvae(config)
+  dvae = build_dvae(config.dvae)
   grid = steve.token_grid
   slots = jax.random.normal(jax.random.key(1), (batch_size, steve.num_slots,
                                                 steve.slot_size))

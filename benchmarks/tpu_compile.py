@@ -10,9 +10,9 @@ Each row is one ahead-of-time compile (`.lower(...).compile()` over the
 compile-only devices of `jax.experimental.topologies`) of a step the
 project runs, built by the project's own code:
 
-  savi / dvae / steve  the stage-1 train step: the `Stage` of
-                       `slot_models.savi.savi_stage` / `steve.dvae_stage` /
-                       `steve.steve_stage`, jitted by `trainer.jit_update`
+  savi / dvae / steve  the stage-1 train step: the `Stage` of the slot
+                       model's part (`stages.stage1.part_stage`), jitted by
+                       `trainer.jit_update`
                        (what `trainer.fit` runs: batch on 'data', state and
                        frozen parameters replicated, the state donated);
   slotformer           the dynamics train step of `stages.dynamics.
@@ -84,13 +84,16 @@ from jax.sharding import Mesh  # noqa: E402
 from jax.sharding import NamedSharding  # noqa: E402
 
 from slotformer_jax import files  # noqa: E402
-from slotformer_jax import models  # noqa: E402
 from slotformer_jax import slot_models  # noqa: E402
+from slotformer_jax import dynamics as dynamics_lib  # noqa: E402
+from slotformer_jax.config.sections import SLOTFORMER  # noqa: E402
 from slotformer_jax.data import vqa as vqa_data  # noqa: E402
 from slotformer_jax.evaluation import evaluate  # noqa: E402
-from slotformer_jax.slot_models import savi as savi_lib  # noqa: E402
-from slotformer_jax.slot_models import steve as steve_lib  # noqa: E402
+from slotformer_jax.run import Run  # noqa: E402
+from slotformer_jax.slot_models import chain  # noqa: E402
 from slotformer_jax.stages import dynamics  # noqa: E402
+from slotformer_jax.slot_models.steve import build_steve  # noqa: E402
+from slotformer_jax.stages import stage1  # noqa: E402
 from slotformer_jax.stages import vqa as vqa_stages  # noqa: E402
 from slotformer_jax.tasks import contact  # noqa: E402
 from slotformer_jax.tasks import phyre_planning  # noqa: E402
@@ -198,7 +201,8 @@ def batch_spec(config, step: str, batch_size: int) -> dict[str, Any]:
     return {'video': u8(batch_size, 1, *frame),
             'gumbel_temperature': f32(batch_size)}
   if step == 'steve':
-    height, width = models.build_steve(config).token_grid
+    height, width = build_steve(config.steve, config.data.resolution,
+                                config.dvae.vocab_size).token_grid
     length = config.steve.clip_length
     return {'video': u8(batch_size, length, *frame),
             'tokens': jax.ShapeDtypeStruct((batch_size, length,
@@ -251,31 +255,30 @@ def standin_vocabulary() -> vqa_data.Vocabulary:
 def readout_model(config) -> tuple[Any, int]:
   """(the readout head of `config`'s task, frames per example of its
   'rollout' condition)."""
-  if config.get('task') == 'contact':
+  if config.task == 'contact':
     # The whole clip, cut to readout.video_len when set (the embedded
     # data's videos have data.num_frames).
-    frames = (config.readout.get('video_len')
-              or config.data.get('num_frames'))
+    frames = config.readout.video_len or config.data.get('num_frames')
     if not frames:
       raise ValueError('neither readout.video_len nor data.num_frames is '
                        'set: the frames per example are only known from '
                        'the data')
     slot_size = slot_models.get(config).slot_shape[1]
-    return contact.build_readout(config, slot_size), int(frames)
-  if (config.get('task') == 'planning'
-      and config.readout.get('candidates') == 'rendered'):
-    frames = len(phyre_rendered.selected_steps(config))
+    return contact.build_readout(config.readout, slot_size), int(frames)
+  if config.task == 'planning' and config.data.name == 'phyre':
+    frames = len(phyre_rendered.selected_steps(config.readout))
     return phyre_rendered.build_classifier(
-        config, phyre_rendered.ROLLOUT, frames), frames
-  if config.get('task') == 'planning':  # features [1 + rollout_steps, ...]
-    return (phyre_planning.build_classifier(config, phyre_planning.ROLLOUT),
+        config.readout, phyre_rendered.ROLLOUT, frames), frames
+  if config.task == 'planning':  # features [1 + rollout_steps, ...]
+    return (phyre_planning.build_classifier(config.readout,
+                                            phyre_planning.ROLLOUT),
             1 + config.readout.rollout_steps)
-  raise ValueError(f"no readout step for task {config.get('task')!r}")
+  raise ValueError(f'no readout step for task {config.task!r}')
 
 
 def readout_fit_config(config) -> readout_lib.FitConfig:
   if config.task == 'contact':
-    return contact.fit_config(config)
+    return contact.fit_config(config.readout)
   r = config.readout  # as stages/planning_rendered.py builds it
   return readout_lib.FitConfig(epochs=r.epochs, batch_size=r.batch_size,
                                learning_rate=r.learning_rate,
@@ -300,10 +303,8 @@ def readout_program(config, mesh: Mesh) -> tuple[Any, tuple]:
 
 
 def slot_param_shapes(slot_model) -> Any:
-  if isinstance(slot_model, steve_lib.Steve):
-    return {steve_lib.NAME: slot_model.steve_param_shapes(),
-            steve_lib.DVAE_NAME: slot_model.dvae_param_shapes()}
-  return slot_model.param_shapes()
+  """{part: parameter shapes} of every part (`Loaded.params`' layout)."""
+  return {part.name: chain.param_shapes(part) for part in slot_model.parts}
 
 
 def step_program(config, step: str, mesh: Mesh) -> tuple[Any, tuple]:
@@ -313,22 +314,21 @@ def step_program(config, step: str, mesh: Mesh) -> tuple[Any, tuple]:
     return readout_program(config, mesh)
   replicated = sharding.replicated_sharding(mesh)
   batched = sharding.batch_sharding(mesh)
-  slot_model = slot_models.get(config)
-  slot_model.check_compute_dtype()
+  slot_model = Run.create(config, NOWHERE, mesh).slot_model
   batch = _place(batch_spec(config, step, batch_of(config, step)), batched)
   if step == 'eval_rollout':
     names = tuple(name for name in config.evaluation.metrics
                   if name != 'lpips' and name not in evaluate.OBJECT_METRICS)
-    run = evaluate.make_rollout_evaluator(config, mesh, names, None,
-                                          (models.SLOTFORMER,), slot_model)
-    # Only its parameter shapes are read: its own batch need not split
-    # over this slice (a 256-chip slice and SlotFormer's batch of 128).
-    dyn_stage = dynamics.dynamics_stage(
-        with_batch(config, 'slotformer', mesh.devices.size), NOWHERE, mesh,
-        models.SLOTFORMER, slot_model, slot_param_shapes(slot_model), None)
-    dynamics_params = {models.SLOTFORMER: _place(
-        jax.eval_shape(dyn_stage.init_params, jax.random.key(0)),
-        replicated)}
+    run = evaluate.make_rollout_evaluator(
+        config.evaluation, mesh, names, None,
+        {SLOTFORMER: dynamics_lib.build(config.slotformer, SLOTFORMER)},
+        slot_model, burn_in=config.slotformer.burn_in,
+        num_true=evaluate.num_true_ids(config.data.max_instances),
+        compute_dtype=config.compute_dtype)
+    # Only its parameter shapes are read (no stage is built: its batch need
+    # not split over this slice, e.g. 256 chips and a batch of 128).
+    dynamics_params = {SLOTFORMER: _place(dynamics_lib.param_shapes(
+        config.slotformer, SLOTFORMER, slot_model.slot_shape), replicated)}
     return run, (dynamics_params,
                  _place(slot_param_shapes(slot_model), replicated), batch)
   stage = train_stage(config, step, mesh)
@@ -343,18 +343,17 @@ def step_program(config, step: str, mesh: Mesh) -> tuple[Any, tuple]:
 def train_stage(config, step: str, mesh: Mesh) -> trainer.Stage:
   """The trainer's `Stage` of train step `step` (no data source: only its
   `batches` would read one)."""
-  if step == 'savi':
-    return savi_lib.savi_stage(config, NOWHERE, mesh, None)
-  if step == 'dvae':
-    return steve_lib.dvae_stage(config, NOWHERE, mesh, None)
-  if step == 'steve':
-    return steve_lib.steve_stage(config, NOWHERE, mesh, None)
+  slot_model = Run.create(config, NOWHERE, mesh).slot_model
+  if step in ('savi', 'dvae', 'steve'):
+    return stage1.part_stage(slot_model.part(step), NOWHERE, mesh, None,
+                             seed=config.seed)
   if step == 'aloe':
-    return vqa_stages.aloe_stage(config, NOWHERE, standin_vocabulary(), None)
-  slot_model = slot_models.get(config)
+    return vqa_stages.aloe_stage(config.vqa, NOWHERE, standin_vocabulary(),
+                                 slot_model.slot_shape, None)
   return dynamics.dynamics_stage(
-      config, NOWHERE, mesh, models.SLOTFORMER, slot_model,
-      slot_param_shapes(slot_model), None)
+      config.slotformer, SLOTFORMER, NOWHERE, mesh, slot_model,
+      slot_param_shapes(slot_model), None, seed=config.seed + 1,
+      compute_dtype=config.compute_dtype)
 
 
 def lowered_step(config, step: str, mesh: Mesh):
@@ -607,7 +606,8 @@ def one_row(config, name: str, step: str, dtype: str, topology: str,
           f'the {step} step computes in float32 whatever '
           'config.compute_dtype says (it applies to the slot model and '
           'dynamics steps): the same program as the float32 row')
-    slot_models.get(config).check_compute_dtype()
+    Run.create(config, NOWHERE, jax.sharding.Mesh(
+        np.array(jax.devices()[:1]), ('data',)))  # refuses a compute dtype
     if step == 'readout':
       readout_model(config)
   except Exception as error:  # pylint: disable=broad-except

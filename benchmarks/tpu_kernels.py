@@ -56,9 +56,9 @@ from jax.sharding import PartitionSpec  # noqa: E402
 import clevrer  # noqa: E402  (configs/clevrer.py)
 import obj3d  # noqa: E402  (configs/obj3d.py)
 from slotformer_jax import files  # noqa: E402
-from slotformer_jax import models  # noqa: E402
 from slotformer_jax.modules import platform  # noqa: E402
 from slotformer_jax.runtime import precision  # noqa: E402
+from slotformer_jax.slot_models.savi import build_decoder
 
 CONFIGS = {'obj3d': obj3d.get_config, 'clevrer': clevrer.get_config}
 FORMS = (platform.CPU, platform.ACCELERATOR, platform.AUTO)
@@ -81,7 +81,7 @@ def tpu_devices(topology: str) -> list:
 def decoder_step(config, kernels: str, dtype: str):
   """(loss_and_grads, params, slots, target): the decoder forward +
   backward of one SAVi step at the config's global batch, abstract."""
-  decoder = models.build_decoder(config).clone(kernels=kernels)
+  decoder = build_decoder(config.savi.decoder, config.data.resolution).clone(kernels=kernels)
   savi = config.savi
   height, width = config.data.resolution
   slots = jax.ShapeDtypeStruct(

@@ -25,11 +25,11 @@ import time
 
 import numpy as np
 
-from slotformer_jax import slot_models
-from slotformer_jax import workdir as workdir_lib
+from slotformer_jax import stages
 from slotformer_jax.evaluation import evaluate
-from slotformer_jax.stages import extract
+from slotformer_jax.run import Run
 from slotformer_jax.runtime import sharding
+from slotformer_jax.workdir.settings import accept_config
 
 KINDS = ('learned', 'boxes')
 METRICS = ('fg_ari', 'fg_ari_per_frame', 'fg_miou_per_frame', 'ari', 'psnr')
@@ -53,24 +53,25 @@ def _config(kind: str, seed: int, steps: int):
 def run(kind: str, seed: int, steps: int, out: str) -> dict:
   config = _config(kind, seed, steps)
   workdir = os.path.join(out, f'{kind}_seed{seed}')
-  mesh = sharding.make_mesh()
-  workdir_lib.accept_config(config, workdir)
-  slot_model = slot_models.get(config)
+  run = Run.create(config, workdir)
+  mesh, slot_model = run.mesh, run.slot_model
+  accept_config(config.to_dict(), run.paths)
+  table = stages.stage_table(run)
   started = time.time()
-  slot_model.stage1['train_savi'](config, workdir, mesh)
+  table['train_savi'](run)
   train_seconds = time.time() - started
-  extract.extract_slots(config, workdir, mesh)
-  params = slot_model.load(workdir, mesh).params
+  table['extract_slots'](run)
+  params = run.stage1.params
   split = config.evaluation.split
-  source = workdir_lib.slot_source_for(config, workdir, split,
-                                       ('video', 'segmentations'))
+  source = run.slots(split, ('video', 'segmentations'))
   num_frames = config.data.num_frames
   result = {'kind': kind, 'seed': seed, 'steps': steps,
             'train_seconds': train_seconds, 'num_videos': len(source)}
   for skip in (False, True):
     config.evaluation.skip_first_frame = skip
     scores = evaluate.evaluate_slot_model(
-        config, mesh, slot_model, params, source, num_frames,
+        config.evaluation, evaluate.num_true_ids(config.data.max_instances),
+        mesh, slot_model, params, source, num_frames,
         batch_size=sharding.per_host_batch_size(
             config.evaluation.batch_size, mesh),
         fields=('slots', 'video', 'segmentations'))

@@ -38,7 +38,7 @@ def per_task_auccess(config: ml_collections.ConfigDict, workdir: str,
       config, workdir, mesh, (split,))
   out = {}
   for condition in config.readout.conditions:
-    model = phyre_planning.build_classifier(config, condition)
+    model = phyre_planning.build_classifier(config.readout, condition)
     per_seed = []
     for seed in config.readout.seeds:
       path = os.path.join(phyre_planning.planning_dir(workdir), condition,

@@ -18,8 +18,6 @@ learning a rule from the data, not of the plumbing. Needs the workdir's
 from __future__ import annotations
 
 import argparse
-import json
-import os
 import time
 
 from slotformer_jax.runtime import xla_flags
@@ -29,11 +27,11 @@ xla_flags.apply_fast_cpu_flags()
 # pylint: disable=g-import-not-at-top,wrong-import-position
 import jax
 import jax.numpy as jnp
-import ml_collections
 import numpy as np
 import optax
 
 from slotformer_jax.data import vqa_questions
+from slotformer_jax.run import Run
 from slotformer_jax.stages import vqa as vqa_stages
 from slotformer_jax.data.questions import QUESTION_TYPES
 from slotformer_jax.tasks import vqa as task
@@ -51,13 +49,12 @@ def main() -> None:
   parser.add_argument('--learning_rate', type=float, default=1e-3)
   args = parser.parse_args()
 
-  with open(os.path.join(args.workdir, 'config.json')) as f:
-    config = ml_collections.ConfigDict(json.load(f))
+  run = Run.open(args.workdir)
+  config = run.config
   config.vqa.inputs = args.inputs
   vocab = vqa_questions.vocabulary(config)
   batches = vqa_stages.question_batches(
-      config, args.workdir, 'train',
-      vqa_questions.encoded_questions(config, 'train', vocab))
+      run, 'train', vqa_questions.encoded_questions(config, 'train', vocab))
   chosen = [i for i, q in enumerate(batches.choice)
             if QUESTION_TYPES[q.question_type] == args.question_type
             ][:args.num_questions]
@@ -65,7 +62,9 @@ def main() -> None:
     raise SystemExit(f'no {args.question_type} training questions')
   batch = jax.tree.map(jnp.asarray, batches.batch(
       [], chosen, np.zeros(len(chosen), np.int64), 1, len(chosen)))
-  model, init = vqa_stages._model_and_init(config, vocab)  # pylint: disable=protected-access
+  model, init = vqa_stages.model_and_init(config.vqa, vocab,
+                                          (config.savi.num_slots,
+                                           config.savi.slot_size))
   params = {'params': init(jax.random.key(0))}
   optimizer = optax.adam(args.learning_rate)
   opt_state = optimizer.init(params)

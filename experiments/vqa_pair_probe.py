@@ -51,13 +51,13 @@ import jax.numpy as jnp
 import ml_collections
 import numpy as np
 
-from slotformer_jax import slot_models
-from slotformer_jax import models
-from slotformer_jax import workdir as workdir_lib
+from slotformer_jax.run import Run
+from slotformer_jax.workdir.paths import Paths
 from slotformer_jax.data import clevrer_like
 from slotformer_jax.data.slots import SlotSource
 from slotformer_jax.data.sources import resolve_data_dir
 from slotformer_jax.runtime import sharding
+from slotformer_jax.slot_models.savi import build_decoder
 
 _QUESTION_FILES = {'train': 'train', 'val': 'validation', 'test': 'test'}
 INPUTS = ('observed', 'copy-last', 'rollout', 'future')
@@ -145,8 +145,7 @@ def _split_rows(config, workdir, root, split, decode, probe):
   """Per option: features of every input; and the train slots -> centres."""
   observed = config.vqa.video_length
   frame = observed - 1
-  source = SlotSource(workdir_lib.slots_dir(
-      workdir_lib.stage1_workdir(config, workdir), split))
+  source = SlotSource(Paths.of(workdir, config.stage1_workdir).slots(split))
   with_rollout = np.load(os.path.join(workdir, 'vqa', 'slots', f'{split}.npy'),
                          mmap_mode='r')
   length = with_rollout.shape[1]
@@ -202,11 +201,10 @@ def main() -> None:
       clevrer_like.config_from_data_config(config.data),
       resolve_data_dir(config.data.get('data_dir', None))))
   probe = _benchmark('vqa_slot_probe')
-  mesh = sharding.make_mesh()
-  loaded = slot_models.get(config).load(args.workdir, mesh)
-  params, step = loaded.params, loaded.step
+  loaded = Run.open(args.workdir).stage1
+  params, step = loaded.params['savi'], loaded.step
   decoder_params = sharding.gather_to_host(params)['decoder']
-  decoder = models.build_decoder(config)
+  decoder = build_decoder(config.savi.decoder, config.data.resolution)
 
   @jax.jit
   def decode(slots):

@@ -39,14 +39,14 @@ import jax.numpy as jnp
 import ml_collections
 import numpy as np
 
-from slotformer_jax import slot_models
-from slotformer_jax import models
-from slotformer_jax import workdir as workdir_lib
+from slotformer_jax.run import Run
+from slotformer_jax.workdir.paths import Paths
 from slotformer_jax.data import clevrer_like
 from slotformer_jax.data.convert.synthetic import COLORS, SHAPES
 from slotformer_jax.data.slots import SlotSource
 from slotformer_jax.data.sources import resolve_data_dir
 from slotformer_jax.runtime import sharding
+from slotformer_jax.slot_models.savi import build_decoder
 
 
 def assign_slots(winner: np.ndarray, segmentation: np.ndarray,
@@ -102,8 +102,7 @@ def ridge_r2(x_train, y_train, x_test, y_test, l2: float = 1.0):
 
 
 def _split(config, workdir, root, split, frame, decode):
-  source = SlotSource(workdir_lib.slots_dir(
-      workdir_lib.stage1_workdir(config, workdir), split))
+  source = SlotSource(Paths.of(workdir, config.stage1_workdir).slots(split))
   segmentation = np.load(os.path.join(root, split, 'segmentations.npy'),
                          mmap_mode='r')[:, frame]
   boxes = np.load(os.path.join(root, split, 'boxes.npy'), mmap_mode='r')
@@ -148,11 +147,10 @@ def main() -> None:
   root = str(clevrer_like.dataset_dir(
       clevrer_like.config_from_data_config(config.data),
       resolve_data_dir(config.data.get('data_dir', None))))
-  mesh = sharding.make_mesh()
-  loaded = slot_models.get(config).load(args.workdir, mesh)
-  params, step = loaded.params, loaded.step
+  loaded = Run.open(args.workdir).stage1
+  params, step = loaded.params['savi'], loaded.step
   decoder_params = sharding.gather_to_host(params)['decoder']
-  decoder = models.build_decoder(config)
+  decoder = build_decoder(config.savi.decoder, config.data.resolution)
 
   @jax.jit
   def decode(slots):

@@ -53,7 +53,6 @@ xla_flags.apply_fast_cpu_flags()
 import jax
 import numpy as np
 
-from slotformer_jax import models
 from slotformer_jax.data import clevrer_like
 from slotformer_jax.data import questions as question_generator
 from slotformer_jax.data import vqa as vqa_data
@@ -206,8 +205,8 @@ def train_and_evaluate(config: Any, train: SplitData, evaluation: SplitData,
                        ) -> dict[str, float]:
   """Trains Aloe for ``config.vqa.num_train_steps`` and scores it."""
   vqa = config.vqa
-  model = models.build_aloe(config, len(vocab.questions), len(vocab.answers),
-                            num_slots=config.savi.num_slots)
+  model = task.build_aloe(config.vqa, len(vocab.questions),
+                        len(vocab.answers), num_slots=config.savi.num_slots)
   train_batches = train.batches(vqa)
   stream = train_batches.train_batches(vqa.open_batch_size,
                                        vqa.choice_batch_size, seed=seed)

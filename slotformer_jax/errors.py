@@ -17,3 +17,8 @@ class MissingInputError(UserError, FileNotFoundError):
 
 class ConfigError(UserError, ValueError):
   """A config value that cannot work."""
+
+
+class CommandLineError(UserError):
+  """A flag value that names nothing (e.g. a --mode the config's stage
+  table does not have): exit status 2, as absl's own flag errors."""

@@ -33,7 +33,7 @@ import tqdm
 from slotformer_jax import stages
 from slotformer_jax.config import checks as config_checks
 from slotformer_jax.data.data_dir import default_data_dir
-from slotformer_jax.data.sources import get_video_source
+from slotformer_jax.errors import CommandLineError
 from slotformer_jax.errors import UserError
 from slotformer_jax.files import append_line_atomic
 from slotformer_jax.run import Run
@@ -152,11 +152,7 @@ def main(argv):
   run = Run.create(config, workdir)
   selected = stages.selected_stages(run, mode)
   # Every check before any work: a bad value costs seconds, not a stage.
-  config_checks.validate(
-      config, selected, num_devices=jax.device_count(),
-      num_processes=jax.process_count(),
-      slot_model_problems=run.slot_model.check_config(frozenset(selected)),
-      video_length=lambda split: _video_length(config, split))
+  run.check(selected)
   global _watchdog
   if jax.process_count() > 1:
     _watchdog = processes.PeerWatchdog(
@@ -172,18 +168,6 @@ def main(argv):
 
 
 _watchdog: processes.PeerWatchdog | None = None
-
-
-def _video_length(config, split: str) -> int | None:
-  """Frames per video when known without making data: the synthetic
-  config's value, or the first video of data already there."""
-  if config.data.name == 'synthetic':
-    return int(config.data.num_frames)
-  try:
-    source = get_video_source(config.data, split)
-    return len(source[0]['video']) if len(source) else None
-  except Exception:  # pylint: disable=broad-except
-    return None  # missing data is reported by the stage with its fix
 
 
 def _run(run: Run, selected: tuple[str, ...]) -> None:
@@ -240,6 +224,10 @@ def run_main(argv: list[str] | None = None) -> None:
   except Preempted as error:
     print(f'preempted: {_one_line(error)}', file=sys.stderr)
     status = 128 + error.signal
+    sys.exit(status)
+  except CommandLineError as error:
+    print(f'error: {_one_line(error)}', file=sys.stderr)
+    status = 2
     sys.exit(status)
   except UserError as error:
     print(f'error: {_one_line(error)}', file=sys.stderr)

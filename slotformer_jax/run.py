@@ -27,6 +27,7 @@ import ml_collections
 
 from slotformer_jax import dynamics as dynamics_lib
 from slotformer_jax import slot_models
+from slotformer_jax.config import checks as config_checks
 from slotformer_jax.config.sections import dynamics_section
 from slotformer_jax.data.slots import SlotSource
 from slotformer_jax.data.sources import VideoSource
@@ -85,6 +86,30 @@ class Run:
       raise MissingInputError(f'{workdir} has no config.json: not a run')
     config = ml_collections.ConfigDict(read_json(path))
     return cls.create(config, workdir, mesh)
+
+  def check(self, stages: tuple[str, ...], *, num_devices: int | None = None,
+            num_processes: int | None = None) -> None:
+    """Every problem of the config for `stages` (and of the slot model's own
+    settings) as one ConfigError, before any work: nothing is made, trained
+    or written. Video lengths are read from data already there."""
+
+    def video_length(split: str) -> int | None:
+      if self.config.data.name == 'synthetic':
+        return int(self.config.data.num_frames)
+      try:
+        source = self.videos(split)
+        return len(source[0]['video']) if len(source) else None
+      except Exception:  # pylint: disable=broad-except
+        return None  # missing data: the stage that reads it says how to fix
+
+    config_checks.validate(
+        self.config, stages,
+        num_devices=(jax.device_count() if num_devices is None
+                     else num_devices),
+        num_processes=(jax.process_count() if num_processes is None
+                       else num_processes),
+        slot_model_problems=self.slot_model.check_config(frozenset(stages)),
+        video_length=video_length)
 
   # ---- who this process is ------------------------------------------------
 

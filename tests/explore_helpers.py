@@ -7,7 +7,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from pipeline_helpers import micro_config
-from slotformer_jax import models
+from slotformer_jax import dynamics
+from slotformer_jax.config.sections import SLOT_LSTM
+from slotformer_jax.config.sections import SLOTFORMER
+from slotformer_jax.config.sections import dynamics_section
 from slotformer_jax.evaluation import explore
 from slotformer_jax.slot_models.savi import Savi
 
@@ -29,12 +32,13 @@ def micro_explorer(data_dir):
   rngs = {name: jax.random.key(i) for i, name in
           enumerate(('params', 'sample', 'dropout'))}
   clip = jnp.zeros((1, config.savi.clip_length, height, width, 3))
-  slot_params = slot_model.model.init(rngs, clip)['params']
+  slot_params = {'savi': slot_model.model.init(rngs, clip)['params']}
   history = jnp.zeros((1, burn_in, num_slots, slot_size))
-  names = (models.SLOTFORMER, models.SLOT_LSTM)
+  names = (SLOTFORMER, SLOT_LSTM)
+  modules = {name: dynamics.build(dynamics_section(config, name), name)
+             for name in names}
   dynamics_params = {
-      name: models.build_dynamics(config, name).init(
-          jax.random.key(3 + i), history, 2)['params']
+      name: modules[name].init(jax.random.key(3 + i), history, 2)['params']
       for i, name in enumerate(names)}
   rng = np.random.default_rng(0)
   slots = rng.normal(size=(NUM_VIDEOS, frames, num_slots, slot_size)).astype(
@@ -43,7 +47,11 @@ def micro_explorer(data_dir):
                        dtype=np.uint8)
   segmentation = rng.integers(0, config.data.max_instances + 1,
                               (NUM_VIDEOS, frames, height, width))
-  explorer = explore.Explorer(config, slot_model, names)
+  explorer = explore.Explorer(
+      modules, slot_model, burn_in=burn_in,
+      rollout=config.evaluation.rollout_steps,
+      num_true=config.data.max_instances + 1,
+      background_threshold=config.evaluation.background_threshold)
   return config, slot_model, explorer, (dynamics_params, slot_params, slots,
                                         video, segmentation)
 
@@ -54,7 +62,11 @@ def write_micro_page(directory, data_dir):
   out = jax.device_get(explorer(*args))
   identity = {'savi': {'run_id': 'test', 'step': 0}}
   data = explore.page_data(
-      config, out, args[3], list(range(NUM_VIDEOS)), label=slot_model.label,
+      out, args[3], list(range(NUM_VIDEOS)), slot_model=slot_model,
+      title=f'{config.data.name}: {slot_model.label} + SlotFormer',
+      burn_in=config.slotformer.burn_in,
+      rollout=config.evaluation.rollout_steps,
+      split=config.evaluation.split, explore_config=config.explore,
       identity=identity, curves={'psnr': {'SlotFormer': [20.0, 19.0, None]}},
       curves_note='test curves', seconds=0.0)
   return explore.write_page(str(directory), data), data

@@ -5,6 +5,10 @@ import importlib.util
 import os
 
 from slotformer_jax import stages
+from slotformer_jax.run import Run
+from slotformer_jax.runtime import sharding
+from slotformer_jax.workdir.paths import Paths
+from slotformer_jax.workdir.settings import accept_config
 
 CONFIGS = os.path.join(os.path.dirname(__file__), '..', 'configs')
 SLOT_MODELS = ('savi', 'steve')
@@ -52,8 +56,39 @@ def micro_config(slot_model, data_dir):
 
 
 def run_stages(config, workdir, mesh, names=None):
-  """Runs `names` (default: every stage of `--mode=all`) in table order;
+  """Runs `names` (default: every stage of `--mode=all`) in table order,
+  as main does (one Run, its loaded models forgotten after each stage);
   returns {name: what the stage returned}."""
-  table = stages.stage_table(config)
-  names = names or stages.selected_stages(config, 'all')
-  return {name: table[name](config, workdir, mesh) for name in names}
+  run = Run.create(config, str(workdir), mesh)
+  table = stages.stage_table(run)
+  names = names or stages.selected_stages(run, 'all')
+  out = {}
+  for name in names:
+    out[name] = table[name](run)
+    run.forget()
+  return out
+
+
+def run_stage(config, workdir, mesh, name):
+  """One stage of `config` on `workdir` (what it returns)."""
+  return run_stages(config, workdir, mesh, [name])[name]
+
+
+def accept(config, workdir, **kwargs):
+  """`settings.accept_config` of `config` (a ConfigDict or a plain dict)
+  on `workdir`, as main calls it."""
+  settings = config.to_dict() if hasattr(config, 'to_dict') else config
+  return accept_config(settings, Paths.of(str(workdir)), **kwargs)
+
+
+def slots_of(config, workdir, split, video_fields=()):
+  """The extracted slots of `split` with `video_fields`, as stages read
+  them."""
+  return Run.create(config, str(workdir), sharding.make_mesh()).slots(
+      split, tuple(video_fields))
+
+
+def check(config, stages, **kwargs):
+  """Every check main runs before any work (`Run.check`)."""
+  Run.create(config, '/nonexistent/run', sharding.make_mesh()).check(
+      tuple(stages), **kwargs)

@@ -14,6 +14,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
+from slotformer_jax.errors import CommandLineError
 from slotformer_jax.errors import UserError
 from slotformer_jax.run import Run
 from slotformer_jax.stages import contact
@@ -83,7 +84,7 @@ def selected_stages(run: Run, mode: str) -> tuple[str, ...]:
     return tuple(m for m in table
                  if m != 'train_slot_lstm' or run.config.slot_lstm.train)
   if mode not in table:
-    raise UserError(_not_a_stage(run, mode, table))
+    raise CommandLineError(_not_a_stage(run, mode, table))
   return (mode,)
 
 

@@ -41,21 +41,24 @@ class Evaluated:
   identity: dict[str, Any]
 
 
-def evaluated(run: Run) -> Evaluated:
-  """The run's trained models for the evaluation split, checked to descend
-  from each other and from that split's slots.
+def evaluation_identity(run: Run, stage1_identity: dict[str, Any],
+                        slots_parent: dict[str, Any],
+                        dynamics_steps: dict[str, int]) -> dict[str, Any]:
+  """What an evaluation (metrics, pictures) is made from, checked: the
+  evaluation split's slots descend from the slot model (`stage1_identity`,
+  `slots_parent`: `Loaded.identity`, `Loaded.slots_parent`), and every
+  dynamics model at its step ({name: step}) was trained on those slots with
+  this config. Reads identity files only.
 
   Raises:
     UserError: something is stale or missing; the message names the stage
       to rerun.
   """
-  stage1 = run.stage1
-  dynamics = {name: run.dynamics(name) for name in trained_dynamics(run.config)}
   parent = chain.check_slots_current(
-      run.paths, run.config.evaluation.split, stage1.slots_parent,
+      run.paths, run.config.evaluation.split, slots_parent,
       run.slots_fields, run.slot_model.label)
-  identity = {**stage1.identity, 'slots': parent}
-  for name, model in dynamics.items():
+  identity = {**stage1_identity, 'slots': parent}
+  for name, step in dynamics_steps.items():
     directory = run.paths.dynamics(name)
     found = identity_lib.read_identity(directory)
     retrain = command(run.paths.root, f'train_{name}')
@@ -72,8 +75,19 @@ def evaluated(run: Run) -> Evaluated:
           f'{run.slot_model.label} {found.get("parent")}, but stage 1 is now '
           f'{parent}; evaluating would mix them. Retrain it (it is set aside '
           f'and retrained): {retrain}')
-    identity[name] = {'run_id': found['run_id'], 'step': int(model.step),
+    identity[name] = {'run_id': found['run_id'], 'step': int(step),
                       'fingerprint': found['fingerprint'], 'parent': parent}
+  return identity
+
+
+def evaluated(run: Run) -> Evaluated:
+  """The run's trained models for the evaluation split, checked to descend
+  from each other and from that split's slots (`evaluation_identity`)."""
+  stage1 = run.stage1
+  dynamics = {name: run.dynamics(name) for name in trained_dynamics(run.config)}
+  identity = evaluation_identity(
+      run, stage1.identity, stage1.slots_parent,
+      {name: model.step for name, model in dynamics.items()})
   return Evaluated(stage1=stage1, dynamics=dynamics, identity=identity)
 
 

@@ -14,7 +14,7 @@ writes nothing. Only the lead host writes.
 from __future__ import annotations
 
 import os
-from typing import Any
+from collections.abc import Mapping
 
 import ml_collections
 import numpy as np

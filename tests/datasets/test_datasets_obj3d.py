@@ -23,6 +23,8 @@ from slotformer_jax.data import pipeline
 from slotformer_jax.data.convert import prepare
 from slotformer_jax.data import sources
 from slotformer_jax.data.convert import writer
+from pipeline_helpers import slots_of
+from pipeline_helpers import run_stage
 
 FRAMES = 10   # frames per fixture video (OBJ3D: 100)
 KEEP = 6      # --num_frames (OBJ3D: the first 50)
@@ -299,22 +301,18 @@ def test_config_fields_select_conversion_and_channel_order(converted,
 
 def test_obj3d_config_runs_the_pipeline_on_converted_data(converted, tmp_path):
   # Imported here: the other tests need no JAX.
-  from slotformer_jax.slot_models import savi as savi_slots  # pylint: disable=g-import-not-at-top
-  from slotformer_jax.stages import dynamics  # pylint: disable=g-import-not-at-top
-  from slotformer_jax.stages import extract  # pylint: disable=g-import-not-at-top
-  from slotformer_jax import workdir as workdir_lib  # pylint: disable=g-import-not-at-top
   from slotformer_jax.runtime import sharding  # pylint: disable=g-import-not-at-top
   _, data_dir = converted
   config = tiny_obj3d_config(data_dir)
   workdir = str(tmp_path / 'run')
   mesh = sharding.make_mesh()
-  savi_slots.train_savi(config, workdir, mesh)
-  extract.extract_slots(config, workdir, mesh)
+  run_stage(config, workdir, mesh, 'train_savi')
+  run_stage(config, workdir, mesh, 'extract_slots')
   for split, count in (('train', 4), ('val', 2), ('test', 1)):
-    source = workdir_lib.slot_source_for(config, workdir, split, ('video',))
+    source = slots_of(config, workdir, split, ('video',))
     assert len(source) == count
     item = source[0]
     assert item['slots'].shape == (KEEP, 3, 16)
     assert item['video'].shape == (KEEP, RES, RES, 3)
-  dynamics.train_slotformer(config, workdir, mesh)
+  run_stage(config, workdir, mesh, 'train_slotformer')
   assert os.listdir(os.path.join(workdir, 'slotformer', 'checkpoints'))

@@ -12,8 +12,8 @@ from explore_helpers import NUM_VIDEOS
 from explore_helpers import micro_explorer
 from pipeline_helpers import micro_config
 from slotformer_jax import inference
-from slotformer_jax import models
-from slotformer_jax import workdir as workdir_lib
+from slotformer_jax.workdir.paths import Paths
+from slotformer_jax.workdir.settings import accept_config
 from slotformer_jax.evaluation import explore
 from slotformer_jax.modules.decoders import SpatialBroadcastDecoder
 from slotformer_jax.modules.decoders import composite
@@ -172,9 +172,9 @@ def test_explorer_is_jitted_once_per_shape_and_matches_the_rollouts(tmp_path):
   assert out['counterfactual'].shape == (NUM_VIDEOS, 2 * num_slots, frames,
                                          height, width, 3)
   # The factual row is the evaluation's rollout, decoded.
-  slotformer = models.build_slotformer(config)
   future = inference.rollout_slots(dynamics_params['slotformer'],
-                                   slots[:, :burn_in], model=slotformer,
+                                   slots[:, :burn_in],
+                                   model=explorer.slotformer,
                                    num_steps=rollout)
   whole = jnp.concatenate([slots[:, :burn_in], future], axis=1)
   np.testing.assert_allclose(out['methods']['slotformer'],
@@ -202,18 +202,20 @@ def test_explorer_is_jitted_once_per_shape_and_matches_the_rollouts(tmp_path):
 def test_explore_settings_never_make_a_workdir_stale(tmp_path):
   config = micro_config('savi', tmp_path / 'data')
   workdir = str(tmp_path / 'run')
-  before_explorer = config.copy_and_resolve_references()
+  paths = Paths.of(workdir)
+  before_explorer = config.to_dict()
   del before_explorer['explore']  # a workdir made before the explorer
-  assert workdir_lib.accept_config(before_explorer, workdir) == []
-  assert workdir_lib.accept_config(config, workdir) == []
+  assert accept_config(before_explorer, paths) == []
+  assert accept_config(config.to_dict(), paths) == []
   config.explore.num_videos = 3
-  assert workdir_lib.accept_config(config, workdir) == []
+  assert accept_config(config.to_dict(), paths) == []
 
 
 def test_run_curves_only_from_the_same_models(tmp_path):
-  workdir = str(tmp_path)
+  path = str(tmp_path / 'eval' / 'metrics.json')
+  labels = {'slotformer': 'SlotFormer', 'copy_last': 'copy-last'}
   identity = {'slotformer': {'run_id': 'a', 'step': 4}}
-  curves, note = explore.run_curves(workdir, identity)
+  curves, note = explore.run_curves(path, identity, labels)
   assert curves is None and '--mode=evaluate' in note
   os.makedirs(tmp_path / 'eval')
   rollout = {'slotformer': {'psnr': {'mean': 20.0, 'per_step': [21.0, None]}},
@@ -225,6 +227,6 @@ def test_run_curves_only_from_the_same_models(tmp_path):
     with open(tmp_path / 'eval' / 'metrics.json', 'w') as f:
       json.dump({'rollout': rollout, 'identity': saved_identity,
                  'protocol': {'num_videos': 2, 'split': 'test'}}, f)
-    curves, note = explore.run_curves(workdir, identity)
+    curves, note = explore.run_curves(path, identity, labels)
     assert curves == expected, note
   assert note == 'the run: eval/metrics.json, mean over 2 test videos'

@@ -43,7 +43,12 @@ def test_attention_maps_match_the_paper_formula():
 
 def test_per_step_figure_from_metrics_json(tmp_path):
   workdir = str(tmp_path)
-  assert visualize.write_per_step_figure(workdir) is None  # not evaluated
+  metrics = os.path.join(workdir, 'eval', 'metrics.json')
+  render = os.path.join(workdir, 'render')
+  labels = {'slotformer': 'SlotFormer', 'copy_last': 'copy-last'}
+  figure = lambda: visualize.write_per_step_figure(
+      metrics, render, labels, 'savi_reconstruction')
+  assert figure() is None  # not evaluated
   os.makedirs(tmp_path / 'eval')
   rollout = {
       'slotformer': {'psnr': {'mean': 30.0, 'per_step': [31.0, 30.0, 29.0]},
@@ -52,6 +57,6 @@ def test_per_step_figure_from_metrics_json(tmp_path):
   }
   with open(tmp_path / 'eval' / 'metrics.json', 'w') as f:
     json.dump({'rollout': rollout}, f)
-  path = visualize.write_per_step_figure(workdir)
+  path = figure()
   assert path == os.path.join(workdir, 'render', 'per_step.png')
   assert os.path.getsize(path) > 1000

@@ -9,12 +9,13 @@ bfloat16 and the metrics stay close to float32's.
 import jax
 import numpy as np
 
-from slotformer_jax import models
+from slotformer_jax import dynamics as dynamics_lib
 from slotformer_jax import slot_models
+from slotformer_jax.config.sections import SLOTFORMER
 from slotformer_jax.evaluation import evaluate
-from slotformer_jax.slot_models import savi as savi_lib
-from slotformer_jax.stages import dynamics
 from slotformer_jax.runtime import sharding
+from slotformer_jax.stages import dynamics
+from slotformer_jax.stages import stage1
 from tests.pipeline_helpers import load_config
 
 
@@ -22,13 +23,13 @@ def _inputs(config):
   """Random SAVi and SlotFormer parameters and one evaluation batch."""
   slot_model = slot_models.get(config)
   mesh = sharding.make_mesh()
-  slot_params = savi_lib.savi_stage(config, '/unused', mesh,
-                                    None).init_params(jax.random.key(0))
+  part = slot_model.part('savi')
+  slot_params = {'savi': stage1.part_stage(
+      part, '/unused', mesh, None, seed=0).init_params(jax.random.key(0))}
   dyn_stage = dynamics.dynamics_stage(
-      config, '/unused', mesh, models.SLOTFORMER, slot_model, slot_params,
-      None)
-  dynamics_params = {models.SLOTFORMER:
-                     dyn_stage.init_params(jax.random.key(1))}
+      config.slotformer, SLOTFORMER, '/unused', mesh, slot_model,
+      slot_params, None, seed=1, compute_dtype=config.compute_dtype)
+  dynamics_params = {SLOTFORMER: dyn_stage.init_params(jax.random.key(1))}
   rng = np.random.default_rng(0)
   length = config.slotformer.burn_in + config.evaluation.rollout_steps
   num_slots, slot_size = slot_model.slot_shape
@@ -47,7 +48,11 @@ def test_bfloat16_rollout_evaluation_decodes_in_bfloat16():
     config.compute_dtype = dtype
     mesh, slot_model, dynamics_params, slot_params, batch = _inputs(config)
     run = evaluate.make_rollout_evaluator(
-        config, mesh, ('psnr', 'mse'), None, (models.SLOTFORMER,), slot_model)
+        config.evaluation, mesh, ('psnr', 'mse'), None,
+        {SLOTFORMER: dynamics_lib.build(config.slotformer, SLOTFORMER)},
+        slot_model, burn_in=config.slotformer.burn_in,
+        num_true=config.data.max_instances + 1,
+        compute_dtype=config.compute_dtype)
     jaxprs[dtype] = str(jax.make_jaxpr(run)(dynamics_params, slot_params,
                                             batch))
     results[dtype] = jax.tree.map(np.asarray, run(dynamics_params,

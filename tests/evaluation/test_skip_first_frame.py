@@ -3,14 +3,16 @@ without frame 0 (SAVi's MOVi convention), against sklearn."""
 
 import jax
 import jax.numpy as jnp
-import ml_collections
+
 import numpy as np
 import pytest
 from sklearn.metrics import adjusted_rand_score
 
+from slotformer_jax.config.defaults import base_config
 from slotformer_jax.errors import ConfigError
 from slotformer_jax.evaluation import evaluate
 from slotformer_jax.runtime import sharding
+from slotformer_jax.workdir.identity import ADDED_FIELDS
 
 NUM_SLOTS, T, H, W = 3, 5, 6, 6
 
@@ -56,13 +58,15 @@ def _fg_ari(video, first):
   return adjusted_rand_score(true[foreground], pred[foreground])
 
 
+NUM_TRUE = 3  # ids 0 (background), 1, 2
+
+
 def _config(skip):
-  config = ml_collections.ConfigDict()
-  config.data = ml_collections.ConfigDict({'max_instances': 2})
-  config.evaluation = ml_collections.ConfigDict(
-      {'chunk_length': 2, 'skip_first_frame': skip,
-       'miou_absent_ids': 'skip'})
-  return config
+  """The evaluation section (the defaults', 2-frame chunks)."""
+  evaluation = base_config().evaluation
+  evaluation.chunk_length = 2
+  evaluation.skip_first_frame = skip
+  return evaluation
 
 
 @pytest.mark.parametrize('skip', [False, True])
@@ -70,7 +74,7 @@ def test_fg_ari_over_the_frames_of_the_convention(skip):
   videos = _videos(np.random.default_rng(0), 5)
   mesh = sharding.make_mesh()
   results = evaluate.evaluate_slot_model(
-      _config(skip), mesh, _IdSlotModel(), {}, videos, T,
+      _config(skip), NUM_TRUE, mesh, _IdSlotModel(), {}, videos, T,
       batch_size=4, fields=('slots', 'video', 'segmentations'))
   first = 1 if skip else 0
   expected = np.mean([_fg_ari(v, first) for v in videos])
@@ -86,19 +90,22 @@ def test_fg_ari_over_the_frames_of_the_convention(skip):
 
 
 def test_default_is_every_frame():
-  """Without the field (configs from before it), every frame counts."""
+  """The default (and a workdir's config from before the field, read with
+  it: workdir/identity.py ADDED_FIELDS) counts every frame."""
   videos = _videos(np.random.default_rng(1), 4)
-  config = _config(False)
-  del config.evaluation['skip_first_frame']
+  evaluation = base_config().evaluation
+  evaluation.chunk_length = 2
+  assert ADDED_FIELDS['evaluation.skip_first_frame'] is False
   mesh = sharding.make_mesh()
   kwargs = dict(batch_size=4, fields=('slots', 'video', 'segmentations'))
-  absent = evaluate.evaluate_slot_model(config, mesh, _IdSlotModel(), {},
-                                        videos, T, **kwargs)
-  every = evaluate.evaluate_slot_model(_config(False), mesh, _IdSlotModel(),
-                                       {}, videos, T, **kwargs)
-  assert absent == every
+  default = evaluate.evaluate_slot_model(evaluation, NUM_TRUE, mesh,
+                                         _IdSlotModel(), {}, videos, T,
+                                         **kwargs)
+  every = evaluate.evaluate_slot_model(_config(False), NUM_TRUE, mesh,
+                                       _IdSlotModel(), {}, videos, T, **kwargs)
+  assert default == every
   assert evaluate.evaluate_slot_model(
-      _config(True), mesh, _IdSlotModel(), {}, videos, T,
+      _config(True), NUM_TRUE, mesh, _IdSlotModel(), {}, videos, T,
       **kwargs)['fg_ari'] != every['fg_ari']
 
 
@@ -106,5 +113,6 @@ def test_one_frame_cannot_skip_its_first():
   videos = _videos(np.random.default_rng(2), 4)
   with pytest.raises(ConfigError, match='at least 2 frames'):
     evaluate.evaluate_slot_model(
-        _config(True), sharding.make_mesh(), _IdSlotModel(), {}, videos, 1,
+        _config(True), NUM_TRUE, sharding.make_mesh(), _IdSlotModel(), {},
+        videos, 1,
         batch_size=4, fields=('slots', 'video', 'segmentations'))

@@ -25,11 +25,8 @@ import official_aloe_reference as aref
 import official_reference as ref
 from configs import physion_contact
 from slotformer_jax.official import convert as convert_official
-from slotformer_jax import models
 from slotformer_jax.data import vqa_questions
-from slotformer_jax.slot_models import savi as savi_slots
 from slotformer_jax.stages import vqa as vqa_stages
-from slotformer_jax import workdir as workdir_lib
 from slotformer_jax.data import vqa as vqa_data
 from slotformer_jax.config.defaults import base_config
 from slotformer_jax.config.defaults import vqa_config
@@ -44,6 +41,10 @@ from slotformer_jax.tasks import contact
 from slotformer_jax.tasks import phyre_planning
 from slotformer_jax.tasks import vqa as vqa_task
 from slotformer_jax.train.trainer import checkpointer_for
+from slotformer_jax.workdir.paths import Paths
+from slotformer_jax.workdir import identity as identity_lib
+from pipeline_helpers import run_stage
+from slotformer_jax.run import Run
 
 TOLERANCE = 1e-4  # float32 modules vs the float64 reference
 
@@ -147,6 +148,7 @@ def aloe_config(vocab_file) -> ml_collections.ConfigDict:
   + 2) * num_heads, PyTorch's LayerNorm epsilon, learned token positions."""
   config = base_config()
   config.savi.num_slots, config.savi.slot_size = 3, 8
+  config.task = 'vqa'
   config.vqa = vqa = vqa_config()
   vqa.num_frames, vqa.video_length, vqa.frame_stride = 2, 4, 2
   vqa.rollout_frames = 2
@@ -213,7 +215,7 @@ def test_aloe_answers_a_question_batch_as_the_official_model(aloe_setup):
       max_choices=vqa.max_choices)
   batch, open_ids, choice_ids = next(batches.eval_batches(4, 3))
   assert (len(open_ids), len(choice_ids)) == (3, 2)
-  model = models.build_aloe(config, len(vocab.questions), len(vocab.answers),
+  model = vqa_task.build_aloe(config.vqa, len(vocab.questions), len(vocab.answers),
                             num_slots=config.savi.num_slots)
   answers, choice_logits = jax.jit(
       lambda p, b: vqa_task.predict(p, b, model=model))(
@@ -322,14 +324,16 @@ def test_aloe_writes_the_vqa_variant_the_config_selects(aloe_setup, tmp_path,
                                {'model_400.pth': state})
   assert directory == os.path.join(workdir, 'vqa', 'observed_s2')
   mesh = jax.sharding.Mesh(np.array(jax.devices()), ('data',))
-  _, params = vqa_stages._load_aloe(config, workdir, mesh, vocab)  # pylint: disable=protected-access
+  aloe = vqa_stages.load_aloe(Run.create(config, workdir, mesh))
+  assert aloe.vocab == vocab and aloe.step == config.vqa.num_train_steps
+  params = aloe.params
   expected = families.convert_state_dict(state, config).params
   jax.tree.map(np.testing.assert_array_equal, jax.device_get(params),
                expected)
   checkpointer = checkpointer_for(directory, read_only=True)
   assert checkpointer.latest_step() == config.vqa.num_train_steps
   checkpointer.close()
-  identity = workdir_lib.read_identity(directory)
+  identity = identity_lib.read_identity(directory)
   assert identity['fields']['vqa']['num_layers'] == config.vqa.num_layers
   assert identity['parent'] is None  # no slot model in this workdir
   with open(os.path.join(directory, 'model_config.json')) as f:
@@ -373,8 +377,8 @@ def test_converted_aloe_writes_the_evaluation_server_file(
   os.makedirs(os.path.join(workdir, 'vqa', 'slots'))
   np.save(os.path.join(workdir, 'vqa', 'slots', 'test.npy'), slots)
   mesh = jax.sharding.Mesh(np.array(jax.devices()), ('data',))
-  assert vqa_stages.evaluate_vqa(config, workdir, mesh) == {}
-  with open(os.path.join(vqa_stages.variant_dir(config, workdir),
+  assert run_stage(config, workdir, mesh, 'evaluate_vqa') == {}
+  with open(os.path.join(Paths.of(workdir).aloe(vqa.inputs, vqa.seed),
                          'predictions_test.json')) as f:
     predictions = json.load(f)
   assert [s['scene_index'] for s in predictions] == [10000, 10001]
@@ -426,11 +430,12 @@ def test_aloe_after_savi_and_slotformer_in_one_command(tmp_path, monkeypatch):
       'aloe.pth': official_aloe(config, vocab),
       'slotformer.pth': tco.official_slotformer(config, savi_state),
       'savi.pth': savi_state})
-  assert directories == [savi_slots.savi_dir(workdir),
-                         workdir_lib.dynamics_dir(workdir),
-                         vqa_stages.variant_dir(config, workdir)]
-  slotformer = workdir_lib.read_identity(directories[1])
-  assert workdir_lib.read_identity(directories[2])['parent'] == {
+  assert directories == [Paths.of(workdir).model('savi'),
+                         Paths.of(workdir).dynamics('slotformer'),
+                         Paths.of(workdir).aloe(config.vqa.inputs,
+                                                config.vqa.seed)]
+  slotformer = identity_lib.read_identity(directories[1])
+  assert identity_lib.read_identity(directories[2])['parent'] == {
       'slotformer_run_id': slotformer['run_id'],
       'slotformer_step': config.slotformer.num_train_steps}
 
@@ -471,7 +476,7 @@ def test_physion_readout_matches_numpy():
   converted = families.convert_state_dict(state, config)
   assert converted.stage == 'readout'
   slots = np.random.default_rng(0).standard_normal((3, 5, 4, 6))
-  out = contact.build_readout(config, config.steve.slot_size).apply(
+  out = contact.build_readout(config.readout, config.steve.slot_size).apply(
       {'params': converted.params}, slots)
   _close(out, aref.physion_readout_logits(slots, state))
 
@@ -526,14 +531,15 @@ def test_physion_readout_is_evaluated_from_its_seed_folder(tmp_path,
   assert selection['converted'] is True
   assert selection['converted_from'] == str(tmp_path / 'readout.pth')
   assert selection['threshold'] == 0.6 and selection['val_accuracy'] is None
-  assert workdir_lib.read_identity(directory)['fields']['readout'][
+  assert identity_lib.read_identity(directory)['fields']['readout'][
       'pairs'] == 'unordered'
   rng = np.random.default_rng(1)
   slots = rng.standard_normal((20, 5, 4, 6)).astype(np.float32)
   labels = (rng.random(20) < 0.5).astype(np.float32)
   monkeypatch.setattr(contact_stages, '_features_by_condition',
                       lambda *args: ({'rollout': slots}, labels))
-  results = contact_stages.evaluate_readout(config, workdir, mesh=None)
+  mesh = jax.sharding.Mesh(np.array(jax.devices()), ('data',))
+  results = run_stage(config, workdir, mesh, 'evaluate_readout')
   probabilities = 1 / (1 + np.exp(-aref.physion_readout_logits(slots, state)))
   accuracy = float(((probabilities > 0.6) == labels.astype(bool)).mean())
   assert results['rollout']['test_accuracy'] == [pytest.approx(accuracy)]
@@ -582,7 +588,7 @@ def test_phyre_readout_matches_numpy_and_is_written_for_plan(tmp_path,
   converted = families.convert_state_dict(state, config)
   assert converted.stage == 'planning'
   slots = np.random.default_rng(2).standard_normal((4, 6, 3, 8))
-  model = phyre_planning.build_classifier(config, 'rollout')
+  model = phyre_planning.build_classifier(config.readout, 'rollout')
   kwargs = dict(sel_slots=config.readout.selected_steps,
                 num_heads=config.readout.num_heads,
                 num_layers=config.readout.num_layers)

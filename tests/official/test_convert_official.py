@@ -19,9 +19,6 @@ import pytest
 
 import official_reference as ref
 from slotformer_jax.official import convert as convert_official
-from slotformer_jax import models
-from slotformer_jax import inference
-from slotformer_jax import workdir as workdir_lib
 from slotformer_jax.config.defaults import base_config
 from slotformer_jax.modules.decoders import SubPixelConvTranspose
 from slotformer_jax.modules.encoders import CNNEncoder
@@ -30,10 +27,14 @@ from slotformer_jax.modules.transformer import TransformerBlock
 from slotformer_jax.official import families
 from slotformer_jax.official import layers
 from slotformer_jax.official.layers import StateDictMapper
-from slotformer_jax.stages import extract
-from slotformer_jax.stages import video_prediction
 from slotformer_jax.slot_models import savi as savi_slots
 from slotformer_jax.official import common
+from slotformer_jax.workdir.paths import Paths
+from slotformer_jax import dynamics as dynamics_lib
+from slotformer_jax.slot_models.savi import build_decoder
+from slotformer_jax.slot_models.savi import build_savi
+from pipeline_helpers import run_stage
+from slotformer_jax.run import Run
 
 # float32 modules vs the float64 reference, values of order 1.
 TOLERANCE = 1e-4
@@ -240,11 +241,11 @@ def test_slotformer_rollout_and_frozen_decoder():
   assert converted.family == 'slotformer'
   rng = np.random.default_rng(2)
   slots = rng.standard_normal((2, 3, 3, 16))
-  model = models.build_slotformer(config)
+  model = dynamics_lib.build(config.slotformer, 'slotformer')
   predicted = _apply(model, converted.params, jnp.asarray(slots), 6)
   expected = ref.slot_rollouter(slots, state, 6, num_heads=4, num_layers=2)
   _close(predicted, expected)
-  decoded = _apply(models.build_decoder(config), converted.extras['decoder'],
+  decoded = _apply(build_decoder(config.savi.decoder, config.data.resolution), converted.extras['decoder'],
                    jnp.asarray(slots[:, 0]))
   recon, masks = ref.savi_decoder(slots[:, 0], state, (16, 16), (4, 4))
   _close(decoded.recon, recon.transpose(0, 2, 3, 1))
@@ -260,7 +261,7 @@ def test_savi_video(layout):
   state = official_savi(config)
   params = families.convert_state_dict(state, config).params
   video = np.random.default_rng(4).uniform(-1, 1, (2, 3, 3, 16, 16))
-  output = _apply(models.build_savi(config), params,
+  output = _apply(build_savi(config.savi, config.data.resolution), params,
                   jnp.asarray(video.transpose(0, 1, 3, 4, 2)))
   predictor = config.savi.predictor
   expected = ref.savi_forward(
@@ -282,7 +283,7 @@ def test_slotformer_growing_context():
   state = official_slotformer(config, official_savi(config))
   converted = families.convert_state_dict(state, config)
   slots = np.random.default_rng(5).standard_normal((2, 1, 3, 16))
-  predicted = _apply(models.build_slotformer(config), converted.params,
+  predicted = _apply(dynamics_lib.build(config.slotformer, 'slotformer'), converted.params,
                      jnp.asarray(slots), 7)
   _close(predicted, ref.single_step_rollouter(slots, state, 7, num_heads=4,
                                               num_layers=2))
@@ -313,7 +314,7 @@ def test_savi_parts():
                      jnp.asarray(expected_features))
   _close(corrected, ref.slot_attention(expected_features, slots, state, 2))
 
-  decoded = _apply(models.build_savi(config), params, jnp.asarray(slots),
+  decoded = _apply(build_savi(config.savi, config.data.resolution), params, jnp.asarray(slots),
                    method='decode')
   recon, _ = ref.savi_decoder(slots, state, (16, 16), (4, 4))
   _close(decoded.recon, recon.transpose(0, 2, 3, 1))
@@ -441,7 +442,8 @@ def test_bgr_datasets_need_bgr():
     convert_official.check_channel_order(config)
   config.data.channel_order = 'bgr'
   convert_official.check_channel_order(config)
-  assert savi_slots.model_fields(config)['channel_order'] == 'bgr'
+  assert savi_slots.model_fields(config.savi, config.data)[
+      'channel_order'] == 'bgr'
 
 
 # --------------------------------------------------------------------------
@@ -470,8 +472,8 @@ def test_writes_where_the_pipeline_reads(tmp_path, monkeypatch):
   directories = _convert_files(
       config, workdir, tmp_path, monkeypatch,
       {'slotformer.pth': slotformer_state, 'savi.pth': savi_state})
-  assert directories == [savi_slots.savi_dir(workdir),
-                         workdir_lib.dynamics_dir(workdir)]
+  assert directories == [Paths.of(workdir).model('savi'),
+                         Paths.of(workdir).dynamics('slotformer')]
   with open(os.path.join(directories[1],
                          convert_official.CONVERTED_FROM_FILE)) as f:
     provenance = json.load(f)
@@ -480,21 +482,20 @@ def test_writes_where_the_pipeline_reads(tmp_path, monkeypatch):
   assert len(provenance['sha256']) == 64
 
   mesh = jax.sharding.Mesh(np.array(jax.devices()), ('data',))
-  loaded = savi_slots.Savi(config).load(workdir, mesh)
-  savi_params, savi_step = loaded.params, loaded.step
+  run = Run.create(config, workdir, mesh)
+  loaded = run.stage1
+  savi_params, savi_step = loaded.params['savi'], loaded.step
   assert savi_step == config.savi.num_train_steps
   expected = families.convert_state_dict(savi_state, config).params
   jax.tree.map(np.testing.assert_array_equal, jax.device_get(savi_params),
                expected)
-  dyn_params, _ = inference.load_dynamics_params(
-      config, workdir, mesh, 'slotformer',
-      (config.savi.num_slots, config.savi.slot_size))
+  dyn_params = run.dynamics('slotformer').params
   expected = families.convert_state_dict(slotformer_state, config).params
   jax.tree.map(np.testing.assert_array_equal, jax.device_get(dyn_params),
                expected)
   # Never overwritten.
   with pytest.raises(FileExistsError):
-    convert_official.write_converted(config, workdir, 'savi', expected, {})
+    convert_official.write_converted(run, 'savi', expected, {})
 
 
 def test_frozen_decoder_must_be_the_savi_decoder(tmp_path, monkeypatch):
@@ -503,7 +504,7 @@ def test_frozen_decoder_must_be_the_savi_decoder(tmp_path, monkeypatch):
   slotformer_state = official_slotformer(config, official_savi(config, seed=5))
   with pytest.raises(families.ConversionError, match='no SAVi checkpoint'):
     convert_official.check_frozen_decoder(
-        config, workdir,
+        Run.create(config, workdir),
         families.convert_state_dict(slotformer_state, config).extras['decoder'])
   # In one command: refused before anything is written.
   with pytest.raises(families.ConversionError,
@@ -511,7 +512,7 @@ def test_frozen_decoder_must_be_the_savi_decoder(tmp_path, monkeypatch):
     _convert_files(config, workdir, tmp_path, monkeypatch,
                    {'savi.pth': official_savi(config),
                     'slotformer.pth': slotformer_state})
-  assert not os.path.exists(savi_slots.savi_dir(workdir))
+  assert not os.path.exists(Paths.of(workdir).model('savi'))
   # Against the SAVi an earlier command wrote.
   _convert_files(config, workdir, tmp_path, monkeypatch,
                  {'savi.pth': official_savi(config)})
@@ -547,14 +548,15 @@ def test_converted_workdir_runs_extract_evaluate_render(tmp_path):
   assert savi.decoder.kernel_size == savi.encoder.kernel_size
   slotformer_state = official_slotformer(config, savi_state)
   workdir = str(tmp_path / 'run')
+  run = Run.create(config, workdir)
   for state in (savi_state, slotformer_state):
     converted = families.convert_state_dict(state, config)
-    convert_official.write_converted(config, workdir, converted.stage,
-                                     converted.params, {'file': 'test'})
+    convert_official.write_converted(run, converted.stage, converted.params,
+                                     {'file': 'test'})
   mesh = jax.sharding.Mesh(np.array(jax.devices()), ('data',))
-  extract.extract_slots(config, workdir, mesh)
-  results = video_prediction.evaluate(config, workdir, mesh)
-  pictures = video_prediction.render(config, workdir, mesh)
+  run_stage(config, workdir, mesh, 'extract_slots')
+  results = run_stage(config, workdir, mesh, 'evaluate')
+  pictures = run_stage(config, workdir, mesh, 'render')
   assert results['checkpoints'] == {
       'savi_step': savi.num_train_steps,
       'slotformer_step': config.slotformer.num_train_steps}

@@ -12,11 +12,6 @@ import pytest
 import official_reference as ref
 import official_steve_reference as sref
 from slotformer_jax.official import convert as convert_official
-from slotformer_jax import inference
-from slotformer_jax import models
-from slotformer_jax import stages
-from slotformer_jax.slot_models import steve as steve_slots
-from slotformer_jax import workdir as workdir_lib
 from slotformer_jax.config.defaults import base_config
 from slotformer_jax.modules.dvae import DVAE
 from slotformer_jax.modules.steve import STEVE
@@ -24,6 +19,14 @@ from slotformer_jax.official import families
 from slotformer_jax.official import layers
 from slotformer_jax.official.layers import StateDictMapper
 from slotformer_jax.official import common
+from slotformer_jax.workdir.paths import Paths
+from slotformer_jax.workdir import identity as identity_lib
+from slotformer_jax.slot_models.steve import build_steve
+from slotformer_jax.slot_models.steve import build_dvae
+from slotformer_jax import dynamics as dynamics_lib
+from pipeline_helpers import run_stage
+from slotformer_jax.slot_models import chain as chain_lib
+from slotformer_jax.run import Run
 
 TOLERANCE = 1e-4
 
@@ -154,7 +157,7 @@ def test_dvae_logits_tokens_and_reconstruction(states, converted):
   config, dvae_state, _, _ = states
   converted = converted[0]
   assert converted.family == 'dvae' and converted.stage == 'dvae'
-  model = models.build_dvae(config)
+  model = build_dvae(config.dvae)
   rng = np.random.default_rng(0)
   img = rng.uniform(-1, 1, (2, 3, *config.data.resolution))
   variables = {'params': converted.params}
@@ -187,7 +190,7 @@ def test_steve_slots_masks_and_token_logits():
   assert common.max_difference(
       converted.extras['dvae'],
       families.convert_state_dict(dvae_state, config).params) == 0
-  model = models.build_steve(config)
+  model = build_steve(config.steve, config.data.resolution, config.dvae.vocab_size)
   rng = np.random.default_rng(1)
   time = 3
   video = rng.uniform(-1, 1, (2, time, 3, *config.data.resolution))
@@ -231,7 +234,7 @@ def test_steve_slotformer_rollout_and_frozen_copies(states, converted):
   rng = np.random.default_rng(2)
   history = rng.standard_normal((2, dyn.burn_in, config.steve.num_slots,
                                  config.steve.slot_size))
-  model = models.build_slotformer(config)
+  model = dynamics_lib.build(config.slotformer, 'slotformer')
   steps = 4
   predicted = jax.jit(lambda p, h: model.apply({'params': p}, h, steps))(
       converted.params, history.astype(np.float32))
@@ -352,25 +355,31 @@ def test_writes_where_the_steve_pipeline_reads(states, converted, tmp_path,
       config, workdir, tmp_path, monkeypatch,
       {'slotformer.pth': slotformer_state, 'steve.pth': steve_state,
        'dvae.pth': dvae_state})
-  assert directories == [steve_slots.dvae_dir(workdir),
-                         steve_slots.steve_dir(workdir),
-                         workdir_lib.dynamics_dir(workdir)]
+  assert directories == [Paths.of(workdir).model('dvae'),
+                         Paths.of(workdir).model('steve'),
+                         Paths.of(workdir).dynamics('slotformer')]
   mesh = jax.sharding.Mesh(np.array(jax.devices()), ('data',))
-  slot_model = steve_slots.Steve(config)
-  loads = (lambda: slot_model.load_dvae(workdir, mesh),
-           lambda: slot_model.load_steve(workdir, mesh),
-           lambda: inference.load_dynamics_params(
-               config, workdir, mesh, 'slotformer', slot_model.slot_shape))
+  run = Run.create(config, workdir, mesh)
+  slot_model = run.slot_model
+
+  def dynamics():
+    loaded = run.dynamics('slotformer')
+    return loaded.params, loaded.step
+  loads = (lambda: chain_lib.load_part(slot_model.part('dvae'), run.paths,
+                                       mesh),
+           lambda: chain_lib.load_part(slot_model.part('steve'), run.paths,
+                                       mesh), dynamics)
   for load, expected in zip(loads, converted):
     params, step = load()
     assert step == 10
     assert common.max_difference(jax.device_get(params),
                                  expected.params) == 0
   # STEVE descends from the dVAE, SlotFormer from STEVE.
-  steve_identity = steve_slots.check_steve_current(config, workdir, 10)
-  slotformer_identity = workdir_lib.read_identity(
-      workdir_lib.dynamics_dir(workdir))
-  assert slotformer_identity['parent'] == workdir_lib.slots_parent(
+  chain_lib.chain(slot_model, run.paths, {'dvae': 10, 'steve': 10})
+  steve_identity = identity_lib.read_identity(run.paths.model('steve'))
+  slotformer_identity = identity_lib.read_identity(
+      Paths.of(workdir).dynamics('slotformer'))
+  assert slotformer_identity['parent'] == identity_lib.parent_of(
       steve_identity, 10, 'steve')
 
 
@@ -425,11 +434,10 @@ def test_converted_steve_workdir_runs_extract_evaluate_render(tmp_path,
       'slotformer.pth': official_steve_slotformer(config, dvae_state,
                                                   steve_state)})
   mesh = sharding.make_mesh()
-  table = stages.stage_table(config)
-  table['extract_slots'](config, workdir, mesh)
-  results = table['evaluate'](config, workdir, mesh)
+  run_stage(config, workdir, mesh, 'extract_slots')
+  results = run_stage(config, workdir, mesh, 'evaluate')
   assert results['checkpoints']['steve_step'] == steve.num_train_steps
   for method in ('slotformer', 'copy_last', 'steve_reconstruction'):
     assert np.isfinite(results['rollout'][method]['psnr']['mean'])
-  pictures = table['render'](config, workdir, mesh)
+  pictures = run_stage(config, workdir, mesh, 'render')
   assert any(p.endswith('rollout_000.gif') for p in pictures)

@@ -14,7 +14,6 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from slotformer_jax import models
 from slotformer_jax.modules import initializers
 from slotformer_jax.modules.encoders import CNNEncoder
 from slotformer_jax.modules.savi import SAVi
@@ -24,6 +23,8 @@ from slotformer_jax.modules.savi import build_predictor
 from slotformer_jax.modules.slotformer import SlotFormer
 from slotformer_jax.modules.stochastic_savi import GaussianSlotSampler
 from slotformer_jax.train import optim
+from slotformer_jax import dynamics as dynamics_lib
+from slotformer_jax.slot_models.savi import build_savi
 
 CONFIGS = os.path.join(os.path.dirname(__file__), '..', '..', 'configs')
 
@@ -294,10 +295,10 @@ def test_official_configs_build_the_official_sizes(name, savi_params,
   assert config.savi.layer_norm_epsilon == 1e-5
   assert config.savi.learning_rate == 1e-4
   assert config.savi.min_lr_fraction == 0.01
-  savi = models.build_savi(config)
+  savi = build_savi(config.savi, config.data.resolution)
   video = jnp.zeros((1, 2, *config.data.resolution, 3))
   assert _num_params(savi, video) == savi_params
-  slotformer = models.build_slotformer(config)
+  slotformer = dynamics_lib.build(config.slotformer, 'slotformer')
   history = jnp.zeros((1, config.slotformer.burn_in, config.savi.num_slots,
                        config.savi.slot_size))
   assert _num_params(slotformer, history, 2) == slotformer_params

@@ -12,11 +12,12 @@ import pytest
 
 from pipeline_helpers import micro_config
 from pipeline_helpers import run_stages
-from slotformer_jax import slot_models
-from slotformer_jax import workdir as workdir_lib
+from pipeline_helpers import slots_of
+from slotformer_jax.run import Run
 from slotformer_jax.data.sources import get_video_source
 from slotformer_jax.errors import ConfigError
 from slotformer_jax.runtime import sharding
+from slotformer_jax.workdir import identity as identity_lib
 
 
 @pytest.fixture(scope='module')
@@ -41,7 +42,7 @@ def test_metrics_name_the_convention(trained):
   assert metrics['protocol']['skip_first_frame'] is True
   assert np.isfinite(metrics['savi']['fg_ari'])
   assert results['evaluate']['protocol']['skip_first_frame'] is True
-  identity = workdir_lib.read_identity(os.path.join(workdir, 'savi'))
+  identity = identity_lib.read_identity(os.path.join(workdir, 'savi'))
   assert identity['fields']['savi']['initial_slots'] == 'boxes'
 
 
@@ -50,10 +51,10 @@ def test_extraction_conditions_on_each_videos_first_boxes(trained):
   first-frame boxes; permuting those boxes permutes the first frame's slots
   (slot 1 + i follows box i)."""
   config, workdir, mesh, _ = trained
-  slot_model = slot_models.get(config)
-  params = slot_model.load(workdir, mesh).params
+  run = Run.create(config, workdir, mesh)
+  slot_model, params = run.slot_model, run.stage1.params
   source = get_video_source(config.data, 'test')
-  extracted = workdir_lib.slot_source_for(config, workdir, 'test', ())
+  extracted = slots_of(config, workdir, 'test', ())
   video = source[1]
   chunk = config.extraction.chunk_length
   frames = video['video'][None, :chunk]

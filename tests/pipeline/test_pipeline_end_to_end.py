@@ -16,18 +16,18 @@ import pytest
 from pipeline_helpers import SLOT_MODELS
 from pipeline_helpers import load_config
 from pipeline_helpers import micro_config
+from pipeline_helpers import run_stage
 from pipeline_helpers import run_stages
+from pipeline_helpers import slots_of
 from slotformer_jax import slot_models
-from slotformer_jax import workdir as workdir_lib
+from slotformer_jax.run import Run
 from slotformer_jax.data import tokens as tokens_lib
 from slotformer_jax.data.slots import read_meta
 from slotformer_jax.errors import UserError
 from slotformer_jax.evaluation import metrics as metrics_lib
-from slotformer_jax.slot_models import savi as savi_slots
-from slotformer_jax.slot_models import steve as steve_slots
-from slotformer_jax.stages import dynamics
-from slotformer_jax.stages import video_prediction
 from slotformer_jax.runtime import sharding
+from slotformer_jax.workdir.paths import Paths
+from slotformer_jax.workdir import identity as identity_lib
 
 
 @pytest.fixture(scope='module', params=SLOT_MODELS)
@@ -56,9 +56,9 @@ def test_every_stage_writes_its_artifacts(trained):
     assert os.listdir(os.path.join(workdir, stage, 'checkpoints')), stage
   num_slots, slot_size = slot_model.slot_shape
   for split in config.extraction.splits:
-    meta = read_meta(workdir_lib.slots_dir(workdir, split))
+    meta = read_meta(Paths.of(workdir).slots(split))
     assert meta['complete'] and meta['num_slots'] == num_slots
-  source = workdir_lib.slot_source_for(config, workdir, 'test', ('video',))
+  source = slots_of(config, workdir, 'test', ('video',))
   assert source[0]['slots'].shape == (config.data.num_frames, num_slots,
                                       slot_size)
 
@@ -99,7 +99,7 @@ def test_rerun_resumes_without_recomputing(trained):
   config, workdir, mesh, results = trained
   files = [os.path.join(workdir, 'slots', 'train', 'slots.f32')]
   if config.slot_model == 'steve':
-    files.append(os.path.join(steve_slots.tokens_dir(workdir, 'train'),
+    files.append(os.path.join(Paths.of(workdir).derived('tokens', 'train'),
                               tokens_lib.TOKENS_FILE))
   before = [os.path.getmtime(f) for f in files]
   again = run_stages(config, workdir, mesh)
@@ -110,24 +110,24 @@ def test_rerun_resumes_without_recomputing(trained):
 def test_artifacts_record_what_they_were_made_from(trained):
   config, workdir, mesh, results = trained
   slot_model = slot_models.get(config)
-  encoder = workdir_lib.read_identity(os.path.join(workdir, slot_model.name))
+  encoder = identity_lib.read_identity(os.path.join(workdir, slot_model.name))
   slots_parent = {f'{slot_model.name}_run_id': encoder['run_id'],
                   f'{slot_model.name}_step': 4}
-  assert slot_model.load(workdir, mesh).slots_parent == slots_parent
+  assert Run.create(config, workdir, mesh).stage1.slots_parent == slots_parent
   for split in config.extraction.splits:
-    assert read_meta(workdir_lib.slots_dir(workdir, split))['parent'] == (
+    assert read_meta(Paths.of(workdir).slots(split))['parent'] == (
         slots_parent)
-  slotformer = workdir_lib.read_identity(
-      workdir_lib.dynamics_dir(workdir, 'slotformer'))
+  slotformer = identity_lib.read_identity(
+      Paths.of(workdir).dynamics('slotformer'))
   assert slotformer['parent'] == slots_parent
   identity = results['evaluate']['identity']
   assert identity['slots'] == slots_parent
   assert identity['slotformer']['parent'] == slots_parent
   assert identity[slot_model.name]['run_id'] == encoder['run_id']
   if config.slot_model == 'steve':
-    dvae = workdir_lib.read_identity(steve_slots.dvae_dir(workdir))
+    dvae = identity_lib.read_identity(Paths.of(workdir).model('dvae'))
     dvae_parent = {'dvae_run_id': dvae['run_id'], 'dvae_step': 4}
-    tokens = tokens_lib.read_meta(steve_slots.tokens_dir(workdir, 'train'))
+    tokens = tokens_lib.read_meta(Paths.of(workdir).derived('tokens', 'train'))
     assert tokens['complete'] and tokens['num_tokens'] == 16
     assert tokens['parent'] == dvae_parent == encoder['parent']
 
@@ -136,14 +136,14 @@ def test_a_retrained_slot_model_makes_slots_stale_and_refuses_mixing(
     trained, tmp_path):
   config, workdir, mesh, _ = _copy(trained, tmp_path)
   directory = os.path.join(workdir, config.slot_model)
-  old = workdir_lib.read_identity(directory)
-  workdir_lib.write_identity(  # as retraining stamps a new run id
-      directory, workdir_lib.new_identity(old['fields'], old['parent']))
+  old = identity_lib.read_identity(directory)
+  identity_lib.write_identity(  # as retraining stamps a new run id
+      directory, identity_lib.new_identity(old['fields'], old['parent']))
   with pytest.raises(UserError, match='stale'):
-    video_prediction.evaluate(config, workdir, mesh)
+    run_stage(config, workdir, mesh, 'evaluate')
   run_stages(config, workdir, mesh, ['extract_slots'])
   with pytest.raises(UserError, match='would mix them'):
-    video_prediction.evaluate(config, workdir, mesh)
+    run_stage(config, workdir, mesh, 'evaluate')
 
 
 def test_stage_two_on_a_read_only_stage_one(trained, tmp_path):
@@ -154,14 +154,14 @@ def test_stage_two_on_a_read_only_stage_one(trained, tmp_path):
   config.stage1_workdir = workdir
   listing = sorted(os.listdir(workdir))
   run_stages(config, other, mesh,
-             [*slot_model.stage1, 'extract_slots', 'train_slotformer'])
+             [*slot_model.stage1_modes, 'extract_slots', 'train_slotformer'])
   assert sorted(os.listdir(workdir)) == listing  # only read there
   assert sorted(os.listdir(other)) == ['slotformer']
-  current = read_meta(workdir_lib.slots_dir(workdir, 'train'))['parent']
-  assert workdir_lib.read_identity(
-      workdir_lib.dynamics_dir(other, 'slotformer'))['parent'] == current
+  current = read_meta(Paths.of(workdir).slots('train'))['parent']
+  assert identity_lib.read_identity(
+      Paths.of(other).dynamics('slotformer'))['parent'] == current
   config.slot_lstm.train = False
-  assert video_prediction.evaluate(config, other, mesh)['identity'][
+  assert run_stage(config, other, mesh, 'evaluate')['identity'][
       'slots'] == current
 
 
@@ -185,7 +185,7 @@ def test_evaluation_conventions_apply_to_every_slot_model(
 
   monkeypatch.setattr(metrics_lib, 'hungarian_mean_iou', spy_hungarian)
   monkeypatch.setattr(metrics_lib, 'boxes_from_normalized', spy_boxes)
-  results = video_prediction.evaluate(config, workdir, mesh)
+  results = run_stage(config, workdir, mesh, 'evaluate')
   assert absent_ids and set(absent_ids) == {'zero'}
   assert box_calls  # AR read the dataset's per-object boxes
   assert results['protocol']['miou_absent_ids'] == 'zero'
@@ -196,7 +196,7 @@ def test_frame_metrics_only_for_datasets_without_masks(trained, tmp_path):
   # E.g. OBJ3D has no instance masks: frame metrics only, same values.
   config, workdir, mesh, results = _copy(trained, tmp_path)
   config.evaluation.metrics = ('psnr',)
-  frame_only = video_prediction.evaluate(config, workdir, mesh)
+  frame_only = run_stage(config, workdir, mesh, 'evaluate')
   name = config.slot_model
   expected = {'num_videos', 'num_frames'} | ({'psnr'} if name == 'savi'
                                               else set())
@@ -213,24 +213,24 @@ def test_evaluation_refuses_videos_too_short_for_the_rollout(trained,
   config, workdir, mesh, _ = _copy(trained, tmp_path)
   config.evaluation.rollout_steps = config.data.num_frames
   with pytest.raises(UserError, match='lower evaluation.rollout_steps'):
-    video_prediction.evaluate(config, workdir, mesh)
+    run_stage(config, workdir, mesh, 'evaluate')
 
 
 def test_stage_two_explains_a_missing_stage_one(tmp_path):
   config = micro_config('savi', tmp_path / 'data')
   with pytest.raises(UserError, match='--mode=train_savi'):
-    dynamics.train_slotformer(config, str(tmp_path / 'run'),
-                              sharding.make_mesh())
+    run_stage(config, str(tmp_path / 'run'), sharding.make_mesh(),
+              'train_slotformer')
 
 
 def test_stage_two_rejects_a_checkpoint_of_another_model(tmp_path):
   config = micro_config('savi', tmp_path / 'data')
   workdir = str(tmp_path / 'run')
   mesh = sharding.make_mesh()
-  savi_slots.train_savi(config, workdir, mesh)
+  run_stage(config, workdir, mesh, 'train_savi')
   config.savi.slot_size = 24
   with pytest.raises(UserError, match='slot_size'):
-    savi_slots.Savi(config).load(workdir, mesh)
+    Run.create(config, workdir, mesh).stage1  # pylint: disable=expression-not-assigned
 
 
 def test_real_dataset_configs_name_the_missing_data(tmp_path):
@@ -238,5 +238,5 @@ def test_real_dataset_configs_name_the_missing_data(tmp_path):
     config = load_config(name)
     config.data.data_dir = str(tmp_path)
     with pytest.raises(FileNotFoundError, match=str(tmp_path / name)):
-      savi_slots.train_savi(config, str(tmp_path / 'run'),
-                            sharding.make_mesh())
+      run_stage(config, str(tmp_path / 'run'), sharding.make_mesh(),
+                'train_savi')

@@ -9,11 +9,8 @@ import pytest
 
 from configs import synthetic_contact
 from configs import synthetic_phyre
-from slotformer_jax import stages
 from slotformer_jax.runtime import sharding
-from slotformer_jax.slot_models import savi as savi_slots
-from slotformer_jax.stages import extract
-from slotformer_jax.stages import dynamics
+from pipeline_helpers import run_stage
 
 
 def _micro_models(config):
@@ -29,11 +26,10 @@ def _micro_models(config):
 
 def _run(config, workdir, stage_names):
   mesh = sharding.make_mesh()
-  savi_slots.train_savi(config, workdir, mesh)
-  extract.extract_slots(config, workdir, mesh)
-  dynamics.train_slotformer(config, workdir, mesh)
-  run = stages.stage_table(config)
-  return [run[name](config, workdir, mesh) for name in stage_names]
+  run_stage(config, workdir, mesh, 'train_savi')
+  run_stage(config, workdir, mesh, 'extract_slots')
+  run_stage(config, workdir, mesh, 'train_slotformer')
+  return [run_stage(config, workdir, mesh, name) for name in stage_names]
 
 
 @pytest.mark.slow

@@ -11,12 +11,15 @@ import pytest
 from slotformer_jax.data import clevrer_like
 from slotformer_jax.data.sources import resolve_data_dir
 from slotformer_jax.runtime import sharding
+from slotformer_jax.run import Run
+from slotformer_jax.workdir.paths import Paths
+from pipeline_helpers import accept
+from pipeline_helpers import run_stage
 
 
 @pytest.mark.slow
 def test_train_and_evaluate_vqa_on_random_slots(tmp_path, monkeypatch):
   import importlib.util  # pylint: disable=g-import-not-at-top
-  from slotformer_jax.stages import vqa as vqa_stages  # pylint: disable=g-import-not-at-top
   spec = importlib.util.spec_from_file_location(
       'synthetic_vqa', os.path.join(os.path.dirname(__file__), '..', '..',
                                     'configs', 'synthetic_vqa.py'))
@@ -42,10 +45,10 @@ def test_train_and_evaluate_vqa_on_random_slots(tmp_path, monkeypatch):
   mesh = sharding.make_mesh()
   for inputs in ('rollout', 'blind'):
     config.vqa.inputs = inputs
-    vqa_stages.train_vqa(config, workdir, mesh)
-    results = vqa_stages.evaluate_vqa(config, workdir, mesh)
+    run_stage(config, workdir, mesh, 'train_vqa')
+    results = run_stage(config, workdir, mesh, 'evaluate_vqa')
     assert 0.0 <= results['descriptive']['accuracy'] <= 1.0
-    with open(os.path.join(vqa_stages.variant_dir(config, workdir),
+    with open(os.path.join(Paths.of(workdir).aloe(inputs, config.vqa.seed),
                            'metrics_test.json')) as f:
       assert json.load(f) == results
   assert os.path.exists(os.path.join(workdir, 'vqa', 'answer_prior_test.json'))
@@ -55,17 +58,16 @@ def test_vqa_inputs_and_seed_are_variants_of_one_workdir(tmp_path):
   # The comparison trains every Aloe input and seed in one workdir (each in
   # vqa/<inputs>_s<seed>/): picking them is not a change of settings; an
   # Aloe size is.
-  from slotformer_jax import workdir as workdir_lib  # pylint: disable=g-import-not-at-top
   from slotformer_jax.errors import UserError  # pylint: disable=g-import-not-at-top
   config = _synthetic_vqa_config()
   workdir = str(tmp_path)
-  assert workdir_lib.accept_config(config, workdir) == []
+  assert accept(config, workdir) == []
   config.vqa.inputs, config.vqa.seed, config.vqa.eval_split = (
       'blind', 2, 'val')
-  assert workdir_lib.accept_config(config, workdir) == []
+  assert accept(config, workdir) == []
   config.vqa.num_layers += 1
   with pytest.raises(UserError):
-    workdir_lib.accept_config(config, workdir)
+    accept(config, workdir)
 
 
 def _synthetic_vqa_config(variant: str = ''):
@@ -113,22 +115,22 @@ def test_future_inputs_read_the_extracted_slots_of_the_real_future(tmp_path):
   # vqa.inputs='future' (the ground-truth-future ceiling) reads SAVi's slots
   # of the frames after the video from the extraction, not the rollout file.
   from slotformer_jax.stages import vqa as vqa_stages  # pylint: disable=g-import-not-at-top
-  from slotformer_jax import workdir as workdir_lib  # pylint: disable=g-import-not-at-top
   from slotformer_jax.data.slots import SlotWriter  # pylint: disable=g-import-not-at-top
   config = _synthetic_vqa_config()
   workdir = str(tmp_path)
-  writer = SlotWriter(workdir_lib.slots_dir(workdir, 'val'), 2, 3, 2, 1)
+  writer = SlotWriter(Paths.of(workdir).slots('val'), 2, 3, 2, 1)
   for v, frames in ((1, 20), (0, 20)):
     # value = 100 * video + frame, so the frames can be read back.
     writer.add(v, (100.0 * v + np.arange(frames, dtype=np.float32))[
         :, None, None] * np.ones((1, 3, 2), np.float32))
   writer.close()
-  slots = vqa_stages._true_future_slots(config, workdir, 'val', 18)  # pylint: disable=protected-access
+  run = Run.create(config, workdir)
+  slots = vqa_stages._true_future_slots(run, 'val', 18)  # pylint: disable=protected-access
   assert slots.shape == (2, 18, 3, 2)
   assert slots[1, :, 0, 0].tolist() == [100.0 + t for t in range(18)]
   assert slots[0, 17, 2, 1] == 17.0
   with pytest.raises(ValueError, match='whole simulated clip'):
-    vqa_stages._true_future_slots(config, workdir, 'val', 21)  # pylint: disable=protected-access
+    vqa_stages._true_future_slots(run, 'val', 21)  # pylint: disable=protected-access
 
 
 def test_deflect_variant_changes_only_the_predictive_design():
@@ -157,4 +159,5 @@ def test_missing_vqa_inputs_are_one_line_errors(tmp_path):
   with pytest.raises(UserError, match='questions/train.json not found'):
     vqa_questions.encoded_questions(config, 'train', None)
   with pytest.raises(UserError, match='--mode=vqa_slots'):
-    vqa_stages.question_batches(config, str(tmp_path / 'run'), 'train', [])
+    vqa_stages.question_batches(Run.create(config, str(tmp_path / 'run')),
+                                'train', [])

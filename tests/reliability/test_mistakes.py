@@ -38,9 +38,13 @@ from slotformer_jax.runtime import checkpoint as checkpoint_lib
 from slotformer_jax.train.trainer import Diverged
 from slotformer_jax.train.trainer import Stage
 from slotformer_jax.train.trainer import fit
-from slotformer_jax import workdir as workdir_lib
 
 import pipeline_helpers
+from pipeline_helpers import check
+from slotformer_jax import slot_models
+from slotformer_jax.slot_models import savi as savi_slots
+from slotformer_jax.workdir.lock import workdir_lock
+from slotformer_jax.workdir.paths import Paths
 
 ROOT = os.path.abspath(os.path.join(os.path.dirname(__file__), '..', '..'))
 CONFIGS = os.path.join(ROOT, 'configs')
@@ -207,7 +211,7 @@ def _decodes_to(broadcast, num_layers, resolution):
                                                    ((16, 16), 0)])
 def test_decoder_resolutions_are_what_the_decoder_produces(broadcast,
                                                            num_layers):
-  sizes = config_checks.decoder_resolutions(broadcast, num_layers)
+  sizes = savi_slots.decoder_resolutions(broadcast, num_layers)
   candidates = set(sizes) | {(30, 30), (24, 24), (64, 64), (16, 8), (8, 16),
                              (32, 64), (128, 128)}
   for resolution in sorted(candidates):
@@ -220,14 +224,14 @@ def test_a_resolution_the_decoder_cannot_produce_fails_before_data(tmp_path):
   config.data.data_dir = str(tmp_path / 'data')
   config.data.resolution = (30, 30)
   with pytest.raises(UserError) as error:
-    config_checks.validate(config, ('train_savi',), num_devices=1)
+    check(config, ('train_savi',), num_devices=1)
   message = str(error.value)
   assert 'data.resolution (30, 30)' in message
   assert '8x8, 16x16, 32x32 work' in message
   assert 'savi.decoder.broadcast_resolution' in message
   assert not os.path.exists(tmp_path / 'data')
   config.data.resolution = (16, 16)
-  config_checks.validate(config, ('train_savi',), num_devices=1)
+  check(config, ('train_savi',), num_devices=1)
 
 
 def test_a_resolution_the_dvae_cannot_produce_fails_before_data(tmp_path):
@@ -235,10 +239,10 @@ def test_a_resolution_the_dvae_cannot_produce_fails_before_data(tmp_path):
   config.data.data_dir = str(tmp_path / 'data')
   config.data.resolution = (30, 30)
   with pytest.raises(UserError, match=r'multiples of 4 \(e.g. \(32, 32\)\)'):
-    config_checks.validate(config, ('train_dvae',), num_devices=1)
+    check(config, ('train_dvae',), num_devices=1)
   assert not os.path.exists(tmp_path / 'data')
   config.data.resolution = (36, 28)  # any multiple of 4 decodes back
-  config_checks.validate(config, ('train_dvae',), num_devices=1)
+  check(config, ('train_dvae',), num_devices=1)
 
 
 # --------------------------------------------------------------------------
@@ -288,7 +292,7 @@ def test_values_that_cannot_work_fail_before_work(tmp_path, field, value,
     node = node[section]
   node[name] = value
   with pytest.raises(UserError) as error:
-    config_checks.validate(config, ('train_savi', 'train_slotformer'),
+    check(config, ('train_savi', 'train_slotformer'),
                            num_devices=1)
   assert expected in str(error.value)
   assert str(error.value).count(expected) == 1  # one line per problem
@@ -299,9 +303,7 @@ def test_values_that_cannot_work_fail_before_work(tmp_path, field, value,
 def test_every_shipped_config_passes_the_field_kinds(spec):
   config = config_checks.load_config_file(spec)
   assert config_checks.check_field_kinds(config) == []
-  problems = []
-  config_checks._check_resolution(config, problems)  # pylint: disable=protected-access
-  assert problems == []
+  assert slot_models.get(config).check_config(frozenset()) == []
 
 
 def _nan_stage(directory, checkpoint_every):
@@ -355,7 +357,7 @@ def _under_a_file(tmp_path):
 def test_an_unwritable_workdir_is_one_line(tmp_path):
   workdir = str(_under_a_file(tmp_path))
   with pytest.raises(UserError) as error:
-    workdir_lib.workdir_lock(workdir).acquire()
+    workdir_lock(Paths.of(workdir)).acquire()
   assert str(error.value) == (
       f'cannot write the workdir {workdir} (Not a directory); give a '
       '--workdir you can write')
@@ -374,7 +376,7 @@ def test_a_read_only_or_forbidden_workdir_is_one_line(tmp_path, monkeypatch,
     return real_open(path, flags, *args)
   monkeypatch.setattr(os, 'open', refusing_open)
   with pytest.raises(UserError) as error:
-    workdir_lib.workdir_lock(str(tmp_path / 'run')).acquire()
+    workdir_lock(Paths.of(str(tmp_path / 'run'))).acquire()
   assert os.strerror(code) in str(error.value)
   assert f'the workdir {tmp_path / "run"}' in str(error.value)
 
@@ -386,7 +388,7 @@ def test_a_workdir_in_a_read_only_folder_is_one_line(tmp_path):
   parent.chmod(0o555)
   try:
     with pytest.raises(UserError, match='Permission denied'):
-      workdir_lib.workdir_lock(str(parent / 'run')).acquire()
+      workdir_lock(Paths.of(str(parent / 'run'))).acquire()
   finally:
     parent.chmod(0o755)
 

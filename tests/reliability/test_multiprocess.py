@@ -34,16 +34,18 @@ import jax
 import numpy as np
 import pytest
 
-from slotformer_jax import workdir as workdir_lib
 from slotformer_jax.config import checks
 from slotformer_jax.errors import ConfigError
-from slotformer_jax.slot_models import savi as savi_slots
 from slotformer_jax.runtime import processes
 from slotformer_jax.runtime import sharding
 from slotformer_jax.train import trainer
 from slotformer_jax.runtime.checkpoint import Checkpointer
 
 import pipeline_helpers
+from slotformer_jax.workdir import identity as identity_lib
+from pipeline_helpers import accept
+from slotformer_jax.workdir.paths import Paths
+from slotformer_jax.run import Run
 
 ROOT = os.path.abspath(os.path.join(os.path.dirname(__file__), '..', '..'))
 SYNTHETIC = os.path.join(ROOT, 'configs', 'synthetic.py') + ':tiny'
@@ -132,7 +134,7 @@ def _params(workdir, data_dir):
   """(step, {path: array}) of the newest SAVi checkpoint."""
   config = pipeline_helpers.micro_config('savi', data_dir)
   config.savi.num_train_steps = STEPS
-  loaded = savi_slots.Savi(config).load(str(workdir), sharding.make_mesh())
+  loaded = Run.create(config, str(workdir), sharding.make_mesh()).stage1
   params, step = loaded.params, loaded.step
   leaves = jax.tree_util.tree_flatten_with_path(params)[0]
   return step, {jax.tree_util.keystr(k): np.asarray(v) for k, v in leaves}
@@ -209,16 +211,17 @@ def test_stop_check_every_is_checked_and_not_part_of_a_run(tmp_path):
   assert checks.check_field_kinds(config) == [
       'savi.stop_check_every must be an integer >= 1, got 0']
   config.savi.stop_check_every = 5
-  assert 'stop_check_every' not in workdir_lib.stage_identity_fields(
-      config, 'savi')['savi']
+  assert 'stop_check_every' not in identity_lib.stage_fields(
+      config.seed, config.data.to_dict(), 'savi',
+      config.savi.to_dict())['savi']
   # A workdir from before the field existed stays usable.
   saved = config.to_dict()
   for section in saved.values():
     if isinstance(section, dict):
       section.pop('stop_check_every', None)
-  with open(tmp_path / workdir_lib.CONFIG_FILE, 'w') as f:
+  with open(Paths.of(str(tmp_path)).config_file, 'w') as f:
     json.dump(saved, f, default=list)
-  assert workdir_lib.accept_config(config, str(tmp_path)) == []
+  assert accept(config, str(tmp_path)) == []
 
 
 def test_a_partial_set_of_flags_is_one_line(tmp_path):

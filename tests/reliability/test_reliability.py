@@ -34,8 +34,6 @@ import pytest
 
 from slotformer_jax.config import checks as config_checks
 from slotformer_jax import files
-from slotformer_jax import inference
-from slotformer_jax import workdir as workdir_lib
 from slotformer_jax.data import integrity
 from slotformer_jax.data import sources
 from slotformer_jax.data.slots import SlotSource
@@ -47,12 +45,18 @@ from slotformer_jax.train.trainer import Diverged
 from slotformer_jax.train.trainer import Preempted
 from slotformer_jax.train.trainer import Stage
 from slotformer_jax.train.trainer import fit
-from slotformer_jax.slot_models import savi as savi_slots
-from slotformer_jax.stages import extract
-from slotformer_jax.stages import dynamics
-from slotformer_jax.stages import video_prediction
+from slotformer_jax.data.slots import read_meta
+from slotformer_jax.slot_models.savi import Savi
 
 import pipeline_helpers
+from pipeline_helpers import check
+from slotformer_jax.workdir.lock import workdir_lock
+from slotformer_jax.workdir.paths import Paths
+from slotformer_jax.workdir import identity as identity_lib
+from pipeline_helpers import accept
+from pipeline_helpers import run_stage
+from slotformer_jax.slot_models import chain as chain_lib
+from slotformer_jax.run import Run
 
 ROOT = os.path.join(os.path.dirname(__file__), '..', '..')
 
@@ -84,9 +88,9 @@ def trained(tmp_path_factory):
   config = _config(base / 'data')
   workdir = str(base / 'run')
   mesh = sharding.make_mesh()
-  savi_slots.train_savi(config, workdir, mesh)
-  extract.extract_slots(config, workdir, mesh)
-  dynamics.train_slotformer(config, workdir, mesh)
+  run_stage(config, workdir, mesh, 'train_savi')
+  run_stage(config, workdir, mesh, 'extract_slots')
+  run_stage(config, workdir, mesh, 'train_slotformer')
   return config, workdir
 
 
@@ -112,12 +116,13 @@ def test_foreign_stage1_with_other_settings_is_refused_untouched(
   config.savi.num_train_steps = 6  # OTHER was trained for 4
   mesh = sharding.make_mesh()
   workdir = str(tmp_path / 'ablation')
-  for stage in (savi_slots.train_savi, extract.extract_slots):
+  for stage in ('train_savi', 'extract_slots'):
     with pytest.raises(UserError, match='num_train_steps: 4 -> 6'):
-      stage(config, workdir, mesh)
+      run_stage(config, workdir, mesh, stage)
   # main checks this before any data is generated.
+  run = Run.create(config, workdir, mesh)
   with pytest.raises(UserError, match='num_train_steps'):
-    savi_slots.Savi(config).check_identity(workdir)
+    chain_lib.check_identities(run.slot_model, run.paths)
   assert _snapshot(other) == before
 
 
@@ -130,9 +135,9 @@ def test_foreign_stage1_is_used_without_writing_there(trained, tmp_path):
   config.slotformer.num_train_steps = 2
   workdir = str(tmp_path / 'ablation')
   mesh = sharding.make_mesh()
-  savi_slots.train_savi(config, workdir, mesh)  # checks, trains nothing
-  extract.extract_slots(config, workdir, mesh)
-  dynamics.train_slotformer(config, workdir, mesh)
+  run_stage(config, workdir, mesh, 'train_savi')  # checks, trains nothing
+  run_stage(config, workdir, mesh, 'extract_slots')
+  run_stage(config, workdir, mesh, 'train_slotformer')
   assert _snapshot(other) == before
   assert not os.path.exists(os.path.join(workdir, 'savi'))
   assert os.listdir(os.path.join(workdir, 'slotformer', 'checkpoints'))
@@ -149,46 +154,46 @@ def test_slots_and_dynamics_of_another_savi_are_refused(copied):
   config, workdir = copied
   mesh = sharding.make_mesh()
   savi = os.path.join(workdir, 'savi')
-  identity = workdir_lib.read_identity(savi)
-  workdir_lib.write_identity(savi, dict(identity, run_id='retrained'))
+  identity = identity_lib.read_identity(savi)
+  identity_lib.write_identity(savi, dict(identity, run_id='retrained'))
   with pytest.raises(UserError, match='stale'):
-    dynamics.train_slotformer(config, workdir, mesh)
+    run_stage(config, workdir, mesh, 'train_slotformer')
   with pytest.raises(UserError, match='stale'):
-    video_prediction.evaluate(config, workdir, mesh)
+    run_stage(config, workdir, mesh, 'evaluate')
   # Fresh slots of the new SAVi, but the SlotFormer of the old one.
-  meta_path = os.path.join(workdir_lib.slots_dir(workdir, 'test'), 'meta.json')
+  meta_path = os.path.join(Paths.of(workdir).slots('test'), 'meta.json')
   meta = files.read_json(meta_path)
   meta['parent']['savi_run_id'] = 'retrained'
   files.write_json_atomic(meta_path, meta)
   with pytest.raises(UserError, match='would mix'):
-    video_prediction.evaluate(config, workdir, mesh)
+    run_stage(config, workdir, mesh, 'evaluate')
 
 
 @pytest.mark.slow  # retrains SAVi and SlotFormer (~60 s on 2 busy cores)
 def test_retrained_savi_rebuilds_slots_and_refuses_stale_dynamics(copied):
   config, workdir = copied
   mesh = sharding.make_mesh()
-  old_parent = workdir_lib.read_meta(
-      workdir_lib.slots_dir(workdir, 'train'))['parent']
+  old_parent = read_meta(
+      Paths.of(workdir).slots('train'))['parent']
   # Retrain SAVi to the same step count (another learning rate).
   shutil.rmtree(os.path.join(workdir, 'savi'))
   config.savi.learning_rate = 5e-4
-  savi_slots.train_savi(config, workdir, mesh)
-  step = savi_slots.Savi(config).load(workdir, mesh).step
+  run_stage(config, workdir, mesh, 'train_savi')
+  step = Run.create(config, workdir, mesh).stage1.step
   assert step == 4
   # The slots of the old SAVi are not used for anything.
   with pytest.raises(UserError, match='stale'):
-    dynamics.train_slotformer(config, workdir, mesh)
-  extract.extract_slots(config, workdir, mesh)  # re-extracts: new parent
-  new_parent = workdir_lib.read_meta(
-      workdir_lib.slots_dir(workdir, 'train'))['parent']
+    run_stage(config, workdir, mesh, 'train_slotformer')
+  run_stage(config, workdir, mesh, 'extract_slots')  # re-extracts: new parent
+  new_parent = read_meta(
+      Paths.of(workdir).slots('train'))['parent']
   assert new_parent != old_parent and new_parent['savi_step'] == 4
   # SlotFormer trained on the old slots must not be evaluated with them.
   with pytest.raises(UserError, match='would mix'):
-    video_prediction.evaluate(config, workdir, mesh)
-  dynamics.train_slotformer(config, workdir, mesh)  # set aside and retrained
+    run_stage(config, workdir, mesh, 'evaluate')
+  run_stage(config, workdir, mesh, 'train_slotformer')  # set aside and retrained
   assert any('.stale-' in name for name in os.listdir(workdir))
-  results = video_prediction.evaluate(config, workdir, mesh)
+  results = run_stage(config, workdir, mesh, 'evaluate')
   assert results['identity']['slotformer']['parent'] == new_parent
   saved = files.read_json(os.path.join(workdir, 'eval', 'metrics.json'))
   assert saved['identity']['savi']['run_id'] == new_parent['savi_run_id']
@@ -205,11 +210,11 @@ def test_a_second_writer_is_refused_and_a_dead_ones_lock_taken_over(
       json.dump({'pid': holder.pid, 'host': os.uname().nodename,
                  'started': 'then'}, f)
     with pytest.raises(UserError, match=f'in use by process {holder.pid}'):
-      workdir_lib.workdir_lock(workdir).acquire()
+      workdir_lock(Paths.of(workdir)).acquire()
   finally:
     holder.kill()
     holder.wait()
-  lock = workdir_lib.workdir_lock(workdir)
+  lock = workdir_lock(Paths.of(workdir))
   lock.acquire()  # the holder is dead now
   assert lock.took_over
   assert json.load(open(lock.path))['pid'] == os.getpid()
@@ -227,12 +232,12 @@ def test_a_second_writer_is_refused_and_a_dead_ones_lock_taken_over(
 def test_changed_settings_are_refused_and_config_json_kept(tmp_path):
   config = _config(tmp_path / 'data')
   workdir = str(tmp_path / 'run')
-  assert workdir_lib.accept_config(config, workdir) == []
+  assert accept(config, workdir) == []
   saved = open(os.path.join(workdir, 'config.json')).read()
   config.seed = 1
   config.slotformer.learning_rate = 1e-3
   with pytest.raises(UserError) as error:
-    workdir_lib.accept_config(config, workdir)
+    accept(config, workdir)
   message = str(error.value)
   assert 'seed: 0 -> 1' in message and 'slotformer.learning_rate' in message
   assert '--allow_config_change' in message and '\n' not in message
@@ -240,10 +245,10 @@ def test_changed_settings_are_refused_and_config_json_kept(tmp_path):
   # Observation-only settings are not changes.
   config.seed, config.slotformer.learning_rate = 0, 5e-4
   config.savi.log_every = 1
-  assert workdir_lib.accept_config(config, workdir) == []
+  assert accept(config, workdir) == []
   # The override records the new settings and keeps the old ones.
   config.seed = 1
-  assert workdir_lib.accept_config(config, workdir, allow_change=True) == [
+  assert accept(config, workdir, allow_change=True) == [
       'seed: 0 -> 1']
   assert files.read_json(os.path.join(workdir, 'config.json'))['seed'] == 1
   history = open(os.path.join(workdir, 'config_history.jsonl')).readlines()
@@ -253,27 +258,27 @@ def test_changed_settings_are_refused_and_config_json_kept(tmp_path):
 def test_a_workdir_from_before_an_added_field_stays_usable(tmp_path):
   config = pipeline_helpers.load_config('synthetic_vqa', 'tiny')
   workdir = str(tmp_path / 'run')
-  workdir_lib.accept_config(config, workdir)
+  accept(config, workdir)
   path = os.path.join(workdir, 'config.json')
   saved = files.read_json(path)
-  for name in workdir_lib.ADDED_FIELDS:  # as written before these existed
-    section, field = name.split('.')
-    saved.get(section, {}).pop(field, None)
+  for name in identity_lib.ADDED_FIELDS:  # as written before these existed
+    *section, field = name.split('.')
+    (saved.get(section[0], {}) if section else saved).pop(field, None)
   files.write_json_atomic(path, saved)
-  assert workdir_lib.accept_config(config, workdir) == []
+  assert accept(config, workdir) == []
   # Another value than the one the old code used is a change.
   config.vqa.layer_norm_epsilon = 1e-5
   with pytest.raises(UserError, match=r'vqa.layer_norm_epsilon: \(absent\)'):
-    workdir_lib.accept_config(config, workdir)
+    accept(config, workdir)
 
 
 def test_a_stage_made_with_other_settings_is_set_aside(copied):
   config, workdir = copied
   config.seed = 1  # accepted with --allow_config_change
   savi = os.path.join(workdir, 'savi')
-  old = workdir_lib.read_identity(savi)
-  identity = workdir_lib.start_stage(
-      savi, savi_slots.identity_fields(config), None, 'SAVi')
+  old = identity_lib.read_identity(savi)
+  identity = identity_lib.start_stage(
+      savi, dict(Savi(config).part('savi').identity_fields), None, 'SAVi')
   assert identity['run_id'] != old['run_id']
   assert os.path.isdir(f'{savi}.stale-{old["run_id"]}')
   assert not os.path.exists(os.path.join(savi, 'checkpoints'))
@@ -287,10 +292,10 @@ def test_a_stage_made_with_other_settings_is_set_aside(copied):
 def test_shipped_config_fails_before_work_on_four_devices():
   config = pipeline_helpers.load_config('synthetic')
   with pytest.raises(UserError, match='evaluation.batch_size=50'):
-    config_checks.validate(config, ('train_savi', 'evaluate'),
+    check(config, ('train_savi', 'evaluate'),
                            num_devices=4)
   # Only the stages that run are checked.
-  config_checks.validate(config, ('train_savi',), num_devices=4)
+  check(config, ('train_savi',), num_devices=4)
 
 
 @pytest.mark.parametrize('field, value, expected', [
@@ -308,7 +313,7 @@ def test_config_problems_are_found_before_work(tmp_path, field, value,
   section, name = field.split('.')
   config[section][name] = value
   with pytest.raises(UserError, match=expected.replace('[', r'\[')):
-    config_checks.validate(config, ('train_savi', 'train_slotformer',
+    check(config, ('train_savi', 'train_slotformer',
                                     'evaluate'), num_devices=4)
   assert not os.path.exists(tmp_path / 'data')  # no data was generated
 
@@ -408,21 +413,19 @@ def test_damaged_newest_checkpoint_falls_back_with_a_warning(copied, caplog):
       with open(path, 'r+b') as f:
         f.truncate(os.path.getsize(path) // 3)
   with caplog.at_level(logging.WARNING):
-    _, step = inference.load_dynamics_params(
-        config, workdir, mesh, 'slotformer',
-        (config.savi.num_slots, config.savi.slot_size))
+    step = Run.create(config, workdir, mesh).dynamics('slotformer').step
   assert step == 2
   assert 'newest intact checkpoint, step 2' in caplog.text
 
 
 def test_garbled_slots_are_detected(copied):
   config, workdir = copied
-  path = os.path.join(workdir_lib.slots_dir(workdir, 'train'), 'slots.f32')
+  path = os.path.join(Paths.of(workdir).slots('train'), 'slots.f32')
   slots = np.fromfile(path, np.float32)
   slots[100:110] += 0.5  # plausible values, wrong ones
   slots.tofile(path)
   with pytest.raises(UserError, match='slots.f32 is damaged'):
-    SlotSource(workdir_lib.slots_dir(workdir, 'train'), None, ())
+    SlotSource(Paths.of(workdir).slots('train'), None, ())
 
 
 # --------------------------------------------------------------------------

@@ -19,8 +19,8 @@ import jax
 import numpy as np
 import pytest
 
-from slotformer_jax.slot_models import savi as savi_slots
 from slotformer_jax.runtime import sharding
+from slotformer_jax.run import Run
 from slotformer_jax.runtime.checkpoint import Checkpointer
 
 import pipeline_helpers
@@ -96,8 +96,8 @@ def test_sigterm_saves_the_current_step_and_the_rerun_is_bit_exact(
                  capture_output=True, timeout=900)
   config = _micro_config(data_dir)
   mesh = sharding.make_mesh()
-  a = savi_slots.Savi(config).load(str(uninterrupted), mesh)
-  b = savi_slots.Savi(config).load(str(preempted), mesh)
+  a = Run.create(config, str(uninterrupted), mesh).stage1
+  b = Run.create(config, str(preempted), mesh).stage1
   (a, step_a), (b, step_b) = (a.params, a.step), (b.params, b.step)
   assert step_a == step_b == 30
   for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)):

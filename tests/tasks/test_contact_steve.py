@@ -16,6 +16,9 @@ from slotformer_jax import stages
 from slotformer_jax.data.slots import read_meta
 from slotformer_jax.tasks import contact
 from slotformer_jax.runtime import sharding
+from slotformer_jax.run import Run
+from pipeline_helpers import run_stages
+from pipeline_helpers import run_stage
 
 
 def steve_micro_config(data_dir):
@@ -57,9 +60,9 @@ def test_readout_reads_the_slot_models_slot_size():
   assert config.slot_model == 'steve'
   config.steve.slot_size = 48  # physion.py gives SAVi and STEVE both 192
   slot_size = lambda: slot_models.get(config).slot_shape[1]
-  assert contact.build_readout(config, slot_size()).features == 48
+  assert contact.build_readout(config.readout, slot_size()).features == 48
   config.slot_model = 'savi'
-  assert contact.build_readout(config, slot_size()).features == (
+  assert contact.build_readout(config.readout, slot_size()).features == (
       config.savi.slot_size)
 
 
@@ -69,14 +72,14 @@ def test_contact_stages_on_steve_slots(tmp_path):
   assert config.steve.slot_size != config.savi.slot_size
   workdir = str(tmp_path / 'run')
   mesh = sharding.make_mesh()
-  table = stages.stage_table(config)
+  table = stages.stage_table(Run.create(config, workdir, mesh))
   assert 'train_steve' in table and 'train_savi' not in table
-  for mode in ('train_dvae', 'tokenize_frames', 'train_steve',
-               'extract_slots', 'train_slotformer', 'train_readout'):
-    table[mode](config, workdir, mesh)
+  run_stages(config, workdir, mesh,
+             ['train_dvae', 'tokenize_frames', 'train_steve',
+              'extract_slots', 'train_slotformer', 'train_readout'])
   meta = read_meta(os.path.join(workdir, 'slots', 'readout_test'))
   assert meta['slot_size'] == config.steve.slot_size
-  results = table['evaluate_readout'](config, workdir, mesh)
+  results = run_stage(config, workdir, mesh, 'evaluate_readout')
   for condition in config.readout.conditions:
     assert 0.0 <= results[condition]['mean'] <= 1.0
   # The readout's first layer reads pairs of STEVE slots.

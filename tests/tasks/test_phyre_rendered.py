@@ -16,7 +16,6 @@ import pytest
 
 import dataset_fixtures as fx
 from configs import phyre as phyre_config
-from slotformer_jax import stages
 from slotformer_jax.data.convert import phyre
 from slotformer_jax.data.convert import prepare
 from slotformer_jax.errors import ConfigError
@@ -24,10 +23,9 @@ from slotformer_jax.errors import MissingInputError
 from slotformer_jax.tasks import phyre_rendered
 from slotformer_jax.tasks import planning
 from slotformer_jax.runtime import sharding
-from slotformer_jax.slot_models import savi as savi_slots
-from slotformer_jax.stages import extract
 from slotformer_jax.stages import planning_rendered
-from slotformer_jax.stages import dynamics
+from pipeline_helpers import run_stage
+from slotformer_jax.run import Run
 
 SCENE = 16
 FRAMES = 4
@@ -150,7 +148,7 @@ def test_official_candidates_name_the_missing_package():
   config = phyre_config.get_config('planning')
   config.readout.candidates = 'phyre_cache'
   with pytest.raises(ConfigError) as error:
-    phyre_rendered.check_candidates(config)
+    phyre_rendered.check_candidates(config.readout)
   message = str(error.value)
   assert '\n' not in message and '`phyre` package' in message
   assert "readout.candidates='rendered'" in message
@@ -159,7 +157,7 @@ def test_official_candidates_name_the_missing_package():
 def test_missing_slots_name_the_stage(converted, tmp_path):
   config = micro_config(converted)
   with pytest.raises(MissingInputError, match='--mode=extract_slots'):
-    planning_rendered.load_rendered(config, str(tmp_path), 'val')
+    planning_rendered.load_rendered(Run.create(config, str(tmp_path)), 'val')
 
 
 @pytest.mark.slow
@@ -167,17 +165,16 @@ def test_planning_stages_on_the_rendered_layout(converted, tmp_path):
   config = micro_config(converted)
   workdir = str(tmp_path / 'run')
   mesh = sharding.make_mesh()
-  savi_slots.train_savi(config, workdir, mesh)
-  extract.extract_slots(config, workdir, mesh)
-  dynamics.train_slotformer(config, workdir, mesh)
-  run = stages.stage_table(config)
-  run['train_readout'](config, workdir, mesh)
+  run_stage(config, workdir, mesh, 'train_savi')
+  run_stage(config, workdir, mesh, 'extract_slots')
+  run_stage(config, workdir, mesh, 'train_slotformer')
+  run_stage(config, workdir, mesh, 'train_readout')
   selection = json.load(open(os.path.join(
       workdir, 'planning', 'rollout', 'seed_0', 'selection.json')))
   # 8 training tasks, 25% of each template's 4 -> one dev task each.
   assert len(selection['dev_tasks']) == 2
   assert {t[:5] for t in selection['dev_tasks']} == {'00000', '00001'}
-  summary = run['plan'](config, workdir, mesh)
+  summary = run_stage(config, workdir, mesh, 'plan')
   assert summary['num_test_tasks'] == 2
   assert summary['candidates_per_task'] == [4, 4]
   assert summary['solving_share'] == 0.25

@@ -12,7 +12,7 @@ from slotformer_jax.data.convert import phyre_like
 from slotformer_jax.stages import contact as contact_stages
 from slotformer_jax.tasks import contact
 from slotformer_jax.tasks import phyre_planning
-from slotformer_jax.workdir import flat_differences
+from slotformer_jax.workdir.identity import flat_differences
 
 
 def test_condition_features():
@@ -47,7 +47,7 @@ def test_contact_stage_names_the_missing_stage(tmp_path):
 
 def test_planning_task_splits_are_disjoint_and_within_template():
   config = synthetic_phyre.get_config('tiny')
-  splits = phyre_planning.task_splits(config)
+  splits = phyre_planning.task_splits(config.data, config.readout)
   names = {k: {(t.template, t.index) for t in v} for k, v in splits.items()}
   assert not names['train'] & names['dev']
   assert not (names['train'] | names['dev']) & names['test']
@@ -115,9 +115,9 @@ def test_interleaved_rollout_restores_frame_order(stride):
 def test_physion_contact_config_names_real_splits():
   from configs import physion_contact  # pylint: disable=g-import-not-at-top
   config = physion_contact.get_config()
-  assert contact.readout_splits(config) == ('readout_train', 'readout_val',
+  assert contact.readout_splits(config.readout) == ('readout_train', 'readout_val',
                                             'test')
-  assert set(contact.readout_splits(config)) <= set(config.extraction.splits)
+  assert set(contact.readout_splits(config.readout)) <= set(config.extraction.splits)
 
 
 def test_ramp_layouts_variant_changes_only_where_dynamics_videos_come_from():

@@ -13,9 +13,9 @@ import pytest
 
 from pipeline_helpers import micro_config
 from pipeline_helpers import run_stages
+from pipeline_helpers import accept
 from slotformer_jax.runtime import sharding
 from slotformer_jax import frames as frames_lib
-from slotformer_jax.train import summaries
 
 SCALARS = ('train/loss', 'train/recon_loss', 'train/grad_norm',
            'train/param_norm', 'train/learning_rate',
@@ -130,20 +130,19 @@ def test_logging_settings_never_block_a_workdir(tmp_path):
   off or on later, is accepted without --allow_config_change."""
   from pipeline_helpers import load_config
   from slotformer_jax import files
-  from slotformer_jax import workdir as workdir_lib
   config = load_config('synthetic', 'tiny')
   workdir = str(tmp_path / 'run')
-  workdir_lib.accept_config(config, workdir)
+  accept(config, workdir)
   path = os.path.join(workdir, 'config.json')
   saved = files.read_json(path)
   del saved['logging']
   del saved['evaluation']['skip_first_frame']
   files.write_json_atomic(path, saved)
-  assert workdir_lib.accept_config(config, workdir) == []
+  assert accept(config, workdir) == []
   config.logging.tensorboard = False
   config.logging.image_every = 7
-  assert workdir_lib.accept_config(config, workdir) == []
+  assert accept(config, workdir) == []
   # skip_first_frame=True is a change like any other.
   config.evaluation.skip_first_frame = True
   with pytest.raises(Exception, match='evaluation.skip_first_frame'):
-    workdir_lib.accept_config(config, workdir)
+    accept(config, workdir)

@@ -13,12 +13,14 @@ import sys
 import numpy as np
 import pytest
 
-from slotformer_jax import models
-from slotformer_jax.slot_models import savi as savi_lib
-from slotformer_jax.slot_models import steve as steve_lib
+from slotformer_jax import slot_models
+from slotformer_jax.slot_models import chain
+from slotformer_jax.slot_models.savi import Savi
 from slotformer_jax.stages import dynamics
+from slotformer_jax.stages import stage1
 from slotformer_jax.runtime import sharding
 from tests.pipeline_helpers import load_config
+from slotformer_jax.slot_models.steve import build_steve
 
 ROOT = os.path.join(os.path.dirname(__file__), '..', '..')
 SCRIPT = os.path.join(ROOT, 'benchmarks', 'tpu_compile.py')
@@ -40,7 +42,7 @@ def _source(config, fields, length, num_videos=4):
     item = {'video': rng.integers(0, 256, (length, height, width, 3),
                                   np.uint8)}
     if 'tokens' in fields:
-      grid = models.build_steve(config).token_grid
+      grid = build_steve(config.steve, config.data.resolution, config.dvae.vocab_size).token_grid
       item['tokens'] = rng.integers(0, 8, (length, grid[0] * grid[1]),
                                     dtype=np.uint16)
     if 'slots' in fields:
@@ -61,23 +63,22 @@ def test_batch_spec_is_what_the_stage_yields(variant, step):
   config = load_config('synthetic', variant)
   mesh = sharding.make_mesh()
   length = 12
-  if step == 'savi':
-    stage = savi_lib.savi_stage(config, '/unused', mesh,
-                                _source(config, {}, length))
-  elif step == 'dvae':
-    stage = steve_lib.dvae_stage(config, '/unused', mesh,
-                                 _source(config, {}, length))
+  slot_model = slot_models.get(config)
+  if step in ('savi', 'dvae'):
+    stage = stage1.part_stage(slot_model.part(step), '/unused', mesh,
+                              _source(config, {}, length), seed=config.seed)
   elif step == 'steve':
-    stage = steve_lib.steve_stage(config, '/unused', mesh,
-                                  _source(config, {'tokens': 1}, length))
+    stage = stage1.part_stage(slot_model.part(step), '/unused', mesh,
+                              _source(config, {'tokens': 1}, length),
+                              seed=config.seed)
   else:
-    slot_model = savi_lib.Savi(config)
     source = _source(config, {'slots': slot_model.slot_shape},
                      (config.slotformer.burn_in + config.slotformer.rollout)
                      * config.slotformer.frame_stride + 2)
-    stage = dynamics.dynamics_stage(config, '/unused', mesh, 'slotformer',
-                                    slot_model, slot_model.param_shapes(),
-                                    source)
+    stage = dynamics.dynamics_stage(
+        config.slotformer, 'slotformer', '/unused', mesh, slot_model,
+        {'savi': chain.param_shapes(slot_model.part('savi'))}, source,
+        seed=config.seed + 1, compute_dtype=config.compute_dtype)
   batch = next(stage.batches(0))
   spec = bench.batch_spec(config, step, stage.config.batch_size)
   assert {k: (v.shape, np.dtype(v.dtype)) for k, v in batch.items()} == {
@@ -175,7 +176,7 @@ def test_aloe_batch_spec_is_what_the_question_stream_yields():
   from slotformer_jax.tasks import vqa as vqa_task  # pylint: disable=g-import-not-at-top
   vocab = vqa_questions.vocabulary(config)
   questions = vqa_questions.encoded_questions(config, 'train', vocab)
-  num_slots, slot_size = savi_lib.Savi(config).slot_shape
+  num_slots, slot_size = Savi(config).slot_shape
   slots = np.zeros((vqa.video_length + vqa.rollout_frames, num_slots,
                     slot_size), np.float32)
   batches = vqa_task.QuestionBatches(
