@@ -52,7 +52,16 @@ ADDED_FIELDS: dict[str, Any] = {
     'readout.layer_norm_epsilon': 1e-6,
     'readout.dropout_rate': 0.0,
     'evaluation.skip_first_frame': False,
+    # The task was told by a `vqa` section before `task` was set for VQA.
     'task': None,
+    # Planning readouts before every readout field had a default: the
+    # values the code used when they were absent (config/defaults.py).
+    'readout.candidates': 'rendered',
+    'readout.fold': 0,
+    'readout.splits': {'train': 'train', 'test': 'val'},
+    'readout.negatives_per_task': 40,
+    'readout.num_pictures': 0,
+    'readout.rollout_steps': 10,
 }
 
 

@@ -34,6 +34,7 @@ from slotformer_jax import dynamics as dynamics_lib
 from slotformer_jax.slot_models.savi import build_decoder
 from slotformer_jax.slot_models.savi import build_savi
 from pipeline_helpers import run_stage
+from slotformer_jax.errors import UserError
 from slotformer_jax.run import Run
 
 # float32 modules vs the float64 reference, values of order 1.
@@ -564,3 +565,38 @@ def test_converted_workdir_runs_extract_evaluate_render(tmp_path):
   assert len(per_step) == config.evaluation.rollout_steps
   assert all(np.isfinite(v) for v in per_step)
   assert any(p.endswith('.gif') for p in pictures)
+
+
+def test_the_mean_path_of_a_stochastic_savi_is_a_fresh_conversion(
+    tmp_path, monkeypatch):
+  """docs/official_weights.md: the stochastic SAVi's mean path on the same
+  weights is a conversion with --config.savi.stochastic=false into a fresh
+  workdir (its slots do not depend on the sampling key); the stochastic
+  workdir itself refuses that setting, in one line naming the field."""
+  state = official_savi(clevrer_layout(tiny_config()))
+  stochastic = clevrer_layout(tiny_config())
+  stochastic.savi.stochastic = True
+  _convert_files(stochastic, str(tmp_path / 'sampled'), tmp_path,
+                 monkeypatch, {'savi.pth': state})
+  mean = clevrer_layout(tiny_config())
+  mean.savi.stochastic = False
+  with pytest.raises(UserError, match='stochastic: checkpoint True vs '
+                     'config False'):
+    Run.create(mean, str(tmp_path / 'sampled')).stage1  # pylint: disable=expression-not-assigned
+  _convert_files(mean, str(tmp_path / 'mean'), tmp_path, monkeypatch,
+                 {'savi.pth': state})
+  run = Run.create(mean, str(tmp_path / 'mean'))
+  video = np.random.default_rng(0).integers(0, 256, (1, 2, 16, 16, 3),
+                                            np.uint8)
+  slots = [run.slot_model.encode(run.stage1.params, video,
+                                 jax.random.key(k), None)[0]
+           for k in (1, 2)]
+  np.testing.assert_array_equal(slots[0], slots[1])
+  sampled = Run.create(stochastic, str(tmp_path / 'sampled'))
+  drawn = [sampled.slot_model.encode(sampled.stage1.params, video,
+                                     jax.random.key(k), None)[0]
+           for k in (1, 2)]
+  assert np.abs(np.asarray(drawn[0]) - np.asarray(drawn[1])).max() > 0
+  # The mean path is the sample's mean: the same weights, no noise.
+  jax.tree.map(np.testing.assert_array_equal, run.stage1.params,
+               sampled.stage1.params)

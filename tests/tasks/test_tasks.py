@@ -9,6 +9,7 @@ import pytest
 from configs import synthetic_contact
 from configs import synthetic_phyre
 from slotformer_jax.data.convert import phyre_like
+from slotformer_jax.run import Run
 from slotformer_jax.stages import contact as contact_stages
 from slotformer_jax.tasks import contact
 from slotformer_jax.tasks import phyre_planning
@@ -42,7 +43,8 @@ def test_condition_features():
 def test_contact_stage_names_the_missing_stage(tmp_path):
   config = synthetic_contact.get_config('tiny')
   with pytest.raises(FileNotFoundError, match='extract_slots'):
-    contact_stages.load_split(config, str(tmp_path), 'readout_train')
+    contact_stages.load_split(Run.create(config, str(tmp_path)),
+                              'readout_train')
 
 
 def test_planning_task_splits_are_disjoint_and_within_template():
@@ -115,9 +117,10 @@ def test_interleaved_rollout_restores_frame_order(stride):
 def test_physion_contact_config_names_real_splits():
   from configs import physion_contact  # pylint: disable=g-import-not-at-top
   config = physion_contact.get_config()
-  assert contact.readout_splits(config.readout) == ('readout_train', 'readout_val',
-                                            'test')
-  assert set(contact.readout_splits(config.readout)) <= set(config.extraction.splits)
+  assert contact.readout_splits(config.readout) == (
+      'readout_train', 'readout_val', 'test')
+  assert set(contact.readout_splits(config.readout)) <= set(
+      config.extraction.splits)
 
 
 def test_ramp_layouts_variant_changes_only_where_dynamics_videos_come_from():
@@ -126,3 +129,25 @@ def test_ramp_layouts_variant_changes_only_where_dynamics_videos_come_from():
   # max_context = 6 is what every measured :ramp run passed on the command line.
   assert sorted(flat_differences(ramp, layouts)) == [
       'data.dynamics_layouts: 0 -> 300', 'slotformer.max_context: 0 -> 6']
+
+
+def test_every_config_file_loads_from_any_folder(tmp_path):
+  """A config file that builds on another (physion_contact.py on
+  physion.py) finds it by path: `--config=<checkout>/configs/...` works
+  from any folder, with nothing of the checkout on sys.path (it ended in
+  `No module named 'configs'`)."""
+  import os  # pylint: disable=g-import-not-at-top
+  import subprocess  # pylint: disable=g-import-not-at-top
+  import sys  # pylint: disable=g-import-not-at-top
+  root = os.path.dirname(os.path.dirname(os.path.dirname(
+      os.path.abspath(__file__))))
+  configs = os.path.join(root, 'configs')
+  script = ('import sys; from slotformer_jax.config.checks import '
+            'load_config_file; [load_config_file(p) for p in sys.argv[1:]]')
+  env = {k: v for k, v in os.environ.items() if k != 'PYTHONPATH'}
+  result = subprocess.run(
+      [sys.executable, '-c', script] + sorted(
+          os.path.join(configs, name) for name in os.listdir(configs)
+          if name.endswith('.py')),
+      cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
+  assert result.returncode == 0, result.stderr[-2000:]
