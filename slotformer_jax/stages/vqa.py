@@ -279,8 +279,8 @@ def evaluate_vqa(run: Run) -> dict[str, Any]:
   batches = question_batches(run, split, questions)
   model, params = aloe.module, aloe.params
   replicated = sharding.replicated_sharding(mesh)
-  run = jax.jit(functools.partial(task.predict, model=model),
-                in_shardings=(replicated, sharding.batch_sharding(mesh)))
+  predict = jax.jit(functools.partial(task.predict, model=model),
+                    in_shardings=(replicated, sharding.batch_sharding(mesh)))
   size = sharding.per_host_batch_size(vqa.eval_batch_size, mesh)
   metrics = task.VqaMetrics()
   open_answers, choice_correct = {}, {}
@@ -288,7 +288,7 @@ def evaluate_vqa(run: Run) -> dict[str, Any]:
   choice_index = [k for k, q in enumerate(questions) if not q.is_descriptive]
   for batch, open_ids, choice_ids in batches.eval_batches(size, size):
     answers, logits = sharding.gather_to_host(
-        run(params, sharding.to_global_batch(batch, mesh)))
+        predict(params, sharding.to_global_batch(batch, mesh)))
     n_open, n_choice = len(open_ids), len(choice_ids)
     valid = batch['choice_valid'][:n_choice]
     metrics.add_open(answers[:n_open], batch['open_label'][:n_open])

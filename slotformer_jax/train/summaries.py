@@ -27,10 +27,9 @@ class Summaries:
   def __init__(self, stage_directory: str,
                logging_config: ml_collections.ConfigDict | None,
                is_lead_host: bool = True):
-    enabled = bool(logging_config is not None
-                   and logging_config.get('tensorboard', False)
+    enabled = bool(logging_config is not None and logging_config.tensorboard
                    and is_lead_host)
-    self.image_every = int(logging_config.get('image_every', 0)
+    self.image_every = int(logging_config.image_every
                            if logging_config is not None else 0)
     self.directory = os.path.join(stage_directory, DIRECTORY)
     self._writer = None

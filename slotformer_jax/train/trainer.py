@@ -63,8 +63,8 @@ class Stage:
     name: 'savi' or 'slotformer'; also the sub-folder of the workdir.
     directory: where checkpoints and the training log go.
     config: the stage's config section (batch_size, num_train_steps,
-      learning_rate, warmup_fraction, grad_clip, log_every,
-      checkpoint_every; stop_check_every, 1 if absent).
+      learning_rate, min_lr_fraction, warmup_fraction, grad_clip,
+      log_every, checkpoint_every, stop_check_every; config/defaults.py).
     loss_fn: (params, batch, frozen_params, rng) -> (loss, metrics).
     init_params: rng -> params.
     batches: start_step -> iterator of this host's batches.
@@ -186,7 +186,7 @@ def fit(stage: Stage, *, mesh: Mesh, seed: int) -> TrainState:
   if jax.process_count() > 1:
     sharding.check_host_rows(mesh)
   update = jit_update(stage, mesh, optimizer, seed)
-  stop_check_every = config.get('stop_check_every', 1)
+  stop_check_every = config.stop_check_every
   frozen_params = sharding.replicate(stage.frozen_params, mesh)
 
   log_path = os.path.join(stage.directory, 'train_log.jsonl')

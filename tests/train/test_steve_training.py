@@ -73,7 +73,8 @@ def test_decoder_group_learning_rate():
   """The decoder's Adam steps are 3x the rest (lr 3e-4 vs 1e-4)."""
   config = ml_collections.ConfigDict(dict(
       num_train_steps=100, learning_rate=1e-4, warmup_fraction=0.05,
-      grad_clip=0.05, group_learning_rates={'decoder': 3e-4}))
+      min_lr_fraction=0.0, grad_clip=0.05,
+      group_learning_rates={'decoder': 3e-4}))
   optimizer, schedule = optim.make_optimizer(config)
   params = {'decoder': {'w': jnp.ones(3)}, 'encoder': {'w': jnp.ones(3)}}
   grads = jax.tree.map(lambda x: 0.01 * x, params)
@@ -88,7 +89,8 @@ def test_decoder_group_learning_rate():
 def _stage_config(num_steps, **extra):
   return ml_collections.ConfigDict(dict(
       num_train_steps=num_steps, learning_rate=1e-3, warmup_fraction=0.25,
-      grad_clip=0.05, batch_size=4, log_every=1, checkpoint_every=2,
+      grad_clip=0.05, min_lr_fraction=0.0, stop_check_every=1, batch_size=4,
+      log_every=1, checkpoint_every=2,
       **extra))
 
 
