@@ -49,11 +49,11 @@ from slotformer_jax import workdir as workdir_lib
 from slotformer_jax.config.checks import FRAME_METRICS
 from slotformer_jax.config.checks import OBJECT_METRICS
 from slotformer_jax.data import pipeline
-from slotformer_jax.data.convert import clevrer
 from slotformer_jax.data.pipeline import ClipSource
 from slotformer_jax.data.sources import get_video_source
 from slotformer_jax.errors import ConfigError
 from slotformer_jax.evaluation import metrics as metrics_lib
+from slotformer_jax.evaluation.clevrer_clips import eval_clip_starts
 from slotformer_jax.files import atomic_text
 from slotformer_jax.files import write_json_atomic
 from slotformer_jax.frames import frames_to_model
@@ -610,7 +610,7 @@ def evaluation_clips(config: ml_collections.ConfigDict, source: Any,
   `evaluation.clips`: 'first' evaluates each video from its first frame;
   'clevrer' takes the official CLEVRER clips (per half-clip block of the
   video, the first start where no object enters late; see
-  `data.clevrer.eval_clip_starts`), which needs the stored `in_view`.
+  `evaluation/clevrer_clips.py`), which needs the stored `in_view`.
   """
   kind = config.evaluation.clips
   if kind == 'first':
@@ -638,8 +638,8 @@ def clevrer_clips(videos: Any, num_videos: int, burn_in: int, rollout: int,
       raise ValueError(
           f'video {video} has no CLEVRER annotations (the test split has '
           "none); evaluate on the 'val' split")
-    starts = clevrer.eval_clip_starts(item['in_view'], burn_in, rollout,
-                                      frame_stride)
+    starts = eval_clip_starts(item['in_view'], burn_in, rollout,
+                              frame_stride)
     clips += [(video, int(start)) for start in starts]
   if not clips:
     raise ValueError('no CLEVRER evaluation clip without entering objects '

@@ -368,11 +368,11 @@ def test_clip_source_starts_each_clip_at_its_frame():
 
 
 def test_clevrer_evaluation_clips_skip_entering_objects():
-  from slotformer_jax.data.convert import clevrer  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.evaluation import clevrer_clips  # pylint: disable=g-import-not-at-top
   from slotformer_jax.evaluation import evaluate  # pylint: disable=g-import-not-at-top
   burn_in, rollout, stride, length = 4, 3, 2, 40
   span = (burn_in + rollout - 1) * stride  # 12 full-rate frames
-  seen = clevrer.MIN_BURN_IN_FRAMES_VISIBLE
+  seen = clevrer_clips.MIN_BURN_IN_FRAMES_VISIBLE
   # Video 0: every object visible from the start -> the first start of each
   # half-span block. Video 1: an object enters at frame 5, so the clips in
   # which it would be seen in fewer than `seen` burn-in frames are dropped.
