@@ -28,6 +28,7 @@ import numpy as np
 from slotformer_jax import slot_models
 from slotformer_jax import workdir as workdir_lib
 from slotformer_jax.evaluation import evaluate
+from slotformer_jax.stages import data as data_stage
 from slotformer_jax.stages import extract
 from slotformer_jax.runtime import sharding
 
@@ -56,6 +57,7 @@ def run(kind: str, seed: int, steps: int, out: str) -> dict:
   mesh = sharding.make_mesh()
   workdir_lib.accept_config(config, workdir)
   slot_model = slot_models.get(config)
+  data_stage.prepare_data(config, workdir, mesh)  # readers only open data
   started = time.time()
   slot_model.stage1['train_savi'](config, workdir, mesh)
   train_seconds = time.time() - started

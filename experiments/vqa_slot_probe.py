@@ -42,8 +42,8 @@ import numpy as np
 from slotformer_jax import slot_models
 from slotformer_jax import models
 from slotformer_jax import workdir as workdir_lib
-from slotformer_jax.data import clevrer_like
-from slotformer_jax.data.convert.synthetic import COLORS, SHAPES
+from slotformer_jax.data.embedded import clevrer_like as clevrer_like_data
+from slotformer_jax.data.embedded.synthetic import COLORS, SHAPES
 from slotformer_jax.data.slots import SlotSource
 from slotformer_jax.data.sources import resolve_data_dir
 from slotformer_jax.runtime import sharding
@@ -145,8 +145,8 @@ def main() -> None:
     config = ml_collections.ConfigDict(json.load(f))
   frame = (config.data.observed_frames - 1 if args.frame is None
            else args.frame)
-  root = str(clevrer_like.dataset_dir(
-      clevrer_like.config_from_data_config(config.data),
+  root = str(clevrer_like_data.dataset_dir(
+      clevrer_like_data.config_from_data_config(config.data),
       resolve_data_dir(config.data.get('data_dir', None))))
   mesh = sharding.make_mesh()
   loaded = slot_models.get(config).load(args.workdir, mesh)

@@ -49,7 +49,8 @@ _WORKDIR = flags.DEFINE_string(
     'workdir', None, 'Folder for checkpoints, slots, metrics and pictures.',
     required=True)
 _MODE = flags.DEFINE_enum('mode', 'all', stages.MODES,
-                          'Which stage(s) to run.')
+                          'Which stage(s) to run (prepare_data, which makes '
+                          'and checks the data, runs first in every mode).')
 _DISTRIBUTED = flags.DEFINE_bool(
     'distributed', False, 'Call jax.distributed.initialize() first (one '
     'process per host on a TPU pod or multi-node GPU cluster). It detects '

@@ -1,10 +1,11 @@
 """Shared by the pipeline tests: configs by file name, micro configs of every
-slot model, and running a config's stages in table order."""
+slot model, making a config's data, and running its stages in table order."""
 
 import importlib.util
 import os
 
 from slotformer_jax import stages
+from slotformer_jax.stages import data as data_stage
 
 CONFIGS = os.path.join(os.path.dirname(__file__), '..', 'configs')
 SLOT_MODELS = ('savi', 'steve')
@@ -51,9 +52,17 @@ def micro_config(slot_model, data_dir):
   return config
 
 
+def prepare_data(config):
+  """Makes and checks the data of `config` as `--mode=prepare_data` does
+  (readers only open data; main runs this stage first in every mode)."""
+  data_stage.prepare_data(config, None, None)
+
+
 def run_stages(config, workdir, mesh, names=None):
-  """Runs `names` (default: every stage of `--mode=all`) in table order;
-  returns {name: what the stage returned}."""
+  """Runs the data stage, then `names` (default: every stage of
+  `--mode=all`), as main does; returns {name: what the stage returned}."""
   table = stages.stage_table(config)
-  names = names or stages.selected_stages(config, 'all')
+  names = list(dict.fromkeys([*stages.DATA,
+                              *(names or stages.selected_stages(config,
+                                                                'all'))]))
   return {name: table[name](config, workdir, mesh) for name in names}

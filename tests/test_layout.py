@@ -31,6 +31,10 @@ FLOORS = (
     # run-time pieces shared by training, evaluation and the tasks
     ('slotformer_jax.runtime',),
     ('slotformer_jax.data',),
+    # simulators a run uses too (planning's PHYRE-like world)
+    ('slotformer_jax.worlds',),
+    # the offline writers (the data stage's), above every reader
+    ('slotformer_jax.data.convert', 'slotformer_jax.data.prepare'),
     ('slotformer_jax.modules',),
     # what reads a config: building modules, a run's paths, the checks
     ('slotformer_jax.models', 'slotformer_jax.workdir',
@@ -206,8 +210,10 @@ def test_the_graph_sees_imports():
       GRAPH, 'slotformer_jax.stages.dynamics')
   assert 'slotformer_jax.slot_models.steve' in GRAPH[
       'slotformer_jax.slot_models']
-  assert 'slotformer_jax.data.convert.synthetic' in reachable(
+  assert 'slotformer_jax.data.embedded.synthetic' in reachable(
       GRAPH, 'slotformer_jax.data.sources')
+  assert 'slotformer_jax.data.convert.synthetic' in reachable(
+      GRAPH, 'slotformer_jax.stages.data')
   assert len(GRAPH) > 80
 
 
@@ -242,3 +248,4 @@ def test_the_checker_catches_an_upward_import(tmp_path):
   graph['slotformer_jax.train.trainer'].add('slotformer_jax.inference')
   assert upward_imports(graph) == [('slotformer_jax.train.trainer',
                                     'slotformer_jax.inference')]
+

@@ -273,11 +273,14 @@ def _check_resolution(config: ml_collections.ConfigDict, problems) -> None:
 
 def _video_length(config: ml_collections.ConfigDict, split: str
                   ) -> int | None:
-  """Frames per video when known without generating data: the synthetic
-  config's value, or the first video of an already converted dataset."""
+  """Frames per video when known without generating data: an embedded
+  family's parameter, or the first video of an already converted dataset."""
   if config.data.name == 'synthetic':
     return int(config.data.get('num_frames', 40))
   try:
+    from slotformer_jax.data.embedded import families  # pylint: disable=g-import-not-at-top
+    if config.data.name in families.NAMES:
+      return int(families.generation_config(config.data).num_frames)
     # Imported here: reading needs tensorflow_datasets.
     from slotformer_jax.data import sources  # pylint: disable=g-import-not-at-top
     source = sources.get_video_source(config.data, split)

@@ -1,11 +1,13 @@
 """The stage table: which stages a config runs, in which order.
 
-A run is stage 1 (the slot model's own stages, `slot_models/`), slot
-extraction, stage 2 (SlotFormer; the Slot-LSTM baseline when the config
-trains it), then either the video-prediction evaluation and pictures, or a
-downstream task: contact prediction, planning, or VQA. `--mode=all` runs
-them in table order; `--mode=<stage>` runs one. The `--mode` values are the
-union of every table, derived from the registries below.
+A run is the data stage (`prepare_data`: every `--mode` runs it first, so
+the stages after it find their data made and checked), stage 1 (the slot
+model's own stages, `slot_models/`), slot extraction, stage 2 (SlotFormer;
+the Slot-LSTM baseline when the config trains it), then either the
+video-prediction evaluation and pictures, or a downstream task: contact
+prediction, planning, or VQA. `--mode=all` runs them in table order;
+`--mode=<stage>` runs the data stage, then that one. The `--mode` values
+are the union of every table, derived from the registries below.
 
 Every stage function is `(config, workdir, mesh) -> None | results`.
 """
@@ -18,6 +20,7 @@ from slotformer_jax import slot_models
 from slotformer_jax.errors import UserError
 from slotformer_jax.slot_models.base import StageFn
 from slotformer_jax.stages import contact
+from slotformer_jax.stages import data
 from slotformer_jax.stages import dynamics
 from slotformer_jax.stages import extract
 from slotformer_jax.stages import planning
@@ -25,6 +28,8 @@ from slotformer_jax.stages import planning_rendered
 from slotformer_jax.stages import video_prediction
 from slotformer_jax.stages import vqa
 
+# Reading never writes: the data are made here, before every other stage.
+DATA: dict[str, StageFn] = {'prepare_data': data.prepare_data}
 STAGE2: dict[str, StageFn] = {
     'extract_slots': extract.extract_slots,
     'train_slotformer': dynamics.train_slotformer,
@@ -53,7 +58,7 @@ PLANNING_RENDERED: dict[str, StageFn] = {
 
 def _modes() -> tuple[str, ...]:
   names = []
-  for table in ([m.stage1 for m in slot_models.SLOT_MODELS.values()]
+  for table in ([DATA] + [m.stage1 for m in slot_models.SLOT_MODELS.values()]
                 + [STAGE2, VIDEO_PREDICTION, *TASKS.values()]):
     names += [name for name in table if name not in names]
   return ('all', *names)
@@ -72,7 +77,8 @@ def task_of(config: ml_collections.ConfigDict) -> str | None:
 
 def stage_table(config: ml_collections.ConfigDict) -> dict[str, StageFn]:
   """The stages `config` can run, in the order `--mode=all` runs them."""
-  table = dict(slot_models.get(config).stage1)
+  table = dict(DATA)
+  table.update(slot_models.get(config).stage1)
   table.update(STAGE2)
   task = task_of(config)
   if task is None:
@@ -89,7 +95,8 @@ def stage_table(config: ml_collections.ConfigDict) -> dict[str, StageFn]:
 
 def selected_stages(config: ml_collections.ConfigDict,
                     mode: str) -> tuple[str, ...]:
-  """The stages `--mode=<mode>` runs for `config`, in order."""
+  """The stages `--mode=<mode>` runs for `config`, in order; the data stage
+  first, whatever the mode."""
   table = stage_table(config)
   if mode == 'all':
     # The Slot-LSTM baseline only when the config asks for it.
@@ -102,4 +109,4 @@ def selected_stages(config: ml_collections.ConfigDict,
         f'{", ".join(table)}. Task stages need a task config, e.g. '
         'configs/synthetic_contact.py, configs/synthetic_phyre.py or '
         'configs/synthetic_vqa.py.')
-  return (mode,)
+  return tuple(dict.fromkeys([*DATA, mode]))

@@ -552,6 +552,7 @@ def test_converted_workdir_runs_extract_evaluate_render(tmp_path):
     convert_official.write_converted(config, workdir, converted.stage,
                                      converted.params, {'file': 'test'})
   mesh = jax.sharding.Mesh(np.array(jax.devices()), ('data',))
+  pipeline_helpers.prepare_data(config)
   extract.extract_slots(config, workdir, mesh)
   results = video_prediction.evaluate(config, workdir, mesh)
   pictures = video_prediction.render(config, workdir, mesh)

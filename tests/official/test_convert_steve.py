@@ -426,6 +426,7 @@ def test_converted_steve_workdir_runs_extract_evaluate_render(tmp_path,
                                                   steve_state)})
   mesh = sharding.make_mesh()
   table = stages.stage_table(config)
+  table['prepare_data'](config, workdir, mesh)
   table['extract_slots'](config, workdir, mesh)
   results = table['evaluate'](config, workdir, mesh)
   assert results['checkpoints']['steve_step'] == steve.num_train_steps

@@ -16,6 +16,7 @@ import pytest
 from pipeline_helpers import SLOT_MODELS
 from pipeline_helpers import load_config
 from pipeline_helpers import micro_config
+from pipeline_helpers import prepare_data
 from pipeline_helpers import run_stages
 from slotformer_jax import slot_models
 from slotformer_jax import workdir as workdir_lib
@@ -227,6 +228,7 @@ def test_stage_two_rejects_a_checkpoint_of_another_model(tmp_path):
   config = micro_config('savi', tmp_path / 'data')
   workdir = str(tmp_path / 'run')
   mesh = sharding.make_mesh()
+  prepare_data(config)
   savi_slots.train_savi(config, workdir, mesh)
   config.savi.slot_size = 24
   with pytest.raises(UserError, match='slot_size'):

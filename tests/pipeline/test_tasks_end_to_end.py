@@ -9,6 +9,7 @@ import pytest
 
 from configs import synthetic_contact
 from configs import synthetic_phyre
+from pipeline_helpers import prepare_data
 from slotformer_jax import stages
 from slotformer_jax.runtime import sharding
 from slotformer_jax.slot_models import savi as savi_slots
@@ -29,6 +30,7 @@ def _micro_models(config):
 
 def _run(config, workdir, stage_names):
   mesh = sharding.make_mesh()
+  prepare_data(config)
   savi_slots.train_savi(config, workdir, mesh)
   extract.extract_slots(config, workdir, mesh)
   dynamics.train_slotformer(config, workdir, mesh)

@@ -71,8 +71,9 @@ def test_contact_stages_on_steve_slots(tmp_path):
   mesh = sharding.make_mesh()
   table = stages.stage_table(config)
   assert 'train_steve' in table and 'train_savi' not in table
-  for mode in ('train_dvae', 'tokenize_frames', 'train_steve',
-               'extract_slots', 'train_slotformer', 'train_readout'):
+  for mode in ('prepare_data', 'train_dvae', 'tokenize_frames',
+               'train_steve', 'extract_slots', 'train_slotformer',
+               'train_readout'):
     table[mode](config, workdir, mesh)
   meta = read_meta(os.path.join(workdir, 'slots', 'readout_test'))
   assert meta['slot_size'] == config.steve.slot_size
