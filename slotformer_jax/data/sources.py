@@ -300,6 +300,7 @@ def get_video_source(data_config: ml_collections.ConfigDict,
 
 
 def unknown_dataset(name: Any) -> ConfigError:
+  """The error of a data name that is neither embedded nor converted."""
   return ConfigError(f'Unknown dataset name {name!r}; expected one of the '
                      f'embedded {families.NAMES} or one of {REAL_DATASETS}.')
 

@@ -28,6 +28,7 @@ import numpy as np
 
 from slotformer_jax.data.embedded import folders
 from slotformer_jax.data.embedded.synthetic import COLORS
+from slotformer_jax.errors import MissingInputError
 
 # The videos and event logs (the questions have their own version,
 # QUESTIONS_VERSION; the event-log types are in data/events.py).
@@ -42,9 +43,9 @@ GENERATOR_VERSION = 2
 # predictive / explanatory questions per video.
 QUESTIONS_VERSION = 2
 
-# predictive_design: 'direct', the scenes above (most future collisions are
-# objects already heading at each other: extrapolating the observed end
-# answers ~85% of the predictive options, experiments/
+# predictive_design: 'direct', objects aimed roughly at each other (most
+# future collisions are objects already heading at each other: extrapolating
+# the observed end answers ~85% of the predictive options, experiments/
 # vqa_state_extrapolation.py); 'deflected', bank-shot scenes drawn
 # until the future has an event that extrapolation gets wrong, and every
 # pair in view at the end carries the extrapolation's verdict
@@ -190,9 +191,13 @@ def complete_dataset_dir(data_config: Any, data_dir: str | os.PathLike[str]
       than the generator's (names the command that makes them).
   """
   root = dataset_dir(config_from_data_config(data_config), data_dir)
+  if not (root / COMPLETE).is_file():
+    raise folders.not_generated('the CLEVRER-like dataset', root / COMPLETE)
   if not is_complete(root):
-    raise folders.not_generated('the CLEVRER-like dataset (with current '
-                                'questions)', root / COMPLETE)
+    raise MissingInputError(
+        f'the CLEVRER-like dataset {root} holds questions of an older '
+        f'generator; {folders.PREPARE_COMMAND} writes new ones from its '
+        'event logs (every --mode runs that stage first)')
   return root
 
 
