@@ -57,6 +57,7 @@ def run(kind: str, seed: int, steps: int, out: str) -> dict:
   mesh, slot_model = run.mesh, run.slot_model
   accept_config(config.to_dict(), run.paths)
   table = stages.stage_table(run)
+  table['prepare_data'](run)  # readers only open data
   started = time.time()
   table['train_savi'](run)
   train_seconds = time.time() - started

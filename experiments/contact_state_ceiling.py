@@ -31,6 +31,7 @@ import numpy as np
 
 from slotformer_jax.data.convert import contact
 from slotformer_jax.data.convert import synthetic
+from slotformer_jax.data.embedded import contact as contact_data
 from slotformer_jax.modules import readouts
 from slotformer_jax.tasks import readout as readout_lib
 
@@ -67,7 +68,7 @@ def state_features(example: dict[str, np.ndarray], scale: float,
   return np.concatenate([pos, vel, radius], -1).astype(np.float32)
 
 
-def load(config: contact.ContactConfig, split: str, limit: int,
+def load(config: contact_data.ContactConfig, split: str, limit: int,
          all_objects: bool):
   n = min(config.num_videos(split), limit)
   feats, labels, onsets = [], [], []
@@ -121,7 +122,7 @@ def main():
   for item in args.override:
     key, value = item.split('=', 1)
     run_config.data[key.removeprefix('data.')] = eval(value)  # pylint: disable=eval-used
-  config = contact.config_from_data_config(run_config.data)
+  config = contact_data.config_from_data_config(run_config.data)
   start = time.time()
   limits = {'readout_train': min(args.limit, args.train_limit),
             'readout_val': args.limit, 'readout_test': args.limit}

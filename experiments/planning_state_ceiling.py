@@ -5,7 +5,7 @@ The planning classifier on SAVi slots of the first frame (85.9 mean AUCCESS
 over 3 folds) is not beaten by the one on first frame + SlotFormer rollout
 (84.1). Before blaming SlotFormer, check the task itself: train a success
 classifier on SIMULATOR STATES of the embedded PHYRE-like tasks
-(data/convert/phyre_like.py, configs/synthetic_phyre.py), once on the first
+(worlds/phyre_like.py, configs/synthetic_phyre.py), once on the first
 frame (+ the action) and once on later frames of the TRUE simulation. If the
 true future is not far above the first frame, no dynamics model can help.
 
@@ -36,10 +36,11 @@ import time
 import flax.linen as nn
 import numpy as np
 
-from slotformer_jax.data.convert import phyre_like
+from slotformer_jax.data.embedded import phyre_like as phyre_like_data
 from slotformer_jax.tasks import phyre_planning
 from slotformer_jax.tasks import planning
 from slotformer_jax.tasks import readout as readout_lib
+from slotformer_jax.worlds import phyre_like
 
 ROLES = (phyre_like.GREEN, phyre_like.GOAL, phyre_like.DYNAMIC,
          phyre_like.STATIC, phyre_like.ACTION)
@@ -118,7 +119,7 @@ def main():
   parser.add_argument('--heads', nargs='+', default=['mlp', 'logistic'])
   parser.add_argument('--templates', nargs='+', default=None,
                       help='override config.data.templates (names of '
-                      'phyre_like.ALL_TEMPLATES)')
+                      'data/embedded/phyre_like.ALL_TEMPLATES)')
   parser.add_argument('--tasks_per_template', type=int, default=None)
   args = parser.parse_args()
   path, _, variant = args.config.partition(':')
@@ -130,7 +131,7 @@ def main():
     run_config.data.templates = tuple(args.templates)
   if args.tasks_per_template:
     run_config.data.tasks_per_template = args.tasks_per_template
-  generation = phyre_like.config_from_data_config(run_config.data)
+  generation = phyre_like_data.config_from_data_config(run_config.data)
   actions = phyre_like.candidate_actions(generation)
   start = time.time()
   tasks = phyre_like.all_tasks(generation)

@@ -33,7 +33,7 @@ import optax
 from slotformer_jax.data import vqa_questions
 from slotformer_jax.run import Run
 from slotformer_jax.stages import vqa as vqa_stages
-from slotformer_jax.data.questions import QUESTION_TYPES
+from slotformer_jax.data.vqa import QUESTION_TYPES
 from slotformer_jax.tasks import vqa as task
 
 

@@ -53,7 +53,7 @@ import numpy as np
 
 from slotformer_jax.run import Run
 from slotformer_jax.workdir.paths import Paths
-from slotformer_jax.data import clevrer_like
+from slotformer_jax.data.embedded import clevrer_like as clevrer_like_data
 from slotformer_jax.data.slots import SlotSource
 from slotformer_jax.data.sources import resolve_data_dir
 from slotformer_jax.runtime import sharding
@@ -125,7 +125,7 @@ def _options(root: str, split: str):
     scenes = json.load(f)
   with open(os.path.join(root, split, 'events.jsonl')) as f:
     objects = [json.loads(line)['objects'] for line in f]
-  offset = clevrer_like.SCENE_OFFSETS[split]
+  offset = clevrer_like_data.SCENE_OFFSETS[split]
   out = []
   for scene in scenes:
     v = int(scene['scene_index']) - offset
@@ -197,8 +197,8 @@ def main() -> None:
   args = parser.parse_args()
   with open(os.path.join(args.workdir, 'config.json')) as f:
     config = ml_collections.ConfigDict(json.load(f))
-  root = str(clevrer_like.dataset_dir(
-      clevrer_like.config_from_data_config(config.data),
+  root = str(clevrer_like_data.dataset_dir(
+      clevrer_like_data.config_from_data_config(config.data),
       resolve_data_dir(config.data.get('data_dir', None))))
   probe = _benchmark('vqa_slot_probe')
   loaded = Run.open(args.workdir).stage1

@@ -41,8 +41,8 @@ import numpy as np
 
 from slotformer_jax.run import Run
 from slotformer_jax.workdir.paths import Paths
-from slotformer_jax.data import clevrer_like
-from slotformer_jax.data.convert.synthetic import COLORS, SHAPES
+from slotformer_jax.data.embedded import clevrer_like as clevrer_like_data
+from slotformer_jax.data.embedded.synthetic import COLORS, SHAPES
 from slotformer_jax.data.slots import SlotSource
 from slotformer_jax.data.sources import resolve_data_dir
 from slotformer_jax.runtime import sharding
@@ -144,8 +144,8 @@ def main() -> None:
     config = ml_collections.ConfigDict(json.load(f))
   frame = (config.data.observed_frames - 1 if args.frame is None
            else args.frame)
-  root = str(clevrer_like.dataset_dir(
-      clevrer_like.config_from_data_config(config.data),
+  root = str(clevrer_like_data.dataset_dir(
+      clevrer_like_data.config_from_data_config(config.data),
       resolve_data_dir(config.data.get('data_dir', None))))
   loaded = Run.open(args.workdir).stage1
   params, step = loaded.params['savi'], loaded.step

@@ -54,7 +54,8 @@ _MODE = flags.DEFINE_string(
     'mode', 'all', "Which stage to run, or 'all': a stage of the config's "
     'table (its slot model, e.g. train_savi or train_dvae, tokenize_frames, '
     'train_steve; extract_slots, train_slotformer, train_slot_lstm; then '
-    'evaluate, render, explore, or the task\'s stages); docs/running.md.')
+    'evaluate, render, explore, or the task\'s stages); prepare_data, which '
+    'makes and checks the data, runs first in every mode. docs/running.md.')
 _DISTRIBUTED = flags.DEFINE_bool(
     'distributed', False, 'Call jax.distributed.initialize() first (one '
     'process per host on a TPU pod or multi-node GPU cluster). It detects '

@@ -29,6 +29,7 @@ from slotformer_jax import dynamics as dynamics_lib
 from slotformer_jax import slot_models
 from slotformer_jax.config import checks as config_checks
 from slotformer_jax.config.sections import dynamics_section
+from slotformer_jax.data.embedded import families
 from slotformer_jax.data.slots import SlotSource
 from slotformer_jax.data.sources import VideoSource
 from slotformer_jax.data.sources import get_video_source
@@ -94,8 +95,8 @@ class Run:
     or written. Video lengths are read from data already there."""
 
     def video_length(split: str) -> int | None:
-      if self.config.data.name == 'synthetic':
-        return int(self.config.data.num_frames)
+      if self.config.data.name in families.NAMES:  # from its parameters
+        return int(families.generation_config(self.config.data).num_frames)
       try:
         source = self.videos(split)
         return len(source[0]['video']) if len(source) else None

@@ -1,5 +1,5 @@
 """Shared by the pipeline tests: configs by file name, micro configs of every
-slot model, and running a config's stages in table order."""
+slot model, making a config's data, and running its stages in table order."""
 
 import importlib.util
 import os
@@ -9,6 +9,7 @@ from slotformer_jax.run import Run
 from slotformer_jax.runtime import sharding
 from slotformer_jax.workdir.paths import Paths
 from slotformer_jax.workdir.settings import accept_config
+from slotformer_jax.stages import data as data_stage
 
 CONFIGS = os.path.join(os.path.dirname(__file__), '..', 'configs')
 SLOT_MODELS = ('savi', 'steve')
@@ -55,13 +56,21 @@ def micro_config(slot_model, data_dir):
   return config
 
 
+def prepare_data(config):
+  """Makes and checks the data of `config` as `--mode=prepare_data` does
+  (readers only open data; main runs this stage first in every mode)."""
+  data_stage.prepare_data(Run.create(config, '/nonexistent/run',
+                                     sharding.make_mesh()))
+
+
 def run_stages(config, workdir, mesh, names=None):
-  """Runs `names` (default: every stage of `--mode=all`) in table order,
-  as main does (one Run, its loaded models forgotten after each stage);
-  returns {name: what the stage returned}."""
+  """Runs the data stage, then `names` (default: every stage of
+  `--mode=all`) in table order, as main does (one Run, its loaded models
+  forgotten after each stage); returns {name: what the stage returned}."""
   run = Run.create(config, str(workdir), mesh)
   table = stages.stage_table(run)
-  names = names or stages.selected_stages(run, 'all')
+  names = list(dict.fromkeys([*stages.DATA, *(
+      names or stages.selected_stages(run, 'all'))]))
   out = {}
   for name in names:
     out[name] = table[name](run)

@@ -32,6 +32,10 @@ FLOORS = (
     # run-time pieces shared by training, evaluation and the tasks
     ('slotformer_jax.runtime',),
     ('slotformer_jax.data',),
+    # simulators a run uses too (planning's PHYRE-like world)
+    ('slotformer_jax.worlds',),
+    # the offline writers (the data stage's), above every reader
+    ('slotformer_jax.data.convert', 'slotformer_jax.data.prepare'),
     ('slotformer_jax.modules',),
     ('slotformer_jax.config',),
     ('slotformer_jax.losses',),
@@ -178,19 +182,15 @@ def reachable(graph: dict[str, set[str]], start: str) -> set[str]:
   return seen
 
 
-def _under(module: str, prefix: str) -> bool:
-  return module == prefix or module.startswith(prefix + '.')
-
-
 def boundary_violations(graph: dict[str, set[str]],
                         boundaries=BOUNDARIES) -> list[tuple[str, str, str]]:
   """(module, forbidden module it reaches, why) for every boundary crossed."""
   out = []
   for who, forbidden, why in boundaries:
     for name in sorted(graph):
-      if _under(name, who):
+      if _under(name, (who,)):
         out += [(name, other, why) for other in sorted(reachable(graph, name))
-                if _under(other, forbidden)]
+                if _under(other, (forbidden,))]
   return out
 
 
@@ -213,8 +213,8 @@ def test_each_boundary_catches_a_violation():
   """One edge added per boundary, from a module of `who` straight to one of
   `forbidden`: the check names it."""
   for who, forbidden, why in BOUNDARIES:
-    source = next(n for n in sorted(GRAPH) if _under(n, who))
-    target = next(n for n in sorted(GRAPH) if _under(n, forbidden))
+    source = next(n for n in sorted(GRAPH) if _under(n, (who,)))
+    target = next(n for n in sorted(GRAPH) if _under(n, (forbidden,)))
     graph = {name: set(edges) for name, edges in GRAPH.items()}
     graph[source].add(target)
     assert (source, target, why) in boundary_violations(graph), (who,
@@ -258,6 +258,10 @@ def test_the_graph_sees_imports():
       'slotformer_jax.slot_models']
   assert 'slotformer_jax.runtime.sharding' in reachable(
       GRAPH, 'slotformer_jax.evaluation.evaluate')
+  assert 'slotformer_jax.data.embedded.synthetic' in reachable(
+      GRAPH, 'slotformer_jax.data.sources')
+  assert 'slotformer_jax.data.convert.synthetic' in reachable(
+      GRAPH, 'slotformer_jax.stages.data')
   assert len(GRAPH) > 80
 
 
@@ -292,3 +296,134 @@ def test_the_checker_catches_an_upward_import(tmp_path):
   graph['slotformer_jax.train.trainer'].add('slotformer_jax.inference')
   assert upward_imports(graph) == [('slotformer_jax.train.trainer',
                                     'slotformer_jax.inference')]
+
+
+# --------------------------------------------------------------------------
+# Reading never writes; the rules a run uses live outside the converters
+# --------------------------------------------------------------------------
+
+# What reading must never reach: the offline writers (generators,
+# converters, the checksum recorder data/convert/checksums.py) and the lock.
+WRITING = ('slotformer_jax.data.convert', 'slotformer_jax.data.prepare',
+           'slotformer_jax.workdir.lock')
+# Where a run opens data: videos, and the VQA questions and vocabulary.
+READERS = ('slotformer_jax.data.sources', 'slotformer_jax.data.vqa_questions')
+# Calls that write files; a reader's own modules make none.
+WRITE_CALLS = ('write_json_atomic', 'write_atomic', 'append_line_atomic',
+               'record_checksums', 'np.save', 'np.savez', 'json.dump',
+               'shutil.rmtree', 'os.replace', 'os.rename', 'mkdir',
+               'download_and_prepare', 'FileLock')
+
+
+def _under(module: str, prefixes) -> bool:
+  return any(module == p or module.startswith(p + '.') for p in prefixes)
+
+
+def forbidden_reaches(graph: dict[str, set[str]], starts, forbidden
+                      ) -> list[tuple[str, str]]:
+  """(module, what it reaches) for every module under `starts` that reaches
+  a module under `forbidden`."""
+  return sorted((name, other) for name in graph if _under(name, starts)
+                for other in reachable(graph, name)
+                if _under(other, forbidden))
+
+
+def readers_and_what_they_reach(graph: dict[str, set[str]]) -> set[str]:
+  """The readers and every module of data/ they reach (outside convert/)."""
+  return {m for r in READERS for m in reachable(graph, r)
+          if _under(m, ('slotformer_jax.data',)) and not _under(m, WRITING)}
+
+
+def write_calls(files: dict[str, pathlib.Path], names) -> list[str]:
+  """'module:line call' of every writing call (WRITE_CALLS, by name or
+  method) in the modules `names`, and of open() with a writing mode."""
+  found = []
+  for name in sorted(names):
+    for node in ast.walk(ast.parse(files[name].read_text())):
+      if not isinstance(node, ast.Call):
+        continue
+      func = ast.unparse(node.func)
+      modes = [a.value for a in node.args[1:2] if isinstance(a, ast.Constant)]
+      if func == 'open' and any(set(str(m)) & set('wax+') for m in modes):
+        found.append(f'{name}:{node.lineno} {func}')
+      elif func in WRITE_CALLS or func.rsplit('.', 1)[-1] in WRITE_CALLS:
+        found.append(f'{name}:{node.lineno} {func}')
+  return found
+
+
+def test_reading_reaches_no_writer():
+  """data/sources.py and what it reaches import no generator, converter,
+  checksum recorder or lock (`data.integrity` only verifies)."""
+  assert forbidden_reaches(GRAPH, readers_and_what_they_reach(GRAPH),
+                           WRITING) == []
+
+
+def test_the_sources_modules_write_nothing():
+  # data/vqa.py is left out: it also saves the vocabulary for the
+  # generator (Vocabulary.save), which the readers never call.
+  reached = {m for m in reachable(GRAPH, 'slotformer_jax.data.sources')
+             if _under(m, ('slotformer_jax.data',))}
+  assert 'slotformer_jax.data.integrity' in reached
+  assert write_calls(modules_of(PACKAGE), reached) == []
+
+
+def test_tasks_and_evaluation_reach_no_converter():
+  """The run-time rules they use (the PHYRE-like world, CLEVRER's clips)
+  are in worlds/ and evaluation/, not with the offline writers."""
+  converters = ('slotformer_jax.data.convert',)
+  assert forbidden_reaches(GRAPH, ('slotformer_jax.tasks',), converters) == []
+  assert forbidden_reaches(GRAPH, ('slotformer_jax.evaluation',),
+                           converters) == []
+
+
+def test_the_checker_catches_reading_that_writes():
+  graph = {name: set(edges) for name, edges in GRAPH.items()}
+  graph['slotformer_jax.data.embedded.synthetic'].add(
+      'slotformer_jax.data.convert.synthetic')
+  graph['slotformer_jax.data.integrity'].add(
+      'slotformer_jax.data.convert.checksums')
+  graph['slotformer_jax.data.vqa'].add('slotformer_jax.workdir.lock')
+  caught = forbidden_reaches(graph, readers_and_what_they_reach(graph),
+                             WRITING)
+  for reader, writer in [
+      ('slotformer_jax.data.sources', 'slotformer_jax.data.convert.synthetic'),
+      ('slotformer_jax.data.sources', 'slotformer_jax.data.convert.checksums'),
+      ('slotformer_jax.data.embedded.synthetic',
+       'slotformer_jax.data.convert.synthetic'),
+      ('slotformer_jax.data.vqa_questions', 'slotformer_jax.workdir.lock')]:
+    assert (reader, writer) in caught
+
+
+def test_the_checker_catches_a_write_call(tmp_path):
+  package = _fake_package(tmp_path, {
+      '__init__.py': '',
+      'reader.py': ('import json\n'
+                    'def f(path, data):\n'
+                    '  with open(path, "w") as out:\n'
+                    '    json.dump(data, out)\n'),
+      'cache.py': ('from pkg.files import write_json_atomic\n'
+                   'def g(path):\n'
+                   '  write_json_atomic(path, {})\n'
+                   '  path.parent.mkdir(parents=True)\n'),
+      'clean.py': 'def h(path):\n  return open(path).read()\n',
+  })
+  files = modules_of(package)
+  assert write_calls(files, files) == [
+      'pkg.cache:3 write_json_atomic', 'pkg.cache:4 path.parent.mkdir',
+      'pkg.reader:3 open', 'pkg.reader:4 json.dump']
+
+
+def test_the_checker_catches_a_task_or_evaluation_reaching_a_converter():
+  graph = {name: set(edges) for name, edges in GRAPH.items()}
+  graph['slotformer_jax.tasks.phyre_planning'].add(
+      'slotformer_jax.data.convert.phyre_like')
+  graph['slotformer_jax.evaluation.clevrer_clips'].add(
+      'slotformer_jax.data.convert.clevrer')
+  converters = ('slotformer_jax.data.convert',)
+  assert ('slotformer_jax.tasks.phyre_planning',
+          'slotformer_jax.data.convert.phyre_like') in forbidden_reaches(
+              graph, ('slotformer_jax.tasks',), converters)
+  caught = forbidden_reaches(graph, ('slotformer_jax.evaluation',),
+                             converters)
+  assert ('slotformer_jax.evaluation.evaluate',
+          'slotformer_jax.data.convert.clevrer') in caught

@@ -1,10 +1,11 @@
-"""Checksums of a dataset cache: recorded when written, verified when opened.
+"""Checksums of a dataset cache: verified when opened (reading only).
 
 `checksums.json` in a TFDS version folder holds, per array_record file, its
 size, modification time and crc32. Opening a split compares sizes (always)
 and, when a file's modification time changed, its crc32: a truncated or
 rewritten file is found before any step reads it, at the cost of one stat
-per file on a healthy cache.
+per file on a healthy cache. The writers record the file
+(`data/convert/checksums.py`), so a reader never writes.
 """
 
 from __future__ import annotations
@@ -15,7 +16,6 @@ from typing import Any
 import zlib
 
 from slotformer_jax.files import read_json
-from slotformer_jax.files import write_json_atomic
 
 CHECKSUMS_FILE = 'checksums.json'
 
@@ -33,23 +33,18 @@ def file_crc32(path: str | os.PathLike[str], chunk: int = 1 << 24) -> str:
   return f'{value:08x}'
 
 
-def _record_files(dataset_dir: Path) -> list[Path]:
+def checksummed_files(dataset_dir: Path) -> list[Path]:
+  """The files checksums.json covers: records and TFDS metadata."""
   return sorted(p for p in dataset_dir.iterdir()
                 if '.array_record' in p.name or p.name in (
                     'dataset_info.json', 'features.json'))
 
 
-def _entry(path: Path) -> dict[str, Any]:
+def file_entry(path: Path) -> dict[str, Any]:
+  """What checksums.json holds of one file."""
   stat = path.stat()
   return {'size': stat.st_size, 'mtime_ns': stat.st_mtime_ns,
           'crc32': file_crc32(path)}
-
-
-def record_checksums(dataset_dir: str | os.PathLike[str]) -> None:
-  """Writes checksums.json for every record / metadata file of the folder."""
-  dataset_dir = Path(dataset_dir)
-  write_json_atomic(dataset_dir / CHECKSUMS_FILE, {
-      p.name: _entry(p) for p in _record_files(dataset_dir)})
 
 
 def verify_checksums(dataset_dir: str | os.PathLike[str],

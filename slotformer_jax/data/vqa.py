@@ -5,8 +5,8 @@ scenes ``{'scene_index', 'video_filename', 'questions': [...]}``; a question
 has ``question_id``, ``question_type`` (descriptive, explanatory, predictive,
 counterfactual), ``question`` and either ``answer`` or ``choices``
 ``[{'choice_id', 'choice', 'answer': 'correct' | 'wrong'}]``; the test split
-has no answers). The embedded generator (:mod:`slotformer_jax.data.questions`)
-writes the same layout.
+has no answers). The embedded generator
+(:mod:`slotformer_jax.data.convert.questions`) writes the same layout.
 
 Text is tokenised like the official Aloe re-implementation: lower case, '?'
 dropped, split on single spaces (so "cube," is its own word). A vocabulary

@@ -1,10 +1,10 @@
 """Where a VQA config's questions and vocabulary come from.
 
-The embedded family ('clevrer_like') keeps them in its dataset folder (built
-on first use); for CLEVRER set `vqa.questions_root` (the folder with
-questions/) and optionally `vqa.vocab_file` (e.g. the official
-CLEVRER_vocab.json; default: built from the training questions and
-CLEVRER's answers).
+The embedded family ('clevrer_like') keeps them in its dataset folder
+(written by the data stage, `--mode=prepare_data`; reading here only opens
+it); for CLEVRER set `vqa.questions_root` (the folder with questions/) and
+optionally `vqa.vocab_file` (e.g. the official CLEVRER_vocab.json; default:
+built from the training questions and CLEVRER's answers).
 """
 
 from __future__ import annotations
@@ -14,17 +14,22 @@ import os
 import ml_collections
 
 from slotformer_jax.data import vqa as vqa_data
+from slotformer_jax.data.data_dir import resolve_data_dir
+from slotformer_jax.data.embedded import clevrer_like
 from slotformer_jax.errors import ConfigError
 
 
 def questions_root(config: ml_collections.ConfigDict) -> str:
+  """The folder holding questions/ (and maybe vocab.json).
+
+  Raises:
+    MissingInputError: the embedded dataset is not generated (names the
+      command).
+    ConfigError: CLEVRER without `vqa.questions_root`.
+  """
   if config.data.name == 'clevrer_like':
-    from slotformer_jax.data import clevrer_like  # pylint: disable=g-import-not-at-top
-    from slotformer_jax.data.sources import resolve_data_dir  # pylint: disable=g-import-not-at-top
-    return str(clevrer_like.build_dataset(
-        clevrer_like.config_from_data_config(config.data),
-        resolve_data_dir(config.data.get('data_dir', None)),
-        num_workers=config.data.get('num_workers', None)))
+    return str(clevrer_like.complete_dataset_dir(
+        config.data, resolve_data_dir(config.data.get('data_dir', None))))
   if not config.vqa.questions_root:
     raise ConfigError('set vqa.questions_root to the folder holding '
                      "CLEVRER's questions/{train,validation,test}.json")
@@ -58,7 +63,6 @@ def filename_to_index(config: ml_collections.ConfigDict,
                        split: str) -> dict[str, int]:
   scenes = vqa_data.read_clevrer_questions(questions_root(config), split)
   if config.data.name == 'clevrer_like':
-    from slotformer_jax.data import clevrer_like  # pylint: disable=g-import-not-at-top
     offset = clevrer_like.SCENE_OFFSETS[split]
     return {s['video_filename']: int(s['scene_index']) - offset
             for s in scenes}

@@ -52,10 +52,10 @@ from slotformer_jax.config.checks import OBJECT_METRICS
 from slotformer_jax.config.sections import SLOT_LSTM
 from slotformer_jax.config.sections import SLOTFORMER
 from slotformer_jax.data import pipeline
-from slotformer_jax.data.convert import clevrer
 from slotformer_jax.data.pipeline import ClipSource
 from slotformer_jax.errors import ConfigError
 from slotformer_jax.evaluation import metrics as metrics_lib
+from slotformer_jax.evaluation.clevrer_clips import eval_clip_starts
 from slotformer_jax.files import atomic_text
 from slotformer_jax.files import write_json_atomic
 from slotformer_jax.frames import frames_to_model
@@ -640,7 +640,8 @@ def evaluation_clips(kind: str, source: Any, time_fields: tuple[str, ...],
   `kind` (`evaluation.clips`): 'first' evaluates each video from its first
   frame; 'clevrer' takes the official CLEVRER clips (per half-clip block of
   the video, the first start where no object enters late; see
-  `clevrer_clips`), which reads the stored `in_view` of `videos`.
+  `evaluation/clevrer_clips.py`), which reads the stored `in_view` of
+  `videos`.
   """
   if kind == 'first':
     return ClipSource(source, [(i, 0) for i in range(num_videos)],
@@ -664,8 +665,8 @@ def clevrer_clips(videos: Any, num_videos: int, burn_in: int, rollout: int,
       raise ValueError(
           f'video {video} has no CLEVRER annotations (the test split has '
           "none); evaluate on the 'val' split")
-    starts = clevrer.eval_clip_starts(item['in_view'], burn_in, rollout,
-                                      frame_stride)
+    starts = eval_clip_starts(item['in_view'], burn_in, rollout,
+                              frame_stride)
     clips += [(video, int(start)) for start in starts]
   if not clips:
     raise ValueError('no CLEVRER evaluation clip without entering objects '

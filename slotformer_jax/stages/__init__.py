@@ -1,10 +1,12 @@
 """The stage table: which stages a run executes, in which order.
 
-A run is stage 1 (the slot model's own parts, `stages/stage1.py`), slot
-extraction, stage 2 (SlotFormer; the Slot-LSTM baseline when the config
-trains it), then either the video-prediction evaluation and pictures, or a
-downstream task: contact prediction, planning, or VQA. `--mode=all` runs
-them in table order; `--mode=<stage>` runs one.
+A run is the data stage (`prepare_data`: every `--mode` runs it first, so
+the stages after it find their data made and checked), stage 1 (the slot
+model's own parts, `stages/stage1.py`), slot extraction, stage 2
+(SlotFormer; the Slot-LSTM baseline when the config trains it), then either
+the video-prediction evaluation and pictures, or a downstream task: contact
+prediction, planning, or VQA. `--mode=all` runs them in table order;
+`--mode=<stage>` runs the data stage, then that one.
 
 Every stage function is `(run: Run) -> None | results` (run.py).
 """
@@ -18,6 +20,7 @@ from slotformer_jax.errors import CommandLineError
 from slotformer_jax.errors import UserError
 from slotformer_jax.run import Run
 from slotformer_jax.stages import contact
+from slotformer_jax.stages import data
 from slotformer_jax.stages import dynamics
 from slotformer_jax.stages import extract
 from slotformer_jax.stages import planning
@@ -28,6 +31,8 @@ from slotformer_jax.stages import vqa
 
 StageFn = Callable[[Run], Any]
 
+# Reading never writes: the data are made here, before every other stage.
+DATA: dict[str, StageFn] = {'prepare_data': data.prepare_data}
 STAGE2: dict[str, StageFn] = {
     'extract_slots': extract.extract_slots,
     'train_slotformer': dynamics.train_slotformer,
@@ -61,7 +66,8 @@ TASK_CONFIGS = {'contact': 'configs/synthetic_contact.py',
 
 def stage_table(run: Run) -> dict[str, StageFn]:
   """The stages `run` can execute, in the order `--mode=all` runs them."""
-  table = dict(stage1.stage_functions(run))
+  table = dict(DATA)
+  table.update(stage1.stage_functions(run))
   table.update(STAGE2)
   task = run.task
   if task is None:
@@ -77,7 +83,8 @@ def stage_table(run: Run) -> dict[str, StageFn]:
 
 
 def selected_stages(run: Run, mode: str) -> tuple[str, ...]:
-  """The stages `--mode=<mode>` runs for `run`, in order."""
+  """The stages `--mode=<mode>` runs for `run`, in order; the data stage
+  first, whatever the mode."""
   table = stage_table(run)
   if mode == 'all':
     # The Slot-LSTM baseline only when the config asks for it.
@@ -85,7 +92,7 @@ def selected_stages(run: Run, mode: str) -> tuple[str, ...]:
                  if m != 'train_slot_lstm' or run.config.slot_lstm.train)
   if mode not in table:
     raise CommandLineError(_not_a_stage(run, mode, table))
-  return (mode,)
+  return tuple(dict.fromkeys([*DATA, mode]))
 
 
 def _not_a_stage(run: Run, mode: str, table: dict[str, StageFn]) -> str:

@@ -22,8 +22,8 @@ import numpy as np
 
 from slotformer_jax import inference
 from slotformer_jax.config.sections import SLOTFORMER
-from slotformer_jax.data.convert import phyre_like
-from slotformer_jax.data.sources import resolve_data_dir
+from slotformer_jax.data.data_dir import resolve_data_dir
+from slotformer_jax.data.embedded import phyre_like as phyre_like_data
 from slotformer_jax.errors import ConfigError
 from slotformer_jax.errors import MissingInputError
 from slotformer_jax.files import write_atomic
@@ -32,6 +32,7 @@ from slotformer_jax.run import Run
 from slotformer_jax.tasks import phyre_planning
 from slotformer_jax.tasks import planning
 from slotformer_jax.tasks import readout as readout_lib
+from slotformer_jax.worlds import phyre_like
 
 logger = logging.getLogger(__name__)
 
@@ -94,8 +95,8 @@ def _task_features(features: SlotFeatures, tasks, labels, actions):
 
 def _setup(run: Run, split_names):
   config = run.config
-  generation = phyre_like.config_from_data_config(config.data)
-  labels = phyre_like.task_labels(
+  generation = phyre_like_data.config_from_data_config(config.data)
+  labels = phyre_like_data.load_task_labels(
       generation, resolve_data_dir(config.data.data_dir))
   actions = phyre_like.candidate_actions(generation)
   splits = phyre_planning.task_splits(config.data, config.readout)

@@ -1,7 +1,7 @@
 """PHYRE-style planning with a task-success classifier on SlotFormer rollouts:
 the pure parts (the stages are in stages/planning.py).
 
-Protocol (SlotFormer Section 4.4; embedded tasks of data/convert/phyre_like.py):
+Protocol (SlotFormer Section 4.4; embedded tasks of worlds/phyre_like.py):
 
 1. SAVi and SlotFormer are trained on videos of candidate actions on the
    training tasks (data split 'train').
@@ -41,10 +41,11 @@ import numpy as np
 from PIL import Image
 from PIL import ImageDraw
 
-from slotformer_jax.data.convert import phyre_like
+from slotformer_jax.data.embedded import phyre_like as phyre_like_data
 from slotformer_jax.modules import readouts
 from slotformer_jax.tasks import planning
 from slotformer_jax.tasks import readout as readout_lib
+from slotformer_jax.worlds import phyre_like
 
 FIRST_FRAME, ROLLOUT = 'first_frame', 'rollout'
 CONDITIONS = (FIRST_FRAME, ROLLOUT)
@@ -66,7 +67,7 @@ def task_splits(data: ml_collections.ConfigDict,
                 ) -> dict[str, list[phyre_like.Task]]:
   """'train', 'dev' (`readout.dev_share` of the training tasks) and 'test'
   tasks of the embedded tasks of the `data` section."""
-  generation = phyre_like.config_from_data_config(data)
+  generation = phyre_like_data.config_from_data_config(data)
   splits = phyre_like.split_tasks(generation)
   rng = np.random.default_rng([generation.seed, 19, generation.fold])
   train = list(splits['train'])
@@ -101,7 +102,7 @@ def candidate_scores(model, params, task_features, num_candidates):
 
 def write_ranking_picture(path: str, task: phyre_like.Task,
                           scores: np.ndarray, outcomes: np.ndarray,
-                          generation: phyre_like.PhyreLikeConfig,
+                          generation: phyre_like_data.PhyreLikeConfig,
                           top: int = 5) -> None:
   """The ``top`` best-scored valid candidates of a task, one row each: the
   simulated rollout (every other frame) with its score and outcome."""

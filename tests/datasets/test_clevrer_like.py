@@ -9,10 +9,13 @@ import json
 import numpy as np
 import pytest
 
-from slotformer_jax.data import clevrer_like
+from slotformer_jax.data.convert import clevrer_like
 from slotformer_jax.data.convert import synthetic
+from slotformer_jax.data.embedded import clevrer_like as clevrer_like_data
+from slotformer_jax.data.embedded import synthetic as synthetic_data
+from slotformer_jax.data.events import EventLog
 
-CONFIG = clevrer_like.ClevrerLikeConfig(
+CONFIG = clevrer_like_data.ClevrerLikeConfig(
     observed_frames=12, predicted_frames=8, num_train=4, num_val=2,
     num_test=2)
 
@@ -106,7 +109,7 @@ def test_generate_video_render_and_event_log_roundtrip():
   assert len(events.objects) == n and set(events.counterfactual) == set(
       range(n))
   assert len({o['color'] for o in events.objects}) == n  # distinct colours
-  again = clevrer_like.EventLog.from_dict(events.to_dict())
+  again = EventLog.from_dict(events.to_dict())
   assert again == events
   # Physics only (no rendering) gives the same events.
   physics = clevrer_like.generate_video(CONFIG, 'val', 0, render=False)
@@ -115,7 +118,7 @@ def test_generate_video_render_and_event_log_roundtrip():
 
 def test_config_rejects_too_many_objects():
   with pytest.raises(ValueError):
-    clevrer_like.ClevrerLikeConfig(max_objects=7, max_entering=2)
+    clevrer_like_data.ClevrerLikeConfig(max_objects=7, max_entering=2)
 
 
 def test_build_dataset_writes_videos_questions_and_vocabulary(tmp_path):
@@ -123,24 +126,27 @@ def test_build_dataset_writes_videos_questions_and_vocabulary(tmp_path):
   import ml_collections  # pylint: disable=g-import-not-at-top
   from slotformer_jax.data import sources  # pylint: disable=g-import-not-at-top
   from slotformer_jax.data import vqa  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.data.convert import make  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.errors import MissingInputError  # pylint: disable=g-import-not-at-top
   data = ml_collections.ConfigDict(dict(
       name='clevrer_like', data_dir=str(tmp_path), observed_frames=12,
       predicted_frames=8, num_train=3, num_val=1, num_test=2, num_workers=1))
+  make.make_dataset(data)
   source = sources.get_video_source(data, 'test')
   assert len(source) == 2
   item = source[1]
   assert item['video'].shape == (20, 32, 32, 3)
-  config = clevrer_like.config_from_data_config(data)
+  config = clevrer_like_data.config_from_data_config(data)
   np.testing.assert_array_equal(
       item['video'], clevrer_like.generate_video(config, 'test', 1)['video'])
-  root = clevrer_like.dataset_dir(config, tmp_path)
+  root = clevrer_like_data.dataset_dir(config, tmp_path)
   vocab = vqa.Vocabulary.load(root / 'vocab.json')
   scenes = vqa.read_clevrer_questions(root, 'test')
   assert [s['scene_index'] for s in scenes] == [15000, 15001]
   # Every generated question encodes with the stored vocabulary.
   vqa.encode_scenes(scenes, vocab, 20, 12)
   with open(root / 'test' / 'events.jsonl') as f:
-    logs = [clevrer_like.EventLog.from_dict(json.loads(line)) for line in f]
+    logs = [EventLog.from_dict(json.loads(line)) for line in f]
   assert logs[1] == clevrer_like.generate_video(
       config, 'test', 1, render=False)['events']
   # A dataset from an older question generator gets new questions from its
@@ -152,6 +158,9 @@ def test_build_dataset_writes_videos_questions_and_vocabulary(tmp_path):
     json.dump(complete, f)
   (root / 'questions' / 'test.json').write_text('[]')
   video_mtime = (root / 'test' / 'video.npy').stat().st_mtime_ns
+  # ... which the readers refuse until the data stage has made them.
+  with pytest.raises(MissingInputError, match='--mode=prepare_data'):
+    sources.get_video_source(data, 'test')
   assert clevrer_like.build_dataset(config, tmp_path) == root
   assert vqa.read_clevrer_questions(root, 'test') == scenes
   assert (root / 'test' / 'video.npy').stat().st_mtime_ns == video_mtime
@@ -195,7 +204,7 @@ def test_direct_design_is_the_generator_of_before():
   # The default design keeps the slugs (so the datasets already built) and
   # the event logs of generator version 2: values pinned before the field
   # existed.
-  assert (clevrer_like.ClevrerLikeConfig().slug
+  assert (clevrer_like_data.ClevrerLikeConfig().slug
           == 'r32x32_t24+16_o2-4+1_s0_038d4ccb')
   config = dataclasses.replace(CONFIG, future_collision_fraction=1.0)
   assert config.slug == 'r32x32_t12+8_o2-4+1_s0_41f59940'
@@ -228,7 +237,7 @@ def test_deflected_design_is_deterministic_and_asks_something():
     in_view = [i for i in range(log.num_objects) if log.in_view_at_end[i]]
     assert [(a, b) for a, b, _ in log.extrapolated] == [
         (a, b) for k, a in enumerate(in_view) for b in in_view[k + 1:]]
-    assert clevrer_like.EventLog.from_dict(
+    assert EventLog.from_dict(
         json.loads(json.dumps(log.to_dict()))) == log
     # Drawn among scenes with a question balanced within a verdict.
     labels = {}
@@ -243,7 +252,7 @@ def _bank_shot() -> clevrer_like.Scene:
   m (surface to surface) in front of B. A reaches C after the 12 observed
   frames and pushes it into B; A itself never reaches B."""
   return clevrer_like.Scene(
-      shapes=np.full(3, synthetic.SHAPES.index('cylinder'), np.int32),
+      shapes=np.full(3, synthetic_data.SHAPES.index('cylinder'), np.int32),
       colors=np.array([1, 2, 3], np.int32), sizes=np.zeros(3, np.int32),
       xy=np.array([[-2.6, 0.5], [0.0, 0.5], [1.1, 0.5]]), yaw=np.zeros(3),
       velocity=np.array([[2.5, 0.0], [0.0, 0.0], [0.0, 0.0]]),
@@ -251,7 +260,7 @@ def _bank_shot() -> clevrer_like.Scene:
 
 
 def test_bank_shot_collision_that_extrapolation_misses():
-  from slotformer_jax.data import questions  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.data.convert import questions  # pylint: disable=g-import-not-at-top
   config = dataclasses.replace(DEFLECTED, predicted_frames=12)
   scene = _bank_shot()
   sim = clevrer_like.simulate(scene, config)

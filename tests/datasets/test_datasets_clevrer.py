@@ -16,6 +16,7 @@ from slotformer_jax.data import pipeline
 from slotformer_jax.data.convert import prepare
 from slotformer_jax.data import sources
 from slotformer_jax.data.convert import writer
+from slotformer_jax.evaluation import clevrer_clips
 
 # ffmpeg runs as a subprocess (fork + exec at once), which JAX's fork warning
 # does not tell apart from a bare fork when JAX was imported by another test.
@@ -293,27 +294,27 @@ def test_label_frame_duplicates_and_overflow():
 
 def test_enter_filter_on_converted_item(converted):
   item = source_for(converted, 'val')[0]
-  np.testing.assert_array_equal(clevrer.entering_frames(item['in_view']),
-                                [ENTER_FRAME])
+  np.testing.assert_array_equal(
+      clevrer_clips.entering_frames(item['in_view']), [ENTER_FRAME])
   # Clip frames 0, 2, ..., 8: the object enters after the clip.
-  assert clevrer.clevrer_eval_filter(item, burn_in=3, rollout=2,
-                                     frame_stride=2)
+  assert clevrer_clips.clevrer_eval_filter(item, burn_in=3, rollout=2,
+                                           frame_stride=2)
   # Clip frames 0 .. 10: it enters during the rollout.
-  assert not clevrer.clevrer_eval_filter(item, burn_in=3, rollout=3,
-                                         frame_stride=2)
+  assert not clevrer_clips.clevrer_eval_filter(item, burn_in=3, rollout=3,
+                                               frame_stride=2)
   # Clip frames 6 .. 14 (burn-in 6, 8, 10, 12): it enters before burn-in
   # frame 10, so it is seen in burn-in frames 10 and 12 only: filtered.
-  assert not clevrer.clevrer_eval_filter(item, burn_in=4, rollout=1,
-                                         frame_stride=2, start=6)
+  assert not clevrer_clips.clevrer_eval_filter(item, burn_in=4, rollout=1,
+                                               frame_stride=2, start=6)
   # Clip frames 2 .. 14, burn-in 2 .. 12: seen in burn-in frames 10 and 12
   # only, filtered; from start 3 it is seen in burn-in frames 9, 11, 13: kept.
-  assert not clevrer.clevrer_eval_filter(item, burn_in=6, rollout=1,
-                                         frame_stride=2, start=2)
-  assert clevrer.clevrer_eval_filter(item, burn_in=6, rollout=1,
-                                     frame_stride=2, start=3)
+  assert not clevrer_clips.clevrer_eval_filter(item, burn_in=6, rollout=1,
+                                               frame_stride=2, start=2)
+  assert clevrer_clips.clevrer_eval_filter(item, burn_in=6, rollout=1,
+                                           frame_stride=2, start=3)
   # A clip that does not fit in the video is never used.
-  assert not clevrer.clevrer_eval_filter(item, burn_in=6, rollout=6,
-                                         frame_stride=2)
+  assert not clevrer_clips.clevrer_eval_filter(item, burn_in=6, rollout=6,
+                                               frame_stride=2)
 
 
 def test_clip_window_matches_official_rule():
@@ -324,11 +325,12 @@ def test_clip_window_matches_official_rule():
     for stride in (1, 2):
       first = start + (6 - 3) * stride
       last = start + (6 + 4 - 1) * stride
-      assert clevrer.clip_has_entering_object(
+      assert clevrer_clips.clip_has_entering_object(
           enter, start, 6, 4, stride) == (first < 10 <= last)
   # Entering at frame 0 .. first is fine; first + 1 is not.
-  assert not clevrer.clip_has_entering_object(np.array([3]), 0, 6, 4, 1)
-  assert clevrer.clip_has_entering_object(np.array([4]), 0, 6, 4, 1)
+  assert not clevrer_clips.clip_has_entering_object(np.array([3]), 0, 6, 4,
+                                                    1)
+  assert clevrer_clips.clip_has_entering_object(np.array([4]), 0, 6, 4, 1)
 
 
 def test_entering_frames_constructed():
@@ -338,20 +340,21 @@ def test_entering_frames_constructed():
   in_view[3:, 2] = True         # also at 3: counted once
   in_view[5:8, 3] = True        # enters at 5, leaves, re-enters at 10
   in_view[10:, 3] = True
-  np.testing.assert_array_equal(clevrer.entering_frames(in_view), [3, 5, 10])
+  np.testing.assert_array_equal(clevrer_clips.entering_frames(in_view),
+                                [3, 5, 10])
 
 
 def test_official_clip_starts_constructed():
   in_view = np.zeros((40, 2), bool)
   in_view[:, 0] = True
   in_view[20:, 1] = True   # enters at 20
-  starts = clevrer.train_clip_starts(in_view, burn_in=3, rollout=2,
-                                     frame_stride=2)
+  starts = clevrer_clips.train_clip_starts(in_view, burn_in=3, rollout=2,
+                                           frame_stride=2)
   # span 8: a start s is bad iff s < 20 <= s + 8, i.e. 12 <= s <= 19.
   np.testing.assert_array_equal(
       starts, [s for s in range(40 - 8) if not 12 <= s <= 19])
-  evals = clevrer.eval_clip_starts(in_view, burn_in=3, rollout=2,
-                                   frame_stride=2)
+  evals = clevrer_clips.eval_clip_starts(in_view, burn_in=3, rollout=2,
+                                         frame_stride=2)
   # Blocks of 4 starting at 0, 4, ..., 28; in block [12, 16) and [16, 20)
   # every start is bad; [20, 24) starts at 20.
   np.testing.assert_array_equal(evals, [0, 4, 8, 20, 24, 28])
@@ -363,7 +366,7 @@ def test_splits_without_annotations_and_questions(converted):
   assert not bool(item['has_annotations']) and not bool(item['has_masks'])
   assert not item['segmentations'].any()
   with pytest.raises(ValueError, match='no annotations'):
-    clevrer.clevrer_eval_filter(item, 3, 2, 2)
+    clevrer_clips.clevrer_eval_filter(item, 3, 2, 2)
   questions = json.loads(item['questions'].item())
   assert questions['questions'][0]['question'] == 'What will happen next?'
   val = source_for(converted, 'val')[0]

@@ -1,4 +1,4 @@
-"""Tests of the embedded PHYRE-like generator (pymunk)."""
+"""Tests of the PHYRE-like world (pymunk) and of its dataset's generator."""
 
 from __future__ import annotations
 
@@ -7,9 +7,11 @@ import dataclasses
 import numpy as np
 import pytest
 
-from slotformer_jax.data.convert import phyre_like as p
+from slotformer_jax.data.convert import phyre_like as phyre_writer
+from slotformer_jax.data.embedded import phyre_like as phyre_data
+from slotformer_jax.worlds import phyre_like as p
 
-CONFIG = p.PhyreLikeConfig(tasks_per_template=5, num_candidates=40)
+CONFIG = phyre_data.PhyreLikeConfig(tasks_per_template=5, num_candidates=40)
 
 
 def _action(x: float, y: float, radius: float) -> tuple[float, float, float]:
@@ -87,13 +89,14 @@ def test_generator_is_deterministic_and_split_within_templates():
 
 def test_bad_config():
   with pytest.raises(ValueError, match='unknown templates'):
-    p.PhyreLikeConfig(templates=('seesaw',))
+    phyre_data.PhyreLikeConfig(templates=('seesaw',))
 
 
 # ---- the 'ramp' template ----------------------------------------------------
 
-RAMP_CONFIG = p.PhyreLikeConfig(templates=('ramp',), tasks_per_template=4,
-                                num_candidates=40)
+RAMP_CONFIG = phyre_data.PhyreLikeConfig(templates=('ramp',),
+                                         tasks_per_template=4,
+                                         num_candidates=40)
 
 # A hand-built ramp task: a 30-degree ramp whose lower end is at (3, 3); the
 # green ball starts at its top and flies right over a basket (goal from
@@ -153,17 +156,19 @@ def test_ramp_tasks_deterministic_and_unsolved_without_action():
 def test_default_templates_unchanged():
   # The first templates keep their names, order, tasks and dataset folder
   # names (cached datasets are found by slug) when templates are added.
-  assert p.TEMPLATES == ('ledge', 'tower', 'stack')
-  assert p.ALL_TEMPLATES[:3] == p.TEMPLATES
-  assert p.PhyreLikeConfig().templates == p.TEMPLATES
-  config = p.PhyreLikeConfig(resolution=(32, 32))
-  assert p.slug(config) == 'r32x32_f2_t5_k1_3x25_c200_fold0_s0_35de6daa'
+  assert phyre_data.TEMPLATES == ('ledge', 'tower', 'stack')
+  assert phyre_data.ALL_TEMPLATES[:3] == phyre_data.TEMPLATES
+  assert phyre_data.PhyreLikeConfig().templates == phyre_data.TEMPLATES
+  config = phyre_data.PhyreLikeConfig(resolution=(32, 32))
+  assert phyre_data.slug(config) == (
+      'r32x32_f2_t5_k1_3x25_c200_fold0_s0_35de6daa')
   assert all(b.angle == 0.0 for t in p.all_tasks(CONFIG) for b in t.bodies)
 
 
 def test_dynamics_layouts_are_never_labelled_tasks_and_fold_free():
-  config = p.PhyreLikeConfig(templates=('stack', 'tower'), tasks_per_template=4,
-                             num_candidates=6, resolution=(16, 16))
+  config = phyre_data.PhyreLikeConfig(templates=('stack', 'tower'),
+                                      tasks_per_template=4, num_candidates=6,
+                                      resolution=(16, 16))
   layouts = p.layout_tasks(config, 3)
   labelled = {(t.template, t.index) for t in p.all_tasks(config)}
   assert len(layouts) == 6
@@ -174,7 +179,8 @@ def test_dynamics_layouts_are_never_labelled_tasks_and_fold_free():
   labels = {(t.template, t.index): p.label_candidates(t, actions, config)
             for t in layouts}
   for index in range(6):  # each layout once, in layout_tasks' order
-    video = p.training_video(config, labels, 0.0, 'train', index, layouts=3)
+    video = phyre_writer.training_video(config, labels, 0.0, 'train', index,
+                                        layouts=3)
     task = layouts[index]
     assert int(video['task']) == (config.templates.index(task.template)
                                   * 10_000 + task.index)
@@ -182,14 +188,15 @@ def test_dynamics_layouts_are_never_labelled_tasks_and_fold_free():
   train = {(t.template, t.index) for t in p.split_tasks(config)['train']}
   labels = {(t.template, t.index): p.label_candidates(t, actions, config)
             for t in p.all_tasks(config)}
-  video = p.training_video(config, labels, 0.0, 'train', 0)
+  video = phyre_writer.training_video(config, labels, 0.0, 'train', 0)
   code = int(video['task'])
   assert (config.templates[code // 10_000], code % 10_000) in train
 
 
 def test_dynamics_layouts_change_only_their_own_dataset_name():
   labels = {}
-  plain = p.video_family(CONFIG, 8, 0, 0.2, labels)
-  with_layouts = p.video_family(CONFIG, 8, 0, 0.2, labels, layouts=5)
+  plain = phyre_writer.video_family(CONFIG, 8, 0, 0.2, labels)
+  with_layouts = phyre_writer.video_family(CONFIG, 8, 0, 0.2, labels,
+                                           layouts=5)
   assert with_layouts.slug == plain.slug + '_l5'
   assert not plain.slug.endswith('_l0')

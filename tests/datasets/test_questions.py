@@ -8,9 +8,10 @@ import re
 import numpy as np
 import pytest
 
-from slotformer_jax.data import questions as qg
 from slotformer_jax.data import vqa
-from slotformer_jax.data.clevrer_like import Collision, EventLog
+from slotformer_jax.data.convert import questions as qg
+from slotformer_jax.data.events import Collision
+from slotformer_jax.data.events import EventLog
 
 RED_CUBE, BLUE_SPHERE, GREEN_CYL, YELLOW_SPHERE = range(4)
 NAMES = ['red cube', 'blue sphere', 'green cylinder', 'yellow sphere']

@@ -11,9 +11,12 @@ import pytest
 
 from slotformer_jax.data import sources
 from slotformer_jax.data.convert import synthetic
+from slotformer_jax.data.embedded import synthetic as synthetic_data
+from slotformer_jax.worlds import supersample
 
-TINY = synthetic.SyntheticConfig(resolution=(32, 32), num_frames=8,
-                                 num_train=4, num_val=2, num_test=2, seed=0)
+TINY = synthetic_data.SyntheticConfig(resolution=(32, 32), num_frames=8,
+                                      num_train=4, num_val=2, num_test=2,
+                                      seed=0)
 # Long enough for the launched sphere to reach the static objects.
 LONG = dataclasses.replace(TINY, num_frames=30)
 
@@ -88,7 +91,8 @@ def test_shapes_and_dtypes():
   assert TINY.min_objects + 1 <= n <= TINY.max_objects + 1
   for key in ('shapes', 'colors', 'sizes'):
     assert (ex[key][:n] >= 0).all() and (ex[key][n:] == -1).all(), key
-  assert synthetic.SHAPES[ex['shapes'][n - 1]] == 'sphere'  # launched sphere
+  # The launched sphere.
+  assert synthetic_data.SHAPES[ex['shapes'][n - 1]] == 'sphere'
   assert ex['segmentations'].max() <= n
 
 
@@ -176,7 +180,7 @@ def test_downsample_segmentation_majority():
                   [1, 0, 2, 2],
                   [3, 0, 0, 0],
                   [0, 3, 0, 0]], np.uint8)
-  out = synthetic.downsample_segmentation(seg, 2)
+  out = supersample.downsample_segmentation(seg, 2)
   # Majorities 1 and 2; the 2-2 tie takes the first id in raster order.
   np.testing.assert_array_equal(out, [[1, 2], [3, 0]])
   assert out.dtype == np.uint8
@@ -184,7 +188,7 @@ def test_downsample_segmentation_majority():
 
 def test_downsample_rgb_is_area_mean():
   image = np.arange(4 * 4 * 3, dtype=np.uint8).reshape(4, 4, 3)
-  out = synthetic.downsample_rgb(image, 2)
+  out = supersample.downsample_rgb(image, 2)
   expected = image.reshape(2, 2, 2, 2, 3).astype(float).mean((1, 3))
   np.testing.assert_allclose(out, np.round(expected + 1e-9), atol=0.5)
   assert out.dtype == np.uint8
@@ -202,7 +206,7 @@ def test_boxes_from_segmentation_example():
 def test_build_writes_all_splits_in_order(built):
   _, path = built
   assert path.is_dir() and TINY.slug in os.fspath(path)
-  for split in synthetic.SPLITS:
+  for split in synthetic_data.SPLITS:
     source = sources.TfdsVideoSource(path, split)
     assert len(source) == TINY.num_videos(split)
     for i in range(len(source)):
@@ -252,7 +256,7 @@ def test_failed_build_is_not_reused(tmp_path, monkeypatch):
   monkeypatch.setattr(synthetic, 'generate_video', flaky)
   with pytest.raises(RuntimeError, match='boom'):
     synthetic.build_synthetic_dataset(config, tmp_path, num_workers=1)
-  path = synthetic.dataset_dir(config, tmp_path)
+  path = synthetic_data.dataset_dir(config, tmp_path)
   assert not (path / 'dataset_info.json').exists()
   monkeypatch.setattr(synthetic, 'generate_video', original)
   assert synthetic.build_synthetic_dataset(config, tmp_path,
@@ -275,8 +279,8 @@ def test_parallel_build_matches_serial(built, tmp_path):
 
 def test_invalid_configs():
   with pytest.raises(ValueError):
-    synthetic.SyntheticConfig(min_objects=4, max_objects=3)
+    synthetic_data.SyntheticConfig(min_objects=4, max_objects=3)
   with pytest.raises(ValueError):
-    synthetic.SyntheticConfig(resolution=(4, 4))
+    synthetic_data.SyntheticConfig(resolution=(4, 4))
   with pytest.raises(ValueError):
     synthetic.generate_video(TINY, 'training', 0)

@@ -15,6 +15,8 @@ import pytest
 from slotformer_jax.data import pipeline
 from slotformer_jax.data import sources
 from slotformer_jax.data.convert import synthetic
+from slotformer_jax.data.embedded.synthetic import SyntheticConfig
+from slotformer_jax.stages import data as data_stage
 
 
 class FakeSource:
@@ -269,8 +271,8 @@ def test_eval_sharding_disjoint_complete_and_lockstep():
 
 # --- sources -----------------------------------------------------------------
 
-TINY = synthetic.SyntheticConfig(resolution=(32, 32), num_frames=8,
-                                 num_train=4, num_val=2, num_test=2)
+TINY = SyntheticConfig(resolution=(32, 32), num_frames=8, num_train=4,
+                       num_val=2, num_test=2)
 
 
 def _data_config(root: Path, **overrides) -> ml_collections.ConfigDict:
@@ -285,7 +287,7 @@ def _data_config(root: Path, **overrides) -> ml_collections.ConfigDict:
 @pytest.fixture(scope='module')
 def data_root(tmp_path_factory: pytest.TempPathFactory) -> Path:
   root = tmp_path_factory.mktemp('data')
-  sources.get_video_source(_data_config(root), 'train')  # builds the cache
+  data_stage.prepare_dataset(_data_config(root))  # builds the cache
   return root
 
 
@@ -368,11 +370,11 @@ def test_clip_source_starts_each_clip_at_its_frame():
 
 
 def test_clevrer_evaluation_clips_skip_entering_objects():
-  from slotformer_jax.data.convert import clevrer  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.evaluation import clevrer_clips  # pylint: disable=g-import-not-at-top
   from slotformer_jax.evaluation import evaluate  # pylint: disable=g-import-not-at-top
   burn_in, rollout, stride, length = 4, 3, 2, 40
   span = (burn_in + rollout - 1) * stride  # 12 full-rate frames
-  seen = clevrer.MIN_BURN_IN_FRAMES_VISIBLE
+  seen = clevrer_clips.MIN_BURN_IN_FRAMES_VISIBLE
   # Video 0: every object visible from the start -> the first start of each
   # half-span block. Video 1: an object enters at frame 5, so the clips in
   # which it would be seen in fewer than `seen` burn-in frames are dropped.

@@ -8,8 +8,9 @@ import os
 import numpy as np
 import pytest
 
-from slotformer_jax.data import clevrer_like
-from slotformer_jax.data.sources import resolve_data_dir
+from pipeline_helpers import prepare_data
+from slotformer_jax.data.data_dir import resolve_data_dir
+from slotformer_jax.data.embedded import clevrer_like
 from slotformer_jax.runtime import sharding
 from slotformer_jax.run import Run
 from slotformer_jax.workdir.paths import Paths
@@ -29,9 +30,9 @@ def test_train_and_evaluate_vqa_on_random_slots(tmp_path, monkeypatch):
   config.data.data_dir = str(tmp_path / 'data')
   config.data.num_workers = 1
   workdir = str(tmp_path / 'run')
-  root = clevrer_like.build_dataset(
-      clevrer_like.config_from_data_config(config.data),
-      resolve_data_dir(config.data.data_dir), num_workers=1)
+  prepare_data(config)
+  root = clevrer_like.complete_dataset_dir(
+      config.data, resolve_data_dir(config.data.data_dir))
   assert (root / 'vocab.json').is_file()
   rng = np.random.default_rng(0)
   os.makedirs(os.path.join(workdir, 'vqa', 'slots'))
@@ -144,7 +145,6 @@ def test_deflect_variant_changes_only_the_predictive_design():
   assert deflect.pop('data.predictive_design') == 'deflected'
   assert 'data.predictive_design' not in big  # 'direct', the default
   assert deflect == big
-  from slotformer_jax.data import clevrer_like  # pylint: disable=g-import-not-at-top
   assert clevrer_like.config_from_data_config(
       _synthetic_vqa_config('deflect').data).predictive_design == 'deflected'
 

@@ -399,7 +399,7 @@ def test_an_unwritable_dataset_cache_is_one_line(tmp_path):
   data_dir = _under_a_file(tmp_path)
   config.data.data_dir = str(data_dir)
   with pytest.raises(UserError) as error:
-    sources.get_video_source(config.data, 'train')
+    pipeline_helpers.prepare_data(config)
   message = str(error.value)
   assert message.startswith('cannot write the synthetic dataset')
   assert str(data_dir) in message and 'SLOTFORMER_DATA_DIR' in message

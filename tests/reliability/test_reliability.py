@@ -366,8 +366,10 @@ def _record_file(dataset_dir, split='train'):
 
 
 @pytest.mark.parametrize('damage', ['truncate', 'garble'])
-def test_damaged_synthetic_cache_is_regenerated(trained, tmp_path, damage):
+def test_damaged_synthetic_cache_is_regenerated(trained, tmp_path, damage,
+                                                caplog):
   config = _config(tmp_path / 'data')
+  pipeline_helpers.prepare_data(config)
   source = sources.get_video_source(config.data, 'train')
   expected = source[3]['video']
   record = _record_file(source.dataset_dir)
@@ -377,8 +379,27 @@ def test_damaged_synthetic_cache_is_regenerated(trained, tmp_path, damage):
   else:  # same size, plausible bytes
     data[len(data) // 2:len(data) // 2 + 64] = bytes(64)
   open(record, 'wb').write(bytes(data))
+  # The reader refuses it (reading never writes); the data stage, which
+  # every --mode runs first, regenerates it.
+  with pytest.raises(UserError, match='damaged.*--mode=prepare_data'):
+    sources.get_video_source(config.data, 'train')
+  with caplog.at_level(logging.WARNING):
+    pipeline_helpers.prepare_data(config)
+  assert 'cache is damaged' in caplog.text and 'regenerating' in caplog.text
   regenerated = sources.get_video_source(config.data, 'train')
   np.testing.assert_array_equal(regenerated[3]['video'], expected)
+
+
+def test_an_older_cache_gets_its_checksums_from_the_data_stage(trained):
+  config, _ = trained
+  dataset_dir = sources.get_video_source(config.data, 'train').dataset_dir
+  checksums = dataset_dir / integrity.CHECKSUMS_FILE
+  recorded = files.read_json(checksums)
+  os.remove(checksums)  # as a cache made before checksums were recorded
+  assert len(sources.get_video_source(config.data, 'val')) == 4
+  assert not checksums.exists()  # the reader writes nothing
+  pipeline_helpers.prepare_data(config)
+  assert files.read_json(checksums) == recorded
 
 
 def test_damaged_real_dataset_names_the_conversion_command(trained, tmp_path):
@@ -392,9 +413,11 @@ def test_damaged_real_dataset_names_the_conversion_command(trained, tmp_path):
   record = _record_file(real)
   with open(record, 'r+b') as f:
     f.truncate(os.path.getsize(record) - 100)
-  with pytest.raises(UserError, match=r'damaged.*slotformer_jax\.data\.prepare '
-                     '--dataset=obj3d'):
-    sources.get_video_source(config.data, 'train')
+  for read in (lambda: sources.get_video_source(config.data, 'train'),
+               lambda: pipeline_helpers.prepare_data(config)):
+    with pytest.raises(UserError, match=r'damaged.*slotformer_jax\.data\.'
+                       'prepare --dataset=obj3d'):
+      read()
   # Without checksums the reader's own error still names the folder.
   os.remove(real / integrity.CHECKSUMS_FILE)
   source = sources.TfdsVideoSource(real, 'train')

@@ -8,12 +8,13 @@ import pytest
 
 from configs import synthetic_contact
 from configs import synthetic_phyre
-from slotformer_jax.data.convert import phyre_like
+from slotformer_jax.data.embedded import phyre_like as phyre_data
 from slotformer_jax.run import Run
 from slotformer_jax.stages import contact as contact_stages
 from slotformer_jax.tasks import contact
 from slotformer_jax.tasks import phyre_planning
 from slotformer_jax.workdir.identity import flat_differences
+from slotformer_jax.worlds import phyre_like
 
 
 def test_condition_features():
@@ -53,17 +54,17 @@ def test_planning_task_splits_are_disjoint_and_within_template():
   names = {k: {(t.template, t.index) for t in v} for k, v in splits.items()}
   assert not names['train'] & names['dev']
   assert not (names['train'] | names['dev']) & names['test']
-  total = len(phyre_like.TEMPLATES) * config.data.tasks_per_template
+  total = len(phyre_data.TEMPLATES) * config.data.tasks_per_template
   assert sum(len(v) for v in names.values()) == total
   # Within-template: every template has training and test tasks (the dev
   # tasks are drawn from all training tasks, as phyre's create_dev_set).
   for split in ('train', 'test'):
     assert ({template for template, _ in names[split]}
-            == set(phyre_like.TEMPLATES))
+            == set(phyre_data.TEMPLATES))
 
 
 def test_first_frames_draw_the_action_ball():
-  config = phyre_like.PhyreLikeConfig(tasks_per_template=1)
+  config = phyre_data.PhyreLikeConfig(tasks_per_template=1)
   task = phyre_like.make_task(config, 'stack', 0)
   action = np.array([[0.1, 0.9, 0.5]])
   frame = phyre_planning.first_frames(task, action, (64, 64))[0]
@@ -79,7 +80,7 @@ def test_first_frames_draw_the_action_ball():
 def test_first_frames_draw_the_tilted_ramp_as_the_simulator():
   # The classifier's first frame must be the rollout's frame 0, tilted
   # bodies included (drawing the ramp flat would show another task).
-  config = phyre_like.PhyreLikeConfig(templates=('ramp',),
+  config = phyre_data.PhyreLikeConfig(templates=('ramp',),
                                       tasks_per_template=1)
   task = phyre_like.make_task(config, 'ramp', 0)
   action = np.array([[0.5, 0.9, 0.2]])

@@ -174,6 +174,8 @@ def test_aloe_batch_spec_is_what_the_question_stream_yields():
   vqa = config.vqa
   from slotformer_jax.data import vqa_questions  # pylint: disable=g-import-not-at-top
   from slotformer_jax.tasks import vqa as vqa_task  # pylint: disable=g-import-not-at-top
+  from pipeline_helpers import prepare_data  # pylint: disable=g-import-not-at-top
+  prepare_data(config)  # the embedded questions (reading only opens them)
   vocab = vqa_questions.vocabulary(config)
   questions = vqa_questions.encoded_questions(config, 'train', vocab)
   num_slots, slot_size = Savi(config).slot_shape

@@ -3,9 +3,10 @@
 Physion's OCP task (Bear et al., 2021; SlotFormer Section 4.3) shows a red
 *agent* and a yellow *patient* among distractors and asks whether the two
 touch at any time of the full video, given only its first part. This module
-builds that task on the OBJ3D-like scenes of :mod:`slotformer_jax.data.synthetic`
-(same engine, materials, camera and renderer; its helpers are imported, not
-copied):
+builds that task on the OBJ3D-like scenes of
+:mod:`slotformer_jax.data.convert.synthetic` (same engine, materials, camera
+and renderer; its helpers are imported, not copied); the parameters and the
+folder they name are :mod:`slotformer_jax.data.embedded.contact`'s:
 
 * object row 0 is the yellow patient (a random shape), rows 1..n-2 are
   distractors (never red or yellow), row n-1 is the red agent, a sphere
@@ -37,26 +38,28 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import hashlib
 import json
 import os
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import pybullet
 import tensorflow_datasets as tfds
 
-from slotformer_jax.data.convert import synthetic
 from slotformer_jax.data.convert import embedded
+from slotformer_jax.data.convert import synthetic
+from slotformer_jax.data.embedded.contact import NAME
+from slotformer_jax.data.embedded.contact import SPLITS
+from slotformer_jax.data.embedded.contact import ContactConfig
+from slotformer_jax.data.embedded.synthetic import COLORS
+from slotformer_jax.data.embedded.synthetic import SHAPES
+from slotformer_jax.data.embedded.synthetic import SIZES
+from slotformer_jax.worlds.supersample import downsample_rgb
+from slotformer_jax.worlds.supersample import downsample_segmentation
 
-GENERATOR_VERSION = 1
-
-SPLITS: tuple[str, ...] = ('train', 'readout_train', 'readout_val',
-                           'readout_test')
-AGENT_COLOR = synthetic.COLORS.index('red')
-PATIENT_COLOR = synthetic.COLORS.index('yellow')
-DISTRACTOR_COLORS = tuple(i for i in range(len(synthetic.COLORS))
+AGENT_COLOR = COLORS.index('red')
+PATIENT_COLOR = COLORS.index('yellow')
+DISTRACTOR_COLORS = tuple(i for i in range(len(COLORS))
                           if i not in (AGENT_COLOR, PATIENT_COLOR))
 
 # The patient stands in the middle of the scene, distractors around it.
@@ -74,13 +77,6 @@ MISS_ANGLE_RANGE = (0.15, 0.45)   # [rad]
 # frames), at the patient's depth +- SIDE_LAUNCH_DEPTH_NOISE.
 SIDE_LAUNCH_X = 2.6
 SIDE_LAUNCH_DEPTH_NOISE = 0.3
-LAUNCH_SIDES = ('front', 'side')
-# 'direct': the agent is aimed at (or beside) the patient, so its heading in
-# the observed frames decides the label. 'bank': it is aimed at a *bumper*
-# (object row 1) that stands off the line to the patient, and reaches the
-# patient (or not) only after bouncing off it, after the observed frames:
-# the observed motion alone no longer answers, the collision decides.
-SCENARIOS = ('direct', 'bank')
 # 'bank' geometry: the bumper stands BANK_GAP [m] (surface to surface) from
 # the patient, in a direction BANK_ANGLE [rad] off the line from the patient
 # back to the agent's start (to either side); the agent aims at the bumper's
@@ -94,91 +90,6 @@ BANK_SPEED_RANGE = (3.0, 4.5)     # [m/s]: as AGENT_SPEED_RANGE
 # Surfaces closer than this [m] touch (bullet keeps a small collision margin).
 CONTACT_DISTANCE = 1e-3
 _MAX_SCENE_ATTEMPTS = 200
-
-
-@dataclasses.dataclass(frozen=True)
-class ContactConfig:
-  """Generation parameters; together they identify a cached dataset.
-
-  Attributes:
-    resolution: (H, W) of the output frames.
-    num_frames: T, frames per video (20 per simulated second).
-    observed_frames: frames a model observes; contacts start after them.
-    min_distractors, max_distractors: other static objects per video.
-    seed: base seed; video ``i`` of split ``s`` uses ``(seed, s, i)``.
-    num_train, num_readout_train, num_readout_val, num_readout_test: videos
-      per split.
-    supersample: anti-aliasing factor (see synthetic.py).
-    object_scale: multiplies every object's size.
-    launch_side: where the agent starts: 'front' (the camera's side, moving
-      along the view direction) or 'side' (the left / right edge, moving
-      across it).
-  """
-
-  resolution: tuple[int, int] = (64, 64)
-  num_frames: int = 24
-  observed_frames: int = 8
-  min_distractors: int = 1
-  max_distractors: int = 2
-  seed: int = 0
-  num_train: int = 1000
-  num_readout_train: int = 400
-  num_readout_val: int = 100
-  num_readout_test: int = 200
-  supersample: int = 2
-  object_scale: float = 1.0
-  launch_side: str = 'front'
-  scenario: str = 'direct'
-
-  def __post_init__(self):
-    object.__setattr__(self, 'resolution',
-                       tuple(int(r) for r in self.resolution))
-    if len(self.resolution) != 2 or min(self.resolution) < 8:
-      raise ValueError(f'resolution must be (H, W) >= 8, got {self.resolution}')
-    if not 1 <= self.observed_frames < self.num_frames:
-      raise ValueError('need 1 <= observed_frames < num_frames, got '
-                       f'{self.observed_frames}, {self.num_frames}')
-    if not 0 <= self.min_distractors <= self.max_distractors <= 4:
-      raise ValueError('need 0 <= min_distractors <= max_distractors <= 4')
-    if min(self.num_videos(s) for s in SPLITS) < 0 or self.seed < 0:
-      raise ValueError('split sizes and seed must be >= 0')
-    if self.launch_side not in LAUNCH_SIDES:
-      raise ValueError(f'launch_side must be one of {LAUNCH_SIDES}, got '
-                       f'{self.launch_side!r}')
-    if self.scenario not in SCENARIOS:
-      raise ValueError(f'scenario must be one of {SCENARIOS}, got '
-                       f'{self.scenario!r}')
-    if self.scenario == 'bank' and (self.launch_side != 'side'
-                                    or self.min_distractors < 1):
-      raise ValueError("scenario='bank' needs launch_side='side' and "
-                       'min_distractors >= 1 (the bumper is a distractor)')
-
-  @property
-  def max_objects_total(self) -> int:
-    """O: rows of the per-object arrays (patient + distractors + agent)."""
-    return self.max_distractors + 2
-
-  def num_videos(self, split: str) -> int:
-    return {'train': self.num_train, 'readout_train': self.num_readout_train,
-            'readout_val': self.num_readout_val,
-            'readout_test': self.num_readout_test}[split]
-
-  @property
-  def slug(self) -> str:
-    h, w = self.resolution
-    fields = dataclasses.asdict(self)
-    if fields['launch_side'] == 'front':  # the datasets made before the option
-      del fields['launch_side']
-    if fields['scenario'] == 'direct':  # ... and before this one
-      del fields['scenario']
-    payload = json.dumps(
-        {**fields, 'generator_version': GENERATOR_VERSION,
-         'synthetic_version': synthetic.GENERATOR_VERSION}, sort_keys=True)
-    digest = hashlib.sha256(payload.encode()).hexdigest()[:8]
-    return (f'r{h}x{w}_t{self.num_frames}_obs{self.observed_frames}'
-            f'_d{self.min_distractors}-{self.max_distractors}_s{self.seed}'
-            f'_n{self.num_train}-{self.num_readout_train}-'
-            f'{self.num_readout_val}-{self.num_readout_test}_{digest}')
 
 
 def video_rng(seed: int, split: str, index: int) -> np.random.Generator:
@@ -210,11 +121,11 @@ def sample_contact_scene(rng: np.random.Generator, config: ContactConfig,
                                      config.max_distractors + 1))
   side = config.launch_side == 'side'
   if side:  # its size first: the distractors keep clear of its start
-    agent_size = int(rng.integers(0, len(synthetic.SIZES)))
+    agent_size = int(rng.integers(0, len(SIZES)))
     agent_radius = synthetic.SIZE_RADII[agent_size] * scale
   for _ in range(_MAX_SCENE_ATTEMPTS):
-    shapes = rng.integers(0, len(synthetic.SHAPES), num_distractors + 1)
-    sizes = rng.integers(0, len(synthetic.SIZES), num_distractors + 1)
+    shapes = rng.integers(0, len(SHAPES), num_distractors + 1)
+    sizes = rng.integers(0, len(SIZES), num_distractors + 1)
     placed: list[tuple[float, float, float]] = []
     keep_clear: list[tuple[float, float, float]] = []
     for k, (shape, size) in enumerate(zip(shapes, sizes)):
@@ -248,9 +159,9 @@ def sample_contact_scene(rng: np.random.Generator, config: ContactConfig,
     angle += rng.choice([-1.0, 1.0]) * rng.uniform(*MISS_ANGLE_RANGE)
   speed = rng.uniform(*AGENT_SPEED_RANGE)
   if not side:
-    agent_size = int(rng.integers(0, len(synthetic.SIZES)))
+    agent_size = int(rng.integers(0, len(SIZES)))
   return synthetic.Scene(
-      shapes=np.append(shapes, synthetic.SHAPES.index('sphere')).astype(
+      shapes=np.append(shapes, SHAPES.index('sphere')).astype(
           np.int32),
       colors=colors.astype(np.int32),
       sizes=np.append(sizes, agent_size).astype(np.int32),
@@ -277,11 +188,11 @@ def _sample_bank_scene(rng: np.random.Generator, config: ContactConfig
   scale = config.object_scale
   num_distractors = int(rng.integers(config.min_distractors,
                                      config.max_distractors + 1))
-  agent_size = int(rng.integers(0, len(synthetic.SIZES)))
+  agent_size = int(rng.integers(0, len(SIZES)))
   agent_radius = synthetic.SIZE_RADII[agent_size] * scale
   for _ in range(_MAX_SCENE_ATTEMPTS):
-    shapes = rng.integers(0, len(synthetic.SHAPES), num_distractors + 1)
-    sizes = rng.integers(0, len(synthetic.SIZES), num_distractors + 1)
+    shapes = rng.integers(0, len(SHAPES), num_distractors + 1)
+    sizes = rng.integers(0, len(SIZES), num_distractors + 1)
     footprints = [synthetic._footprint_radius(  # pylint: disable=protected-access
         int(shape), synthetic.SIZE_RADII[size] * scale)
                   for shape, size in zip(shapes, sizes)]
@@ -321,7 +232,7 @@ def _sample_bank_scene(rng: np.random.Generator, config: ContactConfig
   direction = (aim - start) / np.linalg.norm(aim - start)
   speed = rng.uniform(*BANK_SPEED_RANGE)
   return synthetic.Scene(
-      shapes=np.append(shapes, synthetic.SHAPES.index('sphere')).astype(
+      shapes=np.append(shapes, SHAPES.index('sphere')).astype(
           np.int32),
       colors=colors.astype(np.int32),
       sizes=np.append(sizes, agent_size).astype(np.int32),
@@ -411,10 +322,10 @@ def simulate(scene: synthetic.Scene, config: ContactConfig, *,
             lightSpecularCoeff=synthetic.LIGHT_SPECULAR,
             renderer=pybullet.ER_TINY_RENDERER, physicsClientId=client)
         rgb = np.asarray(rgba, np.uint8).reshape(height * ss, width * ss, 4)
-        frames.append(synthetic.downsample_rgb(rgb[..., :3], ss))
+        frames.append(downsample_rgb(rgb[..., :3], ss))
         seg = lut[np.asarray(seg, np.int64).reshape(height * ss, width * ss)
                   + 1]
-        segs.append(synthetic.downsample_segmentation(seg, ss))
+        segs.append(downsample_segmentation(seg, ss))
       for k, body in enumerate(bodies):
         positions[t, k] = pybullet.getBasePositionAndOrientation(
             body, physicsClientId=client)[0]
@@ -539,7 +450,7 @@ def family(config: ContactConfig) -> embedded.Family:
   t, o = config.num_frames, config.max_objects_total
   tensor, scalar = embedded.tensor, tfds.features.Scalar
   return embedded.Family(
-      name='synthetic_contact', slug=config.slug,
+      name=NAME, slug=config.slug,
       description=json.dumps(dataclasses.asdict(config)),
       features={
           'video': tensor((t, h, w, 3), np.uint8),
@@ -570,10 +481,3 @@ def build_contact_dataset(config: ContactConfig,
   """Generates the dataset under ``data_dir`` unless it is there already,
   in ``num_workers`` processes (default: the available cores)."""
   return embedded.build(family(config), data_dir, num_workers=num_workers)
-
-
-def config_from_data_config(data_config: Any) -> ContactConfig:
-  """The generation parameters named in a run's ``config.data``."""
-  fields = {f.name for f in dataclasses.fields(ContactConfig)}
-  return ContactConfig(**{key: data_config[key] for key in fields
-                          if key in data_config})

@@ -15,7 +15,10 @@ tested without downloading anything:
   ``(seed, split, index)``;
 * :class:`SyntheticObj3d` is the TFDS builder that writes the three splits as
   ``array_record`` files once into a cache folder whose name encodes every
-  generation parameter, and :func:`build_synthetic_dataset` builds-if-needed.
+  generation parameter, and :func:`build_synthetic_dataset` builds-if-needed
+  (the data stage runs it). The parameters (:class:`SyntheticConfig`), the
+  folder they name and the labels of the stored ids are the reader's:
+  :mod:`slotformer_jax.data.embedded.synthetic`.
 
 Coordinates: world x points right, y away from the camera (into the scene), z up;
 lengths are metres, time is seconds.
@@ -29,7 +32,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import hashlib
 import json
 import os
 import shutil
@@ -41,23 +43,25 @@ import numpy as np
 import pybullet
 import tensorflow_datasets as tfds
 
-from slotformer_jax.data import integrity
+from slotformer_jax.data.convert.checksums import record_checksums
 from slotformer_jax.data.convert.pool import ordered_map
 from slotformer_jax.data.data_dir import resolve_data_dir
+from slotformer_jax.data.embedded import folders
+from slotformer_jax.data.embedded.synthetic import COLORS
+from slotformer_jax.data.embedded.synthetic import NAME
+from slotformer_jax.data.embedded.synthetic import SHAPES
+from slotformer_jax.data.embedded.synthetic import SIZES
+from slotformer_jax.data.embedded.synthetic import SPLITS
+from slotformer_jax.data.embedded.synthetic import SyntheticConfig
+from slotformer_jax.data.embedded.synthetic import dataset_dir
 from slotformer_jax.workdir.lock import FileLock
+from slotformer_jax.worlds.supersample import downsample_rgb
+from slotformer_jax.worlds.supersample import downsample_segmentation
 
-# Bump whenever the generator's output changes for identical parameters: it is
-# part of the cache folder name, so stale caches are never reused.
-GENERATOR_VERSION = 1
-
-SPLITS: tuple[str, ...] = ('train', 'val', 'test')
-
-SHAPES: tuple[str, ...] = ('cube', 'sphere', 'cylinder')
-COLORS: tuple[str, ...] = (
-    'gray', 'red', 'blue', 'green', 'brown', 'purple', 'cyan', 'yellow')
-# CLEVR's palette; green and brown are lifted a little because CLEVR's are so
-# dark that, under TinyRenderer's flat lighting, they read as near-black at
-# 32x32. The floor (FLOOR_RGB) is a lighter gray than the gray object.
+# CLEVR's palette (in the order of COLORS); green and brown are lifted a
+# little because CLEVR's are so dark that, under TinyRenderer's flat
+# lighting, they read as near-black at 32x32. The floor (FLOOR_RGB) is a
+# lighter gray than the gray object.
 COLOR_RGB: tuple[tuple[int, int, int], ...] = (
     (87, 87, 87),      # gray
     (173, 35, 35),     # red
@@ -69,11 +73,10 @@ COLOR_RGB: tuple[tuple[int, int, int], ...] = (
     (255, 238, 51),    # yellow
 )
 FLOOR_RGB: tuple[int, int, int] = (165, 165, 160)
-SIZES: tuple[str, ...] = ('small', 'large')
 # Radius of spheres/cylinders (cylinder height = 2 * radius). OBJ3D objects are
 # larger than CLEVR's (0.35 / 0.7) relative to the frame; we get that mostly
 # from a closer camera.
-SIZE_RADII: tuple[float, ...] = (0.5, 0.8)
+SIZE_RADII: tuple[float, ...] = (0.5, 0.8)  # by SIZES
 # Cube half-side = radius * CUBE_SCALE (CLEVR uses 1/sqrt(2), which makes cubes
 # look small next to spheres of the same nominal size).
 CUBE_SCALE = 0.8
@@ -110,86 +113,6 @@ CAMERA_NEAR, CAMERA_FAR = 0.5, 60.0
 LIGHT_DIRECTION = (-3.0, -5.0, 10.0)
 LIGHT_AMBIENT, LIGHT_DIFFUSE, LIGHT_SPECULAR = 0.55, 0.55, 0.05
 FLOOR_HALF_EXTENT = 40.0          # large enough that the camera never sees sky
-
-@dataclasses.dataclass(frozen=True)
-class SyntheticConfig:
-  """Generation parameters; together they identify a cached dataset.
-
-  Attributes:
-    resolution: (H, W) of the output frames.
-    num_frames: T, frames per video.
-    min_objects: minimum number of static objects per video.
-    max_objects: maximum number of static objects (the launched sphere comes on
-      top, so per-object arrays have ``max_objects + 1`` rows). Up to 7 fit
-      the layout region comfortably; 8 is slow to place, 10 does not fit.
-    seed: base seed; video ``i`` of split ``s`` uses ``(seed, s, i)``.
-    num_train, num_val, num_test: videos per split (0 skips a split).
-    supersample: render at ``supersample`` x the resolution and area-average
-      (anti-aliasing); masks are downsampled by majority vote.
-    object_scale: multiplies every object's size (larger objects cover more
-      pixels, which matters at low resolution).
-    distinct_colors: no two objects of a video share a colour (at most
-      len(COLORS) objects).
-  """
-
-  resolution: tuple[int, int] = (64, 64)
-  num_frames: int = 40
-  min_objects: int = 3
-  max_objects: int = 5
-  seed: int = 0
-  num_train: int = 1000
-  num_val: int = 100
-  num_test: int = 100
-  supersample: int = 2
-  object_scale: float = 1.0
-  distinct_colors: bool = False
-
-  def __post_init__(self):
-    # Accept lists (e.g. from ml_collections) but store a hashable tuple.
-    object.__setattr__(self, 'resolution', tuple(int(r) for r in self.resolution))
-    if len(self.resolution) != 2 or min(self.resolution) < 8:
-      raise ValueError(f'resolution must be (H, W) >= 8, got {self.resolution}')
-    if self.num_frames < 1:
-      raise ValueError(f'num_frames must be >= 1, got {self.num_frames}')
-    if not 1 <= self.min_objects <= self.max_objects:
-      raise ValueError('need 1 <= min_objects <= max_objects, got '
-                       f'{self.min_objects}..{self.max_objects}')
-    if self.max_objects + 1 > 254:
-      raise ValueError('uint8 masks hold at most 254 objects')
-    if min(self.num_train, self.num_val, self.num_test) < 0:
-      raise ValueError('split sizes must be >= 0')
-    if self.seed < 0:
-      raise ValueError(f'seed must be >= 0, got {self.seed}')
-    if self.supersample < 1:
-      raise ValueError(f'supersample must be >= 1, got {self.supersample}')
-    if self.distinct_colors and self.max_objects + 1 > len(COLORS):
-      raise ValueError(f'distinct_colors allows at most {len(COLORS) - 1} '
-                       f'static objects, got max_objects={self.max_objects}')
-    if not 0.25 <= self.object_scale <= 2.0:
-      raise ValueError(
-          f'object_scale must be in [0.25, 2], got {self.object_scale}')
-
-  @property
-  def max_objects_total(self) -> int:
-    """O: rows of the per-object arrays (static objects + launched sphere)."""
-    return self.max_objects + 1
-
-  def num_videos(self, split: str) -> int:
-    return {'train': self.num_train, 'val': self.num_val,
-            'test': self.num_test}[split]
-
-  @property
-  def slug(self) -> str:
-    """A readable, unique folder name for these parameters (+ code version)."""
-    h, w = self.resolution
-    payload = json.dumps(
-        {**dataclasses.asdict(self), 'generator_version': GENERATOR_VERSION},
-        sort_keys=True)
-    digest = hashlib.sha256(payload.encode()).hexdigest()[:8]
-    return (f'r{h}x{w}_t{self.num_frames}_o{self.min_objects}-{self.max_objects}'
-            f'_s{self.seed}_n{self.num_train}-{self.num_val}-{self.num_test}'
-            f'_aa{self.supersample}_{digest}')
-
 
 @dataclasses.dataclass(frozen=True)
 class Scene:
@@ -345,34 +268,6 @@ def _create_floor(client: int) -> int:
       spinningFriction=0.0, restitution=FLOOR_RESTITUTION,
       physicsClientId=client)
   return floor
-
-
-def downsample_rgb(image: np.ndarray, factor: int) -> np.ndarray:
-  """Area-averages uint8 [H*f, W*f, C] into uint8 [H, W, C] (anti-aliasing)."""
-  if factor == 1:
-    return image
-  h, w, c = image.shape[0] // factor, image.shape[1] // factor, image.shape[2]
-  blocks = image.reshape(h, factor, w, factor, c).astype(np.uint16)
-  total = blocks.sum(axis=(1, 3), dtype=np.uint32)
-  # Integer rounding keeps the result bit-exact across numpy versions.
-  return ((total + factor * factor // 2) // (factor * factor)).astype(np.uint8)
-
-
-def downsample_segmentation(seg: np.ndarray, factor: int) -> np.ndarray:
-  """Majority vote over f x f blocks: [H*f, W*f] ids -> [H, W], same dtype.
-
-  Unlike averaging, the vote keeps exact ids; ties go to the id seen first in
-  raster order inside the block.
-  """
-  if factor == 1:
-    return seg
-  h, w = seg.shape[0] // factor, seg.shape[1] // factor
-  blocks = seg.reshape(h, factor, w, factor).transpose(0, 2, 1, 3)
-  blocks = blocks.reshape(h, w, factor * factor)
-  # counts[..., i] = how many samples in the block share sample i's id.
-  counts = (blocks[..., :, None] == blocks[..., None, :]).sum(-1)
-  winner = counts.argmax(-1)
-  return np.take_along_axis(blocks, winner[..., None], -1)[..., 0]
 
 
 def boxes_from_segmentation(
@@ -550,8 +445,8 @@ class SyntheticObj3d(tfds.core.GeneratorBasedBuilder, skip_registration=True):
   of a split is video ``i``.
   """
 
-  name = 'synthetic_obj3d'  # the cache sub-folder; see dataset_dir()
-  VERSION = tfds.core.Version('1.0.0')
+  name = NAME  # the cache sub-folder; see dataset_dir()
+  VERSION = tfds.core.Version(folders.TFDS_VERSION)
   # Raw bytes. Measured on 64x64x40 videos (2 cores): the default NONE stores
   # uint8 as varint int64 lists and reads ~200 videos/s; ZLIB ~700 videos/s;
   # BYTES ~1,300-1,800 videos/s. The files are the same size (~22 KB per
@@ -635,10 +530,9 @@ def build_synthetic_dataset(config: SyntheticConfig,
   """
   root = resolve_data_dir(data_dir)
   path = dataset_dir(config, root)
-  # tfds writes into a temporary folder and renames it when complete, so the
-  # info file only exists for finished builds. Checking it here (rather than
-  # letting tfds do it) avoids constructing the builder, which logs a warning.
-  if (path / 'dataset_info.json').is_file():
+  # Checked here (rather than letting tfds do it): constructing the builder
+  # logs a warning.
+  if folders.is_complete(path):
     return path
   # One generator per dataset; a generator killed earlier left its
   # temporary folder behind, which the lock holder may remove.
@@ -646,7 +540,7 @@ def build_synthetic_dataset(config: SyntheticConfig,
                 what=f'the synthetic dataset {path}', wait=True,
                 fix='set $SLOTFORMER_DATA_DIR or --config.data.data_dir to '
                 'a folder you can write'):
-    if (path / 'dataset_info.json').is_file():  # built while we waited
+    if folders.is_complete(path):  # built while we waited
       return path
     for leftover in path.parent.glob(f'incomplete.*_{path.name}'):
       shutil.rmtree(leftover, ignore_errors=True)
@@ -656,17 +550,5 @@ def build_synthetic_dataset(config: SyntheticConfig,
         download_config=tfds.download.DownloadConfig(try_download_gcs=False))
     if Path(builder.data_dir) != path:
       raise RuntimeError(f'tfds wrote to {builder.data_dir}, expected {path}')
-    integrity.record_checksums(path)
+    record_checksums(path)
   return path
-
-
-def discard_dataset(path: str | os.PathLike[str]) -> None:
-  """Removes a (damaged) generated dataset folder so it is built again."""
-  shutil.rmtree(path, ignore_errors=True)
-
-
-def dataset_dir(config: SyntheticConfig,
-                data_dir: str | os.PathLike[str]) -> Path:
-  """The TFDS version folder of ``config`` under cache root ``data_dir``."""
-  return (Path(data_dir) / SyntheticObj3d.name / config.slug /
-          str(SyntheticObj3d.VERSION))

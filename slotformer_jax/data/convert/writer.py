@@ -50,8 +50,8 @@ import numpy as np
 import tensorflow_datasets as tfds
 import tqdm
 
-from slotformer_jax.data import integrity
 from slotformer_jax.data.convert import media
+from slotformer_jax.data.convert.checksums import record_checksums
 from slotformer_jax.data.convert.pool import process_pool
 from slotformer_jax.files import write_json_atomic
 
@@ -513,7 +513,7 @@ def _write_metadata(spec: DatasetSpec, dataset_dir: Path,
       metadata=tfds.core.MetadataDict(
           conversion=json.loads(json.dumps(dict(spec.params)))))
   # Verified whenever the dataset is opened (see data/integrity.py).
-  integrity.record_checksums(dataset_dir)
+  record_checksums(dataset_dir)
 
 
 def _write_report(spec: DatasetSpec, result: ConversionResult) -> None:

@@ -4,8 +4,8 @@ CLEVRER (Yi et al., 2020) videos show objects sliding, colliding and entering
 the scene from its sides; every video comes with the events that happened
 (collisions, entering, exiting), from which its questions are generated. This
 module builds such videos on the same pybullet world as the OBJ3D-like
-generator (:mod:`slotformer_jax.data.synthetic`: objects, floor, camera,
-renderer, image helpers are imported from there):
+generator (:mod:`slotformer_jax.data.convert.synthetic`: objects, floor,
+camera, renderer, image helpers are imported from there):
 
 * :func:`sample_scene` draws objects present from frame 0 (some resting, some
   moving, aimed roughly at another object) and objects that enter later from
@@ -18,8 +18,11 @@ renderer, image helpers are imported from there):
   and optionally renders the frames; ``removed=k`` re-simulates the same world
   without object ``k`` (the counterfactual world), deterministically;
 * :func:`event_log` turns a simulation into an :class:`EventLog`, the only
-  thing the question generator (:mod:`slotformer_jax.data.questions`) reads;
-  :func:`generate_video` ties everything together per ``(seed, split, index)``.
+  thing the question generator (:mod:`slotformer_jax.data.convert.questions`)
+  reads; :func:`generate_video` ties everything together per
+  ``(seed, split, index)``; :func:`build_dataset` writes a dataset (the data
+  stage runs it; its parameters, folder and reader are
+  :mod:`slotformer_jax.data.embedded.clevrer_like`'s).
 
 Frames: frame 0 is the initial state, frame ``t`` is ``t * SUBSTEPS_PER_FRAME``
 physics steps later. A contact first seen after physics step ``s`` (1-based)
@@ -37,7 +40,6 @@ import collections
 import concurrent.futures
 import dataclasses
 import functools
-import hashlib
 import json
 import multiprocessing
 import os
@@ -47,17 +49,28 @@ from typing import Any
 import numpy as np
 import pybullet
 
-from slotformer_jax.data import questions as question_generator
 from slotformer_jax.data import vqa
+from slotformer_jax.data.convert import questions as question_generator
 from slotformer_jax.data.convert import synthetic
+from slotformer_jax.data.embedded.clevrer_like import ARRAY_FIELDS
+from slotformer_jax.data.embedded.clevrer_like import COMPLETE
+from slotformer_jax.data.embedded.clevrer_like import PREDICTIVE_DESIGNS
+from slotformer_jax.data.embedded.clevrer_like import QUESTIONS_VERSION
+from slotformer_jax.data.embedded.clevrer_like import SCENE_OFFSETS
+from slotformer_jax.data.embedded.clevrer_like import ClevrerLikeConfig
+from slotformer_jax.data.embedded.clevrer_like import completion
+from slotformer_jax.data.embedded.clevrer_like import dataset_dir
+from slotformer_jax.data.embedded.clevrer_like import is_complete
+from slotformer_jax.data.embedded.clevrer_like import video_filename
+from slotformer_jax.data.embedded.synthetic import COLORS
+from slotformer_jax.data.embedded.synthetic import SHAPES
+from slotformer_jax.data.embedded.synthetic import SIZES
 from slotformer_jax.data.events import NUM_GAP_BINS
 from slotformer_jax.data.events import Collision
 from slotformer_jax.data.events import EventLog
-from slotformer_jax.data.convert.synthetic import COLORS, SHAPES, SIZES
+from slotformer_jax.worlds.supersample import downsample_rgb
+from slotformer_jax.worlds.supersample import downsample_segmentation
 
-# The videos and event logs (the questions have their own version,
-# questions.VERSION; the event-log types are in events.py). 2: future_collision_fraction.
-GENERATOR_VERSION = 2
 SPLITS = synthetic.SPLITS
 SUBSTEPS_PER_FRAME = synthetic.SUBSTEPS_PER_FRAME
 
@@ -87,15 +100,8 @@ VIEW_MARGIN = 0.05
 # Scenes drawn (physics only, ~20 ms each) to find one whose future has a
 # collision, when a video should have one (future_collision_fraction).
 MAX_SCENE_TRIES = 30
-# predictive_design: 'direct', the scenes above (most future collisions are
-# objects already heading at each other: extrapolating the observed end
-# answers ~85% of the predictive options, experiments/
-# vqa_state_extrapolation.py); 'deflected', bank-shot scenes (below) drawn
-# until the future has an event that extrapolation gets wrong, and every
-# pair in view at the end carries the extrapolation's verdict
-# (EventLog.extrapolated) so that the questions balance the labels within
-# each verdict (docs/vqa.md, "Issue 12, round 4").
-PREDICTIVE_DESIGNS = ('direct', 'deflected')
+# predictive_design (PREDICTIVE_DESIGNS): 'direct', the scenes above;
+# 'deflected', the bank-shot scenes below.
 # The extrapolation's verdict on a pair (extrapolation_verdict): the bin of
 # its extrapolated_clearance [m], 3 "a clear hit" (< EXTRAPOLATION_BINS[0]),
 # 2 "a close call", 1 "a near miss", 0 "far apart" (>= the last bin edge),
@@ -130,102 +136,6 @@ BANK_TARGET_OFFSET = 0.6
 BANK_X_RANGE = (-2.5, 2.5)
 BANK_Y_RANGE = (-1.0, 3.0)
 BANK_VIEW = 0.8
-
-
-@dataclasses.dataclass(frozen=True)
-class ClevrerLikeConfig:
-  """Generation parameters; together they identify a generated dataset.
-
-  Attributes:
-    resolution: (H, W) of rendered frames.
-    observed_frames: frames of the video shown to models.
-    predicted_frames: frames simulated after the video (predictive questions
-      ask about them; a dynamics model has to roll out to see them).
-    min_objects, max_objects: objects present from frame 0.
-    max_entering: objects entering later (0..max_entering per video).
-    moving_fraction: probability that an object present at frame 0 moves.
-    future_collision_fraction: probability that a video is drawn among
-      scenes where two objects in view at the last observed frame collide
-      after it (rejection sampling over physics-only simulations): without
-      it only ~1/3 of the videos have anything to predict. With the
-      'deflected' design: among scenes with a predictive question balanced
-      within the extrapolation's verdict (:func:`has_deflected_question`).
-    seed: base seed; video ``i`` of split ``s`` uses ``(seed, s, i)``.
-    num_train, num_val, num_test: videos per split.
-    supersample, object_scale: as in :class:`synthetic.SyntheticConfig`.
-    predictive_design: one of PREDICTIVE_DESIGNS ('direct' is the generator
-      of version 2; the field enters the slug only when not 'direct', so the
-      datasets built before it keep their slugs and contents).
-  """
-
-  resolution: tuple[int, int] = (32, 32)
-  observed_frames: int = 24
-  predicted_frames: int = 16
-  min_objects: int = 2
-  max_objects: int = 4
-  max_entering: int = 1
-  moving_fraction: float = 0.5
-  future_collision_fraction: float = 0.0
-  seed: int = 0
-  num_train: int = 1000
-  num_val: int = 100
-  num_test: int = 200
-  supersample: int = 2
-  object_scale: float = 1.0
-  predictive_design: str = 'direct'
-
-  def __post_init__(self):
-    object.__setattr__(self, 'resolution', tuple(int(r) for r in self.resolution))
-    if self.observed_frames < 2 or self.predicted_frames < 0:
-      raise ValueError('need observed_frames >= 2 and predicted_frames >= 0')
-    if not 1 <= self.min_objects <= self.max_objects:
-      raise ValueError('need 1 <= min_objects <= max_objects')
-    if self.max_objects + self.max_entering > len(COLORS):
-      # Objects are named by colour in questions: colours must be distinct.
-      raise ValueError(f'at most {len(COLORS)} objects per video')
-    if self.max_entering < 0:
-      raise ValueError('max_entering must be >= 0')
-    if not 0.0 <= self.future_collision_fraction <= 1.0:
-      raise ValueError('future_collision_fraction must be in [0, 1]')
-    if self.predictive_design == 'deflected' and (
-        self.max_objects < 3 or self.predicted_frames < 2):
-      # A bank shot needs three objects, a verdict a few future frames.
-      raise ValueError("predictive_design='deflected' needs max_objects >= 3 "
-                       'and predicted_frames >= 2')
-    if self.predictive_design not in PREDICTIVE_DESIGNS:
-      raise ValueError(f'predictive_design must be one of '
-                       f'{PREDICTIVE_DESIGNS}, got {self.predictive_design!r}')
-
-  @property
-  def num_frames(self) -> int:
-    return self.observed_frames + self.predicted_frames
-
-  @property
-  def max_objects_total(self) -> int:
-    return self.max_objects + self.max_entering
-
-  def num_videos(self, split: str) -> int:
-    return {'train': self.num_train, 'val': self.num_val,
-            'test': self.num_test}[split]
-
-  def identity(self) -> dict[str, Any]:
-    """The fields that identify the dataset: all of them, except
-    ``predictive_design`` when it is 'direct' (as before the field)."""
-    fields = dataclasses.asdict(self)
-    if fields['predictive_design'] == 'direct':
-      del fields['predictive_design']
-    return fields
-
-  @property
-  def slug(self) -> str:
-    h, w = self.resolution
-    payload = json.dumps({**self.identity(),
-                          'generator_version': GENERATOR_VERSION},
-                         sort_keys=True)
-    digest = hashlib.sha256(payload.encode()).hexdigest()[:8]
-    return (f'r{h}x{w}_t{self.observed_frames}+{self.predicted_frames}'
-            f'_o{self.min_objects}-{self.max_objects}+{self.max_entering}'
-            f'_s{self.seed}_{digest}')
 
 
 @dataclasses.dataclass(frozen=True)
@@ -552,13 +462,13 @@ def simulate(scene: Scene, config: ClevrerLikeConfig, *,
             lightSpecularCoeff=synthetic.LIGHT_SPECULAR,
             renderer=pybullet.ER_TINY_RENDERER, physicsClientId=client)
         rgb = np.asarray(rgba, np.uint8).reshape(height * ss, width * ss, 4)
-        frames.append(synthetic.downsample_rgb(rgb[..., :3], ss))
+        frames.append(downsample_rgb(rgb[..., :3], ss))
         lut = np.zeros(max(list(bodies.values()) + [floor]) + 2, np.uint8)
         for i, body in bodies.items():
           lut[body + 1] = i + 1
         seg = lut[np.asarray(seg, np.int64).reshape(height * ss, width * ss)
                   + 1]
-        segs.append(synthetic.downsample_segmentation(seg, ss))
+        segs.append(downsample_segmentation(seg, ss))
       if t + 1 == t_total:
         break
       for _ in range(SUBSTEPS_PER_FRAME):
@@ -828,30 +738,9 @@ def generate_video(config: ClevrerLikeConfig, split: str, index: int, *,
 
 # ----------------------------------------------------------------------------
 # Storage: frames as .npy per split (memory-mapped when read), event logs,
-# questions in CLEVRER's layout and the vocabulary
+# questions in CLEVRER's layout and the vocabulary (the layout:
+# data/embedded/clevrer_like.py)
 # ----------------------------------------------------------------------------
-#
-#   <data_dir>/clevrer_like/<slug>/
-#     <split>/{video,segmentations,boxes,visible,num_objects}.npy
-#     <split>/events.jsonl          one EventLog per video, in index order
-#     questions/{train,validation,test}.json   (CLEVRER's file names)
-#     vocab.json                    {'q_vocab', 'a_vocab'}
-#     complete.json                 written last: the build finished
-
-DATASET_NAME = 'clevrer_like'
-ARRAY_FIELDS = ('video', 'segmentations', 'boxes', 'visible', 'num_objects')
-# scene_index = offset + video index, as CLEVRER numbers its splits.
-SCENE_OFFSETS = {'train': 0, 'val': 10000, 'test': 15000}
-_COMPLETE = 'complete.json'
-
-
-def video_filename(split: str, index: int) -> str:
-  return f'video_{SCENE_OFFSETS[split] + index:05d}.mp4'
-
-
-def dataset_dir(config: ClevrerLikeConfig, data_dir: str | os.PathLike[str]
-                ) -> Path:
-  return Path(data_dir) / DATASET_NAME / config.slug
 
 
 def _video_for_worker(config: ClevrerLikeConfig, split: str, index: int
@@ -884,25 +773,20 @@ def build_dataset(config: ClevrerLikeConfig,
                   num_workers: int | None = None) -> Path:
   """Generates videos, event logs, questions and vocabulary unless present.
 
-  A dataset built by an older question generator (``questions.VERSION``)
+  A dataset built by an older question generator (``QUESTIONS_VERSION``)
   gets new questions from its stored event logs; its videos are kept.
   Returns the dataset folder. Deterministic: a pure function of ``config``
   (the worker count does not matter).
   """
   root = dataset_dir(config, data_dir)
-  complete = {**config.identity(),
-              'questions_version': question_generator.VERSION}
-  if (root / _COMPLETE).is_file():
-    with open(root / _COMPLETE) as f:
-      if json.load(f).get('questions_version') == complete[
-          'questions_version']:
-        return root
-  else:
+  if is_complete(root):
+    return root
+  if not (root / COMPLETE).is_file():
     root.mkdir(parents=True, exist_ok=True)
     _write_videos(config, root, num_workers)
   _write_questions(config, root)
-  with open(root / _COMPLETE, 'w') as f:
-    json.dump(complete, f)
+  with open(root / COMPLETE, 'w') as f:
+    json.dump(completion(config), f)
   return root
 
 
@@ -928,35 +812,3 @@ def _write_videos(config: ClevrerLikeConfig, root: Path,
     with open(folder / 'events.jsonl', 'w') as f:
       for v in videos:
         f.write(json.dumps(v['events']) + '\n')
-
-
-class NpyVideoSource:
-  """The videos of one split of a built dataset (frames memory-mapped).
-
-  Items: video uint8 [T, H, W, 3], segmentations uint8 [T, H, W], boxes
-  float32 [T, O, 4], visible bool [T, O], num_objects int32 [], index.
-  """
-
-  def __init__(self, root: str | os.PathLike[str], split: str):
-    folder = Path(root) / split
-    self._arrays = {field: np.load(folder / f'{field}.npy', mmap_mode='r')
-                    for field in ARRAY_FIELDS}
-
-  def __len__(self) -> int:
-    return len(self._arrays['video'])
-
-  def __getitem__(self, index: int) -> dict[str, np.ndarray]:
-    if not 0 <= index < len(self):
-      raise IndexError(index)
-    item = {k: np.asarray(v[index]) for k, v in self._arrays.items()}
-    item['index'] = np.array(index, np.int32)
-    return item
-
-
-def config_from_data_config(data_config: Any) -> ClevrerLikeConfig:
-  """The generation parameters named by a data config (defaults filled in)."""
-  fields = {f.name for f in dataclasses.fields(ClevrerLikeConfig)}
-  values = {k: data_config[k] for k in fields if k in data_config}
-  if 'resolution' in values:
-    values['resolution'] = tuple(values['resolution'])
-  return ClevrerLikeConfig(**values)

@@ -1,6 +1,6 @@
 """CLEVRER-style questions about CLEVRER-like videos, answered by the simulator.
 
-Questions are generated from a video's :class:`clevrer_like.EventLog` only, by
+Questions are generated from a video's :class:`slotformer_jax.data.events.EventLog` only, by
 templates of CLEVRER's four types:
 
 * descriptive (open answer): counts of collisions / entering / moving objects,
@@ -47,14 +47,12 @@ import numpy as np
 from slotformer_jax.data.events import NUM_VERDICTS
 from slotformer_jax.data.events import Collision
 from slotformer_jax.data.events import EventLog
-from slotformer_jax.data.convert.synthetic import COLORS, SHAPES
+from slotformer_jax.data.embedded.synthetic import COLORS
+from slotformer_jax.data.embedded.synthetic import SHAPES
 
-# Bumped when the questions generated from an event log change; a built
-# dataset then regenerates its questions from its stored event logs (the
-# videos do not change). 1: the first generator; 2: explanatory labels by
-# re-simulation, balanced per choice kind, count templates over objects in
-# view, up to 2 predictive / explanatory questions per video.
-VERSION = 2
+# Bump QUESTIONS_VERSION (data/embedded/clevrer_like.py) when the questions
+# generated from an event log change: a built dataset then regenerates its
+# questions from its stored event logs (the videos do not change).
 
 QUESTION_TYPES = ('descriptive', 'explanatory', 'predictive',
                   'counterfactual')

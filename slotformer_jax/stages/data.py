@@ -1,0 +1,123 @@
+"""The data stage: makes and checks what the other stages read.
+
+Reading never writes (`data/sources.py` only opens data), so whatever a run
+reads is made here, at the head of the stage table; `selected_stages` runs
+it first for every `--mode`, and when the data are there it costs a stat
+per file. For the dataset of `config.data`:
+
+* an embedded family (`data/embedded/`) is generated when missing
+  (`data/convert/make.py`; the OBJ3D-like one under a lock, so processes
+  sharing a data dir make it once);
+* every split the run reads (:func:`splits_read`) is checked against the
+  checksums recorded with it: a folder without them (made by an older
+  version) gets them recorded; a damaged embedded cache is set aside and
+  generated again, with a warning; a damaged converted dataset is refused
+  with one line naming the conversion command;
+* a converted dataset that is not there is left to the stage that reads it,
+  which names the conversion command (a run that only reads its extracted
+  slots needs none);
+* what other readers need is made too: the CLEVRER-like questions come with
+  their dataset, the PHYRE-like task labels that planning reads are
+  simulated here.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from pathlib import Path
+
+import ml_collections
+
+from slotformer_jax.data import integrity
+from slotformer_jax.data import sources
+from slotformer_jax.data.convert import make
+from slotformer_jax.data.convert import phyre_like
+from slotformer_jax.data.convert.checksums import record_checksums
+from slotformer_jax.data.data_dir import resolve_data_dir
+from slotformer_jax.data.embedded import families
+from slotformer_jax.data.embedded import phyre_like as phyre_like_data
+from slotformer_jax.errors import MissingInputError
+from slotformer_jax.run import Run
+
+logger = logging.getLogger(__name__)
+
+
+def splits_read(config: ml_collections.ConfigDict) -> tuple[str, ...]:
+  """The data splits the stages of `config` open, in first-use order: stage
+  1 trains on 'train', extraction reads `extraction.splits`, video
+  prediction evaluates `evaluation.split`, a readout reads
+  `readout.splits` (VQA reads the extracted slots and its questions)."""
+  splits = ['train', *config.extraction.splits]
+  if not config.task:
+    splits.append(config.evaluation.split)
+  if 'readout' in config and 'splits' in config.readout:
+    splits += list(config.readout.splits.values())
+  return tuple(dict.fromkeys(splits))
+
+
+def prepare_data(run: Run) -> None:
+  """Makes and checks the data of the run (see the module docstring); the
+  data belong to the data dir, not to one workdir."""
+  config = run.config
+  prepare_dataset(config.data, splits_read(config))
+  if config.data.name == 'synthetic_phyre' and config.task == 'planning':
+    # Planning scores every candidate of every task against these.
+    phyre_like.build_task_labels(
+        phyre_like_data.config_from_data_config(config.data),
+        resolve_data_dir(config.data.data_dir))
+
+
+def prepare_dataset(data_config: ml_collections.ConfigDict,
+                    splits: Sequence[str] | None = None) -> None:
+  """Makes (an embedded family) and checks the dataset `data_config` names.
+
+  Args:
+    data_config: a run's `config.data`.
+    splits: the splits to check; None: all of them.
+
+  Raises:
+    UserError: a converted dataset is damaged (names the conversion
+      command), or the name is unknown.
+  """
+  name = data_config.name
+  if name in families.NAMES:
+    folder = make.make_dataset(data_config)
+    if name != 'clevrer_like':  # .npy folders carry no checksums
+      _check_embedded(data_config, folder, splits)
+  elif name in sources.REAL_DATASETS:
+    _check_converted(data_config, splits)
+  else:
+    raise sources.unknown_dataset(name)
+
+
+def _check_embedded(data_config: ml_collections.ConfigDict, folder: Path,
+                    splits: Sequence[str] | None) -> None:
+  for split in splits or (None,):
+    try:
+      if not integrity.verify_checksums(folder, split):
+        record_checksums(folder)  # built by an older version
+    except integrity.DamagedDataset as error:
+      # A cache is regenerable: say so, set it aside, build it again.
+      logger.warning('the %s dataset cache is damaged (%s); regenerating it',
+                     data_config.name, error)
+      make.discard_dataset(folder)
+      folder = make.make_dataset(data_config)
+
+
+def _check_converted(data_config: ml_collections.ConfigDict,
+                     splits: Sequence[str] | None) -> None:
+  try:
+    folder = sources.real_dataset_dir(data_config)
+  except MissingInputError:
+    logger.info('the %s dataset is not converted; a stage that reads it '
+                'says how', data_config.name)
+    return
+  for split in splits or (None,):
+    try:
+      if not integrity.verify_checksums(folder, split):
+        # Converted by an older version: trust it once, check from now on.
+        logger.info('recording checksums of %s', folder)
+        record_checksums(folder)
+    except integrity.DamagedDataset as error:
+      raise sources.damaged_real_dataset(data_config, error) from None

@@ -1,0 +1,7 @@
+"""Simulated worlds used at run time as well as by the generators.
+
+A world here is code a run needs after its data exist (the planning task
+places actions in the PHYRE-like scenes and simulates them), so it cannot
+live with the offline writers in `data/convert/`, which only the data stage
+runs; the generators import it from here.
+"""
