@@ -415,3 +415,13 @@ def write_movi(folder: Path, *, name: str = 'movi_a',
       movi_features_json(features, num_frames, size, size), indent=4,
       sort_keys=True))
   return examples
+
+
+def data_section(**fields):
+  """A run's `config.data` (every field at its default) with `fields` set,
+  as a config file writes it."""
+  from slotformer_jax.config.defaults import base_config  # pylint: disable=g-import-not-at-top
+  data = base_config().data
+  for key, value in fields.items():
+    data[key] = value
+  return data

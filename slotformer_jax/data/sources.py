@@ -265,8 +265,8 @@ def get_video_source(data_config: ml_collections.ConfigDict,
       makes it).
     UserError: its recorded checksums say it is damaged (names the fix).
   """
-  name = data_config.get('name')
-  root = resolve_data_dir(data_config.get('data_dir', None))
+  name = data_config.name
+  root = resolve_data_dir(data_config.data_dir)
   if name == 'synthetic':
     config = synthetic.config_from_data_config(data_config)
     if split not in synthetic.SPLITS or config.num_videos(split) == 0:
@@ -295,7 +295,7 @@ def get_video_source(data_config: ml_collections.ConfigDict,
       integrity.verify_checksums(source.dataset_dir, split)
     except integrity.DamagedDataset as error:
       raise damaged_real_dataset(data_config, error) from None
-    return with_channel_order(source, data_config.get('channel_order', 'rgb'))
+    return with_channel_order(source, data_config.channel_order)
   raise unknown_dataset(name)
 
 
@@ -331,7 +331,7 @@ def _conversion_command(data_config: ml_collections.ConfigDict) -> str:
   command, download = (('movi', f'/path/to/{name}/128x128/1.0.0')
                        if name in MOVI_DATASETS
                        else (name, '/path/to/download'))
-  data_dir = resolve_data_dir(data_config.get('data_dir', None))
+  data_dir = resolve_data_dir(data_config.data_dir)
   return (f'python -m slotformer_jax.data.prepare --dataset={command} '
           f'--source={download} --data_dir={data_dir}')
 
@@ -351,16 +351,16 @@ def real_dataset_dir(data_config: ml_collections.ConfigDict) -> Path:
     FileNotFoundError, ValueError: see :func:`find_prepared_dataset`.
   """
   name = data_config.name
-  path = prepared_dataset_path(data_config.get('data_dir', None), name)
+  path = prepared_dataset_path(data_config.data_dir, name)
   if not path.is_dir() or not _find_dataset_dirs(path):
     raise MissingInputError(
         f'Dataset {name!r} is not prepared: expected an array_record TFDS '
         f'folder under {path}. Convert it first with\n'
         f'  {_conversion_command(data_config)}')
-  if data_config.get('prepared_config', None):
+  if data_config.prepared_config:
     path = path / data_config.prepared_config
   return find_prepared_dataset(path,
-                               resolution=data_config.get('resolution', None))
+                               resolution=data_config.resolution)
 
 
 def damaged_real_dataset(data_config: ml_collections.ConfigDict,

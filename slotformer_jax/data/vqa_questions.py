@@ -29,7 +29,7 @@ def questions_root(config: ml_collections.ConfigDict) -> str:
   """
   if config.data.name == 'clevrer_like':
     return str(clevrer_like.complete_dataset_dir(
-        config.data, resolve_data_dir(config.data.get('data_dir', None))))
+        config.data, resolve_data_dir(config.data.data_dir)))
   if not config.vqa.questions_root:
     raise ConfigError('set vqa.questions_root to the folder holding '
                      "CLEVRER's questions/{train,validation,test}.json")

@@ -14,6 +14,7 @@ from slotformer_jax.data.convert import synthetic
 from slotformer_jax.data.embedded import clevrer_like as clevrer_like_data
 from slotformer_jax.data.embedded import synthetic as synthetic_data
 from slotformer_jax.data.events import EventLog
+from dataset_fixtures import data_section
 
 CONFIG = clevrer_like_data.ClevrerLikeConfig(
     observed_frames=12, predicted_frames=8, num_train=4, num_val=2,
@@ -123,14 +124,13 @@ def test_config_rejects_too_many_objects():
 
 def test_build_dataset_writes_videos_questions_and_vocabulary(tmp_path):
   import json  # pylint: disable=g-import-not-at-top
-  import ml_collections  # pylint: disable=g-import-not-at-top
   from slotformer_jax.data import sources  # pylint: disable=g-import-not-at-top
   from slotformer_jax.data import vqa  # pylint: disable=g-import-not-at-top
   from slotformer_jax.data.convert import make  # pylint: disable=g-import-not-at-top
   from slotformer_jax.errors import MissingInputError  # pylint: disable=g-import-not-at-top
-  data = ml_collections.ConfigDict(dict(
+  data = data_section(
       name='clevrer_like', data_dir=str(tmp_path), observed_frames=12,
-      predicted_frames=8, num_train=3, num_val=1, num_test=2, num_workers=1))
+      predicted_frames=8, num_train=3, num_val=1, num_test=2, num_workers=1)
   make.make_dataset(data)
   source = sources.get_video_source(data, 'test')
   assert len(source) == 2

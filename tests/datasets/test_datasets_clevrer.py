@@ -5,7 +5,6 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-import ml_collections
 import numpy as np
 import pytest
 
@@ -17,6 +16,7 @@ from slotformer_jax.data.convert import prepare
 from slotformer_jax.data import sources
 from slotformer_jax.data.convert import writer
 from slotformer_jax.evaluation import clevrer_clips
+from dataset_fixtures import data_section
 
 # ffmpeg runs as a subprocess (fork + exec at once), which JAX's fork warning
 # does not tell apart from a bare fork when JAX was imported by another test.
@@ -183,9 +183,8 @@ def converted(tmp_path_factory):
 
 
 def source_for(data_dir: Path, split: str, **extra) -> sources.VideoSource:
-  config = ml_collections.ConfigDict({'name': 'clevrer',
-                                      'data_dir': str(data_dir),
-                                      'resolution': (RES, RES), **extra})
+  config = data_section(name='clevrer', data_dir=str(data_dir),
+                        resolution=(RES, RES), **extra)
   return sources.get_video_source(config, split)
 
 
@@ -457,8 +456,7 @@ def test_missing_folders_name_the_layout(tmp_path):
 
 
 def test_unprepared_dataset_error_names_the_command(tmp_path):
-  config = ml_collections.ConfigDict({'name': 'clevrer',
-                                      'data_dir': str(tmp_path)})
+  config = data_section(name='clevrer', data_dir=str(tmp_path))
   with pytest.raises(FileNotFoundError,
                      match='python -m slotformer_jax.data.prepare'):
     sources.get_video_source(config, 'train')

@@ -7,7 +7,6 @@ import subprocess
 import sys
 from pathlib import Path
 
-import ml_collections
 import numpy as np
 import pytest
 import tensorflow_datasets as tfds
@@ -18,6 +17,7 @@ from slotformer_jax.data.convert import media
 from slotformer_jax.data.convert import movi
 from slotformer_jax.data.convert import prepare
 from slotformer_jax.errors import MissingInputError
+from dataset_fixtures import data_section
 
 ROOT = Path(__file__).resolve().parents[2]
 T, SIZE = 8, 32  # fixture frames and size (MOVi: 24 x 128 or 256)
@@ -49,8 +49,8 @@ def converted(movi_download, tmp_path_factory):
 
 
 def _source(data_dir, split, resolution=(32, 32)):
-  return sources.get_video_source(ml_collections.ConfigDict(dict(
-      name='movi_a', data_dir=str(data_dir), resolution=resolution)), split)
+  return sources.get_video_source(data_section(
+      name='movi_a', data_dir=str(data_dir), resolution=resolution), split)
 
 
 def test_fields_round_trip(converted):

@@ -25,6 +25,7 @@ from slotformer_jax.data import sources
 from slotformer_jax.data.convert import writer
 from pipeline_helpers import slots_of
 from pipeline_helpers import run_stage
+from dataset_fixtures import data_section
 
 FRAMES = 10   # frames per fixture video (OBJ3D: 100)
 KEEP = 6      # --num_frames (OBJ3D: the first 50)
@@ -67,8 +68,8 @@ def convert_args(root: Path, data_dir: Path, *extra: str) -> list[str]:
 
 
 def data_config(data_dir: Path, **extra) -> ml_collections.ConfigDict:
-  return ml_collections.ConfigDict({'name': 'obj3d', 'data_dir': str(data_dir),
-                                    'resolution': (RES, RES), **extra})
+  return data_section(name='obj3d', data_dir=str(data_dir),
+                      resolution=(RES, RES), **extra)
 
 
 @pytest.fixture(scope='module')

@@ -14,7 +14,6 @@ import sys
 import textwrap
 from pathlib import Path
 
-import ml_collections
 import numpy as np
 import pytest
 
@@ -22,6 +21,7 @@ import dataset_fixtures as fx
 from slotformer_jax.data.convert import phyre
 from slotformer_jax.data.convert import prepare
 from slotformer_jax.data import sources
+from dataset_fixtures import data_section
 
 SCENE = 16          # stand-in scene size (PHYRE: 256)
 MAX_FRAMES = 7      # render_phyre.py --max_frames (paper: 15)
@@ -125,9 +125,8 @@ def convert_args(source: Path, data_dir: Path, *extra: str) -> list[str]:
 
 
 def source_for(data_dir: Path, split: str) -> sources.VideoSource:
-  return sources.get_video_source(ml_collections.ConfigDict(
-      {'name': 'phyre', 'data_dir': str(data_dir),
-       'resolution': (SCENE, SCENE)}), split)
+  return sources.get_video_source(data_section(
+      name='phyre', data_dir=str(data_dir), resolution=(SCENE, SCENE)), split)
 
 
 def test_render_script_writes_the_documented_layout(rendered):

@@ -5,7 +5,6 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-import ml_collections
 import numpy as np
 import pytest
 
@@ -14,6 +13,7 @@ from slotformer_jax.data.convert import physion
 from slotformer_jax.data import pipeline
 from slotformer_jax.data.convert import prepare
 from slotformer_jax.data import sources
+from dataset_fixtures import data_section
 
 # ffmpeg runs as a subprocess (fork + exec at once), which JAX's fork warning
 # does not tell apart from a bare fork when JAX was imported by another test.
@@ -68,9 +68,8 @@ def convert(root: Path, data_dir: Path, *extra: str) -> int:
 
 
 def source_for(data_dir: Path, split: str) -> sources.VideoSource:
-  return sources.get_video_source(ml_collections.ConfigDict(
-      {'name': 'physion', 'data_dir': str(data_dir),
-       'resolution': (RES, RES)}), split)
+  return sources.get_video_source(data_section(
+      name='physion', data_dir=str(data_dir), resolution=(RES, RES)), split)
 
 
 @pytest.fixture(scope='module')

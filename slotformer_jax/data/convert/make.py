@@ -35,7 +35,7 @@ def make_dataset(data_config: Any) -> Path:
     ValueError: ``data_config.name`` is not an embedded family.
   """
   name = data_config.name
-  root = resolve_data_dir(data_config.get('data_dir', None))
+  root = resolve_data_dir(data_config.data_dir)
   workers = data_config.get('num_workers', None)
   if name not in families.NAMES:
     raise ValueError(f'{name!r} is not an embedded family '
