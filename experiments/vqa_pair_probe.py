@@ -206,7 +206,8 @@ def main() -> None:
   loaded = slot_models.get(config).load(args.workdir, mesh)
   params, step = loaded.params, loaded.step
   decoder_params = sharding.gather_to_host(params)['decoder']
-  decoder = models.build_decoder(config)
+  decoder = models.build_decoder(config.savi.decoder,
+                                 tuple(config.data.resolution))
 
   @jax.jit
   def decode(slots):

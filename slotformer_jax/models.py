@@ -1,93 +1,134 @@
-"""Builds the linen modules from a config (the only place that reads both)."""
+"""Builds the linen modules from config sections (the only place that reads
+both): each builder takes the section(s) it needs and passes plain values /
+modules to the modules, which never read a config."""
 
 from __future__ import annotations
 
 import ml_collections
 
 from slotformer_jax.modules.decoders import SpatialBroadcastDecoder
+from slotformer_jax.modules.dvae import DOWNSAMPLING as DVAE_DOWNSAMPLING
 from slotformer_jax.modules.dvae import DVAE
+from slotformer_jax.modules.encoders import CNNEncoder
+from slotformer_jax.modules.encoders import feature_grid
+from slotformer_jax.modules.savi import FrameStep
 from slotformer_jax.modules.savi import SAVi
+from slotformer_jax.modules.slot_attention import SlotAttention
+from slotformer_jax.modules.slot_init import LearnedSlots
+from slotformer_jax.modules.slot_init import slot_initializer
 from slotformer_jax.modules.slot_lstm import SlotLSTM
 from slotformer_jax.modules.slotformer import SlotFormer
 from slotformer_jax.modules.steve import STEVE
+from slotformer_jax.modules.stochastic_savi import GaussianSlotSampler
+from slotformer_jax.modules.stochastic_savi import NO_HEAD
+from slotformer_jax.modules.stochastic_savi import POSTERIOR_HEADS
+from slotformer_jax.modules.token_decoder import TokenDecoder
+from slotformer_jax.modules.transitions import SlotTransition
+from slotformer_jax.modules.transitions import build_predictor
 
 SLOTFORMER = 'slotformer'
 SLOT_LSTM = 'slot_lstm'
 DYNAMICS_MODELS = (SLOTFORMER, SLOT_LSTM)
 
 
-def build_savi(config: ml_collections.ConfigDict) -> SAVi:
-  """SAVi (or stochastic SAVi when `config.savi.stochastic`)."""
-  savi = config.savi
-  return SAVi(
-      resolution=tuple(config.data.resolution),
-      num_slots=savi.num_slots,
-      slot_size=savi.slot_size,
-      encoder_features=tuple(savi.encoder.features),
-      encoder_kernel_size=savi.encoder.kernel_size,
-      encoder_strides=tuple(savi.encoder.strides),
-      encoder_size=savi.encoder.output_size,
-      encoder_padding=savi.encoder.padding,
-      num_iterations=savi.slot_attention.num_iterations,
-      slot_mlp_size=savi.slot_attention.mlp_size,
-      predictor_kind=savi.predictor.kind,
-      predictor_layers=savi.predictor.num_layers,
-      predictor_heads=savi.predictor.num_heads,
-      predictor_mlp_size=savi.predictor.mlp_size,
-      predictor_lstm_size=savi.predictor.lstm_size,
-      predictor_pre_norm=savi.predictor.pre_norm,
-      predictor_dropout_rate=savi.predictor.dropout_rate,
-      posterior_head=savi.posterior_head,
-      decoder_broadcast_resolution=tuple(savi.decoder.broadcast_resolution),
-      decoder_features=tuple(savi.decoder.features),
-      decoder_kernel_size=savi.decoder.kernel_size,
-      stochastic=savi.stochastic,
-      prior_sigma=savi.prior_sigma,
-      initial_slots=savi.initial_slots,
-      layer_norm_epsilon=savi.layer_norm_epsilon,
-  )
-
-
-def build_dvae(config: ml_collections.ConfigDict) -> DVAE:
-  """STEVE's tokenizer (`config.dvae`)."""
-  return DVAE(vocab_size=config.dvae.vocab_size,
-              hidden_size=config.dvae.hidden_size)
-
-
-def build_steve(config: ml_collections.ConfigDict) -> STEVE:
-  """STEVE (`config.steve`); its vocabulary is the dVAE's."""
-  steve = config.steve
-  return STEVE(
-      resolution=tuple(config.data.resolution),
-      num_slots=steve.num_slots,
-      slot_size=steve.slot_size,
-      encoder_features=tuple(steve.encoder.features),
-      encoder_kernel_size=steve.encoder.kernel_size,
-      encoder_strides=tuple(steve.encoder.strides),
-      encoder_size=steve.encoder.output_size,
-      encoder_padding=steve.encoder.padding,
-      num_iterations=steve.slot_attention.num_iterations,
-      slot_mlp_size=steve.slot_attention.mlp_size,
-      predictor_layers=steve.predictor.num_layers,
-      predictor_heads=steve.predictor.num_heads,
-      predictor_mlp_size=steve.predictor.mlp_size,
-      predictor_lstm_size=steve.predictor.lstm_size,
-      vocab_size=config.dvae.vocab_size,
-      decoder_layers=steve.decoder.num_layers,
-      decoder_heads=steve.decoder.num_heads,
-      decoder_dropout=steve.decoder.dropout_rate,
-      layer_norm_epsilon=steve.layer_norm_epsilon,
-  )
-
-
-def build_decoder(config: ml_collections.ConfigDict) -> SpatialBroadcastDecoder:
-  """SAVi's decoder alone; its parameters are `savi_params['decoder']`."""
-  decoder = config.savi.decoder
+def build_decoder(decoder: ml_collections.ConfigDict,
+                  resolution: tuple[int, int]) -> SpatialBroadcastDecoder:
+  """SAVi's spatial-broadcast decoder from `config.savi.decoder`, for frames
+  of `resolution` (H, W). Alone (SlotFormer's frozen image decoder), its
+  parameters are `savi_params['decoder']`."""
   return SpatialBroadcastDecoder(
-      output_resolution=tuple(config.data.resolution),
+      output_resolution=tuple(resolution),
       broadcast_resolution=tuple(decoder.broadcast_resolution),
       features=tuple(decoder.features),
       kernel_size=decoder.kernel_size)
+
+
+def build_savi(savi: ml_collections.ConfigDict,
+               resolution: tuple[int, int]) -> SAVi:
+  """SAVi (stochastic when `savi.stochastic`, conditional when
+  `savi.initial_slots` is 'boxes' / 'points') from `config.savi`, for frames
+  of `resolution` (H, W)."""
+  if savi.posterior_head not in POSTERIOR_HEADS:
+    raise ValueError(f'posterior_head must be one of {POSTERIOR_HEADS}, '
+                     f'got {savi.posterior_head!r}')
+  if savi.stochastic and savi.posterior_head == NO_HEAD:
+    raise ValueError("stochastic SAVi samples from its posterior head: set "
+                     "posterior_head to 'linear' or 'mlp'")
+  epsilon = savi.layer_norm_epsilon
+  posterior_head = None
+  if savi.posterior_head != NO_HEAD:
+    posterior_head = GaussianSlotSampler(
+        savi.prior_sigma, kind=savi.posterior_head,
+        stochastic=savi.stochastic, layer_norm_epsilon=epsilon)
+  predictor = savi.predictor
+  return SAVi(
+      encoder=CNNEncoder(
+          features=tuple(savi.encoder.features),
+          kernel_size=savi.encoder.kernel_size,
+          strides=tuple(savi.encoder.strides),
+          output_size=savi.encoder.output_size,
+          padding=savi.encoder.padding, layer_norm_epsilon=epsilon),
+      initializer=slot_initializer(savi.initial_slots, savi.num_slots,
+                                   savi.slot_size),
+      frame_step=FrameStep(
+          corrector=SlotAttention(savi.slot_attention.num_iterations,
+                                  savi.slot_attention.mlp_size,
+                                  layer_norm_epsilon=epsilon),
+          predictor=build_predictor(
+              predictor.kind, num_layers=predictor.num_layers,
+              num_heads=predictor.num_heads, mlp_size=predictor.mlp_size,
+              lstm_size=predictor.lstm_size, pre_norm=predictor.pre_norm,
+              dropout_rate=predictor.dropout_rate,
+              layer_norm_epsilon=epsilon),
+          posterior_head=posterior_head),
+      decoder=build_decoder(savi.decoder, resolution))
+
+
+def build_dvae(dvae: ml_collections.ConfigDict) -> DVAE:
+  """STEVE's tokenizer from `config.dvae`."""
+  return DVAE(vocab_size=dvae.vocab_size, hidden_size=dvae.hidden_size)
+
+
+def build_steve(steve: ml_collections.ConfigDict, resolution: tuple[int, int],
+                vocab_size: int) -> STEVE:
+  """STEVE from `config.steve` for frames of `resolution` (H, W), predicting
+  the tokens of a dVAE with `vocab_size` codes (`config.dvae.vocab_size`).
+
+  Its slot encoder is SAVi's (learned initial slots, Slot Attention keeping
+  its masks, Transformer + per-slot LSTM, no pixel decoder); the token
+  decoder's size is `slot_size`, as officially.
+  """
+  epsilon = steve.layer_norm_epsilon
+  predictor = steve.predictor
+  slot_encoder = SAVi(
+      encoder=CNNEncoder(
+          features=tuple(steve.encoder.features),
+          kernel_size=steve.encoder.kernel_size,
+          strides=tuple(steve.encoder.strides),
+          output_size=steve.encoder.output_size,
+          padding=steve.encoder.padding, layer_norm_epsilon=epsilon),
+      initializer=LearnedSlots(steve.num_slots, steve.slot_size),
+      frame_step=FrameStep(
+          corrector=SlotAttention(steve.slot_attention.num_iterations,
+                                  steve.slot_attention.mlp_size,
+                                  layer_norm_epsilon=epsilon,
+                                  return_attention=True),
+          predictor=SlotTransition(
+              num_layers=predictor.num_layers, num_heads=predictor.num_heads,
+              mlp_size=predictor.mlp_size, lstm_size=predictor.lstm_size,
+              layer_norm_epsilon=epsilon)),
+      decoder=None)
+  height, width = resolution
+  token_grid = (height // DVAE_DOWNSAMPLING, width // DVAE_DOWNSAMPLING)
+  return STEVE(
+      slot_encoder=slot_encoder,
+      decoder=TokenDecoder(
+          vocab_size=vocab_size, num_tokens=token_grid[0] * token_grid[1],
+          dim=steve.slot_size, num_layers=steve.decoder.num_layers,
+          num_heads=steve.decoder.num_heads,
+          dropout_rate=steve.decoder.dropout_rate),
+      token_grid=token_grid,
+      feature_grid=feature_grid(resolution, steve.encoder.strides))
 
 
 def _transformer_fields(dynamics: ml_collections.ConfigDict) -> dict:

@@ -35,7 +35,7 @@ from slotformer_jax.errors import ConfigError
 from slotformer_jax.frames import frames_to_model
 from slotformer_jax.frames import model_to_unit
 from slotformer_jax.modules import initializers
-from slotformer_jax.modules import savi as savi_modules
+from slotformer_jax.modules import slot_init
 from slotformer_jax.modules.savi import SAVi
 from slotformer_jax.slot_models.base import Decoded
 from slotformer_jax.slot_models.base import Loaded
@@ -84,7 +84,7 @@ def _example_clip(config: ml_collections.ConfigDict) -> jax.Array:
 
 def is_conditional(config: ml_collections.ConfigDict) -> bool:
   """Conditional SAVi: slots start from the first frame's boxes / points."""
-  return config.savi.initial_slots in savi_modules.CONDITIONAL
+  return config.savi.initial_slots in slot_init.CONDITIONAL
 
 
 def _example_inputs(config: ml_collections.ConfigDict) -> dict[str, Any]:
@@ -198,8 +198,9 @@ class Savi(SlotModel):
 
   def __init__(self, config: ml_collections.ConfigDict):
     super().__init__(config)
-    self.model = models.build_savi(config)
-    self.decoder = models.build_decoder(config)
+    self.model = models.build_savi(config.savi,
+                                   tuple(config.data.resolution))
+    self.decoder = self.model.decoder  # alone: params['decoder']
 
   @property
   def slot_shape(self) -> tuple[int, int]:

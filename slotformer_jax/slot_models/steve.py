@@ -286,14 +286,14 @@ def upsample_masks(masks: jax.Array, resolution: tuple[int, int]
   return jax.image.resize(masks, shape, 'bilinear', antialias=False)
 
 
+def _steve_module(config: ml_collections.ConfigDict) -> STEVE:
+  return models.build_steve(config.steve, tuple(config.data.resolution),
+                            config.dvae.vocab_size)
+
+
 def token_decoder(config: ml_collections.ConfigDict) -> TokenDecoder:
   """STEVE's token decoder alone; its parameters are steve_params['decoder']."""
-  steve = models.build_steve(config)
-  height, width = steve.token_grid
-  return TokenDecoder(
-      vocab_size=steve.vocab_size, num_tokens=height * width,
-      dim=steve.slot_size, num_layers=steve.decoder_layers,
-      num_heads=steve.decoder_heads, dropout_rate=steve.decoder_dropout)
+  return _steve_module(config).decoder
 
 
 # --------------------------------------------------------------------------
@@ -349,7 +349,7 @@ def _dvae_example(config: ml_collections.ConfigDict) -> tuple[Any, ...]:
 
 
 def _steve_example(config: ml_collections.ConfigDict) -> tuple[Any, ...]:
-  height, width = models.build_steve(config).token_grid
+  height, width = _steve_module(config).token_grid
   clip = jnp.zeros((1, config.steve.clip_length, *_frame_shape(config)))
   tokens = jnp.zeros((1, config.steve.clip_length, height * width), jnp.int32)
   return clip, tokens
@@ -359,7 +359,7 @@ def dvae_stage(config: ml_collections.ConfigDict, workdir: str,
                mesh: Mesh, source: Any) -> Stage:
   """The dVAE's training stage (single frames, annealed Gumbel-softmax) on
   `source` (the 'train' videos; only its `batches` read it)."""
-  model = models.build_dvae(config)
+  model = models.build_dvae(config.dvae)
   stage_config = config.dvae
   local_batch_size = sharding.per_host_batch_size(stage_config.batch_size, mesh)
   schedule = dict(start=stage_config.gumbel_start,
@@ -406,7 +406,7 @@ def tokenize_frames(config: ml_collections.ConfigDict, workdir: str,
     return
   params, dvae_step = slot_model.load_dvae(workdir, mesh)
   parent = dvae_parent(dvae_identity(config, workdir), dvae_step)
-  dvae = models.build_dvae(config)
+  dvae = models.build_dvae(config.dvae)
   batched = sharding.batch_sharding(mesh)
   run = jax.jit(
       functools.partial(tokenize, dvae=dvae),
@@ -414,7 +414,7 @@ def tokenize_frames(config: ml_collections.ConfigDict, workdir: str,
       out_shardings=batched)
   local_batch_size = sharding.per_host_batch_size(
       config.dvae.tokenize_batch_size, mesh)
-  height, width = models.build_steve(config).token_grid
+  height, width = _steve_module(config).token_grid
   for split in TOKENIZED_SPLITS:
     directory = tokens_dir(workdir_lib.stage1_workdir(config, workdir), split)
     meta = tokens_lib.read_meta(directory)
@@ -438,7 +438,7 @@ def steve_stage(config: ml_collections.ConfigDict, workdir: str,
                 mesh: Mesh, source: Any) -> Stage:
   """STEVE's training stage on `source` (the 'train' videos with their
   tokens, see `train_steve`; only its `batches` read it)."""
-  model = models.build_steve(config)
+  model = _steve_module(config)
   stage_config = config.steve
   root = workdir_lib.stage1_workdir(config, workdir)
   local_batch_size = sharding.per_host_batch_size(stage_config.batch_size, mesh)
@@ -497,8 +497,8 @@ class Steve(SlotModel):
 
   def __init__(self, config: ml_collections.ConfigDict):
     super().__init__(config)
-    self.model = models.build_steve(config)
-    self.dvae = models.build_dvae(config)
+    self.model = _steve_module(config)
+    self.dvae = models.build_dvae(config.dvae)
     self.token_decoder = token_decoder(config)
     self.resolution = tuple(config.data.resolution)
 

@@ -154,7 +154,7 @@ def test_dvae_logits_tokens_and_reconstruction(states, converted):
   config, dvae_state, _, _ = states
   converted = converted[0]
   assert converted.family == 'dvae' and converted.stage == 'dvae'
-  model = models.build_dvae(config)
+  model = models.build_dvae(config.dvae)
   rng = np.random.default_rng(0)
   img = rng.uniform(-1, 1, (2, 3, *config.data.resolution))
   variables = {'params': converted.params}
@@ -187,7 +187,8 @@ def test_steve_slots_masks_and_token_logits():
   assert common.max_difference(
       converted.extras['dvae'],
       families.convert_state_dict(dvae_state, config).params) == 0
-  model = models.build_steve(config)
+  model = models.build_steve(config.steve, tuple(config.data.resolution),
+                             config.dvae.vocab_size)
   rng = np.random.default_rng(1)
   time = 3
   video = rng.uniform(-1, 1, (2, time, 3, *config.data.resolution))
