@@ -1,10 +1,11 @@
 """SAVi: Slot Attention for Video (Kipf et al., 2022), composed from parts.
 
     SAVi(encoder=CNNEncoder(...),
-         initializer=LearnedSlots(...) | GaussianSlots(...) | CoordinateSlots(...),
-         frame_step=FrameStep(corrector=SlotAttention(...),
-                              predictor=SlotTransition(...) | ResidualMLPTransition(...),
-                              posterior_head=GaussianSlotSampler(...) | None),
+         initializer=LearnedSlots | GaussianSlots | CoordinateSlots,
+         frame_step=FrameStep(
+             corrector=SlotAttention(...),
+             predictor=SlotTransition | ResidualMLPTransition,
+             posterior_head=GaussianSlotSampler(...) | None),
          decoder=SpatialBroadcastDecoder(...) | None)
 
 Per frame t: CNN features h_t = encoder(x_t); S~'_t = head(S~_t) (the

@@ -1,11 +1,13 @@
 """STEVE (Singh et al., 2022) as SlotFormer uses it for Physion.
 
-    STEVE(slot_encoder=SAVi(encoder=..., initializer=LearnedSlots(...),
-                            frame_step=FrameStep(
-                                corrector=SlotAttention(..., return_attention=True),
-                                predictor=SlotTransition(..., lstm_size=...)),
-                            decoder=None),
-          decoder=TokenDecoder(...), token_grid=(h, w), feature_grid=(h', w'))
+    STEVE(slot_encoder=SAVi(
+              encoder=CNNEncoder(...), initializer=LearnedSlots(...),
+              frame_step=FrameStep(
+                  corrector=SlotAttention(..., return_attention=True),
+                  predictor=SlotTransition(..., lstm_size=...)),
+              decoder=None),
+          decoder=TokenDecoder(...), token_grid=(h, w),
+          feature_grid=(h', w'))
 
 Slot encoder: SAVi without a pixel decoder, its time loop included
 (`SAVi.encode_frames`). Per frame t: CNN features h_t; slots S_t =

@@ -28,7 +28,7 @@ from slotformer_jax import models
 
 _TESTS = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path[:0] = [_TESTS, os.path.dirname(_TESTS)]  # when run as a script
-from pipeline_helpers import load_config  # pylint: disable=g-import-not-at-top,wrong-import-position
+from pipeline_helpers import load_config  # pylint: disable=wrong-import-position
 
 # (config, variant) -> the hash of its slot model (SAVi, or STEVE and its
 # dVAE for slot_model='steve').
