@@ -51,7 +51,8 @@ def decoder_case(num_images: int = 4 * 6):
   rng = np.random.default_rng(0)
   slots = jnp.asarray(rng.normal(size=(
       num_images, config.savi.num_slots, config.savi.slot_size)), jnp.float32)
-  base = build_decoder(config.savi.decoder, config.data.resolution)
+  base = build_decoder(config.savi.decoder,
+                              tuple(config.data.resolution))
   params = base.init(jax.random.key(0), slots[:1])['params']
   runs = {}
   for form in FORMS:

@@ -98,7 +98,7 @@ def train_step_runner(loss_fn, params, batch, frozen, stage_config):
 
 def savi_case(dtype, batch_size=4, clip_length=6):
   config = clevrer.get_config()
-  model = build_savi(config.savi, config.data.resolution)
+  model = build_savi(config.savi, tuple(config.data.resolution))
   video = np.random.default_rng(0).integers(
       0, 256, (batch_size, clip_length, *config.data.resolution, 3), np.uint8)
   params = steps.init_params(model, jax.random.key(0),
@@ -113,7 +113,8 @@ def savi_case(dtype, batch_size=4, clip_length=6):
 def decoder_case(dtype, num_images=4 * 6):
   """Forward + backward (parameters and slots) of the CLEVRER decoder."""
   config = clevrer.get_config()
-  decoder = build_decoder(config.savi.decoder, config.data.resolution)
+  decoder = build_decoder(config.savi.decoder,
+                                 tuple(config.data.resolution))
   slots = jnp.asarray(np.random.default_rng(0).normal(size=(
       num_images, config.savi.num_slots, config.savi.slot_size)), jnp.float32)
   params = decoder.init(jax.random.key(0), slots[:1])['params']
@@ -132,7 +133,8 @@ def slotformer_case(dtype, batch_size, image_loss_weight):
   config.slotformer.image_loss_weight = image_loss_weight
   dyn = config.slotformer
   model = dynamics_lib.build(config.slotformer, 'slotformer')
-  decoder = build_decoder(config.savi.decoder, config.data.resolution)
+  decoder = build_decoder(config.savi.decoder,
+                                 tuple(config.data.resolution))
   length = dyn.burn_in + dyn.rollout
   rng = np.random.default_rng(0)
   batch = {'slots': rng.normal(size=(batch_size, length, config.savi.num_slots,
@@ -171,7 +173,8 @@ def rollout_case(dtype, batch_size=8, num_steps=44):
 
 def rollout_decode_case(dtype, batch_size=8, num_steps=44):
   config, model, history, params = _rollout_inputs(batch_size)
-  decoder = build_decoder(config.savi.decoder, config.data.resolution)
+  decoder = build_decoder(config.savi.decoder,
+                                 tuple(config.data.resolution))
   decoder_params = decoder.init(jax.random.key(1), history[:1, 0])['params']
 
   def rollout_and_decode(params, decoder_params, history):

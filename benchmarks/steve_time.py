@@ -66,7 +66,8 @@ def memory_mib(compiled) -> str:
 
 
 def steve_train_case(config, batch_size, clip_length, repeats):
-  model = build_steve(config.steve, config.data.resolution, config.dvae.vocab_size)
+  model = build_steve(config.steve, tuple(config.data.resolution),
+                             config.dvae.vocab_size)
   height, width = model.token_grid
   rng = np.random.default_rng(0)
   batch = {
@@ -90,12 +91,13 @@ def steve_train_case(config, batch_size, clip_length, repeats):
 
 
 def generation_cases(config, batch_size, repeats, recompute_steps):
-  steve = build_steve(config.steve, config.data.resolution, config.dvae.vocab_size)
-  decoder = steve_slots.token_decoder(config)
+  steve = build_steve(config.steve, tuple(config.data.resolution),
+                             config.dvae.vocab_size)
+  decoder = steve_slots.token_decoder(steve)
   dvae = build_dvae(config.dvae)
   grid = steve.token_grid
-  slots = jax.random.normal(jax.random.key(1), (batch_size, steve.num_slots,
-                                                steve.slot_size))
+  slots = jax.random.normal(jax.random.key(1), (
+      batch_size, config.steve.num_slots, config.steve.slot_size))
   decoder_params = steps.init_params(
       decoder, jax.random.key(2), slots[:1],
       jnp.zeros((1, decoder.num_tokens), jnp.int32))

@@ -201,8 +201,9 @@ def batch_spec(config, step: str, batch_size: int) -> dict[str, Any]:
     return {'video': u8(batch_size, 1, *frame),
             'gumbel_temperature': f32(batch_size)}
   if step == 'steve':
-    height, width = build_steve(config.steve, config.data.resolution,
-                                config.dvae.vocab_size).token_grid
+    height, width = build_steve(
+        config.steve, tuple(config.data.resolution),
+        config.dvae.vocab_size).token_grid
     length = config.steve.clip_length
     return {'video': u8(batch_size, length, *frame),
             'tokens': jax.ShapeDtypeStruct((batch_size, length,

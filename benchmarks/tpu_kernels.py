@@ -81,7 +81,9 @@ def tpu_devices(topology: str) -> list:
 def decoder_step(config, kernels: str, dtype: str):
   """(loss_and_grads, params, slots, target): the decoder forward +
   backward of one SAVi step at the config's global batch, abstract."""
-  decoder = build_decoder(config.savi.decoder, config.data.resolution).clone(kernels=kernels)
+  decoder = build_decoder(
+      config.savi.decoder, tuple(config.data.resolution)).clone(
+          kernels=kernels)
   savi = config.savi
   height, width = config.data.resolution
   slots = jax.ShapeDtypeStruct(

@@ -204,7 +204,8 @@ def main() -> None:
   loaded = Run.open(args.workdir).stage1
   params, step = loaded.params['savi'], loaded.step
   decoder_params = sharding.gather_to_host(params)['decoder']
-  decoder = build_decoder(config.savi.decoder, config.data.resolution)
+  decoder = build_decoder(config.savi.decoder,
+                                 tuple(config.data.resolution))
 
   @jax.jit
   def decode(slots):

@@ -21,6 +21,9 @@ import jax.numpy as jnp
 _KAIMING = nn.initializers.he_uniform()
 _XAVIER = nn.initializers.glorot_uniform()
 
+# Frame pixels per token side: the k4 s4 patch embedding.
+DOWNSAMPLING = 4
+
 
 def pixel_shuffle(x: jax.Array, factor: int) -> jax.Array:
   """[B, H, W, C * f * f] -> [B, H * f, W * f, C].
@@ -81,7 +84,7 @@ class DVAE(nn.Module):
   def setup(self):
     hidden = self.hidden_size
     self.encoder = nn.Sequential(
-        [ConvBlock(hidden, 4, 4)] + [ConvBlock(hidden) for _ in range(6)] +
+        [ConvBlock(hidden, DOWNSAMPLING, DOWNSAMPLING)] + [ConvBlock(hidden) for _ in range(6)] +
         [nn.Conv(self.vocab_size, (1, 1), kernel_init=_XAVIER)])
     # Two stages of (3x3, 1x1, 1x1, expand x4) -> pixel shuffle x2.
     self.decoder_stages = [

@@ -30,6 +30,19 @@ def conv_padding(kind: str, kernel_size: int):
   raise ValueError(f'padding must be one of {PADDINGS}, got {kind!r}')
 
 
+def feature_grid(resolution: Sequence[int],
+                 strides: Sequence[int]) -> tuple[int, int]:
+  """(h', w') of `CNNEncoder`'s feature map for frames of `resolution`.
+
+  ceil(size / stride) per layer, for both paddings ('same' by definition;
+  'pytorch' pads K // 2 on each side of an odd kernel, the same count).
+  """
+  height, width = resolution
+  for stride in strides:
+    height, width = -(-height // stride), -(-width // stride)
+  return height, width
+
+
 def coordinate_grid(height: int, width: int) -> jax.Array:
   """[height, width, 4] grid of (y, x, 1 - y, 1 - x), each in [0, 1]."""
   ys = jnp.linspace(0.0, 1.0, height)

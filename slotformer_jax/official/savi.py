@@ -8,7 +8,7 @@ from typing import Any
 import ml_collections
 import numpy as np
 
-from slotformer_jax.modules import savi as savi_module
+from slotformer_jax.modules import transitions
 from slotformer_jax.modules.stochastic_savi import LINEAR_HEAD
 from slotformer_jax.modules.stochastic_savi import MLP_HEAD
 from slotformer_jax.official import common
@@ -34,12 +34,12 @@ def _map_savi_predictor(m: StateDictMapper, config: ml_collections.ConfigDict,
   """
   predictor = config.savi.predictor
   field = 'config.savi.predictor (kind / num_layers / mlp_size / lstm_size)'
-  if predictor.kind == savi_module.RESIDUAL_MLP:  # ResidualMLPPredictor
+  if predictor.kind == transitions.RESIDUAL_MLP:  # ResidualMLPPredictor
     layers.layer_norm(m, 'predictor.ln', f'{target}/norm', field)
     layers.linear(m, 'predictor.mlp.0', f'{target}/hidden', field)
     layers.linear(m, 'predictor.mlp.2', f'{target}/out', field)
     return
-  if predictor.kind == savi_module.TRANSFORMER_LSTM:  # RNNPredictorWrapper
+  if predictor.kind == transitions.TRANSFORMER_LSTM:  # RNNPredictorWrapper
     transformer = 'predictor.base_predictor.transformer_encoder'
     layers.lstm(m, 'predictor.rnn', f'{target}/lstm', field)
     layers.linear(m, 'predictor.out_projector', f'{target}/lstm_out', field)

@@ -43,7 +43,7 @@ def convert_slotformer(state_dict: dict[str, np.ndarray],
       'rollouter.transformer_encoder': 'config.slotformer.num_layers',
   })
   decoder_model = build_decoder(config.savi.decoder,
-                                tuple(config.data.resolution))
+                                       tuple(config.data.resolution))
   decoder_abstract = jax.eval_shape(lambda: decoder_model.init(
       jax.random.key(0), jnp.zeros((1, config.savi.num_slots,
                                     config.savi.slot_size))))['params']

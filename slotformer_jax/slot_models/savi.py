@@ -32,8 +32,16 @@ from slotformer_jax.frames import labelled_grid
 from slotformer_jax.frames import mask_overlay
 from slotformer_jax.frames import model_to_unit
 from slotformer_jax.frames import to_uint8
-from slotformer_jax.modules import savi as savi_modules
+from slotformer_jax.modules import slot_init
+from slotformer_jax.modules.slot_init import slot_initializer
 from slotformer_jax.modules.decoders import SpatialBroadcastDecoder
+from slotformer_jax.modules.encoders import CNNEncoder
+from slotformer_jax.modules.savi import FrameStep
+from slotformer_jax.modules.slot_attention import SlotAttention
+from slotformer_jax.modules.stochastic_savi import GaussianSlotSampler
+from slotformer_jax.modules.stochastic_savi import NO_HEAD
+from slotformer_jax.modules.stochastic_savi import POSTERIOR_HEADS
+from slotformer_jax.modules.transitions import build_predictor
 from slotformer_jax.modules.savi import SAVi
 from slotformer_jax.runtime import precision
 from slotformer_jax.slot_models.base import Decoded
@@ -49,47 +57,57 @@ NAME = 'savi'
 # --------------------------------------------------------------------------
 
 
-def build_savi(savi: ml_collections.ConfigDict,
-               resolution: tuple[int, int]) -> SAVi:
-  """SAVi (stochastic when `savi.stochastic`) for frames of `resolution`."""
-  return SAVi(
-      resolution=tuple(resolution),
-      num_slots=savi.num_slots,
-      slot_size=savi.slot_size,
-      encoder_features=tuple(savi.encoder.features),
-      encoder_kernel_size=savi.encoder.kernel_size,
-      encoder_strides=tuple(savi.encoder.strides),
-      encoder_size=savi.encoder.output_size,
-      encoder_padding=savi.encoder.padding,
-      num_iterations=savi.slot_attention.num_iterations,
-      slot_mlp_size=savi.slot_attention.mlp_size,
-      predictor_kind=savi.predictor.kind,
-      predictor_layers=savi.predictor.num_layers,
-      predictor_heads=savi.predictor.num_heads,
-      predictor_mlp_size=savi.predictor.mlp_size,
-      predictor_lstm_size=savi.predictor.lstm_size,
-      predictor_pre_norm=savi.predictor.pre_norm,
-      predictor_dropout_rate=savi.predictor.dropout_rate,
-      posterior_head=savi.posterior_head,
-      decoder_broadcast_resolution=tuple(savi.decoder.broadcast_resolution),
-      decoder_features=tuple(savi.decoder.features),
-      decoder_kernel_size=savi.decoder.kernel_size,
-      stochastic=savi.stochastic,
-      prior_sigma=savi.prior_sigma,
-      initial_slots=savi.initial_slots,
-      layer_norm_epsilon=savi.layer_norm_epsilon,
-  )
-
-
 def build_decoder(decoder: ml_collections.ConfigDict,
                   resolution: tuple[int, int]) -> SpatialBroadcastDecoder:
-  """SAVi's decoder alone (`config.savi.decoder`); its parameters are
-  `savi_params['decoder']`."""
+  """SAVi's spatial-broadcast decoder from `config.savi.decoder`, for frames
+  of `resolution` (H, W). Alone (SlotFormer's frozen image decoder), its
+  parameters are `savi_params['decoder']`."""
   return SpatialBroadcastDecoder(
       output_resolution=tuple(resolution),
       broadcast_resolution=tuple(decoder.broadcast_resolution),
       features=tuple(decoder.features),
       kernel_size=decoder.kernel_size)
+
+
+def build_savi(savi: ml_collections.ConfigDict,
+               resolution: tuple[int, int]) -> SAVi:
+  """SAVi (stochastic when `savi.stochastic`, conditional when
+  `savi.initial_slots` is 'boxes' / 'points') from `config.savi`, for frames
+  of `resolution` (H, W)."""
+  if savi.posterior_head not in POSTERIOR_HEADS:
+    raise ValueError(f'posterior_head must be one of {POSTERIOR_HEADS}, '
+                     f'got {savi.posterior_head!r}')
+  if savi.stochastic and savi.posterior_head == NO_HEAD:
+    raise ValueError("stochastic SAVi samples from its posterior head: set "
+                     "posterior_head to 'linear' or 'mlp'")
+  epsilon = savi.layer_norm_epsilon
+  posterior_head = None
+  if savi.posterior_head != NO_HEAD:
+    posterior_head = GaussianSlotSampler(
+        savi.prior_sigma, kind=savi.posterior_head,
+        stochastic=savi.stochastic, layer_norm_epsilon=epsilon)
+  predictor = savi.predictor
+  return SAVi(
+      encoder=CNNEncoder(
+          features=tuple(savi.encoder.features),
+          kernel_size=savi.encoder.kernel_size,
+          strides=tuple(savi.encoder.strides),
+          output_size=savi.encoder.output_size,
+          padding=savi.encoder.padding, layer_norm_epsilon=epsilon),
+      initializer=slot_initializer(savi.initial_slots, savi.num_slots,
+                                   savi.slot_size),
+      frame_step=FrameStep(
+          corrector=SlotAttention(savi.slot_attention.num_iterations,
+                                  savi.slot_attention.mlp_size,
+                                  layer_norm_epsilon=epsilon),
+          predictor=build_predictor(
+              predictor.kind, num_layers=predictor.num_layers,
+              num_heads=predictor.num_heads, mlp_size=predictor.mlp_size,
+              lstm_size=predictor.lstm_size, pre_norm=predictor.pre_norm,
+              dropout_rate=predictor.dropout_rate,
+              layer_norm_epsilon=epsilon),
+          posterior_head=posterior_head),
+      decoder=build_decoder(savi.decoder, resolution))
 
 
 def model_fields(savi: ml_collections.ConfigDict,
@@ -110,7 +128,7 @@ def model_fields(savi: ml_collections.ConfigDict,
 
 def is_conditional(savi: ml_collections.ConfigDict) -> bool:
   """Conditional SAVi: slots start from the first frame's boxes / points."""
-  return savi.initial_slots in savi_modules.CONDITIONAL
+  return savi.initial_slots in slot_init.CONDITIONAL
 
 
 def decoder_resolutions(broadcast: tuple[int, int], num_layers: int
@@ -139,7 +157,7 @@ class Savi(SlotModel):
     self.section = config.savi
     self.resolution = tuple(config.data.resolution)
     self.model = build_savi(config.savi, self.resolution)
-    self.decoder = build_decoder(config.savi.decoder, self.resolution)
+    self.decoder = self.model.decoder  # alone: params['savi']['decoder']
 
   @property
   def slot_shape(self) -> tuple[int, int]:

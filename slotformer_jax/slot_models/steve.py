@@ -41,9 +41,17 @@ from slotformer_jax import losses
 from slotformer_jax.data import tokens as tokens_lib
 from slotformer_jax.frames import frames_to_model
 from slotformer_jax.frames import model_to_unit
+from slotformer_jax.modules.dvae import DOWNSAMPLING as DVAE_DOWNSAMPLING
 from slotformer_jax.modules.dvae import DVAE
+from slotformer_jax.modules.encoders import CNNEncoder
+from slotformer_jax.modules.encoders import feature_grid
+from slotformer_jax.modules.savi import FrameStep
+from slotformer_jax.modules.savi import SAVi
+from slotformer_jax.modules.slot_attention import SlotAttention
+from slotformer_jax.modules.slot_init import LearnedSlots
 from slotformer_jax.modules.steve import STEVE
 from slotformer_jax.modules.token_decoder import TokenDecoder
+from slotformer_jax.modules.transitions import SlotTransition
 from slotformer_jax.slot_models.base import Decoded
 from slotformer_jax.slot_models.base import Derived
 from slotformer_jax.slot_models.base import Part
@@ -66,40 +74,51 @@ def build_dvae(dvae: ml_collections.ConfigDict) -> DVAE:
   return DVAE(vocab_size=dvae.vocab_size, hidden_size=dvae.hidden_size)
 
 
-def build_steve(steve: ml_collections.ConfigDict,
-                resolution: tuple[int, int], vocab_size: int) -> STEVE:
-  """STEVE (`config.steve`) for frames of `resolution`, over the dVAE's
-  `vocab_size` codes."""
+def build_steve(steve: ml_collections.ConfigDict, resolution: tuple[int, int],
+                vocab_size: int) -> STEVE:
+  """STEVE from `config.steve` for frames of `resolution` (H, W), predicting
+  the tokens of a dVAE with `vocab_size` codes (`config.dvae.vocab_size`).
+
+  Its slot encoder is SAVi's (learned initial slots, Slot Attention keeping
+  its masks, Transformer + per-slot LSTM, no pixel decoder); the token
+  decoder's size is `slot_size`, as officially.
+  """
+  epsilon = steve.layer_norm_epsilon
+  predictor = steve.predictor
+  slot_encoder = SAVi(
+      encoder=CNNEncoder(
+          features=tuple(steve.encoder.features),
+          kernel_size=steve.encoder.kernel_size,
+          strides=tuple(steve.encoder.strides),
+          output_size=steve.encoder.output_size,
+          padding=steve.encoder.padding, layer_norm_epsilon=epsilon),
+      initializer=LearnedSlots(steve.num_slots, steve.slot_size),
+      frame_step=FrameStep(
+          corrector=SlotAttention(steve.slot_attention.num_iterations,
+                                  steve.slot_attention.mlp_size,
+                                  layer_norm_epsilon=epsilon,
+                                  return_attention=True),
+          predictor=SlotTransition(
+              num_layers=predictor.num_layers, num_heads=predictor.num_heads,
+              mlp_size=predictor.mlp_size, lstm_size=predictor.lstm_size,
+              layer_norm_epsilon=epsilon)),
+      decoder=None)
+  height, width = resolution
+  token_grid = (height // DVAE_DOWNSAMPLING, width // DVAE_DOWNSAMPLING)
   return STEVE(
-      resolution=tuple(resolution),
-      num_slots=steve.num_slots,
-      slot_size=steve.slot_size,
-      encoder_features=tuple(steve.encoder.features),
-      encoder_kernel_size=steve.encoder.kernel_size,
-      encoder_strides=tuple(steve.encoder.strides),
-      encoder_size=steve.encoder.output_size,
-      encoder_padding=steve.encoder.padding,
-      num_iterations=steve.slot_attention.num_iterations,
-      slot_mlp_size=steve.slot_attention.mlp_size,
-      predictor_layers=steve.predictor.num_layers,
-      predictor_heads=steve.predictor.num_heads,
-      predictor_mlp_size=steve.predictor.mlp_size,
-      predictor_lstm_size=steve.predictor.lstm_size,
-      vocab_size=vocab_size,
-      decoder_layers=steve.decoder.num_layers,
-      decoder_heads=steve.decoder.num_heads,
-      decoder_dropout=steve.decoder.dropout_rate,
-      layer_norm_epsilon=steve.layer_norm_epsilon,
-  )
+      slot_encoder=slot_encoder,
+      decoder=TokenDecoder(
+          vocab_size=vocab_size, num_tokens=token_grid[0] * token_grid[1],
+          dim=steve.slot_size, num_layers=steve.decoder.num_layers,
+          num_heads=steve.decoder.num_heads,
+          dropout_rate=steve.decoder.dropout_rate),
+      token_grid=token_grid,
+      feature_grid=feature_grid(resolution, steve.encoder.strides))
 
 
 def token_decoder(steve: STEVE) -> TokenDecoder:
   """STEVE's token decoder alone; its parameters are steve_params['decoder']."""
-  height, width = steve.token_grid
-  return TokenDecoder(
-      vocab_size=steve.vocab_size, num_tokens=height * width,
-      dim=steve.slot_size, num_layers=steve.decoder_layers,
-      num_heads=steve.decoder_heads, dropout_rate=steve.decoder_dropout)
+  return steve.decoder
 
 
 def dvae_model_fields(dvae: ml_collections.ConfigDict) -> dict[str, Any]:

@@ -6,16 +6,12 @@ import numpy as np
 import pytest
 
 from slotformer_jax.modules.savi import SAVi
-from slotformer_jax.modules.savi import conditioning_coordinates
+from slotformer_jax.modules.slot_init import conditioning_coordinates
+from tiny_models import tiny_savi
 
 
 def _tiny_savi(**kwargs):
-  return SAVi(resolution=(16, 16), num_slots=4, slot_size=16,
-              encoder_features=(8, 8), encoder_kernel_size=3,
-              encoder_strides=(1, 1), encoder_size=16, slot_mlp_size=16,
-              predictor_layers=1, predictor_heads=2, predictor_mlp_size=32,
-              decoder_broadcast_resolution=(4, 4), decoder_features=(8, 8),
-              decoder_kernel_size=3, **kwargs)
+  return tiny_savi(num_slots=4, **kwargs)
 
 
 def _boxes(seed, batch=2, rows=3):

@@ -17,6 +17,7 @@ from slotformer_jax.modules.slot_attention import SlotAttention
 from slotformer_jax.modules.slotformer import SlotFormer
 from slotformer_jax.modules.stochastic_savi import GaussianSlotSampler
 from slotformer_jax.modules.stochastic_savi import kl_to_fixed_sigma
+from tiny_models import tiny_savi
 
 
 def _transposed_conv_reference(x, kernel, bias, stride):
@@ -214,22 +215,14 @@ def test_gaussian_sampler_kl_and_sampling():
                              rtol=1e-5)
 
 
-def _tiny_savi(**kwargs):
-  return SAVi(resolution=(16, 16), num_slots=3, slot_size=16,
-              encoder_features=(8, 8), encoder_kernel_size=3,
-              encoder_strides=(1, 1), encoder_size=16, slot_mlp_size=16,
-              predictor_layers=1, predictor_heads=2, predictor_mlp_size=32,
-              decoder_broadcast_resolution=(4, 4), decoder_features=(8, 8),
-              decoder_kernel_size=3, **kwargs)
-
-
 @pytest.mark.parametrize('stochastic,lstm_size', [(False, 0), (True, 8)])
 def test_savi_chunked_encoding_equals_whole_video(stochastic, lstm_size):
   """Carrying the state across chunks gives the same slots as one call."""
-  model = _tiny_savi(
-      stochastic=stochastic, predictor_lstm_size=lstm_size,
-      predictor_kind='transformer_lstm' if lstm_size else 'transformer',
-      posterior_head='mlp' if stochastic else 'none')
+  model = tiny_savi(
+      stochastic=stochastic, posterior_head='mlp' if stochastic else 'none',
+      predictor=dict(
+          kind='transformer_lstm' if lstm_size else 'transformer',
+          lstm_size=lstm_size))
   video = jax.random.uniform(jax.random.key(0), (2, 6, 16, 16, 3),
                              minval=-1.0, maxval=1.0)
   rngs = {'params': jax.random.key(1), 'sample': jax.random.key(2)}

@@ -11,6 +11,7 @@ from slotformer_jax.modules.dvae import DVAE
 from slotformer_jax.modules.dvae import pixel_shuffle
 from slotformer_jax.modules.steve import STEVE
 from slotformer_jax.modules.token_decoder import TokenDecoder
+from tiny_models import tiny_steve
 
 VOCAB = 16
 GRID = (4, 4)
@@ -105,12 +106,7 @@ def test_kv_cache_generation_equals_recomputation():
 
 
 def _steve():
-  return STEVE(resolution=(16, 16), num_slots=3, slot_size=16,
-               encoder_features=(8, 8), encoder_kernel_size=3,
-               encoder_strides=(2, 1), encoder_size=16, slot_mlp_size=32,
-               predictor_layers=1, predictor_heads=2, predictor_mlp_size=32,
-               predictor_lstm_size=32, vocab_size=VOCAB, decoder_layers=1,
-               decoder_heads=2, decoder_dropout=0.0)
+  return tiny_steve((16, 16), VOCAB)
 
 
 def test_steve_shapes_and_permutation_equivariance():

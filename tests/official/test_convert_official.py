@@ -246,7 +246,9 @@ def test_slotformer_rollout_and_frozen_decoder():
   predicted = _apply(model, converted.params, jnp.asarray(slots), 6)
   expected = ref.slot_rollouter(slots, state, 6, num_heads=4, num_layers=2)
   _close(predicted, expected)
-  decoded = _apply(build_decoder(config.savi.decoder, config.data.resolution), converted.extras['decoder'],
+  decoded = _apply(build_decoder(config.savi.decoder,
+                                        tuple(config.data.resolution)),
+                   converted.extras['decoder'],
                    jnp.asarray(slots[:, 0]))
   recon, masks = ref.savi_decoder(slots[:, 0], state, (16, 16), (4, 4))
   _close(decoded.recon, recon.transpose(0, 2, 3, 1))
@@ -262,7 +264,8 @@ def test_savi_video(layout):
   state = official_savi(config)
   params = families.convert_state_dict(state, config).params
   video = np.random.default_rng(4).uniform(-1, 1, (2, 3, 3, 16, 16))
-  output = _apply(build_savi(config.savi, config.data.resolution), params,
+  output = _apply(build_savi(config.savi,
+                                    tuple(config.data.resolution)), params,
                   jnp.asarray(video.transpose(0, 1, 3, 4, 2)))
   predictor = config.savi.predictor
   expected = ref.savi_forward(
@@ -315,12 +318,14 @@ def test_savi_parts():
                      jnp.asarray(expected_features))
   _close(corrected, ref.slot_attention(expected_features, slots, state, 2))
 
-  decoded = _apply(build_savi(config.savi, config.data.resolution), params, jnp.asarray(slots),
+  decoded = _apply(build_savi(config.savi,
+                                     tuple(config.data.resolution)), params,
+                   jnp.asarray(slots),
                    method='decode')
   recon, _ = ref.savi_decoder(slots, state, (16, 16), (4, 4))
   _close(decoded.recon, recon.transpose(0, 2, 3, 1))
 
-  from slotformer_jax.modules.savi import SlotTransition  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.modules.transitions import SlotTransition  # pylint: disable=g-import-not-at-top
   transition = SlotTransition(num_layers=1, num_heads=2, mlp_size=32,
                               lstm_size=savi.predictor.lstm_size,
                               layer_norm_epsilon=1e-5)

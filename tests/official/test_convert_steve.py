@@ -190,7 +190,8 @@ def test_steve_slots_masks_and_token_logits():
   assert common.max_difference(
       converted.extras['dvae'],
       families.convert_state_dict(dvae_state, config).params) == 0
-  model = build_steve(config.steve, config.data.resolution, config.dvae.vocab_size)
+  model = build_steve(config.steve, tuple(config.data.resolution),
+                             config.dvae.vocab_size)
   rng = np.random.default_rng(1)
   time = 3
   video = rng.uniform(-1, 1, (2, time, 3, *config.data.resolution))

@@ -16,15 +16,16 @@ import pytest
 
 from slotformer_jax.modules import initializers
 from slotformer_jax.modules.encoders import CNNEncoder
-from slotformer_jax.modules.savi import SAVi
-from slotformer_jax.modules.savi import SAViStep
-from slotformer_jax.modules.savi import ResidualMLPTransition
-from slotformer_jax.modules.savi import build_predictor
+from slotformer_jax.modules.savi import FrameStep
+from slotformer_jax.modules.slot_attention import SlotAttention
 from slotformer_jax.modules.slotformer import SlotFormer
 from slotformer_jax.modules.stochastic_savi import GaussianSlotSampler
+from slotformer_jax.modules.transitions import ResidualMLPTransition
+from slotformer_jax.modules.transitions import build_predictor
 from slotformer_jax.train import optim
 from slotformer_jax import dynamics as dynamics_lib
 from slotformer_jax.slot_models.savi import build_savi
+from tiny_models import savi_section
 
 CONFIGS = os.path.join(os.path.dirname(__file__), '..', '..', 'configs')
 
@@ -84,13 +85,13 @@ def test_deterministic_posterior_head_returns_the_mean(kind):
 
 def test_stochastic_savi_needs_a_posterior_head():
   with pytest.raises(ValueError, match='posterior head'):
-    SAVi(resolution=(8, 8), stochastic=True, posterior_head='none').init(
-        jax.random.key(0), jnp.zeros((1, 1, 8, 8, 3)))
+    build_savi(savi_section(stochastic=True, posterior_head='none'),
+                      (16, 16))
 
 
 def test_lstm_size_must_match_the_predictor_kind():
   sizes = dict(num_layers=1, num_heads=2, mlp_size=16, pre_norm=True,
-               dropout_rate=0.0, layer_norm_epsilon=1e-5, name=None)
+               dropout_rate=0.0, layer_norm_epsilon=1e-5)
   with pytest.raises(ValueError, match='lstm_size'):
     build_predictor('transformer', lstm_size=8, **sizes)
   with pytest.raises(ValueError, match='lstm_size'):
@@ -99,13 +100,16 @@ def test_lstm_size_must_match_the_predictor_kind():
     build_predictor('gru', lstm_size=0, **sizes)
 
 
-def _tiny_step(kind, lstm_size=None, head='mlp'):
+def _tiny_step(kind, lstm_size=None, head='mlp', dropout_rate=0.0):
   if lstm_size is None:
     lstm_size = 8 if kind == 'transformer_lstm' else 0
-  return SAViStep(num_iterations=2, slot_mlp_size=16, predictor_kind=kind,
-                  predictor_layers=1, predictor_heads=2, predictor_mlp_size=16,
-                  predictor_lstm_size=lstm_size, posterior_head=head,
-                  layer_norm_epsilon=1e-5)
+  return FrameStep(
+      corrector=SlotAttention(2, 16, layer_norm_epsilon=1e-5),
+      predictor=build_predictor(
+          kind, num_layers=1, num_heads=2, mlp_size=16, lstm_size=lstm_size,
+          pre_norm=True, dropout_rate=dropout_rate, layer_norm_epsilon=1e-5),
+      posterior_head=None if head == 'none' else GaussianSlotSampler(
+          kind=head, stochastic=False, layer_norm_epsilon=1e-5))
 
 
 def _tiny_carry(kind, batch=2, num_slots=4):
@@ -124,11 +128,13 @@ def test_savi_step_is_permutation_equivariant_over_slots(kind, head):
   carry = _tiny_carry(kind)
   features = jax.random.normal(jax.random.key(5), (2, 6, 8))
   params = step.init(jax.random.key(6), carry, features)
-  (next_slots, lstm), (slots, _) = step.apply(params, carry, features)
+  (next_slots, lstm), frame = step.apply(params, carry, features)
+  slots = frame.slots
   assert next_slots.shape == slots.shape == (2, 4, 8)
   order = np.array([2, 0, 3, 1])
   permuted = jax.tree.map(lambda x: x[:, order], carry)
-  (next_p, lstm_p), (slots_p, _) = step.apply(params, permuted, features)
+  (next_p, lstm_p), frame_p = step.apply(params, permuted, features)
+  slots_p = frame_p.slots
   np.testing.assert_allclose(slots_p, slots[:, order], atol=1e-5)
   np.testing.assert_allclose(next_p, next_slots[:, order], atol=1e-5)
   jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b[:, order],
@@ -137,8 +143,7 @@ def test_savi_step_is_permutation_equivariant_over_slots(kind, head):
 
 
 def test_predictor_dropout_needs_the_rng_only_when_training():
-  step = _tiny_step('transformer', head='none').clone(
-      predictor_dropout_rate=0.5)
+  step = _tiny_step('transformer', head='none', dropout_rate=0.5)
   carry = _tiny_carry('transformer')
   features = jax.random.normal(jax.random.key(5), (2, 6, 8))
   params = step.init(jax.random.key(6), carry, features)
@@ -218,14 +223,16 @@ def test_pytorch_padding_equals_explicit_lax_conv():
 
 
 def test_pytorch_default_init_statistics():
-  model = SAVi(resolution=(16, 16), num_slots=3, slot_size=32,
-               encoder_features=(16, 16), encoder_kernel_size=3,
-               encoder_strides=(1, 1), encoder_size=32, slot_mlp_size=64,
-               predictor_kind='transformer_lstm', predictor_layers=1,
-               predictor_heads=4, predictor_mlp_size=64,
-               predictor_lstm_size=64, posterior_head='mlp',
-               decoder_broadcast_resolution=(8, 8), decoder_features=(16, 16),
-               decoder_kernel_size=3)
+  model = build_savi(savi_section(
+      num_slots=3, slot_size=32,
+      encoder=dict(features=(16, 16), kernel_size=3, strides=(1, 1),
+                   output_size=32),
+      slot_attention=dict(mlp_size=64),
+      predictor=dict(kind='transformer_lstm', num_layers=1, num_heads=4,
+                     mlp_size=64, lstm_size=64),
+      posterior_head='mlp',
+      decoder=dict(broadcast_resolution=(8, 8), features=(16, 16),
+                   kernel_size=3)), (16, 16))
   # Only shapes are read, so the (slow) eager init is not needed.
   flax_params = jax.eval_shape(lambda: model.init(
       {'params': jax.random.key(0), 'sample': jax.random.key(1)},
@@ -295,7 +302,7 @@ def test_official_configs_build_the_official_sizes(name, savi_params,
   assert config.savi.layer_norm_epsilon == 1e-5
   assert config.savi.learning_rate == 1e-4
   assert config.savi.min_lr_fraction == 0.01
-  savi = build_savi(config.savi, config.data.resolution)
+  savi = build_savi(config.savi, tuple(config.data.resolution))
   video = jnp.zeros((1, 2, *config.data.resolution, 3))
   assert _num_params(savi, video) == savi_params
   slotformer = dynamics_lib.build(config.slotformer, 'slotformer')

@@ -38,7 +38,8 @@ if sys.argv[2] == 'convs':
   enc = config.savi.encoder
   encoder = CNNEncoder(features=tuple(enc.features), kernel_size=enc.kernel_size,
                        strides=tuple(enc.strides), output_size=enc.output_size)
-  decoder = build_decoder(config.savi.decoder, config.data.resolution)
+  decoder = build_decoder(config.savi.decoder,
+                                 tuple(config.data.resolution))
   rng = np.random.default_rng(0)
   images = jnp.asarray(rng.uniform(-1, 1, (4, *config.data.resolution, 3)), jnp.float32)
   slots = jnp.asarray(rng.normal(size=(4, config.savi.num_slots, config.savi.slot_size)), jnp.float32)
@@ -55,7 +56,7 @@ if sys.argv[2] == 'convs':
 else:
   # The quickstart's SAVi training loss and gradients ...
   config = synthetic.get_config()
-  model = build_savi(config.savi, config.data.resolution)
+  model = build_savi(config.savi, tuple(config.data.resolution))
   video = np.random.default_rng(0).integers(
       0, 256, (2, 2, *config.data.resolution, 3), np.uint8)
   params = steps.init_params(model, jax.random.key(0), jnp.zeros((1, 2, *config.data.resolution, 3)))
@@ -68,7 +69,8 @@ else:
   # ... and the OBJ3D decoder (5x5, 64 channels, 64x64), the layers whose
   # kernel gradient the flag speeds up most.
   config = obj3d.get_config()
-  decoder = build_decoder(config.savi.decoder, config.data.resolution)
+  decoder = build_decoder(config.savi.decoder,
+                                 tuple(config.data.resolution))
   slots = jnp.asarray(np.random.default_rng(1).normal(
       size=(1, 2, config.savi.slot_size)), jnp.float32)
   dparams = decoder.init(jax.random.key(2), slots)['params']

@@ -13,7 +13,6 @@ import pytest
 
 from slotformer_jax.data import pipeline
 from slotformer_jax.modules.dvae import DVAE
-from slotformer_jax.modules.steve import STEVE
 from slotformer_jax.train import optim
 from slotformer_jax.runtime import sharding
 from slotformer_jax.train import steps
@@ -22,6 +21,7 @@ from slotformer_jax.slot_models import steve as steve_slots
 from slotformer_jax.train.state import TrainState
 from slotformer_jax.train.trainer import Stage
 from slotformer_jax.train.trainer import fit
+from tiny_models import tiny_steve
 
 RESOLUTION = (16, 16)
 VOCAB = 16
@@ -32,12 +32,7 @@ def _dvae():
 
 
 def _steve():
-  return STEVE(resolution=RESOLUTION, num_slots=3, slot_size=16,
-               encoder_features=(8, 8), encoder_kernel_size=3,
-               encoder_strides=(2, 1), encoder_size=16, slot_mlp_size=32,
-               predictor_layers=1, predictor_heads=2, predictor_mlp_size=32,
-               predictor_lstm_size=32, vocab_size=VOCAB, decoder_layers=1,
-               decoder_heads=2, decoder_dropout=0.1)
+  return tiny_steve(RESOLUTION, VOCAB, decoder=dict(dropout_rate=0.1))
 
 
 def _video(batch, time, seed=0):

@@ -42,7 +42,8 @@ def _source(config, fields, length, num_videos=4):
     item = {'video': rng.integers(0, 256, (length, height, width, 3),
                                   np.uint8)}
     if 'tokens' in fields:
-      grid = build_steve(config.steve, config.data.resolution, config.dvae.vocab_size).token_grid
+      grid = build_steve(config.steve, tuple(config.data.resolution),
+                                config.dvae.vocab_size).token_grid
       item['tokens'] = rng.integers(0, 8, (length, grid[0] * grid[1]),
                                     dtype=np.uint16)
     if 'slots' in fields:

@@ -13,7 +13,6 @@ import optax
 import pytest
 
 from slotformer_jax.modules.decoders import SpatialBroadcastDecoder
-from slotformer_jax.modules.savi import SAVi
 from slotformer_jax.modules.slotformer import SlotFormer
 from slotformer_jax.runtime import sharding
 from slotformer_jax import losses
@@ -22,18 +21,15 @@ from slotformer_jax.train.state import TrainState
 from slotformer_jax.train.trainer import Stage
 from slotformer_jax.train.trainer import fit
 from slotformer_jax.data import pipeline
+from tiny_models import tiny_savi
 
 RESOLUTION = (16, 16)
 
 
 def _savi(stochastic=False):
-  return SAVi(resolution=RESOLUTION, num_slots=3, slot_size=16,
-              encoder_features=(8, 8), encoder_kernel_size=3,
-              encoder_strides=(1, 1), encoder_size=16, slot_mlp_size=16,
-              predictor_layers=1, predictor_heads=2, predictor_mlp_size=32,
-              decoder_broadcast_resolution=(8, 8), decoder_features=(8, 8),
-              decoder_kernel_size=3, stochastic=stochastic,
-              posterior_head='mlp' if stochastic else 'none')
+  return tiny_savi(RESOLUTION, decoder=dict(broadcast_resolution=(8, 8)),
+                   stochastic=stochastic,
+                   posterior_head='mlp' if stochastic else 'none')
 
 
 def _decoder():
