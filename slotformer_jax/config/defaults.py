@@ -113,7 +113,6 @@ def base_config() -> ml_collections.ConfigDict:
   dvae.batch_size = 64  # single frames
   dvae.num_train_steps = 700_000
   dvae.learning_rate = 1e-3
-  dvae.min_lr_fraction = 0.0
   dvae.warmup_fraction = 0.05
   dvae.grad_clip = 0.0  # none
   dvae.tokenize_batch_size = 16  # videos per batch when tokenizing
@@ -142,7 +141,6 @@ def base_config() -> ml_collections.ConfigDict:
   steve.num_train_steps = 460_000
   steve.learning_rate = 1e-4
   steve.group_learning_rates = {'decoder': 3e-4}  # the token decoder
-  steve.min_lr_fraction = 0.0
   steve.warmup_fraction = 0.05
   steve.grad_clip = 0.05
   steve.log_every = 100

@@ -71,7 +71,7 @@ class FrameOutput:
 class FrameStep(nn.Module):
   """One frame of SAVi: posterior head, correct, predict.
 
-  Scanned over time by `SAVi.encode_frames`; its parameters are shared by
+  Scanned over time by `encode_frames`; its parameters are shared by
   all frames.
 
   Attributes:
@@ -110,6 +110,35 @@ class FrameStep(nn.Module):
         slots, predictor_state, deterministic=deterministic)
     return ((next_slots, predictor_state),
             FrameOutput(slots=slots, kl=kl, attention=attention))
+
+
+def encode_frames(model: nn.Module, video: jax.Array,
+                  carry: SAViCarry | None = None, *,
+                  deterministic: bool = True,
+                  boxes: jax.Array | None = None
+                  ) -> tuple[FrameOutput, SAViCarry]:
+  """SAVi's time loop, for any module built from its parts (SAVi, STEVE):
+  `model.encoder` per frame, then `model.frame_step` scanned over time
+  from `model.initial_carry`. Called from a method of `model`.
+
+  video [B, T, H, W, 3] -> (FrameOutput with leading [B, T], carry).
+  `carry` continues a video from an earlier chunk (None: start fresh, from
+  `boxes` [B, O, 4] of the first frame for conditional SAVi).
+  `deterministic=False` enables the predictor's dropout ('dropout' RNG);
+  stochastic heads and Gaussian initial slots draw from 'sample'.
+  """
+  batch, time = video.shape[:2]
+  features = model.encoder(video.reshape(batch * time, *video.shape[2:]))
+  features = features.reshape(batch, time, *features.shape[1:])
+  if carry is None:
+    carry = model.initial_carry(batch, boxes)
+  scan = nn.scan(
+      lambda step, c, x: step(c, x, deterministic=deterministic),
+      variable_broadcast='params',
+      split_rngs={'params': False, 'sample': True, 'dropout': True},
+      in_axes=1, out_axes=1)
+  carry, frames = scan(model.frame_step, carry, features)
+  return frames, carry
 
 
 @struct.dataclass
@@ -161,26 +190,10 @@ class SAVi(nn.Module):
                     *, deterministic: bool = True,
                     boxes: jax.Array | None = None
                     ) -> tuple[FrameOutput, SAViCarry]:
-    """The time loop: video [B, T, H, W, 3] -> (FrameOutput with leading
-    [B, T], carry).
-
-    `carry` continues a video from an earlier chunk (None: start fresh, from
-    `boxes` [B, O, 4] of the first frame for conditional SAVi).
-    `deterministic=False` enables the predictor's dropout ('dropout' RNG);
-    stochastic heads and Gaussian initial slots draw from 'sample'.
-    """
-    batch, time = video.shape[:2]
-    features = self.encoder(video.reshape(batch * time, *video.shape[2:]))
-    features = features.reshape(batch, time, *features.shape[1:])
-    if carry is None:
-      carry = self.initial_carry(batch, boxes)
-    scan = nn.scan(
-        lambda step, c, x: step(c, x, deterministic=deterministic),
-        variable_broadcast='params',
-        split_rngs={'params': False, 'sample': True, 'dropout': True},
-        in_axes=1, out_axes=1)
-    carry, frames = scan(self.frame_step, carry, features)
-    return frames, carry
+    """video [B, T, H, W, 3] -> (FrameOutput with leading [B, T], carry):
+    `encode_frames` below."""
+    return encode_frames(self, video, carry, deterministic=deterministic,
+                         boxes=boxes)
 
   def encode(self, video: jax.Array, carry: SAViCarry | None = None, *,
              deterministic: bool = True, boxes: jax.Array | None = None):

@@ -1,16 +1,14 @@
 """STEVE (Singh et al., 2022) as SlotFormer uses it for Physion.
 
-    STEVE(slot_encoder=SAVi(
-              encoder=CNNEncoder(...), initializer=LearnedSlots(...),
-              frame_step=FrameStep(
-                  corrector=SlotAttention(..., return_attention=True),
-                  predictor=SlotTransition(..., lstm_size=...)),
-              decoder=None),
+    STEVE(encoder=CNNEncoder(...), initializer=LearnedSlots(...),
+          frame_step=FrameStep(
+              corrector=SlotAttention(..., return_attention=True),
+              predictor=SlotTransition(..., lstm_size=...)),
           decoder=TokenDecoder(...), token_grid=(h, w),
           feature_grid=(h', w'))
 
-Slot encoder: SAVi without a pixel decoder, its time loop included
-(`SAVi.encode_frames`). Per frame t: CNN features h_t; slots S_t =
+Slot encoder: SAVi's parts without a pixel decoder, run by SAVi's own time
+loop (`modules.savi.encode_frames`). Per frame t: CNN features h_t; slots S_t =
 SlotAttention(S~_t, h_t), whose last iteration's attention (softmax over
 slots) is kept as per-slot masks at the feature resolution; S~_{t+1} =
 f_trans(S_t) (Transformer + per-slot LSTM); S~_1 are learned vectors.
@@ -20,10 +18,11 @@ two-stage variant: the dVAE is trained first and frozen, so STEVE only
 learns to predict its tokens. `slot_models.steve.build_steve` builds it from
 `config.steve`.
 
-Parameter tree: the slot encoder shares STEVE's scope, so its parameters
-sit at the top as in the flat STEVE this replaced (`encoder/`,
-`initial_slots`, `frame_step/{corrector,predictor}/`), next to `decoder/`
-(the token decoder); checkpoints and the official converter rely on it.
+Parameter tree: SAVi's parts are STEVE's own fields, so their parameters
+(and their initial values) are those of the flat STEVE this replaced
+(`encoder/`, `initial_slots`, `frame_step/{corrector,predictor}/`), next to
+`decoder/` (the token decoder); checkpoints and the official converter rely
+on it.
 
 Shapes: video [batch, time, height, width, 3] in [-1, 1];
 slots [batch, time, num_slots, slot_size];
@@ -36,8 +35,9 @@ from __future__ import annotations
 import flax.linen as nn
 import jax
 
-from slotformer_jax.modules.savi import SAVi
+from slotformer_jax.modules.savi import FrameStep
 from slotformer_jax.modules.savi import SAViCarry
+from slotformer_jax.modules.savi import encode_frames
 from slotformer_jax.modules.token_decoder import TokenDecoder
 
 
@@ -45,31 +45,38 @@ class STEVE(nn.Module):
   """STEVE's slot encoder + token decoder. See the module docstring.
 
   Attributes:
-    slot_encoder: a SAVi with `decoder=None` whose corrector returns its
-      attention (the masks).
+    encoder, initializer, frame_step: SAVi's parts (its CNN encoder, learned
+      initial slots, Slot Attention returning its attention as the masks +
+      the Transformer-LSTM predictor), run by SAVi's own time loop
+      (`modules.savi.encode_frames`); STEVE has no pixel decoder.
     decoder: the token decoder; its `num_tokens` is h * w of `token_grid`.
     token_grid: (h, w) of a frame's dVAE token map.
     feature_grid: (h', w') of the encoder's feature map, the resolution of
       the masks.
   """
 
-  slot_encoder: SAVi
+  encoder: nn.Module
+  initializer: nn.Module
+  frame_step: FrameStep
   decoder: TokenDecoder
   token_grid: tuple[int, int]
   feature_grid: tuple[int, int]
 
   def setup(self):
-    # The slot encoder's parameters keep the flat STEVE's top-level paths.
-    nn.share_scope(self, self.slot_encoder)
+    # The initialiser's parameters keep the flat STEVE's top-level names.
+    nn.share_scope(self, self.initializer)
 
-  def initial_carry(self, batch_size: int) -> SAViCarry:
+  def initial_carry(self, batch_size: int,
+                    boxes: jax.Array | None = None) -> SAViCarry:
     """The learned first-frame slots (the same in every video) + zero LSTM."""
-    return self.slot_encoder.initial_carry(batch_size)
+    del boxes  # unconditional
+    slots = self.initializer(batch_size, None)
+    return slots, self.frame_step.initial_state(slots)
 
   def encode(self, video: jax.Array, carry: SAViCarry | None = None):
     """video [B, T, H, W, 3] -> (slots [B, T, N, D], masks [B, T, N, h', w'],
     carry). `carry` continues a video from an earlier chunk (None: fresh)."""
-    frames, carry = self.slot_encoder.encode_frames(video, carry)
+    frames, carry = encode_frames(self, video, carry)
     masks = frames.attention.reshape(*frames.attention.shape[:3],
                                      *self.feature_grid)
     return frames.slots, masks, carry

@@ -46,7 +46,6 @@ from slotformer_jax.modules.dvae import DVAE
 from slotformer_jax.modules.encoders import CNNEncoder
 from slotformer_jax.modules.encoders import feature_grid
 from slotformer_jax.modules.savi import FrameStep
-from slotformer_jax.modules.savi import SAVi
 from slotformer_jax.modules.slot_attention import SlotAttention
 from slotformer_jax.modules.slot_init import LearnedSlots
 from slotformer_jax.modules.steve import STEVE
@@ -79,13 +78,13 @@ def build_steve(steve: ml_collections.ConfigDict, resolution: tuple[int, int],
   """STEVE from `config.steve` for frames of `resolution` (H, W), predicting
   the tokens of a dVAE with `vocab_size` codes (`config.dvae.vocab_size`).
 
-  Its slot encoder is SAVi's (learned initial slots, Slot Attention keeping
+  Its slot encoder is SAVi's parts (learned initial slots, Slot Attention keeping
   its masks, Transformer + per-slot LSTM, no pixel decoder); the token
   decoder's size is `slot_size`, as officially.
   """
   epsilon = steve.layer_norm_epsilon
   predictor = steve.predictor
-  slot_encoder = SAVi(
+  parts = dict(
       encoder=CNNEncoder(
           features=tuple(steve.encoder.features),
           kernel_size=steve.encoder.kernel_size,
@@ -101,12 +100,11 @@ def build_steve(steve: ml_collections.ConfigDict, resolution: tuple[int, int],
           predictor=SlotTransition(
               num_layers=predictor.num_layers, num_heads=predictor.num_heads,
               mlp_size=predictor.mlp_size, lstm_size=predictor.lstm_size,
-              layer_norm_epsilon=epsilon)),
-      decoder=None)
+              layer_norm_epsilon=epsilon)))
   height, width = resolution
   token_grid = (height // DVAE_DOWNSAMPLING, width // DVAE_DOWNSAMPLING)
   return STEVE(
-      slot_encoder=slot_encoder,
+      **parts,
       decoder=TokenDecoder(
           vocab_size=vocab_size, num_tokens=token_grid[0] * token_grid[1],
           dim=steve.slot_size, num_layers=steve.decoder.num_layers,

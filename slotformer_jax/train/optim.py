@@ -24,10 +24,10 @@ def make_optimizer(stage_config: ml_collections.ConfigDict
                    ) -> tuple[optax.GradientTransformation, optax.Schedule]:
   """Adam over the stage's schedule; global-norm clipping if `grad_clip` > 0.
 
-  Reads `learning_rate`, `num_train_steps`, `warmup_fraction`, `grad_clip`
-  and `min_lr_fraction` (every training section has them, see
-  config/defaults.py), and, when present (STEVE's section),
-  `group_learning_rates`: {top-level parameter name: peak learning rate} for
+  Reads `learning_rate`, `num_train_steps`, `warmup_fraction`, `grad_clip`,
+  and, when the section has them, `min_lr_fraction` (the dVAE's and STEVE's
+  sections have none: their official schedules end at 0, and a new field
+  would change their run identities) and `group_learning_rates` (STEVE's): {top-level parameter name: peak learning rate} for
   parts trained faster (STEVE's decoder: 3e-4 vs 1e-4), on the same warm-up +
   cosine shape; clipping stays global over all parameters. The returned
   schedule is the default group's.
@@ -35,7 +35,7 @@ def make_optimizer(stage_config: ml_collections.ConfigDict
   def schedule_for(peak: float) -> optax.Schedule:
     return learning_rate_schedule(
         peak, stage_config.num_train_steps, stage_config.warmup_fraction,
-        stage_config.min_lr_fraction)
+        stage_config.get('min_lr_fraction', 0.0))
 
   schedule = schedule_for(stage_config.learning_rate)
   transforms = []

@@ -52,8 +52,6 @@ ADDED_FIELDS: dict[str, Any] = {
     'readout.layer_norm_epsilon': 1e-6,
     'readout.dropout_rate': 0.0,
     'evaluation.skip_first_frame': False,
-    'dvae.min_lr_fraction': 0.0,
-    'steve.min_lr_fraction': 0.0,
     # The task was told by a `vqa` section before `task` was set for VQA.
     'task': None,
     # Planning readouts before every readout field had a default: the

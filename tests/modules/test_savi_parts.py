@@ -90,17 +90,24 @@ def test_gaussian_initial_slots_draw_from_the_sample_rng():
 
 
 def test_steve_runs_savis_time_loop_on_the_same_parameters():
-  """STEVE's slots and masks are its slot encoder's (a SAVi without a
-  decoder) on STEVE's own parameters minus the token decoder."""
+  """STEVE's slots and masks are SAVi's time loop over the same parts (a
+  SAVi without a decoder) on STEVE's own parameters minus the token
+  decoder; and its parts start from the same values, since they sit in
+  STEVE's scope under the same names (a SAVi nested under
+  `nn.share_scope` kept the names but drew other initial values)."""
   model = tiny_steve()
+  savi = SAVi(encoder=model.encoder, initializer=model.initializer,
+              frame_step=model.frame_step, decoder=None)
   video = jax.random.uniform(jax.random.key(0), (2, 3, 16, 16, 3),
                              minval=-1.0, maxval=1.0)
   tokens = jnp.zeros((2, 3, 16), jnp.int32)
   params = model.init(jax.random.key(1), video, tokens)['params']
+  encoder_params = {k: v for k, v in params.items() if k != 'decoder'}
+  jax.tree.map(np.testing.assert_array_equal, encoder_params,
+               savi.init(jax.random.key(1), video)['params'])
   slots, masks, carry = model.apply({'params': params}, video,
                                     method=STEVE.encode)
-  encoder_params = {k: v for k, v in params.items() if k != 'decoder'}
-  frames, savi_carry = model.slot_encoder.apply(
+  frames, savi_carry = savi.apply(
       {'params': encoder_params}, video, method=SAVi.encode_frames)
   np.testing.assert_array_equal(slots, frames.slots)
   np.testing.assert_array_equal(masks.reshape(frames.attention.shape),
