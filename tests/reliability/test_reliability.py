@@ -579,9 +579,13 @@ def test_anticipated_errors_are_one_line(tmp_path):
   config = os.path.join(ROOT, 'configs', 'obj3d.py')
   missing_data = _main(f'--config={config}', f'--workdir={tmp_path / "a"}',
                        '--mode=train_savi', cwd=str(tmp_path))
+  # Every mode makes its data first (prepare_data): a dataset of 3 videos
+  # keeps that short.
   missing_checkpoint = _main(
       f'--config={os.path.join(ROOT, "configs", "synthetic.py")}:tiny',
-      f'--workdir={tmp_path / "b"}', '--mode=evaluate', cwd=str(tmp_path))
+      f'--workdir={tmp_path / "b"}', '--mode=evaluate',
+      '--config.data.num_train=1', '--config.data.num_val=1',
+      '--config.data.num_test=1', cwd=str(tmp_path))
   unknown_field = _main(f'--config={config}', f'--workdir={tmp_path / "c"}',
                         '--config.savi.foo=1', cwd=str(tmp_path))
   for result, needle in ((missing_data, 'slotformer_jax.data.prepare'),
