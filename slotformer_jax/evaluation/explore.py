@@ -58,7 +58,9 @@ from slotformer_jax.evaluation import evaluate
 from slotformer_jax.evaluation import explore_page
 from slotformer_jax.evaluation import metrics as metrics_lib
 from slotformer_jax.evaluation import visualize
-from slotformer_jax.files import read_json
+from slotformer_jax.errors import UserError
+from slotformer_jax.files import UntrustedFileError
+from slotformer_jax.files import read_untrusted_json
 from slotformer_jax.files import write_atomic
 from slotformer_jax.files import write_json_atomic
 
@@ -243,28 +245,71 @@ def _clean(values) -> list[float | None]:
           for v in values]
 
 
+# What the page takes from eval/metrics.json, which may come from a run
+# folder someone shares: names up to _MAX_NAME characters, curves up to
+# _MAX_STEPS steps, _MAX_CURVES curves in all.
+_MAX_NAME = 100
+_MAX_STEPS = 10_000
+_MAX_CURVES = 1_000
+
+
+def _curve(value: Any) -> list[float | None] | None:
+  """A per-step curve of metrics.json (numbers or nulls), else None."""
+  if not isinstance(value, list) or len(value) > _MAX_STEPS or not all(
+      v is None or (isinstance(v, (int, float)) and not isinstance(v, bool))
+      for v in value):
+    return None
+  return _clean(value)
+
+
+def _name(value: Any) -> bool:
+  return isinstance(value, str) and 0 < len(value) <= _MAX_NAME
+
+
 def run_curves(workdir: str, identity: dict[str, Any]
                ) -> tuple[dict[str, Any] | None, str]:
   """({metric: {method label: per-step values}}, note) of eval/metrics.json,
-  or (None, why not) when it is missing or from other models."""
+  or (None, why not) when it is missing, from other models, or not what
+  --mode=evaluate writes (every field is type-checked: the page shows the
+  names, and a shared run folder may hold anything)."""
   path = os.path.join(evaluate.eval_dir(workdir), 'metrics.json')
   if not os.path.exists(path):
     return None, ('no eval/metrics.json: run --mode=evaluate for the run\'s '
                   'curves')
-  results = read_json(path, fix='Re-run --mode=evaluate.')
+  unreadable = (None, 'eval/metrics.json is not what --mode=evaluate writes: '
+                're-run --mode=evaluate for the run\'s curves')
+  try:
+    results = read_untrusted_json(path, what='metrics file')
+  except UntrustedFileError as error:
+    logger.warning('explore: %s', error)
+    return unreadable
+  if not isinstance(results, dict):
+    return unreadable
   if results.get('identity') != identity:
     return None, ('eval/metrics.json is from other models than these: '
                   're-run --mode=evaluate for the run\'s curves')
+  rollout = results.get('rollout', {})
+  if not isinstance(rollout, dict):
+    return unreadable
   curves: dict[str, dict[str, list]] = {}
-  for method, per_metric in results.get('rollout', {}).items():
+  count = 0
+  for method, per_metric in rollout.items():
+    if not (_name(method) and isinstance(per_metric, dict)):
+      return unreadable
     for name, value in per_metric.items():
       if isinstance(value, dict) and 'per_step' in value:
+        curve = _curve(value['per_step'])
+        count += 1
+        if curve is None or not _name(name) or count > _MAX_CURVES:
+          return unreadable
         label = _METHOD_LABELS.get(method, method)
-        curves.setdefault(name, {})[label] = _clean(value['per_step'])
+        curves.setdefault(name, {})[label] = curve
   protocol = results.get('protocol', {})
+  protocol = protocol if isinstance(protocol, dict) else {}
+  videos, split = protocol.get('num_videos', 'the'), protocol.get('split', '')
   return curves, (f'the run: eval/metrics.json, mean over '
-                  f'{protocol.get("num_videos", "the")} '
-                  f'{protocol.get("split", "")} videos')
+                  f'{videos if isinstance(videos, int) else "the"} '
+                  f'{split if _name(split) else ""} videos')
 
 
 def page_data(config: ml_collections.ConfigDict, out: dict[str, Any],
@@ -354,12 +399,37 @@ def page_data(config: ml_collections.ConfigDict, out: dict[str, Any],
 def write_page(directory: str, data: dict[str, Any]) -> str:
   """index.html with `data` embedded; returns its path."""
   blob = json.dumps(data, separators=(',', ':'))
-  # Inside <script>, '</' could close the element early.
-  blob = blob.replace('</', '<\\/')
+  # Inside <script>, '</script' would close the element early and '<!--'
+  # change how the rest is parsed: no '<', '>' or '&' is left raw (they only
+  # occur in JSON strings, where \\u003c is the same character).
+  blob = (blob.replace('<', '\\u003c').replace('>', '\\u003e')
+          .replace('&', '\\u0026'))
   page = explore_page.TEMPLATE.replace(
       '__TITLE__', html.escape(data['title'])).replace('__DATA__', blob)
   path = os.path.join(directory, 'index.html')
   write_atomic(path, page)
+  return path
+
+
+def write_outputs(directory: str, data: dict[str, Any],
+                  identity: dict[str, Any], indices: list[int]) -> str:
+  """index.html and identity.json; returns the page's path.
+
+  Raises:
+    UserError: a full disk, a quota, a read-only folder, in one line;
+      nothing is left half written (`files.write_atomic`) and the rest of
+      the run is intact.
+  """
+  try:
+    path = write_page(directory, data)
+    write_json_atomic(os.path.join(directory, 'identity.json'),
+                      {'identity': identity, 'videos': indices,
+                       'page': os.path.basename(path)})
+  except OSError as error:
+    raise UserError(
+        f'explore: cannot write the page into {directory} '
+        f'({error.strerror or error}); free space (or fix the folder) and '
+        're-run --mode=explore') from None
   return path
 
 
@@ -419,10 +489,7 @@ def explore(config: ml_collections.ConfigDict, workdir: str, *,
   data = page_data(config, out, videos, indices, label=slot_model.label,
                    identity=identity, curves=curves, curves_note=note,
                    seconds=computed)
-  path = write_page(directory, data)
-  write_json_atomic(os.path.join(directory, 'identity.json'),
-                    {'identity': identity, 'videos': indices,
-                     'page': os.path.basename(path)})
+  path = write_outputs(directory, data, identity, indices)
   print(f'wrote {path} ({count} videos x {2 * data["num_slots"]} '
         f'counterfactual rollouts, computed in {computed:.1f} s, page in '
         f'{time.perf_counter() - start - computed:.1f} s)')
