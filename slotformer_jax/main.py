@@ -20,8 +20,10 @@ from __future__ import annotations
 import json
 import logging
 import os
+import signal
 import sys
 import time
+import traceback
 
 from absl import app
 from absl import flags
@@ -37,6 +39,7 @@ from slotformer_jax import xla_flags
 from slotformer_jax.config import checks as config_checks
 from slotformer_jax.data.data_dir import default_data_dir
 from slotformer_jax.errors import UserError
+from slotformer_jax.errors import one_line
 from slotformer_jax.files import append_line_atomic
 from slotformer_jax.train import processes
 from slotformer_jax.train import sharding
@@ -68,6 +71,17 @@ _PEER_TIMEOUT = flags.DEFINE_float(
     'peer_timeout', 30.0, 'With several processes: seconds without a '
     'heartbeat from another process (in <workdir>/.processes/) after which '
     'it counts as lost and this one stops too.')
+_STARTUP_TIMEOUT = flags.DEFINE_float(
+    'startup_timeout', 120.0, 'With several processes: seconds for every '
+    'process to start, connect and agree on what it runs (config, mode, '
+    'code, workdir); a process missing by then is named and every process '
+    'stops.')
+# An empty --workdir (an unset variable: --workdir=$RUN) would make the run
+# write into the current folder.
+flags.register_validator(
+    'workdir', lambda value: value is None or bool(value.strip()),
+    message='--workdir is empty (an unset variable?); give the folder of '
+    'the run')
 _ALLOW_CONFIG_CHANGE = flags.DEFINE_bool(
     'allow_config_change', False, 'Accept settings that differ from the ones '
     'this workdir was run with: the stages they affect are retrained or '
@@ -98,6 +112,17 @@ class _OneLineErrors(logging.Filter):
     return True
 
 
+class _NoUnretrievedFutures(logging.Filter):
+  """asyncio's 'Task exception was never retrieved', once per failed write
+  of orbax's save (about 40 on a full disk): the trainer reports the failed
+  save itself, in one line."""
+
+  def filter(self, record: logging.LogRecord) -> bool:
+    return not str(record.msg).startswith(
+        ('Task exception was never retrieved',
+         'Future exception was never retrieved'))
+
+
 def _configure_logging() -> None:
   """INFO lines of this package on stderr; chatty libraries (orbax, tfds log
   through absl) only report errors, one line each."""
@@ -105,6 +130,8 @@ def _configure_logging() -> None:
   for name in ('absl', 'asyncio'):
     library_logger = logging.getLogger(name)
     if not any(isinstance(f, _OneLineErrors) for f in library_logger.filters):
+      if name == 'asyncio':
+        library_logger.addFilter(_NoUnretrievedFutures())
       library_logger.addFilter(_OneLineErrors())
   handler = _TqdmHandler()
   handler.setFormatter(logging.Formatter(
@@ -129,29 +156,22 @@ def main(argv):
   added_flags = xla_flags.apply_fast_cpu_flags()
   explicit = processes.check_flags(_COORDINATOR_ADDRESS.value,
                                    _NUM_PROCESSES.value, _PROCESS_ID.value)
-  if _PEER_TIMEOUT.value <= 0:
-    raise UserError(f'--peer_timeout={_PEER_TIMEOUT.value} must be > 0')
-  if _DISTRIBUTED.value or explicit:
-    # jax's own heartbeat (a stack dump when it fires) comes after ours.
-    processes.initialize(
-        _COORDINATOR_ADDRESS.value, _NUM_PROCESSES.value, _PROCESS_ID.value,
-        heartbeat_timeout=max(100, int(3 * _PEER_TIMEOUT.value)))
-  _configure_logging()
-  _enable_compilation_cache()
-  if added_flags:
-    logger.info('XLA_FLAGS += %s', ' '.join(added_flags))
+  for flag in (_PEER_TIMEOUT, _STARTUP_TIMEOUT):
+    if flag.value <= 0:
+      raise UserError(f'--{flag.name}={flag.value} must be > 0')
   config, workdir, mode = _CONFIG.value, _WORKDIR.value, _MODE.value
   if config is None:
     raise app.UsageError('--config is required, e.g. configs/synthetic.py')
+  _configure_logging()
+  if _DISTRIBUTED.value or explicit:
+    _start_processes(config, workdir, mode)
+  _enable_compilation_cache()
+  if added_flags:
+    logger.info('XLA_FLAGS += %s', ' '.join(added_flags))
   selected = stages.selected_stages(config, mode)
   # Every check before any work: a bad value costs seconds, not a stage.
   config_checks.validate(config, selected, num_devices=jax.device_count(),
                          num_processes=jax.process_count())
-  global _watchdog
-  if jax.process_count() > 1:
-    _watchdog = processes.PeerWatchdog(
-        os.path.join(workdir, '.processes'), jax.process_index(),
-        jax.process_count(), timeout=_PEER_TIMEOUT.value).start()
   lock = workdir_lib.workdir_lock(workdir)
   if jax.process_index() == 0:
     lock.acquire()
@@ -162,6 +182,58 @@ def main(argv):
 
 
 _watchdog: processes.PeerWatchdog | None = None
+
+
+def _start_processes(config, workdir: str, mode: str) -> None:
+  """jax.distributed with a bounded start, then, before any work, every
+  process checks that all were started alike (`processes.agree`); from then
+  on each one that ends early tells the others (`PeerWatchdog.leave`)."""
+  global _watchdog
+  directory = os.path.join(workdir, '.processes')
+  startup = processes.Startup(
+      directory, _PROCESS_ID.value, _NUM_PROCESSES.value,
+      timeout=_STARTUP_TIMEOUT.value,
+      coordinator=_COORDINATOR_ADDRESS.value).begin()
+  # jax's own heartbeat and start timeouts (a stack dump when they fire)
+  # come after ours.
+  processes.initialize(
+      _COORDINATOR_ADDRESS.value, _NUM_PROCESSES.value, _PROCESS_ID.value,
+      heartbeat_timeout=max(100, int(3 * _PEER_TIMEOUT.value)),
+      initialization_timeout=int(_STARTUP_TIMEOUT.value) + 60)
+  startup.end()
+  if jax.process_count() == 1:
+    return
+  _watchdog = processes.PeerWatchdog(
+      directory, jax.process_index(), jax.process_count(),
+      timeout=_PEER_TIMEOUT.value).start()
+  # Outside training (which saves first) SIGTERM ends this process through
+  # `leave` too, so the others learn why at once.
+  signal.signal(signal.SIGTERM, _terminated)
+  processes.agree(config.to_dict(), mode, workdir, directory=directory,
+                  startup=startup, watchdog=_watchdog)
+
+
+class _Terminated(BaseException):
+  """SIGTERM outside a training loop, with several processes."""
+
+
+def _terminated(signum, frame) -> None:
+  del signum, frame
+  raise _Terminated()
+
+
+def _leave(status: int, reason: str) -> None:
+  """With several processes: ends this one now and tells the others why
+  (never returns). With one: nothing; the caller exits."""
+  if _watchdog is not None:
+    _watchdog.leave(status, reason)
+
+
+def _quiet_teardown() -> None:
+  """After the one line of a failed run: objects of orbax's failed saves
+  that Python collects while it shuts down raise again ('Exception ignored
+  in: <coroutine ...>'); nothing is left to say."""
+  sys.unraisablehook = lambda unraisable: None
 
 
 def _run(config, workdir: str, selected: tuple[str, ...]) -> None:
@@ -219,23 +291,37 @@ def run_main(argv: list[str] | None = None) -> None:
         exit_.code if isinstance(exit_.code, int) else 1)
     raise
   except Preempted as error:
+    # Every process stops after the same step (agreed): they end together.
     print(f'preempted: {_one_line(error)}', file=sys.stderr)
     status = 128 + error.signal
     sys.exit(status)
   except UserError as error:
-    print(f'error: {_one_line(error)}', file=sys.stderr)
-    sys.exit(1)
+    line = _one_line(error)
+    print(f'error: {line}', file=sys.stderr)
+    status = 2 if isinstance(error, processes.Disagreement) else 1
+    _quiet_teardown()
+    _leave(status, f'error: {line}')
+    sys.exit(status)
   except KeyboardInterrupt:
     # Ctrl-C outside a training loop (which saves and raises Preempted).
     print('interrupted: Ctrl-C outside training; re-run the same command to '
           'resume from what was saved.', file=sys.stderr)
     status = 128 + 2
+    _leave(status, 'interrupted by Ctrl-C outside training')
     sys.exit(status)
-  except Exception:
+  except _Terminated:
+    print('terminated: SIGTERM outside training; re-run the same command to '
+          'resume from what was saved.', file=sys.stderr)
+    status = 128 + 15
+    _leave(status, 'terminated by SIGTERM outside training')
+    sys.exit(status)
+  except Exception as error:
     if _watchdog is not None:
       # A failed collective usually means another process was lost: let the
       # watchdog name it (and end this one) instead of a traceback.
       _watchdog.wait_for_verdict()
+      traceback.print_exc()
+      _leave(1, f'{type(error).__name__}: {_one_line(error)}')
     raise
   finally:
     if _watchdog is not None:
@@ -258,8 +344,9 @@ def _parse_flags(argv: list[str]) -> list[str]:
 
 
 def _one_line(error: BaseException) -> str:
-  return ' '.join(line.strip() for line in str(error).splitlines()
-                  if line.strip())
+  # Its own lines joined; nothing a terminal would act on (a name quoted
+  # from a file) reaches it raw.
+  return one_line(error)
 
 
 if __name__ == '__main__':

@@ -10,20 +10,39 @@ stop, and noticing a lost one.
   process whose heartbeat stops (killed, its host gone) or that ended with an
   error is named in one line by every survivor, which then exits at once
   (within `timeout` seconds), instead of waiting in a collective until jax's
-  coordination service aborts it with a stack dump.
+  coordination service aborts it with a stack dump. A process that ends
+  early for any reason (Ctrl-C, an error, outside training too) `leave`s: it
+  writes why, and the others stop with one line naming it and the reason.
+  Process 0 runs jax's coordination service, whose end aborts the others:
+  it always leaves last.
+* `Startup` bounds the start: a process that does not come within
+  `--startup_timeout` seconds is named (from the heartbeat folder) before
+  jax's own initialisation timeout aborts with a stack dump.
+* `agree`: before any work every process publishes what it was started
+  with (the resolved config, the mode, the code, the workdir it sees) through
+  jax's key-value store, and a difference is one line on every process.
 """
 
 from __future__ import annotations
 
+import hashlib
+import json
 import os
+import pathlib
+import secrets
+import socket
 import sys
 import threading
 import time
+from typing import Any
 
 import jax
 import numpy as np
 
 from slotformer_jax.errors import ConfigError
+from slotformer_jax.errors import UserError
+from slotformer_jax.errors import one_line
+from slotformer_jax.errors import shown
 
 # Exit statuses that end a process as planned (done, SIGINT, SIGTERM).
 CLEAN_EXITS = (0, 128 + 2, 128 + 15)
@@ -59,8 +78,11 @@ def check_flags(coordinator_address: str | None, num_processes: int | None,
 def initialize(coordinator_address: str | None = None,
                num_processes: int | None = None,
                process_id: int | None = None, *,
-               heartbeat_timeout: int = 100) -> None:
-  """jax.distributed.initialize; before any jax backend is started."""
+               heartbeat_timeout: int = 100,
+               initialization_timeout: int = 300) -> None:
+  """jax.distributed.initialize; before any jax backend is started.
+  `initialization_timeout` must come after `Startup`'s: jax aborts with a
+  stack dump when it runs out."""
   # Collectives between the CPU devices of several processes (a no-op for
   # GPU/TPU devices); jax 0.10 has none on CPU unless one is chosen.
   jax.config.update('jax_cpu_collectives_implementation', 'gloo')
@@ -69,7 +91,8 @@ def initialize(coordinator_address: str | None = None,
   jax.config.update('jax_enable_preemption_service', False)
   jax.distributed.initialize(
       coordinator_address=coordinator_address, num_processes=num_processes,
-      process_id=process_id, heartbeat_timeout_seconds=heartbeat_timeout)
+      process_id=process_id, heartbeat_timeout_seconds=heartbeat_timeout,
+      initialization_timeout=initialization_timeout)
 
 
 def agreed_signal(local_signal: int) -> tuple[int, list[int]]:
@@ -156,6 +179,11 @@ class PeerWatchdog:
       now = time.monotonic()
       for i in peers:
         text = self._read(i)
+        if text.startswith('left ') and not self._stop.is_set():
+          _, status, reason = (text.split(' ', 2) + ['', ''])[:3]
+          self._lost(f'process {i} of {self.num_processes} stopped '
+                     f'(exit status {shown(status, 8)}: '
+                     f'{shown(reason, 300) or "no reason given"})')
         if text.startswith('exit '):
           status = int(text.split()[1])
           if status in CLEAN_EXITS:
@@ -179,12 +207,314 @@ class PeerWatchdog:
           'every process with the same command: training resumes from the '
           'last saved checkpoint.', file=sys.stderr, flush=True)
     self.finish(LOST_PROCESS_EXIT)
-    # Not sys.exit: the main thread may be blocked in a collective with the
-    # lost process, and jax's exit handlers would wait for it.
-    os._exit(LOST_PROCESS_EXIT)  # pylint: disable=protected-access
+    self._exit(LOST_PROCESS_EXIT)
+
+  def _exit(self, status: int) -> None:
+    """Ends this process now. Not sys.exit: the main thread may be blocked
+    in a collective with a lost process, and jax's exit handlers would wait
+    for it (then abort). Process 0 first waits (up to `timeout`) for the
+    others to end: it holds jax's coordination service, and its end aborts
+    every process still connected, with a stack dump."""
+    if self.process_id == 0:
+      self._wait_for_peers_to_end()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(status)  # pylint: disable=protected-access
+
+  def _wait_for_peers_to_end(self) -> None:
+    peers = [i for i in range(self.num_processes) if i != self.process_id]
+    deadline = time.monotonic() + self.timeout
+    seen = {i: (self._read(i), time.monotonic()) for i in peers}
+    while peers and time.monotonic() < deadline:
+      time.sleep(0.1)
+      now = time.monotonic()
+      for i in list(peers):
+        text = self._read(i)
+        if text.startswith(('exit ', 'left ')):
+          peers.remove(i)
+        elif text != seen[i][0]:
+          seen[i] = (text, now)
+        elif now - seen[i][1] > 3 * self.interval + 1:
+          peers.remove(i)  # silent: gone without a word (or never came)
+    time.sleep(0.3)  # a process that wrote its record is ending
+
+  def leave(self, status: int, reason: str) -> None:
+    """Ends this process early (an error, Ctrl-C, a stage outside training)
+    and tells the others why: they stop with one line naming this process
+    and the reason. Never returns."""
+    self._stop.set()
+    try:
+      self._write(f'left {status} {one_line(reason, 300)}')
+    except OSError:
+      pass  # a full disk: the others see the heartbeat stop instead
+    self._exit(status)
+
+  def stop_watching(self) -> None:
+    """Stops naming other processes (this one is about to leave itself, for
+    a reason they share)."""
+    self._stop.set()
 
   def wait_for_verdict(self) -> None:
     """Blocks up to the timeout: the watchdog ends the process if a peer is
     lost (an error in a collective usually means one is)."""
     if self._thread.is_alive():
       self._thread.join(self.timeout + 4 * self.interval)
+
+
+# ----------------------------------------------------------------------------
+# The start: every process comes, within a bounded time, and agrees.
+# ----------------------------------------------------------------------------
+
+
+class Startup:
+  """Bounds `initialize`: if it has not returned `timeout` seconds after
+  `begin`, one line names the processes that gave no sign of life in the
+  heartbeat folder (each writes `starting <pid> <host> <time>` there before
+  it connects), and this process exits with status 1. jax's own
+  initialisation timeout, set after this one, would abort with a stack
+  dump. `process_id` / `num_processes` are None when jax detects the
+  cluster: then the line cannot name the missing ones.
+  """
+
+  def __init__(self, directory: str, process_id: int | None,
+               num_processes: int | None, *, timeout: float,
+               coordinator: str | None):
+    self.directory = directory
+    self.process_id = process_id
+    self.num_processes = num_processes
+    self.timeout = timeout
+    self.coordinator = coordinator
+    self.started = time.time()
+    self.deadline = time.monotonic() + timeout
+    self._done = threading.Event()
+
+  def begin(self) -> Startup:
+    """Writes this process's starting record and starts the timer.
+
+    Raises:
+      UserError: the heartbeat folder cannot be written.
+    """
+    if self.process_id is not None:
+      record = (f'starting {os.getpid()} {socket.gethostname()} '
+                f'{self.started:.3f}')
+      try:
+        os.makedirs(self.directory, exist_ok=True)
+        temporary = os.path.join(self.directory,
+                                 f'{self.process_id}.{os.getpid()}.tmp')
+        with open(temporary, 'w') as f:
+          f.write(record)
+        os.replace(temporary, os.path.join(self.directory,
+                                           str(self.process_id)))
+      except OSError as error:
+        raise UserError(f'cannot write the workdir\'s heartbeat folder '
+                        f'{self.directory} ({error.strerror or error}); give '
+                        'a --workdir that every process can write') from None
+    threading.Thread(target=self._watch, daemon=True,
+                     name='startup-timer').start()
+    return self
+
+  def end(self) -> None:
+    self._done.set()
+
+  def remaining(self) -> float:
+    return max(self.deadline - time.monotonic(), 1.0)
+
+  def _watch(self) -> None:
+    if self._done.wait(self.timeout):
+      return
+    print(f'error: {self.missing()}; stopping process '
+          f'{"?" if self.process_id is None else self.process_id} too. Start '
+          'every process with the same command (only --process_id differs), '
+          'or raise --startup_timeout.', file=sys.stderr, flush=True)
+    os._exit(LOST_PROCESS_EXIT)  # pylint: disable=protected-access
+
+  def missing(self) -> str:
+    """What the line says: which processes gave no sign of life."""
+    waited = f'within {self.timeout:g} s (--startup_timeout)'
+    if self.process_id is None or self.num_processes is None:
+      return (f'not every process of this run started {waited}: jax could '
+              'not connect them all')
+    absent = [i for i in range(self.num_processes)
+              if i != self.process_id and not self._came(i)]
+    if absent:
+      names = ', '.join(map(str, absent))
+      return (f'process{"es" if len(absent) > 1 else ""} {names} of '
+              f'{self.num_processes} never started (no sign of '
+              f'{"them" if len(absent) > 1 else "it"} in {self.directory} '
+              f'{waited}; if it runs, its --workdir is not this folder)')
+    return (f'every process wrote to {self.directory}, but they did not all '
+            f'reach the coordinator at {self.coordinator} {waited}: check '
+            '--coordinator_address and that its port is open to every host')
+
+  def _came(self, index: int) -> bool:
+    """Whether `index` wrote a record since this run's start (its own
+    clock: other hosts' clocks may differ by as much as the timeout)."""
+    try:
+      with open(os.path.join(self.directory, str(index))) as f:
+        text = f.read()
+      stamp = float(text.split()[3]) if text.startswith('starting ') else (
+          os.path.getmtime(os.path.join(self.directory, str(index))))
+    except (OSError, ValueError, IndexError):
+      return False
+    return stamp >= self.started - self.timeout
+
+
+def code_version() -> dict[str, str]:
+  """What the code of this process is: a hash of this package's sources
+  (the same checkout everywhere gives the same hash) and jax's version."""
+  package = pathlib.Path(__file__).resolve().parent.parent
+  digest = hashlib.sha256()
+  for path in sorted(package.rglob('*.py')):
+    digest.update(str(path.relative_to(package)).encode())
+    digest.update(path.read_bytes())
+  return {'slotformer_jax': digest.hexdigest()[:12], 'jax': jax.__version__}
+
+
+def _flat(tree: Any, prefix: str = '') -> dict[str, Any]:
+  if isinstance(tree, dict):
+    out = {}
+    for key, value in tree.items():
+      out.update(_flat(value, f'{prefix}.{key}' if prefix else str(key)))
+    return out
+  return {prefix: tree}
+
+
+# Fields of a run that may differ between hosts: where each reads its data
+# from and how many cores it converts with.
+_PER_HOST = ('config.data.data_dir', 'config.data.num_workers')
+_KEY = 'slotformer_jax/agree/'
+_TOKEN_FILE = 'run'
+
+
+class Disagreement(UserError):
+  """The processes of one run were not started alike."""
+
+
+def agree(config: dict[str, Any], mode: str, workdir: str, *,
+          directory: str, startup: Startup,
+          watchdog: PeerWatchdog | None = None) -> None:
+  """Every process publishes (resolved config, mode, code version, the
+  workdir it sees) and compares them all, before any work.
+
+  The workdir is compared by content, not by path (mount points may
+  differ): process 0 writes a random token into `directory` and every other
+  process must read that token there.
+
+  Raises:
+    Disagreement: one line naming every difference (the same line on every
+      process); each process has read every record by then.
+    UserError: a process gave no record within the startup time.
+  """
+  # Imported here: jax's private client exists only after initialize.
+  from jax._src.distributed import global_state  # pylint: disable=g-import-not-at-top
+  client = global_state.client
+  index, count = jax.process_index(), jax.process_count()
+  mine = {'config': json.loads(json.dumps(config, default=repr)),
+          'mode': mode, 'code': code_version(), 'workdir': workdir}
+  if index == 0:
+    token = secrets.token_hex(8)
+    os.makedirs(directory, exist_ok=True)
+    with open(os.path.join(directory, _TOKEN_FILE), 'w') as f:
+      f.write(token)
+    mine['folder'] = token
+    client.key_value_set(f'{_KEY}0', json.dumps(mine))
+    records = {0: mine}
+  else:
+    records = {0: _record(client, 0, count, startup)}
+    mine['folder'] = _read_token(directory, records[0].get('folder'),
+                                 startup)
+    client.key_value_set(f'{_KEY}{index}', json.dumps(mine))
+    records[index] = mine
+  for other in range(count):
+    if other not in records:
+      records[other] = _record(client, other, count, startup)
+  differences = differences_between(records)
+  if differences:
+    if watchdog is not None:
+      watchdog.stop_watching()
+    try:  # every process has its verdict before any of them leaves
+      client.wait_at_barrier('slotformer_jax/disagree',
+                             int(startup.remaining() * 1000))
+    except Exception:  # pylint: disable=broad-except
+      pass
+    raise Disagreement(
+        f'the {count} processes of this run were not started alike: '
+        + '; '.join(differences[:6])
+        + (f'; and {len(differences) - 6} more' if len(differences) > 6
+           else '')
+        + '. Start every process with the same command and code (only '
+        '--process_id differs), on one shared --workdir.')
+
+
+def _record(client: Any, index: int, count: int,
+            startup: Startup) -> dict[str, Any]:
+  try:
+    text = client.blocking_key_value_get(f'{_KEY}{index}',
+                                         int(startup.remaining() * 1000))
+  except Exception:  # pylint: disable=broad-except
+    raise UserError(
+        f'process {index} of {count} did not say what it was started with '
+        f'within {startup.timeout:g} s (--startup_timeout): it is stuck, or '
+        'runs another version of this code') from None
+  try:
+    record = json.loads(text)
+  except ValueError:
+    record = None
+  if not isinstance(record, dict):
+    raise UserError(f'process {index} of {count} sent an unreadable record: '
+                    'it runs another version of this code')
+  return record
+
+
+def _read_token(directory: str, token: Any, startup: Startup) -> str:
+  """The token process 0 wrote into the workdir, as this process sees it
+  (a shared filesystem may show a new file a few seconds late)."""
+  path = os.path.join(directory, _TOKEN_FILE)
+  give_up = time.monotonic() + min(10.0, startup.remaining())
+  while True:
+    try:
+      with open(path) as f:
+        seen = f.read().strip()
+    except OSError:
+      seen = ''
+    if seen == token or time.monotonic() > give_up:
+      return seen or '(none)'
+    time.sleep(0.2)
+
+
+def differences_between(records: dict[int, dict[str, Any]]) -> list[str]:
+  """['--mode: train_savi on process 0, evaluate on process 1', ...]: every
+  field in which a process differs from process 0."""
+  reference = records[0]
+  out = []
+  for index in sorted(records):
+    if index == 0:
+      continue
+    record = records[index]
+    if record.get('folder') != reference.get('folder'):
+      out.append(f'process {index} sees another folder as its --workdir '
+                 f'({shown(record.get("workdir"), 120)} there, '
+                 f'{shown(reference.get("workdir"), 120)} on process 0)')
+    if record.get('code') != reference.get('code'):
+      out.append(f'process {index} runs other code '
+                 f'({shown(_code(record.get("code")), 80)} there, '
+                 f'{shown(_code(reference.get("code")), 80)} on process 0)')
+    if record.get('mode') != reference.get('mode'):
+      out.append(f'--mode: {shown(reference.get("mode"), 40)} on process 0, '
+                 f'{shown(record.get("mode"), 40)} on process {index}')
+    ours = _flat({'config': reference.get('config')})
+    theirs = _flat({'config': record.get('config')})
+    for name in sorted(set(ours) | set(theirs)):
+      if name in _PER_HOST or ours.get(name) == theirs.get(name):
+        continue
+      missing = '(absent)'
+      out.append(f'--{shown(name, 80)}: '
+                 f'{shown(ours.get(name, missing), 60)} on process 0, '
+                 f'{shown(theirs.get(name, missing), 60)} on process {index}')
+  return out
+
+
+def _code(code: Any) -> str:
+  if not isinstance(code, dict):
+    return repr(code)
+  return ', '.join(f'{k} {v}' for k, v in sorted(code.items()))
