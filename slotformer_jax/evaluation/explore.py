@@ -56,11 +56,10 @@ from slotformer_jax import models
 from slotformer_jax import workdir as workdir_lib
 from slotformer_jax.evaluation import evaluate
 from slotformer_jax.evaluation import explore_page
+from slotformer_jax.evaluation import metrics_file
 from slotformer_jax.evaluation import metrics as metrics_lib
 from slotformer_jax.evaluation import visualize
 from slotformer_jax.errors import UserError
-from slotformer_jax.files import UntrustedFileError
-from slotformer_jax.files import read_untrusted_json
 from slotformer_jax.files import write_atomic
 from slotformer_jax.files import write_json_atomic
 
@@ -240,76 +239,13 @@ def _diff_view(intervened: np.ndarray, factual: np.ndarray) -> np.ndarray:
   return np.repeat(np.clip(diff * DIFF_GAIN, 0.0, 1.0), 3, axis=-1)
 
 
-def _clean(values) -> list[float | None]:
-  return [None if v is None or not np.isfinite(v) else round(float(v), 4)
-          for v in values]
-
-
-# What the page takes from eval/metrics.json, which may come from a run
-# folder someone shares: names up to _MAX_NAME characters, curves up to
-# _MAX_STEPS steps, _MAX_CURVES curves in all.
-_MAX_NAME = 100
-_MAX_STEPS = 10_000
-_MAX_CURVES = 1_000
-
-
-def _curve(value: Any) -> list[float | None] | None:
-  """A per-step curve of metrics.json (numbers or nulls), else None."""
-  if not isinstance(value, list) or len(value) > _MAX_STEPS or not all(
-      v is None or (isinstance(v, (int, float)) and not isinstance(v, bool))
-      for v in value):
-    return None
-  return _clean(value)
-
-
-def _name(value: Any) -> bool:
-  return isinstance(value, str) and 0 < len(value) <= _MAX_NAME
-
-
 def run_curves(workdir: str, identity: dict[str, Any]
                ) -> tuple[dict[str, Any] | None, str]:
   """({metric: {method label: per-step values}}, note) of eval/metrics.json,
-  or (None, why not) when it is missing, from other models, or not what
-  --mode=evaluate writes (every field is type-checked: the page shows the
-  names, and a shared run folder may hold anything)."""
-  path = os.path.join(evaluate.eval_dir(workdir), 'metrics.json')
-  if not os.path.exists(path):
-    return None, ('no eval/metrics.json: run --mode=evaluate for the run\'s '
-                  'curves')
-  unreadable = (None, 'eval/metrics.json is not what --mode=evaluate writes: '
-                're-run --mode=evaluate for the run\'s curves')
-  try:
-    results = read_untrusted_json(path, what='metrics file')
-  except UntrustedFileError as error:
-    logger.warning('explore: %s', error)
-    return unreadable
-  if not isinstance(results, dict):
-    return unreadable
-  if results.get('identity') != identity:
-    return None, ('eval/metrics.json is from other models than these: '
-                  're-run --mode=evaluate for the run\'s curves')
-  rollout = results.get('rollout', {})
-  if not isinstance(rollout, dict):
-    return unreadable
-  curves: dict[str, dict[str, list]] = {}
-  count = 0
-  for method, per_metric in rollout.items():
-    if not (_name(method) and isinstance(per_metric, dict)):
-      return unreadable
-    for name, value in per_metric.items():
-      if isinstance(value, dict) and 'per_step' in value:
-        curve = _curve(value['per_step'])
-        count += 1
-        if curve is None or not _name(name) or count > _MAX_CURVES:
-          return unreadable
-        label = _METHOD_LABELS.get(method, method)
-        curves.setdefault(name, {})[label] = curve
-  protocol = results.get('protocol', {})
-  protocol = protocol if isinstance(protocol, dict) else {}
-  videos, split = protocol.get('num_videos', 'the'), protocol.get('split', '')
-  return curves, (f'the run: eval/metrics.json, mean over '
-                  f'{videos if isinstance(videos, int) else "the"} '
-                  f'{split if _name(split) else ""} videos')
+  or (None, why not); see `metrics_file.read_curves`."""
+  return metrics_file.read_curves(
+      os.path.join(evaluate.eval_dir(workdir), 'metrics.json'), identity,
+      _METHOD_LABELS)
 
 
 def page_data(config: ml_collections.ConfigDict, out: dict[str, Any],
@@ -359,7 +295,7 @@ def page_data(config: ml_collections.ConfigDict, out: dict[str, Any],
            'max_diff': round(float(np.abs(frames[k] - factual).max()), 4)}
           for k in range(num_slots)]
     per_video = out['video_metrics']
-    metrics = {name: {labels[method]: _clean(per_video[method][name][v])
+    metrics = {name: {labels[method]: metrics_file.clean(per_video[method][name][v])
                       for method in methods}
                for name in VIDEO_METRICS
                if name in per_video[models.SLOTFORMER]}
