@@ -305,8 +305,10 @@ def _problem(value: Any, kind: str) -> str | None:
     return None
   if kind == 'text' and isinstance(value, str):
     return f'is a text of {len(value)} characters, more than {MAX_TEXT_CHARS}'
-  return (f'is {shown(repr(value), 40)} ({type(value).__name__}), not '
-          f'{"an" if kind in ("int", "object") else "a"} {kind}')
+  what = (f'a {type(value).__name__}' if isinstance(value, (dict, list))
+          else f'{shown(repr(value), 40)} ({type(value).__name__})')
+  return f'is {what}, not {"an" if kind in ("int", "object") else "a"} {kind}'
+
 
 
 def _check_fields(entry: Any, fields: Mapping[str, str],

@@ -16,6 +16,7 @@ from __future__ import annotations
 import math
 import os
 import re
+import struct
 import warnings
 from collections.abc import Sequence
 from pathlib import Path
@@ -85,6 +86,18 @@ def resize_labels(labels: np.ndarray, size: Sequence[int]) -> np.ndarray:
   return labels[..., rows[:, None], cols[None, :]]
 
 
+_PNG_SIGNATURE = b'\x89PNG\r\n\x1a\n'
+
+
+def png_size(head: bytes) -> tuple[int, int] | None:
+  """(width, height) that a PNG's header (its first 24 bytes) states, read
+  before any decoder sees the file; None if `head` is not a PNG's."""
+  if len(head) < 24 or not head.startswith(_PNG_SIGNATURE) or (
+      head[12:16] != b'IHDR'):
+    return None
+  return struct.unpack('>II', head[16:24])
+
+
 # Pixels of one image file a converter decodes (OBJ3D's frames are 64 x 64,
 # a PHYRE rollout strip 15 frames of 256 x 256): a header may claim any
 # size, and is checked before anything is decoded.
@@ -102,6 +115,12 @@ def read_image(path: Path, *, max_pixels: int = MAX_IMAGE_PIXELS
       image.
   """
   try:
+    with open(path, 'rb') as f:
+      stated = png_size(f.read(24))
+    if stated is not None and stated[0] * stated[1] > max_pixels:
+      raise SkipVideo('unreadable_frame', f'{path}: its PNG header says '
+                      f'{stated[0]}x{stated[1]} pixels, more than the '
+                      f'{max_pixels} a frame may have')
     with warnings.catch_warnings():
       warnings.simplefilter('error', Image.DecompressionBombWarning)
       with Image.open(path) as image:

@@ -597,6 +597,12 @@ def _decode_png(data: bytes, shape: Sequence[int | None], where: str
   decoded (a header may claim 10^6 x 10^6 pixels, a real frame may be far
   larger than features.json says)."""
   want = tuple(d for d in shape)
+  stated = media.png_size(data[:24])
+  if stated is None:
+    raise ValueError(f'{where}: a frame that is not a PNG')
+  if (stated[1], stated[0]) != tuple(want[:2]):
+    raise ValueError(f'{where}: a {stated[1]}x{stated[0]} frame (its PNG '
+                     f'header), features.json says {want[0]}x{want[1]}')
   with warnings.catch_warnings():
     # PIL's own bomb check warns first: an error here, the size check below
     # names it.
