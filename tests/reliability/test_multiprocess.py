@@ -644,3 +644,37 @@ def test_a_process_that_leaves_outside_training_stops_the_others(
           logs[other][-3000:])
   assert took < 30, took
   print(f'both processes ended {took:.1f} s after the signal')
+
+
+@pytest.mark.slow
+def test_ctrl_c_to_one_process_during_evaluation(tmp_path):
+  """The issue's case: two processes evaluate, Ctrl-C reaches one of them
+  (here as soon as the stage starts: it compiles for seconds). Before: it
+  exited 130, the other blocked in a collective, and after about 300 s both
+  aborted with C++ stack dumps (status 134). Now: 130 and one line, and
+  the other names it and exits 1, within seconds."""
+  data_dir = tmp_path / 'data'
+  workdir = str(tmp_path / 'run')
+  for mode in ('train_savi', 'extract_slots', 'train_slotformer'):
+    _finished(Run(workdir, data_dir, 2, mode=mode, extra=FEW_VIDEOS))
+  run = Run(workdir, data_dir, 2, mode='evaluate', extra=FEW_VIDEOS)
+  run.wait_for('=== evaluate ===', i=1, timeout=600)
+  run.processes[1].send_signal(signal.SIGINT)
+  signalled = time.time()
+  statuses = run.wait(timeout=120)
+  took = time.time() - signalled
+  logs = [run.log(i) for i in (0, 1)]
+  assert statuses == [processes.LOST_PROCESS_EXIT, 130], [
+      log[-3000:] for log in logs]
+  for log in logs:
+    _assert_clean(log)
+  assert _lines(logs[1]) == ['interrupted: Ctrl-C outside training; re-run '
+                             'the same command to resume from what was '
+                             'saved.'], logs[1][-3000:]
+  assert _lines(logs[0]) == [
+      'error: process 1 of 2 stopped (exit status 130: interrupted by Ctrl-C '
+      'outside training); stopping process 0 too. Re-run every process with '
+      'the same command: training resumes from the last saved checkpoint.'], (
+          logs[0][-3000:])
+  assert took < 30, took
+  print(f'both processes ended {took:.1f} s after the signal')
