@@ -53,7 +53,7 @@ def shown(text: object, limit: int = 200) -> str:
   return ''.join(out) + ('...' if cut else '')
 
 
-def one_line(message: object, limit: int = 2000) -> str:
+def one_line(message: object, limit: int = 20000) -> str:
   """A message as the single line main prints: its own lines joined, and
   anything a terminal would act on escaped (`shown`), so that no text
   quoted in it reaches the terminal raw."""

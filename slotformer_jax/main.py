@@ -172,9 +172,11 @@ def main(argv):
   # Every check before any work: a bad value costs seconds, not a stage.
   config_checks.validate(config, selected, num_devices=jax.device_count(),
                          num_processes=jax.process_count())
+  global _lock
   lock = workdir_lib.workdir_lock(workdir)
   if jax.process_index() == 0:
     lock.acquire()
+    _lock = lock
   try:
     _run(config, workdir, selected)
   finally:
@@ -182,6 +184,7 @@ def main(argv):
 
 
 _watchdog: processes.PeerWatchdog | None = None
+_lock = None  # the workdir's lock, while this process holds it
 
 
 def _start_processes(config, workdir: str, mode: str) -> None:
@@ -206,20 +209,35 @@ def _start_processes(config, workdir: str, mode: str) -> None:
   _watchdog = processes.PeerWatchdog(
       directory, jax.process_index(), jax.process_count(),
       timeout=_PEER_TIMEOUT.value).start()
-  # Outside training (which saves first) SIGTERM ends this process through
-  # `leave` too, so the others learn why at once.
-  signal.signal(signal.SIGTERM, _terminated)
+  # Outside training (which saves first) Ctrl-C and SIGTERM end this
+  # process through `leave`, so the others learn why at once.
+  for signum in (signal.SIGINT, signal.SIGTERM):
+    if signal.getsignal(signum) is not signal.SIG_IGN:
+      signal.signal(signum, _interrupted)
   processes.agree(config.to_dict(), mode, workdir, directory=directory,
                   startup=startup, watchdog=_watchdog)
 
 
-class _Terminated(BaseException):
-  """SIGTERM outside a training loop, with several processes."""
+_SIGNAL_LINES = {
+    signal.SIGINT: ('interrupted: Ctrl-C', 'interrupted by Ctrl-C'),
+    signal.SIGTERM: ('terminated: SIGTERM', 'terminated by SIGTERM'),
+}
 
 
-def _terminated(signum, frame) -> None:
-  del signum, frame
-  raise _Terminated()
+def _interrupted(signum, frame) -> None:
+  """Ctrl-C or SIGTERM outside training, with several processes: this
+  process ends from the handler itself. A KeyboardInterrupt raised here can
+  be swallowed: Python raises it in whatever runs next, and when that was
+  jax's garbage-collection callback it printed 'Exception ignored' and the
+  run went on (measured during evaluation)."""
+  del frame
+  line, reason = _SIGNAL_LINES[signum]
+  # os.write: the main thread may be inside a print to stderr right now.
+  os.write(2, f'{line} outside training; re-run the same command to resume '
+           'from what was saved.\n'.encode())
+  if _lock is not None:
+    _lock.release()
+  _leave(128 + signum, f'{reason} outside training')
 
 
 def _leave(status: int, reason: str) -> None:
@@ -308,12 +326,6 @@ def run_main(argv: list[str] | None = None) -> None:
           'resume from what was saved.', file=sys.stderr)
     status = 128 + 2
     _leave(status, 'interrupted by Ctrl-C outside training')
-    sys.exit(status)
-  except _Terminated:
-    print('terminated: SIGTERM outside training; re-run the same command to '
-          'resume from what was saved.', file=sys.stderr)
-    status = 128 + 15
-    _leave(status, 'terminated by SIGTERM outside training')
     sys.exit(status)
   except Exception as error:
     if _watchdog is not None:

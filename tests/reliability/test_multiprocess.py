@@ -530,10 +530,12 @@ def _assert_clean(log):
 
 
 @pytest.mark.parametrize('differs, needle', [
-    (['--config.savi.num_slots=4'],
-     '--config.savi.num_slots: 5 on process 0, 4 on process 1'),
-    (['--mode=extract_slots'],
-     '--mode: train_savi on process 0, extract_slots on process 1'),
+    pytest.param(['--config.savi.num_slots=4'],
+                 '--config.savi.num_slots: 5 on process 0, 4 on process 1',
+                 id='config'),
+    pytest.param(['--mode=extract_slots'],
+                 '--mode: train_savi on process 0, extract_slots on process 1',
+                 id='mode', marks=pytest.mark.slow),
 ])
 def test_processes_started_differently_stop_before_work(tmp_path, differs,
                                                         needle):
@@ -563,7 +565,8 @@ def test_processes_started_differently_stop_before_work(tmp_path, differs,
 
 
 @pytest.mark.parametrize('present', [
-    0, pytest.param(1, marks=pytest.mark.slow)])
+    pytest.param(0, id='only_0'),
+    pytest.param(1, id='only_1', marks=pytest.mark.slow)])
 def test_a_process_that_never_starts_is_named_in_time(tmp_path, present):
   """Only one of two processes is started: it names the other within
   --startup_timeout (5 s here) of its start, in one line. Before: nothing
@@ -600,10 +603,12 @@ def _hold_dataset_lock(data_dir):
 
 
 @pytest.mark.parametrize('signum, leaver', [
-    (signal.SIGINT, 1),
-    (signal.SIGINT, 0),
-    pytest.param(signal.SIGTERM, 1, marks=pytest.mark.slow),
-    pytest.param(signal.SIGTERM, 0, marks=pytest.mark.slow),
+    pytest.param(signal.SIGINT, 0, id='sigint_to_0'),
+    pytest.param(signal.SIGINT, 1, id='sigint_to_1', marks=pytest.mark.slow),
+    pytest.param(signal.SIGTERM, 0, id='sigterm_to_0',
+                 marks=pytest.mark.slow),
+    pytest.param(signal.SIGTERM, 1, id='sigterm_to_1',
+                 marks=pytest.mark.slow),
 ])
 def test_a_process_that_leaves_outside_training_stops_the_others(
     tmp_path, signum, leaver):
