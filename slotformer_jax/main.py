@@ -43,6 +43,7 @@ from slotformer_jax.errors import one_line
 from slotformer_jax.files import append_line_atomic
 from slotformer_jax.train import processes
 from slotformer_jax.train import sharding
+from slotformer_jax.train import startup
 from slotformer_jax.train.trainer import Preempted
 
 _CONFIG = config_flags.DEFINE_config_file(
@@ -189,11 +190,11 @@ _lock = None  # the workdir's lock, while this process holds it
 
 def _start_processes(config, workdir: str, mode: str) -> None:
   """jax.distributed with a bounded start, then, before any work, every
-  process checks that all were started alike (`processes.agree`); from then
+  process checks that all were started alike (`startup.agree`); from then
   on each one that ends early tells the others (`PeerWatchdog.leave`)."""
   global _watchdog
   directory = os.path.join(workdir, '.processes')
-  startup = processes.Startup(
+  start = startup.Startup(
       directory, _PROCESS_ID.value, _NUM_PROCESSES.value,
       timeout=_STARTUP_TIMEOUT.value,
       coordinator=_COORDINATOR_ADDRESS.value).begin()
@@ -203,7 +204,7 @@ def _start_processes(config, workdir: str, mode: str) -> None:
       _COORDINATOR_ADDRESS.value, _NUM_PROCESSES.value, _PROCESS_ID.value,
       heartbeat_timeout=max(100, int(3 * _PEER_TIMEOUT.value)),
       initialization_timeout=int(_STARTUP_TIMEOUT.value) + 60)
-  startup.end()
+  start.end()
   if jax.process_count() == 1:
     return
   _watchdog = processes.PeerWatchdog(
@@ -214,8 +215,8 @@ def _start_processes(config, workdir: str, mode: str) -> None:
   for signum in (signal.SIGINT, signal.SIGTERM):
     if signal.getsignal(signum) is not signal.SIG_IGN:
       signal.signal(signum, _interrupted)
-  processes.agree(config.to_dict(), mode, workdir, directory=directory,
-                  startup=startup, watchdog=_watchdog)
+  startup.agree(config.to_dict(), mode, workdir, directory=directory,
+                startup=start, watchdog=_watchdog)
 
 
 _SIGNAL_LINES = {
@@ -316,7 +317,7 @@ def run_main(argv: list[str] | None = None) -> None:
   except UserError as error:
     line = _one_line(error)
     print(f'error: {line}', file=sys.stderr)
-    status = 2 if isinstance(error, processes.Disagreement) else 1
+    status = 2 if isinstance(error, startup.Disagreement) else 1
     _quiet_teardown()
     _leave(status, f'error: {line}')
     sys.exit(status)
