@@ -292,9 +292,9 @@ def encode_scenes(scenes: Sequence[Mapping[str, Any]], vocab: Vocabulary,
 def _problem(value: Any, kind: str) -> str | None:
   """Why `value` is not of `kind` ('int', 'text', 'list', 'object'), or
   None."""
-  if kind == 'int':
+  if kind == 'int':  # ids and indices are stored as int32
     ok = isinstance(value, int) and not isinstance(value, bool) and (
-        -2**53 < value < 2**53)
+        -2**31 <= value < 2**31)
   elif kind == 'text':
     ok = isinstance(value, str) and len(value) <= MAX_TEXT_CHARS
   elif kind == 'list':
@@ -305,6 +305,8 @@ def _problem(value: Any, kind: str) -> str | None:
     return None
   if kind == 'text' and isinstance(value, str):
     return f'is a text of {len(value)} characters, more than {MAX_TEXT_CHARS}'
+  if kind == 'int' and isinstance(value, int) and not isinstance(value, bool):
+    return f'is {shown(repr(value), 40)}, outside the 32-bit ints'
   what = (f'a {type(value).__name__}' if isinstance(value, (dict, list))
           else f'{shown(repr(value), 40)} ({type(value).__name__})')
   return f'is {what}, not {"an" if kind in ("int", "object") else "a"} {kind}'

@@ -234,7 +234,7 @@ def _choice(scenes):
 
 
 # The kinds of malformed content; each was a traceback from encode_question
-# or read_json before.
+# or read_json before (the choice id past int32 was found by the fuzz).
 QUESTION_FILES = [
     ('an object at the top', lambda s: {'scenes': s},
      'is a dict, not a list of scenes'),
@@ -248,6 +248,9 @@ QUESTION_FILES = [
      "scene 0: 'scene_index' is '0' (str), not an int"),
     ('a question id as a float', lambda s: _question(s).update(
         question_id=1.5) or s, "question 0: 'question_id' is 1.5 (float)"),
+    ('a choice id past int32', lambda s: _choice(s).update(
+        choice_id=2**31) or s,
+     "choice 0: 'choice_id' is 2147483648, outside the 32-bit ints"),
     ('no question type', lambda s: _question(s).pop('question_type') and s,
      "question 0 has no 'question_type'"),
     ('a misspelled question type', lambda s: _question(s).update(
