@@ -99,6 +99,9 @@ def _features(tree):
     ('features.json', lambda t: _features(t)['video']['video'].update(
         shape={'dimensions': ['3', '1000000', '1000000', '3']}),
      'videos of 3 frames of 1000000x1000000'),
+    ('features.json', lambda t: _features(t)['video']['video'].update(
+        shape={'dimensions': ['3', '16', '16', '0']}),
+     'video frames of (0,) and segmentations of (1,) channels'),
     ('dataset_info.json', lambda t: t['splits'][0].pop('name') and None,
      'split 0 is not an object with a text "name"'),
     ('dataset_info.json', lambda t: t.update(splits={'train': 1}),

@@ -444,6 +444,12 @@ def read_source(source: Path) -> SourceInfo:
   if num_frames is None or height is None or width is None:
     raise LayoutError(f'{features_path}: video shape {video.shape} + '
                       f'{video.image_shape} is not fixed')
+  channels = (video.image_shape or (None,) * 3)[2:]
+  segmentation = (leaves[_SEGMENTATIONS].image_shape or (None,) * 3)[2:]
+  if channels != (3,) or segmentation not in ((1,), (None,)):
+    raise LayoutError(f'{features_path}: video frames of {channels} and '
+                      f'segmentations of {segmentation} channels; MOVi has '
+                      'RGB frames (3) and one-channel segmentations')
   if not (1 <= num_frames <= MAX_SOURCE_FRAMES
           and 1 <= min(height, width) <= max(height, width)
           <= MAX_SOURCE_SIDE):
