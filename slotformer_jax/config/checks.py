@@ -322,11 +322,35 @@ def validate(config: ml_collections.ConfigDict, stages: Sequence[str], *,
 
   problems.extend(check_field_kinds(config))
   problems[:] = list(dict.fromkeys(problems))  # the same line from two checks
+  _check_splits(config, stages, problems)
   if not problems:  # sizes and lengths need the integers above to be sane
     problems.extend(slot_model_problems)
     _check_lengths(config, stages, dynamics, problems, video_length)
   if problems:
     raise ConfigError('config: ' + '; '.join(problems))
+
+
+def _check_splits(config: ml_collections.ConfigDict, stages,
+                  problems: list[str]) -> None:
+  """The splits the later stages read must be ones whose slots are
+  extracted: before, evaluation.split='valid' was accepted, three stages
+  trained, and evaluation then asked, forever, for slots that the
+  extraction (of extraction.splits only) never makes."""
+  extracted = tuple(config.extraction.get('splits', ()))
+  wanted = []
+  if set(stages) & {'evaluate', 'render', 'explore'}:
+    wanted.append(('evaluation.split', config.evaluation.split))
+  readout = config.get('readout', None)
+  if readout is not None and readout.get('splits', None) is not None and (
+      set(stages) & {'train_readout', 'evaluate_readout', 'plan'}):
+    wanted += [(f'readout.splits.{k}', v)
+               for k, v in sorted(readout.splits.items())]
+  for field, split in wanted:
+    if split not in extracted:
+      problems.append(
+          f'{field}={split!r} is not one of the splits whose slots are '
+          f'extracted (extraction.splits: {", ".join(extracted)}); use one '
+          'of them, or add it to extraction.splits if the dataset has it')
 
 
 def _check_lengths(config, stages, dynamics, problems, video_length) -> None:
