@@ -112,7 +112,8 @@ def _linear_stage(directory, **config_changes):
   """A one-parameter stage, TensorBoard on."""
   config = ml_collections.ConfigDict(dict(
       num_train_steps=3, learning_rate=1e-2, warmup_fraction=0.0,
-      grad_clip=0.0, batch_size=4, log_every=1, checkpoint_every=2))
+      grad_clip=0.0, min_lr_fraction=0.0, stop_check_every=1, batch_size=4,
+      log_every=1, checkpoint_every=2))
   config.update(config_changes)
 
   def loss_fn(params, batch, frozen_params, rng):
