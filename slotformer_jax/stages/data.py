@@ -51,7 +51,10 @@ def splits_read(config: ml_collections.ConfigDict) -> tuple[str, ...]:
   splits = ['train', *config.extraction.splits]
   if not config.task:
     splits.append(config.evaluation.split)
-  if 'readout' in config and 'splits' in config.readout:
+  # The embedded PHYRE-like tasks split by task, not by data split: only
+  # contact and the rendered PHYRE layout read `readout.splits`.
+  if config.task == 'contact' or (config.task == 'planning'
+                                  and config.data.name == 'phyre'):
     splits += list(config.readout.splits.values())
   return tuple(dict.fromkeys(splits))
 

@@ -594,11 +594,10 @@ def _hold_dataset_lock(data_dir):
   """Locks the micro config's synthetic dataset as a live generator on
   this host would (this test's own pid): both processes then wait for it,
   outside any training loop."""
-  from slotformer_jax.data import sources  # pylint: disable=g-import-not-at-top
-  from slotformer_jax.data.convert import synthetic  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.data.embedded import synthetic  # pylint: disable=g-import-not-at-top
   config = pipeline_helpers.micro_config('savi', data_dir)
   path = synthetic.dataset_dir(
-      sources.synthetic_config_from_data_config(config.data), data_dir)
+      synthetic.config_from_data_config(config.data), data_dir)
   path.parent.mkdir(parents=True)
   lock = path.parent / f'.{path.name}.lock'
   lock.write_text(json.dumps({'pid': os.getpid(), 'host': socket.gethostname(),
