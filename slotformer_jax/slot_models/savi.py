@@ -156,8 +156,16 @@ class Savi(SlotModel):
     super().__init__(config)
     self.section = config.savi
     self.resolution = tuple(config.data.resolution)
-    self.model = build_savi(config.savi, self.resolution)
-    self.decoder = self.model.decoder  # alone: params['savi']['decoder']
+
+  # Built on first use, so that the config checks (`check_config`,
+  # config/checks.py) report a bad value as one line before any module is.
+  @functools.cached_property
+  def model(self) -> Any:
+    return build_savi(self.section, self.resolution)
+
+  @property
+  def decoder(self) -> Any:
+    return self.model.decoder  # alone: params['savi']['decoder']
 
   @property
   def slot_shape(self) -> tuple[int, int]:

@@ -304,10 +304,21 @@ class Steve(SlotModel):
   def __init__(self, config: ml_collections.ConfigDict):
     super().__init__(config)
     self.resolution = tuple(config.data.resolution)
-    self.model = build_steve(config.steve, self.resolution,
-                             config.dvae.vocab_size)
-    self.dvae = build_dvae(config.dvae)
-    self.token_decoder = token_decoder(self.model)
+
+  # Built on first use, so that the config checks report a bad value as one
+  # line before any module is.
+  @functools.cached_property
+  def model(self) -> Any:
+    return build_steve(self.config.steve, self.resolution,
+                       self.config.dvae.vocab_size)
+
+  @functools.cached_property
+  def dvae(self) -> Any:
+    return build_dvae(self.config.dvae)
+
+  @functools.cached_property
+  def token_decoder(self) -> Any:
+    return token_decoder(self.model)
 
   @property
   def slot_shape(self) -> tuple[int, int]:
