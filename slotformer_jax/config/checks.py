@@ -16,6 +16,7 @@ import os
 import re
 import traceback
 from collections.abc import Callable, Sequence
+from typing import Any
 
 import ml_collections
 
@@ -169,6 +170,9 @@ _FIELD_KINDS = (
     (r'(^|_)weight$|^grad_clip$', 'float', 0.0, None, 'a number >= 0'),
     (r'epsilon$|^prior_sigma$|^gumbel_(start|final)$|_seconds$|'
      r'^object_scale$', 'float', 0.0, None, 'a number > 0'),
+    # Aloe draws no question of a kind whose batch is 0 (open-only or
+    # choice-only training); one must be > 0 (`validate`).
+    (r'^vqa\.(open|choice)_batch_size$', 'int', 0, None, 'an integer >= 0'),
     (r'batch_size$|_every$|^num_(slots|layers|heads|iterations|train_steps|'
      r'frames|candidates)$|^(slot|mlp|hidden|vocab|output|head|word)_size$|'
      r'^(embed_dim|d_model|kernel_size|chunk_length|clip_length|burn_in|'
@@ -273,15 +277,23 @@ def validate(config: ml_collections.ConfigDict, stages: Sequence[str], *,
 
   stages = set(stages)
   dynamics = trained_dynamics(config)
-  # Every stage-1 part trained here (`train_<section>`): its section's
-  # training integers, and a batch that splits over the devices.
+  # Every part trained here by steps (`train_<section>`: stage 1, Aloe):
+  # its section's training integers, and a batch that splits over the
+  # devices. A task's readout (`train_readout`) trains by epochs: its
+  # fields are checked by their kinds.
   for stage in sorted(stages):
     section = stage[len('train_'):]
     if (stage.startswith('train_') and section not in DYNAMICS_MODELS
         and isinstance(config.get(section), ml_collections.ConfigDict)
-        and 'batch_size' in config[section]):
-      positive(section, _TRAINING_INTS)
-      divisible(f'{section}.batch_size', config[section].batch_size)
+        and 'num_train_steps' in config[section]):
+      if section == 'vqa':  # one batch per kind of question
+        positive(section, _TRAINING_INTS[1:])
+        _check_vqa_batches(config.vqa, problems, divisible)
+      else:
+        positive(section, _TRAINING_INTS)
+        divisible(f'{section}.batch_size', config[section].batch_size)
+  if 'evaluate_vqa' in stages:
+    divisible('vqa.eval_batch_size', config.vqa.eval_batch_size)
   positive('savi', ('num_slots', 'slot_size', 'clip_length'))
   positive('data', ('max_instances',))
   if 'extract_slots' in stages:
@@ -327,6 +339,23 @@ def validate(config: ml_collections.ConfigDict, stages: Sequence[str], *,
     _check_lengths(config, stages, dynamics, problems, video_length)
   if problems:
     raise ConfigError('config: ' + '; '.join(problems))
+
+
+def _check_vqa_batches(vqa: ml_collections.ConfigDict, problems: list[str],
+                       divisible: Callable[[str, Any], None]) -> None:
+  """Aloe's two batches: each an integer >= 0 (0: that kind of question is
+  not drawn), not both 0, each split over the devices."""
+  sizes = {f'vqa.{name}': vqa.get(name)
+           for name in ('open_batch_size', 'choice_batch_size')}
+  for name, size in sizes.items():
+    if not isinstance(size, int) or isinstance(size, bool) or size < 0:
+      problems.append(f'{name} must be an integer >= 0, got {size!r}')
+      return
+    divisible(name, size)
+  if not any(sizes.values()):
+    problems.append('vqa.open_batch_size and vqa.choice_batch_size are both '
+                    '0: Aloe would train on nothing; give one kind of '
+                    'question a batch')
 
 
 def _check_lengths(config, stages, dynamics, problems, video_length) -> None:

@@ -27,6 +27,9 @@ from slotformer_jax.workdir.paths import Paths
 # Settings that pick a variant with its own folder (vqa/<inputs>_s<seed>/):
 # one workdir holds every Aloe input and seed of a comparison.
 VARIANT_SELECTORS = ('vqa.inputs', 'vqa.seed', 'vqa.eval_split')
+# What a stage accepts as input, not what it makes: changing one is no
+# change of settings.
+INPUT_THRESHOLDS = ('vqa.max_missing_video_fraction',)
 
 
 def accept_config(settings: dict[str, Any], paths: Paths, *,
@@ -71,4 +74,4 @@ def _only_observation(change: str) -> bool:
   # too: a workdir from before the explorer has no `explore` section).
   return (last in NOT_SHAPING or name in ('render', 'explore', 'logging')
           or name.startswith(('render.', 'explore.', 'logging.'))
-          or name in VARIANT_SELECTORS)
+          or name in VARIANT_SELECTORS or name in INPUT_THRESHOLDS)

@@ -299,11 +299,43 @@ def test_values_that_cannot_work_fail_before_work(tmp_path, field, value,
   assert not os.path.exists(tmp_path / 'data')
 
 
+@pytest.mark.parametrize('open_size, choice_size, expected', [
+    (0, 8, None), (8, 0, None),  # one kind of question is not drawn
+    (0, 0, 'vqa.open_batch_size and vqa.choice_batch_size are both 0'),
+    (-8, 8, 'vqa.open_batch_size must be an integer >= 0, got -8'),
+    (8, 3, 'vqa.choice_batch_size=3 does not split over the 2 devices'),
+])
+def test_aloe_batch_sizes_may_leave_out_one_kind_of_question(
+    open_size, choice_size, expected):
+  # Before: a batch of 0 was refused (`batch_size$`: an integer >= 1), so an
+  # open-only or choice-only question set could not be trained on.
+  config = pipeline_helpers.load_config('synthetic_vqa')
+  config.vqa.open_batch_size, config.vqa.choice_batch_size = (open_size,
+                                                              choice_size)
+  if expected is None:
+    check(config, ('train_vqa',), num_devices=2)
+    return
+  with pytest.raises(UserError) as error:
+    check(config, ('train_vqa',), num_devices=2)
+  assert str(error.value).count(expected) == 1, str(error.value)
+
+
 @pytest.mark.parametrize('spec', list(_every_config_spec()))
 def test_every_shipped_config_passes_the_field_kinds(spec):
   config = config_checks.load_config_file(spec)
   assert config_checks.check_field_kinds(config) == []
   assert slot_models.get(config).check_config(frozenset()) == []
+
+
+@pytest.mark.parametrize('spec', list(_every_config_spec()))
+def test_every_shipped_config_passes_the_checks_of_its_whole_run(spec):
+  # The checks once took the contact readout's section (epochs, no steps)
+  # for a stage-1 part: every contact and planning run was refused.
+  from slotformer_jax import stages  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.run import Run  # pylint: disable=g-import-not-at-top
+  run = Run.create(config_checks.load_config_file(spec), '/nonexistent/run')
+  run.check(stages.selected_stages(run, 'all'), num_devices=1,
+            num_processes=1)
 
 
 def _nan_stage(directory, checkpoint_every):
@@ -463,3 +495,4 @@ def test_the_converter_reports_a_missing_config_in_one_line(tmp_path):
   line = _one_error_line(result)
   assert result.returncode == 2
   assert 'config file nope.py does not exist' in line
+
