@@ -11,7 +11,10 @@ misleading line or a silently bad run, and checks the line that replaces it:
 3. rates, sizes, clip norms, loss weights that cannot work, by field kind;
    a loss that becomes non-finite names its term;
 4. places that cannot be written: the workdir (lock file), the dataset
-   cache, the converter's output.
+   cache, the converter's output;
+5. lines that sent the user the wrong way (issue 38): a video-prediction
+   mode on a task config, the settings of a first run that made nothing,
+   a CLEVRER download without the test videos.
 """
 
 import errno
@@ -496,3 +499,76 @@ def test_the_converter_reports_a_missing_config_in_one_line(tmp_path):
   assert result.returncode == 2
   assert 'config file nope.py does not exist' in line
 
+
+# --------------------------------------------------------------------------
+# 5. lines that sent the user the wrong way (issue 38)
+# --------------------------------------------------------------------------
+
+
+def test_a_video_prediction_mode_on_a_task_config_names_its_config():
+  # `--mode=explore` on a contact run once said "Task stages need a task
+  # config, e.g. configs/synthetic_contact.py": the config it was given.
+  from slotformer_jax import stages  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.errors import CommandLineError  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.run import Run  # pylint: disable=g-import-not-at-top
+  run = Run.create(config_checks.load_config_file(
+      os.path.join(CONFIGS, 'synthetic_contact.py')), '/nonexistent/run')
+  with pytest.raises(CommandLineError) as error:
+    stages.selected_stages(run, 'explore')
+  line = str(error.value)
+  assert '\n' not in line and 'synthetic_contact' not in line, line
+  assert line.endswith('--mode=explore belongs to configs/synthetic.py.')
+
+
+def test_a_first_run_that_made_nothing_keeps_no_settings(tmp_path,
+                                                         monkeypatch):
+  # A first run that stopped before any work (here: no questions where
+  # vqa.questions_root points) kept its config.json, and the corrected
+  # command was refused as a change of settings (--allow_config_change).
+  import types  # pylint: disable=g-import-not-at-top
+  from slotformer_jax import main as main_lib  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.run import Run  # pylint: disable=g-import-not-at-top
+  monkeypatch.setattr(main_lib, '_ALLOW_CONFIG_CHANGE',
+                      types.SimpleNamespace(value=False))
+  config = pipeline_helpers.load_config('clevrer_vqa')
+  workdir = tmp_path / 'run'
+  workdir.mkdir()  # as taking the workdir's lock does
+
+  def train_vqa(questions_root: str) -> str:
+    config.vqa.questions_root = str(tmp_path / questions_root)
+    with pytest.raises(UserError) as error:
+      main_lib._run(Run.create(config, str(workdir)), ('train_vqa',))  # pylint: disable=protected-access
+    return str(error.value)
+
+  assert 'typo/questions/train.json not found' in train_vqa('typo')
+  assert not (workdir / 'config.json').exists()
+  # The corrected command is a first run too: it fails for want of the
+  # questions, not for its settings.
+  assert 'clevrer/questions/train.json not found' in train_vqa('clevrer')
+  # A workdir that holds work keeps the settings it was made with.
+  (workdir / 'vqa' / 'slots').mkdir(parents=True)
+  (workdir / 'vqa' / 'slots' / 'train.npy').write_bytes(b'slots')
+  train_vqa('clevrer')
+  assert (workdir / 'config.json').exists()
+  assert 'was run with other settings: vqa.questions_root' in train_vqa(
+      'elsewhere')
+
+
+def test_clevrer_without_test_videos_names_the_splits_flag(tmp_path,
+                                                            capsys):
+  # The test videos are only for VQA's test predictions, but converting
+  # every split is the default: the line asked for videos/test and stopped.
+  import dataset_fixtures as fx  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.data.convert import prepare  # pylint: disable=g-import-not-at-top
+  source = tmp_path / 'CLEVRER'
+  fx.write_clevrer_video(source, 'train', 0, num_frames=4)
+  fx.write_clevrer_video(source, 'val', 10000, num_frames=4)
+  assert prepare.main([
+      '--dataset=clevrer', f'--source={source}',
+      f'--data_dir={tmp_path / "data"}', '--resolution=8', '--num_frames=4',
+      '--masks=ignore', '--num_workers=1', '--no_progress']) == 1
+  error = capsys.readouterr().err
+  assert error.startswith(f'error: CLEVRER: {source}/videos/test not found'
+                          ), error
+  assert 'without them convert the others: --splits=train,val' in error
+  assert not (tmp_path / 'data').exists()
