@@ -25,8 +25,6 @@ AUCCESS, first-frame one 80.3, random 42.4, oracle 100 (dev: 92.4 vs
 83.9); folds 1-2 and the mean over folds in docs/downstream.md.
 """
 
-import ml_collections
-
 from slotformer_jax.config.defaults import base_config
 from slotformer_jax.config.defaults import use_cpu_demo_savi
 from slotformer_jax.config.defaults import planning_readout_config

@@ -18,10 +18,12 @@ import contextlib
 import io
 import json
 import os
+import pathlib
 import secrets
 from typing import Any, Iterator
 
 from slotformer_jax.errors import UserError
+from slotformer_jax.errors import shown
 
 
 def write_atomic(path: str | os.PathLike[str], data: bytes | str) -> None:
@@ -119,3 +121,111 @@ def read_json(path: str | os.PathLike[str], *, fix: str | None = None) -> Any:
         f'{path} is {what}: it was torn by an interrupted write (disk full, '
         f'crash) of an older version. {fix or "Delete it and re-run the same command; the step that writes it runs again."}'
     ) from None
+
+
+class OutsideFolderError(UserError, ValueError):
+  """A name from a file would lead out of the folder it must stay in."""
+
+
+def confined(folder: str | os.PathLike[str], name: str, *, what: str,
+             nested: bool = False) -> pathlib.Path:
+  """`folder / name` for a `name` read from a file (a dataset's own name, a
+  video id, a listed path), refused unless it stays inside `folder`.
+
+  `name` must be one plain path component (`nested=True`: several, joined
+  by '/'): not empty, not '.' or '..', not absolute, with no backslash, NUL
+  or character a terminal acts on (`errors.shown`). Symbolic links the user
+  made inside `folder` are followed as they are: what is refused is a name
+  that leads out by itself.
+
+  Raises:
+    OutsideFolderError: naming `what` and the name, escaped.
+  """
+  text = name if isinstance(name, str) else None
+  parts = [] if text is None else text.split('/')
+  why = None
+  if text is None:
+    why = f'is a {type(name).__name__}, not a text'
+  elif not text:
+    why = 'is empty'
+  elif '..' in parts:
+    why = 'leads out of the folder'
+  elif text.startswith('/'):
+    why = 'is an absolute path'
+  elif not nested and len(parts) > 1:
+    why = 'holds a "/"'
+  elif any(part in ('', '.') for part in parts):
+    why = 'has an empty or "." part'
+  elif '\\' in text or shown(text, len(text)) != text:
+    why = 'holds a backslash, NUL or control character'
+  if why is not None:
+    quoted = shown(repr(name) if text is None else text, 120)
+    raise OutsideFolderError(
+        f"{what} '{quoted}' {why}; a name read from a file must stay inside "
+        f'{folder}')
+  return pathlib.Path(folder).joinpath(*parts)
+
+
+class UntrustedFileError(UserError, ValueError):
+  """A file from elsewhere (a download, a shared run folder) that is not
+  what it should be: the message names the file and what is wrong."""
+
+
+def depth_of(value: Any) -> int:
+  """Nesting of lists and dicts in `value` (a scalar: 0), without
+  recursion (the value may come from a hostile file)."""
+  deepest, stack = 0, [(value, 1)]
+  while stack:
+    node, depth = stack.pop()
+    if isinstance(node, dict):
+      children = node.values()
+    elif isinstance(node, list):
+      children = node
+    else:
+      continue
+    deepest = max(deepest, depth)
+    stack.extend((child, depth + 1) for child in children)
+  return deepest
+
+
+def read_untrusted_json(path: str | os.PathLike[str], *, what: str,
+                        max_bytes: int = 64 << 20, max_depth: int = 32
+                        ) -> Any:
+  """A JSON file from outside, read with limits: at most `max_bytes` (the
+  parse is linear in it, so this bounds the time too), strict UTF-8, at most
+  `max_depth` levels of lists and dicts. The caller still checks every
+  field's type.
+
+  Raises:
+    UntrustedFileError: one line naming the file (`what` says which) and
+      the problem; a missing file stays FileNotFoundError.
+  """
+  path = os.fspath(path)
+  size = os.path.getsize(path)
+  if size > max_bytes:
+    raise UntrustedFileError(f'{what} {path} holds {size} bytes, more than '
+                             f'the {max_bytes} such a file may have')
+  with open(path, 'rb') as f:
+    data = f.read(max_bytes + 1)
+  try:
+    text = data.decode('utf-8')
+  except UnicodeDecodeError as error:
+    raise UntrustedFileError(
+        f'{what} {path} is not UTF-8 text (byte {error.start})') from None
+  try:
+    value = json.loads(text)
+  except json.JSONDecodeError as error:
+    raise UntrustedFileError(f'{what} {path} is not valid JSON (line '
+                             f'{error.lineno}, column {error.colno}: '
+                             f'{error.msg})') from None
+  except (RecursionError, ValueError) as error:
+    # Deeper than the parser goes; or an int of more digits than Python
+    # converts.
+    what_wrong = ('nested too deeply' if isinstance(error, RecursionError)
+                  else shown(str(error), 120))
+    raise UntrustedFileError(f'{what} {path} cannot be read: '
+                             f'{what_wrong}') from None
+  if depth_of(value) > max_depth:
+    raise UntrustedFileError(f'{what} {path} nests lists and objects deeper '
+                             f'than {max_depth} levels')
+  return value

@@ -20,8 +20,10 @@ from __future__ import annotations
 import json
 import logging
 import os
+import signal
 import sys
 import time
+import traceback
 
 from absl import app
 from absl import flags
@@ -35,13 +37,16 @@ from slotformer_jax.config import checks as config_checks
 from slotformer_jax.data.data_dir import default_data_dir
 from slotformer_jax.errors import CommandLineError
 from slotformer_jax.errors import UserError
+from slotformer_jax.errors import one_line
 from slotformer_jax.files import append_line_atomic
 from slotformer_jax.run import Run
 from slotformer_jax.runtime import processes
+from slotformer_jax.runtime import startup
 from slotformer_jax.runtime import xla_flags
 from slotformer_jax.slot_models import chain
 from slotformer_jax.train.trainer import Preempted
 from slotformer_jax.workdir.lock import workdir_lock
+from slotformer_jax.workdir.paths import Paths
 from slotformer_jax.workdir.settings import accept_config
 from slotformer_jax.workdir.settings import withdraw_unused_config
 
@@ -75,6 +80,17 @@ _PEER_TIMEOUT = flags.DEFINE_float(
     'peer_timeout', 30.0, 'With several processes: seconds without a '
     'heartbeat from another process (in <workdir>/.processes/) after which '
     'it counts as lost and this one stops too.')
+_STARTUP_TIMEOUT = flags.DEFINE_float(
+    'startup_timeout', 120.0, 'With several processes: seconds for every '
+    'process to start, connect and agree on what it runs (config, mode, '
+    'code, workdir); a process missing by then is named and every process '
+    'stops.')
+# An empty --workdir (an unset variable: --workdir=$RUN) would make the run
+# write into the current folder.
+flags.register_validator(
+    'workdir', lambda value: value is None or bool(value.strip()),
+    message='--workdir is empty (an unset variable?); give the folder of '
+    'the run')
 _ALLOW_CONFIG_CHANGE = flags.DEFINE_bool(
     'allow_config_change', False, 'Accept settings that differ from the ones '
     'this workdir was run with: the stages they affect are retrained or '
@@ -105,6 +121,17 @@ class _OneLineErrors(logging.Filter):
     return True
 
 
+class _NoUnretrievedFutures(logging.Filter):
+  """asyncio's 'Task exception was never retrieved', once per failed write
+  of orbax's save (about 40 on a full disk): the trainer reports the failed
+  save itself, in one line."""
+
+  def filter(self, record: logging.LogRecord) -> bool:
+    return not str(record.msg).startswith(
+        ('Task exception was never retrieved',
+         'Future exception was never retrieved'))
+
+
 def _configure_logging() -> None:
   """INFO lines of this package on stderr; chatty libraries (orbax, tfds log
   through absl) only report errors, one line each."""
@@ -112,6 +139,8 @@ def _configure_logging() -> None:
   for name in ('absl', 'asyncio'):
     library_logger = logging.getLogger(name)
     if not any(isinstance(f, _OneLineErrors) for f in library_logger.filters):
+      if name == 'asyncio':
+        library_logger.addFilter(_NoUnretrievedFutures())
       library_logger.addFilter(_OneLineErrors())
   handler = _TqdmHandler()
   handler.setFormatter(logging.Formatter(
@@ -136,33 +165,28 @@ def main(argv):
   added_flags = xla_flags.apply_fast_cpu_flags()
   explicit = processes.check_flags(_COORDINATOR_ADDRESS.value,
                                    _NUM_PROCESSES.value, _PROCESS_ID.value)
-  if _PEER_TIMEOUT.value <= 0:
-    raise UserError(f'--peer_timeout={_PEER_TIMEOUT.value} must be > 0')
-  if _DISTRIBUTED.value or explicit:
-    # jax's own heartbeat (a stack dump when it fires) comes after ours.
-    processes.initialize(
-        _COORDINATOR_ADDRESS.value, _NUM_PROCESSES.value, _PROCESS_ID.value,
-        heartbeat_timeout=max(100, int(3 * _PEER_TIMEOUT.value)))
-  _configure_logging()
-  _enable_compilation_cache()
-  if added_flags:
-    logger.info('XLA_FLAGS += %s', ' '.join(added_flags))
+  for flag in (_PEER_TIMEOUT, _STARTUP_TIMEOUT):
+    if flag.value <= 0:
+      raise UserError(f'--{flag.name}={flag.value} must be > 0')
   config, workdir, mode = _CONFIG.value, _WORKDIR.value, _MODE.value
   if config is None:
     raise app.UsageError('--config is required, e.g. configs/synthetic.py')
+  _configure_logging()
+  if _DISTRIBUTED.value or explicit:
+    _start_processes(config, workdir, mode)
+  _enable_compilation_cache()
+  if added_flags:
+    logger.info('XLA_FLAGS += %s', ' '.join(added_flags))
   # The config is checked once and the run built once; every stage gets it.
   run = Run.create(config, workdir)
   selected = stages.selected_stages(run, mode)
   # Every check before any work: a bad value costs seconds, not a stage.
   run.check(selected)
-  global _watchdog
-  if jax.process_count() > 1:
-    _watchdog = processes.PeerWatchdog(
-        run.paths.heartbeats, jax.process_index(), jax.process_count(),
-        timeout=_PEER_TIMEOUT.value).start()
+  global _lock
   lock = workdir_lock(run.paths)
   if jax.process_index() == 0:
     lock.acquire()
+    _lock = lock
   try:
     _run(run, selected)
   finally:
@@ -170,6 +194,74 @@ def main(argv):
 
 
 _watchdog: processes.PeerWatchdog | None = None
+_lock = None  # the workdir's lock, while this process holds it
+
+
+def _start_processes(config, workdir: str, mode: str) -> None:
+  """jax.distributed with a bounded start, then, before any work, every
+  process checks that all were started alike (`startup.agree`); from then
+  on each one that ends early tells the others (`PeerWatchdog.leave`)."""
+  global _watchdog
+  directory = Paths.of(workdir).heartbeats
+  start = startup.Startup(
+      directory, _PROCESS_ID.value, _NUM_PROCESSES.value,
+      timeout=_STARTUP_TIMEOUT.value,
+      coordinator=_COORDINATOR_ADDRESS.value).begin()
+  # jax's own heartbeat and start timeouts (a stack dump when they fire)
+  # come after ours.
+  processes.initialize(
+      _COORDINATOR_ADDRESS.value, _NUM_PROCESSES.value, _PROCESS_ID.value,
+      heartbeat_timeout=max(100, int(3 * _PEER_TIMEOUT.value)),
+      initialization_timeout=int(_STARTUP_TIMEOUT.value) + 60)
+  start.end()
+  if jax.process_count() == 1:
+    return
+  _watchdog = processes.PeerWatchdog(
+      directory, jax.process_index(), jax.process_count(),
+      timeout=_PEER_TIMEOUT.value).start()
+  # Outside training (which saves first) Ctrl-C and SIGTERM end this
+  # process through `leave`, so the others learn why at once.
+  for signum in (signal.SIGINT, signal.SIGTERM):
+    if signal.getsignal(signum) is not signal.SIG_IGN:
+      signal.signal(signum, _interrupted)
+  startup.agree(config.to_dict(), mode, workdir, directory=directory,
+                startup=start, watchdog=_watchdog)
+
+
+_SIGNAL_LINES = {
+    signal.SIGINT: ('interrupted: Ctrl-C', 'interrupted by Ctrl-C'),
+    signal.SIGTERM: ('terminated: SIGTERM', 'terminated by SIGTERM'),
+}
+
+
+def _interrupted(signum, frame) -> None:
+  """Ctrl-C or SIGTERM outside training, with several processes: this
+  process ends from the handler itself. A KeyboardInterrupt raised here can
+  be swallowed: Python raises it in whatever runs next, and when that was
+  jax's garbage-collection callback it printed 'Exception ignored' and the
+  run went on (measured during evaluation)."""
+  del frame
+  line, reason = _SIGNAL_LINES[signum]
+  # os.write: the main thread may be inside a print to stderr right now.
+  os.write(2, f'{line} outside training; re-run the same command to resume '
+           'from what was saved.\n'.encode())
+  if _lock is not None:
+    _lock.release()
+  _leave(128 + signum, f'{reason} outside training')
+
+
+def _leave(status: int, reason: str) -> None:
+  """With several processes: ends this one now and tells the others why
+  (never returns). With one: nothing; the caller exits."""
+  if _watchdog is not None:
+    _watchdog.leave(status, reason)
+
+
+def _quiet_teardown() -> None:
+  """After the one line of a failed run: objects of orbax's failed saves
+  that Python collects while it shuts down raise again ('Exception ignored
+  in: <coroutine ...>'); nothing is left to say."""
+  sys.unraisablehook = lambda unraisable: None
 
 
 def _run(run: Run, selected: tuple[str, ...]) -> None:
@@ -233,6 +325,7 @@ def run_main(argv: list[str] | None = None) -> None:
         exit_.code if isinstance(exit_.code, int) else 1)
     raise
   except Preempted as error:
+    # Every process stops after the same step (agreed): they end together.
     print(f'preempted: {_one_line(error)}', file=sys.stderr)
     status = 128 + error.signal
     sys.exit(status)
@@ -241,19 +334,26 @@ def run_main(argv: list[str] | None = None) -> None:
     status = 2
     sys.exit(status)
   except UserError as error:
-    print(f'error: {_one_line(error)}', file=sys.stderr)
-    sys.exit(1)
+    line = _one_line(error)
+    print(f'error: {line}', file=sys.stderr)
+    status = 2 if isinstance(error, startup.Disagreement) else 1
+    _quiet_teardown()
+    _leave(status, f'error: {line}')
+    sys.exit(status)
   except KeyboardInterrupt:
     # Ctrl-C outside a training loop (which saves and raises Preempted).
     print('interrupted: Ctrl-C outside training; re-run the same command to '
           'resume from what was saved.', file=sys.stderr)
     status = 128 + 2
+    _leave(status, 'interrupted by Ctrl-C outside training')
     sys.exit(status)
-  except Exception:
+  except Exception as error:
     if _watchdog is not None:
       # A failed collective usually means another process was lost: let the
       # watchdog name it (and end this one) instead of a traceback.
       _watchdog.wait_for_verdict()
+      traceback.print_exc()
+      _leave(1, f'{type(error).__name__}: {_one_line(error)}')
     raise
   finally:
     if _watchdog is not None:
@@ -276,8 +376,9 @@ def _parse_flags(argv: list[str]) -> list[str]:
 
 
 def _one_line(error: BaseException) -> str:
-  return ' '.join(line.strip() for line in str(error).splitlines()
-                  if line.strip())
+  # Its own lines joined; nothing a terminal would act on (a name quoted
+  # from a file) reaches it raw.
+  return one_line(error)
 
 
 if __name__ == '__main__':

@@ -56,8 +56,9 @@ def micro_explorer(data_dir):
                                         video, segmentation)
 
 
-def write_micro_page(directory, data_dir):
-  """Writes `directory`/index.html; returns (its path, the page's data)."""
+def write_micro_page(directory, data_dir, curves=None):
+  """Writes `directory`/index.html; returns (its path, the page's data).
+  `curves`: the run's curves (default: one PSNR curve)."""
   config, slot_model, explorer, args = micro_explorer(data_dir)
   out = jax.device_get(explorer(*args))
   identity = {'savi': {'run_id': 'test', 'step': 0}}
@@ -67,6 +68,7 @@ def write_micro_page(directory, data_dir):
       burn_in=config.slotformer.burn_in,
       rollout=config.evaluation.rollout_steps,
       split=config.evaluation.split, explore_config=config.explore,
-      identity=identity, curves={'psnr': {'SlotFormer': [20.0, 19.0, None]}},
+      identity=identity,
+      curves=curves or {'psnr': {'SlotFormer': [20.0, 19.0, None]}},
       curves_note='test curves', seconds=0.0)
   return explore.write_page(str(directory), data), data

@@ -39,6 +39,14 @@ class PersistentId:
   pid: tuple
 
 
+@dataclasses.dataclass(frozen=True)
+class Build:
+  """`obj` then `state` then BUILD: the pickle sets `state` on `obj` (how
+  torch.save writes a state dict's `_metadata` attribute)."""
+  obj: Any
+  state: Any
+
+
 REBUILD_TENSOR = Global('torch._utils', '_rebuild_tensor_v2')
 ORDERED_DICT = Global('collections', 'OrderedDict')
 
@@ -98,6 +106,10 @@ def _emit(value: Any, out: io.BytesIO) -> None:
   elif isinstance(value, PersistentId):
     _emit(tuple(value.pid), out)
     out.write(b'Q')
+  elif isinstance(value, Build):
+    _emit(value.obj, out)
+    _emit(value.state, out)
+    out.write(b'b')
   elif isinstance(value, tuple):
     out.write(b'(')
     for item in value:

@@ -622,6 +622,8 @@ def fuzz(seed: int, cases: int, folder: str, max_bytes: int) -> None:
         verdict['problem'] = f'raised {got["type"]}, not CheckpointError'
       elif '\n' in got['message'] or path not in got['message']:
         verdict['problem'] = 'the message is not one line naming the file'
+      elif not got['message'].isprintable():
+        verdict['problem'] = 'the message holds a raw control character'
       elif reason is None:
         verdict['problem'] = 'refused a file the reference reads'
     if got['peak'] > max_bytes + MEMORY_SLACK:

@@ -22,6 +22,7 @@ import ml_collections
 
 from slotformer_jax.config.sections import DYNAMICS_MODELS
 from slotformer_jax.config.sections import dynamics_section
+from slotformer_jax.config.sections import reads_readout_splits
 from slotformer_jax.config.sections import trained_dynamics
 from slotformer_jax.errors import ConfigError
 
@@ -334,6 +335,7 @@ def validate(config: ml_collections.ConfigDict, stages: Sequence[str], *,
 
   problems.extend(check_field_kinds(config))
   problems[:] = list(dict.fromkeys(problems))  # the same line from two checks
+  _check_splits(config, stages, problems)
   if not problems:  # sizes and lengths need the integers above to be sane
     problems.extend(slot_model_problems)
     _check_lengths(config, stages, dynamics, problems, video_length)
@@ -356,6 +358,30 @@ def _check_vqa_batches(vqa: ml_collections.ConfigDict, problems: list[str],
     problems.append('vqa.open_batch_size and vqa.choice_batch_size are both '
                     '0: Aloe would train on nothing; give one kind of '
                     'question a batch')
+
+
+def _check_splits(config: ml_collections.ConfigDict, stages,
+                  problems: list[str]) -> None:
+  """The splits the later stages read must be ones whose slots are
+  extracted: before, evaluation.split='valid' was accepted, three stages
+  trained, and evaluation then asked, forever, for slots that the
+  extraction (of extraction.splits only) never makes."""
+  extracted = tuple(config.extraction.get('splits', ()))
+  wanted = []
+  if set(stages) & {'evaluate', 'render', 'explore'}:
+    wanted.append(('evaluation.split', config.evaluation.split))
+  # Only where the task reads them (as the data stage: the embedded
+  # PHYRE-like planning splits by task and extracts 'train' only).
+  if reads_readout_splits(config) and (
+      set(stages) & {'train_readout', 'evaluate_readout', 'plan'}):
+    wanted += [(f'readout.splits.{k}', v)
+               for k, v in sorted(config.readout.splits.items())]
+  for field, split in wanted:
+    if split not in extracted:
+      problems.append(
+          f'{field}={split!r} is not one of the splits whose slots are '
+          f'extracted (extraction.splits: {", ".join(extracted)}); use one '
+          'of them, or add it to extraction.splits if the dataset has it')
 
 
 def _check_lengths(config, stages, dynamics, problems, video_length) -> None:

@@ -33,7 +33,9 @@ import numpy as np
 
 from slotformer_jax.errors import ConfigError
 from slotformer_jax.errors import MissingInputError
-from slotformer_jax.files import read_json
+from slotformer_jax.errors import shown
+from slotformer_jax.files import UntrustedFileError
+from slotformer_jax.files import read_untrusted_json
 
 PAD = 'PAD'
 QUESTION_TYPES: tuple[str, ...] = (
@@ -47,6 +49,17 @@ CLEVRER_ANSWERS: tuple[str, ...] = (
     '0', '1', '2', '3', '4', '5', 'blue', 'brown', 'cube', 'cyan',
     'cylinder', 'gray', 'green', 'metal', 'no', 'purple', 'red', 'rubber',
     'sphere', 'yellow', 'yes')
+# Limits of a question file from elsewhere (CLEVRER's train.json is about
+# 40 MB; its scenes nest 4 levels deep) and of one text in it.
+MAX_QUESTION_FILE_BYTES = 1 << 30
+MAX_QUESTION_FILE_DEPTH = 8
+MAX_TEXT_CHARS = 2000
+MAX_VOCABULARY = 1_000_000
+
+
+class QuestionFileError(ConfigError):
+  """A question or vocabulary file that is not what CLEVRER's are: the
+  message names the file, the scene and question, and what is wrong."""
 
 
 def tokenize(text: str) -> list[str]:
@@ -100,26 +113,31 @@ class Vocabulary:
       ConfigError: the file is not such a vocabulary (one line naming it).
     """
     try:
-      with open(path) as f:
-        d = json.load(f)
-    except (OSError, json.JSONDecodeError) as error:
-      raise ConfigError(f'vocabulary file {path}: {error}') from error
+      d = read_untrusted_json(path, what='vocabulary file',
+                              max_bytes=64 << 20, max_depth=2)
+    except OSError as error:
+      raise QuestionFileError(f'vocabulary file {path}: '
+                              f'{error.strerror or error}') from None
+    except UntrustedFileError as error:
+      raise QuestionFileError(str(error)) from None
     tables = []
     for key in ('q_vocab', 'a_vocab'):
       table = d.get(key) if isinstance(d, dict) else None
-      if not isinstance(table, dict):
-        raise ConfigError(f'vocabulary file {path} has no {key!r} mapping '
-                          "(expected {'q_vocab': {word: id}, 'a_vocab': "
-                          '{answer: id}})')
-      try:
-        table = {str(k): int(v) for k, v in table.items()}
-      except (TypeError, ValueError) as error:
-        raise ConfigError(f'vocabulary file {path}: {key} ids must be '
-                          f'integers ({error})') from error
+      if not isinstance(table, dict) or len(table) > MAX_VOCABULARY:
+        raise QuestionFileError(
+            f'vocabulary file {path} has no {key!r} mapping '
+            "(expected {'q_vocab': {word: id}, 'a_vocab': {answer: id}})")
+      wrong = [(k, v) for k, v in table.items() if not _is_id(v)]
+      if wrong:
+        k, v = wrong[0]
+        raise QuestionFileError(
+            f'vocabulary file {path}: {key} ids must be integers; '
+            f"'{shown(k, 60)}' has {shown(repr(v), 60)}")
+      table = {k: int(v) for k, v in table.items()}
       # Ids index the embedding / answer logits: PAD = 0, then 1..n-1.
       if table.get(PAD) != 0 or sorted(table.values()) != list(
           range(len(table))):
-        raise ConfigError(f'vocabulary file {path}: {key} must map {PAD!r} '
+        raise QuestionFileError(f'vocabulary file {path}: {key} must map {PAD!r} '
                           'to 0 and its words to distinct ids 0..n-1')
       tables.append(table)
     return cls(*tables)
@@ -133,15 +151,31 @@ class Vocabulary:
     return names
 
 
+def _is_id(value: Any) -> bool:
+  """An int (not a bool), or its digits as a string."""
+  if isinstance(value, str):
+    return value.isascii() and value.isdigit() and len(value) <= 9
+  return isinstance(value, int) and not isinstance(value, bool)
+
+
 def encode_text(text: str, vocab: Mapping[str, int], length: int
                 ) -> tuple[np.ndarray, np.ndarray]:
-  """Text -> (tokens int32 [length], pad_mask bool [length], True = pad)."""
+  """Text -> (tokens int32 [length], pad_mask bool [length], True = pad).
+
+  Raises:
+    QuestionFileError: more words than `length`, or a word outside `vocab`
+      (the caller adds where the text is).
+  """
   words = tokenize(text)
   if len(words) > length:
-    raise ValueError(f'{len(words)} words do not fit in {length}: {text!r}')
+    raise QuestionFileError(f'{len(words)} words do not fit in {length}: '
+                            f"'{shown(text, 120)}'")
   unknown = [w for w in words if w not in vocab]
   if unknown:
-    raise KeyError(f'words {unknown} of {text!r} are not in the vocabulary')
+    raise QuestionFileError(
+        f"the word '{shown(unknown[0], 40)}' of '{shown(text, 120)}' is not "
+        'in the vocabulary' + (f' (nor {len(unknown) - 1} more)'
+                               if len(unknown) > 1 else ''))
   tokens = np.full((length,), vocab[PAD], np.int32)
   tokens[:len(words)] = [vocab[w] for w in words]
   pad_mask = np.ones((length,), bool)
@@ -192,6 +226,12 @@ class EncodedQuestion:
 def encode_question(scene: Mapping[str, Any], q: Mapping[str, Any],
                     vocab: Vocabulary, max_question_len: int,
                     max_choice_len: int) -> EncodedQuestion:
+  """One question of a scene that `check_scenes` accepted.
+
+  Raises:
+    QuestionFileError: a text longer than its length, a word or an answer
+      outside the vocabulary.
+  """
   q_type = QUESTION_TYPES.index(q['question_type'])
   common = dict(scene_index=int(scene['scene_index']),
                 video_filename=scene['video_filename'],
@@ -200,7 +240,12 @@ def encode_question(scene: Mapping[str, Any], q: Mapping[str, Any],
   if q_type == DESCRIPTIVE:
     tokens, pad = encode_text(q['question'], vocab.questions,
                               max_question_len + max_choice_len)
-    answer = vocab.answers[q['answer']] if 'answer' in q else -1
+    answer = -1
+    if 'answer' in q:
+      if q['answer'] not in vocab.answers:
+        raise QuestionFileError(f"the answer '{shown(q['answer'], 60)}' is "
+                                'not in the vocabulary')
+      answer = vocab.answers[q['answer']]
     return EncodedQuestion(tokens=tokens[None], pad_mask=pad[None],
                            answer=answer, **common)
   q_tokens, q_pad = encode_text(q['question'], vocab.questions,
@@ -212,7 +257,7 @@ def encode_question(scene: Mapping[str, Any], q: Mapping[str, Any],
     tokens.append(np.concatenate([q_tokens, c_tokens]))
     pads.append(np.concatenate([q_pad, c_pad]))
     ids.append(int(choice['choice_id']))
-    labels.append({'correct': 1, 'wrong': 0}[choice['answer']]
+    labels.append(_CHOICE_LABELS[choice['answer']]
                   if 'answer' in choice else -1)
   return EncodedQuestion(
       tokens=np.stack(tokens), pad_mask=np.stack(pads),
@@ -220,21 +265,129 @@ def encode_question(scene: Mapping[str, Any], q: Mapping[str, Any],
       choice_labels=np.array(labels, np.int32), **common)
 
 
+_CHOICE_LABELS = {'correct': 1, 'wrong': 0}
+
+
 def encode_scenes(scenes: Sequence[Mapping[str, Any]], vocab: Vocabulary,
-                  max_question_len: int, max_choice_len: int
+                  max_question_len: int, max_choice_len: int, *,
+                  path: str | os.PathLike[str] = 'the questions'
                   ) -> list[EncodedQuestion]:
-  """Every question of every scene, in file order."""
-  return [encode_question(scene, q, vocab, max_question_len, max_choice_len)
-          for scene in scenes for q in scene['questions']]
+  """Every question of every scene, in file order.
+
+  Raises:
+    QuestionFileError: naming `path`, the scene and the question.
+  """
+  out = []
+  for i, scene in enumerate(scenes):
+    for j, q in enumerate(scene['questions']):
+      try:
+        out.append(encode_question(scene, q, vocab, max_question_len,
+                                   max_choice_len))
+      except QuestionFileError as error:
+        raise QuestionFileError(f'{path}: scene {i} question {j}: {error}'
+                                ) from None
+  return out
+
+
+def _problem(value: Any, kind: str) -> str | None:
+  """Why `value` is not of `kind` ('int', 'text', 'list', 'object'), or
+  None."""
+  if kind == 'int':  # ids and indices are stored as int32
+    ok = isinstance(value, int) and not isinstance(value, bool) and (
+        -2**31 <= value < 2**31)
+  elif kind == 'text':
+    ok = isinstance(value, str) and len(value) <= MAX_TEXT_CHARS
+  elif kind == 'list':
+    ok = isinstance(value, list)
+  else:
+    ok = isinstance(value, dict)
+  if ok:
+    return None
+  if kind == 'text' and isinstance(value, str):
+    return f'is a text of {len(value)} characters, more than {MAX_TEXT_CHARS}'
+  if kind == 'int' and isinstance(value, int) and not isinstance(value, bool):
+    return f'is {shown(repr(value), 40)}, outside the 32-bit ints'
+  what = (f'a {type(value).__name__}' if isinstance(value, (dict, list))
+          else f'{shown(repr(value), 40)} ({type(value).__name__})')
+  return f'is {what}, not {"an" if kind in ("int", "object") else "a"} {kind}'
+
+
+
+def _check_fields(entry: Any, fields: Mapping[str, str],
+                  optional: Mapping[str, str], where: str) -> None:
+  if not isinstance(entry, dict):
+    raise QuestionFileError(f'{where} {_problem(entry, "object")}')
+  for key, kind in {**fields, **optional}.items():
+    if key not in entry:
+      if key in fields:
+        raise QuestionFileError(f'{where} has no {key!r}')
+      continue
+    problem = _problem(entry[key], kind)
+    if problem:
+      raise QuestionFileError(f'{where}: {key!r} {problem}')
+
+
+def check_scenes(scenes: Any, path: str | os.PathLike[str]
+                 ) -> list[dict[str, Any]]:
+  """`scenes` (a question file as read) if it has CLEVRER's layout: every
+  field present and of its type, question types and choice answers from
+  their sets. The rest of this module relies on it.
+
+  Raises:
+    QuestionFileError: the first problem, naming the file, the scene and
+      the question.
+  """
+  if not isinstance(scenes, list):
+    raise QuestionFileError(f'{path} {_problem(scenes, "list")} of scenes')
+  for i, scene in enumerate(scenes):
+    where = f'{path}: scene {i}'
+    _check_fields(scene, {'scene_index': 'int', 'video_filename': 'text',
+                          'questions': 'list'}, {}, where)
+    for j, q in enumerate(scene['questions']):
+      question = f'{where} question {j}'
+      _check_fields(q, {'question_id': 'int', 'question_type': 'text',
+                        'question': 'text'}, {'template': 'text'}, question)
+      if q['question_type'] not in QUESTION_TYPES:
+        raise QuestionFileError(
+            f"{question}: the question type '{shown(q['question_type'], 40)}'"
+            f' is not one of {", ".join(QUESTION_TYPES)}')
+      if q['question_type'] == 'descriptive':
+        _check_fields(q, {}, {'answer': 'text'}, question)
+        continue
+      _check_fields(q, {'choices': 'list'}, {}, question)
+      if not q['choices']:
+        raise QuestionFileError(f'{question} has no choices')
+      for k, choice in enumerate(q['choices']):
+        where_choice = f'{question} choice {k}'
+        _check_fields(choice, {'choice_id': 'int', 'choice': 'text'},
+                      {'answer': 'text'}, where_choice)
+        if choice.get('answer', 'correct') not in _CHOICE_LABELS:
+          raise QuestionFileError(
+              f"{where_choice}: the answer '{shown(choice['answer'], 40)}' "
+              "is not 'correct' or 'wrong'")
+  return scenes
 
 
 def read_clevrer_questions(data_root: str | os.PathLike[str], split: str
                            ) -> list[dict[str, Any]]:
-  """``<data_root>/questions/<train|validation|test>.json`` of CLEVRER."""
+  """``<data_root>/questions/<train|validation|test>.json`` of CLEVRER,
+  read with limits (size, depth) and checked (`check_scenes`).
+
+  Raises:
+    MissingInputError: no such file.
+    QuestionFileError: a file that is not CLEVRER's layout (one line).
+  """
   path = Path(data_root) / 'questions' / CLEVRER_SPLIT_FILES[split]
   if not path.is_file():
     raise MissingInputError(
         f'{path} not found: CLEVRER keeps its questions in '
         '<data_root>/questions/{train,validation,test}.json (set '
         'vqa.questions_root to the folder holding questions/)')
-  return read_json(path, fix='Restore it from the CLEVRER download.')
+  try:
+    scenes = read_untrusted_json(path, what='question file',
+                                 max_bytes=MAX_QUESTION_FILE_BYTES,
+                                 max_depth=MAX_QUESTION_FILE_DEPTH)
+  except UntrustedFileError as error:
+    raise QuestionFileError(f'{error}. Restore it from the CLEVRER '
+                            'download.') from None
+  return check_scenes(scenes, path)

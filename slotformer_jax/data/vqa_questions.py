@@ -63,9 +63,12 @@ def vocabulary(config: ml_collections.ConfigDict) -> vqa_data.Vocabulary:
 def encoded_questions(config: ml_collections.ConfigDict, split: str,
                       vocab: vqa_data.Vocabulary
                       ) -> list[vqa_data.EncodedQuestion]:
-  scenes = vqa_data.read_clevrer_questions(questions_root(config), split)
-  return vqa_data.encode_scenes(scenes, vocab, config.vqa.max_question_len,
-                                config.vqa.max_choice_len)
+  root = questions_root(config)
+  scenes = vqa_data.read_clevrer_questions(root, split)
+  return vqa_data.encode_scenes(
+      scenes, vocab, config.vqa.max_question_len, config.vqa.max_choice_len,
+      path=os.path.join(root, 'questions',
+                        vqa_data.CLEVRER_SPLIT_FILES[split]))
 
 
 @dataclasses.dataclass(frozen=True)

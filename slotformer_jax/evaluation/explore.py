@@ -56,10 +56,11 @@ from slotformer_jax.config.sections import DYNAMICS_MODELS
 from slotformer_jax.config.sections import SLOTFORMER
 from slotformer_jax.evaluation import evaluate
 from slotformer_jax.evaluation import explore_page
+from slotformer_jax.evaluation import metrics_file
 from slotformer_jax.evaluation import metrics as metrics_lib
 from slotformer_jax.evaluation import visualize
 from slotformer_jax import frames as frames_lib
-from slotformer_jax.files import read_json
+from slotformer_jax.errors import UserError
 from slotformer_jax.files import write_atomic
 from slotformer_jax.files import write_json_atomic
 
@@ -235,33 +236,12 @@ def _diff_view(intervened: np.ndarray, factual: np.ndarray) -> np.ndarray:
   return np.repeat(np.clip(diff * DIFF_GAIN, 0.0, 1.0), 3, axis=-1)
 
 
-def _clean(values) -> list[float | None]:
-  return [None if v is None or not np.isfinite(v) else round(float(v), 4)
-          for v in values]
-
-
 def run_curves(path: str, identity: dict[str, Any], labels: dict[str, str]
                ) -> tuple[dict[str, Any] | None, str]:
   """({metric: {method label: per-step values}}, note) of the evaluation's
-  metrics.json at `path`, or (None, why not) when it is missing or from
-  other models. `labels`: how the page names each method."""
-  if not os.path.exists(path):
-    return None, ('no eval/metrics.json: run --mode=evaluate for the run\'s '
-                  'curves')
-  results = read_json(path, fix='Re-run --mode=evaluate.')
-  if results.get('identity') != identity:
-    return None, ('eval/metrics.json is from other models than these: '
-                  're-run --mode=evaluate for the run\'s curves')
-  curves: dict[str, dict[str, list]] = {}
-  for method, per_metric in results.get('rollout', {}).items():
-    for name, value in per_metric.items():
-      if isinstance(value, dict) and 'per_step' in value:
-        label = labels.get(method, method)
-        curves.setdefault(name, {})[label] = _clean(value['per_step'])
-  protocol = results.get('protocol', {})
-  return curves, (f'the run: eval/metrics.json, mean over '
-                  f'{protocol.get("num_videos", "the")} '
-                  f'{protocol.get("split", "")} videos')
+  metrics.json at `path`, or (None, why not); `labels`: how the page names
+  each method. See `metrics_file.read_curves`."""
+  return metrics_file.read_curves(path, identity, labels)
 
 
 def page_data(out: dict[str, Any], videos: np.ndarray, indices: list[int],
@@ -312,7 +292,8 @@ def page_data(out: dict[str, Any], videos: np.ndarray, indices: list[int],
            'max_diff': round(float(np.abs(frames[k] - factual).max()), 4)}
           for k in range(num_slots)]
     per_video = out['video_metrics']
-    metrics = {name: {labels[method]: _clean(per_video[method][name][v])
+    metrics = {name: {labels[method]:
+                          metrics_file.clean(per_video[method][name][v])
                       for method in methods}
                for name in VIDEO_METRICS
                if name in per_video[SLOTFORMER]}
@@ -355,12 +336,37 @@ def page_data(out: dict[str, Any], videos: np.ndarray, indices: list[int],
 def write_page(directory: str, data: dict[str, Any]) -> str:
   """index.html with `data` embedded; returns its path."""
   blob = json.dumps(data, separators=(',', ':'))
-  # Inside <script>, '</' could close the element early.
-  blob = blob.replace('</', '<\\/')
+  # Inside <script>, '</script' would close the element early and '<!--'
+  # change how the rest is parsed: no '<', '>' or '&' is left raw (they only
+  # occur in JSON strings, where \\u003c is the same character).
+  blob = (blob.replace('<', '\\u003c').replace('>', '\\u003e')
+          .replace('&', '\\u0026'))
   page = explore_page.TEMPLATE.replace(
       '__TITLE__', html.escape(data['title'])).replace('__DATA__', blob)
   path = os.path.join(directory, 'index.html')
   write_atomic(path, page)
+  return path
+
+
+def write_outputs(directory: str, data: dict[str, Any],
+                  identity: dict[str, Any], indices: list[int]) -> str:
+  """index.html and identity.json; returns the page's path.
+
+  Raises:
+    UserError: a full disk, a quota, a read-only folder, in one line;
+      nothing is left half written (`files.write_atomic`) and the rest of
+      the run is intact.
+  """
+  try:
+    path = write_page(directory, data)
+    write_json_atomic(os.path.join(directory, 'identity.json'),
+                      {'identity': identity, 'videos': indices,
+                       'page': os.path.basename(path)})
+  except OSError as error:
+    raise UserError(
+        f'explore: cannot write the page into {directory} '
+        f'({error.strerror or error}); free space (or fix the folder) and '
+        're-run --mode=explore') from None
   return path
 
 
@@ -369,7 +375,7 @@ def explore(explore_config: ml_collections.ConfigDict,
             dynamics_config: ml_collections.ConfigDict, *,
             slot_model: Any, slot_params: Any, dynamics: dict[str, Any],
             identity: dict[str, Any], open_slots: Any, num_true: int,
-            metrics_file: str, output_dir: str, title: str) -> str | None:
+            metrics_path: str, output_dir: str, title: str) -> str | None:
   """Writes `output_dir`/index.html (and identity.json); returns the page's
   path (None on hosts other than the lead one). Runs on one device.
 
@@ -384,7 +390,7 @@ def explore(explore_config: ml_collections.ConfigDict,
     open_slots: fields -> the evaluation split's slots served with those
       video fields.
     num_true: ground-truth segmentation ids (`evaluate.num_true_ids`).
-    metrics_file: the evaluation's metrics.json (the run's curves).
+    metrics_path: the evaluation's metrics.json (the run's curves).
     title: the page's title.
   """
   if jax.process_index() != 0:
@@ -429,7 +435,7 @@ def explore(explore_config: ml_collections.ConfigDict,
   out = jax.device_get(explorer(dynamics_params, jax.device_get(slot_params),
                                 slots, videos, segmentation))
   computed = time.perf_counter() - start
-  curves, note = run_curves(metrics_file, identity,
+  curves, note = run_curves(metrics_path, identity,
                             visualize.method_labels(slot_model))
   directory = output_dir
   os.makedirs(directory, exist_ok=True)
@@ -437,10 +443,7 @@ def explore(explore_config: ml_collections.ConfigDict,
                    burn_in=burn_in, rollout=rollout, split=split,
                    explore_config=explore_config, identity=identity,
                    curves=curves, curves_note=note, seconds=computed)
-  path = write_page(directory, data)
-  write_json_atomic(os.path.join(directory, 'identity.json'),
-                    {'identity': identity, 'videos': indices,
-                     'page': os.path.basename(path)})
+  path = write_outputs(directory, data, identity, indices)
   print(f'wrote {path} ({count} videos x {2 * data["num_slots"]} '
         f'counterfactual rollouts, computed in {computed:.1f} s, page in '
         f'{time.perf_counter() - start - computed:.1f} s)')

@@ -79,7 +79,10 @@ const images = new Map();
 const METHOD_COLOURS = {'SlotFormer': '#1f77b4', 'Slot-LSTM': '#2ca02c', 'copy-last': '#ff7f0e',
                         [D.reference.label]: D.reference.colour};
 const SPARE_COLOURS = ['#9467bd', '#8c564b', '#e377c2', '#17becf'];
-function colour(name, j) { return METHOD_COLOURS[name] || SPARE_COLOURS[j % SPARE_COLOURS.length]; }
+// Names come from eval/metrics.json (a run folder someone shares): looked
+// up as own keys only ('constructor' is no colour), shown as text only.
+function lookup(table, key) { return Object.prototype.hasOwnProperty.call(table, key) ? table[key] : undefined; }
+function colour(name, j) { return lookup(METHOD_COLOURS, name) || SPARE_COLOURS[j % SPARE_COLOURS.length]; }
 const KIND_TEXT = {remove: 'removed', freeze: 'frozen'};
 const METRIC_NAMES = {psnr: 'PSNR (dB)', ssim: 'SSIM', lpips: 'LPIPS', ari: 'ARI', fg_ari: 'FG-ARI',
                       fg_miou: 'FG-mIoU', ar: 'AR'};
@@ -190,47 +193,67 @@ function selectSlot(k) {
 
 function selectKind(kind) { state.kind = kind; buildCounterfactual(); drawAll(); }
 
+const SVG = 'http://www.w3.org/2000/svg';
+
+// An SVG element; `text` becomes a text node (never markup).
+function svg(tag, attrs, text) {
+  const node = document.createElementNS(SVG, tag);
+  for (const [k, v] of Object.entries(attrs || {})) node.setAttribute(k, String(v));
+  if (text !== undefined) node.textContent = String(text);
+  return node;
+}
+
 function chart(title, series) {
   const width = 250, height = 150, left = 38, right = 8, top = 16, bottom = 26;
   const names = Object.keys(series);
-  const values = names.flatMap(n => series[n]).filter(v => v !== null);
-  const svg = [`<svg class="chart" width="${width}" height="${height}" xmlns="http://www.w3.org/2000/svg">`,
-               `<text x="${width / 2}" y="11" text-anchor="middle" font-weight="600">${title}</text>`];
-  if (!values.length) { svg.push('<text x="40" y="70">no values</text></svg>'); return svg.join(''); }
+  const values = names.flatMap(n => series[n]).filter(v => typeof v === 'number' && isFinite(v));
+  const root = svg('svg', {class: 'chart', width, height});
+  root.appendChild(svg('text', {x: width / 2, y: 11, 'text-anchor': 'middle', 'font-weight': '600'}, title));
+  if (!values.length) { root.appendChild(svg('text', {x: 40, y: 70}, 'no values')); return root; }
   let lo = Math.min(...values), hi = Math.max(...values);
   if (hi - lo < 1e-9) { lo -= 0.5; hi += 0.5; }
   const steps = Math.max(...names.map(n => series[n].length));
   const x = i => left + (steps > 1 ? i / (steps - 1) : 0.5) * (width - left - right);
   const y = v => top + (1 - (v - lo) / (hi - lo)) * (height - top - bottom);
-  svg.push(`<line x1="${left}" y1="${height - bottom}" x2="${width - right}" y2="${height - bottom}" stroke="#999"/>`,
-           `<line x1="${left}" y1="${top}" x2="${left}" y2="${height - bottom}" stroke="#999"/>`,
-           `<text x="${left - 3}" y="${top + 4}" text-anchor="end">${hi.toFixed(2)}</text>`,
-           `<text x="${left - 3}" y="${height - bottom}" text-anchor="end">${lo.toFixed(2)}</text>`,
-           `<text x="${left}" y="${height - bottom + 11}">1</text>`,
-           `<text x="${width - right}" y="${height - bottom + 11}" text-anchor="end">${steps}</text>`,
-           `<text x="${(left + width) / 2}" y="${height - 3}" text-anchor="middle">rollout step</text>`);
-  const xs = Array.from({length: steps}, (_, i) => `data-x${i + 1}="${x(i).toFixed(1)}"`).join(' ');
-  svg.push(`<line class="marker" ${xs} y1="${top}" y2="${height - bottom}" stroke="#d22" stroke-dasharray="3,2" visibility="hidden"/>`);
+  root.append(
+      svg('line', {x1: left, y1: height - bottom, x2: width - right, y2: height - bottom, stroke: '#999'}),
+      svg('line', {x1: left, y1: top, x2: left, y2: height - bottom, stroke: '#999'}),
+      svg('text', {x: left - 3, y: top + 4, 'text-anchor': 'end'}, hi.toFixed(2)),
+      svg('text', {x: left - 3, y: height - bottom, 'text-anchor': 'end'}, lo.toFixed(2)),
+      svg('text', {x: left, y: height - bottom + 11}, '1'),
+      svg('text', {x: width - right, y: height - bottom + 11, 'text-anchor': 'end'}, String(steps)),
+      svg('text', {x: (left + width) / 2, y: height - 3, 'text-anchor': 'middle'}, 'rollout step'));
+  const marker = svg('line', {class: 'marker', y1: top, y2: height - bottom, stroke: '#d22',
+                              'stroke-dasharray': '3,2', visibility: 'hidden'});
+  for (let i = 0; i < steps; i++) marker.setAttribute(`data-x${i + 1}`, x(i).toFixed(1));
+  root.appendChild(marker);
   names.forEach((name, j) => {
-    const dashed = name.includes('recon') ? ' stroke-dasharray="4,2"' : '';
     let path = '', pen = false;
     series[name].forEach((v, i) => {
-      if (v === null) { pen = false; return; }
+      if (typeof v !== 'number' || !isFinite(v)) { pen = false; return; }
       path += `${pen ? 'L' : 'M'}${x(i).toFixed(1)},${y(v).toFixed(1)}`; pen = true;
     });
-    svg.push(`<path d="${path}" fill="none" stroke="${colour(name, j)}" stroke-width="1.5"${dashed}/>`);
+    const line = svg('path', {d: path, fill: 'none', stroke: colour(name, j), 'stroke-width': 1.5});
+    if (name.includes('recon')) line.setAttribute('stroke-dasharray', '4,2');
+    root.appendChild(line);
   });
-  svg.push('</svg>');
-  return svg.join('');
+  return root;
 }
 
 function charts(target, curves) {
-  const node = document.getElementById(target);
-  const names = [...new Set(Object.values(curves || {}).flatMap(s => Object.keys(s)))];
-  const legend = names.map((name, j) =>
-      `<span style="color:${colour(name, j)}">&#9473;&#9473; ${name}</span>`).join(' &nbsp; ');
-  node.innerHTML = (names.length ? `<div class="legend">${legend}</div>` : '') + Object.entries(curves || {}).map(
-      ([metric, series]) => chart(METRIC_NAMES[metric] || metric, series)).join('');
+  const entries = Object.entries(curves || {});
+  const names = [...new Set(entries.flatMap(([, series]) => Object.keys(series)))];
+  const children = [];
+  if (names.length) {
+    const legend = el('div', {class: 'legend'});
+    names.forEach((name, j) => {
+      legend.append(el('span', {style: `color:${colour(name, j)}`, text: `\u2501\u2501 ${name}`}),
+                    document.createTextNode('\u00a0 '));
+    });
+    children.push(legend);
+  }
+  for (const [metric, series] of entries) children.push(chart(lookup(METRIC_NAMES, metric) || metric, series));
+  document.getElementById(target).replaceChildren(...children);
 }
 
 function selectVideo(i) {

@@ -106,7 +106,7 @@ from __future__ import annotations
 import functools
 import importlib.resources
 import pickle
-from typing import Any, Callable, NamedTuple
+from typing import Any, NamedTuple
 
 import dm_pix
 import jax

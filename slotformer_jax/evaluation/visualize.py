@@ -196,7 +196,7 @@ def render(render_config: ml_collections.ConfigDict,
            eval_config: ml_collections.ConfigDict,
            dynamics_config: ml_collections.ConfigDict, *,
            slot_model: Any, slot_params: Any, dynamics: dict[str, Any],
-           identity: dict[str, Any], source: Any, metrics_file: str,
+           identity: dict[str, Any], source: Any, metrics_path: str,
            output_dir: str) -> list[str]:
   """Writes GIFs, PNG strips, attention maps and the per-step curves of a few
   held-out rollouts to `output_dir`; returns the paths. Rendered on one
@@ -211,7 +211,7 @@ def render(render_config: ml_collections.ConfigDict,
     dynamics: {name: `dynamics.Loaded`} of every dynamics model shown.
     identity: what all of them are made from, recorded with the pictures.
     source: the evaluation split's slots with their 'video'.
-    metrics_file: the evaluation's metrics.json (the per-step curves).
+    metrics_path: the evaluation's metrics.json (the per-step curves).
   """
   if jax.process_index() != 0:
     return []
@@ -283,7 +283,7 @@ def render(render_config: ml_collections.ConfigDict,
                               jax.tree.map(lambda x: x[v], attention),
                               render_config.scale)
       written.append(attention_path)
-  curves = write_per_step_figure(metrics_file, directory, labels,
+  curves = write_per_step_figure(metrics_path, directory, labels,
                                  slot_model.reference_method, identity)
   if curves:
     written.append(curves)

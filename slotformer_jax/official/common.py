@@ -23,6 +23,7 @@ import ml_collections
 import numpy as np
 
 from slotformer_jax.config.sections import SLOTFORMER
+from slotformer_jax.errors import shown
 from slotformer_jax.modules import slotformer as slotformer_module
 from slotformer_jax.official import layers
 from slotformer_jax.official.layers import StateDictMapper
@@ -151,17 +152,20 @@ def assemble(m: StateDictMapper, abstract_params: Any, *,
         return f'  ({field})'
     return ''
 
+  # Keys come from the file: a newline or an escape sequence in one must not
+  # reach the terminal (a forged `error:` line, a cleared screen).
+  def listed(keys: list[str]) -> str:
+    return '\n    '.join(shown(k, 200) + hint(k) for k in keys)
+
   target = flatten(abstract_params)
   problems = []
   if m.missing:
     problems.append('missing keys (the config builds a part the checkpoint '
-                    'does not have):\n    ' + '\n    '.join(
-                        k + hint(k) for k in m.missing))
+                    'does not have):\n    ' + listed(m.missing))
   unknown = m.unknown()
   if unknown:
     problems.append('unknown keys (the checkpoint has a part the config '
-                    'does not build):\n    ' + '\n    '.join(
-                        k + hint(k) for k in unknown))
+                    'does not build):\n    ' + listed(unknown))
   if problems:
     raise ConversionError('the checkpoint does not fit the config:\n  ' +
                           '\n  '.join(problems))
@@ -169,12 +173,12 @@ def assemble(m: StateDictMapper, abstract_params: Any, *,
   mismatches = []
   for path, assigned in m.params.items():
     if path not in target:
-      mismatches.append(f'{assigned.source} {assigned.source_shape}: the '
+      mismatches.append(f'{shown(assigned.source)} {assigned.source_shape}: the '
                         f'model has no parameter {path}; change '
                         f'{assigned.field}')
     elif tuple(target[path].shape) != assigned.value.shape:
       mismatches.append(
-          f'{assigned.source}: checkpoint shape {assigned.source_shape} '
+          f'{shown(assigned.source)}: checkpoint shape {assigned.source_shape} '
           f'gives {path} {assigned.value.shape}, the config builds '
           f'{tuple(target[path].shape)}; change {assigned.field}')
   unfilled = sorted(set(target) - set(m.params))

@@ -55,6 +55,7 @@ import numpy as np
 from slotformer_jax import dynamics
 from slotformer_jax.config import checks as config_checks
 from slotformer_jax.errors import UserError
+from slotformer_jax.errors import printable
 from slotformer_jax.files import write_json_atomic
 from slotformer_jax.official import aloe as official_aloe
 from slotformer_jax.official import common
@@ -413,7 +414,9 @@ def main(argv, flag_holders: dict[str, Any]):
   except (common.ConversionError, FileExistsError, NotImplementedError,
           UserError) as error:
     # What to change is in the message; a traceback would only hide it.
-    sys.exit(f'error: {error}')
+    # Names from the file are escaped where they are quoted; `printable`
+    # keeps anything else a terminal would act on from reaching it.
+    sys.exit(f'error: {printable(error)}')
 
 
 def _check_config_argument(argv: list[str]) -> None:
@@ -425,7 +428,7 @@ def _check_config_argument(argv: list[str]) -> None:
   try:
     config_checks.load_config_file(spec)
   except UserError as error:
-    print(f'error: {error}', file=sys.stderr)
+    print(f'error: {printable(error)}', file=sys.stderr)
     sys.exit(2 if isinstance(error, config_checks.ConfigFileError) else 1)
 
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 import ml_collections
 import numpy as np
 
+from slotformer_jax.errors import shown
 from slotformer_jax.official import aloe
 from slotformer_jax.official import readouts
 from slotformer_jax.official import savi
@@ -45,7 +46,7 @@ def detect_family(state_dict: dict[str, np.ndarray]) -> Family:
   for family in FAMILIES:
     if family.detect(keys):
       return family
-  some = ', '.join(sorted(keys)[:8])
+  some = ', '.join(shown(key, 80) for key in sorted(keys)[:8])
   raise ConversionError(
       f'no official model family recognises this state dict (keys: {some}, '
       f'...); known families: {[f.name for f in FAMILIES]}')

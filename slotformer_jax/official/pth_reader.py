@@ -212,6 +212,20 @@ class _TensorRecord(_Inert):
     self.args = args
 
 
+class _Call(_Inert):
+  """A torch function the pickle may call, as a fresh object per read: a
+  BUILD into it is refused (a module-level function would take attributes,
+  even `__defaults__`, and keep them for the next file)."""
+
+  __slots__ = ('function',)
+
+  def __init__(self, function):
+    self.function = function
+
+  def __call__(self, *args):
+    return self.function(*args)
+
+
 def _rebuild_tensor(*args) -> _TensorRecord:
   return _TensorRecord(args)
 
@@ -219,6 +233,37 @@ def _rebuild_tensor(*args) -> _TensorRecord:
 def _rebuild_parameter(data, *unused):
   del unused  # requires_grad, backward hooks, state
   return data
+
+
+class _StateDict(collections.OrderedDict):
+  """`collections.OrderedDict` as the pickle builds it. torch.save pickles a
+  state dict's `_metadata` attribute as a BUILD on it; here a BUILD only
+  records its state, which `_walk` checks (names that shadow no method,
+  values walked like every other child) and `_replace_records` turns into
+  the attributes of a plain OrderedDict. Nothing from the file is ever set
+  on an object the reader or its caller then uses."""
+
+  __slots__ = ('builds', 'attributes')
+
+  def __init__(self, *args):
+    super().__init__(*args)
+    self.builds = []
+    self.attributes = {}  # set by `_walk` once checked
+
+  def __setstate__(self, state):
+    if type(self) is not _StateDict:  # BUILD on the class itself
+      raise pickle.UnpicklingError('BUILD on the OrderedDict class')
+    self.builds.append(state)
+
+
+class _NewStateDict(_Inert):
+  """What `collections.OrderedDict` is to the pickle: a fresh callable per
+  read that makes `_StateDict`s."""
+
+  __slots__ = ()
+
+  def __call__(self, *args):
+    return _StateDict(*args)
 
 
 class _Unpickler(pickle.Unpickler):
@@ -231,12 +276,12 @@ class _Unpickler(pickle.Unpickler):
 
   def find_class(self, module: str, name: str) -> Any:
     if module == 'collections' and name == 'OrderedDict':
-      return collections.OrderedDict
+      return _NewStateDict()
     if module == 'torch._utils' and name == '_rebuild_tensor_v2':
-      return _rebuild_tensor
+      return _Call(_rebuild_tensor)
     if module == 'torch._utils' and name in ('_rebuild_parameter',
                                              '_rebuild_parameter_with_state'):
-      return _rebuild_parameter
+      return _Call(_rebuild_parameter)
     if module == 'torch' and name in _STORAGE_DTYPES:
       return _StorageClass(name)
     return Opaque(f'{module}.{name}')
@@ -313,7 +358,9 @@ def _unpickle(data: bytes, where: str, limits: Limits,
 
 # Path components of `_walk` that are not dict keys or indices.
 _KEY, _ITEM = object(), object()
-_CONTAINERS = (dict, collections.OrderedDict, list, tuple, set, frozenset)
+_CONTAINERS = (dict, collections.OrderedDict, _StateDict, list, tuple, set,
+               frozenset)
+_DICTS = (dict, collections.OrderedDict, _StateDict)
 
 
 def _component(part: Any) -> str:
@@ -328,7 +375,41 @@ def _component(part: Any) -> str:
   if isinstance(part, _OpaquePart):
     return f'<{part.name}>' + ('.state' if part.index is None
                                else f'[{part.index}]')
+  if isinstance(part, _Attribute):
+    return f'<attribute {part.name}>'
   return f'<{type(part).__name__}>'
+
+
+@dataclasses.dataclass(frozen=True)
+class _Attribute:
+  name: str
+
+
+def _attributes(obj: _StateDict, path: str, node: Any) -> dict[str, Any]:
+  """The attributes the BUILDs of a `_StateDict` give it, checked: each
+  BUILD's state a dict of names that are no dunder and shadow nothing an
+  OrderedDict has (torch.save writes `{'_metadata': ...}`).
+
+  Raises:
+    CheckpointError: any other state.
+  """
+  out = {}
+  for state in obj.builds:
+    if type(state) is not dict:  # pylint: disable=unidiomatic-typecheck
+      raise CheckpointError(
+          f'{path}: the OrderedDict at {_shown(_path(node)[:200] or "the top")}'
+          f' is given a {type(state).__name__} state by the pickle, not the '
+          'dict of attributes torch.save writes')
+    for name in state:
+      if (type(name) is not str or name.startswith('__')  # pylint: disable=unidiomatic-typecheck
+          or hasattr(collections.OrderedDict, name)):
+        raise CheckpointError(
+            f'{path}: the OrderedDict at '
+            f'{_shown(_path(node)[:200] or "the top")} is given the '
+            f'attribute {_fmt(name)} by the pickle, which would shadow one '
+            'of its own (torch.save writes only _metadata)')
+    out.update(state)
+  return out
 
 
 @dataclasses.dataclass(frozen=True)
@@ -352,8 +433,11 @@ def _push_children(obj: Any, node: Any, depth: int, stack: list) -> None:
   `BYTES_PER_OPCODE` covers (a child is at least one opcode)."""
   parent = id(obj)
   kind = type(obj)
-  if kind in (dict, collections.OrderedDict):
-    for key, value in reversed(obj.items()):
+  if kind in _DICTS:
+    if kind is _StateDict:
+      for name, value in reversed(obj.attributes.items()):
+        stack.append((value, (node, _Attribute(name)), depth, parent))
+    for key, value in reversed(list(kind.items(obj))):
       stack.append((value, (node, key), depth, parent))
       stack.append((key, (node, _KEY), depth, parent))
   elif kind in (list, tuple):
@@ -420,6 +504,8 @@ def _walk(root: Any, path: str, limits: Limits
       continue
     if depth >= limits.max_depth:
       raise too_deep(node)
+    if type(obj) is _StateDict:  # pylint: disable=unidiomatic-typecheck
+      obj.attributes = _attributes(obj, path, node)
     ancestors.add(id(obj))
     running[id(obj)] = 0
     stack.append((obj, node, depth, parent, True))
@@ -709,7 +795,7 @@ def _read_zip(path: str, limits: Limits) -> Any:
           'tensor data)')
     # Held twice for a moment: as read, then as the unpickler's bytes.
     budget.charge(2 * info.file_size, f'member {_shown(pickles[0])}')
-    where = f'{path}: {pickles[0]}'
+    where = f'{path}: {_shown(pickles[0])}'
     loaded, unpickler = _unpickle(bytes(_read_member(archive, info, path)),
                                   where, limits, budget)
     del unpickler  # its storage records are reached through `loaded`
@@ -775,10 +861,16 @@ def _replace_records(root: Any, built: dict[int, np.ndarray],
     if id(obj) in done:
       return done[id(obj)]
     try:
-      if kind in (dict, collections.OrderedDict):
-        items = [(rebuild(k), rebuild(v)) for k, v in obj.items()]
+      if kind is _StateDict:
+        # Always a plain OrderedDict: the reader's class never leaves it.
+        new = collections.OrderedDict(
+            (rebuild(k), rebuild(v)) for k, v in kind.items(obj))
+        new.__dict__.update({name: rebuild(value)
+                             for name, value in obj.attributes.items()})
+      elif kind in (dict, collections.OrderedDict):
+        items = [(rebuild(k), rebuild(v)) for k, v in kind.items(obj)]
         same = all(k is a and v is b
-                   for (k, v), (a, b) in zip(items, obj.items()))
+                   for (k, v), (a, b) in zip(items, kind.items(obj)))
         new = obj if same else kind(items)
       elif kind is Opaque:
         args = tuple(rebuild(value) for value in obj.args)

@@ -10,7 +10,14 @@ stop, and noticing a lost one.
   process whose heartbeat stops (killed, its host gone) or that ended with an
   error is named in one line by every survivor, which then exits at once
   (within `timeout` seconds), instead of waiting in a collective until jax's
-  coordination service aborts it with a stack dump.
+  coordination service aborts it with a stack dump. A process that ends
+  early for any reason (Ctrl-C, an error, outside training too) `leave`s: it
+  writes why, and the others stop with one line naming it and the reason.
+  Process 0 runs jax's coordination service, whose end aborts the others:
+  it always leaves last.
+
+The start (a bounded wait for every process, and their agreement on what
+they run) is `startup.py`.
 """
 
 from __future__ import annotations
@@ -24,6 +31,8 @@ import jax
 import numpy as np
 
 from slotformer_jax.errors import ConfigError
+from slotformer_jax.errors import one_line
+from slotformer_jax.errors import shown
 
 # Exit statuses that end a process as planned (done, SIGINT, SIGTERM).
 CLEAN_EXITS = (0, 128 + 2, 128 + 15)
@@ -59,8 +68,11 @@ def check_flags(coordinator_address: str | None, num_processes: int | None,
 def initialize(coordinator_address: str | None = None,
                num_processes: int | None = None,
                process_id: int | None = None, *,
-               heartbeat_timeout: int = 100) -> None:
-  """jax.distributed.initialize; before any jax backend is started."""
+               heartbeat_timeout: int = 100,
+               initialization_timeout: int = 300) -> None:
+  """jax.distributed.initialize; before any jax backend is started.
+  `initialization_timeout` must come after `Startup`'s: jax aborts with a
+  stack dump when it runs out."""
   # Collectives between the CPU devices of several processes (a no-op for
   # GPU/TPU devices); jax 0.10 has none on CPU unless one is chosen.
   jax.config.update('jax_cpu_collectives_implementation', 'gloo')
@@ -69,7 +81,8 @@ def initialize(coordinator_address: str | None = None,
   jax.config.update('jax_enable_preemption_service', False)
   jax.distributed.initialize(
       coordinator_address=coordinator_address, num_processes=num_processes,
-      process_id=process_id, heartbeat_timeout_seconds=heartbeat_timeout)
+      process_id=process_id, heartbeat_timeout_seconds=heartbeat_timeout,
+      initialization_timeout=initialization_timeout)
 
 
 def agreed_signal(local_signal: int) -> tuple[int, list[int]]:
@@ -156,6 +169,11 @@ class PeerWatchdog:
       now = time.monotonic()
       for i in peers:
         text = self._read(i)
+        if text.startswith('left ') and not self._stop.is_set():
+          _, status, reason = (text.split(' ', 2) + ['', ''])[:3]
+          self._lost(f'process {i} of {self.num_processes} stopped '
+                     f'(exit status {shown(status, 8)}: '
+                     f'{shown(reason, 300) or "no reason given"})')
         if text.startswith('exit '):
           status = int(text.split()[1])
           if status in CLEAN_EXITS:
@@ -179,12 +197,56 @@ class PeerWatchdog:
           'every process with the same command: training resumes from the '
           'last saved checkpoint.', file=sys.stderr, flush=True)
     self.finish(LOST_PROCESS_EXIT)
-    # Not sys.exit: the main thread may be blocked in a collective with the
-    # lost process, and jax's exit handlers would wait for it.
-    os._exit(LOST_PROCESS_EXIT)  # pylint: disable=protected-access
+    self._exit(LOST_PROCESS_EXIT)
+
+  def _exit(self, status: int) -> None:
+    """Ends this process now. Not sys.exit: the main thread may be blocked
+    in a collective with a lost process, and jax's exit handlers would wait
+    for it (then abort). Process 0 first waits (up to `timeout`) for the
+    others to end: it holds jax's coordination service, and its end aborts
+    every process still connected, with a stack dump."""
+    if self.process_id == 0:
+      self._wait_for_peers_to_end()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(status)  # pylint: disable=protected-access
+
+  def _wait_for_peers_to_end(self) -> None:
+    peers = [i for i in range(self.num_processes) if i != self.process_id]
+    deadline = time.monotonic() + self.timeout
+    seen = {i: (self._read(i), time.monotonic()) for i in peers}
+    while peers and time.monotonic() < deadline:
+      time.sleep(0.1)
+      now = time.monotonic()
+      for i in list(peers):
+        text = self._read(i)
+        if text.startswith(('exit ', 'left ')):
+          peers.remove(i)
+        elif text != seen[i][0]:
+          seen[i] = (text, now)
+        elif now - seen[i][1] > 3 * self.interval + 1:
+          peers.remove(i)  # silent: gone without a word (or never came)
+    time.sleep(0.3)  # a process that wrote its record is ending
+
+  def leave(self, status: int, reason: str) -> None:
+    """Ends this process early (an error, Ctrl-C, a stage outside training)
+    and tells the others why: they stop with one line naming this process
+    and the reason. Never returns."""
+    self._stop.set()
+    try:
+      self._write(f'left {status} {one_line(reason, 300)}')
+    except OSError:
+      pass  # a full disk: the others see the heartbeat stop instead
+    self._exit(status)
+
+  def stop_watching(self) -> None:
+    """Stops naming other processes (this one is about to leave itself, for
+    a reason they share)."""
+    self._stop.set()
 
   def wait_for_verdict(self) -> None:
     """Blocks up to the timeout: the watchdog ends the process if a peer is
     lost (an error in a collective usually means one is)."""
     if self._thread.is_alive():
       self._thread.join(self.timeout + 4 * self.interval)
+

@@ -32,6 +32,7 @@ from pathlib import Path
 
 import ml_collections
 
+from slotformer_jax.config.sections import reads_readout_splits
 from slotformer_jax.data import integrity
 from slotformer_jax.data import sources
 from slotformer_jax.data.convert import make
@@ -56,7 +57,7 @@ def splits_read(config: ml_collections.ConfigDict) -> tuple[str, ...]:
   splits = ['train', *config.extraction.splits]
   if not config.task:
     splits.append(config.evaluation.split)
-  if 'readout' in config and 'splits' in config.readout:
+  if reads_readout_splits(config):
     splits += list(config.readout.splits.values())
   return tuple(dict.fromkeys(splits))
 

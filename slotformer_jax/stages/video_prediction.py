@@ -116,7 +116,7 @@ def render(run: Run) -> list[str]:
       slot_params=trained.stage1.params, dynamics=trained.dynamics,
       identity=trained.identity,
       source=run.slots(run.config.evaluation.split, ('video',)),
-      metrics_file=os.path.join(run.paths.eval, 'metrics.json'),
+      metrics_path=os.path.join(run.paths.eval, 'metrics.json'),
       output_dir=run.paths.render)
 
 
@@ -131,6 +131,6 @@ def explore(run: Run) -> str | None:
       open_slots=lambda fields: run.slots(run.config.evaluation.split,
                                           fields),
       num_true=evaluate_lib.num_true_ids(run.config.data.max_instances),
-      metrics_file=os.path.join(run.paths.eval, 'metrics.json'),
+      metrics_path=os.path.join(run.paths.eval, 'metrics.json'),
       output_dir=run.paths.explore,
       title=f'{run.config.data.name}: {run.slot_model.label} + SlotFormer')

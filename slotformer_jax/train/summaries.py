@@ -13,14 +13,48 @@ writes nothing. Only the lead host writes.
 
 from __future__ import annotations
 
-import os
 from collections.abc import Mapping
+import logging
+import os
+import threading
 
 import ml_collections
 import numpy as np
 from slotformer_jax.errors import UserError
 
 DIRECTORY = 'tensorboard'
+logger = logging.getLogger(__name__)
+
+
+# Writer threads of tensorboardX that died of an OSError (a full disk).
+_FAILED_WRITERS: list[threading.Thread] = []
+# Events a writer may queue: after its thread died, a full queue would block
+# the training loop forever (tensorboardX's default holds 10).
+_MAX_QUEUE = 1000
+
+
+def _quiet_writer_thread_errors() -> None:
+  """tensorboardX writes from a thread of its own: an OSError there (a full
+  disk, a quota) would print a traceback over the trainer's own line, and
+  leave a writer whose queue nobody empties. It becomes one warning and a
+  mark that `Summaries` checks; other threads' errors are left to the
+  previous hook. Installed once per process."""
+  previous = threading.excepthook
+  if getattr(previous, 'slotformer_summaries', False):
+    return
+
+  def hook(args) -> None:
+    if (type(args.thread).__name__ == '_EventLoggerThread'
+        and isinstance(args.exc_value, OSError)):
+      _FAILED_WRITERS.append(args.thread)
+      logger.warning('TensorBoard summaries stopped: %s',
+                     args.exc_value.strerror or args.exc_value)
+      return
+    previous(args)
+  hook.slotformer_summaries = True
+  threading.excepthook = hook
+
+
 class Summaries:
   """The TensorBoard writer of one stage (a no-op when disabled)."""
 
@@ -33,6 +67,7 @@ class Summaries:
                            if logging_config is not None else 0)
     self.directory = os.path.join(stage_directory, DIRECTORY)
     self._writer = None
+    self._failures_seen = 0
     if enabled:
       try:
         import tensorboardX  # pylint: disable=import-outside-toplevel
@@ -41,11 +76,21 @@ class Summaries:
             'logging.tensorboard=True needs tensorboardX: pip install '
             'tensorboardX, or pass --config.logging.tensorboard=False'
         ) from None
-      self._writer = tensorboardX.SummaryWriter(self.directory,
-                                                flush_secs=30)
+      _quiet_writer_thread_errors()
+      self._failures_seen = len(_FAILED_WRITERS)
+      try:
+        self._writer = tensorboardX.SummaryWriter(
+            self.directory, flush_secs=30, max_queue=_MAX_QUEUE)
+      except OSError as error:  # a full disk, a quota: the run goes on
+        logger.warning('TensorBoard summaries are off: cannot write %s (%s)',
+                       self.directory, error.strerror or error)
 
   @property
   def enabled(self) -> bool:
+    if self._writer is not None and len(_FAILED_WRITERS) > self._failures_seen:
+      # Its thread died (a full disk): dropped, not closed, since closing
+      # would wait for that thread.
+      self._writer = None
     return self._writer is not None
 
   def wants_images(self, step: int) -> bool:
@@ -71,6 +116,13 @@ class Summaries:
                              dataformats='HWC')
 
   def close(self) -> None:
-    if self._writer is not None:
-      self._writer.close()
-      self._writer = None
+    """Flushes and closes; a write that fails (a full disk) is one warning,
+    never an error that would hide the trainer's own (the summaries are an
+    extra: the checkpoints and train_log.jsonl say what a run did)."""
+    if self.enabled:
+      writer, self._writer = self._writer, None
+      try:
+        writer.close()
+      except OSError as error:
+        logger.warning('TensorBoard summaries in %s are incomplete: %s',
+                       self.directory, error.strerror or error)

@@ -104,7 +104,12 @@ _STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT)
 
 class _TermFlag:
   """Notes SIGTERM / SIGINT instead of dying, while installed (main thread
-  only). `received`: the signal's number (SIGTERM wins), 0 while none."""
+  only). `received`: the signal's number (SIGTERM wins), 0 while none.
+
+  A signal ignored when training starts stays ignored (a job started with
+  `nohup ... &` from a script ignores SIGINT; Python itself then installs
+  no KeyboardInterrupt handler), and every handler is put back as it was.
+  """
 
   def __init__(self):
     self.received = 0
@@ -113,6 +118,8 @@ class _TermFlag:
   def __enter__(self) -> _TermFlag:
     if threading.current_thread() is threading.main_thread():
       for signum in _STOP_SIGNALS:
+        if signal.getsignal(signum) is signal.SIG_IGN:
+          continue
         self._previous[signum] = signal.signal(signum, self._note)
     return self
 

@@ -3,6 +3,13 @@
 Used for a workdir (one writing run at a time) and for a dataset being
 generated. A lock left by a dead process on this host is taken over (with a
 warning); a live holder, or one on another host, is an error naming it.
+
+A waiting lock (a dataset being generated, which the others wait for) is
+also a heartbeat: its holder touches the file every `REFRESH_EVERY`
+seconds. A holder on another host cannot be asked whether it lives, so a
+lock untouched for `STALE_AFTER` seconds is one that run left behind: the
+waiter stops with one line naming the file, its owner and how to clear it,
+instead of waiting forever.
 """
 
 from __future__ import annotations
@@ -12,6 +19,7 @@ import json
 import logging
 import os
 import socket
+import threading
 import time
 from typing import Any
 
@@ -19,6 +27,11 @@ from slotformer_jax.errors import UserError
 from slotformer_jax.workdir.paths import Paths
 
 logger = logging.getLogger(__name__)
+
+# Seconds between a waiting lock's heartbeats, and without one after which
+# a holder on another host counts as gone.
+REFRESH_EVERY = 10.0
+STALE_AFTER = 120.0
 
 
 def pid_alive(pid: int) -> bool:
@@ -47,6 +60,8 @@ class FileLock:
     self.wait = wait  # True: wait for a live holder instead of failing
     self.took_over = False
     self._held = False
+    self._beating: threading.Event | None = None
+    self._seen: tuple[float, float] | None = None  # lock mtime, when seen
 
   def acquire(self) -> None:
     try:
@@ -86,7 +101,9 @@ class FileLock:
           if attempts == 1:
             logger.info('waiting for process %s on %s to finish %s',
                         holder.get('pid'), holder.get('host'), self.what)
-          time.sleep(2.0)
+          if holder.get('host') != me['host']:
+            self._check_heartbeat(holder)
+          time.sleep(min(2.0, STALE_AFTER / 4))
           continue
         if not stale:
           raise UserError(
@@ -105,6 +122,10 @@ class FileLock:
         f.flush()
         os.fsync(f.fileno())
       self._held = True
+      if self.wait:  # others wait for this one: keep telling them it lives
+        self._beating = threading.Event()
+        threading.Thread(target=self._beat, args=(self._beating,),
+                         daemon=True, name='lock-heartbeat').start()
       return
     raise UserError(f'could not take the lock {self.path}; delete it if no '
                     'process uses it')
@@ -116,7 +137,36 @@ class FileLock:
     except (OSError, ValueError):
       return None
 
+  def _beat(self, stop: threading.Event) -> None:
+    while not stop.wait(REFRESH_EVERY):
+      with contextlib.suppress(OSError):
+        os.utime(self.path)
+
+  def _check_heartbeat(self, holder: dict[str, Any]) -> None:
+    """Raises when a holder on another host stopped touching the lock: its
+    mtime unchanged for STALE_AFTER seconds of this host's clock (hosts'
+    clocks may differ; only changes are compared)."""
+    try:
+      mtime = os.path.getmtime(self.path)
+    except OSError:
+      return  # released meanwhile
+    now = time.monotonic()
+    if self._seen is None or self._seen[0] != mtime:
+      self._seen = (mtime, now)
+    age = now - self._seen[1]
+    if age > STALE_AFTER:
+      raise UserError(
+          f'{self.what} is locked by process {holder.get("pid")} on '
+          f'{holder.get("host")} (since {holder.get("started")}), whose lock '
+          f'file {self.path} has not been touched for {age:.0f} s (a live '
+          f'holder touches it every {REFRESH_EVERY:g} s): that run ended '
+          f'without releasing it. If nothing on {holder.get("host")} still '
+          f'makes {self.what}, delete {self.path} and re-run.')
+
   def release(self) -> None:
+    if self._beating is not None:
+      self._beating.set()
+      self._beating = None
     if self._held:
       with contextlib.suppress(FileNotFoundError):
         os.unlink(self.path)

@@ -129,7 +129,8 @@ def test_build_dataset_writes_videos_questions_and_vocabulary(tmp_path):
   from slotformer_jax.data.convert import make  # pylint: disable=g-import-not-at-top
   from slotformer_jax.errors import MissingInputError  # pylint: disable=g-import-not-at-top
   data = data_section(
-      name='clevrer_like', data_dir=str(tmp_path), observed_frames=12,
+      name='clevrer_like', data_dir=str(tmp_path), resolution=(32, 32),
+      observed_frames=12,
       predicted_frames=8, num_train=3, num_val=1, num_test=2, num_workers=1)
   make.make_dataset(data)
   source = sources.get_video_source(data, 'test')

@@ -411,7 +411,7 @@ def _bad_source(base: Path) -> Path:
 
 def test_bad_inputs_are_skipped_and_reported(tmp_path, capsys):
   root = _bad_source(tmp_path)
-  args = [f'--dataset=clevrer', f'--source={root}',
+  args = ['--dataset=clevrer', f'--source={root}',
           f'--data_dir={tmp_path / "data"}', f'--resolution={RES}',
           f'--num_frames={T}', '--splits=train', '--num_workers=1',
           '--no_progress', '--videos_per_shard=2']

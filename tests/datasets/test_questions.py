@@ -378,9 +378,9 @@ def test_vocabulary_covers_templates_and_encoding_round_trips():
             int(c['answer'] == 'correct') for c in q['choices']]
       n += 1
   assert n > 0
-  with pytest.raises(ValueError):
+  with pytest.raises(vqa.QuestionFileError, match='do not fit in 3'):
     vqa.encode_text('how many collisions happen', vocab.questions, 3)
-  with pytest.raises(KeyError):
+  with pytest.raises(vqa.QuestionFileError, match="word 'dragons'"):
     vqa.encode_text('how many dragons', vocab.questions, 5)
 
 

@@ -1,25 +1,28 @@
 """The run explorer's interventions: removing a slot from the decoder and
 from SlotFormer's context, freezing one, and the batched jitted rollout."""
 
+import errno
 import json
 import os
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from explore_helpers import NUM_VIDEOS
 from explore_helpers import micro_explorer
 from pipeline_helpers import micro_config
 from slotformer_jax import inference
-from slotformer_jax.workdir.paths import Paths
-from slotformer_jax.workdir.settings import accept_config
+from slotformer_jax.errors import UserError
 from slotformer_jax.evaluation import explore
 from slotformer_jax.modules.decoders import SpatialBroadcastDecoder
 from slotformer_jax.modules.decoders import composite
 from slotformer_jax.modules.slotformer import SlotFormer
 from slotformer_jax.modules.token_decoder import TokenDecoder
 from slotformer_jax.slot_models import steve as steve_slots
+from slotformer_jax.workdir.paths import Paths
+from slotformer_jax.workdir.settings import accept_config
 
 
 def _decoder_outputs():
@@ -230,3 +233,56 @@ def test_run_curves_only_from_the_same_models(tmp_path):
     curves, note = explore.run_curves(path, identity, labels)
     assert curves == expected, note
   assert note == 'the run: eval/metrics.json, mean over 2 test videos'
+
+
+@pytest.mark.parametrize('metrics', [
+    [1, 2],                                             # not an object
+    {'identity': 'SAME', 'rollout': [1]},                 # rollout a list
+    {'identity': 'SAME', 'rollout': {'slotformer': 3}},   # a method a number
+    {'identity': 'SAME', 'rollout': {'slotformer': {'psnr': {
+        'per_step': ['x', {}]}}}},                        # steps not numbers
+    {'identity': 'SAME', 'rollout': {'slotformer': {'psnr': {
+        'per_step': [[[[1]]]]}}}},                        # nested
+    {'identity': 'SAME', 'rollout': {'x' * 1000: {'psnr': {
+        'per_step': [1.0]}}}},                            # a name too long
+    {'identity': 'SAME', 'rollout': {}, 'protocol': [3]},  # protocol a list
+    '[' * 100000 + ']' * 100000,                         # nested too deep
+])
+def test_run_curves_of_a_malformed_metrics_file_are_left_out(tmp_path,
+                                                             metrics):
+  """eval/metrics.json of a run folder someone shares can hold anything:
+  the page then has no run curves and says why; before, each of these
+  ended the stage in a traceback (or, for the protocol, a wrong note)."""
+  identity = {'slotformer': {'run_id': 'a', 'step': 4}}
+  os.makedirs(tmp_path / 'eval')
+  if isinstance(metrics, dict):
+    metrics = {**metrics, 'identity': identity}
+  with open(tmp_path / 'eval' / 'metrics.json', 'w') as f:
+    f.write(metrics if isinstance(metrics, str) else json.dumps(metrics))
+  curves, note = explore.run_curves(
+      str(tmp_path / 'eval' / 'metrics.json'), identity, {})
+  if metrics == {'identity': identity, 'rollout': {}, 'protocol': [3]}:
+    assert curves == {} and note.endswith('mean over the  videos'), note
+  else:
+    assert curves is None and 'not what --mode=evaluate writes' in note
+
+
+def test_a_full_disk_while_writing_the_page_is_one_line(tmp_path,
+                                                        monkeypatch):
+  """ENOSPC from the page's atomic write: one UserError line (main prints
+  it), no half-written page. Before, the OSError ended the run in a
+  traceback."""
+  from slotformer_jax import files  # pylint: disable=g-import-not-at-top
+
+  def full_disk_fsync(fd):
+    raise OSError(errno.ENOSPC, 'No space left on device')
+  monkeypatch.setattr(files.os, 'fsync', full_disk_fsync)
+  directory = tmp_path / 'explore'
+  directory.mkdir()
+  data = {'title': 't', 'videos': []}
+  with pytest.raises(UserError) as caught:
+    explore.write_outputs(str(directory), data, {'savi': {}}, [0])
+  message = str(caught.value)
+  assert '\n' not in message and 'No space left on device' in message
+  assert 're-run --mode=explore' in message
+  assert sorted(os.listdir(directory)) == []

@@ -114,3 +114,44 @@ def test_clicking_a_slot_shows_its_counterfactual_rollout(page):
   errors = [entry for entry in driver.get_log('browser')
             if entry['level'] in ('SEVERE', 'ERROR')]
   assert errors == []
+
+
+# Method and metric names as eval/metrics.json of a shared run folder may
+# hold them: markup that runs script if it is ever parsed as HTML.
+_HOSTILE = '<img src=x onerror="document.body.dataset.owned=1">'
+
+
+@pytest.fixture(scope='module')
+def hostile_page(tmp_path_factory):
+  driver = _driver()
+  root = tmp_path_factory.mktemp('hostile')
+  path, data = write_micro_page(
+      root, root / 'data', curves={
+          _HOSTILE + 'metric': {_HOSTILE + 'method': [1.0, 2.0],
+                                'constructor': [2.0, 1.0]},
+          '</script><script>document.body.dataset.owned=2</script>': {
+              'SlotFormer': [1.0, 1.5]}})
+  driver.get('file://' + path)
+  yield driver, data
+  driver.quit()
+
+
+def test_names_from_the_metrics_file_are_shown_as_text(hostile_page):
+  """The charts' titles and legend are text nodes: a name with markup is
+  shown as it is and runs nothing (before, `charts()` put the names into
+  innerHTML and the onerror handler ran). The page's JSON closes no
+  element either."""
+  driver, _ = hostile_page
+  body = driver.find_element(By.TAG_NAME, 'body')
+  assert _wait_for(lambda: body.get_attribute('data-frame') is not None)
+  time.sleep(0.5)  # an image error handler would have run by now
+  assert body.get_attribute('data-owned') is None
+  legend = driver.find_element(By.CSS_SELECTOR, '#run-charts .legend').text
+  assert _HOSTILE + 'method' in legend and 'constructor' in legend, legend
+  titles = [e.text for e in driver.find_elements(
+      By.CSS_SELECTOR, '#run-charts svg.chart > text:first-of-type')]
+  assert _HOSTILE + 'metric' in titles, titles
+  assert not driver.find_elements(By.CSS_SELECTOR, '#run-charts img')
+  errors = [entry for entry in driver.get_log('browser')
+            if entry['level'] in ('SEVERE', 'ERROR')]
+  assert errors == []

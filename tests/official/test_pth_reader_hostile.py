@@ -452,3 +452,126 @@ def test_a_zip_directory_is_charged_before_zipfile_reads_it(tmp_path):
   finally:
     tracemalloc.stop()
   assert peak < 8 * _MIB, peak
+
+
+# ---------------------------------------------------------------------------
+# Attributes the pickle sets on a state dict (BUILD), and names that reach
+# the terminal.
+
+def _build_file(path, state, items=None, storage=bytes(16)) -> None:
+  """{'state_dict': OrderedDict(items)} with BUILD `state` on the
+  OrderedDict, as torch.save writes `_metadata`; storage '0' holds 4
+  floats."""
+  items = items if items is not None else [
+      ('w', pf.tensor('0', 'FloatStorage', 4, 0, (2, 2), (2, 1)))]
+  body = pf.Build(pf.Reduce(pf.ORDERED_DICT, (items,)), state)
+  path.write_bytes(pf.archive_bytes(pf.dumps({'state_dict': body}),
+                                    {'0': storage}))
+
+
+def test_a_state_dict_s_metadata_is_kept_and_its_values_checked(tmp_path):
+  """torch.save's own `_metadata` attribute reads as torch.load reads it
+  (a plain OrderedDict with the attribute); tensors hidden in attributes
+  are checked like every other one. Before, the walk looked only at the
+  items: a state dict whose only tensor sat in an attribute came back as an
+  empty state dict, the tensor unchecked (here past its storage)."""
+  path = tmp_path / 'metadata.pth'
+  _build_file(path, {'_metadata': {'': {'version': 1}}},
+              storage=np.arange(4, dtype='<f4').tobytes())
+  state_dict = pth_reader.read_checkpoint(str(path))['state_dict']
+  assert type(state_dict) is collections.OrderedDict  # not the reader's own
+  assert state_dict._metadata == {'': {'version': 1}}
+  np.testing.assert_array_equal(state_dict['w'], [[0, 1], [2, 3]])
+  path = tmp_path / 'hidden.pth'
+  _build_file(path, {'_hidden': pf.tensor('0', 'FloatStorage', 4, 3, (2, 2),
+                                          (2, 1))}, items=[])
+  with pytest.raises(pth_reader.CheckpointError,
+                     match=r"tensor 'state_dict/<attribute _hidden>'.*past "
+                     'the end'):
+    pth_reader.read_state_dict(str(path))
+
+
+@pytest.mark.parametrize('state, needle', [
+    # An attribute that shadows a method: the caller's `dict(state_dict)`
+    # would call the pickle's object (a traceback before).
+    ({'keys': pf.Global('os', 'system')}, "attribute 'keys'"),
+    ({'__class__': 1}, "attribute '__class__'"),
+    # Attributes set through setattr (a (state, slotstate) pair).
+    ((None, {'_x': 1}), 'a tuple state'),
+    ([1, 2], 'a list state'),
+])
+def test_a_build_that_is_not_torch_s_metadata_is_refused(tmp_path, state,
+                                                         needle):
+  path = tmp_path / 'build.pth'
+  _build_file(path, state)
+  outcome = read_in_child(path)
+  assert_refused(outcome, path, needle)
+
+
+def test_a_build_into_the_reader_s_functions_is_refused(tmp_path):
+  """The pickle may name torch's rebuild functions; a BUILD into one set
+  attributes on the reader's own function before (kept for every later
+  file of the process). Now each read gets fresh inert callables."""
+  path = tmp_path / 'function.pth'
+  body = {'state_dict': pf.Reduce(pf.ORDERED_DICT, ([],)),
+          'f': pf.Build(pf.REBUILD_TENSOR, (None, {'__defaults__': (1,)}))}
+  path.write_bytes(pf.archive_bytes(pf.dumps(body), {}))
+  outcome = read_in_child(path)
+  assert_refused(outcome, path, 'BUILD on a Call')
+
+
+# What a hostile key or member name holds: a screen clear, a window title,
+# and a forged second line.
+_HOSTILE_NAME = '\x1b[2J\x1b]0;owned\x07\nerror: forged line\r'
+
+
+def _no_raw_control(text: str) -> None:
+  raw = [c for c in text if not c.isprintable() and c != '\n']
+  assert not raw, (raw, text)
+  forged = [line for line in text.splitlines() if 'forged' in line
+            and line.startswith('error: forged')]
+  assert not forged, text
+
+
+def test_names_from_the_file_are_escaped_in_the_reader_s_messages(
+    tmp_path):
+  # A member name, in the message of a pickle that does not load.
+  path = tmp_path / 'member.pth'
+  path.write_bytes(pf.archive_bytes(b'\x80\x02X', {}, prefix=_HOSTILE_NAME[
+      :-1].replace('\n', ' ')))
+  outcome = read_in_child(path)
+  assert outcome['outcome'] == 'error' and outcome['own'], outcome
+  _no_raw_control(outcome['message'])
+  # A key, in a refusal of its value.
+  path = tmp_path / 'key.pth'
+  body = pf.Reduce(pf.ORDERED_DICT, ([(_HOSTILE_NAME, 3)],))
+  path.write_bytes(pf.archive_bytes(pf.dumps({'state_dict': body}), {}))
+  with pytest.raises(pth_reader.CheckpointError) as caught:
+    pth_reader.read_state_dict(str(path))
+  _no_raw_control(str(caught.value))
+  assert '\n' not in str(caught.value)
+
+
+def test_the_converter_escapes_keys_it_does_not_know(tmp_path):
+  """A state dict whose keys no official family knows: the converter lists
+  some keys in its `error:` line. Before, they were printed raw: this one
+  cleared the screen, retitled the terminal and printed a second,
+  forged `error:` line."""
+  path = tmp_path / 'keys.pth'
+  pf.state_dict_file(path, {_HOSTILE_NAME: (np.zeros(4, np.float32), 0,
+                                            (4,), (1,))})
+  workdir = tmp_path / 'run'
+  done = subprocess.run(
+      [sys.executable, '-m', 'slotformer_jax.official.convert',
+       f'--config={os.path.join(ROOT, "configs", "obj3d.py")}',
+       f'--workdir={workdir}', f'--checkpoint={path}'],
+      capture_output=True, text=True, timeout=300, env=_child_env(),
+      cwd=tmp_path, check=False)
+  assert done.returncode == 1, done.stderr[-3000:]
+  _no_raw_control(done.stderr)
+  errors = [line for line in done.stderr.splitlines()
+            if line.startswith('error:')]
+  assert len(errors) == 1 and 'no official model family' in errors[0], (
+      done.stderr[-3000:])
+  assert '\\x1b[2J' in errors[0], errors[0]
+  assert not workdir.exists()

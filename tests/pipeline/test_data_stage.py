@@ -16,6 +16,8 @@ from slotformer_jax.data import vqa_questions
 from slotformer_jax.data.data_dir import resolve_data_dir
 from slotformer_jax.data.embedded import phyre_like as phyre_like_data
 from slotformer_jax.errors import MissingInputError
+from slotformer_jax.run import Run
+from slotformer_jax.runtime import sharding
 from slotformer_jax.stages import data as data_stage
 
 CONFIGS = ('synthetic:tiny', 'synthetic:steve_tiny', 'synthetic_contact:tiny',
@@ -36,11 +38,12 @@ def _snapshot(directory):
 
 @pytest.mark.parametrize('spec', CONFIGS)
 def test_every_mode_runs_the_data_stage_first(spec):
-  config = load_config(*spec.split(':'))
-  assert 'prepare_data' in stages.MODES
-  assert next(iter(stages.stage_table(config))) == 'prepare_data'
-  for mode in ('all', *stages.stage_table(config)):
-    selected = stages.selected_stages(config, mode)
+  run = Run.create(load_config(*spec.split(':')), '/nonexistent/run',
+                   sharding.make_mesh())
+  assert list(stages.DATA) == ['prepare_data']
+  assert next(iter(stages.stage_table(run))) == 'prepare_data'
+  for mode in ('all', *stages.stage_table(run)):
+    selected = stages.selected_stages(run, mode)
     assert selected[0] == 'prepare_data', mode
     assert selected.count('prepare_data') == 1
     assert mode == 'all' or selected[-1] == mode

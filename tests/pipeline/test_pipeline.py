@@ -12,6 +12,7 @@ import ml_collections
 import numpy as np
 import pytest
 
+from dataset_fixtures import data_section
 from slotformer_jax.data import pipeline
 from slotformer_jax.data import sources
 from slotformer_jax.data.convert import synthetic
@@ -276,12 +277,14 @@ TINY = SyntheticConfig(resolution=(32, 32), num_frames=8, num_train=4,
 
 
 def _data_config(root: Path, **overrides) -> ml_collections.ConfigDict:
-  config = ml_collections.ConfigDict(dict(
+  """A run's data section (every field at its default) for the small
+  embedded dataset under `root`, with `overrides`."""
+  fields = dict(
       name='synthetic', data_dir=str(root), resolution=(32, 32), num_frames=8,
       min_objects=3, max_objects=5, seed=0, num_train=4, num_val=2,
-      num_test=2, num_workers=1))
-  config.update(overrides)
-  return config
+      num_test=2, num_workers=1)
+  fields.update(overrides)
+  return data_section(**fields)
 
 
 @pytest.fixture(scope='module')

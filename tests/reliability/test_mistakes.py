@@ -32,7 +32,6 @@ import numpy as np
 import pytest
 
 from slotformer_jax.config import checks as config_checks
-from slotformer_jax.data import sources
 from slotformer_jax.errors import UserError
 from slotformer_jax.workdir.lock import FileLock
 from slotformer_jax.modules.decoders import SpatialBroadcastDecoder

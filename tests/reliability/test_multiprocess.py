@@ -45,7 +45,7 @@ import pipeline_helpers
 from slotformer_jax.workdir import identity as identity_lib
 from pipeline_helpers import accept
 from slotformer_jax.workdir.paths import Paths
-from slotformer_jax.run import Run
+from slotformer_jax import run as run_lib
 
 ROOT = os.path.abspath(os.path.join(os.path.dirname(__file__), '..', '..'))
 SYNTHETIC = os.path.join(ROOT, 'configs', 'synthetic.py') + ':tiny'
@@ -88,18 +88,23 @@ def _command(workdir, steps, mode='train_savi', extra=()):
 
 
 class Run:
-  """N processes of one run; stderr of process i in <workdir>.<i>.log."""
+  """N processes of one run; stderr of process i in <workdir>.<i>.log.
+
+  `per_process`: extra arguments of each process (after `extra`); `only`:
+  the processes started (the others never come)."""
 
   def __init__(self, workdir, data_dir, steps, num_processes=2, extra=(),
-               mode='train_savi'):
+               mode='train_savi', per_process=None, only=None):
     port = _free_port()
     self.logs = [f'{workdir}.{i}.log' for i in range(num_processes)]
     self.processes = []
-    for i in range(num_processes):
+    self.started = time.time()
+    for i in range(num_processes) if only is None else only:
       command = _command(workdir, steps, mode, extra=(
           f'--coordinator_address=localhost:{port}',
           f'--num_processes={num_processes}', f'--process_id={i}',
-          f'--peer_timeout={PEER_TIMEOUT}', *extra))
+          f'--peer_timeout={PEER_TIMEOUT}', *extra,
+          *(per_process[i] if per_process else ())))
       with open(self.logs[i], 'w') as log:
         self.processes.append(subprocess.Popen(
             command, env=_env(data_dir), stdout=log, stderr=log))
@@ -134,7 +139,8 @@ def _params(workdir, data_dir):
   """(step, {path: array}) of the newest SAVi checkpoint."""
   config = pipeline_helpers.micro_config('savi', data_dir)
   config.savi.num_train_steps = STEPS
-  loaded = Run.create(config, str(workdir), sharding.make_mesh()).stage1
+  loaded = run_lib.Run.create(config, str(workdir),
+                              sharding.make_mesh()).stage1
   params, step = loaded.params, loaded.step
   leaves = jax.tree_util.tree_flatten_with_path(params)[0]
   return step, {jax.tree_util.keystr(k): np.asarray(v) for k, v in leaves}
@@ -249,6 +255,8 @@ if index == 1:
     time.sleep(1)
     raise SystemExit(0)  # dies without saying how: as after SIGKILL
   time.sleep(1)
+  if peer_exit == 'leave':  # a reason with an escape sequence in it
+    dog.leave(130, 'interrupted by Ctrl-C\x1b[2J outside training')
   dog.finish(int(peer_exit))
   raise SystemExit(int(peer_exit))
 time.sleep(8)
@@ -262,6 +270,9 @@ print('survived')
     ('1', 1, 'error: process 1 of 2 ended with exit status 1'),
     ('143', 0, 'survived'),
     ('0', 0, 'survived'),
+    ('leave', 1, 'error: process 1 of 2 stopped (exit status 130: '
+     'interrupted by Ctrl-C\\x1b[2J outside training); stopping process 0 '
+     'too.'),
 ])
 def test_the_watchdog_names_a_lost_process(tmp_path, peer_exit, status, line):
   run = [subprocess.Popen(
@@ -500,3 +511,178 @@ def test_the_watchdog_waits_for_a_peer_slow_to_start(tmp_path, delay, status,
   out, _ = run[0].communicate(timeout=60)
   assert run[0].returncode == status, out
   assert out.strip().splitlines()[0].startswith(line), out
+
+
+# --------------------------------------------------------------------------
+# Processes that disagree, never come, or leave early (issue 39)
+# --------------------------------------------------------------------------
+
+# What must never reach a user: jax's coordination service aborting with a
+# C++ stack dump, a Python traceback.
+_NEVER = ('Traceback', 'Fatal Python error', 'Check failure', 'Aborted',
+          'Terminating process', '*** ')
+
+
+def _lines(log, prefixes=('error:', 'interrupted:', 'terminated:',
+                          'preempted:')):
+  return [line for line in log.splitlines() if line.startswith(prefixes)]
+
+
+def _assert_clean(log):
+  for text in _NEVER:
+    assert text not in log, log[-3000:]
+
+
+@pytest.mark.parametrize('differs, needle', [
+    pytest.param(['--config.savi.num_slots=4'],
+                 '--config.savi.num_slots: 5 on process 0, 4 on process 1',
+                 id='config'),
+    pytest.param(['--mode=extract_slots'],
+                 '--mode: train_savi on process 0, extract_slots on process 1',
+                 id='mode', marks=pytest.mark.slow),
+])
+def test_processes_started_differently_stop_before_work(tmp_path, differs,
+                                                        needle):
+  """Before: other settings died inside the collective library
+  ('Received data size doesn't match expected size', Fatal Python error)
+  while the other process said 30 s later that its peer was lost; another
+  --mode hung for 5 min, then both aborted with C++ stack dumps. Now every
+  process says what differs, in one line, before any work."""
+  workdir = tmp_path / 'run'
+  run = Run(str(workdir), tmp_path / 'data', 2,
+            per_process={0: [], 1: differs})
+  statuses = run.wait(timeout=300)
+  took = time.time() - run.started
+  assert statuses == [2, 2], [run.log(i)[-3000:] for i in (0, 1)]
+  lines = [_lines(run.log(i)) for i in (0, 1)]
+  assert lines[0] == lines[1] and len(lines[0]) == 1, lines
+  assert lines[0][0].startswith('error: the 2 processes of this run were not '
+                                'started alike: '), lines
+  assert needle in lines[0][0], lines
+  for i in (0, 1):
+    _assert_clean(run.log(i))
+  # Before any work: no settings recorded, no data, no stage.
+  assert sorted(os.listdir(workdir)) == ['.processes'], os.listdir(workdir)
+  data = tmp_path / 'data'  # only the XLA flag probe that main starts with
+  assert not data.exists() or os.listdir(data) == ['xla_flag_probes.json']
+  print(f'both processes stopped {took:.1f} s after they were started')
+
+
+@pytest.mark.parametrize('present', [
+    pytest.param(0, id='only_0'),
+    pytest.param(1, id='only_1', marks=pytest.mark.slow)])
+def test_a_process_that_never_starts_is_named_in_time(tmp_path, present):
+  """Only one of two processes is started: it names the other within
+  --startup_timeout (5 s here) of its start, in one line. Before: nothing
+  for 5 min, then an abort with a stack dump."""
+  run = Run(str(tmp_path / 'run'), tmp_path / 'data', 2, only=[present],
+            extra=['--startup_timeout=5'])
+  (status,) = run.wait(timeout=300)
+  log = run.log(present)
+  assert status == processes.LOST_PROCESS_EXIT, log[-3000:]
+  _assert_clean(log)
+  missing = 1 - present
+  assert _lines(log) == [
+      f'error: process {missing} of 2 never started (no sign of it in '
+      f'{tmp_path / "run" / ".processes"} within 5 s (--startup_timeout); if '
+      f'it runs, its --workdir is not this folder); stopping process '
+      f'{present} too. Start every process with the same command (only '
+      '--process_id differs), or raise --startup_timeout.'], log[-3000:]
+
+
+def _hold_dataset_lock(data_dir):
+  """Locks the micro config's synthetic dataset as a live generator on
+  this host would (this test's own pid): both processes then wait for it,
+  outside any training loop."""
+  from slotformer_jax.data.embedded import synthetic  # pylint: disable=g-import-not-at-top
+  config = pipeline_helpers.micro_config('savi', data_dir)
+  path = synthetic.dataset_dir(
+      synthetic.config_from_data_config(config.data), data_dir)
+  path.parent.mkdir(parents=True)
+  lock = path.parent / f'.{path.name}.lock'
+  lock.write_text(json.dumps({'pid': os.getpid(), 'host': socket.gethostname(),
+                              'started': 'now'}))
+  return lock
+
+
+@pytest.mark.parametrize('signum, leaver', [
+    pytest.param(signal.SIGINT, 0, id='sigint_to_0'),
+    pytest.param(signal.SIGINT, 1, id='sigint_to_1', marks=pytest.mark.slow),
+    pytest.param(signal.SIGTERM, 0, id='sigterm_to_0',
+                 marks=pytest.mark.slow),
+    pytest.param(signal.SIGTERM, 1, id='sigterm_to_1',
+                 marks=pytest.mark.slow),
+])
+def test_a_process_that_leaves_outside_training_stops_the_others(
+    tmp_path, signum, leaver):
+  """Ctrl-C (or SIGTERM) to one process outside training: it says so and
+  exits 130 (143); the other names it and why, and exits 1, within
+  seconds. Process 0 holds jax's coordination service: when it is the one
+  that leaves, it waits for the others to end first. Before: the signalled
+  process exited, the other waited in a collective until jax's service
+  aborted both with C++ stack dumps (about 300 s)."""
+  data_dir = tmp_path / 'data'
+  _hold_dataset_lock(data_dir)
+  run = Run(str(tmp_path / 'run'), data_dir, 2)
+  for i in (0, 1):
+    run.wait_for('waiting for process', i=i, timeout=300)
+  run.processes[leaver].send_signal(signum)
+  signalled = time.time()
+  statuses = run.wait(timeout=120)
+  took = time.time() - signalled
+  logs = [run.log(i) for i in (0, 1)]
+  own = 128 + signum
+  expected = [processes.LOST_PROCESS_EXIT] * 2
+  expected[leaver] = own
+  assert statuses == expected, [log[-3000:] for log in logs]
+  for log in logs:
+    _assert_clean(log)
+  what = ('interrupted: Ctrl-C outside training' if signum == signal.SIGINT
+          else 'terminated: SIGTERM outside training')
+  assert [line.split(';')[0] for line in _lines(logs[leaver])] == [what], (
+      logs[leaver][-3000:])
+  other = 1 - leaver
+  reason = ('interrupted by Ctrl-C outside training'
+            if signum == signal.SIGINT else
+            'terminated by SIGTERM outside training')
+  assert _lines(logs[other]) == [
+      f'error: process {leaver} of 2 stopped (exit status {own}: {reason}); '
+      f'stopping process {other} too. Re-run every process with the same '
+      'command: training resumes from the last saved checkpoint.'], (
+          logs[other][-3000:])
+  assert took < 30, took
+  print(f'both processes ended {took:.1f} s after the signal')
+
+
+@pytest.mark.slow
+def test_ctrl_c_to_one_process_during_evaluation(tmp_path):
+  """The issue's case: two processes evaluate, Ctrl-C reaches one of them
+  (here as soon as the stage starts: it compiles for seconds). Before: it
+  exited 130, the other blocked in a collective, and after about 300 s both
+  aborted with C++ stack dumps (status 134). Now: 130 and one line, and
+  the other names it and exits 1, within seconds."""
+  data_dir = tmp_path / 'data'
+  workdir = str(tmp_path / 'run')
+  for mode in ('train_savi', 'extract_slots', 'train_slotformer'):
+    _finished(Run(workdir, data_dir, 2, mode=mode, extra=FEW_VIDEOS))
+  run = Run(workdir, data_dir, 2, mode='evaluate', extra=FEW_VIDEOS)
+  run.wait_for('=== evaluate ===', i=1, timeout=600)
+  run.processes[1].send_signal(signal.SIGINT)
+  signalled = time.time()
+  statuses = run.wait(timeout=120)
+  took = time.time() - signalled
+  logs = [run.log(i) for i in (0, 1)]
+  assert statuses == [processes.LOST_PROCESS_EXIT, 130], [
+      log[-3000:] for log in logs]
+  for log in logs:
+    _assert_clean(log)
+  assert _lines(logs[1]) == ['interrupted: Ctrl-C outside training; re-run '
+                             'the same command to resume from what was '
+                             'saved.'], logs[1][-3000:]
+  assert _lines(logs[0]) == [
+      'error: process 1 of 2 stopped (exit status 130: interrupted by Ctrl-C '
+      'outside training); stopping process 0 too. Re-run every process with '
+      'the same command: training resumes from the last saved checkpoint.'], (
+          logs[0][-3000:])
+  assert took < 30, took
+  print(f'both processes ended {took:.1f} s after the signal')

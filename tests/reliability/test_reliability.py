@@ -519,15 +519,68 @@ def test_a_signal_in_training_saves_that_step(tmp_path, signum):
         os.kill(os.getpid(), signum)
       yield batch
   stage = dataclasses.replace(stage, batches=batches)
-  with pytest.raises(Preempted, match=f'stopped by {signum.name} after step '
-                     '4;') as error:
-    fit(stage, mesh=mesh, seed=0)
+  # Whatever pytest was started with (`nohup ... &` ignores SIGINT), the
+  # handlers before training are known ones, and must be the ones after.
+  with _handlers({signal.SIGINT: _before_int, signal.SIGTERM: _before_term}):
+    with pytest.raises(Preempted, match=f'stopped by {signum.name} after '
+                       'step 4;') as error:
+      fit(stage, mesh=mesh, seed=0)
+    assert signal.getsignal(signal.SIGINT) is _before_int
+    assert signal.getsignal(signal.SIGTERM) is _before_term
   assert error.value.signal == signum
   assert checkpoint_lib.Checkpointer(
       str(tmp_path / 'linear' / 'checkpoints'), read_only=True
   ).all_steps() == [4]
-  assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
-  assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL
+
+
+def _before_int(signum, frame):
+  raise AssertionError('the handler from before training was called')
+
+
+def _before_term(signum, frame):
+  raise AssertionError('the handler from before training was called')
+
+
+class _handlers:
+  """Installs signal handlers for a block and puts back the ones before."""
+
+  def __init__(self, handlers):
+    self.handlers = handlers
+    self.saved = {}
+
+  def __enter__(self):
+    for signum, handler in self.handlers.items():
+      self.saved[signum] = signal.signal(signum, handler)
+
+  def __exit__(self, *exc):
+    for signum, handler in self.saved.items():
+      signal.signal(signum, handler)
+
+
+def test_a_signal_ignored_before_training_stays_ignored(tmp_path):
+  """A run started with SIGINT ignored (a background job of a script,
+  `nohup ... &`) is not stopped by a SIGINT, as Python itself ignores it
+  then; SIGTERM still saves and stops. Before, the trainer caught the
+  ignored SIGINT and stopped."""
+  mesh = Mesh(np.asarray(jax.devices()[:1]), ('data',))
+  stage = _linear_stage(tmp_path / 'linear', num_train_steps=6,
+                        checkpoint_every=1000)
+  plain = stage.batches
+
+  def batches(start_step):
+    for step, batch in zip(itertools.count(start_step), plain(start_step)):
+      if step == 3:
+        os.kill(os.getpid(), signal.SIGINT)
+      yield batch
+  stage = dataclasses.replace(stage, batches=batches)
+  with _handlers({signal.SIGINT: signal.SIG_IGN,
+                  signal.SIGTERM: _before_term}):
+    fit(stage, mesh=mesh, seed=0)  # runs to the end
+    assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+    assert signal.getsignal(signal.SIGTERM) is _before_term
+  assert checkpoint_lib.Checkpointer(
+      str(tmp_path / 'linear' / 'checkpoints'), read_only=True
+  ).all_steps() == [6]
 
 
 def test_a_failed_save_stops_training_with_one_line(tmp_path, monkeypatch):

@@ -24,6 +24,7 @@ import numpy as np
 import jax, jax.numpy as jnp
 sys.path.insert(0, 'configs')
 import obj3d, synthetic
+from slotformer_jax import losses
 from slotformer_jax.train import steps
 
 from slotformer_jax.modules.encoders import CNNEncoder
@@ -60,7 +61,7 @@ else:
   video = np.random.default_rng(0).integers(
       0, 256, (2, 2, *config.data.resolution, 3), np.uint8)
   params = steps.init_params(model, jax.random.key(0), jnp.zeros((1, 2, *config.data.resolution, 3)))
-  loss_fn = functools.partial(steps.savi_loss, model=model, kl_weight=0.0)
+  loss_fn = functools.partial(losses.savi_loss, model=model, kl_weight=0.0)
   (loss, _), grads = jax.jit(jax.value_and_grad(loss_fn, has_aux=True))(
       params, {'video': video}, None, jax.random.key(1))
   out['savi_loss'] = np.asarray(loss)

@@ -13,16 +13,21 @@ detect truncated files (ffmpeg itself just stops early on them).
 
 from __future__ import annotations
 
-import json
 import math
 import os
 import re
+import struct
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from PIL import Image
+
+from slotformer_jax.errors import shown
+from slotformer_jax.files import UntrustedFileError
+from slotformer_jax.files import read_untrusted_json
 
 
 class SkipVideo(Exception):
@@ -81,21 +86,61 @@ def resize_labels(labels: np.ndarray, size: Sequence[int]) -> np.ndarray:
   return labels[..., rows[:, None], cols[None, :]]
 
 
-def read_image(path: Path) -> np.ndarray:
-  """uint8 [h, w, 3] RGB of an image file; alpha is dropped.
+_PNG_SIGNATURE = b'\x89PNG\r\n\x1a\n'
+
+
+def png_size(head: bytes) -> tuple[int, int] | None:
+  """(width, height) that a PNG's header (its first 24 bytes) states, read
+  before any decoder sees the file; None if `head` is not a PNG's."""
+  if len(head) < 24 or not head.startswith(_PNG_SIGNATURE) or (
+      head[12:16] != b'IHDR'):
+    return None
+  return struct.unpack('>II', head[16:24])
+
+
+# Pixels of one image file a converter decodes (OBJ3D's frames are 64 x 64,
+# a PHYRE rollout strip 15 frames of 256 x 256): a header may claim any
+# size, and is checked before anything is decoded.
+MAX_IMAGE_PIXELS = 64 << 20
+
+
+def read_image(path: Path, *, max_pixels: int = MAX_IMAGE_PIXELS
+               ) -> np.ndarray:
+  """uint8 [h, w, 3] RGB of an image file; alpha is dropped. Its size is
+  read from the header first: more than `max_pixels` is refused before
+  decoding.
 
   Raises:
-    SkipVideo('unreadable_frame'): missing, truncated or not an image.
+    SkipVideo('unreadable_frame'): missing, truncated, too large or not an
+      image.
   """
   try:
-    with Image.open(path) as image:
-      # convert('RGB') drops an alpha channel without compositing, like the
-      # official OBJ3D loader; load() forces the full decode here, so a
-      # truncated file fails now rather than later.
-      image.load()
-      return np.asarray(image.convert('RGB'))
-  except (OSError, ValueError, SyntaxError) as error:
-    raise SkipVideo('unreadable_frame', f'{path}: {error}') from None
+    with open(path, 'rb') as f:
+      stated = png_size(f.read(24))
+    if stated is not None and stated[0] * stated[1] > max_pixels:
+      raise SkipVideo('unreadable_frame', f'{path}: its PNG header says '
+                      f'{stated[0]}x{stated[1]} pixels, more than the '
+                      f'{max_pixels} a frame may have')
+    with warnings.catch_warnings():
+      warnings.simplefilter('error', Image.DecompressionBombWarning)
+      with Image.open(path) as image:
+        width, height = image.size
+        if width * height > max_pixels:
+          raise SkipVideo('unreadable_frame', f'{path}: its header says '
+                          f'{width}x{height} pixels, more than the '
+                          f'{max_pixels} a frame may have')
+        # convert('RGB') drops an alpha channel without compositing, like
+        # the official OBJ3D loader; load() forces the full decode here, so
+        # a truncated file fails now rather than later.
+        image.load()
+        return np.asarray(image.convert('RGB'))
+  except SkipVideo:
+    raise
+  except Exception as error:  # pylint: disable=broad-except
+    # OSError, SyntaxError, PIL's bomb errors, anything a crafted file makes
+    # a decoder raise: this video is skipped, naming the file.
+    raise SkipVideo('unreadable_frame',
+                    f'{path}: {shown(str(error), 200)}') from None
 
 
 def load_json(path: Path, what: str) -> Any:
@@ -105,12 +150,14 @@ def load_json(path: Path, what: str) -> Any:
     SkipVideo('missing_<what>' or 'bad_<what>'): absent or unparsable.
   """
   try:
-    with open(path, 'rb') as f:
-      return json.load(f)
+    return read_untrusted_json(path, what=what)
   except FileNotFoundError:
     raise SkipVideo(f'missing_{what}', f'{path} does not exist') from None
-  except (OSError, ValueError) as error:
-    raise SkipVideo(f'bad_{what}', f'{path}: {error}') from None
+  except OSError as error:
+    raise SkipVideo(f'bad_{what}', f'{path}: {error.strerror or error}'
+                    ) from None
+  except UntrustedFileError as error:
+    raise SkipVideo(f'bad_{what}', str(error)) from None
 
 
 # A truncated file decodes to fewer frames than its container declares; the

@@ -65,7 +65,8 @@ from __future__ import annotations
 import dataclasses
 import functools
 import io
-import json
+import re
+import warnings
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -78,6 +79,10 @@ from PIL import Image
 from slotformer_jax.data.convert import media
 from slotformer_jax.data.convert import tfrecord
 from slotformer_jax.data.convert import writer
+from slotformer_jax.errors import shown
+from slotformer_jax.files import UntrustedFileError
+from slotformer_jax.files import confined
+from slotformer_jax.files import read_untrusted_json
 
 NAME = 'movi'
 SPLITS: tuple[str, ...] = ('train', 'val', 'test')
@@ -142,24 +147,84 @@ class Leaf:
   image_dtype: str = ''
 
 
-def _class_name(node: Mapping[str, Any]) -> str:
-  return str(node.get('pythonClassName') or node.get('type', '')).rsplit(
-      '.', 1)[-1]
+# What a downloaded features.json / dataset_info.json may hold (both are a
+# few KB in every MOVi variant). A feature tree's numeric dtypes, by name;
+# 'string' is TFDS's name for bytes.
+_MAX_JSON_BYTES = 16 << 20
+_MAX_JSON_DEPTH = 32
+_NUMERIC_DTYPES = ('bool', 'int8', 'int16', 'int32', 'int64', 'uint8',
+                   'uint16', 'uint32', 'uint64', 'float16', 'float32',
+                   'float64')
+# Source frames: MOVi has 24 frames of 128 or 256 (512 for MOVi-F) pixels.
+MAX_SOURCE_SIDE = 1024
+MAX_SOURCE_FRAMES = 1024
+_MAX_SHARDS = 100_000
+_MAX_SHARD_LENGTH = 10_000_000
+# TFDS dataset names (snake case); also the output folder and shard prefix.
+_DATASET_NAME = re.compile(r'[a-z][a-z0-9_]{0,63}')
 
 
-def _dims(shape: Any) -> tuple[int | None, ...]:
+class LayoutError(UntrustedFileError):
+  """features.json or dataset_info.json is not what TFDS writes."""
+
+
+def _object(value: Any, where: str) -> Mapping[str, Any]:
+  if not isinstance(value, Mapping):
+    raise LayoutError(f'features.json: {where} is a {type(value).__name__}, '
+                      'not an object')
+  return value
+
+
+def _class_name(node: Mapping[str, Any], where: str) -> str:
+  name = node.get('pythonClassName', node.get('type', ''))
+  if not isinstance(name, str):
+    raise LayoutError(f'features.json: {where}: the class name is a '
+                      f'{type(name).__name__}, not a text')
+  return name.rsplit('.', 1)[-1]
+
+
+def _count(value: Any, where: str, *, most: int) -> int | None:
+  """An int of features.json / dataset_info.json: JSON ints or the digit
+  strings protobuf's JSON writes for int64 ('24'); None or < 0: variable."""
+  if value is None:
+    return None
+  if isinstance(value, str) and re.fullmatch(r'-?[0-9]{1,12}', value):
+    value = int(value)
+  if isinstance(value, bool) or not isinstance(value, int):
+    raise LayoutError(f'{where} is {shown(repr(value), 60)}, not an integer')
+  if value > most:
+    raise LayoutError(f'{where} is {value}, more than {most}')
+  return None if value < 0 else value
+
+
+def _dims(shape: Any, where: str) -> tuple[int | None, ...]:
   """A shape of either format: [24, 128, None] or {'dimensions': ['24', ...]}
   ('-1' / None: variable)."""
   if isinstance(shape, Mapping):
     shape = shape.get('dimensions', [])
-  out = []
-  for d in shape or ():
-    d = None if d is None else int(d)
-    out.append(None if d is None or d < 0 else d)
-  return tuple(out)
+  if shape is None:
+    shape = []
+  if not isinstance(shape, list) or len(shape) > 8:
+    raise LayoutError(f'features.json: {where}: the shape '
+                      f'{shown(repr(shape), 80)} is not a list of at most 8 '
+                      'dimensions')
+  return tuple(_count(d, f'features.json: {where}: a dimension',
+                      most=1 << 31) for d in shape)
 
 
-def _content(node: Mapping[str, Any], class_name: str) -> tuple[Any, bool]:
+def _dtype(node: Mapping[str, Any], where: str, default: str | None) -> str:
+  dtype = node.get('dtype', default)
+  if dtype == 'string':
+    return 'bytes'
+  if dtype not in _NUMERIC_DTYPES:
+    raise LayoutError(f'features.json: {where}: dtype '
+                      f'{shown(repr(dtype), 60)} is not one of '
+                      f'{", ".join(_NUMERIC_DTYPES)} or string')
+  return dtype
+
+
+def _content(node: Mapping[str, Any], class_name: str, where: str
+             ) -> tuple[Mapping[str, Any], bool]:
   """(content, is_proto_json) of a feature node of either features.json
   format: TFDS >= 4.5 writes ``{"pythonClassName": ..., "<kind>": {...}}``
   (a FeatureConnector proto as JSON); older versions wrote
@@ -169,63 +234,74 @@ def _content(node: Mapping[str, Any], class_name: str) -> tuple[Any, bool]:
     kinds = [k for k in node if k not in ('pythonClassName', 'description',
                                           'valueRange')]
     if len(kinds) != 1:
-      raise ValueError(f'features.json: cannot read the {class_name} node '
-                       f'with keys {sorted(node)}')
-    return node[kinds[0]], True
-  return node.get('content', {}), bool(node.get('proto_cls'))
+      raise LayoutError(f'features.json: {where}: cannot read the '
+                        f'{shown(class_name, 60)} node with keys '
+                        f'{shown(sorted(node), 120)}')
+    return _object(node[kinds[0]], where), True
+  content = node.get('content', {})
+  return _object({} if content is None else content, where), bool(
+      node.get('proto_cls'))
 
 
-def feature_leaves(node: Mapping[str, Any], prefix: str = ''
-                   ) -> dict[str, Leaf]:
+def feature_leaves(node: Any, prefix: str = '') -> dict[str, Leaf]:
   """Every stored feature of a features.json tree: {'a/b': Leaf}.
 
   Handles the connectors MOVi uses (FeaturesDict, Sequence, Video, Image,
-  Tensor, Scalar, BBoxFeature, ClassLabel, Text) in both file formats.
+  Tensor, Scalar, BBoxFeature, ClassLabel, Text) in both file formats. The
+  tree comes from a download: every field's type is checked (its depth is
+  bounded by `read_untrusted_json`).
 
   Raises:
-    ValueError: an unknown connector or a node it cannot read.
+    LayoutError: an unknown connector or a node it cannot read (one line,
+      naming the node).
   """
-  name = _class_name(node)
-  content, proto = _content(node, name)
+  where = shown(prefix.rstrip('/') or 'the top', 120)
+  node = _object(node, where)
+  name = _class_name(node, where)
+  content, proto = _content(node, name, where)
   if name == 'FeaturesDict':
-    children = content.get('features', {}) if proto else content
+    children = _object(content.get('features', {}) if proto else content,
+                       where)
     out: dict[str, Leaf] = {}
     for key, child in children.items():
       out.update(feature_leaves(child, f'{prefix}{key}/'))
     return out
   key = prefix.rstrip('/')
   if name == 'Sequence':
-    length = content.get('length')
-    length = None if length is None or int(length) < 0 else int(length)
-    inner = feature_leaves(content['feature'], prefix)
+    length = _count(content.get('length'), f'features.json: {where}: the '
+                    'length', most=1 << 31)
+    inner = feature_leaves(content.get('feature'), prefix)
     return {k: dataclasses.replace(leaf, shape=(length,) + leaf.shape,
                                    sequence_rank=leaf.sequence_rank + 1)
             for k, leaf in inner.items()}
   if name in ('Video', 'Image'):
-    shape = _dims(content.get('shape'))
-    dtype = str(content.get('dtype') or 'uint8')
+    shape = _dims(content.get('shape'), where)
+    dtype = _dtype(content, where, 'uint8')
     if name == 'Image':
       return {key: Leaf(shape=(), dtype='bytes', image_shape=shape,
                         image_dtype=dtype)}
     if len(shape) != 4:
-      raise ValueError(f'features.json: {key}: a Video shape has 4 '
-                       f'dimensions, got {shape}')
+      raise LayoutError(f'features.json: {where}: a Video shape has 4 '
+                        f'dimensions, got {shape}')
     return {key: Leaf(shape=shape[:1], dtype='bytes', sequence_rank=1,
                       image_shape=shape[1:], image_dtype=dtype)}
   if name in ('Tensor', 'Scalar'):
-    encoding = str(content.get('encoding') or 'none').lower()
-    if encoding != 'none':
+    encoding = content.get('encoding') or 'none'
+    if not isinstance(encoding, str):
+      raise LayoutError(f'features.json: {where}: the encoding is a '
+                        f'{type(encoding).__name__}, not a text')
+    if encoding.lower() != 'none':
       return {key: Leaf(shape=(), dtype='bytes')}
-    return {key: Leaf(shape=_dims(content.get('shape')),
-                      dtype=str(content['dtype']))}
+    return {key: Leaf(shape=_dims(content.get('shape'), where),
+                      dtype=_dtype(content, where, None))}
   if name == 'BBoxFeature':
     return {key: Leaf(shape=(4,), dtype='float32')}
   if name == 'ClassLabel':
     return {key: Leaf(shape=(), dtype='int64')}
   if name == 'Text':
     return {key: Leaf(shape=(), dtype='bytes')}
-  raise ValueError(f'features.json: {key}: unknown feature connector '
-                   f'{name!r}')
+  raise LayoutError(f'features.json: {where}: unknown feature connector '
+                    f'{shown(repr(name), 80)}')
 
 
 # ----------------------------------------------------------------------------
@@ -276,26 +352,71 @@ def find_version_folder(source: Path) -> Path:
   if not found:
     raise layout_error(source, f'no dataset_info.json in {source}')
   raise layout_error(source, 'several TFDS folders ('
-                     + ', '.join(str(p) for p in found)
+                     + ', '.join(shown(str(p), 200) for p in found[:10])
                      + '): pass one of them')
 
 
 def _load_json(path: Path) -> Any:
   try:
-    with open(path, 'rb') as f:
-      return json.load(f)
-  except (OSError, ValueError) as error:
-    raise ValueError(f'{path} cannot be read ({error}): copy the MOVi '
-                     'folder again') from None
+    return read_untrusted_json(path, what='MOVi metadata',
+                               max_bytes=_MAX_JSON_BYTES,
+                               max_depth=_MAX_JSON_DEPTH)
+  except OSError as error:
+    raise LayoutError(f'{path} cannot be read ({error.strerror or error}): '
+                      'copy the MOVi folder again') from None
+
+
+def dataset_name(info: Mapping[str, Any], folder: Path) -> str:
+  """The download's TFDS name (movi_a ... movi_f): it names the shards read
+  from ``folder`` and the folder written under ``--data_dir``, so it must
+  be a plain TFDS name (see `files.confined`)."""
+  name = info.get('name', '')
+  confined(folder, name, what=f'{folder / "dataset_info.json"}: the name')
+  if not _DATASET_NAME.fullmatch(name):
+    raise LayoutError(f'{folder / "dataset_info.json"}: the name '
+                      f"'{shown(name, 80)}' is not a TFDS dataset name "
+                      '(lower case letters, digits and _, e.g. movi_a)')
+  return name
+
+
+def split_shard_lengths(info: Mapping[str, Any], path: Path
+                        ) -> dict[str, tuple[int, ...]]:
+  """{MOVi split: records per shard} of dataset_info.json's 'splits'."""
+  splits = info.get('splits', [])
+  if not isinstance(splits, list):
+    raise LayoutError(f'{path}: "splits" is a {type(splits).__name__}, not '
+                      'a list')
+  shard_lengths = {}
+  for number, split in enumerate(splits):
+    where = f'{path}: split {number}'
+    if not isinstance(split, Mapping) or not isinstance(split.get('name'),
+                                                        str):
+      raise LayoutError(f'{where} is not an object with a text "name"')
+    lengths = split.get('shardLengths', split.get('shard_lengths', []))
+    if not isinstance(lengths, list) or len(lengths) > _MAX_SHARDS:
+      raise LayoutError(f'{where}: the shard lengths are not a list of at '
+                        f'most {_MAX_SHARDS} counts')
+    counts = tuple(_count(n, f'{where}: a shard length',
+                          most=_MAX_SHARD_LENGTH) for n in lengths)
+    if None in counts:
+      raise LayoutError(f'{where}: a shard length is negative')
+    shard_lengths[split['name']] = counts
+  if not shard_lengths:
+    raise LayoutError(f'{path} lists no splits')
+  return shard_lengths
 
 
 @functools.lru_cache(maxsize=8)
 def read_source(source: Path) -> SourceInfo:
   """Reads and checks dataset_info.json and features.json of ``source``.
 
+  Both come from a download: read with limits (size, depth), every field
+  type-checked, the name confined to a plain TFDS name.
+
   Raises:
     FileNotFoundError: not a TFDS folder.
-    ValueError: not MOVi (a required feature is missing).
+    ValueError: not MOVi (a required feature is missing), or a file that
+      is not what TFDS writes (LayoutError).
   """
   folder = find_version_folder(Path(source))
   info = _load_json(folder / 'dataset_info.json')
@@ -304,32 +425,44 @@ def read_source(source: Path) -> SourceInfo:
     raise layout_error(Path(source), f'{features_path} not found')
   tree = _load_json(features_path)
   if not isinstance(info, dict) or not isinstance(tree, dict):
-    raise ValueError(f'{folder}: dataset_info.json / features.json are not '
-                     'JSON objects')
-  name = str(info.get('name', ''))
+    raise LayoutError(f'{folder}: dataset_info.json / features.json are not '
+                      'JSON objects')
+  name = dataset_name(info, folder)
+  version = info.get('version', '')
+  if not isinstance(version, str):
+    raise LayoutError(f'{folder / "dataset_info.json"}: the version is a '
+                      f'{type(version).__name__}, not a text')
   leaves = feature_leaves(tree)
   missing = [k for k in REQUIRED_FEATURES if k not in leaves]
   if missing:
-    raise ValueError(
-        f'{features_path}: no {", ".join(missing)}: {name or "this"} is not '
+    raise LayoutError(
+        f'{features_path}: no {", ".join(missing)}: {name} is not '
         "a MOVi dataset (Kubric's challenges/movi/movi_*.py features)")
   video = leaves[_VIDEO]
   num_frames = video.shape[0]
   height, width = (video.image_shape or (None, None))[:2]
   if num_frames is None or height is None or width is None:
-    raise ValueError(f'{features_path}: video shape {video.shape} + '
-                     f'{video.image_shape} is not fixed')
-  shard_lengths = {}
-  for split in info.get('splits', []):
-    shard_lengths[str(split['name'])] = tuple(
-        int(n) for n in split.get('shardLengths', split.get('shard_lengths',
-                                                            [])))
-  if not shard_lengths:
-    raise ValueError(f'{folder / "dataset_info.json"} lists no splits')
+    raise LayoutError(f'{features_path}: video shape {video.shape} + '
+                      f'{video.image_shape} is not fixed')
+  channels = (video.image_shape or (None,) * 3)[2:]
+  segmentation = (leaves[_SEGMENTATIONS].image_shape or (None,) * 3)[2:]
+  if channels != (3,) or segmentation not in ((1,), (None,)):
+    raise LayoutError(f'{features_path}: video frames of {channels} and '
+                      f'segmentations of {segmentation} channels; MOVi has '
+                      'RGB frames (3) and one-channel segmentations')
+  if not (1 <= num_frames <= MAX_SOURCE_FRAMES
+          and 1 <= min(height, width) <= max(height, width)
+          <= MAX_SOURCE_SIDE):
+    raise LayoutError(
+        f'{features_path}: videos of {num_frames} frames of {height}x'
+        f'{width}; MOVi has 24 frames of 128 to 512 pixels (this reader '
+        f'takes up to {MAX_SOURCE_FRAMES} frames of up to '
+        f'{MAX_SOURCE_SIDE}x{MAX_SOURCE_SIDE})')
+  shard_lengths = split_shard_lengths(info, folder / 'dataset_info.json')
   needed = set(REQUIRED_FEATURES) | {
       k for k, leaf in leaves.items() if leaf.sequence_rank >= 2}
   return SourceInfo(
-      folder=folder, name=name, version=str(info.get('version', '')),
+      folder=folder, name=name, version=version,
       num_frames=int(num_frames), resolution=(int(height), int(width)),
       shard_lengths=shard_lengths,
       leaves=tuple(sorted((k, v) for k, v in leaves.items() if k in needed)))
@@ -439,7 +572,7 @@ def discover(source: Path, split: str, options: Options) -> list[RecordJob]:
   if movi_split not in info.shard_lengths:
     raise layout_error(
         Path(source), f'{info.name} has no {movi_split!r} split (it has '
-        f'{", ".join(sorted(info.shard_lengths))})')
+        f'{shown(", ".join(sorted(info.shard_lengths)), 200)})')
   jobs = []
   for path, expected in zip(shard_paths(info, movi_split),
                             info.shard_lengths[movi_split]):
@@ -466,12 +599,33 @@ def _parser(leaves: tuple[tuple[str, Leaf], ...]
 
 def _decode_png(data: bytes, shape: Sequence[int | None], where: str
                 ) -> np.ndarray:
-  with Image.open(io.BytesIO(data)) as image:
-    image.load()
-    array = np.asarray(image)
+  """One frame; its size is checked from the PNG header before anything is
+  decoded (a header may claim 10^6 x 10^6 pixels, a real frame may be far
+  larger than features.json says)."""
+  want = tuple(d for d in shape)
+  stated = media.png_size(data[:24])
+  if stated is None:
+    raise ValueError(f'{where}: a frame that is not a PNG')
+  if (stated[1], stated[0]) != tuple(want[:2]):
+    raise ValueError(f'{where}: a {stated[1]}x{stated[0]} frame (its PNG '
+                     f'header), features.json says {want[0]}x{want[1]}')
+  with warnings.catch_warnings():
+    # PIL's own bomb check warns first: an error here, the size check below
+    # names it.
+    warnings.simplefilter('error', Image.DecompressionBombWarning)
+    try:
+      image = Image.open(io.BytesIO(data), formats=['PNG'])
+    except Image.DecompressionBombError as error:
+      raise ValueError(f'{where}: {shown(str(error), 200)}') from None
+    with image:
+      width, height = image.size
+      if (height, width) != tuple(want[:2]):
+        raise ValueError(f'{where}: a {height}x{width} frame (its PNG '
+                         f'header), features.json says {want[0]}x{want[1]}')
+      image.load()
+      array = np.asarray(image)
   if array.ndim == 2:
     array = array[..., None]
-  want = tuple(d for d in shape)
   if array.shape[:2] != want[:2] or (want[2] is not None
                                      and array.shape[2] < want[2]):
     raise ValueError(f'{where}: a {array.shape} frame, features.json says '
@@ -545,12 +699,14 @@ def convert_record(job: RecordJob, plan: _Plan) -> dict[str, Any]:
     if largest > count:
       raise ValueError(f'{where}: segmentation id {largest} but only '
                        f'{count} instances')
+    video_name = _text(example[_VIDEO_NAME])
   except tfrecord.TFRecordError as error:
     raise writer.ConversionError(f'{error}: download this file again') from None
-  except (ValueError, KeyError, TypeError, OSError, DecodeError) as error:
+  except (Exception, DecodeError) as error:  # pylint: disable=broad-except
     # A record that passed its checksum but does not decode (protobuf, PNG,
-    # shapes): the file was written wrongly or is not MOVi; name it.
-    detail = str(error).splitlines()[0][:300] if str(error) else ''
+    # shapes, a name that is not UTF-8): the file was written wrongly or is
+    # not MOVi; name it. Anything the parsers raise on crafted bytes counts.
+    detail = shown(str(error).splitlines()[0], 300) if str(error) else ''
     raise writer.ConversionError(
         f'{where}: unreadable MOVi example ({type(error).__name__}: '
         f'{detail}); download this file again') from None
@@ -584,11 +740,13 @@ def convert_record(job: RecordJob, plan: _Plan) -> dict[str, Any]:
       'velocities': _pad_rows(velocities, rows),
       'image_positions': _pad_rows(image_positions, rows),
       'num_instances': np.int32(count),
-      'video_name': _text(example[_VIDEO_NAME]),
+      'video_name': video_name,
   }
 
 
 def _text(value: Any) -> str:
+  """A text field of a record; raises UnicodeDecodeError when it is not
+  UTF-8 (TFDS writes text as UTF-8)."""
   if isinstance(value, np.ndarray):
     value = value.reshape(-1)[0] if value.size else b''
   return value.decode('utf-8') if isinstance(value, bytes) else str(value)

@@ -39,6 +39,7 @@ import dataclasses
 import functools
 import json
 import logging
+import re
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -48,6 +49,10 @@ import tensorflow_datasets as tfds
 
 from slotformer_jax.data.convert import media
 from slotformer_jax.data.convert import writer
+from slotformer_jax.errors import shown
+from slotformer_jax.files import UntrustedFileError
+from slotformer_jax.files import confined
+from slotformer_jax.files import read_untrusted_json
 
 logger = logging.getLogger(__name__)
 
@@ -57,6 +62,8 @@ DEFAULT_RESOLUTION = (128, 128)
 FORMAT = 'slotformer-phyre-rollouts'
 FORMAT_VERSION = 1
 META_FILE = 'meta.json'
+# rollouts.jsonl of a split: ~150 bytes a rollout.
+MAX_INDEX_BYTES = 1 << 30
 INDEX_FILE = 'rollouts.jsonl'
 FRAMES_DIR = 'frames'
 CONVERTER_VERSION = 1
@@ -137,38 +144,81 @@ def read_meta(source: Path) -> dict[str, Any]:
   path = source / META_FILE
   if not path.is_file():
     raise layout_error(source, path)
-  with open(path) as f:
-    meta = json.load(f)
+  meta = read_untrusted_json(path, what='PHYRE meta file', max_bytes=1 << 20,
+                             max_depth=4)
+  if not isinstance(meta, dict):
+    raise UntrustedFileError(f'{path} is a {type(meta).__name__}, not an '
+                             'object')
   if meta.get('format') != FORMAT:
-    raise ValueError(f'{path}: "format" is {meta.get("format")!r}, expected '
-                     f'{FORMAT!r}')
-  if int(meta.get('format_version', -1)) != FORMAT_VERSION:
-    raise ValueError(f'{path}: format_version {meta.get("format_version")} '
-                     f'is not supported (expected {FORMAT_VERSION})')
+    raise UntrustedFileError(f'{path}: "format" is '
+                             f'{shown(repr(meta.get("format")), 80)}, '
+                             f'expected {FORMAT!r}')
+  if meta.get('format_version') != FORMAT_VERSION:
+    raise UntrustedFileError(
+        f'{path}: format_version '
+        f'{shown(repr(meta.get("format_version")), 40)} is not supported '
+        f'(expected {FORMAT_VERSION})')
   missing = [k for k in ('frame_size', 'fps', 'eval_setup', 'fold')
              if k not in meta]
   if missing:
-    raise ValueError(f'{path}: missing fields {missing}')
+    raise UntrustedFileError(f'{path}: missing fields {missing}')
+  size = meta['frame_size']
+  if not (isinstance(size, list) and len(size) == 2 and all(
+      isinstance(v, int) and not isinstance(v, bool) and 1 <= v <= 4096
+      for v in size)):
+    raise UntrustedFileError(f'{path}: frame_size '
+                             f'{shown(repr(size), 60)} is not [h, w] in '
+                             '1..4096')
+  # Both name the output folder (`dataset_spec`): plain names only.
+  if not (isinstance(meta['eval_setup'], str)
+          and re.fullmatch(r'[A-Za-z0-9_]{1,64}', meta['eval_setup'])):
+    raise UntrustedFileError(f'{path}: eval_setup '
+                             f'{shown(repr(meta["eval_setup"]), 80)} is not '
+                             'a PHYRE eval setup name')
+  if isinstance(meta['fold'], bool) or not isinstance(meta['fold'], int):
+    raise UntrustedFileError(f'{path}: fold {shown(repr(meta["fold"]), 40)} '
+                             'is not an integer')
   return meta
+
+
+def _field(entry: dict[str, Any], key: str, kinds: tuple[type, ...]) -> Any:
+  value = entry[key]
+  if isinstance(value, bool) and bool not in kinds or not isinstance(
+      value, kinds):
+    raise TypeError(f'{key} is {shown(repr(value), 60)}')
+  return value
 
 
 def _job_from_line(line: str, number: int, split_dir: Path,
                    frame_size: tuple[int, int]) -> RolloutJob:
+  """A rollout of the index; a line that is not one (bad JSON or fields, an
+  id that would lead out of the frames folder) becomes a job that is
+  skipped, naming the line."""
   try:
     entry = json.loads(line)
-    key = str(entry['id'])
-    action = tuple(float(a) for a in entry['action'])
-    if len(action) != 3:
-      raise ValueError(f'action has {len(action)} values, expected 3')
+    if not isinstance(entry, dict):
+      raise TypeError('the line is not a JSON object')
+    key = _field(entry, 'id', (str, int))
+    key = str(key)
+    frames = confined(split_dir / FRAMES_DIR, f'{key}.png',
+                      what='the rollout id')
+    action = _field(entry, 'action', (list,))
+    if len(action) != 3 or not all(
+        isinstance(a, (int, float)) and not isinstance(a, bool)
+        for a in action):
+      raise ValueError(f'action {shown(repr(action), 60)} is not 3 numbers')
+    num_frames = _field(entry, 'num_frames', (int,))
+    if not 1 <= num_frames <= 10_000:
+      raise ValueError(f'num_frames {num_frames} is not in 1..10000')
     return RolloutJob(
-        key=key, frames=split_dir / FRAMES_DIR / f'{key}.png',
-        task=str(entry['task']), action=action,
-        success=bool(entry['success']), num_frames=int(entry['num_frames']),
+        key=key, frames=frames, task=_field(entry, 'task', (str,)),
+        action=tuple(float(a) for a in action),
+        success=_field(entry, 'success', (bool,)), num_frames=num_frames,
         frame_size=frame_size)
-  except (KeyError, TypeError, ValueError) as error:
+  except (KeyError, TypeError, ValueError, RecursionError) as error:
     return RolloutJob(key=f'line_{number}', frames=split_dir / FRAMES_DIR,
                       problem=f'{split_dir / INDEX_FILE}:{number}: '
-                      f'{type(error).__name__}: {error}')
+                      f'{type(error).__name__}: {shown(str(error), 200)}')
 
 
 def discover(source: Path, split: str, options: Options) -> list[RolloutJob]:
@@ -186,8 +236,12 @@ def discover(source: Path, split: str, options: Options) -> list[RolloutJob]:
     raise layout_error(source, index)
   if not (split_dir / FRAMES_DIR).is_dir():
     raise layout_error(source, split_dir / FRAMES_DIR)
+  if index.stat().st_size > MAX_INDEX_BYTES:
+    raise UntrustedFileError(f'{index} holds {index.stat().st_size} bytes, '
+                             f'more than the {MAX_INDEX_BYTES} an index may '
+                             'have')
   jobs = []
-  with open(index) as f:
+  with open(index, encoding='utf-8', errors='replace') as f:
     for number, line in enumerate(f, start=1):
       if line.strip():
         jobs.append(_job_from_line(line, number, split_dir, frame_size))

@@ -44,7 +44,6 @@ import dataclasses
 import functools
 import hashlib
 import io
-import json
 import logging
 from collections.abc import Mapping
 from pathlib import Path
@@ -55,6 +54,10 @@ import tensorflow_datasets as tfds
 
 from slotformer_jax.data.convert import media
 from slotformer_jax.data.convert import writer
+from slotformer_jax.errors import shown
+from slotformer_jax.files import UntrustedFileError
+from slotformer_jax.files import confined
+from slotformer_jax.files import read_untrusted_json
 
 logger = logging.getLogger(__name__)
 
@@ -217,6 +220,10 @@ def stimulus_name(file_name: str) -> str:
   return name[:-4] if name.endswith('_img') else name
 
 
+# Physion's label files are a few hundred KB.
+MAX_LABEL_FILE_BYTES = 256 << 20
+
+
 def read_labels(path: Path) -> dict[str, int]:
   """{stimulus name: 1 / 0} from a Physion label CSV.
 
@@ -224,6 +231,10 @@ def read_labels(path: Path) -> dict[str, int]:
     FileNotFoundError / ValueError: missing or malformed file (not UTF-8,
       no label column, a label that is not True / False).
   """
+  size = Path(path).stat().st_size
+  if size > MAX_LABEL_FILE_BYTES:
+    raise ValueError(f'{path} holds {size} bytes, more than the '
+                     f'{MAX_LABEL_FILE_BYTES} a label file may have')
   data = Path(path).read_bytes()
   try:
     # utf-8-sig: a byte-order mark (spreadsheet exports) is not part of the
@@ -240,11 +251,14 @@ def read_labels(path: Path) -> dict[str, int]:
     header = next(rows, None)
     if not header or LABEL_COLUMN not in header:
       raise ValueError(f'{path}: expected a header with a "{LABEL_COLUMN}" '
-                       f'column, got {header}')
+                       f'column, got {shown(repr(header), 200)}')
     column = header.index(LABEL_COLUMN)
     for line, row in enumerate(rows, start=2):
       if not row:
         continue
+      if len(row) <= column:
+        raise ValueError(f'{path}:{line}: {len(row)} columns, the label is '
+                         f'column {column + 1}')
       value = row[column].strip().lower()
       if value not in ('true', 'false', '1', '0'):
         raise ValueError(f'{path}:{line}: label {row[column]!r} is not '
@@ -266,6 +280,28 @@ def _is_val(relative: str, val_fraction: float) -> bool:
   return int.from_bytes(digest[:8], 'big') / 2.0**64 < val_fraction
 
 
+def read_split_list(path: Path) -> dict[str, list[str]]:
+  """{scenario: [mp4 path relative to --source]} of an official split list,
+  read with limits and type-checked (the paths are confined to --source
+  where they are used).
+
+  Raises:
+    UntrustedFileError / ValueError: one line naming the file.
+  """
+  listed = read_untrusted_json(path, what='Physion split list',
+                               max_bytes=256 << 20, max_depth=3)
+  if not isinstance(listed, dict) or not all(
+      isinstance(v, list) and all(isinstance(p, str) for p in v)
+      for v in listed.values()):
+    raise UntrustedFileError(f'{path} is not {{scenario: [relative mp4 '
+                             'path, ...]}}')
+  unknown = sorted(set(listed) - set(SCENARIOS))
+  if unknown:
+    raise UntrustedFileError(f'{path}: unknown scenarios '
+                             f'{shown(", ".join(unknown), 200)}')
+  return listed
+
+
 def _listed_files(source: Path, split: str,
                   options: Options) -> list[tuple[int, Path]]:
   """(scenario index, mp4 path) of a split, in scenario then name order."""
@@ -275,12 +311,10 @@ def _listed_files(source: Path, split: str,
     if not list_path.is_file():
       raise FileNotFoundError(f'Physion: split list {list_path} not found '
                               '(--split_files)')
-    with open(list_path) as f:
-      listed = json.load(f)
-    unknown = sorted(set(listed) - set(SCENARIOS))
-    if unknown:
-      raise ValueError(f'{list_path}: unknown scenarios {unknown}')
-    return [(SCENARIOS.index(s), source / rel) for s in SCENARIOS
+    listed = read_split_list(list_path)
+    return [(SCENARIOS.index(s), confined(source, rel, nested=True,
+                                          what=f'{list_path}: the video'))
+            for s in SCENARIOS
             for rel in sorted(listed.get(s, []), key=media.natural_key)]
   files = []
   missing = []

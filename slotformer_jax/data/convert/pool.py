@@ -25,7 +25,10 @@ T = TypeVar('T')
 
 
 def _die_with_parent(parent_pid: int) -> None:
-  """Worker initializer."""
+  """Worker initializer. Ctrl-C in a terminal reaches every process of the
+  group: the workers ignore it and the parent, which stops the pool,
+  reports it (one line instead of one traceback per worker)."""
+  signal.signal(signal.SIGINT, signal.SIG_IGN)
   if sys.platform.startswith('linux'):
     try:
       libc = ctypes.CDLL(None, use_errno=True)
@@ -44,11 +47,29 @@ def _die_with_parent(parent_pid: int) -> None:
   threading.Thread(target=watch, daemon=True, name='die-with-parent').start()
 
 
+class _Pool(concurrent.futures.ProcessPoolExecutor):
+  """Workers are started with SIGINT ignored: Ctrl-C in a terminal reaches
+  every process of the group, and a worker still importing (a 'spawn'
+  worker imports for seconds) would print a KeyboardInterrupt traceback.
+  The parent reports the Ctrl-C and stops the pool."""
+
+  def _adjust_process_count(self):  # where the executor starts workers
+    if threading.current_thread() is not threading.main_thread():
+      super()._adjust_process_count()
+      return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+      super()._adjust_process_count()
+    finally:
+      signal.signal(signal.SIGINT, previous)
+
+
 def process_pool(num_workers: int) -> concurrent.futures.ProcessPoolExecutor:
-  """A 'spawn' pool whose workers exit when this process dies. Unlike
-  multiprocessing.Pool (which respawns dying workers forever), the executor
-  fails fast if workers cannot start."""
-  return concurrent.futures.ProcessPoolExecutor(
+  """A 'spawn' pool whose workers exit when this process dies and ignore
+  Ctrl-C (the parent handles it). Unlike multiprocessing.Pool (which
+  respawns dying workers forever), the executor fails fast if workers
+  cannot start."""
+  return _Pool(
       num_workers, mp_context=multiprocessing.get_context('spawn'),
       initializer=_die_with_parent, initargs=(os.getpid(),))
 

@@ -30,6 +30,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import logging
+import signal
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -43,6 +44,7 @@ from slotformer_jax.data.convert import physion
 from slotformer_jax.data.convert import phyre
 from slotformer_jax.data.convert import writer
 from slotformer_jax.data.data_dir import resolve_data_dir
+from slotformer_jax.errors import printable
 
 DATASETS: dict[str, ModuleType] = {
     'obj3d': obj3d, 'clevrer': clevrer, 'physion': physion, 'phyre': phyre,
@@ -200,9 +202,16 @@ def main(argv: Sequence[str] | None = None) -> int:
   try:
     run(args)
   except (FileNotFoundError, ValueError, writer.ConversionError) as error:
-    # Input problems: a clear message, no traceback.
-    print(f'error: {error}', file=sys.stderr)
+    # Input problems: a clear message, no traceback; names from the
+    # download are escaped where they are quoted, `printable` keeps
+    # anything else a terminal acts on from reaching it.
+    print(f'error: {printable(error)}', file=sys.stderr)
     return 1
+  except KeyboardInterrupt:
+    # Finished shards are kept (each is renamed when complete).
+    print('interrupted: Ctrl-C; re-run the same command to convert the '
+          'remaining shards', file=sys.stderr)
+    return 128 + signal.SIGINT
   return 0
 
 

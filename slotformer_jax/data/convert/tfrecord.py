@@ -138,8 +138,16 @@ class RecordSpan:
   length: int
 
 
-def index_records(path: str | os.PathLike[str]) -> list[RecordSpan]:
-  """The records of a TFRecord file, from its headers only.
+# One record is one example (a MOVi video is a few MB); a length field can
+# claim anything up to 2**64.
+MAX_RECORD_BYTES = 1 << 30
+
+
+def index_records(path: str | os.PathLike[str], *,
+                  max_record_bytes: int = MAX_RECORD_BYTES
+                  ) -> list[RecordSpan]:
+  """The records of a TFRecord file, from its headers only; a record may
+  hold at most `max_record_bytes`.
 
   Raises:
     TFRecordError: the file ends inside a record, or a length checksum
@@ -161,6 +169,11 @@ def index_records(path: str | os.PathLike[str]) -> list[RecordSpan]:
       if masked_crc32c(header[:8]) != length_crc:
         raise TFRecordError(f'{path}: record {index} at byte {position}: '
                             'length checksum mismatch (damaged file)')
+      if length > max_record_bytes:
+        raise TFRecordError(
+            f'{path}: record {index} at byte {position} claims {length} '
+            f'bytes, more than the {max_record_bytes} a record may have '
+            '(a damaged file?)')
       end = position + _HEADER.size + length + _FOOTER.size
       if end > size:
         raise TFRecordError(

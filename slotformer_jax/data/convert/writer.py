@@ -56,6 +56,7 @@ from slotformer_jax.data.convert import media
 from slotformer_jax.data.convert.checksums import record_checksums
 from slotformer_jax.data.convert.pool import process_pool
 from slotformer_jax.data.video_names import NAMES_FILE
+from slotformer_jax.files import confined
 from slotformer_jax.files import write_json_atomic
 
 logger = logging.getLogger(__name__)
@@ -106,8 +107,16 @@ class DatasetSpec:
   convert_fn: Callable[[Any], dict[str, Any]]
 
   def dataset_dir(self, data_dir: str | os.PathLike[str]) -> Path:
-    """``<data_dir>/<name>/<config_name>/<VERSION>``."""
-    return Path(data_dir) / self.name / self.config_name / VERSION
+    """``<data_dir>/<name>/<config_name>/<VERSION>``.
+
+    Raises:
+      OutsideFolderError: a name (made from a downloaded file's fields:
+        MOVi's dataset name, PHYRE's eval setup) that would lead out of
+        ``data_dir``.
+    """
+    top = confined(data_dir, self.name, what='the dataset name')
+    return confined(top, self.config_name,
+                    what='the conversion folder name') / VERSION
 
 
 def config_name(readable: str, params: Mapping[str, Any]) -> str:
