@@ -54,7 +54,7 @@ def main() -> None:
   config.vqa.inputs = args.inputs
   vocab = vqa_questions.vocabulary(config)
   batches = vqa_stages.question_batches(
-      run, 'train', vqa_questions.encoded_questions(config, 'train', vocab))
+      run, 'train', vqa_stages.questions_with_videos(run, 'train', vocab))
   chosen = [i for i, q in enumerate(batches.choice)
             if QUESTION_TYPES[q.question_type] == args.question_type
             ][:args.num_questions]

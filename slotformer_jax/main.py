@@ -48,6 +48,7 @@ from slotformer_jax.train.trainer import Preempted
 from slotformer_jax.workdir.lock import workdir_lock
 from slotformer_jax.workdir.paths import Paths
 from slotformer_jax.workdir.settings import accept_config
+from slotformer_jax.workdir.settings import withdraw_unused_config
 
 _CONFIG = config_flags.DEFINE_config_file(
     'config', None, 'Config file, e.g. configs/obj3d.py or '
@@ -268,6 +269,7 @@ def _run(run: Run, selected: tuple[str, ...]) -> None:
     # Before any data is made: the read-only stage 1 must fit.
     chain.check_identities(run.slot_model, run.paths)
   # config.json only ever records settings that are used from here on.
+  new_workdir = not os.path.exists(run.paths.config_file)
   changes = accept_config(run.config.to_dict(), run.paths,
                           allow_change=_ALLOW_CONFIG_CHANGE.value)
   if changes:
@@ -278,13 +280,21 @@ def _run(run: Run, selected: tuple[str, ...]) -> None:
 
   table = stages.stage_table(run)
   wall_times = {}
-  for stage in selected:
-    started = time.time()
-    logger.info('=== %s ===', stage)
-    table[stage](run)
-    run.forget()  # a later stage reads what this one trained
-    wall_times[stage] = round(time.time() - started, 1)
-    logger.info('%s took %.1f s', stage, wall_times[stage])
+  try:
+    for stage in selected:
+      started = time.time()
+      logger.info('=== %s ===', stage)
+      table[stage](run)
+      run.forget()  # a later stage reads what this one trained
+      wall_times[stage] = round(time.time() - started, 1)
+      logger.info('%s took %.1f s', stage, wall_times[stage])
+  except BaseException:
+    # A first run that made nothing leaves no settings to refuse the
+    # corrected command with.
+    if new_workdir and withdraw_unused_config(run.paths):
+      logger.info('%s holds nothing yet: its config.json is not kept',
+                  run.paths.root)
+    raise
   if jax.process_index() == 0:
     append_line_atomic(run.paths.wall_times, json.dumps(wall_times))
 

@@ -425,3 +425,28 @@ def data_section(**fields):
   for key, value in fields.items():
     data[key] = value
   return data
+
+
+def write_clevrer_video(root: Path, split: str, index: int, *,
+                        num_frames: int = 8, size: int = 16,
+                        annotated: bool = True) -> None:
+  """One CLEVRER video in the published layout (a grey level per video,
+  no objects drawn), with a one-object annotation when ``annotated``; no
+  derender proposals (convert with --masks=ignore)."""
+  level = index // 1000 * 1000
+  folder = f'{level:05d}-{level + 1000:05d}'
+  frames = np.full((num_frames, size, size, 3), 40 + index % 200, np.uint8)
+  write_mp4(root / 'videos' / split / f'video_{folder}' /
+            f'video_{index:05d}.mp4', frames)
+  if annotated:
+    write_json(
+        root / 'annotations' / split / f'annotation_{folder}' /
+        f'annotation_{index:05d}.json',
+        {'scene_index': index, 'video_filename': f'video_{index:05d}.mp4',
+         'object_property': [{'object_id': 0, 'color': 'red',
+                              'material': 'metal', 'shape': 'cube'}],
+         'motion_trajectory': [
+             {'frame_id': t, 'objects': [{'object_id': 0,
+                                          'inside_camera_view': True}]}
+             for t in range(num_frames)],
+         'collision': []})

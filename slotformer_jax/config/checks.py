@@ -16,11 +16,13 @@ import os
 import re
 import traceback
 from collections.abc import Callable, Sequence
+from typing import Any
 
 import ml_collections
 
 from slotformer_jax.config.sections import DYNAMICS_MODELS
 from slotformer_jax.config.sections import dynamics_section
+from slotformer_jax.config.sections import reads_readout_splits
 from slotformer_jax.config.sections import trained_dynamics
 from slotformer_jax.errors import ConfigError
 
@@ -169,6 +171,9 @@ _FIELD_KINDS = (
     (r'(^|_)weight$|^grad_clip$', 'float', 0.0, None, 'a number >= 0'),
     (r'epsilon$|^prior_sigma$|^gumbel_(start|final)$|_seconds$|'
      r'^object_scale$', 'float', 0.0, None, 'a number > 0'),
+    # Aloe draws no question of a kind whose batch is 0 (open-only or
+    # choice-only training); one must be > 0 (`validate`).
+    (r'^vqa\.(open|choice)_batch_size$', 'int', 0, None, 'an integer >= 0'),
     (r'batch_size$|_every$|^num_(slots|layers|heads|iterations|train_steps|'
      r'frames|candidates)$|^(slot|mlp|hidden|vocab|output|head|word)_size$|'
      r'^(embed_dim|d_model|kernel_size|chunk_length|clip_length|burn_in|'
@@ -273,15 +278,23 @@ def validate(config: ml_collections.ConfigDict, stages: Sequence[str], *,
 
   stages = set(stages)
   dynamics = trained_dynamics(config)
-  # Every stage-1 part trained here (`train_<section>`): its section's
-  # training integers, and a batch that splits over the devices.
+  # Every part trained here by steps (`train_<section>`: stage 1, Aloe):
+  # its section's training integers, and a batch that splits over the
+  # devices. A task's readout (`train_readout`) trains by epochs: its
+  # fields are checked by their kinds.
   for stage in sorted(stages):
     section = stage[len('train_'):]
     if (stage.startswith('train_') and section not in DYNAMICS_MODELS
         and isinstance(config.get(section), ml_collections.ConfigDict)
-        and 'batch_size' in config[section]):
-      positive(section, _TRAINING_INTS)
-      divisible(f'{section}.batch_size', config[section].batch_size)
+        and 'num_train_steps' in config[section]):
+      if section == 'vqa':  # one batch per kind of question
+        positive(section, _TRAINING_INTS[1:])
+        _check_vqa_batches(config.vqa, problems, divisible)
+      else:
+        positive(section, _TRAINING_INTS)
+        divisible(f'{section}.batch_size', config[section].batch_size)
+  if 'evaluate_vqa' in stages:
+    divisible('vqa.eval_batch_size', config.vqa.eval_batch_size)
   positive('savi', ('num_slots', 'slot_size', 'clip_length'))
   positive('data', ('max_instances',))
   if 'extract_slots' in stages:
@@ -330,6 +343,23 @@ def validate(config: ml_collections.ConfigDict, stages: Sequence[str], *,
     raise ConfigError('config: ' + '; '.join(problems))
 
 
+def _check_vqa_batches(vqa: ml_collections.ConfigDict, problems: list[str],
+                       divisible: Callable[[str, Any], None]) -> None:
+  """Aloe's two batches: each an integer >= 0 (0: that kind of question is
+  not drawn), not both 0, each split over the devices."""
+  sizes = {f'vqa.{name}': vqa.get(name)
+           for name in ('open_batch_size', 'choice_batch_size')}
+  for name, size in sizes.items():
+    if not isinstance(size, int) or isinstance(size, bool) or size < 0:
+      problems.append(f'{name} must be an integer >= 0, got {size!r}')
+      return
+    divisible(name, size)
+  if not any(sizes.values()):
+    problems.append('vqa.open_batch_size and vqa.choice_batch_size are both '
+                    '0: Aloe would train on nothing; give one kind of '
+                    'question a batch')
+
+
 def _check_splits(config: ml_collections.ConfigDict, stages,
                   problems: list[str]) -> None:
   """The splits the later stages read must be ones whose slots are
@@ -340,11 +370,12 @@ def _check_splits(config: ml_collections.ConfigDict, stages,
   wanted = []
   if set(stages) & {'evaluate', 'render', 'explore'}:
     wanted.append(('evaluation.split', config.evaluation.split))
-  readout = config.get('readout', None)
-  if readout is not None and readout.get('splits', None) is not None and (
+  # Only where the task reads them (as the data stage: the embedded
+  # PHYRE-like planning splits by task and extracts 'train' only).
+  if reads_readout_splits(config) and (
       set(stages) & {'train_readout', 'evaluate_readout', 'plan'}):
     wanted += [(f'readout.splits.{k}', v)
-               for k, v in sorted(readout.splits.items())]
+               for k, v in sorted(config.readout.splits.items())]
   for field, split in wanted:
     if split not in extracted:
       problems.append(

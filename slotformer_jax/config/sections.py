@@ -34,3 +34,11 @@ def trained_dynamics(config: ml_collections.ConfigDict) -> tuple[str, ...]:
   """The dynamics models a run trains and compares: SlotFormer, plus
   Slot-LSTM when `slot_lstm.train`."""
   return (SLOTFORMER,) + ((SLOT_LSTM,) if config.slot_lstm.train else ())
+
+
+def reads_readout_splits(config: ml_collections.ConfigDict) -> bool:
+  """Whether the task's readout reads the data splits `readout.splits`
+  names: contact, and planning on the rendered PHYRE layout; the embedded
+  PHYRE-like tasks split by task, not by data split."""
+  return config.get('task') == 'contact' or (
+      config.get('task') == 'planning' and config.data.name == 'phyre')

@@ -5,18 +5,27 @@ The embedded family ('clevrer_like') keeps them in its dataset folder
 it); for CLEVRER set `vqa.questions_root` (the folder with questions/) and
 optionally `vqa.vocab_file` (e.g. the official CLEVRER_vocab.json; default:
 built from the training questions and CLEVRER's answers).
+
+A question reads the slots of the video its `video_filename` names, found by
+name among the converted split's videos (`join_videos`): a video skipped at
+conversion leaves its questions out, and moves no other question.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import os
 
 import ml_collections
 
+from slotformer_jax.data import sources
 from slotformer_jax.data import vqa as vqa_data
 from slotformer_jax.data.data_dir import resolve_data_dir
 from slotformer_jax.data.embedded import clevrer_like
+from slotformer_jax.data.video_names import name_key
+from slotformer_jax.data.video_names import read_recorded_names
 from slotformer_jax.errors import ConfigError
+from slotformer_jax.errors import UserError
 
 
 def questions_root(config: ml_collections.ConfigDict) -> str:
@@ -62,13 +71,89 @@ def encoded_questions(config: ml_collections.ConfigDict, split: str,
                         vqa_data.CLEVRER_SPLIT_FILES[split]))
 
 
-def filename_to_index(config: ml_collections.ConfigDict,
-                       split: str) -> dict[str, int]:
-  scenes = vqa_data.read_clevrer_questions(questions_root(config), split)
-  if config.data.name == 'clevrer_like':
-    offset = clevrer_like.SCENE_OFFSETS[split]
-    return {s['video_filename']: int(s['scene_index']) - offset
-            for s in scenes}
-  # CLEVRER: converted videos are in file-name order within a split.
-  names = sorted(s['video_filename'] for s in scenes)
-  return {name: k for k, name in enumerate(names)}
+@dataclasses.dataclass(frozen=True)
+class Joined:
+  """The questions of a split joined to the rows of its videos by name.
+
+  Attributes:
+    questions: the questions whose video is in the split, in file order.
+    rows: video name key (`video_names.name_key`) -> its row (the video's
+      index in the converted split, i.e. its row of slots).
+    total: questions in the file.
+    missing_videos: name keys the file asks about that the split lacks
+      (e.g. a video the converter skipped), sorted.
+  """
+
+  questions: list[vqa_data.EncodedQuestion]
+  rows: dict[str, int]
+  total: int
+  missing_videos: tuple[str, ...]
+
+  @property
+  def num_missing(self) -> int:
+    """Questions left out: their video is not in the split."""
+    return self.total - len(self.questions)
+
+  @property
+  def missing_fraction(self) -> float:
+    return self.num_missing / max(self.total, 1)
+
+  def row(self, video_filename: str) -> int:
+    """The row of a kept question's video."""
+    return self.rows[name_key(video_filename)]
+
+  def report(self, split: str) -> str:
+    """One line: what was left out and why."""
+    examples = ', '.join(self.missing_videos[:3])
+    videos = len(self.missing_videos)
+    return (f'{split}: {self.num_missing} of {self.total} questions '
+            f'({self.missing_fraction:.1%}) are about {videos} '
+            f'video{"s" * (videos != 1)} not in the converted split (e.g. '
+            f'{examples}: skipped at conversion, or not converted); they are '
+            'left out')
+
+
+def join_videos(questions: list[vqa_data.EncodedQuestion],
+                names: list[str]) -> Joined:
+  """Joins `questions` to the split whose video `names` (record order)
+  are given: a question reads the row of the video it names, whatever was
+  skipped before it; a question whose video is not there is left out."""
+  rows = {name_key(name): row for row, name in enumerate(names)}
+  kept = [q for q in questions if name_key(q.video_filename) in rows]
+  missing = sorted({name_key(q.video_filename) for q in questions}
+                   - set(rows))
+  return Joined(questions=kept, rows=rows, total=len(questions),
+                missing_videos=tuple(missing))
+
+
+def split_video_names(data_config: ml_collections.ConfigDict, split: str
+                      ) -> list[str]:
+  """The name of every video of ``split`` of the dataset ``data_config``
+  names, in record (= slot row) order (`data/video_names.py`).
+
+  Raises:
+    UserError: a converted folder records no names (names the command that
+      converts it again).
+    MissingInputError: the dataset is not there.
+  """
+  if data_config.name == 'clevrer_like':
+    root = clevrer_like.complete_dataset_dir(
+        data_config, resolve_data_dir(data_config.data_dir))
+    count = len(clevrer_like.NpyVideoSource(root, split))
+    return [clevrer_like.video_filename(split, i) for i in range(count)]
+  dataset_dir = sources.real_dataset_dir(data_config)
+  names = read_recorded_names(dataset_dir, split)
+  if names is None:
+    raise UserError(
+        f'{dataset_dir} records no video names for split {split!r} '
+        '(converted by an older version, and its _progress/ files are '
+        'gone), so questions cannot be joined to its videos by name; '
+        f'convert it again: {sources.reconversion_command(data_config)}')
+  return names
+
+
+def joined_questions(config: ml_collections.ConfigDict, split: str,
+                     vocab: vqa_data.Vocabulary) -> Joined:
+  """The split's encoded questions joined to its videos by name."""
+  return join_videos(encoded_questions(config, split, vocab),
+                     split_video_names(config.data, split))

@@ -148,14 +148,15 @@ class Aloe(nn.Module):
       tokens: int [B, L]; pad_mask: bool [B, L], True at padding.
       text_flags: [L, 2], the question/choice flag of each word position.
     """
-    b, t, n, _ = slots.shape
+    b, t, n, d = slots.shape
     if (t, n) != (self.num_frames, self.num_slots):
       raise ValueError(f'slots have {t} frames x {n} slots, the model '
                        f'{self.num_frames} x {self.num_slots}')
     if tokens.shape[-1] != self.text_length:
       raise ValueError(f'{tokens.shape[-1]} words, expected '
                        f'{self.text_length}')
-    vision = _with_flag(slots.reshape(b, t * n, -1), jnp.array(VISION_FLAG))
+    # [B, T*N, D] (D spelled out: B may be 0, a kind of question not drawn)
+    vision = _with_flag(slots.reshape(b, t * n, d), jnp.array(VISION_FLAG))
     vision = self.slot_projection(vision)
     words = _with_flag(self.word_embedding(tokens), text_flags)
     words = self.text_projection(_with_flag(words, jnp.array(TEXT_FLAG)))

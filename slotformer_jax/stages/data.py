@@ -12,7 +12,10 @@ per file. For the dataset of `config.data`:
   checksums recorded with it: a folder without them (made by an older
   version) gets them recorded; a damaged embedded cache is set aside and
   generated again, with a warning; a damaged converted dataset is refused
-  with one line naming the conversion command;
+  with one line naming the conversion command; a converted folder from
+  before ``video_names.json`` (the names that join question files to its
+  videos, ``data/video_names.py``) gets it from its conversion's progress
+  files;
 * a converted dataset that is not there is left to the stage that reads it,
   which names the conversion command (a run that only reads its extracted
   slots needs none);
@@ -29,14 +32,17 @@ from pathlib import Path
 
 import ml_collections
 
+from slotformer_jax.config.sections import reads_readout_splits
 from slotformer_jax.data import integrity
 from slotformer_jax.data import sources
 from slotformer_jax.data.convert import make
+from slotformer_jax.data.convert import writer
 from slotformer_jax.data.convert import phyre_like
 from slotformer_jax.data.convert.checksums import record_checksums
 from slotformer_jax.data.data_dir import resolve_data_dir
 from slotformer_jax.data.embedded import families
 from slotformer_jax.data.embedded import phyre_like as phyre_like_data
+from slotformer_jax.data.video_names import NAMES_FILE
 from slotformer_jax.errors import MissingInputError
 from slotformer_jax.run import Run
 
@@ -51,10 +57,7 @@ def splits_read(config: ml_collections.ConfigDict) -> tuple[str, ...]:
   splits = ['train', *config.extraction.splits]
   if not config.task:
     splits.append(config.evaluation.split)
-  # The embedded PHYRE-like tasks split by task, not by data split: only
-  # contact and the rendered PHYRE layout read `readout.splits`.
-  if config.task == 'contact' or (config.task == 'planning'
-                                  and config.data.name == 'phyre'):
+  if reads_readout_splits(config):
     splits += list(config.readout.splits.values())
   return tuple(dict.fromkeys(splits))
 
@@ -124,3 +127,7 @@ def _check_converted(data_config: ml_collections.ConfigDict,
         record_checksums(folder)
     except integrity.DamagedDataset as error:
       raise sources.damaged_real_dataset(data_config, error) from None
+  if not (folder / NAMES_FILE).is_file() and writer.record_video_names(
+      folder):
+    logger.info('recorded the video names of %s (converted before they '
+                'were)', folder)

@@ -42,6 +42,7 @@ from slotformer_jax.data import vqa_questions
 from slotformer_jax.data.slots import SlotSource
 from slotformer_jax.errors import ConfigError
 from slotformer_jax.errors import MissingInputError
+from slotformer_jax.errors import UserError
 from slotformer_jax.files import read_json
 from slotformer_jax.files import write_json_atomic
 from slotformer_jax.run import Run
@@ -144,9 +145,44 @@ def _true_future_slots(run: Run, split: str, length: int) -> np.ndarray:
   return np.stack(out).astype(np.float32)
 
 
-def question_batches(run: Run, split: str,
-                     questions: list[vqa_data.EncodedQuestion]
+def questions_with_videos(run: Run, split: str, vocab: vqa_data.Vocabulary,
+                          *, scoring: bool = False) -> vqa_questions.Joined:
+  """The split's questions joined to its videos by name; the ones whose
+  video is not in the converted split are reported (counts, examples) and
+  left out.
+
+  Raises:
+    UserError: the split has no question, or no question has its video;
+      or, when `scoring`, more than `vqa.max_missing_video_fraction` of them
+      have none (a score over the rest would not be the split's).
+  """
+  vqa = run.config.vqa
+  joined = vqa_questions.joined_questions(run.config, split, vocab)
+  if not joined.total:
+    raise UserError(
+        f'VQA: the {split} question file under '
+        f'{vqa_questions.questions_root(run.config)}/questions holds no '
+        'question')
+  if joined.num_missing:
+    logger.warning('VQA %s', joined.report(split))
+  if not joined.questions:
+    raise UserError(f'VQA {joined.report(split)}: no question is left; '
+                    f'convert the {split} videos the questions are about')
+  limit = vqa.max_missing_video_fraction
+  if scoring and joined.missing_fraction > limit:
+    raise UserError(
+        f'VQA {joined.report(split)}; that is more than vqa.'
+        f'max_missing_video_fraction={limit}, so the score would not be the '
+        f'split\'s. Convert the whole {split} split, or pass --config.vqa.'
+        'max_missing_video_fraction=1 to score the questions that have a '
+        'video')
+  return joined
+
+
+def question_batches(run: Run, split: str, joined: vqa_questions.Joined
                      ) -> task.QuestionBatches:
+  """Batches of the `joined` questions (`questions_with_videos`), each
+  reading the slots of the video it names."""
   config = run.config
   vqa = config.vqa
   _check_inputs(vqa)
@@ -154,14 +190,19 @@ def question_batches(run: Run, split: str,
   if not os.path.exists(path):
     raise MissingInputError(f'{path} is missing: run --mode=vqa_slots first')
   slots = np.load(path, mmap_mode='r')
+  if len(slots) != len(joined.rows):
+    raise UserError(
+        f'{path} holds the slots of {len(slots)} videos, the converted '
+        f'{split} split has {len(joined.rows)}: the slots are from another '
+        f'conversion; delete {run.paths.slots(split)} and {path}, and re-run '
+        '--mode=extract_slots, then --mode=vqa_slots')
   if vqa.inputs == 'future':
     slots = _true_future_slots(run, split, slots.shape[1])
   elif vqa.inputs != 'rollout':
     slots = slots[:, :vqa.video_length]  # no rollout: predictive questions
     # read the end of the video like the others
-  index = vqa_questions.filename_to_index(config, split)
   return task.QuestionBatches(
-      questions, lambda name: slots[index[name]],
+      joined.questions, lambda name: slots[joined.row(name)],
       video_length=vqa.video_length, num_frames=vqa.num_frames,
       stride=vqa.frame_stride, max_choices=vqa.max_choices,
       blind=vqa.inputs == 'blind',
@@ -206,15 +247,48 @@ def aloe_stage(vqa: ml_collections.ConfigDict, directory: str,
       logging=logging_config)
 
 
+def drawn_batch_sizes(vqa: ml_collections.ConfigDict,
+                      batches: task.QuestionBatches) -> tuple[int, int]:
+  """(descriptive, multiple-choice) questions per training step, global:
+  `vqa.open_batch_size` / `vqa.choice_batch_size`, or 0 for a kind the
+  training questions have none of (an open-only or choice-only set: that
+  kind is not drawn).
+
+  Raises:
+    UserError: neither kind is drawn (no question of a kind with a batch
+      size > 0).
+  """
+  sizes = []
+  for kind, questions, field in (
+      ('descriptive', batches.open, 'open_batch_size'),
+      ('multiple-choice', batches.choice, 'choice_batch_size')):
+    size = vqa[field]
+    if size and not questions:
+      logger.info('VQA train: no %s questions; only the other kind is '
+                  'drawn (vqa.%s=%d unused)', kind, field, size)
+      size = 0
+    sizes.append(size)
+  if not any(sizes):
+    raise UserError(
+        f'VQA train: nothing to draw: {len(batches.open)} descriptive '
+        f'questions with vqa.open_batch_size={vqa.open_batch_size}, '
+        f'{len(batches.choice)} multiple-choice ones with '
+        f'vqa.choice_batch_size={vqa.choice_batch_size}; give a kind the '
+        'training questions have a batch size > 0')
+  return sizes[0], sizes[1]
+
+
 def train_vqa(run: Run) -> None:
-  """Trains Aloe on the training questions (resumable)."""
+  """Trains Aloe on the training questions (resumable); a question set of
+  one kind (open-only, choice-only) trains on that kind."""
   config, mesh = run.config, run.mesh
   vqa = config.vqa
   vocab = vqa_questions.vocabulary(config)
-  batches = question_batches(run, 'train', vqa_questions.encoded_questions(
-      config, 'train', vocab))
-  open_size = sharding.per_host_batch_size(vqa.open_batch_size, mesh)
-  choice_size = sharding.per_host_batch_size(vqa.choice_batch_size, mesh)
+  batches = question_batches(run, 'train', questions_with_videos(
+      run, 'train', vocab))
+  open_total, choice_total = drawn_batch_sizes(vqa, batches)
+  open_size = sharding.per_host_batch_size(open_total, mesh)
+  choice_size = sharding.per_host_batch_size(choice_total, mesh)
   seed = config.seed * 1000 + vqa.seed
   stage = aloe_stage(
       vqa, run.paths.aloe(vqa.inputs, vqa.seed), vocab,
@@ -275,8 +349,9 @@ def evaluate_vqa(run: Run) -> dict[str, Any]:
   split = vqa.eval_split
   aloe = load_aloe(run)
   vocab = aloe.vocab
-  questions = vqa_questions.encoded_questions(config, split, vocab)
-  batches = question_batches(run, split, questions)
+  joined = questions_with_videos(run, split, vocab, scoring=True)
+  questions = joined.questions
+  batches = question_batches(run, split, joined)
   model, params = aloe.module, aloe.params
   replicated = sharding.replicated_sharding(mesh)
   predict = jax.jit(functools.partial(task.predict, model=model),
@@ -305,6 +380,10 @@ def evaluate_vqa(run: Run) -> dict[str, Any]:
   if has_answers:
     results['descriptive_per_template'] = task.open_accuracy_per_template(
         questions, open_answers)
+  if joined.num_missing:  # scored without them (within the threshold)
+    results['left_out'] = {'questions': joined.num_missing,
+                           'of': joined.total,
+                           'videos_not_converted': list(joined.missing_videos)}
   if jax.process_index() == 0:
     write_json_atomic(os.path.join(directory, f'metrics_{split}.json'),
                       results, sort_keys=False)

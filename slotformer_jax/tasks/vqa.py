@@ -175,8 +175,9 @@ class QuestionBatches:
     padded to ``open_size`` / ``choice_size`` with invalid rows;
     ``starts`` [len(open_ids) + len(choice_ids)] window starts."""
     def pad_rows(rows: list[np.ndarray], size: int) -> np.ndarray:
+      # [size, ...]; size 0 (a kind not drawn) keeps the row shape.
       rows = rows + [np.zeros_like(rows[0])] * (size - len(rows))
-      return np.stack(rows)
+      return np.stack(rows)[:size]
 
     template = self.open[0] if self.open else self.choice[0]
     slot_shape = self._slots(template, 0).shape
@@ -234,16 +235,25 @@ class QuestionBatches:
     same global batch of ``P * open_size`` / ``P * choice_size`` questions and
     keeps rows ``[p * size, (p + 1) * size)`` of each, so batch ``s`` depends
     only on (seed, s, the global sizes): a resumed run sees the same stream,
-    and so does the same run on another number of hosts."""
-    open_rows = host_rows(open_size, process_index)
-    choice_rows = host_rows(choice_size, process_index)
-    open_total = process_count * open_size
-    choice_total = process_count * choice_size
+    and so does the same run on another number of hosts.
+
+    A kind with no question (an open-only or choice-only set) or a size of
+    0 is not drawn: its ``size`` rows are padding (``*_valid`` False)."""
+    open_drawn = open_size if self.open else 0
+    choice_drawn = choice_size if self.choice else 0
+    open_rows = host_rows(open_drawn, process_index)
+    choice_rows = host_rows(choice_drawn, process_index)
+    open_total = process_count * open_drawn
+    choice_total = process_count * choice_drawn
+    nothing = np.zeros((0,), np.int64)
     step = start_step
     while True:
       rng = np.random.default_rng([seed, step])
-      open_ids = rng.integers(0, len(self.open), open_total)
-      if self.choice_p is None:
+      open_ids = (rng.integers(0, len(self.open), open_total) if open_total
+                  else nothing)
+      if not choice_total:
+        choice_ids = nothing
+      elif self.choice_p is None:
         choice_ids = rng.integers(0, len(self.choice), choice_total)
       else:  # e.g. more predictive questions per step
         choice_ids = rng.choice(len(self.choice), choice_total,

@@ -66,6 +66,10 @@ def test_vqa_inputs_and_seed_are_variants_of_one_workdir(tmp_path):
   config.vqa.inputs, config.vqa.seed, config.vqa.eval_split = (
       'blind', 2, 'val')
   assert accept(config, workdir) == []
+  # What evaluation accepts as input (the share of questions whose video
+  # was not converted) is not a setting either.
+  config.vqa.max_missing_video_fraction = 1.0
+  assert accept(config, workdir) == []
   config.vqa.num_layers += 1
   with pytest.raises(UserError):
     accept(config, workdir)
@@ -160,4 +164,4 @@ def test_missing_vqa_inputs_are_one_line_errors(tmp_path):
     vqa_questions.encoded_questions(config, 'train', None)
   with pytest.raises(UserError, match='--mode=vqa_slots'):
     vqa_stages.question_batches(Run.create(config, str(tmp_path / 'run')),
-                                'train', [])
+                                'train', vqa_questions.join_videos([], []))

@@ -11,7 +11,10 @@ misleading line or a silently bad run, and checks the line that replaces it:
 3. rates, sizes, clip norms, loss weights that cannot work, by field kind;
    a loss that becomes non-finite names its term;
 4. places that cannot be written: the workdir (lock file), the dataset
-   cache, the converter's output.
+   cache, the converter's output;
+5. lines that sent the user the wrong way (issue 38): a video-prediction
+   mode on a task config, the settings of a first run that made nothing,
+   a CLEVRER download without the test videos.
 """
 
 import errno
@@ -298,11 +301,43 @@ def test_values_that_cannot_work_fail_before_work(tmp_path, field, value,
   assert not os.path.exists(tmp_path / 'data')
 
 
+@pytest.mark.parametrize('open_size, choice_size, expected', [
+    (0, 8, None), (8, 0, None),  # one kind of question is not drawn
+    (0, 0, 'vqa.open_batch_size and vqa.choice_batch_size are both 0'),
+    (-8, 8, 'vqa.open_batch_size must be an integer >= 0, got -8'),
+    (8, 3, 'vqa.choice_batch_size=3 does not split over the 2 devices'),
+])
+def test_aloe_batch_sizes_may_leave_out_one_kind_of_question(
+    open_size, choice_size, expected):
+  # Before: a batch of 0 was refused (`batch_size$`: an integer >= 1), so an
+  # open-only or choice-only question set could not be trained on.
+  config = pipeline_helpers.load_config('synthetic_vqa')
+  config.vqa.open_batch_size, config.vqa.choice_batch_size = (open_size,
+                                                              choice_size)
+  if expected is None:
+    check(config, ('train_vqa',), num_devices=2)
+    return
+  with pytest.raises(UserError) as error:
+    check(config, ('train_vqa',), num_devices=2)
+  assert str(error.value).count(expected) == 1, str(error.value)
+
+
 @pytest.mark.parametrize('spec', list(_every_config_spec()))
 def test_every_shipped_config_passes_the_field_kinds(spec):
   config = config_checks.load_config_file(spec)
   assert config_checks.check_field_kinds(config) == []
   assert slot_models.get(config).check_config(frozenset()) == []
+
+
+@pytest.mark.parametrize('spec', list(_every_config_spec()))
+def test_every_shipped_config_passes_the_checks_of_its_whole_run(spec):
+  # The checks once took the contact readout's section (epochs, no steps)
+  # for a stage-1 part: every contact and planning run was refused.
+  from slotformer_jax import stages  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.run import Run  # pylint: disable=g-import-not-at-top
+  run = Run.create(config_checks.load_config_file(spec), '/nonexistent/run')
+  run.check(stages.selected_stages(run, 'all'), num_devices=1,
+            num_processes=1)
 
 
 def _nan_stage(directory, checkpoint_every):
@@ -462,3 +497,77 @@ def test_the_converter_reports_a_missing_config_in_one_line(tmp_path):
   line = _one_error_line(result)
   assert result.returncode == 2
   assert 'config file nope.py does not exist' in line
+
+
+# --------------------------------------------------------------------------
+# 5. lines that sent the user the wrong way (issue 38)
+# --------------------------------------------------------------------------
+
+
+def test_a_video_prediction_mode_on_a_task_config_names_its_config():
+  # `--mode=explore` on a contact run once said "Task stages need a task
+  # config, e.g. configs/synthetic_contact.py": the config it was given.
+  from slotformer_jax import stages  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.errors import CommandLineError  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.run import Run  # pylint: disable=g-import-not-at-top
+  run = Run.create(config_checks.load_config_file(
+      os.path.join(CONFIGS, 'synthetic_contact.py')), '/nonexistent/run')
+  with pytest.raises(CommandLineError) as error:
+    stages.selected_stages(run, 'explore')
+  line = str(error.value)
+  assert '\n' not in line and 'synthetic_contact' not in line, line
+  assert line.endswith('--mode=explore belongs to configs/synthetic.py.')
+
+
+def test_a_first_run_that_made_nothing_keeps_no_settings(tmp_path,
+                                                         monkeypatch):
+  # A first run that stopped before any work (here: no questions where
+  # vqa.questions_root points) kept its config.json, and the corrected
+  # command was refused as a change of settings (--allow_config_change).
+  import types  # pylint: disable=g-import-not-at-top
+  from slotformer_jax import main as main_lib  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.run import Run  # pylint: disable=g-import-not-at-top
+  monkeypatch.setattr(main_lib, '_ALLOW_CONFIG_CHANGE',
+                      types.SimpleNamespace(value=False))
+  config = pipeline_helpers.load_config('clevrer_vqa')
+  workdir = tmp_path / 'run'
+  workdir.mkdir()  # as taking the workdir's lock does
+
+  def train_vqa(questions_root: str) -> str:
+    config.vqa.questions_root = str(tmp_path / questions_root)
+    with pytest.raises(UserError) as error:
+      main_lib._run(Run.create(config, str(workdir)), ('train_vqa',))  # pylint: disable=protected-access
+    return str(error.value)
+
+  assert 'typo/questions/train.json not found' in train_vqa('typo')
+  assert not (workdir / 'config.json').exists()
+  # The corrected command is a first run too: it fails for want of the
+  # questions, not for its settings.
+  assert 'clevrer/questions/train.json not found' in train_vqa('clevrer')
+  # A workdir that holds work keeps the settings it was made with.
+  (workdir / 'vqa' / 'slots').mkdir(parents=True)
+  (workdir / 'vqa' / 'slots' / 'train.npy').write_bytes(b'slots')
+  train_vqa('clevrer')
+  assert (workdir / 'config.json').exists()
+  assert 'was run with other settings: vqa.questions_root' in train_vqa(
+      'elsewhere')
+
+
+def test_clevrer_without_test_videos_names_the_splits_flag(tmp_path,
+                                                            capsys):
+  # The test videos are only for VQA's test predictions, but converting
+  # every split is the default: the line asked for videos/test and stopped.
+  import dataset_fixtures as fx  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.data.convert import prepare  # pylint: disable=g-import-not-at-top
+  source = tmp_path / 'CLEVRER'
+  fx.write_clevrer_video(source, 'train', 0, num_frames=4)
+  fx.write_clevrer_video(source, 'val', 10000, num_frames=4)
+  assert prepare.main([
+      '--dataset=clevrer', f'--source={source}',
+      f'--data_dir={tmp_path / "data"}', '--resolution=8', '--num_frames=4',
+      '--masks=ignore', '--num_workers=1', '--no_progress']) == 1
+  error = capsys.readouterr().err
+  assert error.startswith(f'error: CLEVRER: {source}/videos/test not found'
+                          ), error
+  assert 'without them convert the others: --splits=train,val' in error
+  assert not (tmp_path / 'data').exists()

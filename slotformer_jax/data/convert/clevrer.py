@@ -97,6 +97,13 @@ LAYOUT = """\
 <source>/questions/{train,validation,test}.json   (optional: VQA)
 (the archives from http://clevrer.csail.mit.edu/, unpacked)"""
 
+# Converting every split is the default: a download without the test
+# videos (only VQA's test predictions read them) names the way round.
+_MISSING_SPLIT_HINTS = {
+    'test': (' (the test videos are only needed for VQA test predictions; '
+             'without them convert the others: --splits=train,val)'),
+}
+
 _VIDEO_RE = re.compile(r'^video_(\d+)\.mp4$')
 _ANNOTATION_RE = re.compile(r'^annotation_(\d+)\.json$')
 _PROPOSAL_RE = re.compile(r'^proposal_(\d+)\.json$')
@@ -314,7 +321,7 @@ def discover(source: Path, split: str, options: Options) -> list[VideoJob]:
   """
   video_dir = source / 'videos' / split
   if not video_dir.is_dir():
-    raise layout_error(source, video_dir)
+    raise layout_error(source, video_dir, _MISSING_SPLIT_HINTS.get(split, ''))
   videos = _index_files(video_dir, _VIDEO_RE, '.mp4')
   if not videos:
     raise layout_error(source, video_dir / 'video_XXXXX-YYYYY/video_NNNNN.mp4',

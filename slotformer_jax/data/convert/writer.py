@@ -19,7 +19,9 @@ picklable object with a unique ``key``); :func:`convert` does the rest:
   ``conversion_report.json`` and summarised at the end. If more than
   ``max_skip_fraction`` of a split is skipped the conversion fails before
   the metadata is written, so a broken download never becomes a dataset.
-* when every shard exists, ``dataset_info.json`` / ``features.json`` are
+* when every shard exists, ``video_names.json`` records each split's video
+  keys in record order (what joins question files to the rows by name,
+  ``data/video_names.py``), then ``dataset_info.json`` / ``features.json`` are
   written with ``tfds.folder_dataset.write_metadata`` (no TensorFlow, no
   builder class), after which ``tfds.builder_from_directory`` (hence
   ``sources.open_prepared_dataset``) reads the folder. ``dataset_info.json``
@@ -53,6 +55,7 @@ import tqdm
 from slotformer_jax.data.convert import media
 from slotformer_jax.data.convert.checksums import record_checksums
 from slotformer_jax.data.convert.pool import process_pool
+from slotformer_jax.data.video_names import NAMES_FILE
 from slotformer_jax.files import confined
 from slotformer_jax.files import write_json_atomic
 
@@ -509,6 +512,10 @@ def _check_skip_fraction(split_payloads: Mapping[str, list[dict[str, Any]]],
 
 def _write_metadata(spec: DatasetSpec, dataset_dir: Path,
                     split_payloads: Mapping[str, list[dict[str, Any]]]) -> None:
+  # Before dataset_info.json, the completion marker.
+  _write_json_atomic(dataset_dir / NAMES_FILE, {
+      split: [key for payload in payloads for key in payload['keys']]
+      for split, payloads in sorted(split_payloads.items())})
   split_infos = [
       tfds.core.SplitInfo(name=split,
                           shard_lengths=[len(p['keys']) for p in payloads],
@@ -523,6 +530,33 @@ def _write_metadata(spec: DatasetSpec, dataset_dir: Path,
           conversion=json.loads(json.dumps(dict(spec.params)))))
   # Verified whenever the dataset is opened (see data/integrity.py).
   record_checksums(dataset_dir)
+
+
+def record_video_names(dataset_dir: str | os.PathLike[str]) -> bool:
+  """Writes ``video_names.json`` into a folder converted before it was
+  written, from the progress files its conversion kept (the keys of each
+  shard, in record order). Returns False, writing nothing, when those are
+  gone; the readers then refuse the folder with the command that converts it
+  again."""
+  dataset_dir = Path(dataset_dir)
+  names = {}
+  for split in _manifest_splits(dataset_dir):
+    with open(_manifest_path(dataset_dir, split)) as f:
+      manifest = json.load(f)
+    num_shards = math.ceil(len(manifest['keys'])
+                           / manifest['videos_per_shard'])
+    keys = []
+    for index in range(num_shards):
+      path = _sidecar_path(dataset_dir, split, index)
+      if not path.is_file():
+        return False
+      with open(path) as f:
+        keys += json.load(f)['keys']
+    names[split] = keys
+  if not names:
+    return False
+  _write_json_atomic(dataset_dir / NAMES_FILE, names)
+  return True
 
 
 def _write_report(spec: DatasetSpec, result: ConversionResult) -> None:
