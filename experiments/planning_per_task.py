@@ -18,35 +18,26 @@ that `--mode=train_readout` wrote (planning/<condition>/seed_<k>/).
 from __future__ import annotations
 
 import argparse
-import json
-import os
 
-import ml_collections
 import numpy as np
-from flax import serialization
 
+from slotformer_jax.run import Run
+from slotformer_jax.stages import planning as planning_stage
 from slotformer_jax.tasks import phyre_planning
 from slotformer_jax.tasks import planning
-from slotformer_jax.runtime import sharding
 
 
-def per_task_auccess(config: ml_collections.ConfigDict, workdir: str,
-                     split: str, mesh) -> dict[str, np.ndarray]:
+def per_task_auccess(run: Run, split: str) -> dict[str, np.ndarray]:
   """{condition: float [tasks]}: each task's AUCCESS, mean over seeds."""
-  # pylint: disable=protected-access
-  by_split, outcomes, generation = phyre_planning._setup(
-      config, workdir, mesh, (split,))
+  by_split, outcomes, generation = planning_stage.task_candidates(
+      run, (split,))
   out = {}
-  for condition in config.readout.conditions:
-    model = phyre_planning.build_classifier(config.readout, condition)
+  for condition in run.config.readout.conditions:
     per_seed = []
-    for seed in config.readout.seeds:
-      path = os.path.join(phyre_planning.planning_dir(workdir), condition,
-                          f'seed_{seed}', 'params.msgpack')
-      with open(path, 'rb') as f:
-        params = serialization.msgpack_restore(f.read())
-      scores = phyre_planning._scores(model, params, by_split[split],
-                                      generation.num_candidates)
+    for seed in run.config.readout.seeds:
+      model, params = planning_stage.load_classifier(run, condition, seed)
+      scores = phyre_planning.candidate_scores(model, params, by_split[split],
+                                               generation.num_candidates)
       per_seed.append([planning.plan_auccess([s], [o])
                        for s, o in zip(scores, outcomes[split])])
     out[condition] = np.mean(per_seed, axis=0)
@@ -58,12 +49,11 @@ def main() -> None:
   parser.add_argument('--workdir', action='append', required=True)
   parser.add_argument('--split', default='test', choices=('test', 'dev'))
   args = parser.parse_args()
-  mesh = sharding.make_mesh()
   differences = []
   for workdir in args.workdir:
-    with open(os.path.join(workdir, 'config.json')) as f:
-      config = ml_collections.ConfigDict(json.load(f))
-    auccess = per_task_auccess(config, workdir, args.split, mesh)
+    run = Run.open(workdir)
+    config = run.config
+    auccess = per_task_auccess(run, args.split)
     difference = auccess[phyre_planning.ROLLOUT] - auccess[
         phyre_planning.FIRST_FRAME]
     differences.append(difference)

@@ -93,7 +93,16 @@ def _task_features(features: SlotFeatures, tasks, labels, actions):
   return out
 
 
-def _setup(run: Run, split_names):
+def task_candidates(run: Run, split_names: tuple[str, ...]):
+  """The candidates of the embedded tasks of `split_names` ('train',
+  'dev', 'test'), as the classifiers read them.
+
+  Returns:
+    by_split: {split: per task, (valid candidate indices, their features)}.
+    outcomes: {split: per task, every candidate's outcome
+      (`tasks/planning.py`: SOLVED, ..., INVALID)}.
+    generation: the tasks' generation parameters (PhyreLikeConfig).
+  """
   config = run.config
   generation = phyre_like_data.config_from_data_config(config.data)
   labels = phyre_like_data.load_task_labels(
@@ -111,7 +120,7 @@ def _setup(run: Run, split_names):
 def train_readout(run: Run) -> None:
   """Fits the success classifiers; the epoch is chosen by dev AUCCESS."""
   config = run.config
-  by_split, outcomes, generation = _setup(run, ('train', 'dev'))
+  by_split, outcomes, generation = task_candidates(run, ('train', 'dev'))
   rng = np.random.default_rng(config.seed)
   rows, labels = [], []
   for (valid, feats), task_outcomes in zip(by_split['train'],
@@ -174,7 +183,7 @@ def load_classifier(run: Run, condition: str, seed: int) -> Any:
 def plan(run: Run) -> dict[str, Any]:
   """Ranks every candidate of every test task; AUCCESS per method."""
   config = run.config
-  by_split, outcomes, generation = _setup(run, ('test',))
+  by_split, outcomes, generation = task_candidates(run, ('test',))
   test, test_outcomes = by_split['test'], outcomes['test']
   seeds = tuple(config.readout.seeds)
   results: dict[str, Any] = {}
