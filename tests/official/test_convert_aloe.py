@@ -21,11 +21,13 @@ import ml_collections
 import numpy as np
 import pytest
 
+import dataset_fixtures as fx
 import official_aloe_reference as aref
 import official_reference as ref
 from configs import physion_contact
 from slotformer_jax.official import convert as convert_official
 from slotformer_jax.data import vqa_questions
+from slotformer_jax.data.convert import prepare
 from slotformer_jax.stages import vqa as vqa_stages
 from slotformer_jax.data import vqa as vqa_data
 from slotformer_jax.config.defaults import base_config
@@ -364,7 +366,18 @@ def test_converted_aloe_writes_the_evaluation_server_file(
   os.makedirs(tmp_path / 'CLEVRER' / 'questions')
   with open(tmp_path / 'CLEVRER' / 'questions' / 'test.json', 'w') as f:
     json.dump(scenes, f)
+  # The converted test split the slots were extracted from: questions are
+  # joined to its videos by name.
+  for index in (10000, 10001):
+    fx.write_clevrer_video(tmp_path / 'CLEVRER', 'test', index,
+                           num_frames=4, size=8, annotated=False)
+  assert prepare.main([
+      '--dataset=clevrer', f'--source={tmp_path / "CLEVRER"}',
+      f'--data_dir={tmp_path / "data"}', '--resolution=8', '--num_frames=4',
+      '--splits=test', '--masks=ignore', '--num_workers=1',
+      '--no_progress']) == 0
   config.data.name, config.data.channel_order = 'clevrer', 'bgr'
+  config.data.data_dir, config.data.resolution = str(tmp_path / 'data'), (8, 8)
   config.vqa.questions_root = str(tmp_path / 'CLEVRER')
   config.vqa.eval_split = 'test'
   workdir = str(tmp_path / 'run')
