@@ -25,3 +25,53 @@ jax.config.update('jax_compilation_cache_dir',
                   os.path.join(tempfile.gettempdir(), 'slotformer_jax_test_xla_cache'))
 jax.config.update('jax_persistent_cache_min_compile_time_secs', 0.5)
 jax.config.update('jax_persistent_cache_min_entry_size_bytes', 0)
+
+
+import pytest  # noqa: E402
+
+# Variants whose sibling (named) stays in the default suite: they run with
+# `-m slow`, so that the default suite stays near 15 min on 2 CPU cores.
+SLOW_VARIANTS = {
+    'pipeline/test_pipeline_end_to_end.py::'
+    'test_rerun_resumes_without_recomputing[steve]': '[savi]',
+    'pipeline/test_pipeline_end_to_end.py::'
+    'test_stage_two_on_a_read_only_stage_one[steve]': '[savi]',
+    'train/test_steve_training.py::'
+    'test_four_device_step_equals_one_device_step[steve]':
+        'train/test_training.py [slotformer]',
+    'train/test_steve_training.py::test_train_step_traces_once[dvae]':
+        '[steve]',
+    'train/test_training.py::'
+    'test_four_device_step_equals_one_device_step[stochastic_savi]':
+        '[slotformer]',
+    'train/test_precision.py::test_bfloat16_step_close_to_float32[savi]':
+        '[slotformer]',
+    'modules/test_kernel_forms.py::test_slotformer_rollout_forms_agree[4]':
+        '[0]',
+    'reliability/test_multiprocess.py::'
+    'test_sigterm_stops_both_processes_after_the_same_step[sigterm_to_one]':
+        'test_processes_agree_on_a_stop_every_k_steps (the agreement, a fake '
+        'all-gather); one process: train/test_training.py',
+    'reliability/test_multiprocess.py::'
+    'test_the_watchdog_names_a_lost_process[143-0-survived]':
+        '[0-0-survived]',
+    'reliability/test_multiprocess.py::'
+    'test_the_watchdog_waits_for_a_peer_slow_to_start[2.5-0-survived]':
+        'test_a_process_that_never_starts_is_named_in_time',
+    'reliability/test_multiprocess.py::'
+    'test_the_watchdog_waits_for_a_peer_slow_to_start[-1-1-error: process 1 '
+    'of 2 never started (no heartbeat within 4 s)]':
+        'test_a_process_that_never_starts_is_named_in_time',
+    'evaluation/test_explore.py::'
+    'test_explorer_is_jitted_once_per_shape_and_matches_the_rollouts':
+        "the explorer's interventions, one test each (same file)",
+    'train/test_tensorboard.py::test_off_by_config_writes_no_event_file':
+        'test_logging_settings_never_block_a_workdir',
+}
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_collection_modifyitems(items):
+  for item in items:
+    if item.nodeid.split('tests/', 1)[-1] in SLOW_VARIANTS:
+      item.add_marker(pytest.mark.slow)

@@ -292,6 +292,9 @@ def test_configs_load():
     load_config('movi', 'g')
 
 
+# 65 s: -m slow. The default suite reads and converts MOVi (the tests above)
+# and runs the whole pipeline on converted OBJ3D (test_datasets_obj3d.py).
+@pytest.mark.slow
 def test_pipeline_trains_and_evaluates_on_movi(converted, tmp_path):
   """`python -m slotformer_jax.main --config=configs/movi.py:fixture` on the
   converted fixture: every stage of --mode=all, then the results."""

@@ -8,6 +8,7 @@ bfloat16 and the metrics stay close to float32's.
 
 import jax
 import numpy as np
+import pytest
 
 from slotformer_jax import dynamics as dynamics_lib
 from slotformer_jax import slot_models
@@ -41,6 +42,7 @@ def _inputs(config):
   return mesh, slot_model, dynamics_params, slot_params, batch
 
 
+@pytest.mark.slow  # 10 s; the bfloat16 step: train/test_precision.py
 def test_bfloat16_rollout_evaluation_decodes_in_bfloat16():
   results, jaxprs = {}, {}
   for dtype in ('float32', 'bfloat16'):

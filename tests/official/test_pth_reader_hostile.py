@@ -350,7 +350,10 @@ _SHAPES = {
 }
 
 
-@pytest.mark.parametrize('shape', sorted(_SHAPES))
+# Two shapes in the default suite, every shape with -m slow (2-3 s each).
+@pytest.mark.parametrize('shape', [
+    shape if shape in ('empty dicts', 'unknown calls') else pytest.param(
+        shape, marks=pytest.mark.slow) for shape in sorted(_SHAPES)])
 def test_pickle_objects_stay_in_the_budget(tmp_path, shape):
   """Python objects cost the reader at most BYTES_PER_OPCODE per opcode
   (plus the pickle bytes, held twice): a pickle within the limit is read

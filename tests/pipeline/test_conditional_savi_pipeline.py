@@ -19,6 +19,10 @@ from slotformer_jax.errors import ConfigError
 from slotformer_jax.runtime import sharding
 from slotformer_jax.workdir import identity as identity_lib
 
+# 35 s: -m slow. The default suite checks conditional SAVi's modules
+# (modules/test_conditional_savi.py) and the pipeline with plain SAVi.
+pytestmark = pytest.mark.slow
+
 
 @pytest.fixture(scope='module')
 def trained(tmp_path_factory):

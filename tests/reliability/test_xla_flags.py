@@ -121,6 +121,7 @@ def _compare_fast_and_plain(tmp_path, case):
       {k: f'{v:.2e}' for k, v in sorted(worst.items(), key=lambda kv: -kv[1])[:5]}))
 
 
+@pytest.mark.slow  # 26 s (two processes compile the same gradients)
 def test_fast_flags_leave_convolution_gradients_unchanged(tmp_path):
   _compare_fast_and_plain(tmp_path, 'convs')
 
