@@ -68,8 +68,6 @@ from slotformer_jax.data.embedded.synthetic import SIZES
 from slotformer_jax.data.events import NUM_GAP_BINS
 from slotformer_jax.data.events import Collision
 from slotformer_jax.data.events import EventLog
-from slotformer_jax.worlds.supersample import downsample_rgb
-from slotformer_jax.worlds.supersample import downsample_segmentation
 
 SPLITS = synthetic.SPLITS
 SUBSTEPS_PER_FRAME = synthetic.SUBSTEPS_PER_FRAME
@@ -452,23 +450,14 @@ def simulate(scene: Scene, config: ClevrerLikeConfig, *,
             body, physicsClientId=client)[0][:2])
         present[t, i] = True
       if render:
-        _, _, rgba, _, seg = pybullet.getCameraImage(
-            width * ss, height * ss, viewMatrix=view,
-            projectionMatrix=projection,
-            lightDirection=synthetic.LIGHT_DIRECTION,
-            lightColor=[1.0, 1.0, 1.0], shadow=0,
-            lightAmbientCoeff=synthetic.LIGHT_AMBIENT,
-            lightDiffuseCoeff=synthetic.LIGHT_DIFFUSE,
-            lightSpecularCoeff=synthetic.LIGHT_SPECULAR,
-            renderer=pybullet.ER_TINY_RENDERER, physicsClientId=client)
-        rgb = np.asarray(rgba, np.uint8).reshape(height * ss, width * ss, 4)
-        frames.append(downsample_rgb(rgb[..., :3], ss))
+        # Objects enter during the video: this frame's bodies.
         lut = np.zeros(max(list(bodies.values()) + [floor]) + 2, np.uint8)
         for i, body in bodies.items():
           lut[body + 1] = i + 1
-        seg = lut[np.asarray(seg, np.int64).reshape(height * ss, width * ss)
-                  + 1]
-        segs.append(downsample_segmentation(seg, ss))
+        rgb, seg = synthetic.render_frame(client, view, projection, height,
+                                          width, ss, lut)
+        frames.append(rgb)
+        segs.append(seg)
       if t + 1 == t_total:
         break
       for _ in range(SUBSTEPS_PER_FRAME):

@@ -54,8 +54,6 @@ from slotformer_jax.data.embedded.contact import ContactConfig
 from slotformer_jax.data.embedded.synthetic import COLORS
 from slotformer_jax.data.embedded.synthetic import SHAPES
 from slotformer_jax.data.embedded.synthetic import SIZES
-from slotformer_jax.worlds.supersample import downsample_rgb
-from slotformer_jax.worlds.supersample import downsample_segmentation
 
 AGENT_COLOR = COLORS.index('red')
 PATIENT_COLOR = COLORS.index('yellow')
@@ -312,20 +310,10 @@ def simulate(scene: synthetic.Scene, config: ContactConfig, *,
     bank = config.scenario == 'bank'
     for t in range(config.num_frames):
       if render:
-        _, _, rgba, _, seg = pybullet.getCameraImage(
-            width * ss, height * ss, viewMatrix=view,
-            projectionMatrix=projection,
-            lightDirection=synthetic.LIGHT_DIRECTION,
-            lightColor=[1.0, 1.0, 1.0], shadow=0,
-            lightAmbientCoeff=synthetic.LIGHT_AMBIENT,
-            lightDiffuseCoeff=synthetic.LIGHT_DIFFUSE,
-            lightSpecularCoeff=synthetic.LIGHT_SPECULAR,
-            renderer=pybullet.ER_TINY_RENDERER, physicsClientId=client)
-        rgb = np.asarray(rgba, np.uint8).reshape(height * ss, width * ss, 4)
-        frames.append(downsample_rgb(rgb[..., :3], ss))
-        seg = lut[np.asarray(seg, np.int64).reshape(height * ss, width * ss)
-                  + 1]
-        segs.append(downsample_segmentation(seg, ss))
+        rgb, seg = synthetic.render_frame(client, view, projection, height,
+                                          width, ss, lut)
+        frames.append(rgb)
+        segs.append(seg)
       for k, body in enumerate(bodies):
         positions[t, k] = pybullet.getBasePositionAndOrientation(
             body, physicsClientId=client)[0]

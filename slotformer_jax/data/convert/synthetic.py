@@ -309,6 +309,32 @@ def _camera_matrices(height: int, width: int) -> tuple[list[float], list[float]]
   return view, projection
 
 
+def render_frame(client: int, view: list[float], projection: list[float],
+                 height: int, width: int, ss: int, lut: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray]:
+  """One frame of every embedded family: TinyRenderer at ``ss`` times the
+  size, then averaged down.
+
+  No shadows: TinyRenderer's shadow map drew a dark wedge across the floor
+  and hardly any object shadows, at twice the rendering cost.
+
+  Returns:
+    rgb: uint8 [height, width, 3].
+    segmentation: [height, width], ``lut[body id + 1]`` of the pixels
+      (pybullet's background is -1), downsampled.
+  """
+  _, _, rgba, _, seg = pybullet.getCameraImage(
+      width * ss, height * ss, viewMatrix=view, projectionMatrix=projection,
+      lightDirection=LIGHT_DIRECTION, lightColor=[1.0, 1.0, 1.0],
+      shadow=0, lightAmbientCoeff=LIGHT_AMBIENT,
+      lightDiffuseCoeff=LIGHT_DIFFUSE, lightSpecularCoeff=LIGHT_SPECULAR,
+      renderer=pybullet.ER_TINY_RENDERER, physicsClientId=client)
+  rgb = np.asarray(rgba, np.uint8).reshape(height * ss, width * ss, 4)
+  seg = lut[np.asarray(seg, np.int64).reshape(height * ss, width * ss) + 1]
+  return (downsample_rgb(rgb[..., :3], ss),
+          downsample_segmentation(seg, ss))
+
+
 def simulate_and_render(scene: Scene, config: SyntheticConfig
                         ) -> dict[str, np.ndarray]:
   """Simulates ``scene`` for ``config.num_frames`` frames and renders them.
@@ -362,18 +388,10 @@ def simulate_and_render(scene: Scene, config: SyntheticConfig
     frames, segs = [], []
     positions = np.zeros((config.num_frames, num_slots, 3), np.float32)
     for t in range(config.num_frames):
-      # No shadows: TinyRenderer's shadow map drew a dark wedge across the
-      # floor and hardly any object shadows, at twice the rendering cost.
-      _, _, rgba, _, seg = pybullet.getCameraImage(
-          width * ss, height * ss, viewMatrix=view, projectionMatrix=projection,
-          lightDirection=LIGHT_DIRECTION, lightColor=[1.0, 1.0, 1.0],
-          shadow=0, lightAmbientCoeff=LIGHT_AMBIENT,
-          lightDiffuseCoeff=LIGHT_DIFFUSE, lightSpecularCoeff=LIGHT_SPECULAR,
-          renderer=pybullet.ER_TINY_RENDERER, physicsClientId=client)
-      rgb = np.asarray(rgba, np.uint8).reshape(height * ss, width * ss, 4)
-      frames.append(downsample_rgb(rgb[..., :3], ss))
-      seg = lut[np.asarray(seg, np.int64).reshape(height * ss, width * ss) + 1]
-      segs.append(downsample_segmentation(seg, ss))
+      rgb, seg = render_frame(client, view, projection, height, width, ss,
+                              lut)
+      frames.append(rgb)
+      segs.append(seg)
       for k, body in enumerate(bodies):
         positions[t, k] = pybullet.getBasePositionAndOrientation(
             body, physicsClientId=client)[0]
