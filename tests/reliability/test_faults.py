@@ -29,8 +29,6 @@ import time
 
 import jax
 from jax.sharding import Mesh
-import jax.numpy as jnp
-import ml_collections
 import numpy as np
 import pytest
 
@@ -43,7 +41,7 @@ from slotformer_jax.data.convert import obj3d
 from slotformer_jax.errors import UserError
 from slotformer_jax.workdir.lock import FileLock
 from slotformer_jax.runtime import checkpoint as checkpoint_lib
-from slotformer_jax.train.trainer import Stage
+from linear_stage import linear_stage
 from slotformer_jax.train.trainer import fit
 
 ROOT = os.path.abspath(os.path.join(os.path.dirname(__file__), '..', '..'))
@@ -109,29 +107,8 @@ def test_a_readout_split_no_stage_extracts_fails_before_work(tmp_path):
 
 
 def _linear_stage(directory, **config_changes):
-  """A one-parameter stage, TensorBoard on."""
-  config = ml_collections.ConfigDict(dict(
-      num_train_steps=3, learning_rate=1e-2, warmup_fraction=0.0,
-      grad_clip=0.0, min_lr_fraction=0.0, stop_check_every=1, batch_size=4,
-      log_every=1, checkpoint_every=2))
-  config.update(config_changes)
-
-  def loss_fn(params, batch, frozen_params, rng):
-    del frozen_params, rng
-    return jnp.mean(jnp.square(params['w'] - batch['x'])), {}
-
-  def batches(start_step):
-    step = start_step
-    while True:
-      yield {'x': np.full((4, 3), float(step), np.float32)}
-      step += 1
-
-  return Stage(name='linear', directory=str(directory), config=config,
-               loss_fn=loss_fn,
-               init_params=lambda rng: {'w': jnp.zeros(3, jnp.float32)},
-               batches=batches,
-               logging=ml_collections.ConfigDict(dict(tensorboard=True,
-                                                      image_every=0)))
+  """The linear stage, TensorBoard on."""
+  return linear_stage(directory, tensorboard=True, **config_changes)
 
 
 def _full_disk(*args, **kwargs):

@@ -27,7 +27,6 @@ import sys
 
 import jax
 from jax.sharding import Mesh
-import jax.numpy as jnp
 import ml_collections
 import numpy as np
 import pytest
@@ -43,7 +42,6 @@ from slotformer_jax.runtime import checkpoint as checkpoint_lib
 from slotformer_jax.runtime import sharding
 from slotformer_jax.train.trainer import Diverged
 from slotformer_jax.train.trainer import Preempted
-from slotformer_jax.train.trainer import Stage
 from slotformer_jax.train.trainer import fit
 from slotformer_jax.data.slots import read_meta
 from slotformer_jax.slot_models.savi import Savi
@@ -54,6 +52,7 @@ from slotformer_jax.workdir.lock import workdir_lock
 from slotformer_jax.workdir.paths import Paths
 from slotformer_jax.workdir import identity as identity_lib
 from pipeline_helpers import accept
+from linear_stage import linear_stage
 from pipeline_helpers import run_stage
 from slotformer_jax.slot_models import chain as chain_lib
 from slotformer_jax.run import Run
@@ -456,35 +455,11 @@ def test_garbled_slots_are_detected(copied):
 # --------------------------------------------------------------------------
 
 
-def _linear_stage(directory, **config_changes):
-  """A one-parameter-vector stage: the loop's logic without a model's
-  compile time."""
-  config = ml_collections.ConfigDict(dict(
-      num_train_steps=3, learning_rate=1e-2, warmup_fraction=0.0,
-      grad_clip=0.0, min_lr_fraction=0.0, stop_check_every=1, batch_size=4,
-      log_every=1, checkpoint_every=2))
-  config.update(config_changes)
-
-  def loss_fn(params, batch, frozen_params, rng):
-    del frozen_params, rng
-    loss = jnp.mean(jnp.square(params['w'] - batch['x']))
-    return loss, {}
-
-  def batches(start_step):
-    for step in itertools.count(start_step):
-      yield {'x': np.full((4, 3), float(step), np.float32)}
-
-  return Stage(name='linear', directory=str(directory), config=config,
-               loss_fn=loss_fn,
-               init_params=lambda rng: {'w': jnp.zeros(3, jnp.float32)},
-               batches=batches)
-
-
 def test_diverged_parameters_are_never_saved(tmp_path):
   mesh = Mesh(np.asarray(jax.devices()[:1]), ('data',))
   # The loss before the first update is finite; the updated state is not.
-  stage = _linear_stage(tmp_path / 'linear', learning_rate=1e39,
-                        checkpoint_every=1)
+  stage = linear_stage(tmp_path / 'linear', learning_rate=1e39,
+                       checkpoint_every=1)
   with pytest.raises(Diverged, match='there is no checkpoint yet') as error:
     fit(stage, mesh=mesh, seed=0)
   assert 'non-finite in update 1' in str(error.value)
@@ -492,11 +467,11 @@ def test_diverged_parameters_are_never_saved(tmp_path):
       str(tmp_path / 'linear' / 'checkpoints'), read_only=True)
   assert checkpointer.all_steps() == []
   # With a good checkpoint first, the message names it.
-  stage = _linear_stage(tmp_path / 'late', checkpoint_every=1,
-                        num_train_steps=2)
+  stage = linear_stage(tmp_path / 'late', checkpoint_every=1,
+                       num_train_steps=2)
   fit(stage, mesh=mesh, seed=0)
-  stage = _linear_stage(tmp_path / 'late', learning_rate=1e39,
-                        num_train_steps=4, checkpoint_every=1)
+  stage = linear_stage(tmp_path / 'late', learning_rate=1e39,
+                       num_train_steps=4, checkpoint_every=1)
   with pytest.raises(Diverged, match='last good checkpoint is step 2'):
     fit(stage, mesh=mesh, seed=0)
   assert checkpoint_lib.Checkpointer(
@@ -509,8 +484,8 @@ def test_a_signal_in_training_saves_that_step(tmp_path, signum):
   """Ctrl-C (SIGINT) is treated as SIGTERM: the step is saved, `Preempted`
   carries the signal (main exits 128 + it), the handlers are restored."""
   mesh = Mesh(np.asarray(jax.devices()[:1]), ('data',))
-  stage = _linear_stage(tmp_path / 'linear', num_train_steps=50,
-                        checkpoint_every=1000)
+  stage = linear_stage(tmp_path / 'linear', num_train_steps=50,
+                       checkpoint_every=1000)
   plain = stage.batches
 
   def batches(start_step):
@@ -563,8 +538,8 @@ def test_a_signal_ignored_before_training_stays_ignored(tmp_path):
   then; SIGTERM still saves and stops. Before, the trainer caught the
   ignored SIGINT and stopped."""
   mesh = Mesh(np.asarray(jax.devices()[:1]), ('data',))
-  stage = _linear_stage(tmp_path / 'linear', num_train_steps=6,
-                        checkpoint_every=1000)
+  stage = linear_stage(tmp_path / 'linear', num_train_steps=6,
+                       checkpoint_every=1000)
   plain = stage.batches
 
   def batches(start_step):
@@ -593,7 +568,7 @@ def test_a_failed_save_stops_training_with_one_line(tmp_path, monkeypatch):
         f'saving the checkpoint of step {step} failed (OSError: [Errno 28] '
         'No space left on device); training stopped.')
   monkeypatch.setattr(checkpoint_lib.Checkpointer, 'save', failing_save)
-  stage = _linear_stage(tmp_path / 'linear', checkpoint_every=1)
+  stage = linear_stage(tmp_path / 'linear', checkpoint_every=1)
   with pytest.raises(checkpoint_lib.CheckpointSaveError) as error:
     fit(stage, mesh=mesh, seed=0)
   assert saved == [1]  # stopped at the first failure
