@@ -26,11 +26,11 @@ from jax.experimental import multihost_utils
 from jax.sharding import Mesh
 import jax.numpy as jnp
 import numpy as np
-import tqdm
 
 from slotformer_jax.data import pipeline
 from slotformer_jax.modules.slot_lstm import SlotLSTM
 from slotformer_jax.modules.slotformer import SlotFormer
+from slotformer_jax.runtime import progress
 from slotformer_jax.runtime import sharding
 from slotformer_jax.runtime.checkpoint import restore_params
 
@@ -124,7 +124,8 @@ def encode_videos(source: pipeline.Source, encode_chunk: ChunkFn, *,
   """`encode_chunk` over every video of `source`, chunk after chunk.
 
   Each host encodes its own videos (`pipeline.host_batches`: p, p + P, ...)
-  in batches of `batch_size` (per host); videos are padded to a whole
+  in batches of at most `batch_size` (per host, `pipeline.host_batch_plan`:
+  a 2-video split is one batch of 2); videos are padded to a whole
   number of chunks of `chunk_length` frames by repeating their last frame,
   every host running the same number of batches and chunks (the collectives
   of a multi-host run stay in lockstep, also on a host with no video). The
@@ -137,9 +138,10 @@ def encode_videos(source: pipeline.Source, encode_chunk: ChunkFn, *,
   """
   process_index, process_count = jax.process_index(), jax.process_count()
   plan = list(pipeline.host_batches(len(source), batch_size, process_index,
-                                    process_count))
-  for batch_index, (indices, valid) in enumerate(tqdm.tqdm(
-      plan, desc=desc, disable=process_index != 0)):
+                                    process_count,
+                                    multiple_of=len(mesh.local_devices)))
+  for batch_index, (indices, valid) in enumerate(progress.bar(
+      plan, desc=desc, unit='batch')):
     items = [source[int(i)] for i in indices]
     videos = [item['video'] for item in items]
     lengths = np.array([len(v) for v in videos])

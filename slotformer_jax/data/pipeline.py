@@ -290,8 +290,8 @@ def _prefetched(make: Callable[[int], dict[str, np.ndarray]], start_step: int,
 def eval_batches(source: Source, *, batch_size: int,
                  fields: Sequence[str] = ('video',),
                  num_frames: int | None = None, process_index: int = 0,
-                 process_count: int = 1, max_videos: int | None = None
-                 ) -> Iterator[dict[str, np.ndarray]]:
+                 process_count: int = 1, max_videos: int | None = None,
+                 multiple_of: int = 1) -> Iterator[dict[str, np.ndarray]]:
   """Every video of this host's shard once, in order, in fixed-shape batches.
 
   Args:
@@ -305,21 +305,23 @@ def eval_batches(source: Source, *, batch_size: int,
       (before sharding, so the evaluated set does not depend on the number of
       hosts).
 
+    multiple_of: the batch size stays a multiple of it (the host's devices).
+
   Yields:
-    ``{field: [B, num_frames, ...], 'index': int32 [B], 'mask': bool [B]}``.
-    The last batch is padded to B by repeating the last video, with
+    ``{field: [b, num_frames, ...], 'index': int32 [b], 'mask': bool [b]}``,
+    b <= B as `host_batch_plan` sizes it (a 2-video split is one batch of
+    2, not of B). Batches are padded by repeating the last video, with
     ``mask`` False on the padding. Every host yields the same number of
-    batches, ``ceil(ceil(N / P) / B)`` for N videos, so collective eval steps
-    stay in lockstep; a host with fewer videos gets extra padded entries.
+    batches, ``ceil(ceil(N / P) / B)`` for N videos, of the same size, so
+    collective eval steps stay in lockstep; a host with fewer videos gets
+    extra padded entries.
   """
-  if batch_size < 1:
-    raise ValueError(f'batch_size must be >= 1, got {batch_size}')
   if num_frames is not None and num_frames < 1:
     raise ValueError(f'num_frames must be >= 1, got {num_frames}')
   fields = tuple(fields)
   total = len(source) if max_videos is None else min(len(source), max_videos)
   for indices, mask in host_batches(total, batch_size, process_index,
-                                    process_count):
+                                    process_count, multiple_of):
     parts = []
     cache: dict[int, dict[str, np.ndarray]] = {}  # padding repeats one video
     for index in indices:
@@ -337,30 +339,52 @@ def eval_batches(source: Source, *, batch_size: int,
     yield batch
 
 
-def host_batches(num_items: int, batch_size: int, process_index: int = 0,
-                 process_count: int = 1
-                 ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
-  """This host's items in fixed-size batches: (indices int64 [B], valid
-  bool [B]) each.
+def host_batch_plan(num_items: int, batch_size: int, process_count: int = 1,
+                    multiple_of: int = 1) -> tuple[int, int]:
+  """(number of batches, batch size) every host uses for `num_items` items.
 
-  Host ``p`` of ``P`` gets items p, p + P, ... in order; the last batch is
-  padded by repeating the host's last item (``valid`` False there). Every
-  host yields the same number of batches, ``ceil(ceil(N / P) / B)``, so
-  collective steps stay in lockstep; a host with no item at all (N < P)
-  pads with item 0, all entries invalid.
+  The number is that of full batches of at most `batch_size`,
+  ``ceil(ceil(N / P) / batch_size)``; the size is the smallest multiple of
+  `multiple_of` (the host's devices) that holds the host's share in that
+  many batches. So a split smaller than a batch costs its own size rounded
+  up to the devices, not a whole batch, and a larger one pads fewer than
+  `multiple_of` entries per batch instead of up to a batch in the last one.
   """
   if batch_size < 1:
     raise ValueError(f'batch_size must be >= 1, got {batch_size}')
+  if batch_size % multiple_of:
+    raise ValueError(f'batch_size {batch_size} is not a multiple of '
+                     f'{multiple_of}')
+  per_host = math.ceil(num_items / process_count)
+  num_batches = math.ceil(per_host / batch_size)
+  if not num_batches:
+    return 0, batch_size
+  size = math.ceil(math.ceil(per_host / num_batches) / multiple_of)
+  return num_batches, min(batch_size, size * multiple_of)
+
+
+def host_batches(num_items: int, batch_size: int, process_index: int = 0,
+                 process_count: int = 1, multiple_of: int = 1
+                 ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+  """This host's items in batches of one size: (indices int64 [b], valid
+  bool [b]) each, b and their number from `host_batch_plan` (b <=
+  `batch_size`, a multiple of `multiple_of`).
+
+  Host ``p`` of ``P`` gets items p, p + P, ... in order; a batch is padded
+  by repeating the host's last item (``valid`` False there). Every host
+  yields the same number of batches of the same size, so collective steps
+  stay in lockstep; a host with no item at all (N < P) pads with item 0,
+  all entries invalid.
+  """
   shard = shard_indices(num_items, process_index, process_count)
-  if num_items == 0:
-    return
-  num_batches = math.ceil(math.ceil(num_items / process_count) / batch_size)
+  num_batches, size = host_batch_plan(num_items, batch_size, process_count,
+                                      multiple_of)
   pad_item = int(shard[-1]) if len(shard) else 0
   for b in range(num_batches):
-    real = shard[b * batch_size:(b + 1) * batch_size]
-    indices = np.full(batch_size, pad_item, np.int64)
+    real = shard[b * size:(b + 1) * size]
+    indices = np.full(size, pad_item, np.int64)
     indices[:len(real)] = real
-    yield indices, np.arange(batch_size) < len(real)
+    yield indices, np.arange(size) < len(real)
 
 
 def _eval_item(source: Source, index: int, fields: Sequence[str],

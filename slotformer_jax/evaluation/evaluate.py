@@ -44,7 +44,6 @@ from jax.sharding import Mesh
 import jax.numpy as jnp
 import ml_collections
 import numpy as np
-import tqdm
 
 from slotformer_jax import inference
 from slotformer_jax.config.checks import FRAME_METRICS
@@ -61,6 +60,7 @@ from slotformer_jax.files import write_json_atomic
 from slotformer_jax.frames import frames_to_model
 from slotformer_jax.frames import model_to_unit
 from slotformer_jax.runtime import precision
+from slotformer_jax.runtime import progress
 from slotformer_jax.runtime import sharding
 
 logger = logging.getLogger(__name__)
@@ -356,10 +356,10 @@ def evaluate_slot_model(eval_config: ml_collections.ConfigDict,
   psnr_sum, fg_ari_sum, fg_ari_count, num_valid_frames = 0.0, 0.0, 0, 0
   num_videos = 0
   has_psnr = False
-  for batch in tqdm.tqdm(
+  for batch in progress.bar(
       pipeline.eval_batches(source, num_frames=num_frames, **batch_args),
-      desc=f'evaluate {slot_model.label}', leave=False,
-      disable=jax.process_index() != 0):
+      desc=f'evaluate {slot_model.label}', unit='batch',
+      total=_num_batches(batch_args)):
     mask = sharding.gather_to_host(
         sharding.to_global_batch({'mask': batch['mask']}, mesh))['mask']
     totals, carry = {}, None
@@ -411,6 +411,13 @@ def evaluate_slot_model(eval_config: ml_collections.ConfigDict,
         fg_miou_per_frame=(float(np.mean(miou_frames)) if miou_frames
                            else None))
   return results
+
+
+def _num_batches(batch_args: dict[str, Any]) -> int:
+  """How many batches `pipeline.eval_batches(**batch_args)` yields."""
+  return pipeline.host_batch_plan(
+      batch_args['max_videos'], batch_args['batch_size'],
+      batch_args['process_count'], batch_args['multiple_of'])[0]
 
 
 def _padded_time_slice(x: np.ndarray, start: int, length: int) -> np.ndarray:
@@ -547,7 +554,8 @@ def evaluate(eval_config: ml_collections.ConfigDict,
   shared = dict(batch_size=local_batch_size,
                 fields=('slots',) + fields,
                 process_index=jax.process_index(),
-                process_count=jax.process_count(), max_videos=len(source))
+                process_count=jax.process_count(), max_videos=len(source),
+                multiple_of=len(mesh.local_devices))
   needed = (burn_in + rollout - 1) * stride + 1
   _check_length(source, needed, burn_in, rollout, stride)
 
@@ -566,9 +574,14 @@ def evaluate(eval_config: ml_collections.ConfigDict,
       {name: model.module for name, model in dynamics.items()}, slot_model,
       burn_in=burn_in, num_true=num_true, compute_dtype=compute_dtype)
   averager = _StepAverager()
-  for batch in tqdm.tqdm(
+  progress.announce_decoding(
+      'evaluate', slot_model,
+      len(source) * rollout * (len(dynamics) + 2),
+      f'--config.evaluation.num_videos (now {eval_config.num_videos}) or '
+      '--config.evaluation.rollout_steps')
+  for batch in progress.bar(
       pipeline.eval_batches(source, num_frames=needed, **shared),
-      desc='evaluate rollouts', disable=jax.process_index() != 0):
+      desc='evaluate rollouts', unit='batch', total=_num_batches(shared)):
     mask = batch.pop('mask')
     batch.pop('index')
     for field in batch:
@@ -658,8 +671,8 @@ def clevrer_clips(videos: Any, num_videos: int, burn_in: int, rollout: int,
   """(video, start) of the official CLEVRER evaluation clips of the first
   `num_videos` videos (items with `in_view` [T, O] and `has_annotations`)."""
   clips = []
-  for video in tqdm.trange(num_videos, desc='find evaluation clips',
-                           leave=False, disable=jax.process_index() != 0):
+  for video in progress.bar(range(num_videos), desc='find evaluation clips',
+                            unit='video'):
     item = videos[video]
     if not bool(np.asarray(item.get('has_annotations', True))):
       raise ValueError(

@@ -63,6 +63,7 @@ from slotformer_jax import frames as frames_lib
 from slotformer_jax.errors import UserError
 from slotformer_jax.files import write_atomic
 from slotformer_jax.files import write_json_atomic
+from slotformer_jax.runtime import progress
 
 logger = logging.getLogger(__name__)
 
@@ -432,8 +433,19 @@ def explore(explore_config: ml_collections.ConfigDict,
       {name: model.module for name, model in dynamics.items()}, slot_model,
       burn_in=burn_in, rollout=rollout, num_true=num_true,
       background_threshold=eval_config.background_threshold)
-  out = jax.device_get(explorer(dynamics_params, jax.device_get(slot_params),
-                                slots, videos, segmentation))
+  num_rows = 1 + 2 * slots.shape[2] + len(dynamics) - 1
+  progress.announce_decoding(
+      'explore', slot_model, count * num_rows * (burn_in + rollout),
+      f'--config.explore.num_videos (now {explore_config.num_videos}) or '
+      '--config.evaluation.rollout_steps')
+  slot_params = jax.device_get(slot_params)
+  # One video at a time: the bar's rate tells how long the rest takes.
+  per_video = [jax.device_get(explorer(
+      dynamics_params, slot_params, slots[v:v + 1], videos[v:v + 1],
+      None if segmentation is None else segmentation[v:v + 1]))
+               for v in progress.bar(range(count), desc='explore',
+                                     unit='video')]
+  out = jax.tree.map(lambda *parts: np.concatenate(parts), *per_video)
   computed = time.perf_counter() - start
   curves, note = run_curves(metrics_path, identity,
                             visualize.method_labels(slot_model))

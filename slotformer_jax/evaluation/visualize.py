@@ -44,16 +44,17 @@ from slotformer_jax.frames import labelled_rows
 from slotformer_jax.frames import mask_overlay
 from slotformer_jax.frames import to_uint8
 from slotformer_jax.modules.slotformer import SlotFormer
+from slotformer_jax.runtime import progress
 
 logger = logging.getLogger(__name__)
 
 _BORDER = 2
-_ROLLOUT_COLOUR = (220, 40, 40)
-_BURN_IN_COLOUR = (60, 160, 60)
+ROLLOUT_COLOUR = (220, 40, 40)
+OBSERVED_COLOUR = (60, 160, 60)
 
 
 
-def _tile(image: np.ndarray, colour: tuple[int, int, int], scale: int
+def framed_tile(image: np.ndarray, colour: tuple[int, int, int], scale: int
           ) -> np.ndarray:
   """[H, W, 3] uint8 -> upscaled (nearest) with a coloured border."""
   image = np.repeat(np.repeat(image, scale, axis=0), scale, axis=1)
@@ -67,8 +68,8 @@ def _tile(image: np.ndarray, colour: tuple[int, int, int], scale: int
 def compose_frame(columns: list[np.ndarray], labels: list[str], *,
                   is_rollout: bool, step_text: str, scale: int) -> np.ndarray:
   """One GIF frame: labelled tiles in a row. columns: [H, W, 3] uint8."""
-  colour = _ROLLOUT_COLOUR if is_rollout else _BURN_IN_COLOUR
-  tiles = [_tile(c, colour, scale) for c in columns]
+  colour = ROLLOUT_COLOUR if is_rollout else OBSERVED_COLOUR
+  tiles = [framed_tile(c, colour, scale) for c in columns]
   tile_h, tile_w = tiles[0].shape[:2]
   label_h = 14
   canvas = Image.new('RGB', (tile_w * len(tiles), tile_h + 2 * label_h),
@@ -235,30 +236,39 @@ def render(render_config: ml_collections.ConfigDict,
     raise ValueError(
         f'rendering needs {frames_needed} frames per video, the videos have '
         f'{len(items[0]["slots"])}; lower evaluation.rollout_steps')
-  out = jax.device_get(make_renderer(
+  renderer = make_renderer(
       {name: model.module for name, model in dynamics.items()}, slot_model,
-      burn_in=burn_in, rollout=rollout)(
-          dynamics_params, slot_params, slots, videos))
-  attention = jax.device_get(make_attention_renderer(
-      dynamics[SLOTFORMER].module, slot_model)(
-          dynamics_params[SLOTFORMER], slot_params, slots[:, :burn_in]))
+      burn_in=burn_in, rollout=rollout)
+  # The attention figure needs per-slot reconstructions; a decoder without
+  # them (STEVE) would generate frames only to be thrown away.
+  has_slot_views = jax.eval_shape(
+      lambda: slot_model.decode(slot_params, slots[:1, :1])).rgb is not None
+  attention_renderer = (make_attention_renderer(
+      dynamics[SLOTFORMER].module, slot_model) if has_slot_views else None)
+  methods = [*dynamics_names, 'copy_last']
+  progress.announce_decoding(
+      'render', slot_model, count * (burn_in + rollout) * len(methods),
+      f'--config.render.num_videos (now {render_config.num_videos}) or '
+      '--config.evaluation.rollout_steps')
 
   directory = output_dir
   os.makedirs(directory, exist_ok=True)
   written = []
-  methods = [*dynamics_names, 'copy_last']
   label = slot_model.label
-  for v in range(count):
+  for v in progress.bar(range(count), desc='render', unit='video'):
+    # One video at a time: the bar's rate tells how long the rest takes.
+    out = jax.tree.map(lambda x: x[0], jax.device_get(renderer(
+        dynamics_params, slot_params, slots[v:v + 1], videos[v:v + 1])))
     truth = videos[v].astype(np.float32) / 255.0
     rows = {'truth': truth,
-            f'{label} masks': mask_overlay(truth, out['observed_masks'][v])}
+            f'{label} masks': mask_overlay(truth, out['observed_masks'])}
     for method in methods:
-      rows[labels[method]] = out[method][v]
-    rows['SlotFormer masks'] = mask_overlay(out[SLOTFORMER][v],
-                                            out['slotformer_masks'][v])
+      rows[labels[method]] = out[method]
+    rows['SlotFormer masks'] = mask_overlay(out[SLOTFORMER],
+                                            out['slotformer_masks'])
     if 'slot_views' in out:
-      for n in range(out['slot_views'].shape[2]):
-        rows[f'slot {n}'] = out['slot_views'][v, :, n]
+      for n in range(out['slot_views'].shape[1]):
+        rows[f'slot {n}'] = out['slot_views'][:, n]
     rows = {name: to_uint8(np.asarray(frames))
             for name, frames in rows.items()}
     gif_frames = []
@@ -277,11 +287,15 @@ def render(render_config: ml_collections.ConfigDict,
     png_path = os.path.join(directory, f'rollout_{v:03d}.png')
     write_strip(png_path, rows, burn_in, render_config)
     written += [gif_path, png_path]
-    if attention is not None:
+    if attention_renderer is not None:
+      attention = jax.tree.map(lambda x: x[0], jax.device_get(
+          attention_renderer(dynamics_params[SLOTFORMER], slot_params,
+                             slots[v:v + 1, :burn_in])))
       attention_path = os.path.join(directory, f'attention_{v:03d}.png')
       _write_attention_figure(attention_path, videos[v, :burn_in + 1],
-                              jax.tree.map(lambda x: x[v], attention),
-                              render_config.scale)
+                              attention,
+                              render_config.scale,
+                              f'{eval_config.split} video {v}')
       written.append(attention_path)
   curves = write_per_step_figure(metrics_path, directory, labels,
                                  slot_model.reference_method, identity)
@@ -305,16 +319,65 @@ def write_strip(path: str, rows: dict[str, np.ndarray], burn_in: int,
   num_frames = next(iter(rows.values())).shape[0]
   columns = list(range(0, num_frames, max(1, render_config.strip_every)))
   strips = {name: np.concatenate([
-      _tile(row[t], _ROLLOUT_COLOUR if t >= burn_in else _BURN_IN_COLOUR,
-            render_config.scale)
+      framed_tile(row[t],
+                  ROLLOUT_COLOUR if t >= burn_in else OBSERVED_COLOUR,
+                  render_config.scale)
       for t in columns], axis=1) for name, row in rows.items()}
-  _write_png(path, labelled_rows(strips, _LABEL_WIDTH))
+  write_png(path, labelled_rows(strips, _LABEL_WIDTH))
+
+
+def _column_header(labels: list[str], tile_width: int, label_width: int,
+                   height: int = 14) -> np.ndarray:
+  """A white band with `labels[c]` over column c of tiles `tile_width`
+  wide, after a `label_width` margin."""
+  canvas = Image.new('RGB', (label_width + tile_width * len(labels), height),
+                     (255, 255, 255))
+  draw = ImageDraw.Draw(canvas)
+  for c, label in enumerate(labels):
+    draw.text((label_width + c * tile_width + 3, 1), label, fill=(0, 0, 0))
+  return np.asarray(canvas)
+
+
+def titled(image: np.ndarray, lines: list[str]) -> np.ndarray:
+  """`image` [H, W, 3] uint8 under a white band with one text line each."""
+  lines = [printable(line) for line in lines]
+  band = 14 * len(lines) + 4
+  measure = ImageDraw.Draw(Image.new('RGB', (1, 1)))
+  width = max([image.shape[1]] + [int(measure.textlength(line)) + 6
+                                  for line in lines])
+  canvas = Image.new('RGB', (width, image.shape[0] + band), (255, 255, 255))
+  draw = ImageDraw.Draw(canvas)
+  for i, line in enumerate(lines):
+    draw.text((3, 2 + 14 * i), line, fill=(0, 0, 0))
+  canvas.paste(Image.fromarray(image), (0, band))
+  return np.asarray(canvas)
+
+
+def printable(text: str, limit: int = 160) -> str:
+  """`text` as drawn on a picture: non-printable and non-ASCII characters
+  escaped (names come from files made elsewhere), cut to `limit`."""
+  text = str(text).encode('ascii', 'backslashreplace').decode('ascii')
+  text = ''.join(c if c.isprintable() else '?' for c in text)
+  return text if len(text) <= limit else text[:limit - 3] + '...'
+
+
+def labelled_tile_grid(rows: dict[str, list[np.ndarray]],
+                       column_labels: list[str]) -> np.ndarray:
+  """{row label: [tile uint8 [h, w, 3], ...]} (equal tiles, one per column)
+  -> the grid with each row's label at its left and `column_labels` above
+  the columns."""
+  strips = {name: np.concatenate(tiles, axis=1)
+            for name, tiles in rows.items()}
+  tile_width = next(iter(rows.values()))[0].shape[1]
+  grid = labelled_rows(strips, _LABEL_WIDTH)
+  header = _column_header(column_labels, tile_width, _LABEL_WIDTH)
+  return np.concatenate([header, grid], axis=0)
 
 
 def _write_attention_figure(path: str, frames: np.ndarray,
                             attention: dict[str, np.ndarray],
-                            scale: int) -> None:
-  """The appendix figure for one video.
+                            scale: int, title: str) -> None:
+  """The appendix figure for one video, labelled.
 
   Top row: the T input frames and the predicted frame T + 1. Row i: the
   spatial attention maps o^i_t of predicted slot i over the input frames,
@@ -324,21 +387,28 @@ def _write_attention_figure(path: str, frames: np.ndarray,
   maps = attention['maps']  # [N, T, H, W, 3]
   num_slots, num_frames = maps.shape[:2]
   white = (255, 255, 255)
-  top = [_tile(frames[t], _BURN_IN_COLOUR, scale) for t in range(num_frames)]
-  top.append(_tile(to_uint8(attention['predicted_recon']), _ROLLOUT_COLOUR,
-                   scale))
-  rows = [np.concatenate(top, axis=1)]
+  rows = {'input frames': [
+      *[framed_tile(frames[t], OBSERVED_COLOUR, scale)
+        for t in range(num_frames)],
+      framed_tile(to_uint8(attention['predicted_recon']), ROLLOUT_COLOUR,
+                  scale)]}
   for i in range(num_slots):
     row_maps = maps[i] / max(float(maps[i].max()), 1e-8)
-    tiles = [_tile(to_uint8(row_maps[t]), white, scale)
-             for t in range(num_frames)]
-    tiles.append(_tile(to_uint8(attention['predicted_views'][i]),
-                       _ROLLOUT_COLOUR, scale))
-    rows.append(np.concatenate(tiles, axis=1))
-  _write_png(path, np.concatenate(rows, axis=0))
+    rows[f'slot {i} attends'] = [
+        *[framed_tile(to_uint8(row_maps[t]), white, scale)
+          for t in range(num_frames)],
+        framed_tile(to_uint8(attention['predicted_views'][i]), ROLLOUT_COLOUR,
+              scale)]
+  columns = [f't={t + 1}' for t in range(num_frames)]
+  columns.append(f't={num_frames + 1} predicted')
+  grid = labelled_tile_grid(rows, columns)
+  write_png(path, titled(grid, [
+      title, "SlotFormer's last-layer attention from each predicted slot of "
+      f'frame {num_frames + 1} to the input frames\' slots (row-normalised); '
+      "last column: the slot's predicted reconstruction"]))
 
 
-def _write_png(path: str, image: np.ndarray) -> None:
+def write_png(path: str, image: np.ndarray) -> None:
   """uint8 [H, W, 3] as a PNG, atomically (files.py)."""
   buffer = io.BytesIO()
   Image.fromarray(image).save(buffer, format='PNG')

@@ -264,6 +264,14 @@ class SlotModel(abc.ABC):
     return tuple(modes)
 
   @property
+  def decode_steps(self) -> int:
+    """Sequential decoder passes per decoded frame: 1 for a decoder that
+    maps slots to pixels at once, the number of tokens for one that
+    generates a frame token by token (STEVE). Stages that decode many frames
+    say so before they start when it is above 1."""
+    return 1
+
+  @property
   def reference_method(self) -> str:
     """The evaluation row of its own slots of the real future, decoded."""
     return f'{self.name}_reconstruction'

@@ -325,6 +325,11 @@ class Steve(SlotModel):
     return self.config.steve.num_slots, self.config.steve.slot_size
 
   @property
+  def decode_steps(self) -> int:
+    height, width = self.model.token_grid
+    return height * width
+
+  @property
   def parts(self) -> tuple[Part, ...]:
     config, dvae, steve = self.config, self.config.dvae, self.config.steve
     frame = np.zeros((1, *self.resolution, 3), np.float32)

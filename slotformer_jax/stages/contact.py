@@ -20,18 +20,21 @@ from flax import serialization
 import jax
 import jax.numpy as jnp
 import numpy as np
-from PIL import Image
-from PIL import ImageDraw
 
 from slotformer_jax import inference
 from slotformer_jax.config.sections import SLOTFORMER
+from slotformer_jax.data import video_names
 from slotformer_jax.data.slots import SlotSource
 from slotformer_jax.errors import ConfigError
 from slotformer_jax.errors import MissingInputError
+from slotformer_jax.errors import UserError
+from slotformer_jax.evaluation import visualize
 from slotformer_jax.files import read_json
 from slotformer_jax.files import write_atomic
 from slotformer_jax.files import write_json_atomic
+from slotformer_jax.frames import to_uint8
 from slotformer_jax.run import Run
+from slotformer_jax.runtime import progress
 from slotformer_jax.tasks import contact
 from slotformer_jax.tasks import readout as readout_lib
 
@@ -175,7 +178,7 @@ def evaluate_readout(run: Run) -> dict[str, Any]:
   test_split = contact.readout_splits(readout)[2]
   test, labels = _features_by_condition(run, test_split, conditions)
   results: dict[str, Any] = {}
-  first_seed_probs = {}
+  first_seed_probs, first_seed_threshold = {}, {}
   for condition in conditions:
     accuracies, val_accuracies = [], []
     for seed in readout.seeds:
@@ -183,6 +186,7 @@ def evaluate_readout(run: Run) -> dict[str, Any]:
       probs = readout_lib.predict(trained.module, trained.params,
                                   test[condition])
       first_seed_probs.setdefault(condition, probs)
+      first_seed_threshold.setdefault(condition, trained.threshold)
       accuracies.append(readout_lib.accuracy_at(probs, labels,
                                                 trained.threshold))
       val_accuracies.append(trained.selection['val_accuracy'])
@@ -206,50 +210,104 @@ def evaluate_readout(run: Run) -> dict[str, Any]:
               len(readout.seeds), table)
   if contact.ROLLOUT in conditions and readout.num_pictures:
     write_pictures(run, test[contact.ROLLOUT],
-                   first_seed_probs[contact.ROLLOUT], labels)
+                   first_seed_probs[contact.ROLLOUT],
+                   first_seed_threshold[contact.ROLLOUT], labels)
   return results
 
 
+# A contact picture shows at most about this many frames per row.
+MAX_PICTURE_COLUMNS = 12
+
+
+def picture_frames(num_frames: int, observed: int,
+                   max_columns: int = MAX_PICTURE_COLUMNS) -> list[int]:
+  """The frames a contact picture draws (and so the only ones it decodes):
+  every k-th observed frame from 0 and every k-th rolled-out frame from
+  `observed`, k chosen so that about `max_columns` are drawn."""
+  stride = max(1, -(-num_frames // max_columns))
+  return [*range(0, min(observed, num_frames), stride),
+          *range(observed, num_frames, stride)]
+
+
+def _video_name(source: Any, split: str, index: int) -> str:
+  """The converted video's name ('video_01234'), else 'test video i'."""
+  names = None
+  dataset_dir = getattr(source, 'dataset_dir', None)
+  if dataset_dir is not None:
+    try:
+      names = video_names.read_recorded_names(dataset_dir, split)
+    except UserError:
+      names = None
+  if names and index < len(names):
+    return f'{names[index]} ({split} video {index})'
+  return f'{split} video {index}'
+
+
+def picture_title(name: str, probability: float, threshold: float,
+                  label: float, onset: int, observed: int, seed: int
+                  ) -> list[str]:
+  """The lines above a contact picture: which video, what the readout (on
+  observed + rollout slots) said at its threshold, the truth, the legend."""
+  predicts = probability > threshold  # as readout.accuracy_at decides
+  return [
+      name,
+      f'readout on observed + rollout (seed {seed}): p(contact) = '
+      f'{probability:.2f}, threshold {threshold:.2f} -> '
+      f'{"contact" if predicts else "no contact"}; truth: '
+      f'{"contact" if label else "no contact"}'
+      + (f' (onset frame {onset})' if onset >= 0 else '')
+      + ('; right' if predicts == bool(label) else '; wrong'),
+      f'green border: observed frames 0-{observed - 1}; red: SlotFormer '
+      'rollout',
+  ]
+
+
 def write_pictures(run: Run, rollout_slots: np.ndarray,
-                   probabilities: np.ndarray, labels: np.ndarray) -> None:
-  """readout/test_<i>.png: real frames over the slot model's decoding of
-  [observed, SlotFormer rollout] slots (green border: observed, red: rolled
-  out), with the readout's contact probability (first seed) and the truth.
-  STEVE's frames are generated token by token."""
+                   probabilities: np.ndarray, threshold: float,
+                   labels: np.ndarray) -> None:
+  """readout/test_<i>.png for the first `readout.num_pictures` test videos:
+  the real frames over the slot model's decoding of [observed, SlotFormer
+  rollout] slots (green border: observed, red: rolled out), frame numbers
+  above, and a title (`picture_title`) with the video's name, the readout's
+  contact probability and `threshold` (first seed), its decision and the
+  truth.
+
+  Only the drawn frames are decoded (STEVE generates each token by token:
+  `progress.announce_decoding` says what that costs before it starts)."""
   readout = run.config.readout
-  if not run.slot_model.decodes_pixels:
+  slot_model = run.slot_model
+  if not slot_model.decodes_pixels:
     logger.info('contact pictures skipped: %s decodes no pixels',
-                run.slot_model.label)
+                slot_model.label)
     return
-  slot_model, params = run.slot_model, run.stage1.params
-  decode = jax.jit(lambda slots: slot_model.decode(params, slots).recon)
-  videos = run.videos(contact.readout_splits(readout)[2])
+  count = min(readout.num_pictures, len(labels))
   observed = readout.observed_frames
-  scale, every = 3, 2
-  for i in range(min(readout.num_pictures, len(labels))):
+  drawn = picture_frames(rollout_slots.shape[1], observed)
+  progress.announce_decoding(
+      'contact pictures', slot_model, count * len(drawn),
+      '--config.readout.num_pictures (now %d)' % readout.num_pictures)
+  params = run.stage1.params
+  decode = jax.jit(lambda slots: slot_model.decode(params, slots).recon)
+  split = contact.readout_splits(readout)[2]
+  videos = run.videos(split)
+  scale = max(1, round(96 / videos[0]['video'].shape[1]))
+  for i in progress.bar(range(count), desc='contact pictures',
+                        unit='picture'):
     video = videos[i]
-    truth = video['video'][:len(rollout_slots[i])]
-    predicted = np.asarray(decode(jnp.asarray(rollout_slots[i])))
-    predicted = (np.clip(predicted, 0, 1) * 255 + 0.5).astype(np.uint8)
-    rows = []
-    for frames in (truth, predicted):
-      tiles = []
-      for t in range(0, len(frames), every):
-        tile = np.repeat(np.repeat(frames[t], scale, 0), scale, 1)
-        colour = (40, 160, 40) if t < observed else (200, 40, 40)
-        framed = np.empty((tile.shape[0] + 4, tile.shape[1] + 4, 3),
-                          np.uint8)
-        framed[:] = colour
-        framed[2:-2, 2:-2] = tile
-        tiles.append(framed)
-      rows.append(np.concatenate(tiles, axis=1))
-    grid = np.concatenate(rows, axis=0)
-    canvas = Image.new('RGB', (grid.shape[1], grid.shape[0] + 16),
-                       (255, 255, 255))
-    canvas.paste(Image.fromarray(grid), (0, 16))
-    onset = int(video.get('contact_frame', -1))
-    ImageDraw.Draw(canvas).text(
-        (3, 2), f'test video {i}: p(contact | observed + rollout) = '
-        f'{probabilities[i]:.2f}; truth: {"contact" if labels[i] else "none"}'
-        + (f' (onset frame {onset})' if onset >= 0 else ''), fill=(0, 0, 0))
-    canvas.save(os.path.join(run.paths.readouts, f'test_{i}.png'))
+    truth = video['video'][drawn]
+    predicted = to_uint8(decode(jnp.asarray(rollout_slots[i][drawn])))
+    colour = lambda t: (visualize.OBSERVED_COLOUR if t < observed
+                        else visualize.ROLLOUT_COLOUR)
+    grid = visualize.labelled_tile_grid(
+        {'real frames': [visualize.framed_tile(f, colour(t), scale)
+                         for f, t in zip(truth, drawn)],
+         f'{slot_model.label} decoding': [
+             visualize.framed_tile(f, colour(t), scale)
+             for f, t in zip(predicted, drawn)]},
+        [f't={t}' for t in drawn])
+    title = picture_title(
+        _video_name(videos, split, i), float(probabilities[i]), threshold,
+        float(labels[i]), int(video.get('contact_frame', -1)), observed,
+        readout.seeds[0])
+    visualize.write_png(os.path.join(run.paths.readouts, f'test_{i}.png'),
+                        visualize.titled(grid, title))

@@ -312,9 +312,9 @@ def test_synthetic_source_through_the_pipeline(data_root):
   assert batch['boxes'].shape == (3, 4, 6, 4) and batch['visible'].dtype == bool
   val = sources.get_video_source(_data_config(data_root), 'val')
   batches = list(pipeline.eval_batches(val, batch_size=3, num_frames=5))
-  assert len(batches) == 1
-  np.testing.assert_array_equal(batches[0]['mask'], [True, True, False])
-  assert batches[0]['video'].shape == (3, 5, 32, 32, 3)
+  assert len(batches) == 1  # 2 videos: one batch of 2, not of 3
+  np.testing.assert_array_equal(batches[0]['mask'], [True, True])
+  assert batches[0]['video'].shape == (2, 5, 32, 32, 3)
 
 
 @pytest.mark.parametrize('name', sources.REAL_DATASETS)
@@ -410,7 +410,31 @@ def test_host_batches_give_every_host_the_same_number_of_batches():
   # Hosts 3 and 4 have no item at all: padded with item 0, none valid.
   for p in (3, 4):
     (indices, valid), = plans[p]
-    assert indices.tolist() == [0, 0] and not valid.any()
+    assert indices.tolist() == [0] and not valid.any()
+
+
+@pytest.mark.parametrize('items,batch,hosts,devices,plan', [
+    (2, 16, 1, 1, (1, 2)),     # a 2-video split: one batch of 2
+    (2, 16, 1, 4, (1, 4)),     # ... rounded up to the host's devices
+    (16, 16, 1, 1, (1, 16)),
+    (17, 16, 1, 1, (2, 9)),    # 18 slots for 17 videos, not 32
+    (17, 16, 1, 4, (2, 12)),
+    (10, 2, 4, 1, (2, 2)),     # 3 per host
+    (0, 8, 1, 1, (0, 8)),
+])
+def test_host_batch_plan_pads_less_than_a_device_row_per_batch(
+    items, batch, hosts, devices, plan):
+  assert pipeline.host_batch_plan(items, batch, hosts, devices) == plan
+  num_batches, size = plan
+  per_host = -(-items // hosts)
+  assert num_batches * size >= per_host
+  assert num_batches * size - per_host < max(1, num_batches * devices)
+  assert size % devices == 0 and size <= batch
+
+
+def test_host_batch_plan_refuses_a_batch_that_does_not_split():
+  with pytest.raises(ValueError, match='not a multiple of 4'):
+    pipeline.host_batch_plan(8, 6, 1, 4)
 
 
 def test_encoding_videos_on_a_host_without_any(monkeypatch):
