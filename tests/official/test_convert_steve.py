@@ -411,7 +411,8 @@ def test_frozen_copies_must_match_the_workdir(states, tmp_path, monkeypatch):
 
 @pytest.mark.slow
 def test_converted_steve_workdir_runs_extract_evaluate_render(tmp_path,
-                                                              monkeypatch):
+                                                              monkeypatch,
+                                                              caplog):
   """Official-format dVAE, STEVE and STEVESlotFormer weights -> the workdir
   -> slot extraction, evaluation (generated frames) and pictures, with no
   training stage run (the embedded data, 16x16, the official architecture
@@ -442,3 +443,9 @@ def test_converted_steve_workdir_runs_extract_evaluate_render(tmp_path,
     assert np.isfinite(results['rollout'][method]['psnr']['mean'])
   pictures = run_stage(config, workdir, mesh, 'render')
   assert any(p.endswith('rollout_000.gif') for p in pictures)
+  # No attention figure (no per-slot reconstructions), so no frame was
+  # generated for one; the generation was announced before each stage.
+  assert not any('attention_' in p for p in pictures)
+  for stage in ('evaluate', 'render'):
+    assert (f'{stage}: STEVE generates each decoded frame token by token'
+            in caplog.text)
