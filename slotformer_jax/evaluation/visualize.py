@@ -404,7 +404,7 @@ def _write_attention_figure(path: str, frames: np.ndarray,
   grid = labelled_tile_grid(rows, columns)
   write_png(path, titled(grid, [
       title, "SlotFormer's last-layer attention from each predicted slot of "
-      f'frame {num_frames + 1} to the input frames\' slots (row-normalised); '
+      f"frame {num_frames + 1} to the input frames' slots (row-normalised)",
       "last column: the slot's predicted reconstruction"]))
 
 

@@ -148,8 +148,8 @@ def test_attention_figure_is_labelled(tmp_path):
   tile = 8 * 2 + 4
   grid_width = visualize._LABEL_WIDTH + (num_frames + 1) * tile
   assert figure.shape[1] >= grid_width
-  assert figure.shape[0] == 2 * 14 + 4 + 14 + (num_slots + 1) * tile
-  body = figure[2 * 14 + 4 + 14:]
+  assert figure.shape[0] == 3 * 14 + 4 + 14 + (num_slots + 1) * tile
+  body = figure[3 * 14 + 4 + 14:]
   for row in range(num_slots + 1):  # 'input frames', 'slot i attends'
     assert _ink(body[row * tile:(row + 1) * tile, :visualize._LABEL_WIDTH])
 
