@@ -73,8 +73,9 @@ TPU_JSON = ROOT / 'docs' / 'experiments' / 'tpu_compile.json'
 PLATFORMS = {'v5e-8': dict(topology='v5e:2x4', chips_per_host=8),
              'v4-8': dict(topology='v4:2x2x1', chips_per_host=4)}
 # NVIDIA H100 SXM5 spec sheet: 1,979 TFLOP/s bf16 Tensor Core "with
-# sparsity", half without; 3,350 GB/s HBM3. 8 per host (HGX / a3-highgpu-8g
-# / p5.48xlarge).
+# sparsity", half without; 3,350 GB/s HBM3 (the sources are cited in
+# docs/performance.md, "Feeding the chips"). 8 per host (HGX boards,
+# a3-highgpu-8g, p5.48xlarge).
 GPU = dict(name='8x H100 SXM (estimate)', peak_flops=989.4e12,
            hbm_bandwidth=3.35e12, per_host=8)
 # The issue's goal: at most this many host cores per chip at 2x the floor.
@@ -82,7 +83,6 @@ CORES_PER_CHIP_GOAL = 4
 # Frames stored per video by the conversions (docs/datasets.md): the reader
 # reads all of them for every clip.
 VIDEO_FRAMES = {'obj3d': 50, 'clevrer': 128, 'phyre': 15, 'physion': 150}
-# Aloe's slots file: vqa.video_length + vqa.rollout_frames frames a video.
 # (config, step) pairs, in the order of docs/performance.md's table.
 STEPS = (
     ('obj3d', 'savi'), ('obj3d', 'slotformer'), ('obj3d', 'eval_rollout'),
@@ -678,6 +678,17 @@ def main(argv: list[str] | None = None) -> None:
   if absent:
     print('\nNo compiled row (no floor, no need computed): '
           + '; '.join(absent) + '.')
+  over = [f"{r['config']} {r['step']} "
+          f"({r['platforms']['v5e-8']['twice']['cores_per_chip']:.1f})"
+          for r in rows if r['platforms'].get('v5e-8')
+          and not r['evaluation']
+          and r['platforms']['v5e-8']['twice']['cores_per_chip'] is not None
+          and r['platforms']['v5e-8']['twice']['cores_per_chip']
+          > CORES_PER_CHIP_GOAL]
+  if rates is not None:
+    print(f'\nTraining steps over {CORES_PER_CHIP_GOAL} host cores per chip '
+          'at 2x the v5e-8 floor with today\'s reader: '
+          + ('; '.join(over) if over else 'none') + '.')
   if args.markdown:
     print()
     print_markdown(rows)
