@@ -24,10 +24,10 @@ import tempfile
 import time
 from pathlib import Path
 
-import ml_collections
 import numpy as np
 from PIL import Image
 
+from slotformer_jax.config import defaults
 from slotformer_jax.data import pipeline
 from slotformer_jax.data.convert import prepare
 from slotformer_jax.data import sources
@@ -36,21 +36,28 @@ RES = 64
 FRAMES = 50
 
 
-def write_obj3d_like(root: Path, num_videos: int, seed: int = 0) -> None:
-  """``<root>/train/<n>/test_<t>.png``: 50 frames of moving squares."""
+def write_obj3d_like(root: Path, num_videos: int, seed: int = 0, *,
+                     resolution: int = RES, frames: int = FRAMES) -> None:
+  """``<root>/train/<n>/test_<t>.png``: `frames` frames (default 50) of
+  moving squares at `resolution` x `resolution` (default 64; squares and
+  speeds scale with it)."""
   rng = np.random.default_rng(seed)
-  ys, xs = np.mgrid[:RES, :RES]
+  res = resolution
+  side = 12 * res // RES
+  speed = 2 * res // RES
+  ys, xs = np.mgrid[:res, :res]
   for video in range(num_videos):
     folder = root / 'train' / str(video)
     folder.mkdir(parents=True, exist_ok=True)
-    background = (60 + 40 * ys / RES + 20 * xs / RES)[..., None] * np.ones(3)
-    squares = [(rng.integers(0, RES - 12, 2), rng.integers(-2, 3, 2),
+    background = (60 + 40 * ys / res + 20 * xs / res)[..., None] * np.ones(3)
+    squares = [(rng.integers(0, res - side, 2),
+                rng.integers(-speed, speed + 1, 2),
                 rng.integers(40, 255, 3)) for _ in range(4)]
-    for t in range(FRAMES):
+    for t in range(frames):
       frame = background.copy()
       for position, velocity, color in squares:
-        y, x = np.clip(position + t * velocity, 0, RES - 12)
-        frame[y:y + 12, x:x + 12] = color
+        y, x = np.clip(position + t * velocity, 0, res - side)
+        frame[y:y + side, x:x + side] = color
       frame += rng.normal(0, 1.5, frame.shape)   # renderer noise
       Image.fromarray(np.clip(frame, 0, 255).astype(np.uint8)).save(
           folder / f'test_{t + 1}.png')
@@ -95,9 +102,10 @@ def main() -> None:
     prepare.main(['--dataset=obj3d', f'--source={work / "OBJ3D"}',
                   f'--data_dir={work / "data"}', '--splits=train',
                   '--no_progress', '--num_workers=2'])
-    source = sources.get_video_source(ml_collections.ConfigDict(
-        {'name': 'obj3d', 'data_dir': str(work / 'data'),
-         'resolution': (RES, RES)}), 'train')
+    data = defaults.base_config().data
+    data.name, data.data_dir = 'obj3d', str(work / 'data')
+    data.resolution = (RES, RES)
+    source = sources.get_video_source(data, 'train')
     shards = sorted(source.dataset_dir.glob('*.array_record-*'))
     size = sum(p.stat().st_size for p in shards)
     print(f'{len(source)} videos of {FRAMES}x{RES}x{RES}: {size / 2**20:.1f} '
