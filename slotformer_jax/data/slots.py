@@ -126,7 +126,10 @@ class SlotSource:
 
   def __getitem__(self, index: int) -> dict[str, np.ndarray]:
     start, length = self._index[index]
-    item = {'slots': np.array(self._slots[start:start + length])}
+    # A read-only view of the memory map, not a copy: a training clip
+    # copies only its own frames (pipeline._slice_item, then np.stack), not
+    # the whole video's (Physion: 25 of 150 frames).
+    item = {'slots': np.asarray(self._slots[start:start + length])}
     if self._video_source is not None and self._video_fields:
       video_item = self._video_source[index]
       for field in self._video_fields:
