@@ -344,6 +344,8 @@ def evaluate_slot_model(eval_config: ml_collections.ConfigDict,
   """
   evaluator = make_quality_evaluator(num_true, mesh, slot_model,
                                      with_segmentation)
+  # Batches split over this host's devices (`pipeline.host_batch_plan`).
+  batch_args = {'multiple_of': len(mesh.local_devices), **batch_args}
   chunk = eval_config.chunk_length
   first_frame = 1 if eval_config.skip_first_frame else 0
   if num_frames <= first_frame:
@@ -359,7 +361,7 @@ def evaluate_slot_model(eval_config: ml_collections.ConfigDict,
   for batch in progress.bar(
       pipeline.eval_batches(source, num_frames=num_frames, **batch_args),
       desc=f'evaluate {slot_model.label}', unit='batch',
-      total=_num_batches(batch_args)):
+      total=_num_batches(source, batch_args)):
     mask = sharding.gather_to_host(
         sharding.to_global_batch({'mask': batch['mask']}, mesh))['mask']
     totals, carry = {}, None
@@ -413,11 +415,16 @@ def evaluate_slot_model(eval_config: ml_collections.ConfigDict,
   return results
 
 
-def _num_batches(batch_args: dict[str, Any]) -> int:
-  """How many batches `pipeline.eval_batches(**batch_args)` yields."""
+def _num_batches(source: Any, batch_args: dict[str, Any]) -> int:
+  """How many batches `pipeline.eval_batches(source, **batch_args)` yields
+  (its defaults where `batch_args` leaves a field out)."""
+  max_videos = batch_args.get('max_videos')
+  num_videos = len(source) if max_videos is None else min(len(source),
+                                                          max_videos)
   return pipeline.host_batch_plan(
-      batch_args['max_videos'], batch_args['batch_size'],
-      batch_args['process_count'], batch_args['multiple_of'])[0]
+      num_videos, batch_args['batch_size'],
+      batch_args.get('process_count', 1),
+      batch_args.get('multiple_of', 1))[0]
 
 
 def _padded_time_slice(x: np.ndarray, start: int, length: int) -> np.ndarray:
@@ -581,7 +588,8 @@ def evaluate(eval_config: ml_collections.ConfigDict,
       '--config.evaluation.rollout_steps')
   for batch in progress.bar(
       pipeline.eval_batches(source, num_frames=needed, **shared),
-      desc='evaluate rollouts', unit='batch', total=_num_batches(shared)):
+      desc='evaluate rollouts', unit='batch',
+      total=_num_batches(source, shared)):
     mask = batch.pop('mask')
     batch.pop('index')
     for field in batch:
