@@ -122,26 +122,35 @@ def _summary(record: dict, skip: int) -> dict:
   starts = [s for s, _ in updates]
   intervals = [b - a for a, b in zip(starts, starts[1:])]
 
-  def ms(name, first=skip):
-    durations = [e - s for s, e in record[name][first:]]
-    return (1e3 * statistics.mean(durations) if durations else 0.0)
+  # Only what happened between the first and the last timed update (the
+  # first all-gather compiles its program).
+  window = (starts[0], starts[-1])
+
+  def durations(name):
+    return [e - s for s, e in record[name] if window[0] <= s < window[1]]
+
+  def ms_per_step(name):
+    return 1e3 * sum(durations(name)) / len(intervals)
 
   total = 1e3 * statistics.mean(intervals)
-  parts = {'next_batch_wait': ms('next'), 'to_global_batch': ms('to_global'),
-           'update_dispatch': ms('update'), 'stop_check_allgather':
-               1e3 * sum(e - s for s, e in record['allgather'])
-               / max(len(record['update']), 1)}
+  parts = {'next_batch_wait': ms_per_step('next'),
+           'to_global_batch': ms_per_step('to_global'),
+           'update_dispatch': ms_per_step('update'),
+           'stop_check_allgather': ms_per_step('allgather')}
+  gathers = durations('allgather')
   return {
       'steps_timed': len(intervals),
       'ms_per_step_median': 1e3 * statistics.median(intervals),
       'ms_per_step_mean': total,
       **{f'ms_{k}': v for k, v in parts.items()},
       'ms_rest_of_loop': total - sum(parts.values()),
-      'reader_ms_per_batch': ms('make'),
-      'allgather_calls': len(record['allgather']),
-      'allgather_ms_per_call': (
-          1e3 * statistics.mean(e - s for s, e in record['allgather'])
-          if record['allgather'] else None),
+      'reader_ms_per_batch': 1e3 * statistics.mean(
+          [e - s for s, e in record['make'][skip:]] or [0.0]),
+      'allgather_calls': len(gathers),
+      'allgather_ms_per_call_median': (
+          1e3 * statistics.median(gathers) if gathers else None),
+      'allgather_ms_per_call_mean': (
+          1e3 * statistics.mean(gathers) if gathers else None),
   }
 
 
@@ -224,8 +233,9 @@ def _print(result: dict) -> None:
           f"{result['ms_stop_check_allgather']:.2f} + rest "
           f"{result['ms_rest_of_loop']:.2f}; reader builds a batch in "
           f"{result['reader_ms_per_batch']:.2f} ms")
-  if result['allgather_ms_per_call'] is not None:
-    line += (f"; all-gather {result['allgather_ms_per_call']:.2f} ms x "
+  if result['allgather_ms_per_call_median'] is not None:
+    line += (f"; all-gather {result['allgather_ms_per_call_median']:.2f} ms "
+             f"median, {result['allgather_ms_per_call_mean']:.2f} mean x "
              f"{result['allgather_calls']}")
   print(line + f" (load {result['load_before']} -> {result['load_after']})",
         flush=True)
