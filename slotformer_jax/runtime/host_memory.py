@@ -8,19 +8,24 @@ serves every block above its mmap threshold with a fresh ``mmap`` and
 returns it with ``munmap``, and that threshold cannot be raised above
 32 MiB (``mallopt`` and ``GLIBC_TUNABLES`` refuse larger values). So every
 step mapped ~57 MiB of new pages and the kernels faulted each of them in
-again: 300 SAVi steps took 4.5 M minor page faults and 16-18 s of system
+again: 300 SAVi steps took 4.5 M minor page faults and 16-17 s of system
 time (docs/performance.md, "Host memory churn").
 
 What: before jax allocates, ``keep_freed_memory()`` calls glibc's
 ``mallopt`` twice:
 
-* ``M_MMAP_MAX = 0``: no block is served by its own ``mmap``; large blocks
-  come from the heaps like small ones (a heap that cannot hold one falls
-  back to the main heap, and glibc still maps memory itself when ``brk``
-  fails), so they can be reused;
+* ``M_MMAP_MAX = 0``: malloc no longer serves large blocks by their own
+  ``mmap``; they come from the heaps like small ones, so they can be
+  reused (glibc still maps memory where a heap cannot grow, see the limit
+  below);
 * ``M_TRIM_THRESHOLD = TRIM_THRESHOLD_BYTES`` (1 GiB): free space at the
   top of a heap is given back to the kernel only beyond that, so the next
   step's buffer lands on pages that are already mapped.
+
+Limit: a thread's own arena has heaps of at most 64 MiB, and glibc still
+maps (and unmaps) a larger block allocated from a thread other than the
+main one; blocks up to that size, and any size from the main thread, are
+reused.
 
 The process then keeps up to its high-water mark of heap memory mapped (the
 resident size stays near the peak instead of shrinking between steps); no
