@@ -12,20 +12,20 @@ again: 300 SAVi steps took 4.5 M minor page faults and 16-17 s of system
 time (docs/performance.md, "Host memory churn").
 
 What: before jax allocates, ``keep_freed_memory()`` calls glibc's
-``mallopt`` twice:
+``mallopt`` three times:
 
+* ``M_ARENA_MAX = 1``: every thread allocates from the main heap. A
+  thread's own arena has heaps of at most 64 MiB, and glibc maps (and
+  unmaps) any larger block from such a thread by itself, whatever the other
+  settings: the quickstart's SlotFormer step (L_I on) allocates 120 MiB and
+  452 MiB blocks from XLA's threads (``strace``). It must come before the
+  threads first allocate (before jax starts its backend): a thread may
+  reuse an arena that already exists;
 * ``M_MMAP_MAX = 0``: malloc no longer serves large blocks by their own
-  ``mmap``; they come from the heaps like small ones, so they can be
-  reused (glibc still maps memory where a heap cannot grow, see the limit
-  below);
+  ``mmap``; they come from the heap like small ones, so they can be reused;
 * ``M_TRIM_THRESHOLD = TRIM_THRESHOLD_BYTES`` (1 GiB): free space at the
-  top of a heap is given back to the kernel only beyond that, so the next
+  top of the heap is given back to the kernel only beyond that, so the next
   step's buffer lands on pages that are already mapped.
-
-Limit: a thread's own arena has heaps of at most 64 MiB, and glibc still
-maps (and unmaps) a larger block allocated from a thread other than the
-main one; blocks up to that size, and any size from the main thread, are
-reused.
 
 The process then keeps up to its high-water mark of heap memory mapped (the
 resident size stays near the peak instead of shrinking between steps); no
@@ -54,6 +54,7 @@ SWITCH_ENV = 'SLOTFORMER_MALLOC_TUNING'
 # glibc's malloc.h.
 M_TRIM_THRESHOLD = -1
 M_MMAP_MAX = -4
+M_ARENA_MAX = -8
 # Free space kept at the top of a heap; above every per-step buffer measured
 # here (SAVi's 57 MiB temp buffer) and within mallopt's int argument.
 TRIM_THRESHOLD_BYTES = 1 << 30
@@ -79,7 +80,8 @@ def _is_glibc() -> bool:
 
 def settings() -> tuple[tuple[int, int], ...]:
   """(mallopt parameter, value) pairs `keep_freed_memory` sets, in order."""
-  return ((M_MMAP_MAX, 0), (M_TRIM_THRESHOLD, TRIM_THRESHOLD_BYTES))
+  return ((M_ARENA_MAX, 1), (M_MMAP_MAX, 0),
+          (M_TRIM_THRESHOLD, TRIM_THRESHOLD_BYTES))
 
 
 def keep_freed_memory(environ=None) -> bool:
