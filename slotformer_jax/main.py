@@ -40,6 +40,7 @@ from slotformer_jax.errors import UserError
 from slotformer_jax.errors import one_line
 from slotformer_jax.files import append_line_atomic
 from slotformer_jax.run import Run
+from slotformer_jax.runtime import host_memory
 from slotformer_jax.runtime import processes
 from slotformer_jax.runtime import startup
 from slotformer_jax.runtime import xla_flags
@@ -163,6 +164,8 @@ def main(argv):
   del argv
   # Before anything starts jax's backends ($SLOTFORMER_XLA_CPU_FLAGS=0: off).
   added_flags = xla_flags.apply_fast_cpu_flags()
+  # Before jax allocates: freed step buffers stay mapped (runtime/host_memory).
+  host_memory.keep_freed_memory()
   explicit = processes.check_flags(_COORDINATOR_ADDRESS.value,
                                    _NUM_PROCESSES.value, _PROCESS_ID.value)
   for flag in (_PEER_TIMEOUT, _STARTUP_TIMEOUT):

@@ -14,6 +14,9 @@ os.environ.setdefault('JAX_PLATFORMS', 'cpu')
 # The faster XLA:CPU convolution path, as main.py uses it (imports no jax).
 from slotformer_jax.runtime import xla_flags  # noqa: E402
 xla_flags.apply_fast_cpu_flags()
+# Freed step buffers stay mapped, as in main.py (runtime/host_memory.py).
+from slotformer_jax.runtime import host_memory  # noqa: E402
+host_memory.keep_freed_memory()
 
 import tempfile  # noqa: E402
 

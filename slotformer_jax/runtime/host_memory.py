@@ -1,0 +1,112 @@
+"""Keeps freed host memory in the process instead of handing it back to the
+kernel after every training step (glibc's malloc only).
+
+Why: XLA:CPU allocates each execution's scratch ("temp") buffer afresh and
+frees it when the step ends (it cannot reuse donated buffers either). On the
+quickstart's SAVi step that buffer is 59,555,840 bytes. glibc's malloc
+serves every block above its mmap threshold with a fresh ``mmap`` and
+returns it with ``munmap``, and that threshold cannot be raised above
+32 MiB (``mallopt`` and ``GLIBC_TUNABLES`` refuse larger values). So every
+step mapped ~57 MiB of new pages and the kernels faulted each of them in
+again: 300 SAVi steps took 4.5 M minor page faults and 16-17 s of system
+time (docs/performance.md, "Host memory churn").
+
+What: before jax allocates, ``keep_freed_memory()`` calls glibc's
+``mallopt`` three times:
+
+* ``M_ARENA_MAX = 1``: every thread allocates from the main heap. A
+  thread's own arena has heaps of at most 64 MiB, and glibc maps (and
+  unmaps) any larger block from such a thread by itself, whatever the other
+  settings: the quickstart's SlotFormer step (L_I on) allocates 120 MiB and
+  452 MiB blocks from XLA's threads (``strace``). It must come before the
+  threads first allocate (before jax starts its backend): a thread may
+  reuse an arena that already exists;
+* ``M_MMAP_MAX = 0``: malloc no longer serves large blocks by their own
+  ``mmap``; they come from the heap like small ones, so they can be reused;
+* ``M_TRIM_THRESHOLD = TRIM_THRESHOLD_BYTES`` (2 GiB - 1): free space at the
+  top of the heap is given back to the kernel only beyond that, so the next
+  step's buffer lands on pages that are already mapped.
+
+The process then keeps up to its high-water mark of heap memory mapped (the
+resident size stays near the peak instead of shrinking between steps); no
+result changes, only where the bytes live. It does nothing when
+
+* ``$SLOTFORMER_MALLOC_TUNING`` is ``0`` / ``false`` / ``no`` / ``off``;
+* ``$GLIBC_TUNABLES`` already sets a ``glibc.malloc.`` tunable (the user's
+  choice wins, as for ``$XLA_FLAGS`` in ``xla_flags``);
+* the C library is not glibc (musl, macOS: their allocators differ) or
+  ``mallopt`` refuses a value.
+
+A preloaded allocator (``LD_PRELOAD`` of tcmalloc or jemalloc) replaces
+``malloc`` itself; then glibc's settings are moot but harmless.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import logging
+import os
+import platform
+
+logger = logging.getLogger(__name__)
+
+SWITCH_ENV = 'SLOTFORMER_MALLOC_TUNING'
+# glibc's malloc.h.
+M_TRIM_THRESHOLD = -1
+M_MMAP_MAX = -4
+M_ARENA_MAX = -8
+# Free space kept at the top of the heap: the largest value mallopt's int
+# takes (2 GiB - 1). Measured on 60 SlotFormer steps (L_I on, one arena,
+# no mmap): 1 GiB still trimmed (1.62 M faults, 5.6 s system), 2 GiB - 1:
+# 0.93 M, 3.7 s; 8 GiB (only through GLIBC_TUNABLES): 0.75 M, 3.4 s.
+TRIM_THRESHOLD_BYTES = (1 << 31) - 1
+
+_applied: tuple[tuple[int, int], ...] | None = None
+
+
+def _disabled(environ) -> bool:
+  return environ.get(SWITCH_ENV, '1').strip().lower() in (
+      '0', 'false', 'no', 'off')
+
+
+def _user_tunes_malloc(environ) -> bool:
+  return 'glibc.malloc.' in environ.get('GLIBC_TUNABLES', '')
+
+
+def _is_glibc() -> bool:
+  try:
+    return platform.libc_ver()[0] == 'glibc'
+  except (OSError, ValueError):
+    return False
+
+
+def settings() -> tuple[tuple[int, int], ...]:
+  """(mallopt parameter, value) pairs `keep_freed_memory` sets, in order."""
+  return ((M_ARENA_MAX, 1), (M_MMAP_MAX, 0),
+          (M_TRIM_THRESHOLD, TRIM_THRESHOLD_BYTES))
+
+
+def keep_freed_memory(environ=None) -> bool:
+  """Applies `settings()` with glibc's mallopt; True when all were accepted.
+
+  Call it once, early (main, benchmarks, the tests' conftest): settings
+  apply to every allocation from then on, in every thread. Idempotent.
+  """
+  global _applied
+  environ = os.environ if environ is None else environ
+  if _disabled(environ) or _user_tunes_malloc(environ) or not _is_glibc():
+    return False
+  if _applied is not None:
+    return True
+  try:
+    mallopt = ctypes.CDLL(None).mallopt
+  except (OSError, AttributeError):
+    return False
+  mallopt.argtypes = (ctypes.c_int, ctypes.c_int)
+  mallopt.restype = ctypes.c_int
+  for parameter, value in settings():
+    if mallopt(parameter, value) != 1:  # glibc returns 1 on success
+      logger.debug('mallopt(%d, %d) refused', parameter, value)
+      return False
+  _applied = settings()
+  return True
