@@ -304,7 +304,6 @@ def eval_batches(source: Source, *, batch_size: int,
     max_videos: only use the first ``max_videos`` videos of the source
       (before sharding, so the evaluated set does not depend on the number of
       hosts).
-
     multiple_of: the batch size stays a multiple of it (the host's devices).
 
   Yields:
@@ -319,8 +318,8 @@ def eval_batches(source: Source, *, batch_size: int,
   if num_frames is not None and num_frames < 1:
     raise ValueError(f'num_frames must be >= 1, got {num_frames}')
   fields = tuple(fields)
-  total = len(source) if max_videos is None else min(len(source), max_videos)
-  for indices, mask in host_batches(total, batch_size, process_index,
+  for indices, mask in host_batches(_num_eval_videos(source, max_videos),
+                                    batch_size, process_index,
                                     process_count, multiple_of):
     parts = []
     cache: dict[int, dict[str, np.ndarray]] = {}  # padding repeats one video
@@ -339,6 +338,20 @@ def eval_batches(source: Source, *, batch_size: int,
     yield batch
 
 
+def _num_eval_videos(source: Source, max_videos: int | None) -> int:
+  return len(source) if max_videos is None else min(len(source), max_videos)
+
+
+def num_eval_batches(source: Source, *, batch_size: int,
+                     process_count: int = 1, max_videos: int | None = None,
+                     multiple_of: int = 1, **unused: Any) -> int:
+  """How many batches :func:`eval_batches` yields given the same keyword
+  arguments (those that do not change the count are accepted and ignored)."""
+  del unused
+  return host_batch_plan(_num_eval_videos(source, max_videos), batch_size,
+                         process_count, multiple_of)[0]
+
+
 def host_batch_plan(num_items: int, batch_size: int, process_count: int = 1,
                     multiple_of: int = 1) -> tuple[int, int]:
   """(number of batches, batch size) every host uses for `num_items` items.
@@ -348,7 +361,7 @@ def host_batch_plan(num_items: int, batch_size: int, process_count: int = 1,
   `multiple_of` (the host's devices) that holds the host's share in that
   many batches. So a split smaller than a batch costs its own size rounded
   up to the devices, not a whole batch, and a larger one pads fewer than
-  `multiple_of` entries per batch instead of up to a batch in the last one.
+  ``num_batches * multiple_of`` entries in all instead of up to a batch.
   """
   if batch_size < 1:
     raise ValueError(f'batch_size must be >= 1, got {batch_size}')

@@ -361,7 +361,7 @@ def evaluate_slot_model(eval_config: ml_collections.ConfigDict,
   for batch in progress.bar(
       pipeline.eval_batches(source, num_frames=num_frames, **batch_args),
       desc=f'evaluate {slot_model.label}', unit='batch',
-      total=_num_batches(source, batch_args)):
+      total=pipeline.num_eval_batches(source, **batch_args)):
     mask = sharding.gather_to_host(
         sharding.to_global_batch({'mask': batch['mask']}, mesh))['mask']
     totals, carry = {}, None
@@ -413,18 +413,6 @@ def evaluate_slot_model(eval_config: ml_collections.ConfigDict,
         fg_miou_per_frame=(float(np.mean(miou_frames)) if miou_frames
                            else None))
   return results
-
-
-def _num_batches(source: Any, batch_args: dict[str, Any]) -> int:
-  """How many batches `pipeline.eval_batches(source, **batch_args)` yields
-  (its defaults where `batch_args` leaves a field out)."""
-  max_videos = batch_args.get('max_videos')
-  num_videos = len(source) if max_videos is None else min(len(source),
-                                                          max_videos)
-  return pipeline.host_batch_plan(
-      num_videos, batch_args['batch_size'],
-      batch_args.get('process_count', 1),
-      batch_args.get('multiple_of', 1))[0]
 
 
 def _padded_time_slice(x: np.ndarray, start: int, length: int) -> np.ndarray:
@@ -589,7 +577,7 @@ def evaluate(eval_config: ml_collections.ConfigDict,
   for batch in progress.bar(
       pipeline.eval_batches(source, num_frames=needed, **shared),
       desc='evaluate rollouts', unit='batch',
-      total=_num_batches(source, shared)):
+      total=pipeline.num_eval_batches(source, **shared)):
     mask = batch.pop('mask')
     batch.pop('index')
     for field in batch:

@@ -47,4 +47,3 @@ def announce_decoding(what: str, slot_model: Any, num_frames: int,
       'a frame; %d frames = %d sequential passes on %s%s. Shorten with %s.',
       what, slot_model.label, steps, num_frames, steps * num_frames,
       platform.upper(), slow, shorten)
-

@@ -229,8 +229,9 @@ def picture_frames(num_frames: int, observed: int,
           *range(observed, num_frames, stride)]
 
 
-def _video_name(source: Any, split: str, index: int) -> str:
-  """The converted video's name ('video_01234'), else 'test video i'."""
+def _video_names(source: Any, split: str, count: int) -> list[str]:
+  """The first `count` videos' converted names ('video_01234 (test video
+  0)'), else 'test video i' (embedded data, no or a damaged names file)."""
   names = None
   dataset_dir = getattr(source, 'dataset_dir', None)
   if dataset_dir is not None:
@@ -238,9 +239,8 @@ def _video_name(source: Any, split: str, index: int) -> str:
       names = video_names.read_recorded_names(dataset_dir, split)
     except UserError:
       names = None
-  if names and index < len(names):
-    return f'{names[index]} ({split} video {index})'
-  return f'{split} video {index}'
+  return [f'{names[i]} ({split} video {i})' if names and i < len(names)
+          else f'{split} video {i}' for i in range(count)]
 
 
 def picture_title(name: str, probability: float, threshold: float,
@@ -290,14 +290,15 @@ def write_pictures(run: Run, rollout_slots: np.ndarray,
   decode = jax.jit(lambda slots: slot_model.decode(params, slots).recon)
   split = contact.readout_splits(readout)[2]
   videos = run.videos(split)
+  names = _video_names(videos, split, count)
   scale = max(1, round(96 / videos[0]['video'].shape[1]))
+  colour = lambda t: (visualize.OBSERVED_COLOUR if t < observed
+                      else visualize.ROLLOUT_COLOUR)
   for i in progress.bar(range(count), desc='contact pictures',
                         unit='picture'):
     video = videos[i]
     truth = video['video'][drawn]
     predicted = to_uint8(decode(jnp.asarray(rollout_slots[i][drawn])))
-    colour = lambda t: (visualize.OBSERVED_COLOUR if t < observed
-                        else visualize.ROLLOUT_COLOUR)
     grid = visualize.labelled_tile_grid(
         {'real frames': [visualize.framed_tile(f, colour(t), scale)
                          for f, t in zip(truth, drawn)],
@@ -306,7 +307,7 @@ def write_pictures(run: Run, rollout_slots: np.ndarray,
              for f, t in zip(predicted, drawn)]},
         [f't={t}' for t in drawn])
     title = picture_title(
-        _video_name(videos, split, i), float(probabilities[i]), threshold,
+        names[i], float(probabilities[i]), threshold,
         float(labels[i]), int(video.get('contact_frame', -1)), observed,
         readout.seeds[0])
     visualize.write_png(os.path.join(run.paths.readouts, f'test_{i}.png'),

@@ -60,7 +60,7 @@ print(json.dumps({'applied': applied, 'faults': faults,
 
 
 def _run(**env):
-  environ = dict(os.environ, PYTHONPATH=REPO, **env)
+  environ = dict(os.environ, PYTHONPATH=REPO)
   environ.pop('GLIBC_TUNABLES', None)
   environ.update(env)
   result = subprocess.run([sys.executable, '-c', _PROGRAM], env=environ,
