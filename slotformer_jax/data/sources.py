@@ -162,16 +162,18 @@ class TfdsVideoSource:
     self._len = len(self._frames)
     # pylint: disable=g-import-not-at-top
     from array_record.python import array_record_data_source
-    shards = sorted(self.dataset_dir.glob(
-        f'{builder.info.name}-{split}.array_record-*'))
-    self._records = array_record_data_source.ArrayRecordDataSource(
-        [os.fspath(p) for p in shards]) if shards else None
-    have = len(self._records) if self._records is not None else 0
+    # The shard lengths of dataset_info.json: no file is opened until a
+    # record of it is read (as tfds's as_data_source does), so a damaged
+    # shard fails at its first read, with the error below.
+    instructions = builder.info.splits[split].file_instructions
+    have = sum(int(i.take) for i in instructions)
     if have != int(entry['num_records']):
       raise UserError(
           f'{self.dataset_dir}: split {split!r} has {have} records but '
           f'{chunked.INDEX_FILE} lists {entry["num_records"]}; the dataset '
           f'cache is damaged. {self.fix}')
+    self._records = array_record_data_source.ArrayRecordDataSource(
+        instructions)
 
   @property
   def supports_clips(self) -> bool:
@@ -257,7 +259,8 @@ class TfdsVideoSource:
     else:
       example = {**self._header(index),
                  **self._frames_of(index, 0, int(self._frames[index]))}
-      example = {key: example[key] for key in self.info.features}
+      # The whole-video decoder's order (TFDS decodes in sorted key order).
+      example = {key: example[key] for key in sorted(self.info.features)}
     return {key: _as_numpy(value, self._dtypes.get(key))
             for key, value in example.items()}
 
