@@ -59,6 +59,7 @@ damaged cache are the data stage's.
 
 from __future__ import annotations
 
+import logging
 import os
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -92,6 +93,8 @@ MOVI_DATASETS: tuple[str, ...] = tuple(f'movi_{v}' for v in 'abcdef')
 REAL_DATASETS: tuple[str, ...] = ('obj3d', 'clevrer', 'physion',
                                   'phyre') + MOVI_DATASETS
 _DATASET_INFO = 'dataset_info.json'
+_WARNED_WHOLE_VIDEO: set[str] = set()
+logger = logging.getLogger(__name__)
 
 
 class VideoSource(Protocol):
@@ -148,6 +151,14 @@ class TfdsVideoSource:
       self._layout = None
       self._source = builder.as_data_source(split)
       self._len = len(self._source)
+      if os.fspath(self.dataset_dir) not in _WARNED_WHOLE_VIDEO:
+        _WARNED_WHOLE_VIDEO.add(os.fspath(self.dataset_dir))
+        logger.warning(
+            '%s holds whole-video records (layout 1.0.0): it is read as it '
+            'is, but every training clip decompresses its whole video. '
+            'Preparing it again writes the chunked layout (2.0.0, '
+            'docs/datasets.md) next to it, read from then on.',
+            self.dataset_dir)
       return
     if split not in index['splits']:
       raise ValueError(f'{self.dataset_dir / chunked.INDEX_FILE} has no '
@@ -388,6 +399,22 @@ def _video_resolution(dataset_dir: Path) -> tuple[int, int] | None:
   return int(shape[-3]), int(shape[-2])
 
 
+def _newest_versions(candidates: list[Path]) -> list[Path]:
+  """One version folder per conversion folder: the newest (a dataset
+  converted again after the chunked layout, 2.0.0, next to its whole-video
+  1.0.0 folder is read from 2.0.0)."""
+  newest: dict[Path, Path] = {}
+  for path in candidates:
+    if not tfds.core.Version.is_valid(path.name):
+      newest[path] = path
+      continue
+    kept = newest.get(path.parent)
+    if kept is None or tfds.core.Version(path.name) > tfds.core.Version(
+        kept.name):
+      newest[path.parent] = path
+  return sorted(newest.values())
+
+
 def find_prepared_dataset(
     path: str | os.PathLike[str], *,
     resolution: Sequence[int] | None = None) -> Path:
@@ -409,6 +436,7 @@ def find_prepared_dataset(
   if not candidates:
     raise FileNotFoundError(
         f'No prepared TFDS dataset (no {_DATASET_INFO}) under {root}.')
+  candidates = _newest_versions(candidates)
   want = tuple(int(r) for r in resolution) if resolution is not None else None
   if want is not None and len(candidates) > 1:
     candidates = [c for c in candidates if _video_resolution(c) == want] or (

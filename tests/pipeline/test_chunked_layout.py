@@ -286,3 +286,20 @@ def test_relayout_round_trip(folders, tmp_path):
   assert back.supports_clips
   for i in range(len(LENGTHS)):
     _assert_items_equal(old[i], back[i])
+
+
+def test_an_old_folder_is_read_and_a_new_conversion_next_to_it_wins(
+    folders, tmp_path, caplog):
+  import shutil  # pylint: disable=g-import-not-at-top
+  conversion = tmp_path / 'toy' / 'cfg'
+  shutil.copytree(folders[0], conversion / '1.0.0')
+  with caplog.at_level('WARNING'):
+    old = sources.open_prepared_dataset(tmp_path / 'toy', 'train')
+  assert old.dataset_dir.name == '1.0.0' and not old.supports_clips
+  assert 'whole-video records' in caplog.text
+  batch = pipeline.make_train_batch(old, 0, batch_size=2, clip_length=3,
+                                    seed=0)
+  assert batch['video'].shape == (2, 3, 6, 5, 3)
+  shutil.copytree(folders[4], conversion / '2.0.0')
+  new = sources.open_prepared_dataset(tmp_path / 'toy', 'train')
+  assert new.dataset_dir.name == '2.0.0' and new.supports_clips
