@@ -29,12 +29,23 @@ header: the other fields), decoded with TFDS's numpy decoder as the
 whole-video records were, so values are bit-identical across layouts.
 
 Chunk size ``K`` (:data:`FRAMES_PER_CHUNK`), measured with
-``benchmarks/clip_reader.py`` on one pinned core (see docs/datasets.md for
-the table): smaller chunks read fewer unneeded frames but pay the per-record
-overhead (index lookup, proto parse, compression frame) more often and
-compress slightly worse; K = 4 was the best or within a few percent of the
-best for 1-, 6- and 16-frame clips (stride 1 and 2) at 64x64 and 128x128,
-at a file size within a few percent of whole-video records.
+``benchmarks/clip_reader.py --chunks=1,2,4,8`` on one pinned core (table in
+docs/datasets.md, "Record layout"): smaller chunks read fewer unneeded
+frames but pay the per-record cost (lookup, decompression set-up, proto)
+more often and compress worse; larger ones decompress more unneeded frames.
+Delivered clip frames/s per core, whole videos -> K=1 / 2 / 4 / 8:
+
+* OBJ3D SAVi (6 of 50 frames): 2,519 -> 12,172 / 14,103 / 12,838 / 11,210
+* CLEVRER SAVi (6 of 128): 959 -> 11,379 / 14,380 / 14,061 / 10,369
+* OBJ3D SlotFormer L_I (16 of 50 + slots): 6,965 -> 13,778 / 18,113 /
+  18,571 / 16,662
+* CLEVRER SlotFormer L_I (16 stride 2 of 128 + slots): 2,144 -> 6,249 /
+  9,233 / 9,736 / 9,806
+* Physion dVAE (1 of 150, 128x128): 21 -> 2,853 / 1,764 / 1,082 / 591
+* file size relative to whole videos: +19 % / +15 % / +10 % / +7 %
+
+K = 4: best or within 10 % of the best for 6- and 16-frame clips, for
+10 % more disk.
 
 Why not an uncompressed memory map: CLEVRER's 10k training videos of 128
 frames are 15.7 GB of raw 64x64 frames (63 GB at 128x128); the compressed
