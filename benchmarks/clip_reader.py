@@ -8,10 +8,9 @@ frames delivered per second on one core, the same videos, alternating rounds.
 Fixtures: `reader_speed.py`'s OBJ3D-layout PNG videos of moving squares over
 smooth backgrounds with renderer noise (they compress as rendered frames
 do) at each dataset's stored length and resolution (OBJ3D 50x64x64,
-CLEVRER 128x64x64, Physion 150x128x128), converted once by `prepare` (the
-chunked layout, K = `chunked.FRAMES_PER_CHUNK`), then rewritten with
-`chunked.relayout` as whole-video records (the layout before, `--chunks=0`
-is always measured) and with every other K of `--chunks`. SlotFormer's L_I
+CLEVRER 128x64x64, Physion 150x128x128), converted by `prepare` once per
+layout: `--frames_per_chunk=0` (whole-video records, the layout before;
+always measured) and every K of `--chunks`. SlotFormer's L_I
 stream reads random float32 slots (`slots.SlotSource`, OBJ3D 6x128,
 CLEVRER 7x128) with the video frames of the same steps.
 
@@ -74,32 +73,21 @@ STREAMS = {s.name: s for s in (
 )}
 
 
-def converted(work: Path, s: Stream, videos: int) -> Path:
-  """The fixture's chunked folder (converted once)."""
+def layout_dir(work: Path, s: Stream, videos: int, k: int) -> Path:
+  """The fixture's videos converted with chunks of `k` frames (0: whole
+  videos, the 1.0.0 layout); the PNGs are written once."""
   root = work / f'{s.dataset}_r{s.resolution}_t{s.frames}_v{videos}'
-  if not (root / 'done').exists():
+  if not (root / f'done_k{k}').exists():
     if not (root / 'OBJ3D' / 'train').is_dir():
       reader_speed.write_obj3d_like(root / 'OBJ3D', videos,
                                     resolution=s.resolution, frames=s.frames)
     prepare.main(['--dataset=obj3d', f'--source={root / "OBJ3D"}',
-                  f'--data_dir={root / "data"}', '--splits=train',
+                  f'--data_dir={root / f"data_k{k}"}', '--splits=train',
                   '--no_progress', '--num_workers=2',
-                  f'--resolution={s.resolution}', f'--num_frames={s.frames}'])
-    (root / 'done').write_text('')
-  return sources.find_prepared_dataset(root / 'data' / 'obj3d')
-
-
-def layout_dir(work: Path, s: Stream, videos: int, k: int) -> Path:
-  """The same videos with chunks of `k` frames (0: whole videos)."""
-  base = converted(work, s, videos)
-  if k == (chunked.read_index(base) or {}).get('frames_per_chunk'):
-    return base
-  target = (work / f'{s.dataset}_r{s.resolution}_t{s.frames}_v{videos}'
-            / f'k{k}' / 'obj3d' / 'cfg' / ('1.0.0' if k == 0 else '2.0.0'))
-  if not (target / 'dataset_info.json').is_file():
-    target.parent.mkdir(parents=True, exist_ok=True)
-    chunked.relayout(base, target, frames_per_chunk=k)
-  return target
+                  f'--resolution={s.resolution}', f'--num_frames={s.frames}',
+                  f'--frames_per_chunk={k}'])
+    (root / f'done_k{k}').write_text('')
+  return sources.find_prepared_dataset(root / f'data_k{k}' / 'obj3d')
 
 
 def slot_dir(work: Path, s: Stream, videos: int) -> str:

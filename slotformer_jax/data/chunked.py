@@ -52,9 +52,10 @@ frames are 15.7 GB of raw 64x64 frames (63 GB at 128x128); the compressed
 records of rendered scenes are a fraction of that, and the checksums,
 resumable conversion and TFDS metadata keep working unchanged.
 
-:func:`write_folder` writes a complete folder (the embedded families and
-:func:`relayout`); ``data/convert/writer.py`` writes converted datasets shard
-by shard with :class:`Layout`.
+This module is the layout and its index as the reader sees them (reading
+never writes); ``data/convert/chunked_writer.py`` serialises videos into
+records and writes folders (the embedded families), and
+``data/convert/writer.py`` writes converted datasets shard by shard with it.
 """
 
 from __future__ import annotations
@@ -63,17 +64,15 @@ import dataclasses
 import functools
 import math
 import os
-import shutil
-import uuid
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import tensorflow_datasets as tfds
 
+from slotformer_jax.errors import UserError
 from slotformer_jax.files import read_json
-from slotformer_jax.files import write_json_atomic
 
 LAYOUT = 'chunked'
 LAYOUT_VERSION = 1
@@ -111,8 +110,8 @@ class Layout:
 
   Attributes:
     features: the videos' features (what ``features.json`` describes).
-    frames_per_chunk: K; 0 writes the whole-video layout (one record per
-      video with ``features``), kept for tests and :func:`relayout`.
+    frames_per_chunk: K; 0 is the whole-video layout (one record per video
+      with ``features``), which the writers keep for tests and benchmarks.
   """
 
   features: tfds.features.FeaturesDict
@@ -138,44 +137,6 @@ class Layout:
     return tfds.features.FeaturesDict(
         {k: self.features[k] for k in self.header})
 
-  @functools.cached_property
-  def _serializers(self) -> tuple[Any, Any]:
-    from tensorflow_datasets.core import example_serializer  # pylint: disable=g-import-not-at-top
-    make = lambda f: example_serializer.ExampleSerializer(
-        f.get_serialized_info()) if f is not None else None
-    if not self.frames_per_chunk:
-      return make(self.features), None
-    return make(self.chunk_features), make(self.header_features)
-
-  def records(self, example: Mapping[str, Any]) -> tuple[list[bytes], int]:
-    """The serialised records of one video, and its frame count.
-
-    Raises:
-      ValueError: a time-axis field with another frame count than ``video``.
-    """
-    num_frames = int(np.shape(example['video'])[0])
-    if not self.frames_per_chunk:
-      serializer, _ = self._serializers
-      return [serializer.serialize_example(
-          self.features.encode_example(example))], num_frames
-    for key in self.time:
-      if np.shape(example[key])[0] != num_frames:
-        raise ValueError(f'field {key!r} has {np.shape(example[key])[0]} '
-                         f'frames but video has {num_frames}')
-    chunk_serializer, header_serializer = self._serializers
-    out = []
-    if header_serializer is not None:
-      out.append(header_serializer.serialize_example(
-          self.header_features.encode_example(
-              {k: example[k] for k in self.header})))
-    k = self.frames_per_chunk
-    for start in range(0, num_frames, k):
-      chunk = {key: np.asarray(example[key])[start:start + k]
-               for key in self.time}
-      out.append(chunk_serializer.serialize_example(
-          self.chunk_features.encode_example(chunk)))
-    return out, num_frames
-
   def num_records(self, num_frames: int) -> int:
     if not self.frames_per_chunk:
       return 1
@@ -197,14 +158,6 @@ class Layout:
             'splits': splits}
 
 
-def write_index(dataset_dir: str | os.PathLike[str], layout: Layout,
-                split_frames: Mapping[str, Sequence[int]]) -> None:
-  """Writes ``INDEX_FILE`` (nothing for the whole-video layout)."""
-  if layout.frames_per_chunk:
-    write_json_atomic(Path(dataset_dir) / INDEX_FILE,
-                      layout.index(split_frames))
-
-
 def read_index(dataset_dir: str | os.PathLike[str]) -> dict[str, Any] | None:
   """The folder's chunk index; None for a whole-video (1.0.0) folder.
 
@@ -217,138 +170,9 @@ def read_index(dataset_dir: str | os.PathLike[str]) -> dict[str, Any] | None:
   index = read_json(path, fix=f'Delete {dataset_dir} and prepare it again.')
   if (index.get('layout') != LAYOUT
       or index.get('layout_version') != LAYOUT_VERSION):
-    from slotformer_jax.errors import UserError  # pylint: disable=g-import-not-at-top
     raise UserError(
         f'{dataset_dir} is in layout {index.get("layout")!r} version '
         f'{index.get("layout_version")!r}; this code reads {LAYOUT!r} '
         f'version {LAYOUT_VERSION} and whole-video folders. Update the code '
         'or prepare the dataset again.')
   return index
-
-
-def write_records(path: str | os.PathLike[str],
-                  records: Iterable[bytes]) -> int:
-  """Writes records into one array_record file; how many."""
-  from array_record.python import array_record_module  # pylint: disable=g-import-not-at-top
-  writer = array_record_module.ArrayRecordWriter(os.fspath(path),
-                                                 RECORD_OPTIONS)
-  count = 0
-  try:
-    for record in records:
-      writer.write(record)
-      count += 1
-  finally:
-    writer.close()
-  return count
-
-
-def shard_filename(name: str, split: str, index: int, num_shards: int) -> str:
-  """TFDS's default shard naming, which ``write_metadata`` parses back."""
-  return f'{name}-{split}.array_record-{index:05d}-of-{num_shards:05d}'
-
-
-def write_folder(dataset_dir: str | os.PathLike[str], *, name: str,
-                 features: tfds.features.FeaturesDict, description: str,
-                 splits: Mapping[str, Iterable[Mapping[str, Any]]],
-                 sizes: Mapping[str, int],
-                 frames_per_chunk: int = FRAMES_PER_CHUNK,
-                 videos_per_shard: int = 256,
-                 metadata: Mapping[str, Any] | None = None,
-                 extra_files: Sequence[Path] = ()) -> Path:
-  """Writes a complete folder: records, TFDS metadata, index, checksums.
-
-  Written into a temporary sibling (``incomplete.<id>_<name>``, which the
-  embedded writers clean up after an interrupted run) and renamed, so
-  ``dataset_info.json`` appears only in a finished folder.
-
-  Args:
-    dataset_dir: the TFDS version folder to make (must not exist).
-    name: the dataset name (shard-file prefix).
-    features: the videos' features.
-    description: stored in ``dataset_info.json``.
-    splits: {split: examples in index order}.
-    sizes: {split: number of examples} (for the shard plan).
-    frames_per_chunk: K (0: whole-video records).
-    videos_per_shard: videos per shard file.
-    metadata: stored in the TFDS metadata.
-    extra_files: copied into the folder (e.g. ``video_names.json``).
-  """
-  # Imported here: checksums imports integrity, which is import-light.
-  from slotformer_jax.data.convert.checksums import record_checksums  # pylint: disable=g-import-not-at-top
-  dataset_dir = Path(dataset_dir)
-  layout = Layout(features, frames_per_chunk)
-  tmp = dataset_dir.parent / f'incomplete.{uuid.uuid4().hex}_{dataset_dir.name}'
-  tmp.mkdir(parents=True)
-  try:
-    split_infos, split_frames = [], {}
-    for split, examples in splits.items():
-      size = int(sizes[split])
-      num_shards = max(1, math.ceil(size / videos_per_shard))
-      iterator = iter(examples)
-      frames, lengths, num_bytes = [], [], 0
-      for shard in range(num_shards):
-        count = min(videos_per_shard, size - shard * videos_per_shard)
-
-        def shard_records(count=count):
-          for _ in range(count):
-            records, num_frames = layout.records(next(iterator))
-            frames.append(num_frames)
-            yield from records
-        path = tmp / shard_filename(name, split, shard, num_shards)
-        lengths.append(write_records(path, shard_records()))
-        num_bytes += path.stat().st_size
-      split_frames[split] = frames
-      split_infos.append(tfds.core.SplitInfo(
-          name=split, shard_lengths=lengths, num_bytes=num_bytes))
-    for path in extra_files:
-      shutil.copy2(path, tmp / Path(path).name)
-    write_index(tmp, layout, split_frames)
-    tfds.folder_dataset.write_metadata(
-        data_dir=os.fspath(tmp), features=features, split_infos=split_infos,
-        version=dataset_dir.name if tfds.core.Version.is_valid(
-            dataset_dir.name) else TFDS_VERSION,
-        check_data=False, description=description,
-        metadata=tfds.core.MetadataDict(metadata or {}))
-    record_checksums(tmp)
-    try:
-      os.replace(tmp, dataset_dir)
-    except OSError:
-      # Another writer finished the same folder first: keep theirs.
-      if not (dataset_dir / 'dataset_info.json').is_file():
-        raise
-  finally:
-    if tmp.exists():
-      shutil.rmtree(tmp, ignore_errors=True)
-  return dataset_dir
-
-
-def relayout(source_dir: str | os.PathLike[str],
-             target_dir: str | os.PathLike[str], *,
-             frames_per_chunk: int = FRAMES_PER_CHUNK) -> Path:
-  """Writes the videos of a TFDS folder (either layout) in another layout
-  (``frames_per_chunk=0``: whole-video records) into ``target_dir``.
-
-  The benchmark's way to compare layouts on the same videos, and the tests'
-  way to make whole-video folders; other files of the folder (e.g.
-  ``video_names.json``) are copied.
-  """
-  from slotformer_jax.data import sources  # pylint: disable=g-import-not-at-top
-  from slotformer_jax.data.integrity import CHECKSUMS_FILE  # pylint: disable=g-import-not-at-top
-  source_dir = Path(source_dir)
-  builder = tfds.builder_from_directory(os.fspath(source_dir))
-  info = builder.info
-  split_names = sorted(info.splits)
-  opened = {s: sources.TfdsVideoSource(source_dir, s) for s in split_names}
-  skip = {'dataset_info.json', 'features.json', 'metadata.json',
-          CHECKSUMS_FILE, INDEX_FILE}
-  extra = [p for p in sorted(source_dir.iterdir())
-           if p.is_file() and p.name not in skip
-           and '.array_record' not in p.name]
-  return write_folder(
-      target_dir, name=info.name, features=info.features,
-      description=info.description or '',
-      splits={s: (src[i] for i in range(len(src)))
-              for s, src in opened.items()},
-      sizes={s: len(src) for s, src in opened.items()},
-      frames_per_chunk=frames_per_chunk,
-      metadata=dict(info.metadata or {}), extra_files=extra)

@@ -17,6 +17,7 @@ from slotformer_jax.data import integrity
 from slotformer_jax.data import pipeline
 from slotformer_jax.data import slots
 from slotformer_jax.data import sources
+from slotformer_jax.data.convert import chunked_writer
 from slotformer_jax.data.convert import writer
 from slotformer_jax.errors import UserError
 
@@ -56,7 +57,7 @@ def _example(index: int, length: int) -> dict:
 
 def _write(root: Path, frames_per_chunk: int, version: str,
            lengths=tuple(LENGTHS)) -> Path:
-  return chunked.write_folder(
+  return chunked_writer.write_folder(
       root / f'k{frames_per_chunk}' / 'toy' / 'cfg' / version, name='toy',
       features=_features(), description='toy videos',
       splits={'train': (_example(i, t) for i, t in enumerate(lengths))},
@@ -266,6 +267,7 @@ def test_the_converter_writes_the_chunked_layout(tmp_path):
   old = writer.convert(spec, jobs, tmp_path / 'old', num_workers=1,
                        videos_per_shard=3, progress=False, frames_per_chunk=0)
   assert new.dataset_dir.name == '2.0.0' == writer.VERSION
+  assert old.dataset_dir.name == '1.0.0'
   assert integrity.verify_checksums(new.dataset_dir, 'train')
   assert (new.dataset_dir / chunked.INDEX_FILE).is_file()
   assert not (old.dataset_dir / chunked.INDEX_FILE).is_file()
@@ -276,16 +278,6 @@ def test_the_converter_writes_the_chunked_layout(tmp_path):
     _assert_items_equal(a[i], b[i])
   assert json.loads((new.dataset_dir / 'video_names.json').read_text()) == {
       'train': [f'v{i}' for i in range(len(LENGTHS))]}
-
-
-def test_relayout_round_trip(folders, tmp_path):
-  target = chunked.relayout(folders[0], tmp_path / 'toy' / 'cfg' / '2.0.0',
-                            frames_per_chunk=2)
-  back = sources.TfdsVideoSource(target, 'train')
-  old = _open(folders, 0)
-  assert back.supports_clips
-  for i in range(len(LENGTHS)):
-    _assert_items_equal(old[i], back[i])
 
 
 def test_an_old_folder_is_read_and_a_new_conversion_next_to_it_wins(

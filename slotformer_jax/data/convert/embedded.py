@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 import tensorflow_datasets as tfds
 
-from slotformer_jax.data import chunked
+from slotformer_jax.data.convert import chunked_writer
 from slotformer_jax.data.convert import synthetic
 from slotformer_jax.data.convert.pool import ordered_map
 from slotformer_jax.data.embedded import folders
@@ -66,7 +66,7 @@ def build(family: Family, data_dir: str | os.PathLike[str], *,
   for leftover in path.parent.glob(f'incomplete.*_{path.name}'):
     shutil.rmtree(leftover, ignore_errors=True)
   sizes = {s: n for s, n in family.split_sizes.items() if n > 0}
-  chunked.write_folder(
+  chunked_writer.write_folder(
       path, name=family.name,
       features=tfds.features.FeaturesDict(dict(family.features)),
       description=family.description,

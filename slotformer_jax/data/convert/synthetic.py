@@ -43,7 +43,7 @@ import numpy as np
 import pybullet
 import tensorflow_datasets as tfds
 
-from slotformer_jax.data import chunked
+from slotformer_jax.data.convert import chunked_writer
 from slotformer_jax.data.convert.pool import ordered_map
 from slotformer_jax.data.data_dir import resolve_data_dir
 from slotformer_jax.data.embedded import folders
@@ -510,7 +510,7 @@ def build_synthetic_dataset(config: SyntheticConfig,
       shutil.rmtree(leftover, ignore_errors=True)
     # Record i of a split is video i (ordered_map keeps the index order).
     splits = [s for s in SPLITS if config.num_videos(s) > 0]
-    chunked.write_folder(
+    chunked_writer.write_folder(
         path, name=NAME, features=features(config), description=DESCRIPTION,
         splits={s: ordered_map(functools.partial(_example_for_worker,
                                                  config, s),

@@ -55,6 +55,7 @@ import tensorflow_datasets as tfds
 import tqdm
 
 from slotformer_jax.data import chunked
+from slotformer_jax.data.convert import chunked_writer
 from slotformer_jax.data.convert import media
 from slotformer_jax.data.convert.checksums import record_checksums
 from slotformer_jax.data.convert.pool import process_pool
@@ -226,7 +227,8 @@ def _convert_shard(task: _ShardTask) -> dict[str, Any]:
   # Imported here: workers are spawned and only need it in this function.
   from array_record.python import array_record_module  # pylint: disable=g-import-not-at-top
 
-  layout = chunked.Layout(task.spec.features_fn(), task.frames_per_chunk)
+  serializer = chunked_writer.VideoSerializer(
+      chunked.Layout(task.spec.features_fn(), task.frames_per_chunk))
   final = task.dataset_dir / shard_filename(
       task.spec.name, task.split, task.index, task.num_shards)
   # Written inside _progress/ so a half-written file never matches the
@@ -250,7 +252,7 @@ def _convert_shard(task: _ShardTask) -> dict[str, Any]:
         # video, rather than silently dropping it.
         raise RuntimeError(f'converting {task.split}/{job.key} failed: '
                            f'{type(error).__name__}: {error}') from error
-      records, num_frames = layout.records(example)
+      records, num_frames = serializer.records(example)
       for record in records:
         writer.write(record)
       num_records += len(records)
@@ -389,7 +391,7 @@ def convert(spec: DatasetSpec, jobs: Mapping[str, Sequence[Job]],
     progress: show a progress bar.
     frames_per_chunk: frames per record (``data/chunked.py``; 0 writes the
       whole-video records of the 1.0.0 layout, for tests and benchmarks,
-      into this version's folder).
+      into a ``1.0.0`` folder).
 
   Raises:
     ConversionError: too many skipped videos, or an unfinished conversion
@@ -403,6 +405,8 @@ def convert(spec: DatasetSpec, jobs: Mapping[str, Sequence[Job]],
     raise ValueError(f'need 0 <= process_index < process_count, got '
                      f'{process_index} / {process_count}')
   dataset_dir = spec.dataset_dir(data_dir)
+  if not frames_per_chunk:
+    dataset_dir = dataset_dir.parent / chunked_writer.WHOLE_VIDEO_VERSION
   if overwrite and dataset_dir.exists():
     logger.info('Deleting %s (--overwrite)', dataset_dir)
     shutil.rmtree(dataset_dir)
@@ -538,7 +542,7 @@ def _write_metadata(spec: DatasetSpec, dataset_dir: Path,
         f'{dataset_dir} holds shards written with different chunk sizes '
         f'({sorted(map(str, chunk_sizes))}); convert again with --overwrite.')
   layout = chunked.Layout(spec.features_fn(), chunk_sizes.pop())
-  chunked.write_index(dataset_dir, layout, {
+  chunked_writer.write_index(dataset_dir, layout, {
       split: [t for p in payloads for t in p['num_frames']]
       for split, payloads in split_payloads.items()})
   split_infos = [
@@ -548,7 +552,7 @@ def _write_metadata(spec: DatasetSpec, dataset_dir: Path,
       for split, payloads in sorted(split_payloads.items())]
   tfds.folder_dataset.write_metadata(
       data_dir=os.fspath(dataset_dir), features=spec.features_fn(),
-      split_infos=split_infos, version=VERSION,
+      split_infos=split_infos, version=dataset_dir.name,
       # check_data reads an example through tf.data, which needs TensorFlow.
       check_data=False, description=spec.description,
       metadata=tfds.core.MetadataDict(
