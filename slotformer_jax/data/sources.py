@@ -264,6 +264,10 @@ class TfdsVideoSource:
     """Frames ``[begin, end)`` of every time field, from the chunks that
     hold them (a view of one chunk when they lie in one)."""
     k = self._layout.frames_per_chunk
+    if end <= begin:  # no frame (a video of none): empty arrays, no read
+      return {key: np.zeros((0,) + tuple(self.info.features[key].shape[1:]),
+                            self.info.features[key].np_dtype)
+              for key in self._layout.time}
     first = int(self._first[index]) + bool(self._layout.header)
     c0, c1 = begin // k, (end - 1) // k
     chunks = self._decode(range(first + c0, first + c1 + 1),

@@ -295,3 +295,22 @@ def test_an_old_folder_is_read_and_a_new_conversion_next_to_it_wins(
   shutil.copytree(folders[4], conversion / '2.0.0')
   new = sources.open_prepared_dataset(tmp_path / 'toy', 'train')
   assert new.dataset_dir.name == '2.0.0' and new.supports_clips
+
+
+def test_token_batches_with_frames_match_the_old_layout(folders, tmp_path):
+  from slotformer_jax.data import tokens  # pylint: disable=g-import-not-at-top
+  rng = np.random.default_rng(0)
+  token_dir = str(tmp_path / 'tokens')
+  w = tokens.TokenWriter(token_dir, len(LENGTHS), 4, dvae_step=0)
+  for i, t in enumerate(LENGTHS):
+    w.add(i, rng.integers(0, 4096, (t, 4)))
+  w.close()
+  old = tokens.TokenSource(token_dir, _open(folders, 0))
+  new = tokens.TokenSource(token_dir, _open(folders, 4))
+  assert new.supports_clips and not old.supports_clips
+  for fields in (('video', 'tokens'), ('tokens', 'video'), ('tokens',)):
+    for step in range(4):
+      kwargs = dict(batch_size=4, clip_length=3, seed=5, fields=fields,
+                    frame_stride=2)
+      _assert_items_equal(pipeline.make_train_batch(old, step, **kwargs),
+                          pipeline.make_train_batch(new, step, **kwargs))
