@@ -33,14 +33,15 @@ STEVE, SlotFormer, the evaluation rollout, Aloe, the readouts):
   (`--core`; one thread for BLAS / OpenMP / TensorFlow), on fixtures made
   here: OBJ3D-layout videos of moving squares (`reader_speed.py`'s) at the
   dataset's resolution and stored length (OBJ3D 50, CLEVRER 128, PHYRE 15,
-  Physion 150 frames: docs/datasets.md), converted by `prepare` (one
-  array_record record of raw uint8 frames per video, compressed as a
-  whole), and random slots / tokens of the configs' shapes. From it: host
+  Physion 150 frames: docs/datasets.md), converted by `prepare` (since
+  the chunked layout, 2.0.0: a record per 4 frames, so a clip reads only
+  its chunks; `benchmarks/clip_reader.py` compares it with the whole-video
+  records before), and random slots / tokens of the configs' shapes. From it: host
   cores per chip = need (clips/s) / reader (clips/s per core) / chips per
-  host. Each clip reads its whole video (record read + decompression), so
-  the script also times whole-video reads of each fixture (frames/s) and
-  prints what reading only the clip's frames at that per-frame rate would
-  give: an estimate of that fix, not a measured reader.
+  host. The script also times whole-video reads of each fixture
+  (frames/s) and prints what reading only the clip's frames at that
+  per-frame rate would give: the estimate made before the chunked layout,
+  kept for comparison with the measured reader.
 
 The evaluation rollout is listed for its need only (it is not a training
 step); its reader is not measured. Steps the JSON has no row for (SlotFormer

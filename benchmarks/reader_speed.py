@@ -10,8 +10,9 @@ converts them with ``python -m slotformer_jax.data.prepare``, then times:
   (``source[i]``), in frames/s;
 * ``pipeline.train_batches`` (the training reader, background prefetch as in
   training) for the clip shapes the stages use, in delivered clip frames/s
-  (batch x clip length x batches / s). Each clip reads its whole video, so
-  delivered frames/s = decoded frames/s x clip length / video length.
+  (batch x clip length x batches / s). Since the chunked layout (2.0.0)
+  each clip reads only the chunks that hold it (``clip_reader.py``
+  compares the layouts).
 
 Run it on an otherwise idle machine for numbers you compare.
 """

@@ -1,6 +1,7 @@
 """Checksums of a dataset cache: verified when opened (reading only).
 
-`checksums.json` in a TFDS version folder holds, per array_record file, its
+`checksums.json` in a TFDS version folder holds, per array_record file (and
+the TFDS metadata and the chunk index, `video_chunks.json`), its
 size, modification time and crc32. Opening a split compares sizes (always)
 and, when a file's modification time changed, its crc32: a truncated or
 rewritten file is found before any step reads it, at the cost of one stat
@@ -18,6 +19,8 @@ import zlib
 from slotformer_jax.files import read_json
 
 CHECKSUMS_FILE = 'checksums.json'
+# The chunked layout's per-split index (data/chunked.py INDEX_FILE).
+CHUNK_INDEX_FILE = 'video_chunks.json'
 
 
 class DamagedDataset(Exception):
@@ -37,7 +40,7 @@ def checksummed_files(dataset_dir: Path) -> list[Path]:
   """The files checksums.json covers: records and TFDS metadata."""
   return sorted(p for p in dataset_dir.iterdir()
                 if '.array_record' in p.name or p.name in (
-                    'dataset_info.json', 'features.json'))
+                    'dataset_info.json', 'features.json', CHUNK_INDEX_FILE))
 
 
 def file_entry(path: Path) -> dict[str, Any]:

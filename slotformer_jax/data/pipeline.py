@@ -50,13 +50,29 @@ _JOIN_TIMEOUT_S = 30.0
 
 
 class Source(Protocol):
-  """Random access to items (dicts of arrays, time first)."""
+  """Random access to items (dicts of arrays, time first).
+
+  A source may also read clips without the whole item (e.g. a chunked TFDS
+  folder, ``data/chunked.py``): it then has ``supports_clips`` (true),
+  ``time_fields`` (the fields ``clip`` cuts along time), ``num_frames(i)``
+  (the item's T, without decoding it) and ``clip(i, start, length, stride,
+  fields)``, which returns exactly what :func:`_slice_item` cuts from
+  ``source[i]``. :func:`make_train_batch` uses them when the first requested
+  field is one of ``time_fields`` (so T is the same number as with the
+  whole item); other sources are read whole and sliced.
+  """
 
   def __len__(self) -> int:
     ...
 
   def __getitem__(self, index: int) -> Mapping[str, Any]:
     ...
+
+
+def _reads_clips(source: Source, fields: Sequence[str]) -> bool:
+  """Whether make_train_batch may read ``source``'s clips directly."""
+  return (bool(getattr(source, 'supports_clips', False)) and bool(fields)
+          and fields[0] in tuple(getattr(source, 'time_fields', ())))
 
 
 def _check_host(process_index: int, process_count: int) -> None:
@@ -172,17 +188,26 @@ def make_train_batch(source: Source, step: int, *, batch_size: int,
                                   len(source))
   rows = host_rows(batch_size, process_index)
   span = (clip_length - 1) * frame_stride + 1
+  fields = tuple(fields)
+  clips = _reads_clips(source, fields)
   parts = []
   for video, fraction in zip(videos[rows], fractions[rows]):
-    item = source[int(video)]
-    num_frames = _num_frames(item, fields, int(video))
+    if clips:  # T from the source's index; only the clip's frames are read
+      num_frames = int(source.num_frames(int(video)))
+    else:
+      item = source[int(video)]
+      num_frames = _num_frames(item, fields, int(video))
     if num_frames < span:
       raise ValueError(
           f'video {video} has {num_frames} frames, shorter than a clip of '
           f'{clip_length} frames with stride {frame_stride} ({span} frames)')
     start = int(fraction * (num_frames - span + 1))
-    parts.append(_slice_item(item, fields, int(video), start, clip_length,
-                             frame_stride))
+    if clips:
+      parts.append(source.clip(int(video), start, clip_length, frame_stride,
+                               fields))
+    else:
+      parts.append(_slice_item(item, fields, int(video), start, clip_length,
+                               frame_stride))
   return _stack(parts, fields)
 
 

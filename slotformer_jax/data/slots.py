@@ -142,6 +142,54 @@ class SlotSource:
     return item
 
 
+  # Clips (pipeline.make_train_batch): the slots are a memory map, so a clip
+  # reads its own rows; the frames come from the video source's clip reader
+  # when it has one (chunked TFDS folders), else from the whole video.
+  supports_clips = True
+
+  @property
+  def time_fields(self) -> tuple[str, ...]:
+    return ('slots',) + (self._video_fields
+                         if self._video_source is not None else ())
+
+  def num_frames(self, index: int) -> int:
+    return int(self._index[index][1])
+
+  def clip(self, index: int, start: int, length: int, stride: int = 1,
+           fields: tuple[str, ...] = ('slots',)) -> dict[str, np.ndarray]:
+    """As ``pipeline._slice_item(self[index], fields, ...)``."""
+    first, num_frames = (int(v) for v in self._index[index])
+    end = start + (length - 1) * stride + 1
+    if length < 1 or stride < 1 or start < 0 or end > num_frames:
+      raise ValueError(
+          f'video {index} has {num_frames} frames; a clip of {length} frames '
+          f'with stride {stride} from frame {start} does not fit')
+    out = {}
+    video_fields = [f for f in fields if f != 'slots']
+    if video_fields:
+      if (self._video_source is None
+          or any(f not in self._video_fields for f in video_fields)):
+        raise KeyError(f'item {index} has no field(s) {video_fields}; it has '
+                       f'{["slots", *self._video_fields]}')
+      if getattr(self._video_source, 'supports_clips', False):
+        have = self._video_source.num_frames(index)
+        if have != num_frames:
+          raise ValueError(
+              f'video {index}: the video has {have} frames but '
+              f'{num_frames} slots were extracted')
+        frames = self._video_source.clip(index, start, length, stride,
+                                         video_fields)
+      else:
+        from slotformer_jax.data import pipeline  # pylint: disable=g-import-not-at-top
+        item = self[index]
+        frames = pipeline._slice_item(item, video_fields, index, start,  # pylint: disable=protected-access
+                                      length, stride)
+    for field in fields:
+      out[field] = (np.asarray(self._slots[first + start:first + end:stride])
+                    if field == 'slots' else frames[field])
+    return out
+
+
 def verify_slots(directory: str, meta: dict[str, Any]) -> None:
   """Compares the files with the checksums stored at extraction.
 

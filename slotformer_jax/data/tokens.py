@@ -96,3 +96,36 @@ class TokenSource:
     start, length = self._index[index]
     item['tokens'] = np.asarray(self._tokens[start:start + length])
     return item
+
+  # Clips (pipeline.make_train_batch) when the video source reads clips
+  # (chunked TFDS folders): the tokens are a memory map, so a clip reads
+  # its own rows, and the frames only the chunks that hold them.
+  @property
+  def supports_clips(self) -> bool:
+    return bool(getattr(self._videos, 'supports_clips', False))
+
+  @property
+  def time_fields(self) -> tuple[str, ...]:
+    return tuple(getattr(self._videos, 'time_fields', ())) + ('tokens',)
+
+  def num_frames(self, index: int) -> int:
+    return self._videos.num_frames(index)
+
+  def clip(self, index: int, start: int, length: int, stride: int = 1,
+           fields: tuple[str, ...] = ('video', 'tokens')
+           ) -> dict[str, np.ndarray]:
+    """As ``pipeline._slice_item(self[index], fields, ...)``."""
+    video_fields = [f for f in fields if f != 'tokens']
+    out = (dict(self._videos.clip(index, start, length, stride,
+                                  video_fields)) if video_fields else {})
+    if 'tokens' in fields:
+      first, count = (int(v) for v in self._index[index])
+      num_frames = self._videos.num_frames(index)
+      if count != num_frames:
+        raise ValueError(
+            f'item {index}: field \'tokens\' has {count} steps on its first '
+            f'axis but the video has {num_frames}; every requested '
+            'non-scalar field must have time first')
+      end = start + (length - 1) * stride + 1
+      out['tokens'] = np.asarray(self._tokens[first + start:first + end:stride])
+    return {field: out[field] for field in fields}

@@ -332,7 +332,7 @@ def test_missing_real_dataset_error_names_the_path(tmp_path, name):
 
 def test_prepared_real_dataset_is_opened(data_root, tmp_path):
   # Stand-in for a converted dataset: any array_record TFDS folder.
-  built = next((data_root / 'synthetic_obj3d').glob('*/1.0.0'))
+  built = next((data_root / 'synthetic_obj3d').glob('*/2.0.0'))
   target = tmp_path / 'clevrer' / 'clevrer' / 'default' / '1.0.0'
   shutil.copytree(built, target)
   source = sources.get_video_source(_data_config(tmp_path, name='clevrer'),

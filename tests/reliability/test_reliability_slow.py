@@ -169,4 +169,4 @@ def test_killed_generation_takes_its_workers_and_leaves_nothing(tmp_path):
                           timeout=900)
   assert result.returncode == 0, result.stderr
   assert not list(tmp_path.glob('synthetic_obj3d/*/incomplete.*'))
-  assert list(tmp_path.glob('synthetic_obj3d/*/1.0.0/dataset_info.json'))
+  assert list(tmp_path.glob('synthetic_obj3d/*/2.0.0/dataset_info.json'))

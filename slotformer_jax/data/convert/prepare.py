@@ -37,6 +37,7 @@ from pathlib import Path
 from types import ModuleType
 from typing import Any
 
+from slotformer_jax.data import chunked
 from slotformer_jax.data.convert import clevrer
 from slotformer_jax.data.convert import movi
 from slotformer_jax.data.convert import obj3d
@@ -124,6 +125,11 @@ def build_parser() -> argparse.ArgumentParser:
                       'parameters first')
   parser.add_argument('--no_progress', action='store_true',
                       help='no progress bar')
+  parser.add_argument('--frames_per_chunk', type=int,
+                      default=chunked.FRAMES_PER_CHUNK,
+                      help='frames per record (data/chunked.py); 0 writes '
+                      'the whole-video records of the 1.0.0 layout (for '
+                      'benchmarks)')
   return parser
 
 
@@ -184,7 +190,7 @@ def run(args: argparse.Namespace) -> writer.ConversionResult:
       videos_per_shard=args.videos_per_shard,
       process_index=args.process_index, process_count=args.process_count,
       max_skip_fraction=args.max_skip_fraction, overwrite=args.overwrite,
-      progress=not args.no_progress)
+      progress=not args.no_progress, frames_per_chunk=args.frames_per_chunk)
   print(writer.summary(result))
   if result.complete:
     print(f'Read it with data config name={spec.name!r}, '

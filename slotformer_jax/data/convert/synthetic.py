@@ -13,9 +13,9 @@ tested without downloading anything:
   with pybullet's CPU TinyRenderer, returning RGB, instance masks, boxes, ...;
 * :func:`generate_video` ties the two together, deterministically per
   ``(seed, split, index)``;
-* :class:`SyntheticObj3d` is the TFDS builder that writes the three splits as
-  ``array_record`` files once into a cache folder whose name encodes every
-  generation parameter, and :func:`build_synthetic_dataset` builds-if-needed
+* :func:`build_synthetic_dataset` writes the three splits (:func:`features`)
+  once as a chunked ``array_record`` TFDS folder (``data/chunked.py``) into a
+  cache folder whose name encodes every generation parameter, if needed
   (the data stage runs it). The parameters (:class:`SyntheticConfig`), the
   folder they name and the labels of the stored ids are the reader's:
   :mod:`slotformer_jax.data.embedded.synthetic`.
@@ -43,7 +43,7 @@ import numpy as np
 import pybullet
 import tensorflow_datasets as tfds
 
-from slotformer_jax.data.convert.checksums import record_checksums
+from slotformer_jax.data.convert import chunked_writer
 from slotformer_jax.data.convert.pool import ordered_map
 from slotformer_jax.data.data_dir import resolve_data_dir
 from slotformer_jax.data.embedded import folders
@@ -440,96 +440,42 @@ def generate_video(config: SyntheticConfig, split: str, index: int
 # ----------------------------------------------------------------------------
 
 
-@dataclasses.dataclass(eq=False)
-class SyntheticObj3dConfig(tfds.core.BuilderConfig):
-  """A BuilderConfig whose name is ``generation.slug``."""
+# Raw bytes. Measured on 64x64x40 videos (2 cores): the default NONE stores
+# uint8 as varint int64 lists and reads ~200 videos/s; ZLIB ~700 videos/s;
+# BYTES ~1,300-1,800 videos/s. The files are the same size (~22 KB per
+# video) for all three, as array_record already compresses every record.
+TENSOR_ENCODING = tfds.features.Encoding.BYTES
+DESCRIPTION = ('OBJ3D-like synthetic videos rendered with pybullet: static '
+               'CLEVR objects hit by a launched sphere.')
 
-  generation: SyntheticConfig = dataclasses.field(
-      default_factory=SyntheticConfig)
+
+def features(g: SyntheticConfig) -> tfds.features.FeaturesDict:
+  """The fields of :func:`generate_video` (tensors stored as raw bytes)."""
+  h, w = g.resolution
+  t, o = g.num_frames, g.max_objects_total
+
+  def tensor(shape: tuple[int, ...], dtype: Any) -> tfds.features.Tensor:
+    return tfds.features.Tensor(shape=shape, dtype=dtype,
+                                encoding=TENSOR_ENCODING)
+
+  return tfds.features.FeaturesDict({
+      'video': tensor((t, h, w, 3), np.uint8),
+      'segmentations': tensor((t, h, w), np.uint8),
+      'boxes': tensor((t, o, 4), np.float32),
+      'visible': tensor((t, o), np.bool_),
+      'positions': tensor((t, o, 3), np.float32),
+      'num_objects': tfds.features.Scalar(np.int32),
+      'shapes': tensor((o,), np.int32),
+      'colors': tensor((o,), np.int32),
+      'sizes': tensor((o,), np.int32),
+      'index': tfds.features.Scalar(np.int32),
+  })
 
 
 def _example_for_worker(config: SyntheticConfig, split: str, index: int
                         ) -> dict[str, np.ndarray]:
   # Module-level (picklable) so it can run in a spawned worker process.
   return generate_video(config, split, index)
-
-
-class SyntheticObj3d(tfds.core.GeneratorBasedBuilder, skip_registration=True):
-  """Writes the synthetic OBJ3D-like splits (train/val/test) as TFDS.
-
-  Use through :func:`build_synthetic_dataset`. Each example has the fields of
-  :func:`generate_video` (tensors stored as raw bytes, see TENSOR_ENCODING);
-  examples are written in index order (shuffling disabled), so record ``i``
-  of a split is video ``i``.
-  """
-
-  name = NAME  # the cache sub-folder; see dataset_dir()
-  VERSION = tfds.core.Version(folders.TFDS_VERSION)
-  # Raw bytes. Measured on 64x64x40 videos (2 cores): the default NONE stores
-  # uint8 as varint int64 lists and reads ~200 videos/s; ZLIB ~700 videos/s;
-  # BYTES ~1,300-1,800 videos/s. The files are the same size (~22 KB per
-  # video) for all three, as array_record already compresses every record.
-  TENSOR_ENCODING = tfds.features.Encoding.BYTES
-  RELEASE_NOTES = {'1.0.0': 'Initial release.'}
-
-  def __init__(self, *, generation: SyntheticConfig,
-               num_workers: int | None = None, **kwargs: Any):
-    self._num_workers = num_workers
-    super().__init__(
-        config=SyntheticObj3dConfig(
-            name=generation.slug, generation=generation,
-            description=json.dumps(dataclasses.asdict(generation))),
-        file_format='array_record', **kwargs)
-
-  @tfds.core.utils.classproperty
-  @classmethod
-  def code_path(cls) -> None:
-    # tfds 4.9.x resolves the builder's source file (to look for a checksums
-    # file of downloads) via `importlib_resources`, a package it only declares
-    # for Python < 3.9; nothing is downloaded here, so there is nothing to find.
-    return None
-
-  @property
-  def generation(self) -> SyntheticConfig:
-    return self.builder_config.generation
-
-  def _info(self) -> tfds.core.DatasetInfo:
-    g = self.generation
-    h, w = g.resolution
-    t, o = g.num_frames, g.max_objects_total
-
-    def tensor(shape: tuple[int, ...], dtype: Any) -> tfds.features.Tensor:
-      return tfds.features.Tensor(shape=shape, dtype=dtype,
-                                  encoding=self.TENSOR_ENCODING)
-
-    return self.dataset_info_from_configs(
-        description=('OBJ3D-like synthetic videos rendered with pybullet: '
-                     'static CLEVR objects hit by a launched sphere.'),
-        features=tfds.features.FeaturesDict({
-            'video': tensor((t, h, w, 3), np.uint8),
-            'segmentations': tensor((t, h, w), np.uint8),
-            'boxes': tensor((t, o, 4), np.float32),
-            'visible': tensor((t, o), np.bool_),
-            'positions': tensor((t, o, 3), np.float32),
-            'num_objects': tfds.features.Scalar(np.int32),
-            'shapes': tensor((o,), np.int32),
-            'colors': tensor((o,), np.int32),
-            'sizes': tensor((o,), np.int32),
-            'index': tfds.features.Scalar(np.int32),
-        }),
-        disable_shuffling=True,
-    )
-
-  def _split_generators(self, dl_manager: Any) -> dict[str, Iterator[Any]]:
-    del dl_manager  # nothing to download
-    return {split: self._generate_examples(split) for split in SPLITS
-            if self.generation.num_videos(split) > 0}
-
-  def _generate_examples(self, split: str
-                         ) -> Iterator[tuple[int, dict[str, np.ndarray]]]:
-    count = self.generation.num_videos(split)
-    make = functools.partial(_example_for_worker, self.generation, split)
-    yield from enumerate(ordered_map(make, count, self._num_workers))
 
 
 def build_synthetic_dataset(config: SyntheticConfig,
@@ -539,7 +485,7 @@ def build_synthetic_dataset(config: SyntheticConfig,
 
   Args:
     config: generation parameters; they determine the folder
-      ``<data_dir>/synthetic_obj3d/<config.slug>/1.0.0``.
+      ``<data_dir>/synthetic_obj3d/<config.slug>/2.0.0``.
     data_dir: cache root; default :func:`data_dir.default_data_dir`.
     num_workers: generator processes (default: all cores).
 
@@ -562,11 +508,15 @@ def build_synthetic_dataset(config: SyntheticConfig,
       return path
     for leftover in path.parent.glob(f'incomplete.*_{path.name}'):
       shutil.rmtree(leftover, ignore_errors=True)
-    builder = SyntheticObj3d(generation=config, data_dir=os.fspath(root),
-                             num_workers=num_workers)
-    builder.download_and_prepare(
-        download_config=tfds.download.DownloadConfig(try_download_gcs=False))
-    if Path(builder.data_dir) != path:
-      raise RuntimeError(f'tfds wrote to {builder.data_dir}, expected {path}')
-    record_checksums(path)
+    # Record i of a split is video i (ordered_map keeps the index order).
+    splits = [s for s in SPLITS if config.num_videos(s) > 0]
+    chunked_writer.write_folder(
+        path, name=NAME, features=features(config), description=DESCRIPTION,
+        splits={s: ordered_map(functools.partial(_example_for_worker,
+                                                 config, s),
+                               config.num_videos(s), num_workers)
+                for s in splits},
+        sizes={s: config.num_videos(s) for s in splits},
+        metadata={'generation': json.loads(json.dumps(
+            dataclasses.asdict(config)))})
   return path

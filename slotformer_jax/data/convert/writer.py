@@ -7,7 +7,9 @@ picklable object with a unique ``key``); :func:`convert` does the rest:
 
 * the jobs of a split are cut into fixed chunks of ``videos_per_shard``; chunk
   ``i`` becomes shard file ``<name>-<split>.array_record-<i>-of-<n>``
-  (records in job order, skipped videos left out), written to a temporary
+  (records in job order, skipped videos left out; each video is a header
+  record and records of ``chunked.FRAMES_PER_CHUNK`` frames, the layout of
+  ``data/chunked.py``, indexed by ``video_chunks.json``), written to a temporary
   name and renamed when complete, then marked done by a small JSON sidecar.
   An interrupted conversion therefore resumes at shard granularity, and a
   manifest of the job keys guards against resuming with a different input.
@@ -52,6 +54,8 @@ import numpy as np
 import tensorflow_datasets as tfds
 import tqdm
 
+from slotformer_jax.data import chunked
+from slotformer_jax.data.convert import chunked_writer
 from slotformer_jax.data.convert import media
 from slotformer_jax.data.convert.checksums import record_checksums
 from slotformer_jax.data.convert.pool import process_pool
@@ -61,10 +65,14 @@ from slotformer_jax.files import write_json_atomic
 
 logger = logging.getLogger(__name__)
 
-VERSION = '1.0.0'
+# The chunked layout (data/chunked.py): a video is a header record and
+# records of FRAMES_PER_CHUNK frames, so a training clip decompresses only
+# its chunks. Folders of the whole-video layout before it are '1.0.0' (still
+# read, see sources.TfdsVideoSource).
+VERSION = chunked.TFDS_VERSION
 # One record per compression group (as TFDS writes array_record): random
-# access to a video decompresses that video only.
-RECORD_OPTIONS = 'group_size:1'
+# access to a chunk decompresses that chunk only.
+RECORD_OPTIONS = chunked.RECORD_OPTIONS
 # Raw bytes, as in synthetic.py: the fastest numpy round trip, and the files
 # are no larger since array_record compresses every record anyway.
 TENSOR_ENCODING = tfds.features.Encoding.BYTES
@@ -184,6 +192,7 @@ class _ShardTask:
   num_shards: int
   jobs: tuple[Any, ...]
   dataset_dir: Path
+  frames_per_chunk: int = chunked.FRAMES_PER_CHUNK
 
 
 def shard_filename(name: str, split: str, index: int, num_shards: int) -> str:
@@ -217,17 +226,15 @@ def _convert_shard(task: _ShardTask) -> dict[str, Any]:
   """
   # Imported here: workers are spawned and only need it in this function.
   from array_record.python import array_record_module  # pylint: disable=g-import-not-at-top
-  from tensorflow_datasets.core import example_serializer  # pylint: disable=g-import-not-at-top
 
-  features = task.spec.features_fn()
-  serializer = example_serializer.ExampleSerializer(
-      features.get_serialized_info())
+  serializer = chunked_writer.VideoSerializer(
+      chunked.Layout(task.spec.features_fn(), task.frames_per_chunk))
   final = task.dataset_dir / shard_filename(
       task.spec.name, task.split, task.index, task.num_shards)
   # Written inside _progress/ so a half-written file never matches the
   # shard-name pattern that write_metadata scans for.
   tmp = _progress_dir(task.dataset_dir) / (final.name + '.tmp')
-  keys, skipped = [], []
+  keys, skipped, frames, num_records = [], [], [], 0
   writer = array_record_module.ArrayRecordWriter(os.fspath(tmp),
                                                  RECORD_OPTIONS)
   try:
@@ -245,14 +252,19 @@ def _convert_shard(task: _ShardTask) -> dict[str, Any]:
         # video, rather than silently dropping it.
         raise RuntimeError(f'converting {task.split}/{job.key} failed: '
                            f'{type(error).__name__}: {error}') from error
-      writer.write(serializer.serialize_example(
-          features.encode_example(example)))
+      records, num_frames = serializer.records(example)
+      for record in records:
+        writer.write(record)
+      num_records += len(records)
       keys.append(job.key)
+      frames.append(num_frames)
   finally:
     writer.close()
   os.replace(tmp, final)
   payload = {'keys': keys, 'skipped': skipped,
-             'num_bytes': final.stat().st_size}
+             'num_bytes': final.stat().st_size, 'num_frames': frames,
+             'num_records': num_records,
+             'frames_per_chunk': task.frames_per_chunk}
   _write_json_atomic(_sidecar_path(task.dataset_dir, task.split, task.index),
                      payload)
   return payload
@@ -358,7 +370,9 @@ def convert(spec: DatasetSpec, jobs: Mapping[str, Sequence[Job]],
             num_workers: int | None = None, videos_per_shard: int = 32,
             process_index: int = 0, process_count: int = 1,
             max_skip_fraction: float = 0.05, overwrite: bool = False,
-            progress: bool = True) -> ConversionResult:
+            progress: bool = True,
+            frames_per_chunk: int = chunked.FRAMES_PER_CHUNK
+            ) -> ConversionResult:
   """Converts the jobs of every split into ``spec.dataset_dir(data_dir)``.
 
   Args:
@@ -375,6 +389,9 @@ def convert(spec: DatasetSpec, jobs: Mapping[str, Sequence[Job]],
     overwrite: delete an existing (finished or partial) conversion with the
       same parameters first.
     progress: show a progress bar.
+    frames_per_chunk: frames per record (``data/chunked.py``; 0 writes the
+      whole-video records of the 1.0.0 layout, for tests and benchmarks,
+      into a ``1.0.0`` folder).
 
   Raises:
     ConversionError: too many skipped videos, or an unfinished conversion
@@ -388,6 +405,8 @@ def convert(spec: DatasetSpec, jobs: Mapping[str, Sequence[Job]],
     raise ValueError(f'need 0 <= process_index < process_count, got '
                      f'{process_index} / {process_count}')
   dataset_dir = spec.dataset_dir(data_dir)
+  if not frames_per_chunk:
+    dataset_dir = dataset_dir.parent / chunked_writer.WHOLE_VIDEO_VERSION
   if overwrite and dataset_dir.exists():
     logger.info('Deleting %s (--overwrite)', dataset_dir)
     shutil.rmtree(dataset_dir)
@@ -426,7 +445,7 @@ def convert(spec: DatasetSpec, jobs: Mapping[str, Sequence[Job]],
             spec=spec, split=split, index=index, num_shards=num_shards,
             jobs=tuple(split_jobs[index * videos_per_shard:
                                   (index + 1) * videos_per_shard]),
-            dataset_dir=dataset_dir))
+            dataset_dir=dataset_dir, frames_per_chunk=frames_per_chunk))
 
   processed = sum(len(t.jobs) for t in tasks)
   if tasks:
@@ -516,14 +535,24 @@ def _write_metadata(spec: DatasetSpec, dataset_dir: Path,
   _write_json_atomic(dataset_dir / NAMES_FILE, {
       split: [key for payload in payloads for key in payload['keys']]
       for split, payloads in sorted(split_payloads.items())})
+  chunk_sizes = {p.get('frames_per_chunk') for payloads in
+                 split_payloads.values() for p in payloads}
+  if len(chunk_sizes) != 1 or None in chunk_sizes:
+    raise ConversionError(
+        f'{dataset_dir} holds shards written with different chunk sizes '
+        f'({sorted(map(str, chunk_sizes))}); convert again with --overwrite.')
+  layout = chunked.Layout(spec.features_fn(), chunk_sizes.pop())
+  chunked_writer.write_index(dataset_dir, layout, {
+      split: [t for p in payloads for t in p['num_frames']]
+      for split, payloads in split_payloads.items()})
   split_infos = [
       tfds.core.SplitInfo(name=split,
-                          shard_lengths=[len(p['keys']) for p in payloads],
+                          shard_lengths=[p['num_records'] for p in payloads],
                           num_bytes=sum(p['num_bytes'] for p in payloads))
       for split, payloads in sorted(split_payloads.items())]
   tfds.folder_dataset.write_metadata(
       data_dir=os.fspath(dataset_dir), features=spec.features_fn(),
-      split_infos=split_infos, version=VERSION,
+      split_infos=split_infos, version=dataset_dir.name,
       # check_data reads an example through tf.data, which needs TensorFlow.
       check_data=False, description=spec.description,
       metadata=tfds.core.MetadataDict(

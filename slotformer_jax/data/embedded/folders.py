@@ -16,8 +16,10 @@ from pathlib import Path
 
 from slotformer_jax.errors import MissingInputError
 
-# The TFDS version folder of every embedded TFDS family.
-TFDS_VERSION = '1.0.0'
+# The TFDS version folder of every embedded TFDS family: 2.0.0 is the
+# chunked layout (data/chunked.py TFDS_VERSION); a 1.0.0 folder of an older
+# checkout (whole-video records) is left alone and a 2.0.0 one generated.
+TFDS_VERSION = '2.0.0'
 DATASET_INFO = 'dataset_info.json'
 # The command that makes the embedded data (stages/data.py); every --mode
 # runs it first, so readers only meet a missing dataset outside main.

@@ -6,7 +6,7 @@ files they name under ``<data_dir>/synthetic_phyre/``:
 
 * ``<slug>/labels.npz``: the simulated outcome of every candidate action on
   every task (planning reads them: :func:`load_task_labels`);
-* ``<slug>_v<train>-<val>_p<ratio>[_l<layouts>]/1.0.0``: the SAVi /
+* ``<slug>_v<train>-<val>_p<ratio>[_l<layouts>]/2.0.0``: the SAVi /
   SlotFormer training videos (TFDS, :func:`video_dataset_dir`).
 
 The world itself (tasks, physics, rendering) is ``worlds/phyre_like.py``;

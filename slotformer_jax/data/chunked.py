@@ -1,0 +1,178 @@
+"""Chunked video records: a training clip reads only the frames it holds.
+
+Layout ``chunked`` version 1 (TFDS version folder ``2.0.0`` of the converted
+and embedded datasets; the whole-video layout before it is ``1.0.0``). The
+folder stays an ``array_record`` TFDS folder (``dataset_info.json``,
+``features.json`` describing the *videos*, as before, and shard files
+``<name>-<split>.array_record-<i>-of-<n>``), but the records of one video
+are::
+
+    [header]  the video's per-video fields (scalars, strings, per-object
+              arrays), when the dataset has any
+    chunk 0   frames 0 .. K-1 of every time-axis field (video,
+              segmentations, boxes, visible, ...)
+    chunk 1   frames K .. 2K-1
+    ...       (the last chunk holds the remaining 1..K frames)
+
+each record compressed on its own (``group_size:1``), videos one after the
+other in index order. ``video_chunks.json`` (this module's ``INDEX_FILE``,
+covered by ``checksums.json``) holds the layout, ``K``, the time-axis fields
+and, per split, every video's frame count and first record, so a reader
+knows a video's length without decoding it and reads a clip's frames from
+``ceil``-many chunks instead of the whole video.
+
+Time-axis fields are the ``video`` and every other ``Tensor`` feature of
+rank >= 2 whose first dimension is the video's (``(T, ...)`` or ``(None,
+...)``); :func:`time_fields`. Records are TFDS-serialised examples of
+derived feature dicts (time fields with their first dimension free; the
+header: the other fields), decoded with TFDS's numpy decoder as the
+whole-video records were, so values are bit-identical across layouts.
+
+Chunk size ``K`` (:data:`FRAMES_PER_CHUNK`), measured with
+``benchmarks/clip_reader.py --chunks=1,2,4,8`` on one pinned core (table in
+docs/datasets.md, "Record layout"): smaller chunks read fewer unneeded
+frames but pay the per-record cost (lookup, decompression set-up, proto)
+more often and compress worse; larger ones decompress more unneeded frames.
+Delivered clip frames/s per core, whole videos -> K=1 / 2 / 4 / 8:
+
+* OBJ3D SAVi (6 of 50 frames): 2,519 -> 12,172 / 14,103 / 12,838 / 11,210
+* CLEVRER SAVi (6 of 128): 959 -> 11,379 / 14,380 / 14,061 / 10,369
+* OBJ3D SlotFormer L_I (16 of 50 + slots): 6,965 -> 13,778 / 18,113 /
+  18,571 / 16,662
+* CLEVRER SlotFormer L_I (16 stride 2 of 128 + slots): 2,144 -> 6,249 /
+  9,233 / 9,736 / 9,806
+* Physion dVAE (1 of 150, 128x128): 21 -> 2,853 / 1,764 / 1,082 / 591
+* file size relative to whole videos: +19 % / +15 % / +10 % / +7 %
+
+K = 4: best or within 10 % of the best for 6- and 16-frame clips, for
+10 % more disk.
+
+Why not an uncompressed memory map: CLEVRER's 10k training videos of 128
+frames are 15.7 GB of raw 64x64 frames (63 GB at 128x128); the compressed
+records of rendered scenes are a fraction of that, and the checksums,
+resumable conversion and TFDS metadata keep working unchanged.
+
+This module is the layout and its index as the reader sees them (reading
+never writes); ``data/convert/chunked_writer.py`` serialises videos into
+records and writes folders (the embedded families), and
+``data/convert/writer.py`` writes converted datasets shard by shard with it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+import os
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import tensorflow_datasets as tfds
+
+from slotformer_jax.errors import UserError
+from slotformer_jax.files import read_json
+
+LAYOUT = 'chunked'
+LAYOUT_VERSION = 1
+# The TFDS version folder of a dataset in this layout (1.0.0: whole videos).
+TFDS_VERSION = '2.0.0'
+INDEX_FILE = 'video_chunks.json'  # = integrity.CHUNK_INDEX_FILE
+FRAMES_PER_CHUNK = 4
+# One record per compression group: reading a chunk decompresses it alone.
+RECORD_OPTIONS = 'group_size:1'
+
+
+def time_fields(features: tfds.features.FeaturesDict) -> tuple[str, ...]:
+  """The fields with a time axis: ``video`` and every Tensor of rank >= 2
+  whose first dimension is the video's."""
+  frames = features['video'].shape[0]
+  out = []
+  for key, feature in features.items():
+    shape = getattr(feature, 'shape', None)
+    if key == 'video' or (
+        isinstance(feature, tfds.features.Tensor) and shape is not None
+        and len(shape) >= 2 and shape[0] == frames):
+      out.append(key)
+  return tuple(out)
+
+
+def _free_time(feature: tfds.features.Tensor) -> tfds.features.Tensor:
+  return tfds.features.Tensor(
+      shape=(None,) + tuple(feature.shape[1:]), dtype=feature.np_dtype,
+      encoding=feature._encoding)  # pylint: disable=protected-access
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Layout:
+  """How one dataset's videos become records (and back).
+
+  Attributes:
+    features: the videos' features (what ``features.json`` describes).
+    frames_per_chunk: K; 0 is the whole-video layout (one record per video
+      with ``features``), which the writers keep for tests and benchmarks.
+  """
+
+  features: tfds.features.FeaturesDict
+  frames_per_chunk: int = FRAMES_PER_CHUNK
+
+  @functools.cached_property
+  def time(self) -> tuple[str, ...]:
+    return time_fields(self.features)
+
+  @functools.cached_property
+  def header(self) -> tuple[str, ...]:
+    return tuple(k for k in self.features if k not in self.time)
+
+  @functools.cached_property
+  def chunk_features(self) -> tfds.features.FeaturesDict:
+    return tfds.features.FeaturesDict(
+        {k: _free_time(self.features[k]) for k in self.time})
+
+  @functools.cached_property
+  def header_features(self) -> tfds.features.FeaturesDict | None:
+    if not self.header:
+      return None
+    return tfds.features.FeaturesDict(
+        {k: self.features[k] for k in self.header})
+
+  def num_records(self, num_frames: int) -> int:
+    if not self.frames_per_chunk:
+      return 1
+    return bool(self.header) + math.ceil(num_frames / self.frames_per_chunk)
+
+  def index(self, split_frames: Mapping[str, Sequence[int]]
+            ) -> dict[str, Any]:
+    """The contents of ``INDEX_FILE`` for {split: frame count per video}."""
+    splits = {}
+    for split, frames in sorted(split_frames.items()):
+      counts = [self.num_records(int(t)) for t in frames]
+      first = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(int)
+      splits[split] = {'num_frames': [int(t) for t in frames],
+                       'first_record': [int(r) for r in first],
+                       'num_records': int(sum(counts))}
+    return {'layout': LAYOUT, 'layout_version': LAYOUT_VERSION,
+            'frames_per_chunk': self.frames_per_chunk,
+            'time_fields': list(self.time), 'header_fields': list(self.header),
+            'splits': splits}
+
+
+def read_index(dataset_dir: str | os.PathLike[str]) -> dict[str, Any] | None:
+  """The folder's chunk index; None for a whole-video (1.0.0) folder.
+
+  Raises:
+    UserError: an index of a layout this code does not know.
+  """
+  path = Path(dataset_dir) / INDEX_FILE
+  if not path.is_file():
+    return None
+  index = read_json(path, fix=f'Delete {dataset_dir} and prepare it again.')
+  if (index.get('layout') != LAYOUT
+      or index.get('layout_version') != LAYOUT_VERSION):
+    raise UserError(
+        f'{dataset_dir} is in layout {index.get("layout")!r} version '
+        f'{index.get("layout_version")!r}; this code reads {LAYOUT!r} '
+        f'version {LAYOUT_VERSION} and whole-video folders. Update the code '
+        'or prepare the dataset again.')
+  return index
