@@ -255,6 +255,14 @@ def worker_batches(make_bytes: bytes, start_step: int, num_workers: int,
         process.kill()
         process.join(5.0)
     for connection in results:
+      # Blocks a worker made but we never asked for: unlink them too.
+      try:
+        while connection.poll(0):
+          message = connection.recv()
+          if message[0] == 'block':
+            _release(_attach(message[2]))
+      except (EOFError, OSError):
+        pass
       connection.close()
     for block in blocks.values():
       _release(block)
