@@ -263,3 +263,23 @@ def test_bad_num_workers():
   with pytest.raises(ValueError, match='num_workers must be an integer >= 0'):
     pipeline.train_batches(CodeSource([4]), batch_size=1, clip_length=2,
                            seed=0, num_workers=-1)
+
+
+@pytest.mark.parametrize('value', [-1, -3])
+def test_config_rejects_bad_reader_workers(value):
+  from slotformer_jax.config import checks
+  from slotformer_jax.config import defaults
+  from slotformer_jax.errors import ConfigError
+  config = defaults.base_config()
+  config.data.reader_workers = value
+  with pytest.raises(ConfigError) as caught:
+    checks.validate(config, ['train_savi'], num_devices=1)
+  assert (f'data.reader_workers must be an integer >= 0, got {value!r}'
+          in str(caught.value))
+  assert '\n' not in str(caught.value)
+
+
+def test_reader_workers_is_not_a_setting_of_the_run():
+  from slotformer_jax.workdir import identity
+  assert 'reader_workers' in identity.NOT_SHAPING
+  assert identity.ADDED_FIELDS['data.reader_workers'] == 0
