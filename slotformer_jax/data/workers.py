@@ -13,7 +13,8 @@ Why these choices (measured in docs/experiments/reader.md):
 * ``spawn`` processes, never ``fork`` (the parent has jax's threads). A
   worker starts with a fresh interpreter and unpickles ``make`` (a
   `functools.partial` of `pipeline.make_train_batch` with its source), about
-  1 s per worker, once per stream. Memory-mapped arrays in a source
+  1 s per worker, once per stream; it does not re-import the parent's main
+  module (`_start`), so no jax in the workers. Memory-mapped arrays in a source
   (extracted slots, tokens, the embedded datasets) pickle as their file and
   offset (`_dumps`), not as a copy of the data.
 * Batches come back through shared memory, not a pipe: a worker writes the
@@ -42,7 +43,9 @@ from multiprocessing import shared_memory
 import os
 import pickle
 import signal
+import sys
 import traceback
+import types
 import warnings
 from collections.abc import Callable, Iterator
 from typing import Any
@@ -211,7 +214,7 @@ def worker_batches(make_bytes: bytes, start_step: int, num_workers: int,
           args=(index, num_workers, start_step, depth, make_bytes, control_r,
                 results_w),
           daemon=True)
-      process.start()
+      _start(process, make_bytes)
       # The child has its own copies; closing ours lets it see our EOF.
       control_r.close()
       results_w.close()
@@ -266,6 +269,24 @@ def worker_batches(make_bytes: bytes, start_step: int, num_workers: int,
       connection.close()
     for block in blocks.values():
       _release(block)
+
+
+def _start(process: multiprocessing.process.BaseProcess,
+           make_bytes: bytes) -> None:
+  """Starts `process` without making it import the parent's main module
+  (a spawned child re-imports it: the CLI's would import jax, flax and the
+  models into every worker, seconds and hundreds of MB each), unless the
+  pickled ``make`` refers to it (a source class defined in a script)."""
+  main = sys.modules.get('__main__')
+  if main is None or b'__main__' in make_bytes:
+    process.start()
+    return
+  # A module with neither __spec__ nor __file__: nothing to re-import.
+  sys.modules['__main__'] = types.ModuleType('__main__')
+  try:
+    process.start()
+  finally:
+    sys.modules['__main__'] = main
 
 
 def _receive(results: mp_connection.Connection,
