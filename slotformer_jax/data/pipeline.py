@@ -11,7 +11,8 @@ Videos may have different lengths.
   and the data, so a run resumed at ``start_step=k`` sees exactly the
   batches an uninterrupted run sees from step ``k``, and the split of the
   global batch over hosts does not change it. Batches are built in a
-  background thread.
+  background thread, or in ``num_workers`` worker processes
+  (``data.reader_workers``; data/workers.py) that yield the same stream.
 * :func:`eval_batches`: every video of the host's shard once, in order, in
   fixed-shape batches padded at the end and marked by a ``mask``.
 * :func:`host_batches`: the same plan as indices only (for loops that read
@@ -211,7 +212,7 @@ def train_batches(source: Source, *, batch_size: int, clip_length: int,
     prefetch: batches built ahead in a background thread (0: no thread), or
       with `num_workers`, by each worker process.
     num_workers: 0: build the batches in this process (the thread above);
-      N >= 1: in N worker processes (`data.workers`), worker w building
+      N >= 1: in N worker processes (`data.reader_workers`), worker w building
       the steps s with (s - start_step) % N == w. The stream is the same
       either way. A source that does not pickle falls back to the thread,
       with a warning.
