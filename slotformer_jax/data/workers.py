@@ -131,8 +131,22 @@ def _worker_main(index: int, num_workers: int, start_step: int, depth: int,
   blocks: list[shared_memory.SharedMemory | None] = [None] * depth
   free = list(range(depth))
   step = start_step + index
+
+  def report(error: BaseException) -> None:
+    try:
+      pickled = pickle.dumps(error)
+    except Exception:  # pylint: disable=broad-except
+      pickled = None
+    results.send(('error', step, pickled, type(error).__name__,
+                  _first_line(error), traceback.format_exc()))
+    control.recv()  # wait for the consumer to close the stream
+
   try:
-    make = pickle.loads(make_bytes)
+    try:
+      make = pickle.loads(make_bytes)  # e.g. reopens the source's folder
+    except Exception as error:  # pylint: disable=broad-except
+      report(error)
+      return
     while True:
       # Blocks the consumer has copied out; EOF: the consumer is done.
       while control.poll(0 if free else None):
@@ -140,13 +154,7 @@ def _worker_main(index: int, num_workers: int, start_step: int, depth: int,
       try:
         batch = _flatten(make(step))
       except BaseException as error:  # pylint: disable=broad-except
-        try:
-          pickled = pickle.dumps(error)
-        except Exception:  # pylint: disable=broad-except
-          pickled = None
-        results.send(('error', step, pickled, type(error).__name__,
-                      _first_line(error), traceback.format_exc()))
-        control.recv()  # wait for the consumer to close the stream
+        report(error)
         return
       slot = free.pop(0)
       nbytes = max(1, sum(array.nbytes for _, array in batch))

@@ -138,6 +138,26 @@ def test_worker_error_reaches_the_consumer_in_one_line(timeout):
   it.close()
 
 
+def _cannot_reopen():
+  raise OSError('cannot reopen the dataset folder')
+
+
+class ReopensBadly(CodeSource):
+
+  def __reduce__(self):
+    return _cannot_reopen, ()
+
+
+def test_a_source_that_fails_to_unpickle_in_the_worker(timeout):
+  it = pipeline.train_batches(ReopensBadly([10] * 3), batch_size=2,
+                              clip_length=2, seed=0, start_step=4,
+                              num_workers=2)
+  with pytest.raises(OSError, match=r'^training reader worker 0 \(pid \d+\), '
+                     'step 4: cannot reopen the dataset folder$'):
+    next(it)
+  it.close()
+
+
 def test_unpicklable_worker_error_is_a_reader_worker_error():
   previous = _with_timeout(60)
   try:
