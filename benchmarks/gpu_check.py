@@ -4,6 +4,14 @@ is one): one case per process, so the peak memory is that case's own.
   python benchmarks/gpu_check.py --config=obj3d --step=savi \
       --dtype=bfloat16 [--per_device_batch=16] [--repeats=10] [--json=rows.jsonl]
   python benchmarks/gpu_check.py --smoke ...   # tiny config, 1 step (CPU)
+  python benchmarks/gpu_check.py --fed [--reader_workers=2] ...
+
+`--fed` also times the step fed by the real reader (train_batches with
+`--reader_workers` worker processes and device prefetch, as the trainer
+feeds it, on a converted OBJ3D-like fixture at the step's shapes:
+benchmarks/feed_check.py) against the same step on a batch already on the
+device, and says 'input-bound' (fed more than 10 % slower) or
+'compute-bound'.
 
 benchmarks/gpu_check.sh runs every case and prints the table. The step is
 the one the trainer runs (`trainer.jit_update` of the stage built by
@@ -23,6 +31,7 @@ import json
 import os
 import sys
 import time
+from pathlib import Path
 
 sys.path.insert(0, os.path.dirname(__file__))
 # tpu_compile keeps jax on CPU unless JAX_PLATFORMS is set: '' = every
@@ -60,7 +69,9 @@ def _random_like(tree, rng: np.random.Generator, token_limit: int):
 
 
 def run_case(config_name: str, step: str, dtype: str, per_device_batch,
-             repeats: int, compile_only: bool = False) -> dict | None:
+             repeats: int, compile_only: bool = False, fed: bool = False,
+             reader_workers: int = 2, fed_dir: str = '/tmp/gpu_check_feed',
+             fed_repeats: int = 20) -> dict | None:
   config = tpu_compile.load_config(config_name)
   config.compute_dtype = dtype
   section = tpu_compile.SECTIONS[step]
@@ -102,7 +113,20 @@ def run_case(config_name: str, step: str, dtype: str, per_device_batch,
   median = float(np.median(times))
   stats = device.memory_stats() or {}
   peak = stats.get('peak_bytes_in_use')
-  return dict(config=config_name, step=step, dtype=dtype,
+  feed = {}
+  if fed:
+    import feed_check  # pylint: disable=g-import-not-at-top
+    feed = feed_check.time_fed_vs_resident(
+        compiled, state, frozen, batch, mesh,
+        frame_stride=config[section].get('frame_stride', 1),
+        reader_workers=reader_workers, repeats=fed_repeats,
+        workdir=Path(fed_dir))
+    print(f'{config_name} {step} {dtype}: {feed["fed_ms"]:.1f} ms per step '
+          f'fed by the reader ({reader_workers} worker processes, device '
+          f'prefetch) vs {feed["resident_ms"]:.1f} ms on a batch already on '
+          f'the device: {feed["verdict"]} (x{feed["fed_over_resident"]:.2f}; '
+          f'batch {feed["batch_mib"]:.1f} MiB)', file=sys.stderr, flush=True)
+  return dict(**feed, config=config_name, step=step, dtype=dtype,
               per_device_batch=per_device_batch, device=device.device_kind,
               platform=device.platform, median_seconds=median,
               steps_timed=len(times), peak_bytes=peak, flops=flops,
@@ -125,13 +149,23 @@ def main(argv=None) -> int:
   parser.add_argument('--compile_only', action='store_true',
                       help='compile (into $JAX_COMPILATION_CACHE_DIR) only')
   parser.add_argument('--json', default='', help='appends one JSON line')
+  parser.add_argument('--fed', action='store_true',
+                      help='also time the step fed by the real reader')
+  parser.add_argument('--reader_workers', type=int, default=2,
+                      help='reader worker processes for --fed')
+  parser.add_argument('--fed_repeats', type=int, default=20)
+  parser.add_argument('--fed_dir', default='/tmp/gpu_check_feed',
+                      help='where --fed writes (and reuses) its fixture')
   args = parser.parse_args(argv)
   config_name, repeats = args.config, args.repeats
   if args.smoke:
     config_name, repeats = SMOKE_CONFIGS[args.step], 1
   try:
     row = run_case(config_name, args.step, args.dtype, args.per_device_batch,
-                   repeats, args.compile_only)
+                   repeats, args.compile_only, fed=args.fed,
+                   reader_workers=args.reader_workers, fed_dir=args.fed_dir,
+                   fed_repeats=(min(args.fed_repeats, 3) if args.smoke
+                                else args.fed_repeats))
     if row is None:
       return 0
   except Exception as error:  # pylint: disable=broad-except

@@ -18,6 +18,14 @@
 # Environment: GPU_CHECK_BUDGET_S (default 420: under 8 minutes with the
 # table), GPU_CHECK_CASE_TIMEOUT_S (default 150), GPU_CHECK_DTYPES (default
 # "float32 bfloat16"), GPU_CHECK_CASES ("config step;..." to run a subset).
+# Then, is the first run input-bound? Each of GPU_CHECK_FED_CASES (default
+# "obj3d savi;obj3d slotformer", float32) is timed fed by the real reader
+# (GPU_CHECK_READER_WORKERS worker processes, default 2, and device
+# prefetch, as training feeds it) against the same step on a batch already
+# on the device: per step ms both ways and 'input-bound' / 'compute-bound'
+# (OUT_DIR/gpu_check_fed.jsonl and a second table), within
+# GPU_CHECK_FED_BUDGET_S (default 150; 0 skips it). Its fixture (converted
+# OBJ3D-like videos) is kept in OUT_DIR/feed.
 set -u
 cd "$(dirname "$0")/.."
 SMOKE=()
@@ -73,7 +81,31 @@ for dtype in ${GPU_CHECK_DTYPES:-float32 bfloat16}; do
     fi
   done
 done
-python - "$ROWS" "$OUT_DIR/gpu_check.md" "$((SECONDS - START))" <<'EOF'
+# Phase 3: the steps fed by the real reader vs on a resident batch.
+FED_ROWS="$OUT_DIR/gpu_check_fed.jsonl"
+: > "$FED_ROWS"
+FED_START=$SECONDS
+FED_BUDGET_S="${GPU_CHECK_FED_BUDGET_S:-150}"
+if ((FED_BUDGET_S > 0)); then
+  IFS=';' read -r -a FED_CASES <<<"${GPU_CHECK_FED_CASES:-obj3d savi;obj3d slotformer}"
+  for case in "${FED_CASES[@]}"; do
+    read -r config step <<<"$case"
+    left=$((FED_BUDGET_S - (SECONDS - FED_START)))
+    if ((left < 20)); then
+      echo "{\"config\": \"$config\", \"step\": \"$step\", \"dtype\": \"float32\", \"error\": \"skipped: time budget of ${FED_BUDGET_S} s spent\"}" >>"$FED_ROWS"
+      continue
+    fi
+    timeout "$left" python benchmarks/gpu_check.py --config="$config" \
+      --step="$step" --dtype=float32 --json="$FED_ROWS" --fed \
+      --reader_workers="${GPU_CHECK_READER_WORKERS:-2}" \
+      --fed_dir="$OUT_DIR/feed" "${SMOKE[@]}" \
+      >/dev/null 2>"$OUT_DIR/last_fed_stderr.txt"
+    if (($? == 124)); then
+      echo "{\"config\": \"$config\", \"step\": \"$step\", \"dtype\": \"float32\", \"error\": \"timed out after ${left} s\"}" >>"$FED_ROWS"
+    fi
+  done
+fi
+python - "$ROWS" "$OUT_DIR/gpu_check.md" "$((SECONDS - START))" "$FED_ROWS" <<'EOF'
 import json, sys
 rows = [json.loads(line) for line in open(sys.argv[1])]
 lines = ['| config | step | dtype | batch/device | median s/step | peak GiB '
@@ -91,6 +123,22 @@ for r in rows:
       f"{r['flops'] / 1e9:.1f} | {r['tflops_per_second']:.2f} | "
       f"{r['compile_seconds']:.1f} | {r['device']} |")
 lines.append(f'\n{len(rows)} cases in {sys.argv[3]} s.')
+fed = [json.loads(line) for line in open(sys.argv[4])]
+if fed:
+  lines += ['', 'Fed by the real reader (reader worker processes + device '
+            'prefetch) vs on a batch already on the device; input-bound: '
+            'more than 10 % slower fed:', '',
+            '| config | step | reader workers | ms/step fed | ms/step '
+            'resident | fed / resident | verdict |',
+            '|---|---|---|---|---|---|---|']
+  for r in fed:
+    if 'fed_ms' not in r:
+      lines.append(f"| {r['config']} | {r['step']} | "
+                   f"{r.get('error', 'no fed timing')} |||||")
+      continue
+    lines.append(f"| {r['config']} | {r['step']} | {r['reader_workers']} | "
+                 f"{r['fed_ms']:.1f} | {r['resident_ms']:.1f} | "
+                 f"{r['fed_over_resident']:.2f} | {r['verdict']} |")
 open(sys.argv[2], 'w').write('\n'.join(lines) + '\n')
 print('\n'.join(lines))
 EOF

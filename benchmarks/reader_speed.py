@@ -1,6 +1,8 @@
 r"""Frames per second of the training reader over a converted dataset.
 
   python benchmarks/reader_speed.py [--videos=64] [--seconds=10]
+  python benchmarks/reader_speed.py --workers=1,2 --rounds=6 --seconds=5
+
 
 Writes OBJ3D-layout PNG videos (64x64, 50 frames of smooth backgrounds with
 moving squares, like rendered scenes: they compress as real frames do),
@@ -13,6 +15,12 @@ converts them with ``python -m slotformer_jax.data.prepare``, then times:
   (batch x clip length x batches / s). Since the chunked layout (2.0.0)
   each clip reads only the chunks that hold it (``clip_reader.py``
   compares the layouts).
+
+``--workers=A,B,...`` times ``train_batches(num_workers=A)`` (0: the
+background thread; N: N worker processes, ``data.reader_workers``) against
+the others, alternating within each of ``--rounds`` rounds (order reversed
+every other round), and prints the median frames/s of each and the median
+per-round ratio to the first.
 
 Run it on an otherwise idle machine for numbers you compare.
 """
@@ -74,12 +82,16 @@ def time_random_access(source, seconds: float) -> float:
 
 
 def time_train_batches(source, batch_size: int, clip_length: int,
-                       frame_stride: int, seconds: float) -> float:
+                       frame_stride: int, seconds: float,
+                       num_workers: int = 0) -> float:
   """Delivered clip frames/s of pipeline.train_batches."""
   batches = pipeline.train_batches(
       source, batch_size=batch_size, clip_length=clip_length, seed=0,
-      frame_stride=frame_stride)
-  next(batches)  # start the prefetch thread
+      frame_stride=frame_stride, num_workers=num_workers)
+  # Start the prefetch thread or the workers (process start-up is once per
+  # stage, not what is compared) and let them fill their buffers.
+  for _ in range(1 + 2 * max(1, num_workers)):
+    next(batches)
   count, started = 0, time.perf_counter()
   while time.perf_counter() - started < seconds:
     batch = next(batches)
@@ -95,7 +107,12 @@ def main() -> None:
   parser.add_argument('--seconds', type=float, default=10.0)
   parser.add_argument('--workdir', default=None,
                       help='keep the fixture and conversion here')
+  parser.add_argument('--workers', default='0',
+                      help='comma-separated reader worker counts to compare '
+                      '(0: the thread)')
+  parser.add_argument('--rounds', type=int, default=1)
   args = parser.parse_args()
+  workers = [int(w) for w in args.workers.split(',')]
   with tempfile.TemporaryDirectory() as tmp:
     work = Path(args.workdir or tmp)
     if not (work / 'OBJ3D' / 'train').is_dir():
@@ -113,15 +130,35 @@ def main() -> None:
           f'MiB on disk ({size / (len(source) * FRAMES * RES * RES * 3):.0%}'
           ' of raw); cores available: '
           f'{len(os.sched_getaffinity(0))}')
-    print(f'random access (whole videos): '
-          f'{time_random_access(source, args.seconds):8.0f} frames/s decoded')
-    for batch_size, clip, stride, what in (
-        (64, 6, 1, 'SAVi clips (OBJ3D: batch 64 x 6 frames)'),
-        (64, 16, 1, 'SlotFormer clips with L_I (batch 64 x 16 frames)'),
-        (64, 16, 2, 'CLEVRER-style stride 2 (batch 64 x 16 frames)')):
-      rate = time_train_batches(source, batch_size, clip, stride,
-                                args.seconds)
-      print(f'train_batches {what}: {rate:8.0f} frames/s delivered')
+    print(f'load average before: {_load()}')
+    if workers == [0]:
+      print(f'random access (whole videos): '
+            f'{time_random_access(source, args.seconds):8.0f} frames/s '
+            'decoded')
+    shapes = ((64, 6, 1, 'SAVi clips (OBJ3D: batch 64 x 6 frames)'),
+              (64, 16, 1, 'SlotFormer clips with L_I (batch 64 x 16 frames)'),
+              (64, 16, 2, 'CLEVRER-style stride 2 (batch 64 x 16 frames)'))
+    for batch_size, clip, stride, what in shapes:
+      rates = {w: [] for w in workers}
+      for round_index in range(args.rounds):
+        order = workers if round_index % 2 == 0 else workers[::-1]
+        for w in order:
+          rates[w].append(time_train_batches(source, batch_size, clip, stride,
+                                             args.seconds, num_workers=w))
+      for w in workers:
+        label = 'thread' if w == 0 else f'{w} worker process' + (
+            'es' if w > 1 else '')
+        line = (f'train_batches {what}, {label}: '
+                f'{np.median(rates[w]):8.0f} frames/s delivered')
+        if w != workers[0]:
+          ratio = np.median(np.asarray(rates[w]) / np.asarray(rates[workers[0]]))
+          line += f' ({ratio:.2f}x {workers[0]}, median of {args.rounds} rounds)'
+        print(line, flush=True)
+    print(f'load average after: {_load()}')
+
+
+def _load() -> str:
+  return ', '.join(f'{x:.2f}' for x in os.getloadavg())
 
 
 if __name__ == '__main__':

@@ -182,7 +182,7 @@ _FIELD_KINDS = (
      r'rollout_frames|max_question_len|max_choice_len|max_choices|'
      r'max_instances)$', 'int', 1, None, 'an integer >= 1'),
     (r'^(lstm_size|max_context|num_videos|num_val|num_test|video_len|'
-     r'dynamics_layouts)$', 'int', 0, None, 'an integer >= 0'),
+     r'dynamics_layouts|reader_workers)$', 'int', 0, None, 'an integer >= 0'),
     (r'^(features|strides|resolution|broadcast_resolution)$', 'ints', 1, None,
      'integers >= 1'),
 )

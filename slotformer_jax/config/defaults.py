@@ -44,6 +44,14 @@ def base_config() -> ml_collections.ConfigDict:
   config.data.resolution = (64, 64)
   # Largest ground-truth instance id in the segmentations (0 = background).
   config.data.max_instances = 6
+  # Worker processes that build the training batches of the step-trained
+  # stages (SAVi/STEVE, SlotFormer; data/workers.py): 0 builds them in one
+  # background thread of the training process (enough on CPU, where the
+  # step itself wants every core, and no process start-up per stage);
+  # N >= 1 spreads them over N processes, for an accelerator host whose
+  # chips wait for the reader (benchmarks/gpu_check.sh says 'input-bound';
+  # docs/performance.md, "Feeding the chips"). The batches are the same.
+  config.data.reader_workers = 0
 
   # ---- stage 1: SAVi ------------------------------------------------------
   config.savi = savi = ml_collections.ConfigDict()

@@ -11,7 +11,8 @@ Videos may have different lengths.
   and the data, so a run resumed at ``start_step=k`` sees exactly the
   batches an uninterrupted run sees from step ``k``, and the split of the
   global batch over hosts does not change it. Batches are built in a
-  background thread.
+  background thread, or in ``num_workers`` worker processes
+  (``data.reader_workers``; data/workers.py) that yield the same stream.
 * :func:`eval_batches`: every video of the host's shard once, in order, in
   fixed-shape batches padded at the end and marked by a ``mask``.
 * :func:`host_batches`: the same plan as indices only (for loops that read
@@ -34,6 +35,7 @@ Dtypes are kept as stored (videos stay uint8); convert on device.
 
 from __future__ import annotations
 
+import functools
 import math
 import queue
 import threading
@@ -42,6 +44,8 @@ from collections.abc import Callable, Iterator, Mapping, Sequence
 from typing import Any, Protocol
 
 import numpy as np
+
+from slotformer_jax.data import workers
 
 # Seed-sequence tags that keep the random streams of a run independent.
 _TAG_ORDER = 0    # which videos, per epoch
@@ -215,7 +219,8 @@ def train_batches(source: Source, *, batch_size: int, clip_length: int,
                   seed: int, start_step: int = 0,
                   fields: Sequence[str] = ('video',), frame_stride: int = 1,
                   process_index: int = 0, process_count: int = 1,
-                  prefetch: int = 2) -> Iterator[dict[str, np.ndarray]]:
+                  prefetch: int = 2, num_workers: int = 0
+                  ) -> Iterator[dict[str, np.ndarray]]:
   """Infinite random training clips, one batch per global step.
 
   Args:
@@ -229,7 +234,13 @@ def train_batches(source: Source, *, batch_size: int, clip_length: int,
     frame_stride: take every ``frame_stride``-th frame.
     process_index, process_count: this host and the number of hosts; host
       ``p`` gets rows ``[p * B, (p + 1) * B)`` of the global batch.
-    prefetch: batches built ahead in a background thread (0: no thread).
+    prefetch: batches built ahead in a background thread (0: no thread), or
+      with `num_workers`, by each worker process.
+    num_workers: 0: build the batches in this process (the thread above);
+      N >= 1: in N worker processes (`data.reader_workers`), worker w building
+      the steps s with (s - start_step) % N == w. The stream is the same
+      either way. A source that does not pickle falls back to the thread,
+      with a warning.
 
   Yields:
     ``{field: [B, L, ...]}`` (scalar fields: ``[B]``), dtypes as stored. The
@@ -246,13 +257,24 @@ def train_batches(source: Source, *, batch_size: int, clip_length: int,
     raise ValueError(f'start_step must be >= 0, got {start_step}')
   fields = tuple(fields)
   _check_host(process_index, process_count)  # validate early
+  if not isinstance(num_workers, int) or num_workers < 0:
+    raise ValueError(f'num_workers must be an integer >= 0, got {num_workers!r}')
 
-  def make(step: int) -> dict[str, np.ndarray]:
-    return make_train_batch(
-        source, step, batch_size=batch_size, clip_length=clip_length,
-        seed=seed, fields=fields, frame_stride=frame_stride,
-        process_index=process_index, process_count=process_count)
-
+  # A partial of a module-level function, so that worker processes can
+  # unpickle it (with its source).
+  make = functools.partial(
+      make_train_batch, source, batch_size=batch_size,
+      clip_length=clip_length, seed=seed, fields=fields,
+      frame_stride=frame_stride, process_index=process_index,
+      process_count=process_count)
+  if num_workers > 0:
+    make_bytes, why = workers.picklable(make)
+    if make_bytes is not None:
+      return workers.worker_batches(make_bytes, start_step, num_workers,
+                                    depth=max(1, prefetch))
+    warnings.warn(f'training reader: {type(source).__name__} does not '
+                  f'pickle ({why}); building batches in a thread instead of '
+                  f'{num_workers} worker processes')
   return _prefetched(make, start_step, prefetch)
 
 

@@ -9,6 +9,8 @@ multi-host pod (after `jax.distributed.initialize()`).
 
 from __future__ import annotations
 
+import collections
+from collections.abc import Iterator
 from typing import Any
 
 import jax
@@ -71,6 +73,49 @@ def to_global_batch(local_batch: dict[str, np.ndarray], mesh: Mesh
   return jax.tree.map(
       lambda x: jax.make_array_from_process_local_data(sharding, x),
       local_batch)
+
+
+def prefetch_to_device(host_batches: Iterator[dict[str, np.ndarray]],
+                       mesh: Mesh, size: int = 2
+                       ) -> Iterator[tuple[dict[str, np.ndarray],
+                                           dict[str, jax.Array]]]:
+  """Yields ``(host batch, global batch)`` with up to `size` batches already
+  handed to the devices (`to_global_batch`), so that the transfer of the next
+  batch overlaps the step that runs (a device put is asynchronous on
+  accelerators; nothing here waits for the devices).
+
+  The next host batch is taken when the current one is handed out, i.e.
+  while the previous step still runs. An error of `host_batches` is raised
+  after the batches before it are handed out, at the step it would have
+  been raised without prefetching. Closing this closes `host_batches`.
+  """
+  if size < 1:
+    raise ValueError(f'size must be >= 1, got {size}')
+  ready: collections.deque = collections.deque()
+  failure: BaseException | None = None
+  ended = False
+  try:
+    while True:
+      while failure is None and not ended and len(ready) < size:
+        try:
+          host = next(host_batches)
+        except StopIteration:
+          ended = True
+          break
+        except Exception as error:  # pylint: disable=broad-except
+          failure = error
+          break
+        ready.append((host, to_global_batch(host, mesh)))
+      if not ready:
+        if failure is not None:
+          raise failure
+        return
+      yield ready.popleft()
+  finally:
+    ready.clear()
+    close = getattr(host_batches, 'close', None)
+    if close is not None:
+      close()
 
 
 def replicate(tree: Any, mesh: Mesh) -> Any:

@@ -63,8 +63,8 @@ def dynamics_stage(section: ml_collections.ConfigDict, name: str,
                    directory: str, mesh: Mesh, slot_model: SlotModel,
                    slot_params: Any, source: Any, *, seed: int,
                    compute_dtype: str,
-                   logging_config: ml_collections.ConfigDict | None = None
-                   ) -> Stage:
+                   logging_config: ml_collections.ConfigDict | None = None,
+                   reader_workers: int = 0) -> Stage:
   """Dynamics model `name`'s training stage (settings `section`) on
   `source` (the slots of the 'train' split, with their videos when L_I is
   on; only its `batches` read it). `slot_params`: the slot model's, for the
@@ -94,7 +94,7 @@ def dynamics_stage(section: ml_collections.ConfigDict, name: str,
           start_step=start_step, fields=('slots',) + video_fields,
           frame_stride=section.frame_stride,
           process_index=jax.process_index(),
-          process_count=jax.process_count()),
+          process_count=jax.process_count(), num_workers=reader_workers),
       frozen_params=decoder_params,
       logging=logging_config,
       images=(_rollout_images(slot_model, slot_params, model,
@@ -117,7 +117,8 @@ def train_dynamics(run: Run, name: str) -> None:
   stage = dynamics_stage(section, name, run.paths.dynamics(name), run.mesh,
                          slot_model, loaded.params, source, seed=seed,
                          compute_dtype=run.config.compute_dtype,
-                         logging_config=run.config.logging)
+                         logging_config=run.config.logging,
+                         reader_workers=run.config.data.reader_workers)
   fit_stage(stage, mesh=run.mesh, seed=seed, what=name,
             identity_fields=dynamics_lib.identity_fields(
                 run.config.seed, section, name),

@@ -71,9 +71,11 @@ def _derived(run: Run, name: str) -> Derived:
 
 
 def part_stage(part: Part, directory: str, mesh: Mesh, source: Any, *,
-               seed: int, logging_config: Any = None) -> Stage:
+               seed: int, logging_config: Any = None,
+               reader_workers: int = 0) -> Stage:
   """The trainer's `Stage` of `part` on `source` (the training videos, with
-  the data it reads; only its `batches` read it)."""
+  the data it reads; only its `batches` read it), read by `reader_workers`
+  processes (`data.reader_workers`)."""
   local_batch_size = sharding.per_host_batch_size(part.section.batch_size,
                                                   mesh)
 
@@ -89,7 +91,8 @@ def part_stage(part: Part, directory: str, mesh: Mesh, source: Any, *,
     stream = pipeline.train_batches(
         source, batch_size=local_batch_size, clip_length=part.clip_length,
         seed=seed, start_step=start_step, fields=part.batch_fields,
-        process_index=jax.process_index(), process_count=jax.process_count())
+        process_index=jax.process_index(), process_count=jax.process_count(),
+        num_workers=reader_workers)
     return (part.with_batches(stream, start_step)
             if part.with_batches is not None else stream)
 
@@ -146,7 +149,8 @@ def train_part(run: Run, name: str) -> None:
   run.slot_model.check_data(source, 'train')
   directory = run.paths.model(part.name)
   stage = part_stage(part, directory, run.mesh, source, seed=run.config.seed,
-                     logging_config=run.config.logging)
+                     logging_config=run.config.logging,
+                     reader_workers=run.config.data.reader_workers)
   fit_stage(stage, mesh=run.mesh, seed=run.config.seed, what=part.label,
             identity_fields=dict(part.identity_fields), parent=parent,
             model_fields=dict(part.model_fields))

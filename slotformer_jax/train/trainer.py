@@ -1,7 +1,8 @@
 """The training loop shared by both stages, readable top to bottom.
 
 mesh -> optimiser -> restore or initialise the state -> jit the update step
--> loop: host batch -> global batch -> update -> log / NaN check ->
+-> loop: host batch -> global batch (placed on the devices one or two steps
+ahead) -> update -> log / NaN check ->
 checkpoint. Re-running resumes from the newest checkpoint, and the data
 stream resumes at the same step (batches are a function of the step).
 
@@ -100,6 +101,10 @@ class Diverged(UserError, FloatingPointError):
 
 
 _STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT)
+# Batches handed to the devices ahead of the step that uses them
+# (`sharding.prefetch_to_device`): the one of the next step while this one
+# runs, and one more to absorb an uneven reader.
+DEVICE_PREFETCH = 2
 
 
 class _TermFlag:
@@ -198,7 +203,9 @@ def fit(stage: Stage, *, mesh: Mesh, seed: int) -> TrainState:
 
   log_path = os.path.join(stage.directory, 'train_log.jsonl')
   summaries = Summaries(stage.directory, stage.logging, is_lead_host)
-  batches = stage.batches(start_step)
+  # The next batches go to the devices while the current step runs.
+  batches = sharding.prefetch_to_device(stage.batches(start_step), mesh,
+                                        size=DEVICE_PREFETCH)
   last_log_time, last_log_step = time.time(), start_step
   failed = False
   try:
@@ -206,8 +213,7 @@ def fit(stage: Stage, *, mesh: Mesh, seed: int) -> TrainState:
                    disable=not is_lead_host, dynamic_ncols=True) as progress, \
          _TermFlag() as term:
       for step in range(start_step, num_steps):
-        host_batch = next(batches)
-        batch = sharding.to_global_batch(host_batch, mesh)
+        host_batch, batch = next(batches)
         state, metrics = update(state, batch, frozen_params)
         progress.update(1)
         done = step + 1
@@ -254,6 +260,8 @@ def fit(stage: Stage, *, mesh: Mesh, seed: int) -> TrainState:
               'checkpoint is saved. Re-run the same command to resume.',
               stop_signal)
   finally:
+    # Stops the reader (its thread or worker processes) at once.
+    batches.close()
     # Also on an exception or Ctrl-C: finish the save in flight so the next
     # run resumes from it (after a failed save, report that one failure).
     try:

@@ -39,7 +39,7 @@ MODEL_CONFIG_FILE = 'model_config.json'
 
 # Settings that change how a run is observed, not what it computes.
 NOT_SHAPING = ('log_every', 'checkpoint_every', 'stop_check_every',
-               'num_workers', 'data_dir')
+               'num_workers', 'data_dir', 'reader_workers')
 
 # Fields added after workdirs were made, and the value their absence stands
 # for (what the code did before they existed): a workdir whose settings lack
@@ -52,6 +52,7 @@ ADDED_FIELDS: dict[str, Any] = {
     'readout.layer_norm_epsilon': 1e-6,
     'readout.dropout_rate': 0.0,
     'evaluation.skip_first_frame': False,
+    'data.reader_workers': 0,
     # The task was told by a `vqa` section before `task` was set for VQA.
     'task': None,
     # Planning readouts before every readout field had a default: the

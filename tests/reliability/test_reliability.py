@@ -40,6 +40,7 @@ from slotformer_jax.errors import UserError
 from slotformer_jax.workdir.lock import FileLock
 from slotformer_jax.runtime import checkpoint as checkpoint_lib
 from slotformer_jax.runtime import sharding
+from slotformer_jax.train import trainer
 from slotformer_jax.train.trainer import Diverged
 from slotformer_jax.train.trainer import Preempted
 from slotformer_jax.train.trainer import fit
@@ -487,10 +488,14 @@ def test_a_signal_in_training_saves_that_step(tmp_path, signum):
   stage = linear_stage(tmp_path / 'linear', num_train_steps=50,
                        checkpoint_every=1000)
   plain = stage.batches
+  # The trainer takes the batch of step k while step k - DEVICE_PREFETCH + 1
+  # runs (it puts batches on the devices ahead): a signal sent then is acted
+  # on after that update, update 4 here.
+  signal_at = 3 + trainer.DEVICE_PREFETCH - 1
 
   def batches(start_step):
     for step, batch in zip(itertools.count(start_step), plain(start_step)):
-      if step == 3:  # while step 4 is being fetched
+      if step == signal_at:
         os.kill(os.getpid(), signum)
       yield batch
   stage = dataclasses.replace(stage, batches=batches)

@@ -130,14 +130,17 @@ def test_tiny_savi_step_compiles_for_a_tpu_slice(tmp_path):
 @pytest.mark.slow
 def test_gpu_check_smoke_writes_its_table(tmp_path):
   """benchmarks/gpu_check.sh --smoke on this machine's device (CPU here):
-  the cached-compile phase, the timed run and the table, one case."""
+  the cached-compile phase, the timed run and the table, one case; then
+  the same step fed by the reader (workers + device prefetch)."""
   result = subprocess.run(
       ['bash', os.path.join(ROOT, 'benchmarks', 'gpu_check.sh'), '--smoke',
        str(tmp_path)], capture_output=True, text=True, timeout=1500,
       check=False, env=dict(os.environ, GPU_CHECK_CASES='obj3d slotformer',
                             GPU_CHECK_DTYPES='float32',
                             GPU_CHECK_BUDGET_S='1200',
-                            GPU_CHECK_CASE_TIMEOUT_S='600'))
+                            GPU_CHECK_CASE_TIMEOUT_S='600',
+                            GPU_CHECK_FED_CASES='obj3d slotformer',
+                            GPU_CHECK_FED_BUDGET_S='600'))
   assert result.returncode == 0, result.stderr[-2000:]
   (row,) = [json.loads(line)
             for line in (tmp_path / 'gpu_check.jsonl').read_text().splitlines()]
@@ -151,6 +154,11 @@ def test_gpu_check_smoke_writes_its_table(tmp_path):
   assert any((tmp_path / 'cache').iterdir())
   table = (tmp_path / 'gpu_check.md').read_text()
   assert '| synthetic:tiny | slotformer | float32 | 1 |' in table
+  (fed,) = [json.loads(line) for line in
+            (tmp_path / 'gpu_check_fed.jsonl').read_text().splitlines()]
+  assert fed['reader_workers'] == 2 and fed['fed_ms'] > 0, fed
+  assert fed['verdict'] in ('input-bound', 'compute-bound')
+  assert f"| synthetic:tiny | slotformer | 2 | {fed['fed_ms']:.1f} |" in table
 
 
 @pytest.mark.parametrize('name', ['synthetic_vqa', 'synthetic_contact:tiny',
