@@ -119,6 +119,21 @@ def test_batches_are_bit_identical_to_the_whole_video_layout(
                         pipeline.make_train_batch(new, step, **kwargs))
 
 
+def test_worker_processes_read_chunked_clips_like_the_thread(folders):
+  # The chunked source pickled into reader workers (spawn) gives the stream
+  # the in-process reader gives on the old layout.
+  kwargs = dict(batch_size=5, clip_length=3, seed=4, frame_stride=2,
+                fields=('video', 'segmentations', 'boxes'), start_step=2)
+  old = pipeline.train_batches(_open(folders, 0), **kwargs)
+  new = pipeline.train_batches(_open(folders, 4), num_workers=2, **kwargs)
+  try:
+    for _ in range(5):
+      _assert_items_equal(next(old), next(new))
+  finally:
+    old.close()
+    new.close()
+
+
 def test_clips_reaching_the_last_frame_and_spanning_chunks(folders):
   old, new = _open(folders, 0), _open(folders, 3)
   for index, length in enumerate(LENGTHS):
