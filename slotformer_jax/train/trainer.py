@@ -381,7 +381,8 @@ def fit(stage: Stage, *, mesh: Mesh, seed: int,
                f'{dict(mesh.shape)}, {seeds.data_order} data order)')
   if jax.process_count() > 1:
     sharding.check_host_rows(mesh)
-  update = jit_update(stage, mesh, optimizer, seed, seeds)
+  update = (jit_update(stage, mesh, optimizer, seed) if seeds is None
+            else jit_update(stage, mesh, optimizer, seed, seeds=seeds))
   per_seed = seeds is not None and seeds.data_order == 'per_seed'
   reported: set[int] = set()  # diverged seeds already named
   stop_check_every = config.stop_check_every
@@ -449,8 +450,9 @@ def fit(stage: Stage, *, mesh: Mesh, seed: int,
           params = _host_copy(state.params)
           if seeds is not None:
             params = jax.tree.map(lambda x: x[0], params)
-          summaries.images(done, stage.images(params, host_batch[0]
-                                              if per_seed else host_batch))
+          summaries.images(done, stage.images(
+              params, jax.tree.map(lambda x: x[0], host_batch)
+              if per_seed else host_batch))
         if should_save:
           failed = True  # until the save is handed over without error
           checkpointer.save(done, state, force=done == num_steps or preempted)

@@ -104,10 +104,13 @@ def _assert_seeds_equal_one_seed_runs(state, one_seed_runs, name, seeds,
   assert not np.allclose(first, second)
 
 
-@pytest.mark.parametrize('devices', [1, 4])
-@pytest.mark.parametrize('name', [
-    'savi', 'slotformer',
-    pytest.param('steve', marks=pytest.mark.slow)])
+# 4 devices and STEVE: about a minute each on 2 cores, in the slow suite.
+@pytest.mark.parametrize('name,devices', [
+    ('savi', 1), ('slotformer', 1),
+    pytest.param('savi', 4, marks=pytest.mark.slow),
+    pytest.param('slotformer', 4, marks=pytest.mark.slow),
+    pytest.param('steve', 1, marks=pytest.mark.slow),
+    pytest.param('steve', 4, marks=pytest.mark.slow)])
 def test_seed_k_of_k_seeds_is_the_one_seed_run(tmp_path, one_seed_runs,
                                                name, devices):
   """On 4 devices the seeds are replicated and the batch split in 4, as in
@@ -134,6 +137,7 @@ def test_seed_mesh_shapes():
   assert sharding.seed_mesh(mesh, 1) is mesh
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize('name', [
     'slotformer',
     pytest.param('savi', marks=pytest.mark.xfail(
@@ -163,7 +167,8 @@ def test_one_seed_is_the_one_seed_run(tmp_path, one_seed_runs):
   assert not (tmp_path / 'seeds.json').exists()
 
 
-@pytest.mark.parametrize('devices,seed_axis', [(1, False), (4, True)])
+@pytest.mark.parametrize('devices,seed_axis', [
+    (1, False), pytest.param(4, True, marks=pytest.mark.slow)])
 def test_killed_k_seed_run_resumes_to_identical_state(tmp_path, devices,
                                                       seed_axis):
   mesh = _mesh(devices)
@@ -182,14 +187,16 @@ def test_killed_k_seed_run_resumes_to_identical_state(tmp_path, devices,
 
 
 def test_resuming_with_other_seeds_is_one_line(tmp_path):
-  fit(_savi(tmp_path, num_steps=2), mesh=_one_device(), seed=0,
-      seeds=Seeds(SEEDS))
-  longer = dataclasses.replace(_savi(tmp_path, num_steps=2),
-                               config=test_training._stage_config(4))
-  with pytest.raises(ConfigError, match=r'trained with seeds \[1, 2\] '
-                     r'\(shared data order\), the config asks for seeds '
-                     r'\[1, 3\]'):
-    fit(longer, mesh=_one_device(), seed=0, seeds=Seeds((1, 3)))
+  good, _ = _toy_seeds()
+  fit(_toy_stage(tmp_path, num_steps=2), mesh=_one_device(), seed=0,
+      seeds=Seeds(good))
+  longer = _toy_stage(tmp_path, num_steps=4)
+  with pytest.raises(ConfigError, match=(
+      rf'trained with seeds \[{good[0]}, {good[1]}\] \(shared data order\), '
+      rf'the config asks for seeds \[{good[0]}, 99\]')):
+    fit(longer, mesh=_one_device(), seed=0, seeds=Seeds((good[0], 99)))
+  with pytest.raises(ConfigError, match='the config asks for one seed'):
+    fit(longer, mesh=_one_device(), seed=0)
 
 
 @pytest.mark.parametrize('values', [(), (1, 1)])
