@@ -35,7 +35,9 @@ Several seeds (config.seeds, train/trainer.py):
 times, for each train-step case, K seeds in one program (the trainer's
 vmapped step, `steps.seeds_train_step`) against K one-seed steps, the two
 alternating each repeat, and prints both medians and their ratio (the
-issue's bar: one program <= K one-seed steps, ratio <= 1).
+issue's bar: one program <= K one-seed steps, ratio <= 1). The one-seed
+steps are compiled as the one-seed trainer compiles them; --same_options
+compiles them with the several-seed program's XLA:CPU options too.
 """
 
 import argparse
@@ -100,6 +102,9 @@ def median_seconds(fn, repeats):
 
 # --seeds: K > 1 makes the train-step cases return both runners.
 NUM_SEEDS = 1
+# --same_options: the one-seed steps compiled with the several-seed
+# program's XLA:CPU options too (the vmap's cost apart from the options').
+SAME_OPTIONS = False
 
 
 def seeds_runners(loss_fn, params, batch, frozen, stage_config, num_seeds):
@@ -118,7 +123,8 @@ def seeds_runners(loss_fn, params, batch, frozen, stage_config, num_seeds):
       steps.seeds_train_step, loss_fn=loss_fn, optimizer=optimizer),
       compiler_options=options)
   single = jax.jit(functools.partial(steps.train_step, loss_fn=loss_fn,
-                                     optimizer=optimizer, seed=0))
+                                     optimizer=optimizer, seed=0),
+                   compiler_options=options if SAME_OPTIONS else None)
   holder = {'stacked': stacked, 'states': [one_seed] * num_seeds}
 
   def one_program():
@@ -312,6 +318,9 @@ def main():
   parser = argparse.ArgumentParser(
       description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
   parser.add_argument('--repeats', type=int, default=5)
+  parser.add_argument('--same_options', action='store_true',
+                      help='with --seeds: compile the one-seed steps with '
+                      "the several-seed program's XLA:CPU options too")
   parser.add_argument('--seeds', type=int, default=1,
                       help='K > 1: time K seeds in one program against K '
                       'one-seed steps (train-step cases only)')
@@ -327,8 +336,8 @@ def main():
   unknown = sorted(set(names) - set(CASES))
   if unknown:
     parser.error(f'unknown cases {unknown}; choose from {list(CASES)}')
-  global NUM_SEEDS
-  NUM_SEEDS = args.seeds
+  global NUM_SEEDS, SAME_OPTIONS
+  NUM_SEEDS, SAME_OPTIONS = args.seeds, args.same_options
   not_steps = sorted(set(names) - set(TRAIN_STEP_CASES))
   if NUM_SEEDS > 1 and not_steps:
     parser.error(f'--seeds={NUM_SEEDS} times train steps only; not '

@@ -3,9 +3,11 @@ the one-seed run with seed k, on 1 and 4 devices and after a resume; a
 diverging seed is named in one line and stops the run or is left behind."""
 
 import dataclasses
-import functools
+import itertools
 import json
 import logging
+import os
+import signal
 
 import chex
 import jax
@@ -19,6 +21,7 @@ from slotformer_jax.errors import ConfigError
 from slotformer_jax.runtime import sharding
 from slotformer_jax.train.state import SeedsState
 from slotformer_jax.train.trainer import Diverged
+from slotformer_jax.train.trainer import Preempted
 from slotformer_jax.train.trainer import Seeds
 from slotformer_jax.train.trainer import Stage
 from slotformer_jax.train.trainer import fit
@@ -184,6 +187,31 @@ def test_killed_k_seed_run_resumes_to_identical_state(tmp_path, devices,
   assert isinstance(resumed, SeedsState)
   chex.assert_trees_all_close(jax.device_get(resumed),
                               jax.device_get(uninterrupted), atol=0, rtol=0)
+
+
+def test_preempted_k_seed_run_resumes_to_identical_state(tmp_path):
+  """SIGTERM while step 3 is fetched: step 3's stacked state is saved,
+  `Preempted` raised; the rerun ends where the uninterrupted run does."""
+  good, _ = _toy_seeds()
+  seeds = Seeds(good)
+  uninterrupted = jax.device_get(fit(_toy_stage(tmp_path / 'a', 5),
+                                     mesh=_one_device(), seed=0,
+                                     seeds=seeds))
+  stage = _toy_stage(tmp_path / 'b', 5)
+  plain = stage.batches
+
+  def batches(start_step):
+    for step, batch in zip(itertools.count(start_step), plain(start_step)):
+      if step == 2:
+        os.kill(os.getpid(), signal.SIGTERM)
+      yield batch
+
+  with pytest.raises(Preempted, match='stopped by SIGTERM after step 3;'):
+    fit(dataclasses.replace(stage, batches=batches), mesh=_one_device(),
+        seed=0, seeds=seeds)
+  resumed = jax.device_get(fit(_toy_stage(tmp_path / 'b', 5),
+                               mesh=_one_device(), seed=0, seeds=seeds))
+  chex.assert_trees_all_close(resumed, uninterrupted, atol=0, rtol=0)
 
 
 def test_resuming_with_other_seeds_is_one_line(tmp_path):
