@@ -381,14 +381,16 @@ def seeds_problems(config: ml_collections.ConfigDict,
     problems.append(f'seed_axis must be True or False, got '
                     f'{config.get("seed_axis")!r}')
   if not problems and seeds is not None and len(seeds) > 1:
-    refused = [s for s in stages
-               if s not in SEEDED_STAGES + _SEED_FREE_STAGES]
+    refused = sorted(s for s in stages
+                     if s not in SEEDED_STAGES + _SEED_FREE_STAGES)
     if refused:
       problems.append(
           f'seeds={tuple(seeds)} trains several seeds in '
           f'{" and ".join(SEEDED_STAGES)} only for now; '
-          f'{", ".join(refused)} do not take several seeds yet (their '
-          'per-seed inputs and outputs are not built): run them with one '
+          f'{", ".join(refused)} '
+          f'{"does" if len(refused) == 1 else "do"} not take several seeds '
+          'yet (their per-seed inputs and outputs are not built): run them '
+          'with one '
           'seed (--config.seed=<s>, no --config.seeds)')
   return problems
 
