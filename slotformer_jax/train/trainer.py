@@ -131,9 +131,13 @@ class Seeds:
       are replicated on every device and only the batch is split. Off by
       default because on XLA:CPU (jaxlib 0.10.2) the SAVi step with its
       state split on 'seed' computes another loss than unsplit (0.479 vs
-      0.460 in tests/train/test_seeds.py, an XLA problem not yet isolated;
-      SlotFormer's agrees): check it on the accelerator before turning it
-      on.
+      0.460 in tests/train/test_seeds.py; SlotFormer's agrees). The cause
+      is the decoder's CPU form of the transposed convolution
+      (`decoders.sub_pixel_conv_transpose`, picked by
+      `platform.by_platform`): vmapped over a kernel split on 'seed' its
+      output differs; with the accelerator form (`dilated_conv_transpose`)
+      split and unsplit agree to 3e-7. Check it on the accelerator before
+      turning it on.
   """
 
   values: tuple[int, ...]
