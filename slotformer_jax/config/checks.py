@@ -377,7 +377,7 @@ def seeds_problems(config: ml_collections.ConfigDict,
   if on_divergence not in ('stop', 'continue'):
     problems.append("on_seed_divergence must be 'stop' or 'continue', got "
                     f'{on_divergence!r}')
-  if not isinstance(config.get('seed_axis', False), bool):
+  if not isinstance(config.get('seed_axis', True), bool):
     problems.append(f'seed_axis must be True or False, got '
                     f'{config.get("seed_axis")!r}')
   if not problems and seeds is not None and len(seeds) > 1:

@@ -34,11 +34,11 @@ def base_config() -> ml_collections.ConfigDict:
   # 'stop': the run stops (nothing non-finite saved); 'continue': it keeps
   # its last finite parameters and the others go on (all diverged: stop).
   config.on_seed_divergence = 'stop'
-  # Split the stacked state on a 'seed' mesh axis beside 'data' when the
-  # devices allow (e.g. 4 seeds x 2 data on 8 devices); False: seeds
-  # replicated on every device, only the batch split. Off by default: see
-  # `Seeds.seed_axis` (XLA:CPU computes SAVi's step otherwise when split).
-  config.seed_axis = False
+  # Split the stacked state on a 'seed' mesh axis beside 'data' when each
+  # process's devices split into len(seeds) groups (e.g. 4 seeds x 2 data
+  # on 8 devices); otherwise, or False, the seeds are replicated on every
+  # device and only the batch is split.
+  config.seed_axis = True
   # 'float32' or 'bfloat16': the dtype the training losses and the rollout
   # evaluation compute in; parameters, optimiser state and checkpoints stay
   # float32 either way (slotformer_jax/runtime/precision.py).

@@ -15,6 +15,12 @@ Each such layer takes a `kernels` field:
   lowering, XLA never sees it).
 * 'cpu' / 'accelerator': that form on every platform (tests, comparisons).
 
+`forms(kernels)` makes the 'auto' layers traced inside it take one form: the
+several-seed training step (train/trainer.py) takes the accelerator forms,
+since the CPU form of the transposed convolution, vmapped over the seeds,
+is slower there than the accelerator form and computes otherwise when the
+seeds are split over devices.
+
 Both forms compute the same function; they differ in rounding only.
 Parameters are declared outside the choice, so the parameter tree is the
 same whatever the form.
@@ -22,7 +28,9 @@ same whatever the form.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+import contextlib
+import threading
 from typing import Any, TypeVar
 
 import jax
@@ -33,6 +41,22 @@ ACCELERATOR = 'accelerator'
 KERNEL_FORMS = (AUTO, CPU, ACCELERATOR)
 
 _T = TypeVar('_T')
+
+
+_CHOSEN = threading.local()  # .stack: forms() blocks, innermost last
+
+
+@contextlib.contextmanager
+def forms(kernels: str) -> Iterator[None]:
+  """Layers with kernels='auto' traced in this block (this thread) take the
+  form `kernels` ('cpu' or 'accelerator') on every platform."""
+  check_kernels(kernels)
+  stack = _CHOSEN.__dict__.setdefault('stack', [])
+  stack.append(kernels)
+  try:
+    yield
+  finally:
+    stack.pop()
 
 
 def check_kernels(kernels: str) -> None:
@@ -48,6 +72,9 @@ def by_platform(kernels: str, cpu: Callable[..., _T],
   in the callables' closures.
   """
   check_kernels(kernels)
+  chosen = getattr(_CHOSEN, 'stack', None)
+  if kernels == AUTO and chosen and chosen[-1] != AUTO:
+    kernels = chosen[-1]
   if kernels == CPU:
     return cpu(*args)
   if kernels == ACCELERATOR:

@@ -54,6 +54,7 @@ from slotformer_jax.errors import UserError
 from slotformer_jax.files import append_line_atomic
 from slotformer_jax.files import read_json
 from slotformer_jax.files import write_json_atomic
+from slotformer_jax.modules import platform
 from slotformer_jax.train import optim
 from slotformer_jax.runtime import processes
 from slotformer_jax.runtime import sharding
@@ -126,24 +127,17 @@ class Seeds:
     on_divergence: a seed whose loss or parameters become non-finite:
       'stop' the run (nothing non-finite saved), or 'continue' with the
       others (the seed keeps its last finite state and is named once).
-    seed_axis: split the stacked state on a 'seed' mesh axis when the
-      devices allow (`sharding.seed_mesh`); False (the default): the seeds
-      are replicated on every device and only the batch is split. Off by
-      default because on XLA:CPU (jaxlib 0.10.2) the SAVi step with its
-      state split on 'seed' computes another loss than unsplit (0.479 vs
-      0.460 in tests/train/test_seeds.py; SlotFormer's agrees). The cause
-      is the decoder's CPU form of the transposed convolution
-      (`decoders.sub_pixel_conv_transpose`, picked by
-      `platform.by_platform`): vmapped over a kernel split on 'seed' its
-      output differs; with the accelerator form (`dilated_conv_transpose`)
-      split and unsplit agree to 3e-7. Check it on the accelerator before
-      turning it on.
+    seed_axis: split the stacked state on a 'seed' mesh axis beside
+      'data' when the devices allow (`sharding.seed_mesh`: each process's
+      devices split into K groups, e.g. 4 seeds x 2 data on 8 devices);
+      otherwise, or with False, the seeds are replicated on every device
+      and only the batch is split.
   """
 
   values: tuple[int, ...]
   data_order: str = 'shared'
   on_divergence: str = 'stop'
-  seed_axis: bool = False
+  seed_axis: bool = True
 
   def __post_init__(self):
     if not self.values or len(set(self.values)) != len(self.values):
@@ -256,10 +250,16 @@ def jit_update(stage: Stage, mesh: Mesh,
   per_seed = seeds.data_order == 'per_seed'
 
   def update(state, batch, frozen_params):
-    state, metrics = seeds_train_step(
-        state, batch, frozen_params, jax.numpy.asarray(values),
-        loss_fn=stage.loss_fn, optimizer=optimizer,
-        per_seed_batches=per_seed)
+    # Traced with the accelerator forms of the kernels (modules/platform.py):
+    # the CPU form of SAVi's transposed convolution, vmapped over the seeds,
+    # is slower than the accelerator form on XLA:CPU and, with the seeds
+    # split over devices, computes another loss (0.479 vs 0.460 on the tiny
+    # SAVi of tests/train/test_seeds.py).
+    with platform.forms(platform.ACCELERATOR):
+      state, metrics = seeds_train_step(
+          state, batch, frozen_params, jax.numpy.asarray(values),
+          loss_fn=stage.loss_fn, optimizer=optimizer,
+          per_seed_batches=per_seed)
     return state, dict(metrics, diverged_at=state.diverged_at)
 
   batch_sharding = (sharding.seed_batch_sharding(mesh) if per_seed

@@ -56,7 +56,7 @@ ADDED_FIELDS: dict[str, Any] = {
     'seeds': None,
     'seed_data_order': 'shared',
     'on_seed_divergence': 'stop',
-    'seed_axis': False,
+    'seed_axis': True,
     # The task was told by a `vqa` section before `task` was set for VQA.
     'task': None,
     # Planning readouts before every readout field had a default: the

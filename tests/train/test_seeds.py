@@ -69,7 +69,7 @@ STAGES = {'savi': _savi, 'slotformer': _slotformer, 'steve': _steve}
 
 
 def _mesh(devices):
-  return _one_device() if devices == 1 else sharding.make_mesh()
+  return Mesh(np.asarray(jax.devices()[:devices]), ('data',))
 
 
 @pytest.fixture(scope='module')
@@ -116,13 +116,18 @@ def _assert_seeds_equal_one_seed_runs(state, one_seed_runs, name, seeds,
     pytest.param('steve', 4, marks=pytest.mark.slow)])
 def test_seed_k_of_k_seeds_is_the_one_seed_run(tmp_path, one_seed_runs,
                                                name, devices):
-  """On 4 devices the seeds are replicated and the batch split in 4, as in
-  the one-seed run it is compared with (only its last seed there, to keep
-  the compiles few: the first is checked on 1 device)."""
+  """On 4 devices: 2 seeds x 2 data devices (the 'seed' mesh axis); seed k
+  against the one-seed run on 2 devices, the same split of the batch (only
+  the last seed there, to keep the compiles few: the first is checked on 1
+  device)."""
   state = fit(STAGES[name](tmp_path), mesh=_mesh(devices), seed=0,
               seeds=Seeds(SEEDS))
+  if devices == 4:
+    assert state.params is not None
+    leaf = jax.tree.leaves(state.params)[0]
+    assert leaf.sharding.spec[0] == 'seed'
   _assert_seeds_equal_one_seed_runs(
-      state, one_seed_runs, name, SEEDS, devices,
+      state, one_seed_runs, name, SEEDS, 1 if devices == 1 else 2,
       checked=None if devices == 1 else (len(SEEDS) - 1,))
   # One log line per seed and step, named.
   lines = [json.loads(line) for line in
@@ -141,37 +146,20 @@ def test_seed_mesh_shapes():
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize('name', [
-    'slotformer',
-    pytest.param('savi', marks=pytest.mark.xfail(
-        strict=True, reason='XLA:CPU: the SAVi step split on a seed axis '
-        'computes another loss (trainer.Seeds.seed_axis)'))])
-def test_seed_axis_two_seeds_by_two_data_devices(tmp_path, one_seed_runs,
-                                                 name):
-  """seed_axis=True on 4 devices: 2 seeds x 2 data devices; seed k against
-  the one-seed run on 2 devices (the same split of the batch)."""
-  mesh = sharding.make_mesh()
-  state = fit(STAGES[name](tmp_path), mesh=mesh, seed=0,
-              seeds=Seeds(SEEDS, seed_axis=True))
-  assert state.params is not None
-  two = Mesh(np.asarray(jax.devices()[:2]), ('data',))
-  reference = jax.device_get(fit(STAGES[name](tmp_path / 'one'), mesh=two,
-                                 seed=SEEDS[-1]))
-  chex.assert_trees_all_close(jax.device_get(state).seed(len(SEEDS) - 1)
-                              .params, reference.params, **TOLERANCE)
-
-
-def test_one_seed_is_the_one_seed_run(tmp_path, one_seed_runs):
-  """Seeds((k,)) is exactly `seed=k`: no stacked state, the same numbers."""
-  state = fit(_savi(tmp_path), mesh=_one_device(), seed=0, seeds=Seeds((2,)))
-  assert not isinstance(state, SeedsState)
-  chex.assert_trees_all_close(jax.device_get(state.params),
-                              one_seed_runs('savi', 2).params, atol=0, rtol=0)
-  assert not (tmp_path / 'seeds.json').exists()
+def test_seeds_replicated_when_the_devices_do_not_split(tmp_path,
+                                                        one_seed_runs):
+  """3 seeds on 4 devices (or seed_axis=False): the seeds are replicated
+  and the batch split in 4, as in the 4-device one-seed run."""
+  seeds = (0, 1, 2)
+  state = fit(_savi(tmp_path), mesh=_mesh(4), seed=0, seeds=Seeds(seeds))
+  assert jax.tree.leaves(state.params)[0].sharding.is_fully_replicated
+  _assert_seeds_equal_one_seed_runs(state, one_seed_runs, 'savi', seeds, 4,
+                                    checked=(2,))
 
 
 @pytest.mark.parametrize('devices,seed_axis', [
-    (1, False), pytest.param(4, True, marks=pytest.mark.slow)])
+    (1, True), pytest.param(4, True, marks=pytest.mark.slow),
+    pytest.param(4, False, marks=pytest.mark.slow)])
 def test_killed_k_seed_run_resumes_to_identical_state(tmp_path, devices,
                                                       seed_axis):
   mesh = _mesh(devices)
