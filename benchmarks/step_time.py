@@ -111,25 +111,23 @@ def seeds_runners(loss_fn, params, batch, frozen, stage_config, num_seeds):
   """{'one_program': K seeds' vmapped step, 'separate': K one-seed steps}.
 
   The seeds' parameters are copies of `params` (the cost does not depend on
-  the values); the one program is compiled as the trainer compiles it
-  (`trainer.jit_update`'s options on XLA:CPU)."""
+  the values); the one program is traced and compiled as the trainer does
+  (`trainer.seeds_update`, `trainer.jit_update`'s options on XLA:CPU)."""
   optimizer, _ = optim.make_optimizer(stage_config)
   one_seed = TrainState.create(params, optimizer)
   stacked = SeedsState.stack([one_seed] * num_seeds)
-  seeds = jnp.arange(num_seeds, dtype=jnp.int32)
   options = trainer._seeds_compiler_options(  # pylint: disable=protected-access
       jax.sharding.Mesh(np.asarray(jax.devices()[:1]), ('data',)))
-  several = jax.jit(functools.partial(
-      steps.seeds_train_step, loss_fn=loss_fn, optimizer=optimizer),
-      compiler_options=options)
+  several = jax.jit(trainer.seeds_update(loss_fn, optimizer,
+                                         tuple(range(num_seeds))),
+                    compiler_options=options)
   single = jax.jit(functools.partial(steps.train_step, loss_fn=loss_fn,
                                      optimizer=optimizer, seed=0),
                    compiler_options=options if SAME_OPTIONS else None)
   holder = {'stacked': stacked, 'states': [one_seed] * num_seeds}
 
   def one_program():
-    holder['stacked'], metrics_ = several(holder['stacked'], batch, frozen,
-                                          seeds)
+    holder['stacked'], metrics_ = several(holder['stacked'], batch, frozen)
     return metrics_['loss']
 
   def separate():

@@ -30,6 +30,7 @@ last step, so a signal is acted on at most `stop_check_every - 1` steps late.
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator
+import contextlib
 import dataclasses
 import functools
 import json
@@ -246,22 +247,9 @@ def jit_update(stage: Stage, mesh: Mesh,
         in_shardings=(replicated, sharding.batch_sharding(mesh), replicated),
         out_shardings=(replicated, replicated),
         donate_argnums=(0,))
-  values = np.asarray(seeds.values, np.int32)
   per_seed = seeds.data_order == 'per_seed'
-
-  def update(state, batch, frozen_params):
-    # Traced with the accelerator forms of the kernels (modules/platform.py):
-    # the CPU form of SAVi's transposed convolution, vmapped over the seeds,
-    # is slower than the accelerator form on XLA:CPU and, with the seeds
-    # split over devices, computes another loss (0.479 vs 0.460 on the tiny
-    # SAVi of tests/train/test_seeds.py).
-    with platform.forms(platform.ACCELERATOR):
-      state, metrics = seeds_train_step(
-          state, batch, frozen_params, jax.numpy.asarray(values),
-          loss_fn=stage.loss_fn, optimizer=optimizer,
-          per_seed_batches=per_seed)
-    return state, dict(metrics, diverged_at=state.diverged_at)
-
+  update = seeds_update(stage.loss_fn, optimizer, seeds.values, per_seed,
+                        split=sharding.SEED_AXIS in mesh.axis_names)
   batch_sharding = (sharding.seed_batch_sharding(mesh) if per_seed
                     else sharding.batch_sharding(mesh))
   return jax.jit(
@@ -286,6 +274,32 @@ def _seeds_compiler_options(mesh: Mesh) -> dict[str, str] | None:
   if mesh.devices.flat[0].platform == 'cpu':
     return dict(_CPU_SEEDS_OPTIONS)
   return None
+
+
+def seeds_update(loss_fn: LossFn, optimizer: optax.GradientTransformation,
+                 seeds: tuple[int, ...], per_seed_batches: bool = False,
+                 split: bool = False
+                 ) -> Callable[..., tuple[SeedsState, dict[str, jax.Array]]]:
+  """The several-seed update as `jit_update` jits it: (SeedsState, batch,
+  frozen params) -> (SeedsState, metrics [K] with `diverged_at`); `split`:
+  the state is split on a 'seed' mesh axis."""
+  values = np.asarray(seeds, np.int32)
+
+  def update(state, batch, frozen_params):
+    # Split on 'seed': the accelerator form of the transposed convolution
+    # (modules/platform.py); its CPU form, vmapped over the seeds and split
+    # over devices, computes another loss (0.479 vs 0.460 on the tiny SAVi
+    # of tests/train/test_seeds.py). Unsplit the CPU form is right and on
+    # CPU faster.
+    with (platform.forms(platform.ACCELERATOR, (platform.CONV_TRANSPOSE,))
+          if split else contextlib.nullcontext()):
+      state, metrics = seeds_train_step(
+          state, batch, frozen_params, jax.numpy.asarray(values),
+          loss_fn=loss_fn, optimizer=optimizer,
+          per_seed_batches=per_seed_batches)
+    return state, dict(metrics, diverged_at=state.diverged_at)
+
+  return update
 
 
 def _init_state(stage: Stage, mesh: Mesh,
