@@ -23,6 +23,21 @@ Cases (shapes as the official configs):
                     the same with the ground-truth frames' VGG features
                     computed beforehand (what the evaluation does: once for
                     all methods), i.e. the per-method cost
+  savi_synthetic    SAVi train step of configs/synthetic.py (32x32 frames,
+                    its batch and clip length): a small case
+  slotformer_synthetic
+                    SlotFormer train step of configs/synthetic.py
+
+Several seeds (config.seeds, train/trainer.py):
+
+  python benchmarks/step_time.py --seeds=3 --cases=savi_synthetic
+
+times, for each train-step case, K seeds in one program (the trainer's
+vmapped step, `steps.seeds_train_step`) against K one-seed steps, the two
+alternating each repeat, and prints both medians and their ratio (the
+issue's bar: one program <= K one-seed steps, ratio <= 1). The one-seed
+steps are compiled as the one-seed trainer compiles them; --same_options
+compiles them with the several-seed program's XLA:CPU options too.
 """
 
 import argparse
@@ -52,7 +67,10 @@ from slotformer_jax.evaluation import metrics  # noqa: E402
 from slotformer_jax.train import optim  # noqa: E402
 from slotformer_jax.runtime import precision  # noqa: E402
 from slotformer_jax.train import steps  # noqa: E402
+from slotformer_jax.train.state import SeedsState  # noqa: E402
 from slotformer_jax.train.state import TrainState  # noqa: E402
+from slotformer_jax.train import trainer  # noqa: E402
+import synthetic  # noqa: E402  (configs/synthetic.py)
 from slotformer_jax import dynamics as dynamics_lib
 from slotformer_jax.slot_models.savi import build_decoder
 from slotformer_jax.slot_models.savi import build_savi
@@ -82,7 +100,66 @@ def median_seconds(fn, repeats):
   return float(np.median(times))
 
 
+# --seeds: K > 1 makes the train-step cases return both runners.
+NUM_SEEDS = 1
+# --same_options: the one-seed steps compiled with the several-seed
+# program's XLA:CPU options too (the vmap's cost apart from the options').
+SAME_OPTIONS = False
+
+
+def seeds_runners(loss_fn, params, batch, frozen, stage_config, num_seeds):
+  """{'one_program': K seeds' vmapped step, 'separate': K one-seed steps}.
+
+  The seeds' parameters are copies of `params` (the cost does not depend on
+  the values); the one program is traced and compiled as the trainer does
+  (`trainer.seeds_update`, `trainer.jit_update`'s options on XLA:CPU)."""
+  optimizer, _ = optim.make_optimizer(stage_config)
+  one_seed = TrainState.create(params, optimizer)
+  stacked = SeedsState.stack([one_seed] * num_seeds)
+  options = trainer._seeds_compiler_options(  # pylint: disable=protected-access
+      jax.sharding.Mesh(np.asarray(jax.devices()[:1]), ('data',)))
+  several = jax.jit(trainer.seeds_update(loss_fn, optimizer,
+                                         tuple(range(num_seeds))),
+                    compiler_options=options)
+  single = jax.jit(functools.partial(steps.train_step, loss_fn=loss_fn,
+                                     optimizer=optimizer, seed=0),
+                   compiler_options=options if SAME_OPTIONS else None)
+  holder = {'stacked': stacked, 'states': [one_seed] * num_seeds}
+
+  def one_program():
+    holder['stacked'], metrics_ = several(holder['stacked'], batch, frozen)
+    return metrics_['loss']
+
+  def separate():
+    losses_ = []
+    for k in range(num_seeds):
+      holder['states'][k], metrics_ = single(holder['states'][k], batch,
+                                             frozen)
+      losses_.append(metrics_['loss'])
+    return losses_
+
+  return {'one_program': one_program, 'separate': separate}
+
+
+def alternating_medians(runners, repeats):
+  """{name: median seconds}, the runners taking turns each repeat (a load
+  change on a shared machine hits both)."""
+  for fn in runners.values():  # compile + warm-up
+    jax.block_until_ready(fn())
+    jax.block_until_ready(fn())
+  times = {name: [] for name in runners}
+  for _ in range(repeats):
+    for name, fn in runners.items():
+      start = time.perf_counter()
+      jax.block_until_ready(fn())
+      times[name].append(time.perf_counter() - start)
+  return {name: float(np.median(t)) for name, t in times.items()}
+
+
 def train_step_runner(loss_fn, params, batch, frozen, stage_config):
+  if NUM_SEEDS > 1:
+    return seeds_runners(loss_fn, params, batch, frozen, stage_config,
+                         NUM_SEEDS)
   optimizer, _ = optim.make_optimizer(stage_config)
   state = TrainState.create(params, optimizer)
   update = jax.jit(functools.partial(steps.train_step, loss_fn=loss_fn,
@@ -99,6 +176,21 @@ def train_step_runner(loss_fn, params, batch, frozen, stage_config):
 def savi_case(dtype, batch_size=4, clip_length=6):
   config = clevrer.get_config()
   model = build_savi(config.savi, tuple(config.data.resolution))
+  video = np.random.default_rng(0).integers(
+      0, 256, (batch_size, clip_length, *config.data.resolution, 3), np.uint8)
+  params = steps.init_params(model, jax.random.key(0),
+                             jnp.zeros((1, clip_length,
+                                        *config.data.resolution, 3)))
+  loss_fn = precision.with_compute_dtype(functools.partial(
+      losses.savi_loss, model=model, kl_weight=config.savi.kl_weight), dtype)
+  return train_step_runner(loss_fn, params, {'video': video}, None,
+                           config.savi)
+
+
+def savi_synthetic_case(dtype):
+  config = synthetic.get_config()
+  model = build_savi(config.savi, tuple(config.data.resolution))
+  batch_size, clip_length = config.savi.batch_size, config.savi.clip_length
   video = np.random.default_rng(0).integers(
       0, 256, (batch_size, clip_length, *config.data.resolution, 3), np.uint8)
   params = steps.init_params(model, jax.random.key(0),
@@ -128,8 +220,8 @@ def decoder_case(dtype, num_images=4 * 6):
   return lambda: grad(params, slots)
 
 
-def slotformer_case(dtype, batch_size, image_loss_weight):
-  config = obj3d.get_config()
+def slotformer_case(dtype, batch_size, image_loss_weight, config=None):
+  config = config or obj3d.get_config()
   config.slotformer.image_loss_weight = image_loss_weight
   dyn = config.slotformer
   model = dynamics_lib.build(config.slotformer, 'slotformer')
@@ -199,6 +291,8 @@ def lpips_case(dtype, resolution, with_features, num_pairs=100):
   return lambda: lpips.distance_to_features(pred, target_features)
 
 
+TRAIN_STEP_CASES = ('savi', 'slots_only', 'image_loss', 'savi_synthetic',
+                    'slotformer_synthetic')
 CASES = {
     'savi': savi_case,
     'decoder': decoder_case,
@@ -206,6 +300,11 @@ CASES = {
     'image_loss': lambda dtype: slotformer_case(dtype, 4, 1.0),
     'rollout': rollout_case,
     'rollout_decode': rollout_decode_case,
+    'savi_synthetic': savi_synthetic_case,
+    'slotformer_synthetic': lambda dtype: slotformer_case(
+        dtype, synthetic.get_config().slotformer.batch_size,
+        synthetic.get_config().slotformer.image_loss_weight,
+        synthetic.get_config()),
     'lpips_32': lambda dtype: lpips_case(dtype, 32, False),
     'lpips_64': lambda dtype: lpips_case(dtype, 64, False),
     'lpips_32_features': lambda dtype: lpips_case(dtype, 32, True),
@@ -217,6 +316,12 @@ def main():
   parser = argparse.ArgumentParser(
       description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
   parser.add_argument('--repeats', type=int, default=5)
+  parser.add_argument('--same_options', action='store_true',
+                      help='with --seeds: compile the one-seed steps with '
+                      "the several-seed program's XLA:CPU options too")
+  parser.add_argument('--seeds', type=int, default=1,
+                      help='K > 1: time K seeds in one program against K '
+                      'one-seed steps (train-step cases only)')
   parser.add_argument('--cases', default=','.join(CASES),
                       help='comma-separated subset of: ' + ', '.join(CASES))
   parser.add_argument('--compute_dtype', default='float32',
@@ -229,6 +334,12 @@ def main():
   unknown = sorted(set(names) - set(CASES))
   if unknown:
     parser.error(f'unknown cases {unknown}; choose from {list(CASES)}')
+  global NUM_SEEDS, SAME_OPTIONS
+  NUM_SEEDS, SAME_OPTIONS = args.seeds, args.same_options
+  not_steps = sorted(set(names) - set(TRAIN_STEP_CASES))
+  if NUM_SEEDS > 1 and not_steps:
+    parser.error(f'--seeds={NUM_SEEDS} times train steps only; not '
+                 f'{not_steps}: choose from {list(TRAIN_STEP_CASES)}')
   print(f'jax {jax.__version__} on {jax.devices()[0].device_kind}, '
         f'{os.cpu_count()} cores, compute_dtype={args.compute_dtype}, '
         f'XLA_FLAGS={os.environ.get("XLA_FLAGS", "")!r}; median of '
@@ -238,7 +349,19 @@ def main():
     with open(args.reference) as f:
       references = json.load(f)
   results = {}
+  if NUM_SEEDS > 1:
+    print(f'load average before: {os.getloadavg()}', flush=True)
   for name in names:
+    if NUM_SEEDS > 1:
+      medians = alternating_medians(CASES[name](args.compute_dtype),
+                                    args.repeats)
+      results[name] = medians
+      print(f'{name:<20} {NUM_SEEDS} seeds in one program '
+            f'{medians["one_program"]:8.3f} s, {NUM_SEEDS} one-seed steps '
+            f'{medians["separate"]:8.3f} s, ratio '
+            f'{medians["one_program"] / medians["separate"]:.2f} '
+            f'(load average {os.getloadavg()[0]:.2f})', flush=True)
+      continue
     seconds = median_seconds(CASES[name](args.compute_dtype), args.repeats)
     results[name] = seconds
     # The *_features cases are the per-method cost of the same comparison.

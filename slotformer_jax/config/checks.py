@@ -333,6 +333,7 @@ def validate(config: ml_collections.ConfigDict, stages: Sequence[str], *,
   if 'explore' in stages:
     positive('explore', ('num_videos', 'fps', 'scale'))
 
+  problems.extend(seeds_problems(config, stages))
   problems.extend(check_field_kinds(config))
   problems[:] = list(dict.fromkeys(problems))  # the same line from two checks
   _check_splits(config, stages, problems)
@@ -341,6 +342,57 @@ def validate(config: ml_collections.ConfigDict, stages: Sequence[str], *,
     _check_lengths(config, stages, dynamics, problems, video_length)
   if problems:
     raise ConfigError('config: ' + '; '.join(problems))
+
+
+# The stages that take several seeds (config.seeds): stage 1's first part
+# (no parent, no derived input). Every other stage refuses them.
+SEEDED_STAGES = ('train_savi', 'train_dvae')
+# Stages that do no training or extraction of their own with the seeds.
+_SEED_FREE_STAGES = ('prepare_data',)
+
+
+def seeds_problems(config: ml_collections.ConfigDict,
+                   stages: Sequence[str]) -> list[str]:
+  """One line per bad `seeds` / `seed_data_order` / `on_seed_divergence` /
+  `seed_axis`, and one naming the stages of `stages` that do not take
+  several seeds yet."""
+  seeds = config.get('seeds')
+  problems = []
+  if seeds is not None:
+    if not isinstance(seeds, (tuple, list)) or not seeds:
+      problems.append(f'seeds must be a non-empty tuple of ints, e.g. '
+                      f'(0, 1, 2), got {seeds!r}')
+    elif not all(isinstance(s, int) and not isinstance(s, bool)
+                 and s >= 0 for s in seeds):
+      problems.append(f'seeds must be ints >= 0, got {tuple(seeds)!r}')
+    elif len(set(seeds)) != len(seeds):
+      duplicates = sorted({s for s in seeds if list(seeds).count(s) > 1})
+      problems.append(f'seeds must be distinct, got {tuple(seeds)!r} '
+                      f'({", ".join(map(str, duplicates))} repeated)')
+  order = config.get('seed_data_order', 'shared')
+  if order not in ('shared', 'per_seed'):
+    problems.append("seed_data_order must be 'shared' or 'per_seed', got "
+                    f'{order!r}')
+  on_divergence = config.get('on_seed_divergence', 'stop')
+  if on_divergence not in ('stop', 'continue'):
+    problems.append("on_seed_divergence must be 'stop' or 'continue', got "
+                    f'{on_divergence!r}')
+  if not isinstance(config.get('seed_axis', True), bool):
+    problems.append(f'seed_axis must be True or False, got '
+                    f'{config.get("seed_axis")!r}')
+  if not problems and seeds is not None and len(seeds) > 1:
+    refused = sorted(s for s in stages
+                     if s not in SEEDED_STAGES + _SEED_FREE_STAGES)
+    if refused:
+      problems.append(
+          f'seeds={tuple(seeds)} trains several seeds in '
+          f'{" and ".join(SEEDED_STAGES)} only for now; '
+          f'{", ".join(refused)} '
+          f'{"does" if len(refused) == 1 else "do"} not take several seeds '
+          'yet (their per-seed inputs and outputs are not built): run them '
+          'with one '
+          'seed (--config.seed=<s>, no --config.seeds)')
+  return problems
 
 
 def _check_vqa_batches(vqa: ml_collections.ConfigDict, problems: list[str],

@@ -14,6 +14,31 @@ import ml_collections
 def base_config() -> ml_collections.ConfigDict:
   config = ml_collections.ConfigDict()
   config.seed = 0
+  # Several seeds trained at once, in one program (train/trainer.py `Seeds`):
+  # None (the default) is one seed, `seed`, exactly as before. A tuple of
+  # distinct ints, e.g. (0, 1, 2): a training stage stacks the seeds'
+  # parameters and optimiser states on a leading axis, runs one jitted step
+  # vmapped over it and checkpoints them as one state. Seed s drives what
+  # `seed=s` drives in a one-seed run: the initialisation and the step RNG
+  # (dropout, slot-initialisation noise, Gumbel / posterior samples); the
+  # data order is `seed_data_order`. Seed k of the run trains as the
+  # one-seed run with seed k (to float32 rounding). Stage 1's first part
+  # (SAVi, the dVAE) takes several seeds; the stages after it do not yet
+  # (config/checks.py names them).
+  config.seeds = ml_collections.config_dict.placeholder(tuple)
+  # 'shared': every seed sees the batches of `seed`'s stream (a one-seed
+  # run's order; what the seed-k-equals-run-k check needs); 'per_seed':
+  # seed s draws its batches with s.
+  config.seed_data_order = 'shared'
+  # A seed whose loss or parameters become non-finite is named in one line;
+  # 'stop': the run stops (nothing non-finite saved); 'continue': it keeps
+  # its last finite parameters and the others go on (all diverged: stop).
+  config.on_seed_divergence = 'stop'
+  # Split the stacked state on a 'seed' mesh axis beside 'data' when each
+  # process's devices split into len(seeds) groups (e.g. 4 seeds x 2 data
+  # on 8 devices); otherwise, or False, the seeds are replicated on every
+  # device and only the batch is split.
+  config.seed_axis = True
   # 'float32' or 'bfloat16': the dtype the training losses and the rollout
   # evaluation compute in; parameters, optimiser state and checkpoints stay
   # float32 either way (slotformer_jax/runtime/precision.py).

@@ -146,7 +146,8 @@ def conv_transpose(x: jax.Array, kernel: jax.Array, stride: int,
   """
   return platform.by_platform(
       kernels, lambda x, k: sub_pixel_conv_transpose(x, k, None, stride),
-      lambda x, k: dilated_conv_transpose(x, k, stride), x, kernel)
+      lambda x, k: dilated_conv_transpose(x, k, stride), x, kernel,
+      layer=platform.CONV_TRANSPOSE)
 
 
 class SubPixelConvTranspose(nn.Module):

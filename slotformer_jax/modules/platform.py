@@ -15,6 +15,12 @@ Each such layer takes a `kernels` field:
   lowering, XLA never sees it).
 * 'cpu' / 'accelerator': that form on every platform (tests, comparisons).
 
+`forms(kernels, layers)` makes the 'auto' layers of those kinds traced inside
+it take one form: the several-seed training step (train/trainer.py) takes
+the accelerator form of the transposed convolution, since its CPU form,
+vmapped over the seeds, computes otherwise when the seeds are split over
+devices (the other layers keep their CPU forms: faster there).
+
 Both forms compute the same function; they differ in rounding only.
 Parameters are declared outside the choice, so the parameter tree is the
 same whatever the form.
@@ -22,7 +28,9 @@ same whatever the form.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+import contextlib
+import threading
 from typing import Any, TypeVar
 
 import jax
@@ -35,19 +43,42 @@ KERNEL_FORMS = (AUTO, CPU, ACCELERATOR)
 _T = TypeVar('_T')
 
 
+_CHOSEN = threading.local()  # .stack: forms() blocks, innermost last
+
+CONV_TRANSPOSE = 'conv_transpose'
+
+
+@contextlib.contextmanager
+def forms(kernels: str, layers: tuple[str, ...]) -> Iterator[None]:
+  """Layers of the kinds `layers` (e.g. CONV_TRANSPOSE) with kernels='auto'
+  traced in this block (this thread) take the form `kernels` ('cpu' or
+  'accelerator') on every platform."""
+  check_kernels(kernels)
+  stack = _CHOSEN.__dict__.setdefault('stack', [])
+  stack.append((kernels, tuple(layers)))
+  try:
+    yield
+  finally:
+    stack.pop()
+
+
 def check_kernels(kernels: str) -> None:
   if kernels not in KERNEL_FORMS:
     raise ValueError(f'kernels must be one of {KERNEL_FORMS}, got {kernels!r}')
 
 
 def by_platform(kernels: str, cpu: Callable[..., _T],
-                accelerator: Callable[..., _T], *args: Any) -> _T:
+                accelerator: Callable[..., _T], *args: Any,
+                layer: str | None = None) -> _T:
   """`cpu(*args)` or `accelerator(*args)`, as `kernels` says (see above).
 
   `args` are the arrays (pytrees) both forms read; anything static belongs
   in the callables' closures.
   """
   check_kernels(kernels)
+  chosen = getattr(_CHOSEN, 'stack', None)
+  if kernels == AUTO and chosen and layer in chosen[-1][1]:
+    kernels = chosen[-1][0]
   if kernels == CPU:
     return cpu(*args)
   if kernels == ACCELERATOR:

@@ -1,7 +1,9 @@
 """Data parallelism over every device of every host.
 
 One mesh axis, 'data': the global batch is split along it, parameters and
-optimiser state are replicated. `jax.jit` with these shardings inserts the
+optimiser state are replicated. Training K seeds at once (`seed_mesh`) adds
+a 'seed' axis beside it when every process's devices split into K groups:
+the stacked [K, ...] state is split on 'seed', the batch on 'data'. `jax.jit` with these shardings inserts the
 gradient all-reduce itself. The same code serves 1 CPU, N fake CPU devices
 (`XLA_FLAGS=--xla_force_host_platform_device_count=N`), a GPU node and a
 multi-host pod (after `jax.distributed.initialize()`).
@@ -20,11 +22,44 @@ from jax.sharding import PartitionSpec
 import numpy as np
 
 DATA_AXIS = 'data'
+SEED_AXIS = 'seed'
 
 
 def make_mesh() -> Mesh:
   """A 1-D mesh over all devices of all processes."""
   return Mesh(np.asarray(jax.devices()), (DATA_AXIS,))
+
+
+def seed_mesh(mesh: Mesh, num_seeds: int) -> Mesh:
+  """`mesh`'s devices as a (seed, data) grid for training `num_seeds` seeds
+  at once (e.g. 4 seeds x 2 data on 8 devices), or `mesh` itself (the seeds
+  then replicated on every device, only the batch split) when there is one
+  seed or the devices of a process do not split into `num_seeds` groups.
+
+  The seeds of one 'data' row sit on one process (device [s, d] is device
+  d * K + s of `mesh`), so each process still holds a contiguous block of
+  batch rows (`check_host_rows`).
+  """
+  devices = mesh.devices.reshape(-1)
+  if (num_seeds <= 1 or mesh.axis_names != (DATA_AXIS,)
+      or jax.local_device_count() % num_seeds
+      or len(devices) % num_seeds):
+    return mesh
+  return Mesh(devices.reshape(-1, num_seeds).T, (SEED_AXIS, DATA_AXIS))
+
+
+def seed_sharding(mesh: Mesh) -> NamedSharding:
+  """A stacked [K, ...] tree split on 'seed' (replicated without one)."""
+  if SEED_AXIS in mesh.axis_names:
+    return NamedSharding(mesh, PartitionSpec(SEED_AXIS))
+  return replicated_sharding(mesh)
+
+
+def seed_batch_sharding(mesh: Mesh) -> NamedSharding:
+  """A [K, B, ...] batch (one per seed): K on 'seed' (when the mesh has
+  it), B on 'data'."""
+  seed_axis = SEED_AXIS if SEED_AXIS in mesh.axis_names else None
+  return NamedSharding(mesh, PartitionSpec(seed_axis, DATA_AXIS))
 
 
 def batch_sharding(mesh: Mesh) -> NamedSharding:
@@ -54,9 +89,10 @@ def check_host_rows(mesh: Mesh) -> None:
   Raises:
     ValueError: the mesh orders the devices of the processes otherwise.
   """
-  num_rows = mesh.devices.size  # one row per device
+  num_rows = mesh.shape[DATA_AXIS]  # one row per 'data' device
   indices = batch_sharding(mesh).addressable_devices_indices_map((num_rows,))
-  rows = sorted(index[0].indices(num_rows)[0] for index in indices.values())
+  rows = sorted({index[0].indices(num_rows)[0]
+                 for index in indices.values()})
   first = jax.process_index() * len(rows)
   if rows != list(range(first, first + len(rows))):
     raise ValueError(
@@ -66,17 +102,18 @@ def check_host_rows(mesh: Mesh) -> None:
         'mesh must list the devices of process 0 first, then 1, ...')
 
 
-def to_global_batch(local_batch: dict[str, np.ndarray], mesh: Mesh
-                    ) -> dict[str, jax.Array]:
-  """Assembles each host's slice into global arrays sharded on 'data'."""
-  sharding = batch_sharding(mesh)
+def to_global_batch(local_batch: dict[str, np.ndarray], mesh: Mesh,
+                    per_seed: bool = False) -> dict[str, jax.Array]:
+  """Assembles each host's slice into global arrays sharded on 'data'
+  (`per_seed`: [K, B, ...] batches, B on 'data', `seed_batch_sharding`)."""
+  sharding = seed_batch_sharding(mesh) if per_seed else batch_sharding(mesh)
   return jax.tree.map(
       lambda x: jax.make_array_from_process_local_data(sharding, x),
       local_batch)
 
 
 def prefetch_to_device(host_batches: Iterator[dict[str, np.ndarray]],
-                       mesh: Mesh, size: int = 2
+                       mesh: Mesh, size: int = 2, per_seed: bool = False
                        ) -> Iterator[tuple[dict[str, np.ndarray],
                                            dict[str, jax.Array]]]:
   """Yields ``(host batch, global batch)`` with up to `size` batches already
@@ -88,6 +125,7 @@ def prefetch_to_device(host_batches: Iterator[dict[str, np.ndarray]],
   while the previous step still runs. An error of `host_batches` is raised
   after the batches before it are handed out, at the step it would have
   been raised without prefetching. Closing this closes `host_batches`.
+  `per_seed`: [K, B, ...] host batches (see `to_global_batch`).
   """
   if size < 1:
     raise ValueError(f'size must be >= 1, got {size}')
@@ -105,7 +143,7 @@ def prefetch_to_device(host_batches: Iterator[dict[str, np.ndarray]],
         except Exception as error:  # pylint: disable=broad-except
           failure = error
           break
-        ready.append((host, to_global_batch(host, mesh)))
+        ready.append((host, to_global_batch(host, mesh, per_seed)))
       if not ready:
         if failure is not None:
           raise failure

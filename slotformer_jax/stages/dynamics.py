@@ -76,6 +76,16 @@ def dynamics_stage(section: ml_collections.ConfigDict, name: str,
   model = dynamics_lib.build(section, name)
   local_batch_size = sharding.per_host_batch_size(section.batch_size, mesh)
   example = dynamics_lib.example(section, slot_model.slot_shape)
+
+  def batches_for_seed(stream_seed, start_step):
+    return pipeline.train_batches(
+        source, batch_size=local_batch_size,
+        clip_length=section.burn_in + rollout, seed=stream_seed,
+        start_step=start_step, fields=('slots',) + video_fields,
+        frame_stride=section.frame_stride,
+        process_index=jax.process_index(),
+        process_count=jax.process_count(), num_workers=reader_workers)
+
   return Stage(
       name=name,
       directory=directory,
@@ -88,13 +98,8 @@ def dynamics_stage(section: ml_collections.ConfigDict, name: str,
       init_params=lambda rng: initializers.initialize(
           steps.init_params(model, rng, *example),
           jax.random.fold_in(rng, 1), section.init),
-      batches=lambda start_step: pipeline.train_batches(
-          source, batch_size=local_batch_size,
-          clip_length=section.burn_in + rollout, seed=seed,
-          start_step=start_step, fields=('slots',) + video_fields,
-          frame_stride=section.frame_stride,
-          process_index=jax.process_index(),
-          process_count=jax.process_count(), num_workers=reader_workers),
+      batches=functools.partial(batches_for_seed, seed),
+      batches_for_seed=batches_for_seed,
       frozen_params=decoder_params,
       logging=logging_config,
       images=(_rollout_images(slot_model, slot_params, model,

@@ -7,21 +7,43 @@ from __future__ import annotations
 from typing import Any
 
 from jax.sharding import Mesh
+import ml_collections
 
 from slotformer_jax.train.state import TrainState
+from slotformer_jax.train.trainer import Seeds
 from slotformer_jax.train.trainer import Stage
 from slotformer_jax.train.trainer import fit
 from slotformer_jax.workdir import identity as identity_lib
 
 
+def seeds_of(config: ml_collections.ConfigDict, offset: int = 0
+             ) -> Seeds | None:
+  """The run's several seeds (config.seeds, each + `offset`: a stage's own
+  stream), or None for one seed (config.seed, as before)."""
+  values = config.get('seeds')
+  if values is None or len(values) < 2:
+    return None
+  return Seeds(tuple(int(v) + offset for v in values),
+               data_order=config.get('seed_data_order', 'shared'),
+               on_divergence=config.get('on_seed_divergence', 'stop'),
+               seed_axis=bool(config.get('seed_axis', True)))
+
+
 def fit_stage(stage: Stage, *, mesh: Mesh, seed: int, what: str,
               identity_fields: dict[str, Any], parent: dict[str, Any] | None,
-              model_fields: dict[str, Any]) -> TrainState:
+              model_fields: dict[str, Any],
+              seeds: Seeds | None = None) -> TrainState:
   """`fit` after stamping the stage's run identity (a stage made with other
   settings or from another parent is set aside and retrained; see
   `identity.start_stage`) and checking that its checkpoints have the
-  architecture of `model_fields`."""
+  architecture of `model_fields`.
+
+  Several `seeds`: they join the identity (with their data order), so a
+  stage trained with other seeds (or one) is set aside; the checkpoints
+  hold the one stacked state (train/trainer.py)."""
+  if seeds is not None and seeds.several:
+    identity_fields = dict(identity_fields, seeds=seeds.plain())
   identity_lib.start_stage(stage.directory, identity_fields, parent, what)
   identity_lib.check_model_config(stage.directory, model_fields, what)
   identity_lib.write_model_config(stage.directory, model_fields)
-  return fit(stage, mesh=mesh, seed=seed)
+  return fit(stage, mesh=mesh, seed=seed, seeds=seeds)

@@ -29,6 +29,7 @@ from slotformer_jax.slot_models import chain
 from slotformer_jax.slot_models.base import Derived
 from slotformer_jax.slot_models.base import Part
 from slotformer_jax.stages.fit import fit_stage
+from slotformer_jax.stages.fit import seeds_of
 from slotformer_jax.train import steps
 from slotformer_jax.train.trainer import Stage
 from slotformer_jax.workdir import identity as identity_lib
@@ -87,18 +88,20 @@ def part_stage(part: Part, directory: str, mesh: Mesh, source: Any, *,
     return initializers.initialize(params, jax.random.fold_in(rng, 1),
                                    part.init)
 
-  def batches(start_step):
+  def batches_for_seed(stream_seed, start_step):
     stream = pipeline.train_batches(
         source, batch_size=local_batch_size, clip_length=part.clip_length,
-        seed=seed, start_step=start_step, fields=part.batch_fields,
+        seed=stream_seed, start_step=start_step, fields=part.batch_fields,
         process_index=jax.process_index(), process_count=jax.process_count(),
         num_workers=reader_workers)
     return (part.with_batches(stream, start_step)
             if part.with_batches is not None else stream)
 
   return Stage(name=part.name, directory=directory, config=part.section,
-               loss_fn=part.loss, init_params=init_params, batches=batches,
-               logging=logging_config, images=part.images)
+               loss_fn=part.loss, init_params=init_params,
+               batches=functools.partial(batches_for_seed, seed),
+               logging=logging_config, images=part.images,
+               batches_for_seed=batches_for_seed)
 
 
 def _parent(run: Run, part: Part) -> dict[str, Any] | None:
@@ -153,7 +156,8 @@ def train_part(run: Run, name: str) -> None:
                      reader_workers=run.config.data.reader_workers)
   fit_stage(stage, mesh=run.mesh, seed=run.config.seed, what=part.label,
             identity_fields=dict(part.identity_fields), parent=parent,
-            model_fields=dict(part.model_fields))
+            model_fields=dict(part.model_fields),
+            seeds=seeds_of(run.config))
 
 
 def derive(run: Run, name: str) -> None:

@@ -10,8 +10,10 @@ from typing import Any
 
 import flax.linen as nn
 import jax
+import jax.numpy as jnp
 import optax
 
+from slotformer_jax.train.state import SeedsState
 from slotformer_jax.train.state import TrainState
 
 Batch = dict[str, jax.Array]
@@ -22,8 +24,9 @@ LossFn = Callable[[Any, Batch, Any, jax.Array], tuple[jax.Array, Metrics]]
 
 def train_step(state: TrainState, batch: Batch, frozen_params: Any, *,
                loss_fn: LossFn, optimizer: optax.GradientTransformation,
-               seed: int) -> tuple[TrainState, Metrics]:
-  """One optimiser update. The step's RNG is derived from (seed, step)."""
+               seed: int | jax.Array) -> tuple[TrainState, Metrics]:
+  """One optimiser update. The step's RNG is derived from (seed, step): it
+  drives dropout and every sample the loss draws (slot noise, ...)."""
   rng = jax.random.fold_in(jax.random.key(seed), state.step)
   grad_fn = jax.value_and_grad(loss_fn, has_aux=True)
   (loss, metrics), grads = grad_fn(state.params, batch, frozen_params, rng)
@@ -33,6 +36,47 @@ def train_step(state: TrainState, batch: Batch, frozen_params: Any, *,
                  param_norm=optax.tree.norm(params))
   return TrainState(step=state.step + 1, params=params,
                     opt_state=opt_state), metrics
+
+
+def seeds_train_step(state: SeedsState, batch: Batch, frozen_params: Any,
+                     seeds: jax.Array, *, loss_fn: LossFn,
+                     optimizer: optax.GradientTransformation,
+                     per_seed_batches: bool = False
+                     ) -> tuple[SeedsState, Metrics]:
+  """`train_step` of K seeds at once, vmapped over the stacked state.
+
+  Args:
+    state: K TrainStates stacked ([K, ...] leaves).
+    batch: one batch every seed sees ([B, ...]), or with `per_seed_batches`
+      one per seed ([K, B, ...]).
+    frozen_params: shared by every seed.
+    seeds: int32 [K]; seed k's step RNG is train_step's for seeds[k].
+
+  Returns:
+    (state, metrics [K] each). A seed whose loss or updated parameters are
+    non-finite keeps its state from before the update, and `diverged_at`
+    records the update (an already diverged seed stays as it is).
+  """
+  def one(train_state, seed, seed_batch):
+    return train_step(train_state, seed_batch, frozen_params,
+                      loss_fn=loss_fn, optimizer=optimizer, seed=seed)
+
+  new, metrics = jax.vmap(one, in_axes=(0, 0, 0 if per_seed_batches else None)
+                          )(state.train_state(), seeds, batch)
+  training = state.diverged_at == 0
+  keep = training & jnp.isfinite(metrics['loss']) & jnp.isfinite(
+      metrics['param_norm'])
+
+  def select(updated, old):
+    return jnp.where(keep.reshape((-1,) + (1,) * (updated.ndim - 1)),
+                     updated, old)
+
+  return SeedsState(
+      step=new.step,
+      params=jax.tree.map(select, new.params, state.params),
+      opt_state=jax.tree.map(select, new.opt_state, state.opt_state),
+      diverged_at=jnp.where(training & ~keep, new.step, state.diverged_at),
+  ), metrics
 
 
 def init_params(module: nn.Module, rng: jax.Array, *args, **kwargs) -> Any:

@@ -53,6 +53,11 @@ ADDED_FIELDS: dict[str, Any] = {
     'readout.dropout_rate': 0.0,
     'evaluation.skip_first_frame': False,
     'data.reader_workers': 0,
+    # Several seeds in one program (config.seeds): None is the one seed.
+    'seeds': None,
+    'seed_data_order': 'shared',
+    'on_seed_divergence': 'stop',
+    'seed_axis': True,
     # The task was told by a `vqa` section before `task` was set for VQA.
     'task': None,
     # Planning readouts before every readout field had a default: the
