@@ -650,7 +650,8 @@ def test_every_unset_field_can_be_set_on_the_command_line(name, monkeypatch):
   plain None (`--config.data.data_dir=...` stopped with a flags error)."""
   from absl import flags
   from ml_collections import config_flags
-  samples = {str: '/tmp/x', int: '3', float: '0.5', bool: 'true'}
+  samples = {str: '/tmp/x', int: '3', float: '0.5', bool: 'true',
+             tuple: '(0, 1)'}
   fields, overrides = [], []
   for field, parent, key in _none_fields(pipeline_helpers.load_config(name)):
     reference = parent._fields[key]  # pylint: disable=protected-access
