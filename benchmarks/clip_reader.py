@@ -12,7 +12,11 @@ CLEVRER 128x64x64, Physion 150x128x128), converted by `prepare` once per
 layout: `--frames_per_chunk=0` (whole-video records, the layout before;
 always measured) and every K of `--chunks`. SlotFormer's L_I
 stream reads random float32 slots (`slots.SlotSource`, OBJ3D 6x128,
-CLEVRER 7x128) with the video frames of the same steps.
+CLEVRER 7x128) with the video frames of the same steps: with whole-video
+records every clip frame's (the reader before), with chunked records only
+the rollout's, from frame `burn_in` = 6 on (what `stages/dynamics.py` reads;
+the loss compares no others). Rates count clip frames (clips/s x clip
+length) either way.
 
 The measurement runs in this process pinned to `--core` (BLAS / OpenMP
 threads set to 1 before numpy is imported), calling
@@ -62,13 +66,16 @@ class Stream:
   stride: int
   batch: int
   slot_shape: tuple[int, int] | None = None
+  # L_I reads the video from this clip frame on (the rollout's): the
+  # chunked layout's SlotSource skips the burn-in frames' video.
+  video_from: int = 0
 
 
 STREAMS = {s.name: s for s in (
     Stream('obj3d_savi', 'obj3d', 64, 50, 6, 1, 64),
     Stream('clevrer_savi', 'clevrer', 64, 128, 6, 1, 64),
-    Stream('obj3d_li', 'obj3d', 64, 50, 16, 1, 32, (6, 128)),
-    Stream('clevrer_li', 'clevrer', 64, 128, 16, 2, 32, (7, 128)),
+    Stream('obj3d_li', 'obj3d', 64, 50, 16, 1, 32, (6, 128), 6),
+    Stream('clevrer_li', 'clevrer', 64, 128, 16, 2, 32, (7, 128), 6),
     Stream('physion_dvae', 'physion', 128, 150, 1, 1, 64),
 )}
 
@@ -107,13 +114,16 @@ def open_stream(work: Path, s: Stream, videos: int, k: int):
   video = sources.TfdsVideoSource(layout_dir(work, s, videos, k), 'train')
   if s.slot_shape is None:
     return video, ('video',)
-  return (slots.SlotSource(slot_dir(work, s, videos), video, verify=False),
+  # Whole videos: the reader before, which handed L_I every clip frame.
+  return (slots.SlotSource(slot_dir(work, s, videos), video, verify=False,
+                           video_from=s.video_from if k else 0),
           ('slots', 'video'))
 
 
 def rate(source, fields, s: Stream, seconds: float, first_step: int
          ) -> tuple[float, int]:
-  """Delivered clip frames/s of make_train_batch; the next step."""
+  """Delivered clip frames/s of make_train_batch (clips/s x clip length,
+  however many of a clip's video frames the stream reads); the next step."""
   step, frames = first_step, 0
   kwargs = dict(batch_size=s.batch, clip_length=s.clip, seed=0,
                 fields=fields, frame_stride=s.stride)
@@ -122,7 +132,7 @@ def rate(source, fields, s: Stream, seconds: float, first_step: int
   started = time.perf_counter()
   while time.perf_counter() - started < seconds:
     batch = pipeline.make_train_batch(source, step, **kwargs)
-    frames += batch[fields[-1]].shape[0] * batch[fields[-1]].shape[1]
+    frames += batch[fields[0]].shape[0] * batch[fields[0]].shape[1]
     step += 1
   return frames / (time.perf_counter() - started), step
 

@@ -179,6 +179,9 @@ class Stream:
   tokens: int = 0
   batch: int = 0
   feature_frames: int = 0
+  # 'slots+video': the clip frame the video is read from (L_I reads the
+  # rollout's frames only, as stages/dynamics.py does).
+  video_from: int = 0
 
   @property
   def key(self) -> str:
@@ -227,7 +230,8 @@ def describe(config_name: str, step: str) -> dict[str, Any]:
     dyn = config.slotformer
     stream = Stream('slots+video' if 'video' in spec else 'slots', dataset,
                     res, stored, dyn.burn_in + dyn.rollout,
-                    dyn.frame_stride, slot_shape, batch=batch)
+                    dyn.frame_stride, slot_shape, batch=batch,
+                    video_from=dyn.burn_in if 'video' in spec else 0)
   elif step == 'aloe':
     vqa = config.vqa
     stream = Stream('aloe', dataset, slot_shape=slot_shape, batch=batch,
@@ -358,7 +362,7 @@ def measure_stream(s: Stream, work: Path, videos: int,
                if s.kind == 'slots+video' else None)
       source = slots.SlotSource(
           _slot_dir(work, videos, s.video_frames, s.slot_shape), video,
-          verify=False)
+          verify=False, video_from=s.video_from)
       fields = ('slots',) + (('video',) if video is not None else ())
     stream = pipeline.train_batches(
         source, batch_size=s.batch, clip_length=s.clip_length, seed=0,

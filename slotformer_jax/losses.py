@@ -64,8 +64,9 @@ def slotformer_loss(params: Any, batch: Batch, decoder_params: Any,
   """L = L_S + lambda * L_I on the model's own rollout.
 
   batch['slots']: float32 [B, burn_in + rollout, N, D];
-  batch['video']: uint8 [B, burn_in + rollout, H, W, 3] (needed when
-  lambda > 0). L_S is the MSE between predicted and extracted slots, L_I
+  batch['video']: uint8 [B, T, H, W, 3] whose last `rollout` frames are the
+  rollout's (T = rollout: the training stream reads only those; T =
+  burn_in + rollout also works; needed when lambda > 0). L_S is the MSE between predicted and extracted slots, L_I
   the MSE between frames decoded from the predicted slots by the *frozen*
   SAVi decoder and the real frames (both averaged over every element, as the
   official implementation), in the pixel range of the slot model
@@ -82,7 +83,7 @@ def slotformer_loss(params: Any, batch: Batch, decoder_params: Any,
   metrics = {'slot_loss': slot_loss}
   loss = slot_loss
   if image_loss_weight > 0:
-    frames = to_model(batch['video'][:, burn_in:burn_in + rollout])
+    frames = to_model(batch['video'][:, -rollout:])
     decoded = decoder.apply({'params': jax.lax.stop_gradient(decoder_params)},
                             predicted)
     image_loss = jnp.mean(jnp.square(decoded.recon - frames))

@@ -152,12 +152,14 @@ class Run:
     """The videos of `split` (opened, never made: see stages/data.py)."""
     return get_video_source(self.config.data, split)
 
-  def slots(self, split: str, video_fields: tuple[str, ...] = ()
-            ) -> SlotSource:
+  def slots(self, split: str, video_fields: tuple[str, ...] = (), *,
+            video_from: int = 0) -> SlotSource:
     """The extracted slots of `split`, served with `video_fields` of its
-    videos (e.g. ('video',) for the image loss)."""
+    videos (e.g. ('video',) for the image loss), a training clip's from its
+    `video_from`-th frame on (`SlotSource`)."""
     videos = self.videos(split) if video_fields else None
-    return SlotSource(self.paths.slots(split), videos, video_fields)
+    return SlotSource(self.paths.slots(split), videos, video_fields,
+                      video_from=video_from)
 
   # ---- trained models, loaded once and checked ---------------------------------
 

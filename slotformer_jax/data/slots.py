@@ -97,11 +97,16 @@ class SlotSource:
   Items: {'slots': float32 [T, N, D]} plus the requested fields of
   `video_source[i]` (e.g. 'video' uint8 [T, H, W, 3]), which must have the
   same number of frames.
+
+  `video_from`: a training clip (`clip`) reads the video fields from its
+  ``video_from``-th frame on, e.g. SlotFormer's image loss, which compares
+  only the rollout frames: {'slots': [L, N, D], 'video': [L - video_from,
+  H, W, 3]}. Whole items (``source[i]``) are unaffected.
   """
 
   def __init__(self, directory: str, video_source: Any = None,
                video_fields: tuple[str, ...] = ('video',), *,
-               verify: bool = True):
+               verify: bool = True, video_from: int = 0):
     meta = read_meta(directory)
     if meta is None or not meta.get('complete'):
       raise MissingInputError(
@@ -116,6 +121,9 @@ class SlotSource:
     ).reshape(-1, meta['num_slots'], meta['slot_size'])
     self._video_source = video_source
     self._video_fields = tuple(video_fields)
+    if video_from < 0:
+      raise ValueError(f'video_from must be >= 0, got {video_from}')
+    self._video_from = video_from
     if video_source is not None and len(video_source) != len(self):
       raise ValueError(
           f'{directory} holds slots of {len(self)} videos but the video '
@@ -157,7 +165,8 @@ class SlotSource:
 
   def clip(self, index: int, start: int, length: int, stride: int = 1,
            fields: tuple[str, ...] = ('slots',)) -> dict[str, np.ndarray]:
-    """As ``pipeline._slice_item(self[index], fields, ...)``."""
+    """As ``pipeline._slice_item(self[index], fields, ...)``, except that
+    the video fields start `video_from` frames into the clip."""
     first, num_frames = (int(v) for v in self._index[index])
     end = start + (length - 1) * stride + 1
     if length < 1 or stride < 1 or start < 0 or end > num_frames:
@@ -166,6 +175,12 @@ class SlotSource:
           f'with stride {stride} from frame {start} does not fit')
     out = {}
     video_fields = [f for f in fields if f != 'slots']
+    if video_fields and self._video_from >= length:
+      raise ValueError(f'a clip of {length} frames has no video frames '
+                       f'from frame {self._video_from} on')
+    # Only the frames the clip's video fields keep are read.
+    video_start = start + self._video_from * stride
+    video_length = length - self._video_from
     if video_fields:
       if (self._video_source is None
           or any(f not in self._video_fields for f in video_fields)):
@@ -177,13 +192,13 @@ class SlotSource:
           raise ValueError(
               f'video {index}: the video has {have} frames but '
               f'{num_frames} slots were extracted')
-        frames = self._video_source.clip(index, start, length, stride,
-                                         video_fields)
+        frames = self._video_source.clip(index, video_start, video_length,
+                                         stride, video_fields)
       else:
         from slotformer_jax.data import pipeline  # pylint: disable=g-import-not-at-top
         item = self[index]
-        frames = pipeline._slice_item(item, video_fields, index, start,  # pylint: disable=protected-access
-                                      length, stride)
+        frames = pipeline._slice_item(item, video_fields, index,  # pylint: disable=protected-access
+                                      video_start, video_length, stride)
     for field in fields:
       out[field] = (np.asarray(self._slots[first + start:first + end:stride])
                     if field == 'slots' else frames[field])

@@ -116,7 +116,9 @@ def train_dynamics(run: Run, name: str) -> None:
   parent = chain.check_slots_current(run.paths, 'train', loaded.slots_parent,
                                      run.slots_fields, slot_model.label)
   decoder, _ = image_loss_decoder(section, name, slot_model, loaded.params)
-  source = run.slots('train', ('video',) if decoder is not None else ())
+  # L_I compares the rollout frames only: the burn-in frames are not read.
+  source = run.slots('train', ('video',) if decoder is not None else (),
+                     video_from=section.burn_in)
   # The dynamics' own stream of batches: seed + 1, apart from stage 1's.
   seed = run.config.seed + 1
   stage = dynamics_stage(section, name, run.paths.dynamics(name), run.mesh,
@@ -149,8 +151,11 @@ def _rollout_images(slot_model, slot_params, model, burn_in: int,
   def images(params, batch):
     recon = np.asarray(jax.device_get(decode(params, batch['slots'][:1])))
     rows = {}
-    if 'video' in batch:
-      rows['real frames'] = batch['video'][0]
+    if 'video' in batch:  # the rollout's frames (L_I reads no others)
+      frames = batch['video'][0]
+      rows['real frames'] = np.concatenate([np.full(
+          (burn_in + rollout - len(frames), *frames.shape[1:]), 255,
+          np.uint8), frames])  # white under the burn-in
     rows['slots decoded'] = to_uint8(recon[0])
     rows[f'burn-in {burn_in} + {name}'] = to_uint8(recon[1])
     return {'rollout': labelled_grid(rows)}

@@ -262,6 +262,40 @@ def test_slot_batches_with_frames_match_the_old_layout(folders, tmp_path):
   assert new._video_source.records_read - reads == 4  # pylint: disable=protected-access
 
 
+def test_video_from_reads_only_the_clip_frames_it_keeps(folders, tmp_path):
+  """L_I's stream (stages/dynamics.py): the video from clip frame
+  `video_from` on; the slots whole; fewer chunk records read."""
+  rng = np.random.default_rng(1)
+  slot_dir = str(tmp_path / 'slots')
+  w = slots.SlotWriter(slot_dir, len(LENGTHS), 2, 3, savi_step=0)
+  for i, t in enumerate(LENGTHS):
+    w.add(i, rng.standard_normal((t, 2, 3), dtype=np.float32))
+  w.close()
+  full = slots.SlotSource(slot_dir, _open(folders, 3))
+  kwargs = dict(batch_size=4, clip_length=6, seed=3,
+                fields=('slots', 'video'))
+  for k in (0, 3):  # whole-video and chunked records
+    tail = slots.SlotSource(slot_dir, _open(folders, k), video_from=4)
+    for step in range(4):
+      want = pipeline.make_train_batch(full, step, **kwargs)
+      got = pipeline.make_train_batch(tail, step, **kwargs)
+      np.testing.assert_array_equal(got['slots'], want['slots'])
+      assert got['video'].shape[1] == 2
+      np.testing.assert_array_equal(got['video'], want['video'][:, 4:])
+  # One frame, the clip's last: one chunk record per clip (the whole clip
+  # spans two or three chunks of 3).
+  tail = slots.SlotSource(slot_dir, _open(folders, 3), video_from=5)
+  reads = tail._video_source.records_read  # pylint: disable=protected-access
+  batch = pipeline.make_train_batch(tail, 0, **kwargs)
+  assert batch['video'].shape[1] == 1
+  assert tail._video_source.records_read - reads == 4  # pylint: disable=protected-access
+  with pytest.raises(ValueError, match='no video frames'):
+    slots.SlotSource(slot_dir, _open(folders, 3), video_from=6).clip(
+        0, 0, 6, 1, ('slots', 'video'))
+  with pytest.raises(ValueError, match='video_from'):
+    slots.SlotSource(slot_dir, video_from=-1)
+
+
 @dataclasses.dataclass(frozen=True)
 class _Job:
   key: str

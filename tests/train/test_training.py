@@ -242,3 +242,23 @@ def test_nan_loss_stops_with_a_clear_message(tmp_path):
   with pytest.raises(FloatingPointError, match='loss became nan at step 1'):
     fit(poisoned, mesh=Mesh(np.asarray(jax.devices()[:1]), ('data',)),
         seed=0)
+
+
+def test_image_loss_reads_the_last_rollout_frames():
+  """The training stream hands L_I only the rollout's frames
+  (SlotSource(video_from=burn_in)); the loss equals the full clip's."""
+  params, loss_fn, batch, decoder_params = _slotformer_setup()
+  rng = jax.random.key(4)
+  full_loss, full_metrics = loss_fn(params, batch, decoder_params, rng)
+  tail = dict(batch, video=batch['video'][:, 2:])  # burn-in 2, rollout 2
+  tail_loss, tail_metrics = loss_fn(params, tail, decoder_params, rng)
+  assert float(full_metrics['image_loss']) > 0
+  np.testing.assert_array_equal(np.asarray(tail_loss), np.asarray(full_loss))
+  np.testing.assert_array_equal(np.asarray(tail_metrics['image_loss']),
+                                np.asarray(full_metrics['image_loss']))
+  # The burn-in frames do not enter it.
+  other = dict(batch, video=np.concatenate(
+      [255 - batch['video'][:, :2], batch['video'][:, 2:]], axis=1))
+  np.testing.assert_array_equal(
+      np.asarray(loss_fn(params, other, decoder_params, rng)[0]),
+      np.asarray(full_loss))
