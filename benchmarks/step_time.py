@@ -32,10 +32,12 @@ Several seeds (config.seeds, train/trainer.py):
 
   python benchmarks/step_time.py --seeds=3 --cases=savi_synthetic
 
-times, for each train-step case, K seeds in one program (the trainer's
-vmapped step, `steps.seeds_train_step`) against K one-seed steps, the two
-alternating each repeat, and prints both medians and their ratio (the
-issue's bar: one program <= K one-seed steps, ratio <= 1). The one-seed
+times, for each train-step case, K seeds in one program in both forms of
+`steps.seeds_train_step` ('vmap': one batched step; 'unroll': the one-seed
+step written K times into the program, the trainer's choice on CPU) against K
+one-seed steps, the three alternating each repeat, and prints the medians
+and the ratios (the issue's bar: one program <= K one-seed steps, ratio
+<= 1). The one-seed
 steps are compiled as the one-seed trainer compiles them; --same_options
 compiles them with the several-seed program's XLA:CPU options too.
 """
@@ -102,33 +104,40 @@ def median_seconds(fn, repeats):
 
 # --seeds: K > 1 makes the train-step cases return both runners.
 NUM_SEEDS = 1
-# --same_options: the one-seed steps compiled with the several-seed
+# --same_options: the one-seed steps compiled with the vmapped several-seed
 # program's XLA:CPU options too (the vmap's cost apart from the options').
 SAME_OPTIONS = False
 
 
 def seeds_runners(loss_fn, params, batch, frozen, stage_config, num_seeds):
-  """{'one_program': K seeds' vmapped step, 'separate': K one-seed steps}.
+  """{'vmap': K seeds' vmapped step, 'unroll': the one-seed step written K
+  times into one program, 'separate': K one-seed steps}.
 
   The seeds' parameters are copies of `params` (the cost does not depend on
-  the values); the one program is traced and compiled as the trainer does
-  (`trainer.seeds_update`, `trainer.jit_update`'s options on XLA:CPU)."""
+  the values); each one-program form is traced and compiled as the trainer
+  does (`trainer.seeds_update`, `trainer.jit_update`'s options on XLA:CPU
+  for that form)."""
   optimizer, _ = optim.make_optimizer(stage_config)
   one_seed = TrainState.create(params, optimizer)
-  stacked = SeedsState.stack([one_seed] * num_seeds)
-  options = trainer._seeds_compiler_options(  # pylint: disable=protected-access
-      jax.sharding.Mesh(np.asarray(jax.devices()[:1]), ('data',)))
-  several = jax.jit(trainer.seeds_update(loss_fn, optimizer,
-                                         tuple(range(num_seeds))),
-                    compiler_options=options)
+  mesh = jax.sharding.Mesh(np.asarray(jax.devices()[:1]), ('data',))
+  holder = {'states': [one_seed] * num_seeds}
+  runners = {}
+  for loop in ('vmap', 'unroll'):
+    options = trainer._seeds_compiler_options(mesh, loop)  # pylint: disable=protected-access
+    update = jax.jit(trainer.seeds_update(loss_fn, optimizer,
+                                          tuple(range(num_seeds)), loop=loop),
+                     compiler_options=options)
+    holder[loop] = SeedsState.stack([one_seed] * num_seeds)
+
+    def one_program(loop=loop, update=update):
+      holder[loop], metrics_ = update(holder[loop], batch, frozen)
+      return metrics_['loss']
+
+    runners[loop] = one_program
+  vmap_options = trainer._seeds_compiler_options(mesh, 'vmap')  # pylint: disable=protected-access
   single = jax.jit(functools.partial(steps.train_step, loss_fn=loss_fn,
                                      optimizer=optimizer, seed=0),
-                   compiler_options=options if SAME_OPTIONS else None)
-  holder = {'stacked': stacked, 'states': [one_seed] * num_seeds}
-
-  def one_program():
-    holder['stacked'], metrics_ = several(holder['stacked'], batch, frozen)
-    return metrics_['loss']
+                   compiler_options=vmap_options if SAME_OPTIONS else None)
 
   def separate():
     losses_ = []
@@ -138,7 +147,8 @@ def seeds_runners(loss_fn, params, batch, frozen, stage_config, num_seeds):
       losses_.append(metrics_['loss'])
     return losses_
 
-  return {'one_program': one_program, 'separate': separate}
+  runners['separate'] = separate
+  return runners
 
 
 def alternating_medians(runners, repeats):
@@ -356,10 +366,11 @@ def main():
       medians = alternating_medians(CASES[name](args.compute_dtype),
                                     args.repeats)
       results[name] = medians
-      print(f'{name:<20} {NUM_SEEDS} seeds in one program '
-            f'{medians["one_program"]:8.3f} s, {NUM_SEEDS} one-seed steps '
-            f'{medians["separate"]:8.3f} s, ratio '
-            f'{medians["one_program"] / medians["separate"]:.2f} '
+      print(f'{name:<20} {NUM_SEEDS} seeds in one program: vmap '
+            f'{medians["vmap"]:.3f} s, unroll {medians["unroll"]:.3f} s; '
+            f'{NUM_SEEDS} one-seed steps {medians["separate"]:.3f} s; ratio '
+            f'vmap {medians["vmap"] / medians["separate"]:.2f}, map '
+            f'{medians["unroll"] / medians["separate"]:.2f} '
             f'(load average {os.getloadavg()[0]:.2f})', flush=True)
       continue
     seconds = median_seconds(CASES[name](args.compute_dtype), args.repeats)

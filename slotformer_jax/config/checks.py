@@ -354,7 +354,7 @@ _SEED_FREE_STAGES = ('prepare_data',)
 def seeds_problems(config: ml_collections.ConfigDict,
                    stages: Sequence[str]) -> list[str]:
   """One line per bad `seeds` / `seed_data_order` / `on_seed_divergence` /
-  `seed_axis`, and one naming the stages of `stages` that do not take
+  `seed_axis` / `seed_loop`, and one naming the stages of `stages` that do not take
   several seeds yet."""
   seeds = config.get('seeds')
   problems = []
@@ -377,6 +377,9 @@ def seeds_problems(config: ml_collections.ConfigDict,
   if on_divergence not in ('stop', 'continue'):
     problems.append("on_seed_divergence must be 'stop' or 'continue', got "
                     f'{on_divergence!r}')
+  if config.seed_loop not in ('auto', 'vmap', 'unroll'):
+    problems.append("seed_loop must be 'auto', 'vmap' or 'unroll', got "
+                    f'{config.seed_loop!r}')
   if not isinstance(config.get('seed_axis', True), bool):
     problems.append(f'seed_axis must be True or False, got '
                     f'{config.get("seed_axis")!r}')

@@ -39,6 +39,12 @@ def base_config() -> ml_collections.ConfigDict:
   # on 8 devices); otherwise, or False, the seeds are replicated on every
   # device and only the batch is split.
   config.seed_axis = True
+  # How the one program runs the seeds' steps: 'vmap' (one batched step,
+  # wider kernels: fills an accelerator), 'unroll' (the one-seed step written K
+  # times into the program: the one-seed kernels) or 'auto': 'unroll' on
+  # CPU when the seeds are not split over devices, else 'vmap'
+  # (docs/seeds.md has the timings).
+  config.seed_loop = 'auto'
   # 'float32' or 'bfloat16': the dtype the training losses and the rollout
   # evaluation compute in; parameters, optimiser state and checkpoints stay
   # float32 either way (slotformer_jax/runtime/precision.py).

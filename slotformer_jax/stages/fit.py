@@ -26,7 +26,8 @@ def seeds_of(config: ml_collections.ConfigDict, offset: int = 0
   return Seeds(tuple(int(v) + offset for v in values),
                data_order=config.get('seed_data_order', 'shared'),
                on_divergence=config.get('on_seed_divergence', 'stop'),
-               seed_axis=bool(config.get('seed_axis', True)))
+               seed_axis=bool(config.get('seed_axis', True)),
+               loop=config.seed_loop)
 
 
 def fit_stage(stage: Stage, *, mesh: Mesh, seed: int, what: str,

@@ -115,6 +115,7 @@ class Stage:
 
 DATA_ORDERS = ('shared', 'per_seed')
 ON_DIVERGENCE = ('stop', 'continue')
+SEED_LOOPS = ('auto', 'vmap', 'unroll')
 
 
 @dataclasses.dataclass(frozen=True)
@@ -134,12 +135,18 @@ class Seeds:
       devices split into K groups, e.g. 4 seeds x 2 data on 8 devices);
       otherwise, or with False, the seeds are replicated on every device
       and only the batch is split.
+    loop: how the program runs the K steps (`steps.seeds_train_step`):
+      'vmap' (one batched step), 'unroll' (the one-seed step written K times
+      into the program) or 'auto': 'unroll' on CPU when the seeds are not
+      split over devices (the one-seed kernels, faster there), else
+      'vmap' (`loop_on`).
   """
 
   values: tuple[int, ...]
   data_order: str = 'shared'
   on_divergence: str = 'stop'
   seed_axis: bool = True
+  loop: str = 'auto'
 
   def __post_init__(self):
     if not self.values or len(set(self.values)) != len(self.values):
@@ -150,6 +157,17 @@ class Seeds:
     if self.on_divergence not in ON_DIVERGENCE:
       raise ConfigError(f'on seed divergence {self.on_divergence!r}: one of '
                         f'{ON_DIVERGENCE}')
+    if self.loop not in SEED_LOOPS:
+      raise ConfigError(f'seed loop {self.loop!r}: one of {SEED_LOOPS}')
+
+  def loop_on(self, mesh: Mesh) -> str:
+    """'vmap' or 'unroll' for a program on `mesh` (see `loop`). A program
+    for an accelerator always batches the seeds unless told 'unroll'."""
+    if self.loop != 'auto':
+      return self.loop
+    split = sharding.SEED_AXIS in mesh.axis_names
+    on_cpu = mesh.devices.flat[0].platform == 'cpu'
+    return 'unroll' if on_cpu and not split else 'vmap'
 
   @property
   def several(self) -> bool:
@@ -253,8 +271,10 @@ def jit_update(stage: Stage, mesh: Mesh,
         out_shardings=(replicated, replicated),
         donate_argnums=(0,))
   per_seed = seeds.data_order == 'per_seed'
+  loop = seeds.loop_on(mesh)
   update = seeds_update(stage.loss_fn, optimizer, seeds.values, per_seed,
-                        split=sharding.SEED_AXIS in mesh.axis_names)
+                        split=sharding.SEED_AXIS in mesh.axis_names,
+                        loop=loop)
   batch_sharding = (sharding.seed_batch_sharding(mesh) if per_seed
                     else sharding.batch_sharding(mesh))
   return jax.jit(
@@ -263,31 +283,33 @@ def jit_update(stage: Stage, mesh: Mesh,
                     replicated),
       out_shardings=(sharding.seed_sharding(mesh), replicated),
       donate_argnums=(0,),
-      compiler_options=_seeds_compiler_options(mesh))
+      compiler_options=_seeds_compiler_options(mesh, loop))
 
 
 # XLA:CPU (jaxlib 0.10.2) crashes (SIGSEGV) running the vmapped gradient of
 # SAVi's loss when its YNNPACK reduce or elementwise fusions are on; with
 # only the dot fusion (which the project's default flags leave on, see
-# runtime/xla_flags.py) it runs. Set for the several-seed step only, so the
-# one-seed program is compiled exactly as before.
+# runtime/xla_flags.py) it runs. Set for the vmapped several-seed step only,
+# so the one-seed program and the 'unroll' loop are compiled as before.
 _CPU_SEEDS_OPTIONS = {
     'xla_cpu_experimental_ynn_fusion_type': 'LIBRARY_FUSION_TYPE_DOT'}
 
 
-def _seeds_compiler_options(mesh: Mesh) -> dict[str, str] | None:
-  if mesh.devices.flat[0].platform == 'cpu':
+def _seeds_compiler_options(mesh: Mesh, loop: str = 'vmap'
+                            ) -> dict[str, str] | None:
+  if mesh.devices.flat[0].platform == 'cpu' and loop == 'vmap':
     return dict(_CPU_SEEDS_OPTIONS)
   return None
 
 
 def seeds_update(loss_fn: LossFn, optimizer: optax.GradientTransformation,
                  seeds: tuple[int, ...], per_seed_batches: bool = False,
-                 split: bool = False
+                 split: bool = False, loop: str = 'vmap'
                  ) -> Callable[..., tuple[SeedsState, dict[str, jax.Array]]]:
   """The several-seed update as `jit_update` jits it: (SeedsState, batch,
   frozen params) -> (SeedsState, metrics [K] with `diverged_at`); `split`:
-  the state is split on a 'seed' mesh axis."""
+  the state is split on a 'seed' mesh axis; `loop`: 'vmap' or 'unroll'
+  (`steps.seeds_train_step`)."""
   values = np.asarray(seeds, np.int32)
 
   def update(state, batch, frozen_params):
@@ -297,11 +319,11 @@ def seeds_update(loss_fn: LossFn, optimizer: optax.GradientTransformation,
     # of tests/train/test_seeds.py). Unsplit the CPU form is right and on
     # CPU faster.
     with (platform.forms(platform.ACCELERATOR, (platform.CONV_TRANSPOSE,))
-          if split else contextlib.nullcontext()):
+          if split and loop == 'vmap' else contextlib.nullcontext()):
       state, metrics = seeds_train_step(
           state, batch, frozen_params, jax.numpy.asarray(values),
           loss_fn=loss_fn, optimizer=optimizer,
-          per_seed_batches=per_seed_batches)
+          per_seed_batches=per_seed_batches, loop=loop)
     return state, dict(metrics, diverged_at=state.diverged_at)
 
   return update

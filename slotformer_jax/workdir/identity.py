@@ -58,6 +58,7 @@ ADDED_FIELDS: dict[str, Any] = {
     'seed_data_order': 'shared',
     'on_seed_divergence': 'stop',
     'seed_axis': True,
+    'seed_loop': 'auto',
     # The task was told by a `vqa` section before `task` was set for VQA.
     'task': None,
     # Planning readouts before every readout field had a default: the
