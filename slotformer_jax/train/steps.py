@@ -41,7 +41,8 @@ def train_step(state: TrainState, batch: Batch, frozen_params: Any, *,
 def seeds_train_step(state: SeedsState, batch: Batch, frozen_params: Any,
                      seeds: jax.Array, *, loss_fn: LossFn,
                      optimizer: optax.GradientTransformation,
-                     per_seed_batches: bool = False
+                     per_seed_batches: bool = False,
+                     per_seed_frozen: bool = False
                      ) -> tuple[SeedsState, Metrics]:
   """`train_step` of K seeds at once, vmapped over the stacked state.
 
@@ -49,7 +50,9 @@ def seeds_train_step(state: SeedsState, batch: Batch, frozen_params: Any,
     state: K TrainStates stacked ([K, ...] leaves).
     batch: one batch every seed sees ([B, ...]), or with `per_seed_batches`
       one per seed ([K, B, ...]).
-    frozen_params: shared by every seed.
+    frozen_params: shared by every seed, or with `per_seed_frozen` one
+      tree per seed ([K, ...] leaves; seed k's SlotFormer decodes L_I with
+      stage-1 seed k's decoder).
     seeds: int32 [K]; seed k's step RNG is train_step's for seeds[k].
 
   Returns:
@@ -57,12 +60,13 @@ def seeds_train_step(state: SeedsState, batch: Batch, frozen_params: Any,
     non-finite keeps its state from before the update, and `diverged_at`
     records the update (an already diverged seed stays as it is).
   """
-  def one(train_state, seed, seed_batch):
-    return train_step(train_state, seed_batch, frozen_params,
+  def one(train_state, seed, seed_batch, seed_frozen):
+    return train_step(train_state, seed_batch, seed_frozen,
                       loss_fn=loss_fn, optimizer=optimizer, seed=seed)
 
-  new, metrics = jax.vmap(one, in_axes=(0, 0, 0 if per_seed_batches else None)
-                          )(state.train_state(), seeds, batch)
+  new, metrics = jax.vmap(one, in_axes=(
+      0, 0, 0 if per_seed_batches else None, 0 if per_seed_frozen else None)
+                          )(state.train_state(), seeds, batch, frozen_params)
   training = state.diverged_at == 0
   keep = training & jnp.isfinite(metrics['loss']) & jnp.isfinite(
       metrics['param_norm'])
