@@ -138,7 +138,7 @@ class Run:
     """The process that writes the run's shared files."""
     return jax.process_index() == 0
 
-  # ---- several seeds (config.seeds, docs/seeds.md) ----------------------------
+  # ---- several seeds (config.seeds, docs/seeds.md) --------------------------
 
   @property
   def seeds(self) -> tuple[int, ...] | None:

@@ -130,6 +130,7 @@ def _each_seed(run: Run, what: str, stage: Callable[[Run, Evaluated], Any]
     trained = evaluated(view)
     why = diverged(trained)
     if why is None:
+      logger.info('%s: seed %d', what, view.seed)
       done[view.seed] = stage(view, trained)
     else:
       excluded[view.seed] = why

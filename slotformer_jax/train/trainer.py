@@ -15,9 +15,9 @@ step RNG (dropout, slot noise, samples); the data order is the stage's own
 stream, shared by every seed (the default), or `batches_for_seed(s, step)`
 per seed. A stage whose seeds read their own data (SlotFormer seed k on the
 slots of stage-1 seed k) gives `seed_batches` (and per-seed frozen
-parameters): the seeds then always train on stacked batches. Seed k of a K-seed run with a shared order trains as the one-seed
-run with seed k (to float32 rounding: the vmapped program may round
-differently). With one seed, nothing of this is used: the step, the state
+parameters): the seeds then always train on stacked batches. Seed k of a
+K-seed run with a shared order trains as the one-seed run with seed k (to
+float32 rounding: the vmapped program may round differently). With one seed, nothing of this is used: the step, the state
 and its checkpoints are the one-seed ones.
 
 Failures stop the loop at once with one line: a non-finite loss or updated

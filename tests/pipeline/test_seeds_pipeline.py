@@ -217,6 +217,22 @@ def test_a_rerun_resumes_where_the_seeds_stopped(seeded, tmp_path):
       atol=0, rtol=0)
 
 
+@pytest.mark.slow
+def test_each_seed_has_its_pictures_and_explorer(seeded):
+  config, workdir, _ = seeded
+  pictures = run_stages(config, workdir, _mesh(2), ['render'])['render']
+  pages = run_stages(config, workdir, _mesh(2), ['explore'])['explore']
+  for seed in SEEDS:
+    paths = Paths.of(workdir).for_seed(seed)
+    assert os.path.join(paths.render, 'rollout_000.gif') in pictures
+    assert os.path.join(paths.explore, 'index.html') in pages
+    with open(os.path.join(paths.explore, 'identity.json')) as f:
+      identity = json.load(f)['identity']
+    assert identity['slotformer']['seed'] == seed
+  assert not os.path.exists(os.path.join(workdir, 'render'))
+  assert not os.path.exists(os.path.join(workdir, 'explore'))
+
+
 @dataclasses.dataclass
 class _Model:
   diverged_at: int = 0
