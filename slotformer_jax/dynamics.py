@@ -88,19 +88,26 @@ class Loaded:
     module: the linen module (apply with {'params': params}).
     params: its newest parameters (replicated over the mesh).
     step: the step they were saved at.
+    diverged_at: for one seed of several trained in one program, the update
+      in which it diverged (its parameters are its last finite ones); 0
+      when it did not (always, for one seed).
   """
 
   name: str
   module: DynamicsModel
   params: Any
   step: int
+  diverged_at: int = 0
 
 
 def load(paths: Paths, mesh: Mesh, name: str,
          section: ml_collections.ConfigDict,
-         slot_shape: tuple[int, int]) -> Loaded:
+         slot_shape: tuple[int, int],
+         stacked: inference.StackedSeed | None = None) -> Loaded:
   """The newest parameters of dynamics model `name` of the run `paths`,
-  trained on slots of `slot_shape` with `section`'s architecture.
+  trained on slots of `slot_shape` with `section`'s architecture;
+  `stacked`: that seed's share of a model trained with several seeds in one
+  program (one stacked checkpoint).
 
   Raises:
     UserError: never trained (the message names the stage), or trained with
@@ -109,8 +116,16 @@ def load(paths: Paths, mesh: Mesh, name: str,
   directory = paths.dynamics(name)
   identity_lib.check_model_config(directory, model_fields(section, name),
                                   name)
-  params, step = inference.restore(
-      directory, param_shapes(section, name, slot_shape), mesh, what=name, train_command=command(paths.root, f'train_{name}'),
-      num_train_steps=section.num_train_steps)
+  shapes = param_shapes(section, name, slot_shape)
+  train_command = command(paths.root, f'train_{name}')
+  diverged_at = 0
+  if stacked is None:
+    params, step = inference.restore(
+        directory, shapes, mesh, what=name, train_command=train_command,
+        num_train_steps=section.num_train_steps)
+  else:
+    params, step, diverged_at = inference.restore_seed(
+        directory, shapes, mesh, stacked, what=name,
+        train_command=train_command, num_train_steps=section.num_train_steps)
   return Loaded(name=name, module=build(section, name), params=params,
-                step=step)
+                step=step, diverged_at=diverged_at)

@@ -17,6 +17,7 @@ Shapes: slots [B, T, N, D]; video uint8 [B, T, H, W, 3].
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator, Sequence
+import dataclasses
 import logging
 import math
 from typing import Any
@@ -32,6 +33,7 @@ from slotformer_jax.modules.slot_lstm import SlotLSTM
 from slotformer_jax.modules.slotformer import SlotFormer
 from slotformer_jax.runtime import progress
 from slotformer_jax.runtime import sharding
+from slotformer_jax.runtime.checkpoint import restore_fields
 from slotformer_jax.runtime.checkpoint import restore_params
 
 logger = logging.getLogger(__name__)
@@ -98,6 +100,63 @@ def restore(directory: str, shapes: Any, mesh: Mesh, *, what: str,
     logger.warning('%s was trained for %d of %d steps only', what, step,
                    num_train_steps)
   return params, step
+
+
+@dataclasses.dataclass(frozen=True)
+class StackedSeed:
+  """Seed `seeds[index]` of a run that trains `seeds` in one program
+  (config.seeds): index `index` of its stages' stacked checkpoints.
+
+  Attributes:
+    seeds: every seed of the run, in order (config.seeds).
+    index: this seed's position in `seeds` and in the stacked state.
+    data_order: config.seed_data_order (the stacked stages record it).
+  """
+
+  seeds: tuple[int, ...]
+  index: int
+  data_order: str
+
+  @property
+  def seed(self) -> int:
+    return self.seeds[self.index]
+
+
+@jax.jit
+def _seed_slice(stacked: Any, index: jax.Array) -> Any:
+  """[K, ...] leaves -> their [index] (one compile for every index)."""
+  return jax.tree.map(lambda x: x[index], stacked)
+
+
+def restore_seed(directory: str, shapes: Any, mesh: Mesh,
+                 stacked: StackedSeed, *, what: str, train_command: str,
+                 num_train_steps: int) -> tuple[Any, int, int]:
+  """`restore` of one seed of a stage trained with several seeds in one
+  program (one checkpoint of the stacked [K, ...] state, train/trainer.py):
+  seed `stacked.index`'s parameters of `shapes` (replicated), their step,
+  and the update in which that seed diverged (its recorded `diverged_at`;
+  0: it trained to the end, its parameters are then its last finite ones).
+
+  Raises:
+    UserError: no checkpoint (the message names `train_command`), or none
+      fits K seeds of `shapes`.
+  """
+  count = len(stacked.seeds)
+  replicated = sharding.replicated_sharding(mesh)
+  fields, step = restore_fields(
+      directory, {'params': jax.tree.map(
+          lambda x: jax.ShapeDtypeStruct((count, *x.shape), x.dtype),
+          shapes),
+                  'diverged_at': jax.ShapeDtypeStruct((count,), np.int32)},
+      replicated, what=what, train_command=train_command)
+  params = jax.device_put(
+      _seed_slice(fields['params'], np.int32(stacked.index)), replicated)
+  diverged_at = int(np.asarray(
+      fields['diverged_at'].addressable_data(0))[stacked.index])
+  if step < num_train_steps:
+    logger.warning('%s (seed %d) was trained for %d of %d steps only', what,
+                   stacked.seed, step, num_train_steps)
+  return params, step, diverged_at
 
 
 # --------------------------------------------------------------------------

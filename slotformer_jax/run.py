@@ -10,6 +10,10 @@ loaded (and checked against each other) the first time a stage asks::
     run.slot_model.encode(run.stage1.params, video, rng, None)
     slotformer = run.dynamics('slotformer')          # dynamics.Loaded
 
+With several seeds (config.seeds) `run.for_seed(k)` is the view of seed
+k: the one-seed run of that seed on its share of the stacked checkpoints,
+in its `seed_<s>/` folders; the stages after stage 1 run it seed by seed.
+
 A stage is `(run) -> None | results` (stages/__init__.py). Nothing below the
 stages builds its own view of the run: a helper gets the section it needs.
 """
@@ -29,6 +33,7 @@ from slotformer_jax import dynamics as dynamics_lib
 from slotformer_jax import slot_models
 from slotformer_jax.config import checks as config_checks
 from slotformer_jax.config.sections import dynamics_section
+from slotformer_jax.config.sections import several_seeds
 from slotformer_jax.data.embedded import families
 from slotformer_jax.data.slots import SlotSource
 from slotformer_jax.data.sources import VideoSource
@@ -36,6 +41,7 @@ from slotformer_jax.data.sources import get_video_source
 from slotformer_jax.errors import ConfigError
 from slotformer_jax.errors import MissingInputError
 from slotformer_jax.files import read_json
+from slotformer_jax.inference import StackedSeed
 from slotformer_jax.runtime import sharding
 from slotformer_jax.slot_models import chain
 from slotformer_jax.slot_models.base import Loaded
@@ -54,12 +60,17 @@ class Run:
     paths: every path of the workdir (and of a read-only stage 1).
     mesh: the devices, batches split on its 'data' axis.
     slot_model: the configured slot model (`config.slot_model`).
+    seed_index: None, or this is the view of seed `config.seeds[k]` of a
+      several-seed run (`for_seed`): its paths are that seed's, its trained
+      models that seed's share of the stacked checkpoints, and it draws
+      with that seed where a one-seed run draws with `config.seed`.
   """
 
   config: ml_collections.ConfigDict
   paths: Paths
   mesh: Mesh
   slot_model: SlotModel
+  seed_index: int | None = None
   _loaded: dict[str, Any] = dataclasses.field(default_factory=dict,
                                               repr=False)
 
@@ -127,6 +138,42 @@ class Run:
     """The process that writes the run's shared files."""
     return jax.process_index() == 0
 
+  # ---- several seeds (config.seeds, docs/seeds.md) --------------------------
+
+  @property
+  def seeds(self) -> tuple[int, ...] | None:
+    """The seeds trained in one program (config.seeds, several), or None
+    for a one-seed run. A seed view has them too (`seed_index`)."""
+    return several_seeds(self.config)
+
+  @property
+  def seed(self) -> int:
+    """What this run draws with: `config.seed`, or a seed view's seed."""
+    if self.seed_index is None:
+      return self.config.seed
+    return self.seeds[self.seed_index]
+
+  @property
+  def stacked(self) -> StackedSeed | None:
+    """A seed view's place in the stacked checkpoints, or None."""
+    if self.seed_index is None:
+      return None
+    return StackedSeed(self.seeds, self.seed_index,
+                       self.config.seed_data_order)
+
+  def for_seed(self, index: int) -> Run:
+    """The view of seed `config.seeds[index]`: the one-seed run of that seed
+    on its share of the stacked stages, in its `seed_<s>/` folders."""
+    seeds = self.seeds
+    if seeds is None or not 0 <= index < len(seeds):
+      raise ValueError(f'no seed index {index} in seeds {seeds}')
+    return dataclasses.replace(self, paths=self.paths.for_seed(seeds[index]),
+                               seed_index=index, _loaded={})
+
+  def seed_views(self) -> list[Run]:
+    """`for_seed` of every seed, in config.seeds order."""
+    return [self.for_seed(index) for index in range(len(self.seeds))]
+
   # ---- what the config asks for ----------------------------------------------
 
   @property
@@ -143,7 +190,7 @@ class Run:
   @functools.cached_property
   def slots_fields(self) -> dict[str, Any]:
     """What shapes the extracted slots besides the slot model."""
-    return identity_lib.slots_fields(self.config.seed,
+    return identity_lib.slots_fields(self.seed,
                                      self.config.extraction.to_dict())
 
   # ---- data ------------------------------------------------------------------
@@ -165,10 +212,11 @@ class Run:
 
   @property
   def stage1(self) -> Loaded:
-    """The trained slot model (every part of its chain), checked."""
+    """The trained slot model (every part of its chain), checked; a seed
+    view's: that seed's share of the stacked stage 1."""
     if 'stage1' not in self._loaded:
       self._loaded['stage1'] = chain.load(self.slot_model, self.paths,
-                                          self.mesh)
+                                          self.mesh, self.stacked)
     return self._loaded['stage1']
 
   def dynamics(self, name: str) -> dynamics_lib.Loaded:
@@ -177,7 +225,7 @@ class Run:
     if key not in self._loaded:
       self._loaded[key] = dynamics_lib.load(
           self.paths, self.mesh, name, self.dynamics_section(name),
-          self.slot_model.slot_shape)
+          self.slot_model.slot_shape, self.stacked)
     return self._loaded[key]
 
   def forget(self) -> None:

@@ -345,17 +345,29 @@ def validate(config: ml_collections.ConfigDict, stages: Sequence[str], *,
 
 
 # The stages that take several seeds (config.seeds): stage 1's first part
-# (no parent, no derived input). Every other stage refuses them.
+# (no parent, no derived input) of any slot model, and with SAVi the chain
+# after it, seed s on stage-1 seed s (docs/seeds.md). Every other stage
+# refuses them: the STEVE chain (tokenize_frames, train_steve and what
+# follows), Slot-LSTM, the tasks' readouts, planning and Aloe.
 SEEDED_STAGES = ('train_savi', 'train_dvae')
+SEEDED_CHAINS = {'savi': ('extract_slots', 'train_slotformer', 'evaluate',
+                          'render', 'explore')}
 # Stages that do no training or extraction of their own with the seeds.
 _SEED_FREE_STAGES = ('prepare_data',)
+# The stages that compare the trained dynamics models (Slot-LSTM's too).
+_COMPARING_STAGES = ('evaluate', 'render', 'explore')
+
+
+def seeded_stages(slot_model: str) -> tuple[str, ...]:
+  """The stages that take several seeds with `slot_model`."""
+  return SEEDED_STAGES + SEEDED_CHAINS.get(slot_model, ())
 
 
 def seeds_problems(config: ml_collections.ConfigDict,
                    stages: Sequence[str]) -> list[str]:
   """One line per bad `seeds` / `seed_data_order` / `on_seed_divergence` /
-  `seed_axis` / `seed_loop`, and one naming the stages of `stages` that do not take
-  several seeds yet."""
+  `seed_axis` / `seed_loop`, and one naming the stages of `stages` that do
+  not take several seeds yet (or the setting that keeps them from it)."""
   seeds = config.get('seeds')
   problems = []
   if seeds is not None:
@@ -383,18 +395,31 @@ def seeds_problems(config: ml_collections.ConfigDict,
   if not isinstance(config.get('seed_axis', True), bool):
     problems.append(f'seed_axis must be True or False, got '
                     f'{config.get("seed_axis")!r}')
-  if not problems and seeds is not None and len(seeds) > 1:
-    refused = sorted(s for s in stages
-                     if s not in SEEDED_STAGES + _SEED_FREE_STAGES)
-    if refused:
-      problems.append(
-          f'seeds={tuple(seeds)} trains several seeds in '
-          f'{" and ".join(SEEDED_STAGES)} only for now; '
-          f'{", ".join(refused)} '
-          f'{"does" if len(refused) == 1 else "do"} not take several seeds '
-          'yet (their per-seed inputs and outputs are not built): run them '
-          'with one '
-          'seed (--config.seed=<s>, no --config.seeds)')
+  if problems or seeds is None or len(seeds) < 2:
+    return problems
+  seeded = seeded_stages(config.slot_model)
+  refused = sorted(s for s in stages
+                   if s not in seeded + _SEED_FREE_STAGES)
+  if refused:
+    problems.append(
+        f'seeds={tuple(seeds)} trains several seeds in '
+        f'{", ".join(seeded)} only for now (slot_model='
+        f'{config.slot_model!r}; docs/seeds.md); {", ".join(refused)} '
+        f'{"does" if len(refused) == 1 else "do"} not take several seeds '
+        'yet (their per-seed inputs and outputs are not built): run them '
+        'with one seed (--config.seed=<s>, no --config.seeds)')
+  chained = [s for s in stages if s in seeded and s not in SEEDED_STAGES]
+  if chained and config.stage1_workdir is not None:
+    problems.append(
+        f'seeds={tuple(seeds)} with a read-only stage 1 (stage1_workdir='
+        f'{config.stage1_workdir!r}) is not built yet: {", ".join(chained)} '
+        'of several seeds read their own workdir\'s stacked stage 1')
+  comparing = [s for s in stages if s in _COMPARING_STAGES]
+  if comparing and config.slot_lstm.train:
+    problems.append(
+        f'seeds={tuple(seeds)}: {", ".join(comparing)} would compare '
+        'Slot-LSTM, which does not take several seeds yet; set '
+        '--config.slot_lstm.train=False')
   return problems
 
 

@@ -30,6 +30,18 @@ def dynamics_section(config: ml_collections.ConfigDict,
   return merged
 
 
+def several_seeds(config: ml_collections.ConfigDict
+                  ) -> tuple[int, ...] | None:
+  """`config.seeds` when it names several seeds (trained in one program,
+  each chained through the stages after stage 1: docs/seeds.md), else None:
+  one seed, `config.seed` (also for a one-value `seeds`, as the trainer
+  reads it: stages/fit.py `seeds_of`)."""
+  seeds = config.seeds
+  if seeds is None or len(seeds) < 2:
+    return None
+  return tuple(int(s) for s in seeds)
+
+
 def trained_dynamics(config: ml_collections.ConfigDict) -> tuple[str, ...]:
   """The dynamics models a run trains and compares: SlotFormer, plus
   Slot-LSTM when `slot_lstm.train`."""

@@ -127,13 +127,23 @@ class Checkpointer:
                      what: str = 'model') -> tuple[Any, int]:
     """Only `params` (and the step) of a saved TrainState: no optimizer is
     needed to read a model. Returns (params, step)."""
-    item = {'params': abstract_params}
-    restore_args = ocp.checkpoint_utils.construct_restore_args(item)
+    fields, step = self.restore_fields({'params': abstract_params}, step,
+                                       what)
+    return fields['params'], step
+
+  def restore_fields(self, abstract_fields: dict[str, Any],
+                     step: int | None = None, what: str = 'model'
+                     ) -> tuple[dict[str, Any], int]:
+    """Only the named fields of a saved state ({'params': ...,
+    'diverged_at': ...} of a SeedsState) and the step."""
+    restore_args = ocp.checkpoint_utils.construct_restore_args(
+        abstract_fields)
 
     def restore_step(s):
       restored = self._manager.restore(s, args=ocp.args.PyTreeRestore(
-          item=item, restore_args=restore_args, partial_restore=True))
-      return restored['params']
+          item=abstract_fields, restore_args=restore_args,
+          partial_restore=True))
+      return {name: restored[name] for name in abstract_fields}
     return self._restore_newest_intact(restore_step, what, step)
 
   def wait_until_finished(self) -> None:
@@ -156,6 +166,23 @@ def restore_params(stage_directory: str, param_shapes: Any,
     UserError: no checkpoint (the message names `train_command`), or none
       fits `param_shapes`.
   """
+  fields, step = restore_fields(stage_directory, {'params': param_shapes},
+                                sharding, what=what,
+                                train_command=train_command)
+  return fields['params'], step
+
+
+def restore_fields(stage_directory: str, shapes: dict[str, Any],
+                   sharding: Sharding, *, what: str,
+                   train_command: str) -> tuple[dict[str, Any], int]:
+  """`restore_params` of the named fields of the saved state ({'params':
+  shapes, 'diverged_at': shape} of a several-seed stage), each placed on
+  `sharding`, and their step.
+
+  Raises:
+    UserError: no checkpoint (the message names `train_command`), or none
+      fits `shapes`.
+  """
   directory = os.path.join(stage_directory, 'checkpoints')
   if not os.path.isdir(directory):
     raise MissingInputError(f'no {what} checkpoint under {directory}. Train '
@@ -165,7 +192,7 @@ def restore_params(stage_directory: str, param_shapes: Any,
     if checkpointer.latest_step() is None:
       raise MissingInputError(f'no {what} checkpoint under {directory}. '
                               f'Train it first: {train_command}')
-    return checkpointer.restore_params(
-        abstract_like(param_shapes, sharding), what=what)
+    return checkpointer.restore_fields(abstract_like(shapes, sharding),
+                                       what=what)
   finally:
     checkpointer.close()

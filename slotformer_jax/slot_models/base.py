@@ -160,6 +160,9 @@ class Loaded:
     step: the step of the part that encodes (the last).
     slots_parent: what slots extracted by it descend from (the run id and
       step of the part that encodes), as the slots' meta.json records it.
+    diverged_at: {part name: update} of the parts in which this seed of a
+      several-seed stage 1 diverged (its parameters are its last finite
+      ones); empty when none did (always, for one seed).
   """
 
   params: dict[str, Any]
@@ -167,6 +170,7 @@ class Loaded:
   identity: dict[str, Any]
   step: int
   slots_parent: dict[str, Any]
+  diverged_at: dict[str, int] = dataclasses.field(default_factory=dict)
 
 
 class SlotModel(abc.ABC):

@@ -15,6 +15,7 @@ from typing import Any
 from jax.sharding import Mesh
 
 from slotformer_jax import inference
+from slotformer_jax.inference import StackedSeed
 from slotformer_jax.data.slots import read_meta
 from slotformer_jax.errors import MissingInputError
 from slotformer_jax.errors import UserError
@@ -28,15 +29,21 @@ from slotformer_jax.workdir.paths import command
 logger = logging.getLogger(__name__)
 
 
-def part_identity(part: Part, paths: Paths) -> dict[str, Any]:
-  """The identity of `part` in the stage-1 workdir, made with this config.
+def part_identity(part: Part, paths: Paths,
+                  stacked: StackedSeed | None = None) -> dict[str, Any]:
+  """The identity of `part` in the stage-1 workdir, made with this config
+  (`stacked`: trained with the run's several seeds in one program).
 
   Raises:
     MissingInputError: never trained (the message names its stage).
     UserError: trained with other settings.
   """
+  fields = dict(part.identity_fields)
+  if stacked is not None:
+    fields['seeds'] = identity_lib.seeds_entry(stacked.seeds,
+                                               stacked.data_order)
   return identity_lib.checked_identity(
-      paths.model(part.name), dict(part.identity_fields), part.label,
+      paths.model(part.name), fields, part.label,
       command(paths.stage1, part.mode))
 
 
@@ -56,11 +63,13 @@ def parent_of(slot_model: SlotModel, part: Part, identities: dict[str, Any],
                                 part.parent)
 
 
-def chain(slot_model: SlotModel, paths: Paths, steps: dict[str, int]
+def chain(slot_model: SlotModel, paths: Paths, steps: dict[str, int],
+          stacked: StackedSeed | None = None
           ) -> tuple[dict[str, Any], dict[str, Any]]:
   """(identity entries, slots parent) of the parts at `steps` (the
   `Loaded.identity` and `Loaded.slots_parent` of checkpoints at those
-  steps), checked to descend from each other.
+  steps), checked to descend from each other; `stacked`: of one seed of
+  parts trained with several (each entry names the seed).
 
   Raises:
     UserError: a part was never trained, trained with other settings, or
@@ -68,7 +77,7 @@ def chain(slot_model: SlotModel, paths: Paths, steps: dict[str, int]
   """
   identities, entries = {}, {}
   for part in slot_model.parts:
-    identity = part_identity(part, paths)
+    identity = part_identity(part, paths, stacked)
     expected = parent_of(slot_model, part, identities, steps)
     if part.parent is not None and identity.get('parent') != expected:
       parent_label = slot_model.stage_labels[part.parent]
@@ -84,6 +93,8 @@ def chain(slot_model: SlotModel, paths: Paths, steps: dict[str, int]
                           'fingerprint': identity['fingerprint']}
     if part.parent is not None:
       entries[part.name]['parent'] = identity['parent']
+    if stacked is not None:
+      entries[part.name]['seed'] = stacked.seed
   last = slot_model.parts[-1]
   return entries, identity_lib.parent_of(identities[last.name],
                                          steps[last.name], last.name)
@@ -101,30 +112,52 @@ def load_part(part: Part, paths: Paths, mesh: Mesh) -> tuple[Any, int]:
   Raises:
     UserError: no checkpoint, or one of another architecture.
   """
+  params, step, _ = _restore_part(part, paths, mesh, None)
+  return params, step
+
+
+def _restore_part(part: Part, paths: Paths, mesh: Mesh,
+                  stacked: StackedSeed | None) -> tuple[Any, int, int]:
+  """`load_part`, or with `stacked` that seed's share of the stacked
+  checkpoint; and the update in which the seed diverged (0: none)."""
   directory = paths.model(part.name)
   identity_lib.check_model_config(directory, dict(part.model_fields),
                                   part.label)
-  return inference.restore(
-      directory, param_shapes(part), mesh, what=part.label, train_command=command(paths.stage1, part.mode),
+  train_command = command(paths.stage1, part.mode)
+  if stacked is None:
+    params, step = inference.restore(
+        directory, param_shapes(part), mesh, what=part.label,
+        train_command=train_command,
+        num_train_steps=part.section.num_train_steps)
+    return params, step, 0
+  return inference.restore_seed(
+      directory, param_shapes(part), mesh, stacked, what=part.label,
+      train_command=train_command,
       num_train_steps=part.section.num_train_steps)
 
 
-def load(slot_model: SlotModel, paths: Paths, mesh: Mesh) -> Loaded:
-  """The trained stage 1 of the run `paths` (its `stage1` folder), checked.
+def load(slot_model: SlotModel, paths: Paths, mesh: Mesh,
+         stacked: StackedSeed | None = None) -> Loaded:
+  """The trained stage 1 of the run `paths` (its `stage1` folder), checked;
+  `stacked`: that seed of a stage 1 trained with several seeds in one
+  program (its share of the stacked checkpoints, `Loaded.diverged_at`).
 
   Raises:
     UserError: missing, trained with another architecture or settings, or
       its parts do not descend from each other.
   """
-  params, steps = {}, {}
+  params, steps, diverged_at = {}, {}, {}
   for part in reversed(slot_model.parts):  # the one that encodes first
-    params[part.name], steps[part.name] = load_part(part, paths, mesh)
+    params[part.name], steps[part.name], update = _restore_part(
+        part, paths, mesh, stacked)
+    if update:
+      diverged_at[part.name] = update
   steps = {part.name: steps[part.name] for part in slot_model.parts}
-  identity, slots_parent = chain(slot_model, paths, steps)
+  identity, slots_parent = chain(slot_model, paths, steps, stacked)
   last = slot_model.parts[-1].name
   return Loaded(params={p.name: params[p.name] for p in slot_model.parts},
                 steps=steps, identity=identity, step=steps[last],
-                slots_parent=slots_parent)
+                slots_parent=slots_parent, diverged_at=diverged_at)
 
 
 def check_slots_current(paths: Paths, split: str, expected: dict[str, Any],

@@ -5,10 +5,18 @@ decodes the predicted slots through the slot model's frozen pixel decoder
 (SAVi); a slot model without one (STEVE) trains with L_S alone, as the
 paper does on Physion. A model trained on other slots (or with other
 settings) is set aside and retrained from scratch.
+
+Several seeds (config.seeds): SlotFormer trains them in one program, seed
+s on the slots of stage-1 seed s (`seed_<s>/slots/train`), its L_I through
+stage-1 seed s's decoder, its initialisation and step RNG drawn with s + 1
+(as the one-seed run of seed s); every seed's batches are drawn in the same
+order (config.seed + 1's: the shared data order) or each with its own
+(s + 1, 'per_seed'). One stacked checkpoint in `slotformer/`.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 from typing import Any
 
@@ -34,6 +42,7 @@ from slotformer_jax.runtime import sharding
 from slotformer_jax.slot_models import chain
 from slotformer_jax.slot_models.base import SlotModel
 from slotformer_jax.stages.fit import fit_stage
+from slotformer_jax.stages.fit import seeds_of
 from slotformer_jax.train import steps
 from slotformer_jax.train.trainer import Stage
 
@@ -110,7 +119,11 @@ def dynamics_stage(section: ml_collections.ConfigDict, name: str,
 
 
 def train_dynamics(run: Run, name: str) -> None:
-  """Trains dynamics model `name` on the current slots of the 'train' split."""
+  """Trains dynamics model `name` on the current slots of the 'train' split
+  (several seeds: `train_dynamics_seeds`)."""
+  if run.seeds is not None:
+    train_dynamics_seeds(run, name)
+    return
   section, slot_model, loaded = (run.dynamics_section(name), run.slot_model,
                                  run.stage1)
   parent = chain.check_slots_current(run.paths, 'train', loaded.slots_parent,
@@ -131,6 +144,72 @@ def train_dynamics(run: Run, name: str) -> None:
                 run.config.seed, section, name),
             parent=parent, model_fields=dynamics_lib.model_fields(section,
                                                                   name))
+
+
+def seed_stage(view: Run, name: str, stream_seed: int) -> Stage:
+  """The one-seed training stage of dynamics model `name` on the slots of
+  the seed view `view` (`Run.for_seed`), its batches drawn with
+  `stream_seed`: what seed `view.seed` of a several-seed run trains
+  (the stage's directory is the stacked one, `paths.dynamics(name)`).
+
+  Raises:
+    UserError: the view's slots of 'train' are missing or stale.
+  """
+  section, slot_model, loaded = (view.dynamics_section(name),
+                                 view.slot_model, view.stage1)
+  chain.check_slots_current(view.paths, 'train', loaded.slots_parent,
+                            view.slots_fields, slot_model.label)
+  decoder, _ = image_loss_decoder(section, name, slot_model, loaded.params)
+  source = view.slots('train', ('video',) if decoder is not None else ())
+  return dynamics_stage(section, name, view.paths.dynamics(name), view.mesh,
+                        slot_model, loaded.params, source, seed=stream_seed,
+                        compute_dtype=view.config.compute_dtype,
+                        logging_config=view.config.logging,
+                        reader_workers=view.config.data.reader_workers)
+
+
+def stream_seeds(run: Run) -> tuple[int, ...]:
+  """Each seed's data-order seed for the dynamics: config.seed + 1 for
+  every seed (the shared order), or seed s + 1 ('per_seed')."""
+  if run.config.seed_data_order == 'per_seed':
+    return tuple(seed + 1 for seed in run.seeds)
+  return (run.config.seed + 1,) * len(run.seeds)
+
+
+def stacked_stage(stages: list[Stage]) -> Stage:
+  """One stage of K seeds from their one-seed stages (`seed_stage`): seed
+  k's batches from `stages[k]`, its frozen parameters (L_I's decoder)
+  `stages[k]`'s, stacked [K, ...]; the loss, schedule, pictures (the first
+  seed's) and directory are the first stage's (the same for every seed)."""
+  frozen = [stage.frozen_params for stage in stages]
+  stacked_frozen = (None if frozen[0] is None else
+                    jax.tree.map(lambda *xs: jnp.stack(xs), *frozen))
+  return dataclasses.replace(
+      stages[0],
+      seed_batches=lambda index, start_step: stages[index].batches(
+          start_step),
+      frozen_params=stacked_frozen, seed_frozen_params=True,
+      batches_for_seed=None)
+
+
+def train_dynamics_seeds(run: Run, name: str) -> None:
+  """Trains dynamics model `name` for every seed of config.seeds in one
+  program, seed s on the slots of stage-1 seed s (see the module
+  docstring); its identity records the seeds, its parent the stacked
+  stage 1 they share (each seed's slots are checked to descend from it,
+  `seed_stage`)."""
+  views = run.seed_views()
+  section = run.dynamics_section(name)
+  stages = [seed_stage(view, name, stream)
+            for view, stream in zip(views, stream_seeds(run))]
+  # Seed s's initialisation and step RNG: s + 1, as its one-seed run's.
+  fit_stage(stacked_stage(stages), mesh=run.mesh,
+            seed=run.config.seed + 1, what=name,
+            identity_fields=dynamics_lib.identity_fields(
+                run.config.seed, section, name),
+            parent=views[0].stage1.slots_parent,
+            model_fields=dynamics_lib.model_fields(section, name),
+            seeds=seeds_of(run.config, offset=1))
 
 
 def _rollout_images(slot_model, slot_params, model, burn_in: int,

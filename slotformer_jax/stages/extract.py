@@ -4,6 +4,11 @@ Videos are processed in chunks of `extraction.chunk_length` frames that carry
 the slot model's state, so memory does not grow with the video length. A
 split whose slots came from the current slot-model checkpoint (and the same
 extraction settings) is skipped; stale slots are re-extracted.
+
+Several seeds (config.seeds): seed s's slots are extracted by its share of
+the stacked stage 1 into `seed_<s>/slots/<split>/`, with seed s where one
+seed draws with config.seed (stochastic SAVi's samples): the one-seed
+extraction of `Run.for_seed`, seed after seed.
 """
 
 from __future__ import annotations
@@ -23,7 +28,18 @@ logger = logging.getLogger(__name__)
 
 
 def extract_slots(run: Run) -> None:
-  """Writes slots/<split>/ of every `extraction.splits` split."""
+  """Writes slots/<split>/ of every `extraction.splits` split (several
+  seeds: seed_<s>/slots/<split>/ of each seed)."""
+  if run.seeds is not None:
+    for view in run.seed_views():
+      _extract(view)
+    return
+  _extract(run)
+
+
+def _extract(run: Run) -> None:
+  """The slots of every `extraction.splits` split of `run` (one seed, or a
+  seed view) in `run.paths.slots(split)`."""
   if uses_foreign_stage1(run, 'slots'):
     return
   slot_model, extraction = run.slot_model, run.config.extraction
@@ -34,7 +50,7 @@ def extract_slots(run: Run) -> None:
   encode = jax.jit(slot_model.encode,
                    in_shardings=(replicated, batched, replicated, batched),
                    out_shardings=(batched, batched))
-  seed = jax.random.key(run.config.seed)
+  seed = jax.random.key(run.seed)
 
   def encode_chunk(batch_index, chunk, frames, carry):
     # Stochastic SAVi samples: a key per (batch, chunk), the same on rerun.
@@ -49,8 +65,8 @@ def extract_slots(run: Run) -> None:
     meta = read_meta(directory)
     if (meta and meta.get('complete') and meta.get('parent') == parent
         and meta.get('fields') == slot_fields):
-      logger.info('slots of %s already extracted (%s %s)', split,
-                  slot_model.label, parent)
+      logger.info('slots of %s already extracted (%s %s)%s', split,
+                  slot_model.label, parent, _of_seed(run))
       continue
     if meta and meta.get('complete'):
       logger.info('slots of %s are stale (from %s, now %s %s): '
@@ -61,7 +77,14 @@ def extract_slots(run: Run) -> None:
         lambda: SlotWriter(directory, len(source), num_slots, slot_size,
                            loaded.step, parent=parent, fields=slot_fields),
         source, encode_chunk, chunk_length=extraction.chunk_length,
-        batch_size=local_batch_size, mesh=run.mesh, desc=f'extract {split}',
+        batch_size=local_batch_size, mesh=run.mesh,
+        desc=f'extract {split}{_of_seed(run)}',
         conditioning_fields=slot_model.conditioning_fields)
-    logger.info('extracted %s slots of %d %s videos', slot_model.label,
-                len(source), split)
+    logger.info('extracted %s slots of %d %s videos%s', slot_model.label,
+                len(source), split, _of_seed(run))
+
+
+def _of_seed(run: Run) -> str:
+  """' (seed s)' for a seed view, '' for a one-seed run (its messages)."""
+  return '' if run.seed_index is None else f' (seed {run.seed})'
+

@@ -9,6 +9,7 @@ from typing import Any
 from jax.sharding import Mesh
 import ml_collections
 
+from slotformer_jax.config.sections import several_seeds
 from slotformer_jax.train.state import TrainState
 from slotformer_jax.train.trainer import Seeds
 from slotformer_jax.train.trainer import Stage
@@ -20,14 +21,24 @@ def seeds_of(config: ml_collections.ConfigDict, offset: int = 0
              ) -> Seeds | None:
   """The run's several seeds (config.seeds, each + `offset`: a stage's own
   stream), or None for one seed (config.seed, as before)."""
-  values = config.get('seeds')
-  if values is None or len(values) < 2:
+  values = several_seeds(config)
+  if values is None:
     return None
-  return Seeds(tuple(int(v) + offset for v in values),
+  return Seeds(tuple(v + offset for v in values),
                data_order=config.get('seed_data_order', 'shared'),
                on_divergence=config.get('on_seed_divergence', 'stop'),
                seed_axis=bool(config.get('seed_axis', True)),
                loop=config.seed_loop)
+
+
+def stamped_fields(identity_fields: dict[str, Any], seeds: Seeds | None
+                   ) -> dict[str, Any]:
+  """The identity fields a stage trained with `seeds` records: with
+  several, its `identity_fields` and the seeds with their data order."""
+  if seeds is None or not seeds.several:
+    return identity_fields
+  return dict(identity_fields, seeds=identity_lib.seeds_entry(
+      seeds.values, seeds.data_order))
 
 
 def fit_stage(stage: Stage, *, mesh: Mesh, seed: int, what: str,
@@ -42,8 +53,7 @@ def fit_stage(stage: Stage, *, mesh: Mesh, seed: int, what: str,
   Several `seeds`: they join the identity (with their data order), so a
   stage trained with other seeds (or one) is set aside; the checkpoints
   hold the one stacked state (train/trainer.py)."""
-  if seeds is not None and seeds.several:
-    identity_fields = dict(identity_fields, seeds=seeds.plain())
+  identity_fields = stamped_fields(identity_fields, seeds)
   identity_lib.start_stage(stage.directory, identity_fields, parent, what)
   identity_lib.check_model_config(stage.directory, model_fields, what)
   identity_lib.write_model_config(stage.directory, model_fields)

@@ -5,11 +5,20 @@ Each takes the run's trained slot model and dynamics models, checks that
 they descend from each other and from the evaluated slots (nothing mixes),
 and hands them with the config sections they need to `evaluation/`, which
 never loads a model itself.
+
+Several seeds (config.seeds): each stage runs for every seed's view
+(`Run.for_seed`: its share of the stacked stage 1 and dynamics models, its
+slots) into `seed_<s>/eval/`, `seed_<s>/render/`, `seed_<s>/explore/`, and
+`evaluate` folds the seeds' metrics into `eval/metrics.json` (mean +- std,
+each seed's value; `evaluation/seeds.py`). A seed that diverged in training
+is left out and named.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 import dataclasses
+import logging
 import os
 from typing import Any
 
@@ -19,11 +28,16 @@ from slotformer_jax.config.sections import trained_dynamics
 from slotformer_jax.errors import UserError
 from slotformer_jax.evaluation import evaluate as evaluate_lib
 from slotformer_jax.evaluation import explore as explore_lib
+from slotformer_jax.evaluation import seeds as seeds_lib
 from slotformer_jax.evaluation import visualize
 from slotformer_jax.run import Run
 from slotformer_jax.slot_models import chain
+from slotformer_jax.stages.fit import seeds_of
+from slotformer_jax.stages.fit import stamped_fields
 from slotformer_jax.workdir import identity as identity_lib
 from slotformer_jax.workdir.paths import command
+
+logger = logging.getLogger(__name__)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -66,8 +80,9 @@ def evaluation_identity(run: Run, stage1_identity: dict[str, Any],
       raise UserError(f'{directory} has no identity.json: it is from an '
                       f'older version or incomplete; retrain it: {retrain}')
     identity_lib.check_identity_fields(
-        found, dynamics_lib.identity_fields(
+        found, stamped_fields(dynamics_lib.identity_fields(
             run.config.seed, run.dynamics_section(name), name),
+            None if run.stacked is None else seeds_of(run.config, offset=1)),
         name, directory)
     if found.get('parent') != parent:
       raise UserError(
@@ -77,6 +92,8 @@ def evaluation_identity(run: Run, stage1_identity: dict[str, Any],
           f'and retrained): {retrain}')
     identity[name] = {'run_id': found['run_id'], 'step': int(step),
                       'fingerprint': found['fingerprint'], 'parent': parent}
+    if run.stacked is not None:
+      identity[name]['seed'] = run.seed
   return identity
 
 
@@ -91,9 +108,53 @@ def evaluated(run: Run) -> Evaluated:
   return Evaluated(stage1=stage1, dynamics=dynamics, identity=identity)
 
 
+def diverged(trained: Evaluated) -> str | None:
+  """Why a seed view's models are not evaluated: 'savi diverged in update
+  117' when a stage of it diverged in training, else None."""
+  updates = dict(trained.stage1.diverged_at)
+  updates.update({name: model.diverged_at
+                  for name, model in trained.dynamics.items()
+                  if model.diverged_at})
+  if not updates:
+    return None
+  return ', '.join(f'{name} diverged in update {update}'
+                   for name, update in updates.items())
+
+
+def _each_seed(run: Run, what: str, stage: Callable[[Run, Evaluated], Any]
+               ) -> tuple[dict[int, Any], dict[int, str]]:
+  """({seed: `stage(view, its models)`} of every seed view whose models
+  trained to the end, {seed: why not} of those that diverged)."""
+  done, excluded = {}, {}
+  for view in run.seed_views():
+    trained = evaluated(view)
+    why = diverged(trained)
+    if why is None:
+      logger.info('%s: seed %d', what, view.seed)
+      done[view.seed] = stage(view, trained)
+    else:
+      excluded[view.seed] = why
+      logger.warning('%s: seed %d left out (%s)', what, view.seed, why)
+  return done, excluded
+
+
 def evaluate(run: Run) -> dict[str, Any]:
-  """eval/metrics.json and eval/per_step.csv (see evaluation/evaluate.py)."""
-  trained = evaluated(run)
+  """eval/metrics.json and eval/per_step.csv (see evaluation/evaluate.py);
+  several seeds: each seed's in seed_<s>/eval/, their summary in
+  eval/metrics.json (evaluation/seeds.py)."""
+  if run.seeds is None:
+    return _evaluate(run, evaluated(run))
+  per_seed, excluded = _each_seed(run, 'evaluate', _evaluate)
+  summary = seeds_lib.summarise(per_seed, excluded, run.seeds)
+  if run.is_lead:
+    os.makedirs(run.paths.eval, exist_ok=True)
+    seeds_lib.write(run.paths.eval, summary)
+    print(seeds_lib.format_table(summary, run.slot_model.label))
+  return summary
+
+
+def _evaluate(run: Run, trained: Evaluated) -> dict[str, Any]:
+  """The evaluation of one seed (a one-seed run or a seed view)."""
   split = run.config.evaluation.split
   return evaluate_lib.evaluate(
       run.config.evaluation, run.dynamics_section(SLOTFORMER), run.mesh,
@@ -108,8 +169,15 @@ def evaluate(run: Run) -> dict[str, Any]:
 
 
 def render(run: Run) -> list[str]:
-  """render/: GIFs, labelled strips, curves (see evaluation/visualize.py)."""
-  trained = evaluated(run)
+  """render/: GIFs, labelled strips, curves (see evaluation/visualize.py);
+  several seeds: each seed's in seed_<s>/render/."""
+  if run.seeds is None:
+    return _render(run, evaluated(run))
+  per_seed, _ = _each_seed(run, 'render', _render)
+  return [path for paths in per_seed.values() for path in paths]
+
+
+def _render(run: Run, trained: Evaluated) -> list[str]:
   return visualize.render(
       run.config.render, run.config.evaluation,
       run.dynamics_section(SLOTFORMER), slot_model=run.slot_model,
@@ -120,9 +188,16 @@ def render(run: Run) -> list[str]:
       output_dir=run.paths.render)
 
 
-def explore(run: Run) -> str | None:
-  """explore/index.html (see evaluation/explore.py)."""
-  trained = evaluated(run)
+def explore(run: Run) -> str | list[str | None] | None:
+  """explore/index.html (see evaluation/explore.py); several seeds: each
+  seed's seed_<s>/explore/index.html, in seed order."""
+  if run.seeds is None:
+    return _explore(run, evaluated(run))
+  per_seed, _ = _each_seed(run, 'explore', _explore)
+  return list(per_seed.values())
+
+
+def _explore(run: Run, trained: Evaluated) -> str | None:
   return explore_lib.explore(
       run.config.explore, run.config.evaluation,
       run.dynamics_section(SLOTFORMER), slot_model=run.slot_model,

@@ -41,7 +41,8 @@ def train_step(state: TrainState, batch: Batch, frozen_params: Any, *,
 def seeds_train_step(state: SeedsState, batch: Batch, frozen_params: Any,
                      seeds: jax.Array, *, loss_fn: LossFn,
                      optimizer: optax.GradientTransformation,
-                     per_seed_batches: bool = False, loop: str = 'vmap'
+                     per_seed_batches: bool = False,
+                     per_seed_frozen: bool = False, loop: str = 'vmap'
                      ) -> tuple[SeedsState, Metrics]:
   """`train_step` of K seeds at once, in one program.
 
@@ -55,7 +56,9 @@ def seeds_train_step(state: SeedsState, batch: Batch, frozen_params: Any,
     state: K TrainStates stacked ([K, ...] leaves).
     batch: one batch every seed sees ([B, ...]), or with `per_seed_batches`
       one per seed ([K, B, ...]).
-    frozen_params: shared by every seed.
+    frozen_params: shared by every seed, or with `per_seed_frozen` one
+      tree per seed ([K, ...] leaves; seed k's SlotFormer decodes L_I with
+      stage-1 seed k's decoder).
     seeds: int32 [K]; seed k's step RNG is train_step's for seeds[k].
 
   Returns:
@@ -63,19 +66,23 @@ def seeds_train_step(state: SeedsState, batch: Batch, frozen_params: Any,
     non-finite keeps its state from before the update, and `diverged_at`
     records the update (an already diverged seed stays as it is).
   """
-  def one(train_state, seed, seed_batch):
-    return train_step(train_state, seed_batch, frozen_params,
+  def one(train_state, seed, seed_batch, seed_frozen):
+    return train_step(train_state, seed_batch, seed_frozen,
                       loss_fn=loss_fn, optimizer=optimizer, seed=seed)
 
+  def pick(tree, k, per_seed):
+    return jax.tree.map(lambda x: x[k], tree) if per_seed else tree
+
   if loop == 'vmap':
-    new, metrics = jax.vmap(
-        one, in_axes=(0, 0, 0 if per_seed_batches else None)
-    )(state.train_state(), seeds, batch)
+    new, metrics = jax.vmap(one, in_axes=(
+        0, 0, 0 if per_seed_batches else None,
+        0 if per_seed_frozen else None)
+    )(state.train_state(), seeds, batch, frozen_params)
   elif loop == 'unroll':
     stacked = state.train_state()
-    outs = [one(jax.tree.map(lambda x, k=k: x[k], stacked), seeds[k],
-                jax.tree.map(lambda x, k=k: x[k], batch)
-                if per_seed_batches else batch)
+    outs = [one(pick(stacked, k, True), seeds[k],
+                pick(batch, k, per_seed_batches),
+                pick(frozen_params, k, per_seed_frozen))
             for k in range(seeds.shape[0])]
     new, metrics = jax.tree.map(lambda *xs: jnp.stack(xs), *outs)
   else:

@@ -13,9 +13,11 @@ axis (`SeedsState`) and one jitted step vmapped over it
 what a one-seed run with `seed=s` draws from it: the initialisation and the
 step RNG (dropout, slot noise, samples); the data order is the stage's own
 stream, shared by every seed (the default), or `batches_for_seed(s, step)`
-per seed. Seed k of a K-seed run with a shared order trains as the one-seed
-run with seed k (to float32 rounding: the vmapped program may round
-differently). With one seed, nothing of this is used: the step, the state
+per seed. A stage whose seeds read their own data (SlotFormer seed k on the
+slots of stage-1 seed k) gives `seed_batches` (and per-seed frozen
+parameters): the seeds then always train on stacked batches. Seed k of a
+K-seed run with a shared order trains as the one-seed run with seed k (to
+float32 rounding: the vmapped program may round differently). With one seed, nothing of this is used: the step, the state
 and its checkpoints are the one-seed ones.
 
 Failures stop the loop at once with one line: a non-finite loss or updated
@@ -97,6 +99,15 @@ class Stage:
     batches_for_seed: (seed, start_step) -> iterator of this host's batches
       drawn with that seed; only for several seeds with a per-seed data
       order (None: the stage has no per-seed order).
+    seed_batches: (index k of the seeds, start_step) -> iterator of this
+      host's batches of seed k's own data, in the data order the stage was
+      built for (SlotFormer seed k reads the slots of stage-1 seed k). Set:
+      several seeds always train on stacked [K, B, ...] batches drawn from
+      it, whatever `Seeds.data_order` (which the stage's builder applied);
+      None: every seed reads the same data (`batches` / `batches_for_seed`).
+    seed_frozen_params: `frozen_params` holds one tree per seed, stacked
+      [K, ...] (SlotFormer seed k's L_I decoder is stage-1 seed k's);
+      False: one tree shared by every seed. Several seeds only.
   """
 
   name: str
@@ -111,6 +122,9 @@ class Stage:
                    dict[str, np.ndarray]] | None = None
   batches_for_seed: Callable[[int, int],
                              Iterator[dict[str, np.ndarray]]] | None = None
+  seed_batches: Callable[[int, int],
+                         Iterator[dict[str, np.ndarray]]] | None = None
+  seed_frozen_params: bool = False
 
 
 DATA_ORDERS = ('shared', 'per_seed')
@@ -270,20 +284,35 @@ def jit_update(stage: Stage, mesh: Mesh,
         in_shardings=(replicated, sharding.batch_sharding(mesh), replicated),
         out_shardings=(replicated, replicated),
         donate_argnums=(0,))
-  per_seed = seeds.data_order == 'per_seed'
+  per_seed = stacked_batches(stage, seeds)
   loop = seeds.loop_on(mesh)
   update = seeds_update(stage.loss_fn, optimizer, seeds.values, per_seed,
                         split=sharding.SEED_AXIS in mesh.axis_names,
-                        loop=loop)
+                        per_seed_frozen=stage.seed_frozen_params, loop=loop)
   batch_sharding = (sharding.seed_batch_sharding(mesh) if per_seed
                     else sharding.batch_sharding(mesh))
   return jax.jit(
       update,
       in_shardings=(sharding.seed_sharding(mesh), batch_sharding,
-                    replicated),
+                    _frozen_sharding(stage, mesh, seeds)),
       out_shardings=(sharding.seed_sharding(mesh), replicated),
       donate_argnums=(0,),
       compiler_options=_seeds_compiler_options(mesh, loop))
+
+
+def stacked_batches(stage: Stage, seeds: Seeds | None) -> bool:
+  """Whether several `seeds` train on stacked [K, B, ...] batches: each
+  seed reads its own data (`Stage.seed_batches`) or draws its own order."""
+  return seeds is not None and seeds.several and (
+      stage.seed_batches is not None or seeds.data_order == 'per_seed')
+
+
+def _frozen_sharding(stage: Stage, mesh: Mesh, seeds: Seeds | None):
+  """The frozen parameters' placement: one tree per seed on the seed axis
+  (`Stage.seed_frozen_params`), else replicated."""
+  if seeds is not None and seeds.several and stage.seed_frozen_params:
+    return sharding.seed_sharding(mesh)
+  return sharding.replicated_sharding(mesh)
 
 
 # XLA:CPU (jaxlib 0.10.2) crashes (SIGSEGV) running the vmapped gradient of
@@ -304,12 +333,14 @@ def _seeds_compiler_options(mesh: Mesh, loop: str = 'vmap'
 
 def seeds_update(loss_fn: LossFn, optimizer: optax.GradientTransformation,
                  seeds: tuple[int, ...], per_seed_batches: bool = False,
-                 split: bool = False, loop: str = 'vmap'
+                 split: bool = False, per_seed_frozen: bool = False,
+                 loop: str = 'vmap'
                  ) -> Callable[..., tuple[SeedsState, dict[str, jax.Array]]]:
   """The several-seed update as `jit_update` jits it: (SeedsState, batch,
   frozen params) -> (SeedsState, metrics [K] with `diverged_at`); `split`:
-  the state is split on a 'seed' mesh axis; `loop`: 'vmap' or 'unroll'
-  (`steps.seeds_train_step`)."""
+  the state is split on a 'seed' mesh axis; `per_seed_frozen`: the frozen
+  parameters are stacked [K, ...], one tree per seed; `loop`: 'vmap' or
+  'unroll' (`steps.seeds_train_step`)."""
   values = np.asarray(seeds, np.int32)
 
   def update(state, batch, frozen_params):
@@ -323,7 +354,8 @@ def seeds_update(loss_fn: LossFn, optimizer: optax.GradientTransformation,
       state, metrics = seeds_train_step(
           state, batch, frozen_params, jax.numpy.asarray(values),
           loss_fn=loss_fn, optimizer=optimizer,
-          per_seed_batches=per_seed_batches, loop=loop)
+          per_seed_batches=per_seed_batches, per_seed_frozen=per_seed_frozen,
+          loop=loop)
     return state, dict(metrics, diverged_at=state.diverged_at)
 
   return update
@@ -375,11 +407,16 @@ def _check_seeds_file(directory: str, seeds: Seeds | None,
 
 def _stacked_batches(seeds: Seeds, stage: Stage, start_step: int
                      ) -> Iterator[dict[str, np.ndarray]]:
-  """Per-seed data order: seed k's batch at index k of [K, B, ...]."""
-  if stage.batches_for_seed is None:
+  """Seed k's batch at index k of [K, B, ...]: from its own data
+  (`Stage.seed_batches`), or drawn with seed k (per-seed data order)."""
+  if stage.seed_batches is not None:
+    streams = [stage.seed_batches(k, start_step)
+               for k in range(len(seeds.values))]
+  elif stage.batches_for_seed is None:
     raise ConfigError(f'{stage.name}: a per-seed data order is not '
                       'available for this stage; use the shared order')
-  streams = [stage.batches_for_seed(s, start_step) for s in seeds.values]
+  else:
+    streams = [stage.batches_for_seed(s, start_step) for s in seeds.values]
   try:
     for batches in zip(*streams):
       yield jax.tree.map(lambda *xs: np.stack(xs), *batches)
@@ -434,10 +471,11 @@ def fit(stage: Stage, *, mesh: Mesh, seed: int,
     sharding.check_host_rows(mesh)
   update = (jit_update(stage, mesh, optimizer, seed) if seeds is None
             else jit_update(stage, mesh, optimizer, seed, seeds=seeds))
-  per_seed = seeds is not None and seeds.data_order == 'per_seed'
+  per_seed = stacked_batches(stage, seeds)
   reported: set[int] = set()  # diverged seeds already named
   stop_check_every = config.stop_check_every
-  frozen_params = sharding.replicate(stage.frozen_params, mesh)
+  frozen_params = jax.device_put(stage.frozen_params,
+                                 _frozen_sharding(stage, mesh, seeds))
 
   log_path = os.path.join(stage.directory, 'train_log.jsonl')
   summaries = Summaries(stage.directory, stage.logging, is_lead_host)

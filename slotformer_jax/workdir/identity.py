@@ -16,6 +16,7 @@ evaluation): nothing mixes.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 import hashlib
 import json
 import logging
@@ -99,6 +100,13 @@ def slots_fields(seed: int, extraction: dict[str, Any]) -> dict[str, Any]:
   extraction = dict(extraction)
   extraction.pop('splits', None)
   return plain({'seed': seed, 'extraction': extraction})
+
+
+def seeds_entry(seeds: Sequence[int], data_order: str) -> dict[str, Any]:
+  """The `seeds` field a stage trained with several seeds in one program
+  adds to its identity fields (the seeds it stacks and their data order;
+  stages/fit.py stamps it, the readers of a stacked stage expect it)."""
+  return {'seeds': [int(s) for s in seeds], 'data_order': data_order}
 
 
 def fingerprint(fields: dict[str, Any]) -> str:

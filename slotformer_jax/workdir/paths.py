@@ -13,6 +13,11 @@ A workdir (the run's `--workdir`)::
     slots/<split>/              extracted slots (data/slots.py)
     slotformer/  slot_lstm/     the dynamics models, as a stage-1 model
     eval/  render/  explore/    metrics, pictures, the run explorer
+    seed_<s>/                   several seeds (config.seeds, docs/seeds.md):
+                                seed s's slots/<split>/, eval/, render/,
+                                explore/; the trained stages above hold the
+                                seeds' one stacked checkpoint, eval/ their
+                                summary (mean +- std over the seeds)
     readout/<condition>/seed_<s>/    contact readouts
     planning/<condition>/seed_<s>/   planning classifiers
     vqa/<inputs>_s<seed>/            Aloe, one folder per input kind and seed
@@ -36,15 +41,30 @@ class Paths:
     root: the run's workdir (`--workdir`).
     stage1: where the slot model and its slots live: `root`, or another
       run's workdir (read-only, see `foreign_stage1`).
+    seed: None, or the paths of seed `seed` of a several-seed run
+      (`for_seed`): its slots and results under `seed_<seed>/`.
   """
 
   root: str
   stage1: str
+  seed: int | None = None
 
   @classmethod
   def of(cls, workdir: str, stage1_workdir: str | None = None) -> Paths:
     """The paths of `workdir`, whose stage 1 is `stage1_workdir` when set."""
     return cls(root=workdir, stage1=stage1_workdir or workdir)
+
+  def for_seed(self, seed: int) -> Paths:
+    """The paths of seed `seed` of a several-seed run: its slots under
+    `<stage1>/seed_<seed>/`, its results under `<root>/seed_<seed>/`; the
+    trained stages (one stacked checkpoint for all seeds) where they are."""
+    return dataclasses.replace(self, seed=int(seed))
+
+  def _of_seed(self, base: str, *names: str) -> str:
+    """`base/names`, or `base/seed_<s>/names` for seed s's paths."""
+    if self.seed is None:
+      return os.path.join(base, *names)
+    return os.path.join(base, f'seed_{self.seed}', *names)
 
   @property
   def foreign_stage1(self) -> bool:
@@ -87,7 +107,7 @@ class Paths:
 
   def slots(self, split: str) -> str:
     """The extracted slots of `split` (data/slots.py)."""
-    return os.path.join(self.stage1, 'slots', split)
+    return self._of_seed(self.stage1, 'slots', split)
 
   # ---- stage 2 and what follows ----------------------------------------------
 
@@ -97,15 +117,15 @@ class Paths:
 
   @property
   def eval(self) -> str:
-    return os.path.join(self.root, 'eval')
+    return self._of_seed(self.root, 'eval')
 
   @property
   def render(self) -> str:
-    return os.path.join(self.root, 'render')
+    return self._of_seed(self.root, 'render')
 
   @property
   def explore(self) -> str:
-    return os.path.join(self.root, 'explore')
+    return self._of_seed(self.root, 'explore')
 
   @property
   def readouts(self) -> str:

@@ -54,6 +54,9 @@ def test_every_stage_writes_its_artifacts(trained):
                                      if config.slot_lstm.train else [])
   for stage in [*slot_model.stage_labels, *dynamics_names]:
     assert os.listdir(os.path.join(workdir, stage, 'checkpoints')), stage
+  # One seed: no per-seed folders, no seeds file (docs/seeds.md).
+  assert not [n for n in os.listdir(workdir) if n.startswith('seed_')]
+  assert not os.path.exists(os.path.join(workdir, 'slotformer', 'seeds.json'))
   num_slots, slot_size = slot_model.slot_shape
   for split in config.extraction.splits:
     meta = read_meta(Paths.of(workdir).slots(split))
