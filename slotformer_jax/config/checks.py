@@ -348,14 +348,13 @@ def validate(config: ml_collections.ConfigDict, stages: Sequence[str], *,
 # (no parent, no derived input) of any slot model, and with SAVi the chain
 # after it, seed s on stage-1 seed s (docs/seeds.md). Every other stage
 # refuses them: the STEVE chain (tokenize_frames, train_steve and what
-# follows), Slot-LSTM, the tasks' readouts, planning and Aloe.
+# follows), the tasks' readouts, planning and Aloe.
 SEEDED_STAGES = ('train_savi', 'train_dvae')
-SEEDED_CHAINS = {'savi': ('extract_slots', 'train_slotformer', 'evaluate',
-                          'render', 'explore')}
+SEEDED_CHAINS = {'savi': ('extract_slots', 'train_slotformer',
+                          'train_slot_lstm', 'evaluate', 'render',
+                          'explore')}
 # Stages that do no training or extraction of their own with the seeds.
 _SEED_FREE_STAGES = ('prepare_data',)
-# The stages that compare the trained dynamics models (Slot-LSTM's too).
-_COMPARING_STAGES = ('evaluate', 'render', 'explore')
 
 
 def seeded_stages(slot_model: str) -> tuple[str, ...]:
@@ -414,12 +413,6 @@ def seeds_problems(config: ml_collections.ConfigDict,
         f'seeds={tuple(seeds)} with a read-only stage 1 (stage1_workdir='
         f'{config.stage1_workdir!r}) is not built yet: {", ".join(chained)} '
         'of several seeds read their own workdir\'s stacked stage 1')
-  comparing = [s for s in stages if s in _COMPARING_STAGES]
-  if comparing and config.slot_lstm.train:
-    problems.append(
-        f'seeds={tuple(seeds)}: {", ".join(comparing)} would compare '
-        'Slot-LSTM, which does not take several seeds yet; set '
-        '--config.slot_lstm.train=False')
   return problems
 
 

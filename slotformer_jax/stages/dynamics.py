@@ -160,7 +160,8 @@ def seed_stage(view: Run, name: str, stream_seed: int) -> Stage:
   chain.check_slots_current(view.paths, 'train', loaded.slots_parent,
                             view.slots_fields, slot_model.label)
   decoder, _ = image_loss_decoder(section, name, slot_model, loaded.params)
-  source = view.slots('train', ('video',) if decoder is not None else ())
+  source = view.slots('train', ('video',) if decoder is not None else (),
+                      video_from=section.burn_in)
   return dynamics_stage(section, name, view.paths.dynamics(name), view.mesh,
                         slot_model, loaded.params, source, seed=stream_seed,
                         compute_dtype=view.config.compute_dtype,

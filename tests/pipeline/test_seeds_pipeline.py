@@ -35,7 +35,8 @@ from slotformer_jax.workdir import identity as identity_lib
 from slotformer_jax.workdir.paths import Paths
 
 SEEDS = (0, 1)
-STAGES = ['train_savi', 'extract_slots', 'train_slotformer', 'evaluate']
+STAGES = ['train_savi', 'extract_slots', 'train_slotformer',
+          'train_slot_lstm', 'evaluate']
 # As tests/train/test_seeds.py: seed k of the vmapped program against the
 # one-seed program, after the same Adam steps.
 TOLERANCE = dict(atol=2e-5, rtol=2e-5)
@@ -52,7 +53,7 @@ def seeded(tmp_path_factory):
   root = tmp_path_factory.mktemp('seeds')
   config = micro_config('savi', root / 'data')
   config.seeds = SEEDS
-  config.slot_lstm.train = False  # Slot-LSTM takes no seeds yet
+  config.slot_lstm.train = True  # the baseline of the video-prediction table
   # Fewer metrics than the one-seed pipeline test (each seed's evaluation is
   # that one-seed code): a third of the evaluation's compile time.
   config.evaluation.metrics = ('psnr', 'ssim', 'fg_ari', 'fg_miou')
@@ -110,6 +111,7 @@ def test_summary_has_mean_std_and_every_seed(seeded):
       per_seed[seed] = json.load(f)
     assert per_seed[seed]['identity']['slotformer']['seed'] == seed
     assert per_seed[seed]['identity']['savi']['seed'] == seed
+  assert {'slotformer', 'slot_lstm'} <= set(summary['rollout'])
   for method, per_metric in summary['rollout'].items():
     for metric, stats in per_metric.items():
       values = [per_seed[s]['rollout'][method][metric]['mean'] for s in SEEDS]
@@ -283,19 +285,14 @@ def test_a_diverged_seed_is_left_out_and_named():
 def test_what_takes_several_seeds_is_said_in_one_line():
   config = micro_config('savi', '/nonexistent')
   config.seeds = SEEDS
-  config.slot_lstm.train = False
   assert checks.seeds_problems(config, ['prepare_data', *STAGES,
                                         'render', 'explore']) == []
-  problems = checks.seeds_problems(config, ['train_slot_lstm'])
+  problems = checks.seeds_problems(config, ['train_readout'])
   assert len(problems) == 1 and problems[0].startswith(
       'seeds=(0, 1) trains several seeds in train_savi, train_dvae, '
-      'extract_slots, train_slotformer, evaluate, render, explore only for '
-      "now (slot_model='savi'; docs/seeds.md); train_slot_lstm does not")
-  config.slot_lstm.train = True
-  assert checks.seeds_problems(config, ['evaluate']) == [
-      'seeds=(0, 1): evaluate would compare Slot-LSTM, which does not take '
-      'several seeds yet; set --config.slot_lstm.train=False']
-  config.slot_lstm.train = False
+      'extract_slots, train_slotformer, train_slot_lstm, evaluate, render, '
+      "explore only for now (slot_model='savi'; docs/seeds.md); "
+      'train_readout does not')
   config.stage1_workdir = '/elsewhere'
   assert 'read-only stage 1' in checks.seeds_problems(
       config, ['extract_slots'])[0]
