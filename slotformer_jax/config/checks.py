@@ -367,7 +367,7 @@ def seeds_problems(config: ml_collections.ConfigDict,
   """One line per bad `seeds` / `seed_data_order` / `on_seed_divergence` /
   `seed_axis` / `seed_loop`, and one naming the stages of `stages` that do
   not take several seeds yet (or the setting that keeps them from it)."""
-  seeds = config.get('seeds')
+  seeds = config.seeds
   problems = []
   if seeds is not None:
     if not isinstance(seeds, (tuple, list)) or not seeds:
@@ -380,20 +380,20 @@ def seeds_problems(config: ml_collections.ConfigDict,
       duplicates = sorted({s for s in seeds if list(seeds).count(s) > 1})
       problems.append(f'seeds must be distinct, got {tuple(seeds)!r} '
                       f'({", ".join(map(str, duplicates))} repeated)')
-  order = config.get('seed_data_order', 'shared')
+  order = config.seed_data_order
   if order not in ('shared', 'per_seed'):
     problems.append("seed_data_order must be 'shared' or 'per_seed', got "
                     f'{order!r}')
-  on_divergence = config.get('on_seed_divergence', 'stop')
+  on_divergence = config.on_seed_divergence
   if on_divergence not in ('stop', 'continue'):
     problems.append("on_seed_divergence must be 'stop' or 'continue', got "
                     f'{on_divergence!r}')
   if config.seed_loop not in ('auto', 'vmap', 'unroll'):
     problems.append("seed_loop must be 'auto', 'vmap' or 'unroll', got "
                     f'{config.seed_loop!r}')
-  if not isinstance(config.get('seed_axis', True), bool):
+  if not isinstance(config.seed_axis, bool):
     problems.append(f'seed_axis must be True or False, got '
-                    f'{config.get("seed_axis")!r}')
+                    f'{config.seed_axis!r}')
   if problems or seeds is None or len(seeds) < 2:
     return problems
   seeded = seeded_stages(config.slot_model)

@@ -25,9 +25,9 @@ def seeds_of(config: ml_collections.ConfigDict, offset: int = 0
   if values is None:
     return None
   return Seeds(tuple(v + offset for v in values),
-               data_order=config.get('seed_data_order', 'shared'),
-               on_divergence=config.get('on_seed_divergence', 'stop'),
-               seed_axis=bool(config.get('seed_axis', True)),
+               data_order=config.seed_data_order,
+               on_divergence=config.on_seed_divergence,
+               seed_axis=config.seed_axis,
                loop=config.seed_loop)
 
 

@@ -394,9 +394,9 @@ def test_stages_without_several_seeds_refuse_them_in_one_line():
   assert len(problems) == 1
   assert problems[0].startswith(
       'seeds=(0, 1, 2) trains several seeds in train_savi, train_dvae, '
-      'extract_slots, train_slotformer, evaluate, render, explore only for '
-      "now (slot_model='savi'; docs/seeds.md); train_readout, "
-      'train_slot_lstm do not take several')
+      'extract_slots, train_slotformer, train_slot_lstm, evaluate, render, '
+      "explore only for now (slot_model='savi'; docs/seeds.md); "
+      'train_readout does not take several')
   # One seed (or none) is today's run: nothing refused.
   for one in (None, (3,)):
     assert checks.seeds_problems(_config(seeds=one),
