@@ -393,10 +393,17 @@ def with_seeds(config, num_seeds: int):
   return config
 
 
+# --host_chips: chips per host to assume instead of the topology's own
+# (compile-only v5e:2x4 is 2 processes of 4 chips; a v5litepod-8 VM has 8).
+HOST_CHIPS = {'value': 0}
+
+
 def local_device_count(mesh: Mesh) -> int:
   """The devices of one host of `mesh`'s slice (compile-only TPU devices
   carry their host's process index; this CPU process's count is not the
-  slice's)."""
+  slice's), or --host_chips."""
+  if HOST_CHIPS['value']:
+    return HOST_CHIPS['value']
   first = mesh.devices.flat[0].process_index
   return sum(d.process_index == first for d in mesh.devices.flat)
 
@@ -610,6 +617,9 @@ def main(argv=None) -> int:
   parser.add_argument('--seeds', default='1',
                       help='K,...: compile each train step for K seeds '
                       'in one program (config.seeds); 1: one seed')
+  parser.add_argument('--host_chips', type=int, default=0,
+                      help='chips per host for the seed mesh (default: the '
+                      "topology's devices per process index)")
   parser.add_argument('--config_overrides', default='',
                       help='name=value,... applied to every config (tests)')
   parser.add_argument('--json', default='')
@@ -633,6 +643,7 @@ def main(argv=None) -> int:
     print(f'error: --seeds: comma-separated counts >= 1, got '
           f'{args.seeds!r}', file=sys.stderr)
     return 2
+  HOST_CHIPS['value'] = args.host_chips
   dtypes = args.dtypes.split(',')
   for dtype in dtypes:
     if dtype not in precision.COMPUTE_DTYPES:
@@ -730,6 +741,7 @@ def one_row(config, name: str, step: str, dtype: str, topology: str,
       return row
     seeds, seed_mesh = seeds_mesh(config, step, mesh, num_seeds)
     row['mesh'] = dict(seed_mesh.shape)
+    row['host_chips'] = local_device_count(mesh)
     row['seed_loop'] = seeds.loop_on(seed_mesh)
     data_shards = seed_mesh.shape[sharding.DATA_AXIS]
   if step == 'readout':

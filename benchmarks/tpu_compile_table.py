@@ -3,8 +3,8 @@ r"""The markdown table of `benchmarks/tpu_compile.py`'s JSON rows.
   python benchmarks/tpu_compile_table.py rows_a.json rows_b.json ... \
       [--json=merged.json] [--seeds]
 
-Rows are keyed by (topology, config, step, dtype, seeds); a later file's row
-replaces an earlier one's, except that a row without a largest-batch search
+Rows are keyed by (topology, config, step, dtype, seeds, host_chips); a
+later file's row replaces an earlier one's, except that a row without a largest-batch search
 keeps the search of the row it replaces when both compiled the same program
 (same FLOPs and HBM). Rows are sorted by config, step, slice and dtype.
 `--seeds`: the table of the several-seed rows (`tpu_compile.py --seeds`),
@@ -37,7 +37,7 @@ SEARCH_FIELDS = ('largest_per_chip', 'smallest_not_fitting', 'tried',
 
 def _key(row: dict[str, Any]) -> tuple:
   return (row['topology'], row['config'], row['step'], row['dtype'],
-          row.get('seeds', 1))
+          row.get('seeds', 1), row.get('host_chips'))
 
 
 def _rank(order: tuple[str, ...], value: str) -> tuple[int, str]:
@@ -57,7 +57,8 @@ def merge(paths: list[str]) -> list[dict[str, Any]]:
       rows[_key(row)] = row
   return sorted(rows.values(), key=lambda r: (
       _rank(CONFIG_ORDER, r['config']), _rank(STEP_ORDER, r['step']),
-      _rank(TOPOLOGY_ORDER, r['topology']), r['dtype'], r.get('seeds', 1)))
+      _rank(TOPOLOGY_ORDER, r['topology']), r['dtype'], r.get('seeds', 1),
+      r.get('host_chips') or 0))
 
 
 def _largest(row: dict[str, Any]) -> str:
@@ -121,12 +122,15 @@ def seeds_table(rows: list[dict[str, Any]]) -> str:
       lines.append(f"{head} {r['seeds']} | {r.get('batch', '')} | "
                    f"{r.get('status')}: {r.get('why', '')} |" + ' |' * 5)
       continue
-    mesh = ' x '.join(f'{n} {axis}' for axis, n in r['mesh'].items())
+    mesh = ' x '.join(f"{r['mesh'][axis]} {axis}" for axis in ('seed', 'data')
+                      if axis in r['mesh'])
     hbm = f"{r['hbm_bytes'] / GiB:.2f}"
     floor = f"{r['floor_seconds'] * 1e3:.2f}"
     if base is not None:
       hbm += f" ({r['hbm_bytes'] / base['hbm_bytes']:.2f}x)"
       floor += f" ({r['floor_seconds'] / base['floor_seconds']:.2f}x)"
+    if r.get('host_chips'):
+      mesh += f", {r['host_chips']} chips / host"
     lines.append(
         f"{head} {r['seeds']} ({mesh}) | {r['batch']} | "
         f"{'yes' if r['fits'] else 'NO'} | {hbm} | {floor} | "
