@@ -70,6 +70,9 @@ seeds (`config.checks.seeds_problems`: the STEVE chain after the dVAE) and
 what runs one seed at a time (eval_rollout: each seed's one-seed program;
 aloe and readout take one seed) is a 'not built' row. HBM, FLOPs and bytes
 are per chip as above, for all K seeds; `floor_per_seed_seconds` = floor / K.
+`seed_mesh` splits the seeds only when one host's chips split into K
+groups; the host is the topology's (compile-only v5e:2x4: 2 processes of 4
+chips), or `--host_chips=N` chips (a single 8-chip v5litepod-8 VM: 8).
 
 Exit status 1 when a step does not fit its chip's HBM at the paper's batch
 or does not compile.
