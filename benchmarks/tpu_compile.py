@@ -4,7 +4,8 @@ without a TPU, and reports per chip what XLA:TPU says they need.
   pip install -e '.[tpu]'    # jax[tpu] at the installed jax: brings libtpu
   python benchmarks/tpu_compile.py [--topologies=v5e:2x4,v4:2x2x1,v5e:16x16]
       [--configs=obj3d,clevrer,phyre,physion] [--steps=savi,slotformer,...]
-      [--dtypes=float32,bfloat16] [--largest_batch] [--json=out.json]
+      [--dtypes=float32,bfloat16] [--largest_batch] [--seeds=1,4]
+      [--json=out.json]
 
 Each row is one ahead-of-time compile (`.lower(...).compile()` over the
 compile-only devices of `jax.experimental.topologies`) of a step the
@@ -52,6 +53,27 @@ the batch near the limit (XLA:TPU's layouts change), so the answer is "this
 batch compiles within the chip's HBM and that one does not": a batch
 between them may fit too.
 
+`--seeds=K,...` (default 1) compiles each train step (savi, dvae, steve,
+slotformer) once per K: K = 1 is the one-seed row above; K > 1 is the
+program `trainer.fit` runs for `config.seeds` of K seeds
+(`stages.fit.seeds_of`, as the pipeline builds it: the default shared data
+order, `seed_axis`, `seed_loop='auto'`, vmapped on a TPU):
+`trainer.jit_update(stage, seed_mesh, ..., seeds=...)` over the abstract
+`SeedsState` of `trainer.abstract_train_state(..., num_seeds=K)`, on
+`sharding.seed_mesh` of the slice (4 seeds x 2 data on 8 chips; the seeds
+replicated on every chip when a host's chips do not split into K groups).
+Stage 1 (savi, dvae) reads the shared [B, ...] batch; SlotFormer is the
+SAVi chain's `stages.dynamics.stacked_stage` of K one-seed stages: stacked
+[K, B, ...] batches (each seed its own slots) and [K, ...] frozen decoder
+parameters, both split on 'seed'. What the pipeline refuses with several
+seeds (`config.checks.seeds_problems`: the STEVE chain after the dVAE) and
+what runs one seed at a time (eval_rollout: each seed's one-seed program;
+aloe and readout take one seed) is a 'not built' row. HBM, FLOPs and bytes
+are per chip as above, for all K seeds; `floor_per_seed_seconds` = floor / K.
+`seed_mesh` splits the seeds only when one host's chips split into K
+groups; the host is the topology's (compile-only v5e:2x4: 2 processes of 4
+chips), or `--host_chips=N` chips (a single 8-chip v5litepod-8 VM: 8).
+
 Exit status 1 when a step does not fit its chip's HBM at the paper's batch
 or does not compile.
 Without libtpu it prints why and exits 0. jax itself runs on CPU
@@ -61,6 +83,7 @@ Without libtpu it prints why and exits 0. jax itself runs on CPU
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import importlib.util
 import os
 import re
@@ -91,7 +114,9 @@ from slotformer_jax.data import vqa as vqa_data  # noqa: E402
 from slotformer_jax.evaluation import evaluate  # noqa: E402
 from slotformer_jax.run import Run  # noqa: E402
 from slotformer_jax.slot_models import chain  # noqa: E402
+from slotformer_jax.config import checks  # noqa: E402
 from slotformer_jax.stages import dynamics  # noqa: E402
+from slotformer_jax.stages.fit import seeds_of  # noqa: E402
 from slotformer_jax.slot_models.steve import build_steve  # noqa: E402
 from slotformer_jax.stages import stage1  # noqa: E402
 from slotformer_jax.stages import vqa as vqa_stages  # noqa: E402
@@ -214,7 +239,9 @@ def batch_spec(config, step: str, batch_size: int) -> dict[str, Any]:
     length = dyn.burn_in + dyn.rollout
     spec = {'slots': f32(batch_size, length, num_slots, slot_size)}
     if dyn.image_loss_weight > 0:
-      spec['video'] = u8(batch_size, length, *frame)
+      # L_I's stream reads the rollout's frames only (`Run.slots`
+      # video_from=burn_in; the loss takes the last `rollout` frames).
+      spec['video'] = u8(batch_size, dyn.rollout, *frame)
     return spec
   length = dyn.burn_in + config.evaluation.rollout_steps
   return {'slots': f32(batch_size, length, num_slots, slot_size),
@@ -308,9 +335,13 @@ def slot_param_shapes(slot_model) -> Any:
   return {part.name: chain.param_shapes(part) for part in slot_model.parts}
 
 
-def step_program(config, step: str, mesh: Mesh) -> tuple[Any, tuple]:
+def step_program(config, step: str, mesh: Mesh,
+                 num_seeds: int = 1) -> tuple[Any, tuple]:
   """(the jitted step `step` of `config` for `mesh`, its abstract arguments
-  placed on `mesh`): what the trainer / the evaluation run, unexecuted."""
+  placed on `mesh`): what the trainer / the evaluation run, unexecuted;
+  `num_seeds` > 1: the train step of that many seeds (`seeds_program`)."""
+  if num_seeds > 1:
+    return seeds_program(config, step, mesh, num_seeds)
   if step == 'readout':
     return readout_program(config, mesh)
   replicated = sharding.replicated_sharding(mesh)
@@ -341,6 +372,98 @@ def step_program(config, step: str, mesh: Mesh) -> tuple[Any, tuple]:
   return update, (state, batch, frozen)
 
 
+SEEDED_STEPS = ('savi', 'dvae', 'steve', 'slotformer')
+# The pipeline stage (mode) that trains each step.
+STAGE_OF_STEP = {'savi': 'train_savi', 'dvae': 'train_dvae',
+                 'steve': 'train_steve', 'slotformer': 'train_slotformer'}
+
+
+def several_seeds_refused(config, step: str, num_seeds: int) -> str | None:
+  """Why `step` of `config` has no K-seed program (None: it has one)."""
+  if step not in SEEDED_STEPS:
+    return (f'the {step} step runs one seed at a time (evaluation: each '
+            "seed's one-seed program; the tasks take one seed; "
+            'docs/seeds.md)')
+  problems = checks.seeds_problems(with_seeds(config, num_seeds),
+                                   [STAGE_OF_STEP[step]])
+  return '; '.join(problems) or None
+
+
+def with_seeds(config, num_seeds: int):
+  """`config` with config.seeds = (0, ..., K - 1)."""
+  config = config.copy_and_resolve_references()
+  config.seeds = tuple(range(num_seeds))
+  return config
+
+
+# --host_chips: chips per host to assume instead of the topology's own
+# (compile-only v5e:2x4 is 2 processes of 4 chips; a v5litepod-8 VM has 8).
+HOST_CHIPS = {'value': 0}
+
+
+def local_device_count(mesh: Mesh) -> int:
+  """The devices of one host of `mesh`'s slice (compile-only TPU devices
+  carry their host's process index; this CPU process's count is not the
+  slice's), or --host_chips."""
+  if HOST_CHIPS['value']:
+    return HOST_CHIPS['value']
+  first = mesh.devices.flat[0].process_index
+  return sum(d.process_index == first for d in mesh.devices.flat)
+
+
+def seeds_mesh(config, step: str, mesh: Mesh, num_seeds: int
+               ) -> tuple[trainer.Seeds, Mesh]:
+  """(the `Seeds` the pipeline trains `step` with, the mesh `trainer.fit`
+  makes of `mesh` for them)."""
+  # Stage 1 draws with the seeds, the dynamics with seed + 1
+  # (stage1.train_part, dynamics.train_dynamics_seeds).
+  seeds = seeds_of(with_seeds(config, num_seeds),
+                   offset=1 if step == 'slotformer' else 0)
+  if seeds.seed_axis:
+    mesh = sharding.seed_mesh(mesh, num_seeds, local_device_count(mesh))
+  return seeds, mesh
+
+
+def seeds_program(config, step: str, mesh: Mesh, num_seeds: int
+                  ) -> tuple[Any, tuple]:
+  """The K-seed train step `trainer.fit` jits for `config.seeds` of
+  `num_seeds` seeds on the slice `mesh` (a 'data' mesh, as `Run.mesh`),
+  and its abstract arguments: the SeedsState, the batch (stacked per seed
+  for SlotFormer), the frozen parameters (per seed for SlotFormer)."""
+  seeds, seed_mesh = seeds_mesh(config, step, mesh, num_seeds)
+  stage = train_stage(config, step, mesh)
+  seed = config.seed
+  if step == 'slotformer':
+    # train_dynamics_seeds: K one-seed stages (each seed's slots and
+    # decoder; the same shapes), stacked.
+    seed = config.seed + 1
+    one = dataclasses.replace(stage, frozen_params=None)
+    stacked = dynamics.stacked_stage([one] * num_seeds)
+    frozen = None
+    if stage.frozen_params is not None:
+      frozen = jax.eval_shape(
+          lambda *trees: dynamics.stacked_stage([
+              dataclasses.replace(stage, frozen_params=tree)
+              for tree in trees]).frozen_params,
+          *[stage.frozen_params] * num_seeds)
+    stage = dataclasses.replace(stacked, frozen_params=frozen)
+  optimizer, _ = optim.make_optimizer(stage.config)
+  update = trainer.jit_update(stage, seed_mesh, optimizer, seed, seeds=seeds)
+  state = trainer.abstract_train_state(stage.init_params, stage.config,
+                                       seed_mesh, num_seeds)
+  spec = batch_spec(config, step, batch_of(config, step))
+  if trainer.stacked_batches(stage, seeds):
+    spec = jax.tree.map(
+        lambda x: jax.ShapeDtypeStruct((num_seeds, *x.shape), x.dtype), spec)
+    batch = _place(spec, sharding.seed_batch_sharding(seed_mesh))
+  else:
+    batch = _place(spec, sharding.batch_sharding(seed_mesh))
+  frozen = (None if stage.frozen_params is None else _place(
+      stage.frozen_params,
+      trainer.frozen_sharding(stage, seed_mesh, seeds)))
+  return update, (state, batch, frozen)
+
+
 def train_stage(config, step: str, mesh: Mesh) -> trainer.Stage:
   """The trainer's `Stage` of train step `step` (no data source: only its
   `batches` would read one)."""
@@ -357,9 +480,9 @@ def train_stage(config, step: str, mesh: Mesh) -> trainer.Stage:
       compute_dtype=config.compute_dtype)
 
 
-def lowered_step(config, step: str, mesh: Mesh):
+def lowered_step(config, step: str, mesh: Mesh, num_seeds: int = 1):
   """The jitted step `step` of `config` lowered for `mesh`'s devices."""
-  run, args = step_program(config, step, mesh)
+  run, args = step_program(config, step, mesh, num_seeds)
   return run.lower(*args)
 
 
@@ -383,9 +506,10 @@ def batch_unit(step: str) -> int:
   return 2 if step == 'aloe' else 1
 
 
-def compile_row(config, step: str, mesh: Mesh) -> dict[str, Any]:
+def compile_row(config, step: str, mesh: Mesh,
+                num_seeds: int = 1) -> dict[str, Any]:
   start = time.perf_counter()
-  compiled = lowered_step(config, step, mesh).compile()
+  compiled = lowered_step(config, step, mesh, num_seeds).compile()
   seconds = time.perf_counter() - start
   cost = compiled.cost_analysis()
   if isinstance(cost, (list, tuple)):
@@ -493,6 +617,12 @@ def main(argv=None) -> int:
   parser.add_argument('--largest_batch', action='store_true')
   parser.add_argument('--largest_batch_tolerance', type=float, default=0.1)
   parser.add_argument('--largest_batch_compiles', type=int, default=8)
+  parser.add_argument('--seeds', default='1',
+                      help='K,...: compile each train step for K seeds '
+                      'in one program (config.seeds); 1: one seed')
+  parser.add_argument('--host_chips', type=int, default=0,
+                      help='chips per host for the seed mesh (default: the '
+                      "topology's devices per process index)")
   parser.add_argument('--config_overrides', default='',
                       help='name=value,... applied to every config (tests)')
   parser.add_argument('--json', default='')
@@ -508,6 +638,15 @@ def main(argv=None) -> int:
       print(f'error: --steps: unknown {step!r}, choose from '
             f'{list(DEFAULT_STEPS)}', file=sys.stderr)
       return 2
+  try:
+    seed_counts = [int(k) for k in args.seeds.split(',') if k]
+  except ValueError:
+    seed_counts = []
+  if not seed_counts or min(seed_counts) < 1:
+    print(f'error: --seeds: comma-separated counts >= 1, got '
+          f'{args.seeds!r}', file=sys.stderr)
+    return 2
+  HOST_CHIPS['value'] = args.host_chips
   dtypes = args.dtypes.split(',')
   for dtype in dtypes:
     if dtype not in precision.COMPUTE_DTYPES:
@@ -521,8 +660,9 @@ def main(argv=None) -> int:
 
   rows, not_fitting, failed = [], [], []
   log = lambda line: print(line, flush=True)
-  log('topology   config          step          dtype     batch(/chip)  '
-      'fits  HBM GiB/chip  GFLOP/chip  GB/chip  floor ms  compile s')
+  log('topology   config          step          dtype     K  '
+      'batch(/chip)  fits  HBM GiB/chip  GFLOP/chip  GB/chip  floor ms  '
+      'compile s')
   for topology in args.topologies.split(','):
     try:
       devices = tpu_devices(topology)
@@ -542,19 +682,23 @@ def main(argv=None) -> int:
           if step not in wanted_steps:
             continue
           step_config = config_of(name, step)
-          row = one_row(configured(step_config, dtype, args.config_overrides),
-                        step_config, step, dtype, topology, mesh, chip,
-                        args, log)
-          rows.append(row)
-          label = f'{topology} {step_config} {step} {dtype}'
-          if row['status'] == 'compile failed':
-            failed.append(f'{label} ({row["why"]})')
-          elif row['status'] == 'does not fit' or (
-              row['status'] == 'compiled' and not row['fits']
-              and 'note' not in row):
-            not_fitting.append(label)
-          if args.json:  # after every row: partial results survive
-            files.write_json_atomic(args.json, rows)
+          for num_seeds in seed_counts:
+            row = one_row(configured(step_config, dtype,
+                                     args.config_overrides),
+                          step_config, step, dtype, topology, mesh, chip,
+                          args, log, num_seeds=num_seeds)
+            rows.append(row)
+            label = (f'{topology} {step_config} {step} {dtype}'
+                     + (f' {num_seeds} seeds' if num_seeds > 1 else ''))
+            if row['status'] == 'compile failed':
+              failed.append(f'{label} ({row["why"]})')
+            elif num_seeds == 1 and (row['status'] == 'does not fit' or (
+                row['status'] == 'compiled' and not row['fits']
+                and 'note' not in row)):
+              # (K seeds that do not fit answer "how many fit": no error.)
+              not_fitting.append(label)
+            if args.json:  # after every row: partial results survive
+              files.write_json_atomic(args.json, rows)
   if args.json:
     files.write_json_atomic(args.json, rows)
   if failed:
@@ -581,23 +725,38 @@ def configured(name: str, dtype: str, overrides: str):
 
 
 def one_row(config, name: str, step: str, dtype: str, topology: str,
-            mesh: Mesh, chip: dict, args, log) -> dict[str, Any]:
+            mesh: Mesh, chip: dict, args, log, num_seeds: int = 1
+            ) -> dict[str, Any]:
   """Compiles `step` of `config` at its paper batch for `mesh` (and
-  searches the largest batch when asked): the table's row."""
+  searches the largest batch when asked; one seed only): the table's row;
+  `num_seeds` > 1: the train step of that many seeds in one program."""
   chips = chips_of(step, mesh)
   row = dict(topology=topology, chips=chips, config=name, step=step,
              dtype=dtype, device_kind=mesh.devices.flat[0].device_kind,
-             chip_hbm=chip['hbm'])
-  head = f'{topology:10s} {name:15s} {step:13s} {dtype:9s}'
+             chip_hbm=chip['hbm'], seeds=num_seeds)
+  head = f'{topology:10s} {name:15s} {step:13s} {dtype:9s} {num_seeds:2d}'
+  data_shards = chips
+  if num_seeds > 1:
+    refused = several_seeds_refused(config, step, num_seeds)
+    if refused:
+      row.update(status='not built', why=refused)
+      log(f'{head} not built: {refused}')
+      return row
+    seeds, seed_mesh = seeds_mesh(config, step, mesh, num_seeds)
+    row['mesh'] = dict(seed_mesh.shape)
+    row['host_chips'] = local_device_count(mesh)
+    row['seed_loop'] = seeds.loop_on(seed_mesh)
+    data_shards = seed_mesh.shape[sharding.DATA_AXIS]
   if step == 'readout':
     row['note'] = "the readout's loop is not sharded: one chip"
   paper_batch = batch_of(config, step)
   row['paper_batch'] = paper_batch
   unit = batch_unit(step)
-  if paper_batch % (chips * unit):
+  if paper_batch % (data_shards * unit):
     row['note'] = (f'paper batch {paper_batch} does not split over '
-                   f'{chips} chips: compiled at {unit} per chip')
-    global_batch = chips * unit
+                   f'{data_shards} data shards: compiled at {unit} per '
+                   'shard')
+    global_batch = data_shards * unit
   else:
     global_batch = paper_batch
   row['batch'] = global_batch
@@ -617,7 +776,7 @@ def one_row(config, name: str, step: str, dtype: str, topology: str,
     return row
   try:
     row.update(compile_row(with_batch(config, step, global_batch), step,
-                           mesh))
+                           mesh, num_seeds))
   except Exception as error:  # pylint: disable=broad-except
     # XLA's own message says why (e.g. out of memory at compile).
     why = str(error).strip().splitlines()[0][:300]
@@ -628,20 +787,24 @@ def one_row(config, name: str, step: str, dtype: str, topology: str,
   row['fits'] = row['hbm_bytes'] <= chip['hbm']
   row['floor_seconds'] = max(row['flops'] / chip['peak_flops'],
                              row['bytes_accessed'] / chip['hbm_bandwidth'])
+  row['floor_per_seed_seconds'] = row['floor_seconds'] / num_seeds
   row['status'] = 'compiled'
-  if args.largest_batch:
+  if args.largest_batch and num_seeds == 1:
     row.update(largest_batch(
         config, step, mesh, chip, log,
         known={global_batch // chips: row['hbm_bytes']},
         tolerance=args.largest_batch_tolerance,
         max_compiles=args.largest_batch_compiles))
-  log(f'{head} {global_batch:5d}({global_batch // chips:3d})  '
+  log(f'{head} {global_batch:5d}({global_batch // data_shards:3d})  '
       f'{"yes" if row["fits"] else "NO":4s}  '
       f'{row["hbm_bytes"] / GiB:12.2f}  {row["flops"] / 1e9:10.1f}  '
       f'{row["bytes_accessed"] / 1e9:7.2f}  '
       f'{row["floor_seconds"] * 1e3:8.2f}  {row["compile_seconds"]:9.1f}'
       + (f'  largest {row["largest_per_chip"]}/chip (not '
          f'{row["smallest_not_fitting"]})' if 'largest_per_chip' in row
+         else '')
+      + (f'  mesh {row["mesh"]} {row["seed_loop"]}, per seed '
+         f'{row["floor_per_seed_seconds"] * 1e3:.2f} ms' if 'mesh' in row
          else '')
       + (f'  ({row["note"]})' if 'note' in row else ''))
   return row

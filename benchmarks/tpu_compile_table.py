@@ -1,12 +1,14 @@
 r"""The markdown table of `benchmarks/tpu_compile.py`'s JSON rows.
 
   python benchmarks/tpu_compile_table.py rows_a.json rows_b.json ... \
-      [--json=merged.json]
+      [--json=merged.json] [--seeds]
 
-Rows are keyed by (topology, config, step, dtype); a later file's row
-replaces an earlier one's, except that a row without a largest-batch search
+Rows are keyed by (topology, config, step, dtype, seeds, host_chips); a
+later file's row replaces an earlier one's, except that a row without a largest-batch search
 keeps the search of the row it replaces when both compiled the same program
 (same FLOPs and HBM). Rows are sorted by config, step, slice and dtype.
+`--seeds`: the table of the several-seed rows (`tpu_compile.py --seeds`),
+each beside the one-seed row of the same step (from any of the files).
 """
 
 from __future__ import annotations
@@ -34,7 +36,8 @@ SEARCH_FIELDS = ('largest_per_chip', 'smallest_not_fitting', 'tried',
 
 
 def _key(row: dict[str, Any]) -> tuple:
-  return (row['topology'], row['config'], row['step'], row['dtype'])
+  return (row['topology'], row['config'], row['step'], row['dtype'],
+          row.get('seeds', 1), row.get('host_chips'))
 
 
 def _rank(order: tuple[str, ...], value: str) -> tuple[int, str]:
@@ -54,7 +57,8 @@ def merge(paths: list[str]) -> list[dict[str, Any]]:
       rows[_key(row)] = row
   return sorted(rows.values(), key=lambda r: (
       _rank(CONFIG_ORDER, r['config']), _rank(STEP_ORDER, r['step']),
-      _rank(TOPOLOGY_ORDER, r['topology']), r['dtype']))
+      _rank(TOPOLOGY_ORDER, r['topology']), r['dtype'], r.get('seeds', 1),
+      r.get('host_chips') or 0))
 
 
 def _largest(row: dict[str, Any]) -> str:
@@ -90,6 +94,51 @@ def table(rows: list[dict[str, Any]]) -> str:
   return '\n'.join(lines)
 
 
+def seeds_table(rows: list[dict[str, Any]]) -> str:
+  """The K-seed rows (merged, sorted), each step's after its one-seed row:
+  HBM per chip, the floor and the floor per seed, with the ratios of K
+  seeds to one seed."""
+  one = {_key(r)[:4]: r for r in rows
+         if r.get('seeds', 1) == 1 and r.get('status') == 'compiled'}
+  lines = ['| config | step | slice | dtype | seeds (mesh) | batch | fits | '
+           'HBM GiB / chip (x one seed) | floor ms (x one seed) | '
+           'floor ms / seed | bound by | compile s |', '|' + '---|' * 12]
+  shown = set()
+  for r in rows:
+    if r.get('seeds', 1) == 1:
+      continue
+    head = (f"| {r['config']} | {r['step']} | {r['topology']} | "
+            f"{r['dtype']} |")
+    base = one.get(_key(r)[:4])
+    if base is not None and _key(base) not in shown:
+      shown.add(_key(base))
+      lines.append(
+          f"{head} 1 | {base['batch']} | {'yes' if base['fits'] else 'NO'} "
+          f"| {base['hbm_bytes'] / GiB:.2f} | "
+          f"{base['floor_seconds'] * 1e3:.2f} | "
+          f"{base['floor_seconds'] * 1e3:.2f} | {_bound_by(base)} | "
+          f"{base['compile_seconds']:.0f} |")
+    if r.get('status') != 'compiled':
+      lines.append(f"{head} {r['seeds']} | {r.get('batch', '')} | "
+                   f"{r.get('status')}: {r.get('why', '')} |" + ' |' * 5)
+      continue
+    mesh = ' x '.join(f"{r['mesh'][axis]} {axis}" for axis in ('seed', 'data')
+                      if axis in r['mesh'])
+    hbm = f"{r['hbm_bytes'] / GiB:.2f}"
+    floor = f"{r['floor_seconds'] * 1e3:.2f}"
+    if base is not None:
+      hbm += f" ({r['hbm_bytes'] / base['hbm_bytes']:.2f}x)"
+      floor += f" ({r['floor_seconds'] / base['floor_seconds']:.2f}x)"
+    if r.get('host_chips'):
+      mesh += f", {r['host_chips']} chips / host"
+    lines.append(
+        f"{head} {r['seeds']} ({mesh}) | {r['batch']} | "
+        f"{'yes' if r['fits'] else 'NO'} | {hbm} | {floor} | "
+        f"{r['floor_per_seed_seconds'] * 1e3:.2f} | {_bound_by(r)} | "
+        f"{r['compile_seconds']:.0f} |")
+  return '\n'.join(lines)
+
+
 def _bound_by(row: dict[str, Any]) -> str:
   """Which roofline term sets the floor, and by how much it exceeds the
   other (with tpu_chips.py's spec-sheet peaks)."""
@@ -105,11 +154,13 @@ def main(argv=None) -> int:
   parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
   parser.add_argument('inputs', nargs='+')
   parser.add_argument('--json', default='')
+  parser.add_argument('--seeds', action='store_true',
+                      help='the several-seed rows beside one-seed ones')
   args = parser.parse_args(argv)
   rows = merge(args.inputs)
   if args.json:
     files.write_json_atomic(args.json, rows)
-  print(table(rows))
+  print(seeds_table(rows) if args.seeds else table(rows))
   return 0
 
 

@@ -30,7 +30,8 @@ def make_mesh() -> Mesh:
   return Mesh(np.asarray(jax.devices()), (DATA_AXIS,))
 
 
-def seed_mesh(mesh: Mesh, num_seeds: int) -> Mesh:
+def seed_mesh(mesh: Mesh, num_seeds: int,
+              local_devices: int | None = None) -> Mesh:
   """`mesh`'s devices as a (seed, data) grid for training `num_seeds` seeds
   at once (e.g. 4 seeds x 2 data on 8 devices), or `mesh` itself (the seeds
   then replicated on every device, only the batch split) when there is one
@@ -38,11 +39,15 @@ def seed_mesh(mesh: Mesh, num_seeds: int) -> Mesh:
 
   The seeds of one 'data' row sit on one process (device [s, d] is device
   d * K + s of `mesh`), so each process still holds a contiguous block of
-  batch rows (`check_host_rows`).
+  batch rows (`check_host_rows`). `local_devices`: the devices of one
+  process (default `jax.local_device_count()`; an ahead-of-time compile for
+  a TPU slice from a CPU host passes the slice's own).
   """
   devices = mesh.devices.reshape(-1)
+  if local_devices is None:
+    local_devices = jax.local_device_count()
   if (num_seeds <= 1 or mesh.axis_names != (DATA_AXIS,)
-      or jax.local_device_count() % num_seeds
+      or local_devices % num_seeds
       or len(devices) % num_seeds):
     return mesh
   return Mesh(devices.reshape(-1, num_seeds).T, (SEED_AXIS, DATA_AXIS))

@@ -294,7 +294,7 @@ def jit_update(stage: Stage, mesh: Mesh,
   return jax.jit(
       update,
       in_shardings=(sharding.seed_sharding(mesh), batch_sharding,
-                    _frozen_sharding(stage, mesh, seeds)),
+                    frozen_sharding(stage, mesh, seeds)),
       out_shardings=(sharding.seed_sharding(mesh), replicated),
       donate_argnums=(0,),
       compiler_options=_seeds_compiler_options(mesh, loop))
@@ -307,7 +307,7 @@ def stacked_batches(stage: Stage, seeds: Seeds | None) -> bool:
       stage.seed_batches is not None or seeds.data_order == 'per_seed')
 
 
-def _frozen_sharding(stage: Stage, mesh: Mesh, seeds: Seeds | None):
+def frozen_sharding(stage: Stage, mesh: Mesh, seeds: Seeds | None):
   """The frozen parameters' placement: one tree per seed on the seed axis
   (`Stage.seed_frozen_params`), else replicated."""
   if seeds is not None and seeds.several and stage.seed_frozen_params:
@@ -475,7 +475,7 @@ def fit(stage: Stage, *, mesh: Mesh, seed: int,
   reported: set[int] = set()  # diverged seeds already named
   stop_check_every = config.stop_check_every
   frozen_params = jax.device_put(stage.frozen_params,
-                                 _frozen_sharding(stage, mesh, seeds))
+                                 frozen_sharding(stage, mesh, seeds))
 
   log_path = os.path.join(stage.directory, 'train_log.jsonl')
   summaries = Summaries(stage.directory, stage.logging, is_lead_host)

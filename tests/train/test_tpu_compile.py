@@ -10,11 +10,14 @@ import os
 import subprocess
 import sys
 
+import jax
 import numpy as np
 import pytest
 
 from slotformer_jax import slot_models
 from slotformer_jax.slot_models import chain
+from slotformer_jax.data.slots import SlotSource
+from slotformer_jax.data.slots import SlotWriter
 from slotformer_jax.slot_models.savi import Savi
 from slotformer_jax.stages import dynamics
 from slotformer_jax.stages import stage1
@@ -57,7 +60,7 @@ def _source(config, fields, length, num_videos=4):
 @pytest.mark.parametrize('variant,step', [
     ('tiny', 'savi'), ('tiny', 'slotformer'), ('steve_tiny', 'dvae'),
     ('steve_tiny', 'steve')])
-def test_batch_spec_is_what_the_stage_yields(variant, step):
+def test_batch_spec_is_what_the_stage_yields(variant, step, tmp_path):
   """The benchmark's abstract batch has the shapes and dtypes of the batch
   the real stage's data stream yields (else it compiles another program)."""
   bench = _benchmark()
@@ -73,9 +76,19 @@ def test_batch_spec_is_what_the_stage_yields(variant, step):
                               _source(config, {'tokens': 1}, length),
                               seed=config.seed)
   else:
-    source = _source(config, {'slots': slot_model.slot_shape},
-                     (config.slotformer.burn_in + config.slotformer.rollout)
-                     * config.slotformer.frame_stride + 2)
+    # As `Run.slots` serves them to SlotFormer: L_I's video from the
+    # rollout's first frame on.
+    dyn = config.slotformer
+    assert dyn.image_loss_weight > 0  # the video field is checked too
+    items = _source(config, {'slots': slot_model.slot_shape},
+                    (dyn.burn_in + dyn.rollout) * dyn.frame_stride + 2)
+    writer = SlotWriter(str(tmp_path), len(items), *slot_model.slot_shape,
+                        savi_step=1)
+    for index, item in enumerate(items):
+      writer.add(index, item['slots'])
+    writer.close()
+    source = SlotSource(str(tmp_path), items, ('video',),
+                        video_from=dyn.burn_in)
     stage = dynamics.dynamics_stage(
         config.slotformer, 'slotformer', '/unused', mesh, slot_model,
         {'savi': chain.param_shapes(slot_model.part('savi'))}, source,
@@ -266,6 +279,17 @@ def test_table_merges_rows_and_keeps_a_search(tmp_path):
   table = module.table(rows).splitlines()
   assert '| 40 (not 44) |' in table[2] and '| bytes 2.8x |' in table[2]
   assert 'compile failed: some XLA error' in table[3]
+  # K seeds are rows of their own, shown beside the one-seed row.
+  seeds = dict(row, seeds=4, mesh={'seed': 4, 'data': 2},
+               hbm_bytes=3 * 2**30, floor_seconds=4 * row['floor_seconds'],
+               floor_per_seed_seconds=row['floor_seconds'])
+  (tmp_path / 'c.json').write_text(json.dumps([seeds]))
+  rows = module.merge([str(tmp_path / 'b.json'), str(tmp_path / 'c.json')])
+  assert len(rows) == 3
+  one, four = module.seeds_table(rows).splitlines()[2:]
+  assert '| savi | v5e:2x4 | float32 | 1 | 64 |' in one
+  assert '| 4 (4 seed x 2 data) | 64 | yes | 3.00 (1.50x) |' in four
+  assert f"| {seeds['floor_seconds'] * 1e3:.2f} (4.00x) |" in four
 
 
 @pytest.mark.parametrize('name', ['synthetic_vqa', 'synthetic_contact:tiny'])
@@ -294,3 +318,47 @@ def test_eval_rollout_lowers_when_slotformer_batch_does_not_split(dtype):
       bench.with_batch(config, 'eval_rollout', mesh.devices.size),
       'eval_rollout', mesh)
   assert 'conv' in run.lower(*args).as_text()
+
+
+@pytest.mark.parametrize('value', ['0', 'two', ''])
+def test_seeds_flag_is_checked(value, capsys):
+  assert _benchmark().main([f'--seeds={value}']) == 2
+  assert 'error: --seeds' in capsys.readouterr().err
+
+
+def test_several_seed_programs_are_the_trainers():
+  """`--seeds=K`: the program `trainer.fit` runs for config.seeds, on the
+  (seed, data) mesh it makes (2 x 2 on the 4 CPU devices): the SeedsState
+  split on 'seed'; stage 1 on the shared [B, ...] batch, SlotFormer on
+  stacked [K, B, ...] batches with [K, ...] frozen decoder parameters. What
+  the pipeline refuses or runs per seed is not built."""
+  from jax.sharding import PartitionSpec as P  # pylint: disable=g-import-not-at-top
+  bench = _benchmark()
+  mesh = sharding.make_mesh()
+  config = bench.configured('synthetic:tiny', 'float32', '')
+  batch_size = config.savi.batch_size
+  _, args = bench.step_program(config, 'savi', mesh, num_seeds=2)
+  state, batch, frozen = args
+  assert dict(state.step.sharding.mesh.shape) == {'seed': 2, 'data': 2}
+  assert state.step.shape == state.diverged_at.shape == (2,)
+  for leaf in jax.tree.leaves(state.params):
+    assert leaf.shape[0] == 2 and leaf.sharding.spec == P('seed')
+  assert batch['video'].shape[0] == batch_size
+  assert batch['video'].sharding.spec == P('data')
+  assert frozen is None
+  _, (state, batch, frozen) = bench.step_program(config, 'slotformer', mesh,
+                                                 num_seeds=2)
+  dyn = config.slotformer
+  assert batch['slots'].shape[:3] == (2, dyn.batch_size,
+                                      dyn.burn_in + dyn.rollout)
+  assert batch['video'].shape[:3] == (2, dyn.batch_size, dyn.rollout)
+  assert batch['slots'].sharding.spec == P('seed', 'data')
+  for leaf in jax.tree.leaves(frozen):
+    assert leaf.shape[0] == 2 and leaf.sharding.spec == P('seed')
+  assert bench.several_seeds_refused(config, 'savi', 2) is None
+  assert 'one seed at a time' in bench.several_seeds_refused(
+      config, 'eval_rollout', 2)
+  steve = bench.configured('synthetic:steve_tiny', 'float32', '')
+  assert bench.several_seeds_refused(steve, 'dvae', 2) is None
+  assert 'train_steve does not take several seeds' in (
+      bench.several_seeds_refused(steve, 'steve', 2))
