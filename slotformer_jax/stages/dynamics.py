@@ -124,21 +124,10 @@ def train_dynamics(run: Run, name: str) -> None:
   if run.seeds is not None:
     train_dynamics_seeds(run, name)
     return
-  section, slot_model, loaded = (run.dynamics_section(name), run.slot_model,
-                                 run.stage1)
-  parent = chain.check_slots_current(run.paths, 'train', loaded.slots_parent,
-                                     run.slots_fields, slot_model.label)
-  decoder, _ = image_loss_decoder(section, name, slot_model, loaded.params)
-  # L_I compares the rollout frames only: the burn-in frames are not read.
-  source = run.slots('train', ('video',) if decoder is not None else (),
-                     video_from=section.burn_in)
+  section = run.dynamics_section(name)
   # The dynamics' own stream of batches: seed + 1, apart from stage 1's.
   seed = run.config.seed + 1
-  stage = dynamics_stage(section, name, run.paths.dynamics(name), run.mesh,
-                         slot_model, loaded.params, source, seed=seed,
-                         compute_dtype=run.config.compute_dtype,
-                         logging_config=run.config.logging,
-                         reader_workers=run.config.data.reader_workers)
+  stage, parent = seed_stage(run, name, seed)
   fit_stage(stage, mesh=run.mesh, seed=seed, what=name,
             identity_fields=dynamics_lib.identity_fields(
                 run.config.seed, section, name),
@@ -146,27 +135,32 @@ def train_dynamics(run: Run, name: str) -> None:
                                                                   name))
 
 
-def seed_stage(view: Run, name: str, stream_seed: int) -> Stage:
-  """The one-seed training stage of dynamics model `name` on the slots of
-  the seed view `view` (`Run.for_seed`), its batches drawn with
-  `stream_seed`: what seed `view.seed` of a several-seed run trains
-  (the stage's directory is the stacked one, `paths.dynamics(name)`).
+def seed_stage(view: Run, name: str, stream_seed: int
+               ) -> tuple[Stage, dict[str, Any]]:
+  """The one-seed training stage of dynamics model `name` on the current
+  slots of the 'train' split of `view` (a run, or the seed view
+  `Run.for_seed` of a several-seed run: what seed `view.seed` trains; the
+  stage's directory is `paths.dynamics(name)`, the stacked one then), its
+  batches drawn with `stream_seed`; and the slots' parent (stage 1).
 
   Raises:
     UserError: the view's slots of 'train' are missing or stale.
   """
   section, slot_model, loaded = (view.dynamics_section(name),
                                  view.slot_model, view.stage1)
-  chain.check_slots_current(view.paths, 'train', loaded.slots_parent,
-                            view.slots_fields, slot_model.label)
+  parent = chain.check_slots_current(view.paths, 'train', loaded.slots_parent,
+                                     view.slots_fields, slot_model.label)
   decoder, _ = image_loss_decoder(section, name, slot_model, loaded.params)
+  # L_I compares the rollout frames only: the burn-in frames are not read.
   source = view.slots('train', ('video',) if decoder is not None else (),
                       video_from=section.burn_in)
-  return dynamics_stage(section, name, view.paths.dynamics(name), view.mesh,
-                        slot_model, loaded.params, source, seed=stream_seed,
-                        compute_dtype=view.config.compute_dtype,
-                        logging_config=view.config.logging,
-                        reader_workers=view.config.data.reader_workers)
+  stage = dynamics_stage(section, name, view.paths.dynamics(name),
+                         view.mesh, slot_model, loaded.params, source,
+                         seed=stream_seed,
+                         compute_dtype=view.config.compute_dtype,
+                         logging_config=view.config.logging,
+                         reader_workers=view.config.data.reader_workers)
+  return stage, parent
 
 
 def stream_seeds(run: Run) -> tuple[int, ...]:
@@ -201,7 +195,7 @@ def train_dynamics_seeds(run: Run, name: str) -> None:
   `seed_stage`)."""
   views = run.seed_views()
   section = run.dynamics_section(name)
-  stages = [seed_stage(view, name, stream)
+  stages = [seed_stage(view, name, stream)[0]
             for view, stream in zip(views, stream_seeds(run))]
   # Seed s's initialisation and step RNG: s + 1, as its one-seed run's.
   fit_stage(stacked_stage(stages), mesh=run.mesh,

@@ -237,13 +237,19 @@ def test_channel_order_passes_clips_through(folders):
                         pipeline.make_train_batch(new, step, **kwargs))
 
 
-def test_slot_batches_with_frames_match_the_old_layout(folders, tmp_path):
-  rng = np.random.default_rng(0)
+def _write_slots(tmp_path, seed):
+  """Random slots (2 x 3) of every video of LENGTHS; their folder."""
+  rng = np.random.default_rng(seed)
   slot_dir = str(tmp_path / 'slots')
   w = slots.SlotWriter(slot_dir, len(LENGTHS), 2, 3, savi_step=0)
   for i, t in enumerate(LENGTHS):
     w.add(i, rng.standard_normal((t, 2, 3), dtype=np.float32))
   w.close()
+  return slot_dir
+
+
+def test_slot_batches_with_frames_match_the_old_layout(folders, tmp_path):
+  slot_dir = _write_slots(tmp_path, seed=0)
   old = slots.SlotSource(slot_dir, _open(folders, 0))
   new = slots.SlotSource(slot_dir, _open(folders, 3))
   bare = slots.SlotSource(slot_dir)
@@ -265,12 +271,7 @@ def test_slot_batches_with_frames_match_the_old_layout(folders, tmp_path):
 def test_video_from_reads_only_the_clip_frames_it_keeps(folders, tmp_path):
   """L_I's stream (stages/dynamics.py): the video from clip frame
   `video_from` on; the slots whole; fewer chunk records read."""
-  rng = np.random.default_rng(1)
-  slot_dir = str(tmp_path / 'slots')
-  w = slots.SlotWriter(slot_dir, len(LENGTHS), 2, 3, savi_step=0)
-  for i, t in enumerate(LENGTHS):
-    w.add(i, rng.standard_normal((t, 2, 3), dtype=np.float32))
-  w.close()
+  slot_dir = _write_slots(tmp_path, seed=1)
   full = slots.SlotSource(slot_dir, _open(folders, 3))
   kwargs = dict(batch_size=4, clip_length=6, seed=3,
                 fields=('slots', 'video'))
