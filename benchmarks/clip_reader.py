@@ -2,7 +2,7 @@ r"""Whole-video records (1.0.0) against chunked records (2.0.0): training clip
 frames delivered per second on one core, the same videos, alternating rounds.
 
   python benchmarks/clip_reader.py [--streams=obj3d_savi,clevrer_savi,
-      obj3d_li,clevrer_li,physion_dvae] [--chunks=4] [--videos=24]
+      obj3d_li,clevrer_li,physion_dvae] [--chunks=4,4z] [--videos=24]
       [--seconds=3] [--rounds=3] [--core=0] [--workdir=DIR]
 
 Fixtures: `reader_speed.py`'s OBJ3D-layout PNG videos of moving squares over
@@ -10,7 +10,8 @@ smooth backgrounds with renderer noise (they compress as rendered frames
 do) at each dataset's stored length and resolution (OBJ3D 50x64x64,
 CLEVRER 128x64x64, Physion 150x128x128), converted by `prepare` once per
 layout: `--frames_per_chunk=0` (whole-video records, the layout before;
-always measured) and every K of `--chunks`. SlotFormer's L_I
+always measured) and every K of `--chunks` (`4`: uncompressed chunks, the
+default; `4z`: compressed, `prepare --compress_records`). SlotFormer's L_I
 stream reads random float32 slots (`slots.SlotSource`, OBJ3D 6x128,
 CLEVRER 7x128) with the video frames of the same steps: with whole-video
 records every clip frame's (the reader before), with chunked records only
@@ -80,21 +81,36 @@ STREAMS = {s.name: s for s in (
 )}
 
 
-def layout_dir(work: Path, s: Stream, videos: int, k: int) -> Path:
+def parse_layout(spec: str) -> tuple[int, bool]:
+  """'4' -> (4, uncompressed), '4z' -> (4, compressed); '0': whole videos
+  (always compressed)."""
+  compressed = spec.endswith('z')
+  return int(spec[:-1] if compressed else spec), compressed
+
+
+def layout_name(k: int, compressed: bool) -> str:
+  return 'whole' if k == 0 else f'K={k}{" zstd" if compressed else ""}'
+
+
+def layout_dir(work: Path, s: Stream, videos: int, k: int,
+               compressed: bool = False) -> Path:
   """The fixture's videos converted with chunks of `k` frames (0: whole
-  videos, the 1.0.0 layout); the PNGs are written once."""
+  videos, the 1.0.0 layout), `compressed` or not; the PNGs are written
+  once."""
   root = work / f'{s.dataset}_r{s.resolution}_t{s.frames}_v{videos}'
-  if not (root / f'done_k{k}').exists():
+  name = f'k{k}' if k == 0 else f'k{k}{"z" if compressed else "u"}'
+  if not (root / f'done_{name}').exists():
     if not (root / 'OBJ3D' / 'train').is_dir():
       reader_speed.write_obj3d_like(root / 'OBJ3D', videos,
                                     resolution=s.resolution, frames=s.frames)
     prepare.main(['--dataset=obj3d', f'--source={root / "OBJ3D"}',
-                  f'--data_dir={root / f"data_k{k}"}', '--splits=train',
+                  f'--data_dir={root / f"data_{name}"}', '--splits=train',
                   '--no_progress', '--num_workers=2',
                   f'--resolution={s.resolution}', f'--num_frames={s.frames}',
-                  f'--frames_per_chunk={k}'])
-    (root / f'done_k{k}').write_text('')
-  return sources.find_prepared_dataset(root / f'data_k{k}' / 'obj3d')
+                  f'--frames_per_chunk={k}']
+                 + (['--compress_records'] if compressed else []))
+    (root / f'done_{name}').write_text('')
+  return sources.find_prepared_dataset(root / f'data_{name}' / 'obj3d')
 
 
 def slot_dir(work: Path, s: Stream, videos: int) -> str:
@@ -110,8 +126,10 @@ def slot_dir(work: Path, s: Stream, videos: int) -> str:
   return str(folder)
 
 
-def open_stream(work: Path, s: Stream, videos: int, k: int):
-  video = sources.TfdsVideoSource(layout_dir(work, s, videos, k), 'train')
+def open_stream(work: Path, s: Stream, videos: int, k: int,
+                compressed: bool = False):
+  video = sources.TfdsVideoSource(layout_dir(work, s, videos, k, compressed),
+                                  'train')
   if s.slot_shape is None:
     return video, ('video',)
   # Whole videos: the reader before, which handed L_I every clip frame.
@@ -149,8 +167,10 @@ def _uptime() -> str:
 def main(argv: list[str] | None = None) -> None:
   parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
   parser.add_argument('--streams', default=','.join(STREAMS))
-  parser.add_argument('--chunks', default=str(chunked.FRAMES_PER_CHUNK),
-                      help='chunk sizes K compared with whole videos (0)')
+  parser.add_argument('--chunks', default=f'{chunked.FRAMES_PER_CHUNK},'
+                      f'{chunked.FRAMES_PER_CHUNK}z',
+                      help='chunk sizes K compared with whole videos (0); '
+                      'K: uncompressed chunks, Kz: compressed')
   parser.add_argument('--videos', type=int, default=24)
   parser.add_argument('--seconds', type=float, default=3.0)
   parser.add_argument('--rounds', type=int, default=3)
@@ -159,17 +179,18 @@ def main(argv: list[str] | None = None) -> None:
   args = parser.parse_args(argv)
   work = Path(args.workdir)
   streams = [STREAMS[n] for n in args.streams.split(',') if n]
-  ks = [0] + [int(k) for k in args.chunks.split(',') if int(k) != 0]
+  ks = [(0, True)] + [parse_layout(k) for k in args.chunks.split(',')
+                       if parse_layout(k)[0] != 0]
   for s in streams:  # fixtures first (the conversion uses 2 processes)
     for k in ks:
-      layout_dir(work, s, args.videos, k)
+      layout_dir(work, s, args.videos, *k)
   os.sched_setaffinity(0, {args.core})
   print(f'pinned to core {args.core}; {args.videos} videos per fixture; '
         f'{args.rounds} rounds x {args.seconds:g} s, layouts alternating')
   print(f'uptime before: {_uptime()}', flush=True)
   results = {}
   for s in streams:
-    opened = {k: open_stream(work, s, args.videos, k) for k in ks}
+    opened = {k: open_stream(work, s, args.videos, *k) for k in ks}
     measured = {k: [] for k in ks}
     step = 0
     for _ in range(args.rounds):
@@ -177,10 +198,11 @@ def main(argv: list[str] | None = None) -> None:
         value, step = rate(*opened[k], s, args.seconds, step)
         measured[k].append(value)
     results[s.name] = {k: statistics.median(v) for k, v in measured.items()}
-    sizes = {k: size_mib(layout_dir(work, s, args.videos, k)) for k in ks}
+    sizes = {k: size_mib(layout_dir(work, s, args.videos, *k)) for k in ks}
+    whole = results[s.name][ks[0]]
     line = ', '.join(
-        f'{"whole" if k == 0 else f"K={k}"}: {results[s.name][k]:9,.0f} '
-        f'frames/s ({results[s.name][k] / results[s.name][0]:.2f}x, '
+        f'{layout_name(*k)}: {results[s.name][k]:9,.0f} '
+        f'frames/s ({results[s.name][k] / whole:.2f}x, '
         f'{sizes[k]:.1f} MiB)' for k in ks)
     print(f'{s.name:13s} {s.frames}x{s.resolution}x{s.resolution}, clip '
           f'{s.clip} stride {s.stride}, batch {s.batch}'

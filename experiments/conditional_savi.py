@@ -5,14 +5,17 @@ Trains SAVi on configs/synthetic.py (32x32, 2-3 static objects + a launched
 sphere) with `savi.initial_slots` 'learned' (unconditional, SlotFormer's
 SAVi) and 'boxes' (slots started from the first frame's boxes, SAVi's
 conditional model) at the same budget (`--steps` updates, same batch, clip
-and learning rate) for each seed, extracts the slots of the test videos
-through the pipeline's own stages and scores them with the pipeline's own
-whole-video evaluation (`evaluation.evaluate_slot_model`), once over every
-frame and once skipping the first (SAVi paper). Prints a markdown table and
-writes every number to --out/results.json.
+and learning rate). The seeds of one variant train in ONE program
+(`config.seeds`, docs/seeds.md; `seed_data_order='per_seed'`, so seed s is
+the one-seed run `--config.seed=s`: its initialisation, step RNG and data
+order). Each seed's slots of the test videos are extracted by the
+pipeline's own stage (into seed_<s>/slots/test) and scored by the
+pipeline's own whole-video evaluation (`evaluation.evaluate_slot_model`),
+once over every frame and once skipping the first (SAVi paper). Prints a
+markdown table and writes every number to --out/results.json.
 
-  nice -n 10 python experiments/conditional_savi.py --steps=500 --seeds=0,1 \\
-      --out=/work/scratch-cond/conditional_savi
+  nice -n 10 python experiments/conditional_savi.py --steps=1200 \\
+      --seeds=0,1,2 --out=/work/scratch-cond/conditional_savi_seeds
 """
 
 from __future__ import annotations
@@ -35,14 +38,17 @@ KINDS = ('learned', 'boxes')
 METRICS = ('fg_ari', 'fg_ari_per_frame', 'fg_miou_per_frame', 'ari', 'psnr')
 
 
-def _config(kind: str, seed: int, steps: int):
+def _config(kind: str, seeds: tuple[int, ...], steps: int):
   spec = importlib.util.spec_from_file_location(
       'synthetic', os.path.join(os.path.dirname(__file__), '..', 'configs',
                                 'synthetic.py'))
   module = importlib.util.module_from_spec(spec)
   spec.loader.exec_module(module)
   config = module.get_config()
-  config.seed = seed
+  config.seed = seeds[0]
+  if len(seeds) > 1:  # one program; seed s as the one-seed run of s
+    config.seeds = seeds
+    config.seed_data_order = 'per_seed'
   config.savi.initial_slots = kind
   config.savi.num_train_steps = steps
   config.savi.checkpoint_every = steps
@@ -50,9 +56,13 @@ def _config(kind: str, seed: int, steps: int):
   return config
 
 
-def run(kind: str, seed: int, steps: int, out: str) -> dict:
-  config = _config(kind, seed, steps)
-  workdir = os.path.join(out, f'{kind}_seed{seed}')
+def run(kind: str, seeds: tuple[int, ...], steps: int, out: str
+        ) -> list[dict]:
+  """Trains SAVi variant `kind` for every seed of `seeds` (one program when
+  several), extracts and scores each seed's test slots; one result per
+  seed."""
+  config = _config(kind, seeds, steps)
+  workdir = os.path.join(out, kind + ''.join(f'_seed{s}' for s in seeds))
   run = Run.create(config, workdir)
   mesh, slot_model = run.mesh, run.slot_model
   accept_config(config.to_dict(), run.paths)
@@ -62,24 +72,29 @@ def run(kind: str, seed: int, steps: int, out: str) -> dict:
   table['train_savi'](run)
   train_seconds = time.time() - started
   table['extract_slots'](run)
-  params = run.stage1.params
+  views = run.seed_views() if run.seeds is not None else [run]
   split = config.evaluation.split
-  source = run.slots(split, ('video', 'segmentations'))
   num_frames = config.data.num_frames
-  result = {'kind': kind, 'seed': seed, 'steps': steps,
-            'train_seconds': train_seconds, 'num_videos': len(source)}
-  for skip in (False, True):
-    config.evaluation.skip_first_frame = skip
-    scores = evaluate.evaluate_slot_model(
-        config.evaluation, evaluate.num_true_ids(config.data.max_instances),
-        mesh, slot_model, params, source, num_frames,
-        batch_size=sharding.per_host_batch_size(
-            config.evaluation.batch_size, mesh),
-        fields=('slots', 'video', 'segmentations'))
-    result['skip_first' if skip else 'all_frames'] = {
-        name: scores[name] for name in METRICS}
-  print(json.dumps(result), flush=True)
-  return result
+  results = []
+  for view in views:
+    source = view.slots(split, ('video', 'segmentations'))
+    result = {'kind': kind, 'seed': view.seed, 'steps': steps,
+              'seeds_in_program': list(seeds),
+              'train_seconds_all_seeds': train_seconds,
+              'num_videos': len(source)}
+    for skip in (False, True):
+      config.evaluation.skip_first_frame = skip
+      scores = evaluate.evaluate_slot_model(
+          config.evaluation, evaluate.num_true_ids(config.data.max_instances),
+          mesh, slot_model, view.stage1.params, source, num_frames,
+          batch_size=sharding.per_host_batch_size(
+              config.evaluation.batch_size, mesh),
+          fields=('slots', 'video', 'segmentations'))
+      result['skip_first' if skip else 'all_frames'] = {
+          name: scores[name] for name in METRICS}
+    print(json.dumps(result), flush=True)
+    results.append(result)
+  return results
 
 
 def _table(results: list[dict]) -> str:
@@ -113,18 +128,19 @@ def _table(results: list[dict]) -> str:
 def main() -> None:
   parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
   parser.add_argument('--steps', type=int, default=500)
-  parser.add_argument('--seeds', default='0,1')
+  parser.add_argument('--seeds', default='0,1,2',
+                      help='trained together in one program per variant')
   parser.add_argument('--kinds', default=','.join(KINDS))
   parser.add_argument('--out', required=True)
   args = parser.parse_args()
+  seeds = tuple(int(s) for s in args.seeds.split(','))
   results = []
   path = os.path.join(args.out, 'results.json')
-  for seed in [int(s) for s in args.seeds.split(',')]:
-    for kind in args.kinds.split(','):
-      results.append(run(kind, seed, args.steps, args.out))
-      os.makedirs(args.out, exist_ok=True)
-      with open(path, 'w') as f:
-        json.dump(results, f, indent=1)
+  for kind in args.kinds.split(','):
+    results.extend(run(kind, seeds, args.steps, args.out))
+    os.makedirs(args.out, exist_ok=True)
+    with open(path, 'w') as f:
+      json.dump(results, f, indent=1)
   print(_table(results))
 
 

@@ -14,8 +14,9 @@ are::
     chunk 1   frames K .. 2K-1
     ...       (the last chunk holds the remaining 1..K frames)
 
-each record compressed on its own (``group_size:1``), videos one after the
-other in index order. ``video_chunks.json`` (this module's ``INDEX_FILE``,
+each record on its own (``group_size:1``) and, by default, uncompressed
+(``prepare --compress_records`` compresses them; below), videos one after
+the other in index order. ``video_chunks.json`` (this module's ``INDEX_FILE``,
 covered by ``checksums.json``) holds the layout, ``K``, the time-axis fields
 and, per split, every video's frame count and first record, so a reader
 knows a video's length without decoding it and reads a clip's frames from
@@ -45,12 +46,22 @@ Delivered clip frames/s per core, whole videos -> K=1 / 2 / 4 / 8:
 * file size relative to whole videos: +19 % / +15 % / +10 % / +7 %
 
 K = 4: best or within 10 % of the best for 6- and 16-frame clips, for
-10 % more disk.
+10 % more disk (measured with compressed chunks, before they became
+uncompressed by default; not re-measured over K since).
 
-Why not an uncompressed memory map: CLEVRER's 10k training videos of 128
-frames are 15.7 GB of raw 64x64 frames (63 GB at 128x128); the compressed
-records of rendered scenes are a fraction of that, and the checksums,
-resumable conversion and TFDS metadata keep working unchanged.
+Compression. array_record's default (zstd) costs more per record than
+the frames it saves: reading one compressed 4-frame chunk took 330-450 us
+against 80-120 us uncompressed (44 KB records of the OBJ3D-like fixture,
+loaded box), and end to end, per core, uncompressed chunks deliver 2.0-2.9x
+the clip frames of compressed ones for 1.45x the disk
+(`benchmarks/clip_reader.py --chunks=4,4z`; the numbers in
+docs/performance.md, "Feeding the chips"). A chip's host cores are the
+scarcer thing, so chunks are written uncompressed by default;
+``--compress_records`` keeps the smaller files where disk or network
+bandwidth is short. CLEVRER's 10k training videos of 128 frames are 15.7 GB
+of raw 64x64 frames (63 GB at 128x128) either way before compression.
+Still records rather than one raw memory map: the checksums, resumable
+conversion, per-video header and TFDS metadata keep working unchanged.
 
 This module is the layout and its index as the reader sees them (reading
 never writes); ``data/convert/chunked_writer.py`` serialises videos into
@@ -80,8 +91,11 @@ LAYOUT_VERSION = 1
 TFDS_VERSION = '2.0.0'
 INDEX_FILE = 'video_chunks.json'  # = integrity.CHUNK_INDEX_FILE
 FRAMES_PER_CHUNK = 4
-# One record per compression group: reading a chunk decompresses it alone.
+# One record per group: reading a chunk reads (decompresses) it alone. The
+# whole-video layout keeps array_record's default compression (as TFDS
+# writes it); chunks are written uncompressed unless asked (`Layout`).
 RECORD_OPTIONS = 'group_size:1'
+UNCOMPRESSED_RECORD_OPTIONS = 'group_size:1,uncompressed'
 
 
 def time_fields(features: tfds.features.FeaturesDict) -> tuple[str, ...]:
@@ -112,10 +126,23 @@ class Layout:
     features: the videos' features (what ``features.json`` describes).
     frames_per_chunk: K; 0 is the whole-video layout (one record per video
       with ``features``), which the writers keep for tests and benchmarks.
+    compressed: the chunks are compressed (array_record's default, zstd);
+      False (default) writes them uncompressed: 1.45x the disk of the
+      rendered-like fixture and 2.7-2.9x the clips per core (module
+      docstring). Whole-video records are always compressed. Readers need
+      not know: array_record reads either.
   """
 
   features: tfds.features.FeaturesDict
   frames_per_chunk: int = FRAMES_PER_CHUNK
+  compressed: bool = False
+
+  @property
+  def record_options(self) -> str:
+    """The array_record writer options of this layout's records."""
+    if self.compressed or not self.frames_per_chunk:
+      return RECORD_OPTIONS
+    return UNCOMPRESSED_RECORD_OPTIONS
 
   @functools.cached_property
   def time(self) -> tuple[str, ...]:
@@ -154,6 +181,7 @@ class Layout:
                        'num_records': int(sum(counts))}
     return {'layout': LAYOUT, 'layout_version': LAYOUT_VERSION,
             'frames_per_chunk': self.frames_per_chunk,
+            'compressed': bool(self.compressed or not self.frames_per_chunk),
             'time_fields': list(self.time), 'header_fields': list(self.header),
             'splits': splits}
 

@@ -259,21 +259,23 @@ class TfdsVideoSource:
     return self._decode(range(first, first + 1),
                         self._layout.header_features, index)[0]
 
-  def _frames_of(self, index: int, begin: int, end: int
-                 ) -> dict[str, np.ndarray]:
-    """Frames ``[begin, end)`` of every time field, from the chunks that
-    hold them (a view of one chunk when they lie in one)."""
+  def _frames_of(self, index: int, begin: int, end: int,
+                 keys: Sequence[str] | None = None) -> dict[str, np.ndarray]:
+    """Frames ``[begin, end)`` of the time fields `keys` (default: every
+    one), from the chunks that hold them (a view of one chunk when they lie
+    in one; only the fields asked for are joined across chunks)."""
     k = self._layout.frames_per_chunk
+    keys = self._layout.time if keys is None else tuple(keys)
     if end <= begin:  # no frame (a video of none): empty arrays, no read
       return {key: np.zeros((0,) + tuple(self.info.features[key].shape[1:]),
                             self.info.features[key].np_dtype)
-              for key in self._layout.time}
+              for key in keys}
     first = int(self._first[index]) + bool(self._layout.header)
     c0, c1 = begin // k, (end - 1) // k
     chunks = self._decode(range(first + c0, first + c1 + 1),
                           self._layout.chunk_features, index)
     out = {}
-    for key in self._layout.time:
+    for key in keys:
       parts = [np.asarray(chunk[key]) for chunk in chunks]
       whole = parts[0] if len(parts) == 1 else np.concatenate(parts)
       out[key] = whole[begin - c0 * k:end - c0 * k]
@@ -338,7 +340,8 @@ class TfdsVideoSource:
                    for key, value in self._header(index).items()})
     if not any(f in self._layout.time for f in fields):
       return _slice_header_only(item, fields, index, start, length, stride)
-    frames = self._frames_of(index, start, end)
+    frames = self._frames_of(index, start, end,
+                             [f for f in fields if f in self._layout.time])
     out = {}
     for field in fields:
       if field in self._layout.time:

@@ -330,6 +330,70 @@ def test_the_converter_writes_the_chunked_layout(tmp_path):
       'train': [f'v{i}' for i in range(len(LENGTHS))]}
 
 
+def _record_options(dataset_dir: Path) -> set[str]:
+  """The writer options of every shard file (array_record stores them)."""
+  from array_record.python import array_record_module  # pylint: disable=g-import-not-at-top
+  options = set()
+  for path in dataset_dir.glob('*.array_record-*'):
+    reader = array_record_module.ArrayRecordReader(os.fspath(path))
+    options.add(reader.writer_options_string())
+    reader.close()
+  return options
+
+
+def test_chunks_are_uncompressed_unless_asked_and_read_alike(tmp_path):
+  spec = writer.DatasetSpec(
+      name='toy', config_name='cfg', description='toy videos', params={},
+      features_fn=_features, convert_fn=_convert_job)
+  jobs = {'train': [_Job(f'v{i}', i) for i in range(len(LENGTHS))]}
+  plain = writer.convert(spec, jobs, tmp_path / 'plain', num_workers=1,
+                         videos_per_shard=3, progress=False)
+  packed = writer.convert(spec, jobs, tmp_path / 'packed', num_workers=1,
+                          videos_per_shard=3, progress=False, compressed=True)
+  whole = writer.convert(spec, jobs, tmp_path / 'whole', num_workers=1,
+                         videos_per_shard=3, progress=False,
+                         frames_per_chunk=0, compressed=False)
+  for result, compressed in ((plain, False), (packed, True)):
+    options, = _record_options(result.dataset_dir)
+    assert ('uncompressed' in options.split(',')) is not compressed, options
+    index = chunked.read_index(result.dataset_dir)
+    assert index['compressed'] is compressed
+  # Whole-video records keep array_record's compression (the old layout).
+  options, = _record_options(whole.dataset_dir)
+  assert 'uncompressed' not in options.split(','), options
+  a = sources.TfdsVideoSource(plain.dataset_dir, 'train')
+  b = sources.TfdsVideoSource(packed.dataset_dir, 'train')
+  for i in range(len(LENGTHS)):
+    _assert_items_equal(a[i], b[i])
+    _assert_items_equal(a.clip(i, 1, 4, 1, ('video', 'boxes')),
+                        b.clip(i, 1, 4, 1, ('video', 'boxes')))
+  # The embedded writer's default is the converter's: uncompressed.
+  options, = _record_options(_write(tmp_path / 'embedded', 4, '2.0.0'))
+  assert 'uncompressed' in options.split(','), options
+
+
+def test_a_conversion_resumed_with_the_other_compression_is_one_line(
+    tmp_path):
+  spec = writer.DatasetSpec(
+      name='toy', config_name='cfg', description='toy videos', params={},
+      features_fn=_features, convert_fn=_convert_job)
+  jobs = {'train': [_Job(f'v{i}', i) for i in range(len(LENGTHS))]}
+  first = writer.convert(spec, {'train': jobs['train']}, tmp_path,
+                         num_workers=1, videos_per_shard=3, progress=False)
+  # Un-finish it, keeping shard 0 and its sidecar; the rest is redone
+  # compressed.
+  dataset_dir = first.dataset_dir
+  (dataset_dir / 'dataset_info.json').unlink()
+  for path in dataset_dir.glob('_progress/train-0000[12].json'):
+    path.unlink()
+  with pytest.raises(writer.ConversionError) as error:
+    writer.convert(spec, jobs, tmp_path, num_workers=1, videos_per_shard=3,
+                   progress=False, compressed=True)
+  message = str(error.value)
+  assert '\n' not in message
+  assert 'compressed and uncompressed' in message and '--overwrite' in message
+
+
 def test_an_old_folder_is_read_and_a_new_conversion_next_to_it_wins(
     folders, tmp_path, caplog):
   import shutil  # pylint: disable=g-import-not-at-top

@@ -24,6 +24,7 @@ from slotformer_jax.data.chunked import FRAMES_PER_CHUNK
 from slotformer_jax.data.chunked import INDEX_FILE
 from slotformer_jax.data.chunked import Layout
 from slotformer_jax.data.chunked import RECORD_OPTIONS
+from slotformer_jax.data.chunked import UNCOMPRESSED_RECORD_OPTIONS
 from slotformer_jax.data.chunked import TFDS_VERSION
 from slotformer_jax.data.convert.checksums import record_checksums
 from slotformer_jax.files import write_json_atomic
@@ -87,12 +88,14 @@ def write_index(dataset_dir: str | os.PathLike[str], layout: Layout,
                       layout.index(split_frames))
 
 
-def write_records(path: str | os.PathLike[str],
-                  records: Iterable[bytes]) -> int:
-  """Writes records into one array_record file; how many."""
+def write_records(path: str | os.PathLike[str], records: Iterable[bytes],
+                  options: str = RECORD_OPTIONS) -> int:
+  """Writes records into one array_record file with writer `options`
+  (`Layout.record_options`); how many."""
   from array_record.python import array_record_module  # pylint: disable=g-import-not-at-top
-  writer = array_record_module.ArrayRecordWriter(os.fspath(path),
-                                                 RECORD_OPTIONS)
+  if options not in (RECORD_OPTIONS, UNCOMPRESSED_RECORD_OPTIONS):
+    raise ValueError(f'unknown record options {options!r}')
+  writer = array_record_module.ArrayRecordWriter(os.fspath(path), options)
   count = 0
   try:
     for record in records:
@@ -113,6 +116,7 @@ def write_folder(dataset_dir: str | os.PathLike[str], *, name: str,
                  splits: Mapping[str, Iterable[Mapping[str, Any]]],
                  sizes: Mapping[str, int],
                  frames_per_chunk: int = FRAMES_PER_CHUNK,
+                 compressed: bool = False,
                  videos_per_shard: int = 256,
                  metadata: Mapping[str, Any] | None = None,
                  extra_files: Sequence[Path] = ()) -> Path:
@@ -130,12 +134,13 @@ def write_folder(dataset_dir: str | os.PathLike[str], *, name: str,
     splits: {split: examples in index order}.
     sizes: {split: number of examples} (for the shard plan).
     frames_per_chunk: K (0: whole-video records).
+    compressed: compress the chunks (`Layout.compressed`).
     videos_per_shard: videos per shard file.
     metadata: stored in the TFDS metadata.
     extra_files: copied into the folder (e.g. ``video_names.json``).
   """
   dataset_dir = Path(dataset_dir)
-  layout = Layout(features, frames_per_chunk)
+  layout = Layout(features, frames_per_chunk, compressed)
   serializer = VideoSerializer(layout)
   tmp = dataset_dir.parent / f'incomplete.{uuid.uuid4().hex}_{dataset_dir.name}'
   tmp.mkdir(parents=True)
@@ -155,7 +160,8 @@ def write_folder(dataset_dir: str | os.PathLike[str], *, name: str,
             frames.append(num_frames)
             yield from records
         path = tmp / shard_filename(name, split, shard, num_shards)
-        lengths.append(write_records(path, shard_records()))
+        lengths.append(write_records(path, shard_records(),
+                                     layout.record_options))
         num_bytes += path.stat().st_size
       split_frames[split] = frames
       split_infos.append(tfds.core.SplitInfo(

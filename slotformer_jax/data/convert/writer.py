@@ -70,9 +70,6 @@ logger = logging.getLogger(__name__)
 # its chunks. Folders of the whole-video layout before it are '1.0.0' (still
 # read, see sources.TfdsVideoSource).
 VERSION = chunked.TFDS_VERSION
-# One record per compression group (as TFDS writes array_record): random
-# access to a chunk decompresses that chunk only.
-RECORD_OPTIONS = chunked.RECORD_OPTIONS
 # Raw bytes, as in synthetic.py: the fastest numpy round trip, and the files
 # are no larger since array_record compresses every record anyway.
 TENSOR_ENCODING = tfds.features.Encoding.BYTES
@@ -193,6 +190,7 @@ class _ShardTask:
   jobs: tuple[Any, ...]
   dataset_dir: Path
   frames_per_chunk: int = chunked.FRAMES_PER_CHUNK
+  compressed: bool = False
 
 
 def shard_filename(name: str, split: str, index: int, num_shards: int) -> str:
@@ -227,8 +225,9 @@ def _convert_shard(task: _ShardTask) -> dict[str, Any]:
   # Imported here: workers are spawned and only need it in this function.
   from array_record.python import array_record_module  # pylint: disable=g-import-not-at-top
 
-  serializer = chunked_writer.VideoSerializer(
-      chunked.Layout(task.spec.features_fn(), task.frames_per_chunk))
+  layout = chunked.Layout(task.spec.features_fn(), task.frames_per_chunk,
+                          task.compressed)
+  serializer = chunked_writer.VideoSerializer(layout)
   final = task.dataset_dir / shard_filename(
       task.spec.name, task.split, task.index, task.num_shards)
   # Written inside _progress/ so a half-written file never matches the
@@ -236,7 +235,7 @@ def _convert_shard(task: _ShardTask) -> dict[str, Any]:
   tmp = _progress_dir(task.dataset_dir) / (final.name + '.tmp')
   keys, skipped, frames, num_records = [], [], [], 0
   writer = array_record_module.ArrayRecordWriter(os.fspath(tmp),
-                                                 RECORD_OPTIONS)
+                                                 layout.record_options)
   try:
     for job in task.jobs:
       try:
@@ -264,7 +263,8 @@ def _convert_shard(task: _ShardTask) -> dict[str, Any]:
   payload = {'keys': keys, 'skipped': skipped,
              'num_bytes': final.stat().st_size, 'num_frames': frames,
              'num_records': num_records,
-             'frames_per_chunk': task.frames_per_chunk}
+             'frames_per_chunk': task.frames_per_chunk,
+             'compressed': layout.record_options == chunked.RECORD_OPTIONS}
   _write_json_atomic(_sidecar_path(task.dataset_dir, task.split, task.index),
                      payload)
   return payload
@@ -371,8 +371,8 @@ def convert(spec: DatasetSpec, jobs: Mapping[str, Sequence[Job]],
             process_index: int = 0, process_count: int = 1,
             max_skip_fraction: float = 0.05, overwrite: bool = False,
             progress: bool = True,
-            frames_per_chunk: int = chunked.FRAMES_PER_CHUNK
-            ) -> ConversionResult:
+            frames_per_chunk: int = chunked.FRAMES_PER_CHUNK,
+            compressed: bool = False) -> ConversionResult:
   """Converts the jobs of every split into ``spec.dataset_dir(data_dir)``.
 
   Args:
@@ -392,6 +392,8 @@ def convert(spec: DatasetSpec, jobs: Mapping[str, Sequence[Job]],
     frames_per_chunk: frames per record (``data/chunked.py``; 0 writes the
       whole-video records of the 1.0.0 layout, for tests and benchmarks,
       into a ``1.0.0`` folder).
+    compressed: compress the chunks (``chunked.Layout.compressed``; a
+      conversion resumed with the other choice stops in one line).
 
   Raises:
     ConversionError: too many skipped videos, or an unfinished conversion
@@ -445,7 +447,8 @@ def convert(spec: DatasetSpec, jobs: Mapping[str, Sequence[Job]],
             spec=spec, split=split, index=index, num_shards=num_shards,
             jobs=tuple(split_jobs[index * videos_per_shard:
                                   (index + 1) * videos_per_shard]),
-            dataset_dir=dataset_dir, frames_per_chunk=frames_per_chunk))
+            dataset_dir=dataset_dir, frames_per_chunk=frames_per_chunk,
+            compressed=compressed))
 
   processed = sum(len(t.jobs) for t in tasks)
   if tasks:
@@ -541,7 +544,16 @@ def _write_metadata(spec: DatasetSpec, dataset_dir: Path,
     raise ConversionError(
         f'{dataset_dir} holds shards written with different chunk sizes '
         f'({sorted(map(str, chunk_sizes))}); convert again with --overwrite.')
-  layout = chunked.Layout(spec.features_fn(), chunk_sizes.pop())
+  # Sidecars from before the choice existed: compressed chunks.
+  compression = {p.get('compressed', True) for payloads in
+                 split_payloads.values() for p in payloads}
+  if len(compression) != 1:
+    raise ConversionError(
+        f'{dataset_dir} holds shards written compressed and uncompressed '
+        '(a conversion resumed with the other --compress_records); convert '
+        'again with --overwrite, or resume with the first choice.')
+  layout = chunked.Layout(spec.features_fn(), chunk_sizes.pop(),
+                          compression.pop())
   chunked_writer.write_index(dataset_dir, layout, {
       split: [t for p in payloads for t in p['num_frames']]
       for split, payloads in split_payloads.items()})
