@@ -62,13 +62,14 @@ order, `seed_axis`, `seed_loop='auto'`, vmapped on a TPU):
 `SeedsState` of `trainer.abstract_train_state(..., num_seeds=K)`, on
 `sharding.seed_mesh` of the slice (4 seeds x 2 data on 8 chips; the seeds
 replicated on every chip when a host's chips do not split into K groups).
-Stage 1 (savi, dvae) reads the shared [B, ...] batch; SlotFormer is the
-SAVi chain's `stages.dynamics.stacked_stage` of K one-seed stages: stacked
-[K, B, ...] batches (each seed its own slots) and [K, ...] frozen decoder
-parameters, both split on 'seed'. What the pipeline refuses with several
-seeds (`config.checks.seeds_problems`: the STEVE chain after the dVAE) and
-what runs one seed at a time (eval_rollout: each seed's one-seed program;
-aloe and readout take one seed) is a 'not built' row. HBM, FLOPs and bytes
+Stage 1's first part (savi, dvae) reads the shared [B, ...] batch; STEVE
+and SlotFormer are `stages.fit.stacked_stage` of K one-seed stages:
+stacked [K, B, ...] batches (each seed its own tokens or slots) and, for
+SlotFormer with L_I, [K, ...] frozen decoder parameters, both split on
+'seed'. What the pipeline refuses with several seeds
+(`config.checks.seeds_problems`) and what runs one seed at a time
+(eval_rollout: each seed's one-seed program; aloe and readout take one
+seed) is a 'not built' row. HBM, FLOPs and bytes
 are per chip as above, for all K seeds; `floor_per_seed_seconds` = floor / K.
 `seed_mesh` splits the seeds only when one host's chips split into K
 groups; the host is the topology's (compile-only v5e:2x4: 2 processes of 4
@@ -117,6 +118,7 @@ from slotformer_jax.slot_models import chain  # noqa: E402
 from slotformer_jax.config import checks  # noqa: E402
 from slotformer_jax.stages import dynamics  # noqa: E402
 from slotformer_jax.stages.fit import seeds_of  # noqa: E402
+from slotformer_jax.stages.fit import stacked_stage  # noqa: E402
 from slotformer_jax.slot_models.steve import build_steve  # noqa: E402
 from slotformer_jax.stages import stage1  # noqa: E402
 from slotformer_jax.stages import vqa as vqa_stages  # noqa: E402
@@ -429,20 +431,25 @@ def seeds_program(config, step: str, mesh: Mesh, num_seeds: int
   """The K-seed train step `trainer.fit` jits for `config.seeds` of
   `num_seeds` seeds on the slice `mesh` (a 'data' mesh, as `Run.mesh`),
   and its abstract arguments: the SeedsState, the batch (stacked per seed
-  for SlotFormer), the frozen parameters (per seed for SlotFormer)."""
+  for STEVE and SlotFormer), the frozen parameters (per seed for
+  SlotFormer)."""
   seeds, seed_mesh = seeds_mesh(config, step, mesh, num_seeds)
   stage = train_stage(config, step, mesh)
   seed = config.seed
+  if step == 'steve':
+    # stage1._train_part_seeds: K one-seed stages (each seed's tokens; the
+    # same shapes), stacked.
+    stage = stacked_stage([stage] * num_seeds)
   if step == 'slotformer':
     # train_dynamics_seeds: K one-seed stages (each seed's slots and
     # decoder; the same shapes), stacked.
     seed = config.seed + 1
     one = dataclasses.replace(stage, frozen_params=None)
-    stacked = dynamics.stacked_stage([one] * num_seeds)
+    stacked = stacked_stage([one] * num_seeds)
     frozen = None
     if stage.frozen_params is not None:
       frozen = jax.eval_shape(
-          lambda *trees: dynamics.stacked_stage([
+          lambda *trees: stacked_stage([
               dataclasses.replace(stage, frozen_params=tree)
               for tree in trees]).frozen_params,
           *[stage.frozen_params] * num_seeds)

@@ -345,14 +345,16 @@ def validate(config: ml_collections.ConfigDict, stages: Sequence[str], *,
 
 
 # The stages that take several seeds (config.seeds): stage 1's first part
-# (no parent, no derived input) of any slot model, and with SAVi the chain
-# after it, seed s on stage-1 seed s (docs/seeds.md). Every other stage
-# refuses them: the STEVE chain (tokenize_frames, train_steve and what
-# follows), the tasks' readouts, planning and Aloe.
+# (no parent, no derived input) of any slot model, and the chain after it
+# of SAVi and STEVE, seed s on stage-1 seed s (docs/seeds.md). Every other
+# stage refuses them: the tasks' readouts, planning and Aloe.
 SEEDED_STAGES = ('train_savi', 'train_dvae')
-SEEDED_CHAINS = {'savi': ('extract_slots', 'train_slotformer',
-                          'train_slot_lstm', 'evaluate', 'render',
-                          'explore')}
+_VIDEO_PREDICTION_CHAIN = ('extract_slots', 'train_slotformer',
+                           'train_slot_lstm', 'evaluate', 'render',
+                           'explore')
+SEEDED_CHAINS = {'savi': _VIDEO_PREDICTION_CHAIN,
+                 'steve': ('tokenize_frames', 'train_steve',
+                           *_VIDEO_PREDICTION_CHAIN)}
 # Stages that do no training or extraction of their own with the seeds.
 _SEED_FREE_STAGES = ('prepare_data',)
 

@@ -23,11 +23,13 @@ def base_config() -> ml_collections.ConfigDict:
   # (dropout, slot-initialisation noise, Gumbel / posterior samples); the
   # data order is `seed_data_order`. Seed k of the run trains as the
   # one-seed run with seed k (to float32 rounding). Stage 1's first part
-  # (SAVi, the dVAE) takes several seeds; with SAVi so does the chain after
-  # it, seed s on stage-1 seed s: extraction into seed_<s>/slots/, SlotFormer
-  # (one program, one stacked checkpoint), evaluation, pictures and explorer
-  # in seed_<s>/ and eval/metrics.json with mean +- std over the seeds. The
-  # other stages do not yet (config/checks.py names them; docs/seeds.md).
+  # (SAVi, the dVAE) takes several seeds, and so does the chain after it
+  # (SAVi's and STEVE's), seed s on stage-1 seed s: STEVE's tokens into
+  # seed_<s>/tokens/ and STEVE (one program, one stacked checkpoint),
+  # extraction into seed_<s>/slots/, SlotFormer (one program, one stacked
+  # checkpoint), evaluation, pictures and explorer in seed_<s>/ and
+  # eval/metrics.json with mean +- std over the seeds. The tasks do not yet
+  # (config/checks.py names them; docs/seeds.md).
   config.seeds = ml_collections.config_dict.placeholder(tuple)
   # 'shared': every seed sees the batches of `seed`'s stream (a one-seed
   # run's order; what the seed-k-equals-run-k check needs); 'per_seed':

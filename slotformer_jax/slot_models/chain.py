@@ -106,13 +106,15 @@ def param_shapes(part: Part) -> Any:
                                 **part.example_kwargs)
 
 
-def load_part(part: Part, paths: Paths, mesh: Mesh) -> tuple[Any, int]:
-  """The newest parameters of `part` (replicated) and their step.
+def load_part(part: Part, paths: Paths, mesh: Mesh,
+              stacked: StackedSeed | None = None) -> tuple[Any, int]:
+  """The newest parameters of `part` (replicated) and their step;
+  `stacked`: that seed's share of a part trained with several seeds.
 
   Raises:
     UserError: no checkpoint, or one of another architecture.
   """
-  params, step, _ = _restore_part(part, paths, mesh, None)
+  params, step, _ = _restore_part(part, paths, mesh, stacked)
   return params, step
 
 

@@ -16,7 +16,6 @@ order (config.seed + 1's: the shared data order) or each with its own
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 from typing import Any
 
@@ -43,6 +42,8 @@ from slotformer_jax.slot_models import chain
 from slotformer_jax.slot_models.base import SlotModel
 from slotformer_jax.stages.fit import fit_stage
 from slotformer_jax.stages.fit import seeds_of
+from slotformer_jax.stages.fit import stacked_stage
+from slotformer_jax.stages.fit import stream_seeds
 from slotformer_jax.train import steps
 from slotformer_jax.train.trainer import Stage
 
@@ -163,30 +164,6 @@ def seed_stage(view: Run, name: str, stream_seed: int
   return stage, parent
 
 
-def stream_seeds(run: Run) -> tuple[int, ...]:
-  """Each seed's data-order seed for the dynamics: config.seed + 1 for
-  every seed (the shared order), or seed s + 1 ('per_seed')."""
-  if run.config.seed_data_order == 'per_seed':
-    return tuple(seed + 1 for seed in run.seeds)
-  return (run.config.seed + 1,) * len(run.seeds)
-
-
-def stacked_stage(stages: list[Stage]) -> Stage:
-  """One stage of K seeds from their one-seed stages (`seed_stage`): seed
-  k's batches from `stages[k]`, its frozen parameters (L_I's decoder)
-  `stages[k]`'s, stacked [K, ...]; the loss, schedule, pictures (the first
-  seed's) and directory are the first stage's (the same for every seed)."""
-  frozen = [stage.frozen_params for stage in stages]
-  stacked_frozen = (None if frozen[0] is None else
-                    jax.tree.map(lambda *xs: jnp.stack(xs), *frozen))
-  return dataclasses.replace(
-      stages[0],
-      seed_batches=lambda index, start_step: stages[index].batches(
-          start_step),
-      frozen_params=stacked_frozen, seed_frozen_params=True,
-      batches_for_seed=None)
-
-
 def train_dynamics_seeds(run: Run, name: str) -> None:
   """Trains dynamics model `name` for every seed of config.seeds in one
   program, seed s on the slots of stage-1 seed s (see the module
@@ -196,7 +173,8 @@ def train_dynamics_seeds(run: Run, name: str) -> None:
   views = run.seed_views()
   section = run.dynamics_section(name)
   stages = [seed_stage(view, name, stream)[0]
-            for view, stream in zip(views, stream_seeds(run))]
+            for view, stream in zip(views, stream_seeds(run.config,
+                                                        offset=1))]
   # Seed s's initialisation and step RNG: s + 1, as its one-seed run's.
   fit_stage(stacked_stage(stages), mesh=run.mesh,
             seed=run.config.seed + 1, what=name,

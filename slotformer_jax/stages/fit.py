@@ -4,9 +4,12 @@ workdirs."""
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any
 
+import jax
 from jax.sharding import Mesh
+import jax.numpy as jnp
 import ml_collections
 
 from slotformer_jax.config.sections import several_seeds
@@ -29,6 +32,36 @@ def seeds_of(config: ml_collections.ConfigDict, offset: int = 0
                on_divergence=config.on_seed_divergence,
                seed_axis=config.seed_axis,
                loop=config.seed_loop)
+
+
+def stream_seeds(config: ml_collections.ConfigDict, offset: int = 0
+                 ) -> tuple[int, ...]:
+  """Each of the run's several seeds' data-order seed for a stage whose
+  own stream is `offset` apart from the run's (the dynamics: 1):
+  config.seed + offset for every seed (the shared order), or seed
+  s + offset ('per_seed')."""
+  values = several_seeds(config)
+  if config.seed_data_order == 'per_seed':
+    return tuple(seed + offset for seed in values)
+  return (config.seed + offset,) * len(values)
+
+
+def stacked_stage(stages: list[Stage]) -> Stage:
+  """One stage of K seeds from their one-seed stages, each on that seed's
+  own data: seed k's batches from `stages[k]` (drawn in the order it was
+  built for, `stream_seeds`), its frozen parameters (SlotFormer's L_I
+  decoder; None: none) `stages[k]`'s, stacked [K, ...]; the loss, schedule,
+  pictures (the first seed's) and directory are the first stage's (the
+  same for every seed)."""
+  frozen = [stage.frozen_params for stage in stages]
+  stacked_frozen = (None if frozen[0] is None else
+                    jax.tree.map(lambda *xs: jnp.stack(xs), *frozen))
+  return dataclasses.replace(
+      stages[0],
+      seed_batches=lambda index, start_step: stages[index].batches(
+          start_step),
+      frozen_params=stacked_frozen, seed_frozen_params=True,
+      batches_for_seed=None)
 
 
 def stamped_fields(identity_fields: dict[str, Any], seeds: Seeds | None

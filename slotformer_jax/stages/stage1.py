@@ -7,6 +7,13 @@ training videos (plus the derived data it reads); its identity records the
 part it descends from, a part trained from other settings or another parent
 is set aside and retrained, and a stage 1 read from another workdir
 (`config.stage1_workdir`) is only checked, never written.
+
+Several seeds (config.seeds): a part with no parent (SAVi, the dVAE) trains
+every seed on the shared training videos; the derived data are computed
+per seed view (`Run.for_seed`) by its share of the stacked part, into
+`seed_<s>/` (STEVE's `seed_<s>/tokens/train/`); a part trained on another
+(STEVE) trains the K seeds in one program, seed s on seed s's derived
+data (`_train_part_seeds`). One stacked checkpoint per part.
 """
 
 from __future__ import annotations
@@ -30,6 +37,8 @@ from slotformer_jax.slot_models.base import Derived
 from slotformer_jax.slot_models.base import Part
 from slotformer_jax.stages.fit import fit_stage
 from slotformer_jax.stages.fit import seeds_of
+from slotformer_jax.stages.fit import stacked_stage
+from slotformer_jax.stages.fit import stream_seeds
 from slotformer_jax.train import steps
 from slotformer_jax.train.trainer import Stage
 from slotformer_jax.workdir import identity as identity_lib
@@ -105,13 +114,14 @@ def part_stage(part: Part, directory: str, mesh: Mesh, source: Any, *,
 
 
 def _parent(run: Run, part: Part) -> dict[str, Any] | None:
-  """What `part` is trained on: its parent part's run id and newest step."""
+  """What `part` is trained on: its parent part's run id and newest step
+  (a seed view: of the stacked parent every seed shares)."""
   if part.parent is None:
     return None
   parent = _part(run, part.parent)
-  _, step = chain.load_part(parent, run.paths, run.mesh)
-  return identity_lib.parent_of(chain.part_identity(parent, run.paths), step,
-                                parent.name)
+  _, step = chain.load_part(parent, run.paths, run.mesh, run.stacked)
+  return identity_lib.parent_of(
+      chain.part_identity(parent, run.paths, run.stacked), step, parent.name)
 
 
 def check_derived_current(run: Run, derived: Derived, split: str,
@@ -138,11 +148,51 @@ def check_derived_current(run: Run, derived: Derived, split: str,
 
 def train_part(run: Run, name: str) -> None:
   """Trains part `name` of the slot model on the training videos (resumable);
-  set aside and retrained when its settings or its parent changed."""
+  set aside and retrained when its settings or its parent changed. Several
+  seeds: a part trained on another (STEVE on the dVAE's tokens) trains seed
+  s on stage-1 seed s's data (`_train_part_seeds`); one without (SAVi, the
+  dVAE) on the training videos every seed shares."""
   part = _part(run, name)
   if uses_foreign_stage1(run, part.label):
     return
+  if run.seeds is not None and (part.parent is not None or part.reads):
+    _train_part_seeds(run, part)
+    return
   parent = _parent(run, part)
+  stage = _view_stage(run, part, parent, run.config.seed)
+  fit_stage(stage, mesh=run.mesh, seed=run.config.seed, what=part.label,
+            identity_fields=dict(part.identity_fields), parent=parent,
+            model_fields=dict(part.model_fields),
+            seeds=seeds_of(run.config))
+
+
+def _train_part_seeds(run: Run, part: Part) -> None:
+  """Trains `part` for every seed of config.seeds in one program: seed s
+  on the training videos with seed s's derived data (`seed_<s>/tokens/`,
+  made by stage-1 seed s), its initialisation and step RNG drawn with s,
+  its batches in config.seed's order (shared) or s's ('per_seed'). One
+  stacked checkpoint; its parent the stacked parent part every seed's data
+  is checked to descend from."""
+  views = run.seed_views()
+  parent = _parent(views[0], part)
+  stages = [_view_stage(view, part, parent, stream)
+            for view, stream in zip(views, stream_seeds(run.config))]
+  fit_stage(stacked_stage(stages), mesh=run.mesh, seed=run.config.seed,
+            what=part.label, identity_fields=dict(part.identity_fields),
+            parent=parent, model_fields=dict(part.model_fields),
+            seeds=seeds_of(run.config))
+
+
+def _view_stage(run: Run, part: Part, parent: dict[str, Any] | None,
+                stream_seed: int) -> Stage:
+  """The one-seed training stage of `part` on the training videos of `run`
+  (a run, or a seed view: that seed's derived data) with the derived data
+  it reads, checked to come from `parent`; batches drawn with
+  `stream_seed`; its directory the part's (stacked for a seed view).
+
+  Raises:
+    UserError: the derived data are missing or stale.
+  """
   source = run.videos('train')
   for derived_name in part.reads:
     derived = _derived(run, derived_name)
@@ -150,49 +200,57 @@ def train_part(run: Run, name: str) -> None:
       check_derived_current(run, derived, split, parent)
     source = derived.reader(run.paths.derived(derived.name, 'train'), source)
   run.slot_model.check_data(source, 'train')
-  directory = run.paths.model(part.name)
-  stage = part_stage(part, directory, run.mesh, source, seed=run.config.seed,
-                     logging_config=run.config.logging,
-                     reader_workers=run.config.data.reader_workers)
-  fit_stage(stage, mesh=run.mesh, seed=run.config.seed, what=part.label,
-            identity_fields=dict(part.identity_fields), parent=parent,
-            model_fields=dict(part.model_fields),
-            seeds=seeds_of(run.config))
+  return part_stage(part, run.paths.model(part.name), run.mesh, source,
+                    seed=stream_seed, logging_config=run.config.logging,
+                    reader_workers=run.config.data.reader_workers)
 
 
 def derive(run: Run, name: str) -> None:
   """Computes the derived data `name` of every split it is needed for, with
   the frozen part that makes it (skipped when it came from that part's
-  current checkpoint)."""
+  current checkpoint). Several seeds: seed s's with its share of the
+  stacked part, into `seed_<s>/`, seed after seed."""
   derived = _derived(run, name)
   if uses_foreign_stage1(run, derived.name):
     return
-  source_part = _part(run, derived.source)
-  params, step = chain.load_part(source_part, run.paths, run.mesh)
-  parent = identity_lib.parent_of(
-      chain.part_identity(source_part, run.paths), step, source_part.name)
   batched = sharding.batch_sharding(run.mesh)
   encode = jax.jit(derived.encode,
                    in_shardings=(sharding.replicated_sharding(run.mesh),
                                  batched),
                    out_shardings=batched)
+  for view in (run.seed_views() if run.seeds is not None else [run]):
+    _derive(view, derived, encode)
+
+
+def _derive(run: Run, derived: Derived, encode: Any) -> None:
+  """The derived data of every split of `derived` for `run` (a run, or a
+  seed view: its share of the stacked source part, its folders), with
+  `encode` (`derived.encode`, jitted)."""
+  source_part = _part(run, derived.source)
+  params, step = chain.load_part(source_part, run.paths, run.mesh,
+                                 run.stacked)
+  parent = identity_lib.parent_of(
+      chain.part_identity(source_part, run.paths, run.stacked), step,
+      source_part.name)
+  of_seed = '' if run.seed_index is None else f' (seed {run.seed})'
   local_batch_size = sharding.per_host_batch_size(derived.batch_size,
                                                   run.mesh)
   for split in derived.splits:
     directory = run.paths.derived(derived.name, split)
     meta = derived.read_meta(directory)
     if meta and meta.get('complete') and meta.get('parent') == parent:
-      logger.info('%s of %s already computed (%s %s)', derived.name, split,
-                  source_part.label, parent)
+      logger.info('%s of %s already computed (%s %s)%s', derived.name, split,
+                  source_part.label, parent, of_seed)
       continue
     if meta and meta.get('complete'):
-      logger.info('%s of %s are stale (from %s %s, now %s): recomputing',
+      logger.info('%s of %s are stale (from %s %s, now %s): recomputing%s',
                   derived.name, split, source_part.label, meta.get('parent'),
-                  parent)
+                  parent, of_seed)
     videos = run.videos(split)
     inference.encode_videos_into(
         lambda: derived.writer(directory, len(videos), step, parent),
         videos, lambda b, c, frames, carry: (encode(params, frames), None),
         chunk_length=derived.chunk_length, batch_size=local_batch_size,
-        mesh=run.mesh, desc=f'{derived.mode} {split}')
-    logger.info('%s: %d %s videos', derived.mode, len(videos), split)
+        mesh=run.mesh, desc=f'{derived.mode} {split}{of_seed}')
+    logger.info('%s: %d %s videos%s', derived.mode, len(videos), split,
+                of_seed)

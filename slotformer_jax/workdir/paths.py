@@ -14,10 +14,11 @@ A workdir (the run's `--workdir`)::
     slotformer/  slot_lstm/     the dynamics models, as a stage-1 model
     eval/  render/  explore/    metrics, pictures, the run explorer
     seed_<s>/                   several seeds (config.seeds, docs/seeds.md):
-                                seed s's slots/<split>/, eval/, render/,
-                                explore/; the trained stages above hold the
-                                seeds' one stacked checkpoint, eval/ their
-                                summary (mean +- std over the seeds)
+                                seed s's tokens/<split>/ (STEVE),
+                                slots/<split>/, eval/, render/, explore/;
+                                the trained stages above hold the seeds'
+                                one stacked checkpoint, eval/ their summary
+                                (mean +- std over the seeds)
     readout/<condition>/seed_<s>/    contact readouts
     planning/<condition>/seed_<s>/   planning classifiers
     vqa/<inputs>_s<seed>/            Aloe, one folder per input kind and seed
@@ -55,9 +56,10 @@ class Paths:
     return cls(root=workdir, stage1=stage1_workdir or workdir)
 
   def for_seed(self, seed: int) -> Paths:
-    """The paths of seed `seed` of a several-seed run: its slots under
-    `<stage1>/seed_<seed>/`, its results under `<root>/seed_<seed>/`; the
-    trained stages (one stacked checkpoint for all seeds) where they are."""
+    """The paths of seed `seed` of a several-seed run: its derived data
+    (STEVE's tokens) and slots under `<stage1>/seed_<seed>/`, its results
+    under `<root>/seed_<seed>/`; the trained stages (one stacked checkpoint
+    for all seeds) where they are."""
     return dataclasses.replace(self, seed=int(seed))
 
   def _of_seed(self, base: str, *names: str) -> str:
@@ -102,8 +104,8 @@ class Paths:
 
   def derived(self, name: str, split: str) -> str:
     """Data a stage-1 model derives from the videos of `split` for the next
-    one (STEVE: the dVAE's 'tokens')."""
-    return os.path.join(self.stage1, name, split)
+    one (STEVE: the dVAE's 'tokens'); seed s's under `seed_<s>/`."""
+    return self._of_seed(self.stage1, name, split)
 
   def slots(self, split: str) -> str:
     """The extracted slots of `split` (data/slots.py)."""

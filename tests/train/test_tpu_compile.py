@@ -329,9 +329,10 @@ def test_seeds_flag_is_checked(value, capsys):
 def test_several_seed_programs_are_the_trainers():
   """`--seeds=K`: the program `trainer.fit` runs for config.seeds, on the
   (seed, data) mesh it makes (2 x 2 on the 4 CPU devices): the SeedsState
-  split on 'seed'; stage 1 on the shared [B, ...] batch, SlotFormer on
-  stacked [K, B, ...] batches with [K, ...] frozen decoder parameters. What
-  the pipeline refuses or runs per seed is not built."""
+  split on 'seed'; stage 1's first part on the shared [B, ...] batch,
+  STEVE and SlotFormer on stacked [K, B, ...] batches, SlotFormer with [K,
+  ...] frozen decoder parameters. What the pipeline refuses or runs per
+  seed is not built."""
   from jax.sharding import PartitionSpec as P  # pylint: disable=g-import-not-at-top
   bench = _benchmark()
   mesh = sharding.make_mesh()
@@ -360,5 +361,9 @@ def test_several_seed_programs_are_the_trainers():
       config, 'eval_rollout', 2)
   steve = bench.configured('synthetic:steve_tiny', 'float32', '')
   assert bench.several_seeds_refused(steve, 'dvae', 2) is None
-  assert 'train_steve does not take several seeds' in (
-      bench.several_seeds_refused(steve, 'steve', 2))
+  assert bench.several_seeds_refused(steve, 'steve', 2) is None
+  _, (_, batch, frozen) = bench.step_program(steve, 'steve', mesh,
+                                             num_seeds=2)
+  assert batch['tokens'].shape[:2] == (2, steve.steve.batch_size)
+  assert batch['tokens'].sharding.spec == P('seed', 'data')
+  assert frozen is None
