@@ -8,6 +8,11 @@ replicated and the batch split (`seed_axis=False`, the unrolled program):
 split on a 'seed' axis, the vmapped dVAE step fails on XLA:CPU
 (jaxlib 0.10.2: its 1x1 output convolution, batched over the seeds into a
 grouped convolution, is partitioned with 3 output features for 2 groups).
+
+The pipeline fixture takes about 95 s warm and 350 s cold on the 2-core
+box, so every test that runs it is `slow` (the default suite keeps the
+config check; the SAVi chain with seeds, which shares every stage after
+stage 1, is in the default suite: test_seeds_pipeline.py).
 """
 
 import json
@@ -81,6 +86,7 @@ def _dvae_parent(workdir):
   return identity_lib.parent_of(dvae, 4, 'dvae')
 
 
+@pytest.mark.slow
 def test_each_seed_has_its_tokens_slots_and_evaluation(seeded):
   config, workdir, _ = seeded
   for name in ('tokens', 'slots', 'render', 'explore'):
@@ -114,6 +120,7 @@ def test_each_seed_has_its_tokens_slots_and_evaluation(seeded):
   assert steve['parent'] == parent
 
 
+@pytest.mark.slow
 def test_summary_has_mean_std_and_every_seed(seeded):
   config, workdir, results = seeded
   with open(os.path.join(workdir, 'eval', 'metrics.json')) as f:
@@ -141,6 +148,7 @@ def test_summary_has_mean_std_and_every_seed(seeded):
   assert {'mean', 'std', 'num_seeds'} <= set(fg_ari)
 
 
+@pytest.mark.slow
 def test_seed_k_is_the_one_seed_steve_on_dvae_seed_k(seeded, tmp_path):
   """Seed k's STEVE after its steps against a one-seed STEVE run (init /
   step RNG seed k, config.seed's stream: the shared order) on the tokens
@@ -161,6 +169,7 @@ def test_seed_k_is_the_one_seed_steve_on_dvae_seed_k(seeded, tmp_path):
                                 one_seed.params, **TOLERANCE)
 
 
+@pytest.mark.slow
 def test_a_rerun_resumes_where_the_seeds_stopped(seeded, tmp_path):
   """A run killed in the tokenization of seed 1 and in STEVE resumes there
   (seed 0's tokens, the dVAE, every seed's slots and SlotFormer are not
