@@ -376,8 +376,10 @@ def test_damaged_synthetic_cache_is_regenerated(trained, tmp_path, damage,
   data = bytearray(open(record, 'rb').read())
   if damage == 'truncate':
     data = data[:len(data) // 2]
-  else:  # same size, plausible bytes
-    data[len(data) // 2:len(data) // 2 + 64] = bytes(64)
+  else:  # same size, other bytes (inverted: records are stored
+    # uncompressed, so the middle of the file may already be zeros)
+    middle = len(data) // 2
+    data[middle:middle + 64] = bytes(b ^ 0xFF for b in data[middle:middle + 64])
   open(record, 'wb').write(bytes(data))
   # The reader refuses it (reading never writes); the data stage, which
   # every --mode runs first, regenerates it.
