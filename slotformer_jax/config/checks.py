@@ -346,8 +346,9 @@ def validate(config: ml_collections.ConfigDict, stages: Sequence[str], *,
 
 # The stages that take several seeds (config.seeds): stage 1's first part
 # (no parent, no derived input) of any slot model, and the chain after it
-# of SAVi and STEVE, seed s on stage-1 seed s (docs/seeds.md). Every other
-# stage refuses them: the tasks' readouts, planning and Aloe.
+# of SAVi and STEVE, seed s on stage-1 seed s (docs/seeds.md), with the
+# contact task's readouts (readout s on chain s). Every other stage refuses
+# them: planning and Aloe.
 SEEDED_STAGES = ('train_savi', 'train_dvae')
 _VIDEO_PREDICTION_CHAIN = ('extract_slots', 'train_slotformer',
                            'train_slot_lstm', 'evaluate', 'render',
@@ -355,13 +356,19 @@ _VIDEO_PREDICTION_CHAIN = ('extract_slots', 'train_slotformer',
 SEEDED_CHAINS = {'savi': _VIDEO_PREDICTION_CHAIN,
                  'steve': ('tokenize_frames', 'train_steve',
                            *_VIDEO_PREDICTION_CHAIN)}
+# A task's stages that take several seeds, after the chain of its slot
+# model (stages/contact.py: readout_chains).
+SEEDED_TASK_STAGES = {'contact': ('train_readout', 'evaluate_readout')}
 # Stages that do no training or extraction of their own with the seeds.
 _SEED_FREE_STAGES = ('prepare_data',)
 
 
-def seeded_stages(slot_model: str) -> tuple[str, ...]:
-  """The stages that take several seeds with `slot_model`."""
-  return SEEDED_STAGES + SEEDED_CHAINS.get(slot_model, ())
+def seeded_stages(slot_model: str, task: str | None = None
+                  ) -> tuple[str, ...]:
+  """The stages that take several seeds with `slot_model` and `task`."""
+  chain = SEEDED_CHAINS.get(slot_model, ())
+  return (SEEDED_STAGES + chain
+          + (SEEDED_TASK_STAGES.get(task, ()) if chain else ()))
 
 
 def seeds_problems(config: ml_collections.ConfigDict,
@@ -398,7 +405,7 @@ def seeds_problems(config: ml_collections.ConfigDict,
                     f'{config.seed_axis!r}')
   if problems or seeds is None or len(seeds) < 2:
     return problems
-  seeded = seeded_stages(config.slot_model)
+  seeded = seeded_stages(config.slot_model, config.task)
   refused = sorted(s for s in stages
                    if s not in seeded + _SEED_FREE_STAGES)
   if refused:

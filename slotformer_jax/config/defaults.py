@@ -424,7 +424,10 @@ def contact_readout_config() -> ml_collections.ConfigDict:
       train='readout_train', val='readout_val', test='test'))
   # 'observed', 'rollout' (+ SlotFormer), 'copy_last', 'ground_truth'.
   r.conditions = ('observed', 'rollout', 'copy_last', 'ground_truth')
-  r.seeds = (0, 1, 2)  # one readout per seed; results are mean +- std
+  # One readout per seed on the run's one chain; results are mean +- std.
+  # With config.seeds (several chains) one readout per chain instead, chain
+  # s's with seed s, and these are not used (stages/contact.py).
+  r.seeds = (0, 1, 2)
   # None: the slot size, as the official readout (typed, so that
   # --config.readout.features=N can set it).
   r.features = ml_collections.config_dict.placeholder(int)

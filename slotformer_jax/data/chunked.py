@@ -52,8 +52,8 @@ uncompressed by default; not re-measured over K since).
 Compression. array_record's default (zstd) costs more per record than
 the frames it saves: reading one compressed 4-frame chunk took 330-450 us
 against 80-120 us uncompressed (44 KB records of the OBJ3D-like fixture,
-loaded box), and end to end, per core, uncompressed chunks deliver 2.0-2.9x
-the clip frames of compressed ones for 1.45x the disk
+loaded box), and end to end, per core, uncompressed chunks deliver 2.3-3.0x
+the clip frames of compressed ones for 1.45x the disk (idle 2-core box)
 (`benchmarks/clip_reader.py --chunks=4,4z`; the numbers in
 docs/performance.md, "Feeding the chips"). A chip's host cores are the
 scarcer thing, so chunks are written uncompressed by default;

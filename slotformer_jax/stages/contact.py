@@ -6,6 +6,12 @@ SlotFormer out after the observed frames, and fit / evaluate the Physion
 readout on each condition (tasks/contact.py has the protocol and the pure
 parts). Every file is written atomically; a readout seed whose
 `selection.json` exists is not refitted.
+
+Seeds (`readout_chains`): a one-seed run fits `readout.seeds` readouts on
+its one chain (slot model -> SlotFormer), the official Physion protocol; a
+several-seed run (config.seeds, docs/seeds.md) fits one readout per chain,
+chain s's with seed s, so the spread covers the whole chain. Either way
+results.json reports each readout's test accuracy, their mean and std.
 """
 
 from __future__ import annotations
@@ -127,6 +133,15 @@ def rollout_fn(run: Run):
   return rollout
 
 
+def readout_chains(run: Run) -> list[tuple[Run, tuple[int, ...]]]:
+  """(chain, readout seeds on it): `[(run, readout.seeds)]` for a one-seed
+  run; for several seeds (config.seeds) `(run.for_seed(k), (seed k,))` per
+  seed, readout seed s on chain s (readout.seeds is not used then)."""
+  if run.seeds is None:
+    return [(run, tuple(run.config.readout.seeds))]
+  return [(view, (view.seed,)) for view in run.seed_views()]
+
+
 def _features_by_condition(run: Run, split: str, conditions):
   slots, labels = load_split(run, split)
   rollout = rollout_fn(run) if contact.ROLLOUT in conditions else None
@@ -135,83 +150,120 @@ def _features_by_condition(run: Run, split: str, conditions):
           for c in conditions}, labels
 
 
+def _trained(run: Run, condition: str, seed: int) -> bool:
+  return os.path.exists(os.path.join(run.paths.readout(condition, seed),
+                                     'selection.json'))
+
+
 def train_readout(run: Run) -> None:
-  """Fits the readout per condition and seed; selection on validation."""
+  """Fits the readout per chain, condition and seed (`readout_chains`);
+  selection on validation."""
   readout = run.config.readout
   conditions = tuple(readout.conditions)
   train_split, val_split, _ = contact.readout_splits(readout)
-  train, train_labels = _features_by_condition(run, train_split, conditions)
-  val, val_labels = _features_by_condition(run, val_split, conditions)
   model = contact.build_readout(readout, run.slot_model.slot_shape[1])
-  for condition in conditions:
-    for seed in readout.seeds:
-      directory = run.paths.readout(condition, seed)
-      if os.path.exists(os.path.join(directory, 'selection.json')):
-        logger.info('readout %s seed %d already trained', condition, seed)
-        continue
+  if run.seeds is not None:
+    logger.info('seeds %s: one readout per chain, seed s on chain s '
+                '(readout.seeds is not used)', run.seeds)
+  for chain, seeds in readout_chains(run):
+    if all(_trained(chain, c, seed) for c in conditions for seed in seeds):
+      logger.info('readouts of seeds %s already trained', seeds)
+      continue
+    train, train_labels = _features_by_condition(chain, train_split,
+                                                 conditions)
+    val, val_labels = _features_by_condition(chain, val_split, conditions)
+    for condition in conditions:
+      for seed in seeds:
+        _fit_one(chain, model, condition, seed, (train[condition],
+                                                 train_labels),
+                 (val[condition], val_labels))
 
-      def val_accuracy(params, condition=condition):
-        probs = readout_lib.predict(model, params, val[condition])
-        return readout_lib.best_threshold(probs, val_labels)[1]
 
-      params, log = readout_lib.fit(
-          model, (train[condition], train_labels), val_accuracy,
-          contact.fit_config(readout), seed=seed)
-      probs = readout_lib.predict(model, params, val[condition])
-      threshold, accuracy = readout_lib.best_threshold(probs, val_labels)
-      # params first: a seed counts as trained once selection.json exists.
-      write_atomic(os.path.join(directory, 'params.msgpack'),
-                   serialization.msgpack_serialize(params))
-      write_json_atomic(os.path.join(directory, 'selection.json'), {
-          'threshold': threshold, 'val_accuracy': accuracy,
-          'best_epoch': log['best_epoch'], 'val_scores': log['scores'],
-          'train_losses': log['losses']}, sort_keys=False)
-      logger.info('readout %s seed %d: val accuracy %.3f (epoch %d, '
-                  'threshold %.1f)', condition, seed, accuracy,
-                  log['best_epoch'], threshold)
+def _fit_one(run: Run, model: Any, condition: str, seed: int,
+             train: tuple[np.ndarray, np.ndarray],
+             val: tuple[np.ndarray, np.ndarray]) -> None:
+  """Fits and writes the readout of `condition` and `seed` on `run`'s
+  features, unless it is trained."""
+  directory = run.paths.readout(condition, seed)
+  if _trained(run, condition, seed):
+    logger.info('readout %s seed %d already trained', condition, seed)
+    return
+  val_features, val_labels = val
+
+  def val_accuracy(params):
+    probs = readout_lib.predict(model, params, val_features)
+    return readout_lib.best_threshold(probs, val_labels)[1]
+
+  params, log = readout_lib.fit(model, train, val_accuracy,
+                                contact.fit_config(run.config.readout),
+                                seed=seed)
+  probs = readout_lib.predict(model, params, val_features)
+  threshold, accuracy = readout_lib.best_threshold(probs, val_labels)
+  # params first: a seed counts as trained once selection.json exists.
+  write_atomic(os.path.join(directory, 'params.msgpack'),
+               serialization.msgpack_serialize(params))
+  write_json_atomic(os.path.join(directory, 'selection.json'), {
+      'threshold': threshold, 'val_accuracy': accuracy,
+      'best_epoch': log['best_epoch'], 'val_scores': log['scores'],
+      'train_losses': log['losses']}, sort_keys=False)
+  logger.info('readout %s seed %d: val accuracy %.3f (epoch %d, '
+              'threshold %.1f)', condition, seed, accuracy,
+              log['best_epoch'], threshold)
 
 
 def evaluate_readout(run: Run) -> dict[str, Any]:
-  """Test accuracy at the validation-chosen checkpoint and threshold."""
+  """Test accuracy at the validation-chosen checkpoint and threshold, per
+  readout of `readout_chains`; mean and std over them."""
   readout = run.config.readout
   conditions = tuple(readout.conditions)
   test_split = contact.readout_splits(readout)[2]
-  test, labels = _features_by_condition(run, test_split, conditions)
+  accuracies = {c: [] for c in conditions}
+  val_accuracies = {c: [] for c in conditions}
+  seeds_evaluated, picture = [], None
+  for chain, seeds in readout_chains(run):
+    test, labels = _features_by_condition(chain, test_split, conditions)
+    for seed in seeds:
+      seeds_evaluated.append(seed)
+      for condition in conditions:
+        trained = load_readout(chain, condition, seed)
+        probs = readout_lib.predict(trained.module, trained.params,
+                                    test[condition])
+        accuracies[condition].append(readout_lib.accuracy_at(
+            probs, labels, trained.threshold))
+        val_accuracies[condition].append(trained.selection['val_accuracy'])
+        if picture is None and condition == contact.ROLLOUT:
+          # The first readout's: its chain's rollouts and decisions.
+          picture = (chain, test[condition], probs, trained.threshold, seed)
   results: dict[str, Any] = {}
-  first_seed_probs, first_seed_threshold = {}, {}
   for condition in conditions:
-    accuracies, val_accuracies = [], []
-    for seed in readout.seeds:
-      trained = load_readout(run, condition, seed)
-      probs = readout_lib.predict(trained.module, trained.params,
-                                  test[condition])
-      first_seed_probs.setdefault(condition, probs)
-      first_seed_threshold.setdefault(condition, trained.threshold)
-      accuracies.append(readout_lib.accuracy_at(probs, labels,
-                                                trained.threshold))
-      val_accuracies.append(trained.selection['val_accuracy'])
     # A converted official readout has no validation accuracy (None).
-    measured = [v for v in val_accuracies if v is not None]
+    measured = [v for v in val_accuracies[condition] if v is not None]
     results[condition] = {
-        'test_accuracy': accuracies,
-        'mean': float(np.mean(accuracies)), 'std': float(np.std(accuracies)),
+        'test_accuracy': accuracies[condition],
+        'mean': float(np.mean(accuracies[condition])),
+        'std': float(np.std(accuracies[condition])),
         'val_accuracy_mean': (float(np.mean(measured))
-                              if len(measured) == len(val_accuracies)
-                              else None)}
+                              if len(measured) == len(val_accuracies[
+                                  condition]) else None)}
   positive = float(labels.mean())
   results['chance'] = {'mean': max(positive, 1.0 - positive), 'std': 0.0}
   results['num_test_videos'] = len(labels)
+  # Which seed each test_accuracy entry is; 'per_seed': each its own chain
+  # (config.seeds), 'one': readout seeds on one chain.
+  results['seeds'] = seeds_evaluated
+  results['chains'] = 'one' if run.seeds is None else 'per_seed'
   directory = run.paths.readouts
   write_json_atomic(os.path.join(directory, 'results.json'), results,
                     sort_keys=False)
   table = contact.format_table(results, conditions)
   write_atomic(os.path.join(directory, 'results.md'), table + '\n')
-  logger.info('contact prediction, test accuracy (%d seeds):\n%s',
-              len(readout.seeds), table)
-  if contact.ROLLOUT in conditions and readout.num_pictures:
-    write_pictures(run, test[contact.ROLLOUT],
-                   first_seed_probs[contact.ROLLOUT],
-                   first_seed_threshold[contact.ROLLOUT], labels)
+  logger.info('contact prediction, test accuracy (%d seeds%s):\n%s',
+              len(seeds_evaluated),
+              '' if run.seeds is None else ', one chain each', table)
+  if picture is not None and readout.num_pictures:
+    chain, rollout_features, probs, threshold, seed = picture
+    write_pictures(chain, rollout_features, probs, threshold, labels, seed,
+                   directory)
   return results
 
 
@@ -264,13 +316,12 @@ def picture_title(name: str, probability: float, threshold: float,
 
 def write_pictures(run: Run, rollout_slots: np.ndarray,
                    probabilities: np.ndarray, threshold: float,
-                   labels: np.ndarray) -> None:
-  """readout/test_<i>.png for the first `readout.num_pictures` test videos:
-  the real frames over the slot model's decoding of [observed, SlotFormer
-  rollout] slots (green border: observed, red: rolled out), frame numbers
-  above, and a title (`picture_title`) with the video's name, the readout's
-  contact probability and `threshold` (first seed), its decision and the
-  truth.
+                   labels: np.ndarray, seed: int, directory: str) -> None:
+  """<directory>/test_<i>.png for the first `readout.num_pictures` test
+  videos: the real frames over `run`'s slot model's decoding of [observed,
+  SlotFormer rollout] slots (green border: observed, red: rolled out), frame
+  numbers above, and a title (`picture_title`) with the video's name, the
+  probability and `threshold` of readout `seed`, its decision and the truth.
 
   Only the drawn frames are decoded (STEVE generates each token by token:
   `progress.announce_decoding` says what that costs before it starts)."""
@@ -309,6 +360,6 @@ def write_pictures(run: Run, rollout_slots: np.ndarray,
     title = picture_title(
         names[i], float(probabilities[i]), threshold,
         float(labels[i]), int(video.get('contact_frame', -1)), observed,
-        readout.seeds[0])
-    visualize.write_png(os.path.join(run.paths.readouts, f'test_{i}.png'),
+        seed)
+    visualize.write_png(os.path.join(directory, f'test_{i}.png'),
                         visualize.titled(grid, title))

@@ -131,11 +131,14 @@ class Paths:
 
   @property
   def readouts(self) -> str:
-    """Contact readouts: readout/<condition>/seed_<seed>/."""
+    """Contact readouts and the run's results: readout/."""
     return os.path.join(self.root, 'readout')
 
   def readout(self, condition: str, seed: int) -> str:
-    return os.path.join(self.readouts, condition, f'seed_{seed}')
+    """One contact readout: readout/<condition>/seed_<seed>/; a seed
+    view's (its chain's readout) under seed_<s>/readout/."""
+    return os.path.join(self._of_seed(self.root, 'readout'), condition,
+                        f'seed_{seed}')
 
   @property
   def planning(self) -> str:

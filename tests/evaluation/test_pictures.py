@@ -92,7 +92,8 @@ def test_contact_picture_decodes_only_drawn_frames_and_is_labelled(
   rollout_slots = np.random.default_rng(1).random((3, 75, 4, 8), np.float32)
   with caplog.at_level(logging.WARNING):
     contact_stage.write_pictures(run, rollout_slots, np.array([0.9, 0.2, 0.5]),
-                                 0.5, np.array([1.0, 0.0, 1.0]))
+                                 0.5, np.array([1.0, 0.0, 1.0]), seed=0,
+                                 directory=run.paths.readouts)
   drawn = contact_stage.picture_frames(75, 15)
   # One compile for the drawn frames of a picture, none of the others.
   assert run.slot_model.decoded_frames == [len(drawn)]
