@@ -23,6 +23,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import os
+from collections.abc import Sequence
 from typing import Any
 
 import jax
@@ -173,6 +174,16 @@ class Run:
   def seed_views(self) -> list[Run]:
     """`for_seed` of every seed, in config.seeds order."""
     return [self.for_seed(index) for index in range(len(self.seeds))]
+
+  def readout_chains(self, readout_seeds: Sequence[int]
+                     ) -> list[tuple[Run, tuple[int, ...]]]:
+    """(chain, the seeds of the task models fitted on it): a one-seed
+    run's one chain with `readout_seeds` (a task's own seeds, e.g.
+    readout.seeds); with several seeds each seed view with its own seed,
+    task model s on chain s (`readout_seeds` not used)."""
+    if self.seeds is None:
+      return [(self, tuple(readout_seeds))]
+    return [(view, (view.seed,)) for view in self.seed_views()]
 
   # ---- what the config asks for ----------------------------------------------
 

@@ -347,8 +347,9 @@ def validate(config: ml_collections.ConfigDict, stages: Sequence[str], *,
 # The stages that take several seeds (config.seeds): stage 1's first part
 # (no parent, no derived input) of any slot model, and the chain after it
 # of SAVi and STEVE, seed s on stage-1 seed s (docs/seeds.md), with the
-# contact task's readouts (readout s on chain s). Every other stage refuses
-# them: planning and Aloe.
+# contact readouts and the embedded planning task's classifiers (task model
+# s on chain s). Every other stage refuses them: Aloe, and planning on the
+# real PHYRE's rendered rollouts.
 SEEDED_STAGES = ('train_savi', 'train_dvae')
 _VIDEO_PREDICTION_CHAIN = ('extract_slots', 'train_slotformer',
                            'train_slot_lstm', 'evaluate', 'render',
@@ -358,7 +359,8 @@ SEEDED_CHAINS = {'savi': _VIDEO_PREDICTION_CHAIN,
                            *_VIDEO_PREDICTION_CHAIN)}
 # A task's stages that take several seeds, after the chain of its slot
 # model (stages/contact.py: readout_chains).
-SEEDED_TASK_STAGES = {'contact': ('train_readout', 'evaluate_readout')}
+SEEDED_TASK_STAGES = {'contact': ('train_readout', 'evaluate_readout'),
+                      'planning': ('train_readout', 'plan')}
 # Stages that do no training or extraction of their own with the seeds.
 _SEED_FREE_STAGES = ('prepare_data',)
 
@@ -405,7 +407,10 @@ def seeds_problems(config: ml_collections.ConfigDict,
                     f'{config.seed_axis!r}')
   if problems or seeds is None or len(seeds) < 2:
     return problems
-  seeded = seeded_stages(config.slot_model, config.task)
+  task = config.task
+  if task == 'planning' and config.data.name == 'phyre':
+    task = None  # stages/planning_rendered.py: one seed
+  seeded = seeded_stages(config.slot_model, task)
   refused = sorted(s for s in stages
                    if s not in seeded + _SEED_FREE_STAGES)
   if refused:

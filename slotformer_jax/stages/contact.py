@@ -137,9 +137,7 @@ def readout_chains(run: Run) -> list[tuple[Run, tuple[int, ...]]]:
   """(chain, readout seeds on it): `[(run, readout.seeds)]` for a one-seed
   run; for several seeds (config.seeds) `(run.for_seed(k), (seed k,))` per
   seed, readout seed s on chain s (readout.seeds is not used then)."""
-  if run.seeds is None:
-    return [(run, tuple(run.config.readout.seeds))]
-  return [(view, (view.seed,)) for view in run.seed_views()]
+  return run.readout_chains(run.config.readout.seeds)
 
 
 def _features_by_condition(run: Run, split: str, conditions):

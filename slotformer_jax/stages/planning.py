@@ -7,6 +7,12 @@ its own stages in planning_rendered.py (the stage table picks by
 
 Features of a (task, action) pair: the slot model encodes the first frame
 with the action's red ball drawn in, SlotFormer rolls the slots out.
+
+Seeds (`Run.readout_chains`): a one-seed run fits `readout.seeds`
+classifiers on its one chain; a several-seed run (config.seeds) one per
+chain, chain s's with seed s on its own slot model and SlotFormer (and
+its negatives drawn with s). results.json gives each seed's AUCCESS, the
+mean and std.
 """
 
 from __future__ import annotations
@@ -118,32 +124,66 @@ def task_candidates(run: Run, split_names: tuple[str, ...]):
 
 
 def train_readout(run: Run) -> None:
-  """Fits the success classifiers; the epoch is chosen by dev AUCCESS."""
-  config = run.config
-  by_split, outcomes, generation = task_candidates(run, ('train', 'dev'))
-  rng = np.random.default_rng(config.seed)
+  """Fits the success classifiers per chain and seed; the epoch is chosen
+  by dev AUCCESS."""
+  conditions = tuple(run.config.readout.conditions)
+  if run.seeds is not None:
+    logger.info('seeds %s: one classifier per chain, seed s on chain s '
+                '(readout.seeds is not used)', run.seeds)
+  for chain, seeds in run.readout_chains(run.config.readout.seeds):
+    if all(_trained(chain, c, seed) for c in conditions for seed in seeds):
+      logger.info('classifiers of seeds %s already trained', seeds)
+      continue
+    _train_chain(chain, seeds)
+
+
+def training_set(candidates, task_outcomes, negatives_per_task: int,
+                 seed: int) -> tuple[np.ndarray, np.ndarray]:
+  """(features [P, ...], labels float32 [P]) of the classifiers: every
+  solving candidate of each training task and `negatives_per_task` others
+  drawn with `seed`. `candidates`: `task_candidates`'s per-task (valid
+  indices, features); `task_outcomes`: per task, every candidate's."""
+  rng = np.random.default_rng(seed)
   rows, labels = [], []
-  for (valid, feats), task_outcomes in zip(by_split['train'],
-                                           outcomes['train']):
-    solved = task_outcomes[valid] == planning.SOLVED
+  for (valid, feats), outcomes in zip(candidates, task_outcomes):
+    solved = outcomes[valid] == planning.SOLVED
     negatives = np.flatnonzero(~solved)
     keep = np.concatenate([
         np.flatnonzero(solved),
-        rng.permutation(negatives)[:config.readout.negatives_per_task]])
+        rng.permutation(negatives)[:negatives_per_task]])
     rows.append(feats[keep])
     labels.append(solved[keep].astype(np.float32))
-  train = (np.concatenate(rows), np.concatenate(labels))
+  return np.concatenate(rows), np.concatenate(labels)
+
+
+def fit_config_of(readout: Any) -> readout_lib.FitConfig:
+  """The classifiers' training settings from `config.readout`."""
+  return readout_lib.FitConfig(
+      epochs=readout.epochs, batch_size=readout.batch_size,
+      learning_rate=readout.learning_rate,
+      warmup_fraction=readout.warmup_fraction)
+
+
+def _trained(run: Run, condition: str, seed: int) -> bool:
+  return os.path.exists(os.path.join(run.paths.planner(condition, seed),
+                                     'selection.json'))
+
+
+def _train_chain(run: Run, seeds: tuple[int, ...]) -> None:
+  """The classifiers of `seeds` on `run`'s chain (its slot model and
+  SlotFormer); negatives drawn with `run.seed`."""
+  config = run.config
+  by_split, outcomes, generation = task_candidates(run, ('train', 'dev'))
+  train = training_set(by_split['train'], outcomes['train'],
+                       config.readout.negatives_per_task, run.seed)
   logger.info('classifier training set: %d (task, action) pairs, %.1f%% '
               'solving', len(train[1]), 100 * train[1].mean())
-  fit_config = readout_lib.FitConfig(
-      epochs=config.readout.epochs, batch_size=config.readout.batch_size,
-      learning_rate=config.readout.learning_rate,
-      warmup_fraction=config.readout.warmup_fraction)
+  fit_config = fit_config_of(config.readout)
   for condition in config.readout.conditions:
     model = phyre_planning.build_classifier(config.readout, condition)
-    for seed in config.readout.seeds:
+    for seed in seeds:
       directory = run.paths.planner(condition, seed)
-      if os.path.exists(os.path.join(directory, 'selection.json')):
+      if _trained(run, condition, seed):
         continue
 
       def dev_auccess(params, model=model):
@@ -181,30 +221,34 @@ def load_classifier(run: Run, condition: str, seed: int) -> Any:
 
 
 def plan(run: Run) -> dict[str, Any]:
-  """Ranks every candidate of every test task; AUCCESS per method."""
+  """Ranks every candidate of every test task; AUCCESS per method and
+  seed (per chain with several seeds)."""
   config = run.config
-  by_split, outcomes, generation = task_candidates(run, ('test',))
-  test, test_outcomes = by_split['test'], outcomes['test']
-  seeds = tuple(config.readout.seeds)
-  results: dict[str, Any] = {}
-  results['random'] = [planning.plan_auccess(
-      planning.random_scores(test_outcomes, seed), test_outcomes)
-                       for seed in seeds]
+  results: dict[str, Any] = {'random': []}
   first_seed_scores = {}
-  for condition in config.readout.conditions:
-    values = []
+  seeds_evaluated = []
+  for chain, seeds in run.readout_chains(config.readout.seeds):
+    by_split, outcomes, generation = task_candidates(chain, ('test',))
+    test, test_outcomes = by_split['test'], outcomes['test']
     for seed in seeds:
-      model, params = load_classifier(run, condition, seed)
-      scores = phyre_planning.candidate_scores(model, params, test,
-                                               generation.num_candidates)
-      first_seed_scores.setdefault(condition, scores)
-      values.append(planning.plan_auccess(scores, test_outcomes))
-    results[condition] = values
+      seeds_evaluated.append(seed)
+      results['random'].append(planning.plan_auccess(
+          planning.random_scores(test_outcomes, seed), test_outcomes))
+      for condition in config.readout.conditions:
+        model, params = load_classifier(chain, condition, seed)
+        scores = phyre_planning.candidate_scores(model, params, test,
+                                                 generation.num_candidates)
+        first_seed_scores.setdefault(condition, scores)
+        results.setdefault(condition, []).append(
+            planning.plan_auccess(scores, test_outcomes))
   results['oracle'] = [planning.plan_auccess(
       planning.oracle_scores(test_outcomes), test_outcomes)]
   summary = {name: {'auccess': values, 'mean': float(np.mean(values)),
                     'std': float(np.std(values))}
              for name, values in results.items()}
+  # Which seed each AUCCESS entry is; 'per_seed': each on its own chain.
+  summary['seeds'] = seeds_evaluated
+  summary['chains'] = 'one' if run.seeds is None else 'per_seed'
   summary['num_test_tasks'] = len(test_outcomes)
   summary['fold'] = generation.fold
   summary['solvable_test_tasks'] = int(sum(

@@ -142,11 +142,14 @@ class Paths:
 
   @property
   def planning(self) -> str:
-    """Planning classifiers and results: planning/<condition>/seed_<seed>/."""
+    """Planning classifiers and the run's results: planning/."""
     return os.path.join(self.root, 'planning')
 
   def planner(self, condition: str, seed: int) -> str:
-    return os.path.join(self.planning, condition, f'seed_{seed}')
+    """One success classifier: planning/<condition>/seed_<seed>/; a seed
+    view's (its chain's) under seed_<s>/planning/."""
+    return os.path.join(self._of_seed(self.root, 'planning'), condition,
+                        f'seed_{seed}')
 
   @property
   def vqa(self) -> str:
