@@ -39,7 +39,12 @@ def main() -> None:
   for path in paths:
     inputs = re.match(r'(.*)_s\d+$', os.path.basename(os.path.dirname(path)))
     with open(path) as f:
-      runs[inputs.group(1)].append(json.load(f))
+      metrics = json.load(f)
+    if 'seeds' in metrics:  # a config.seeds run's summary: its own table
+      raise SystemExit(f'{path} is the summary of a run with several seeds '
+                       '(mean, std, per seed inside); this table reads '
+                       'one-seed workdirs')
+    runs[inputs.group(1)].append(metrics)
   header = ' | '.join(f'{t[:5]}. {m.replace("per_", "per ")}'
                       for t, m in COLUMNS)
   print(f'| Aloe input | seeds | {header} |')

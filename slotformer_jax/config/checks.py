@@ -347,9 +347,9 @@ def validate(config: ml_collections.ConfigDict, stages: Sequence[str], *,
 # The stages that take several seeds (config.seeds): stage 1's first part
 # (no parent, no derived input) of any slot model, and the chain after it
 # of SAVi and STEVE, seed s on stage-1 seed s (docs/seeds.md), with the
-# contact readouts and the embedded planning task's classifiers (task model
-# s on chain s). Every other stage refuses them: Aloe, and planning on the
-# real PHYRE's rendered rollouts.
+# contact readouts, the embedded planning task's classifiers and Aloe (task
+# model s on chain s). Every other stage refuses them: planning on the real
+# PHYRE's rendered rollouts.
 SEEDED_STAGES = ('train_savi', 'train_dvae')
 _VIDEO_PREDICTION_CHAIN = ('extract_slots', 'train_slotformer',
                            'train_slot_lstm', 'evaluate', 'render',
@@ -360,7 +360,8 @@ SEEDED_CHAINS = {'savi': _VIDEO_PREDICTION_CHAIN,
 # A task's stages that take several seeds, after the chain of its slot
 # model (stages/contact.py: readout_chains).
 SEEDED_TASK_STAGES = {'contact': ('train_readout', 'evaluate_readout'),
-                      'planning': ('train_readout', 'plan')}
+                      'planning': ('train_readout', 'plan'),
+                      'vqa': ('vqa_slots', 'train_vqa', 'evaluate_vqa')}
 # Stages that do no training or extraction of their own with the seeds.
 _SEED_FREE_STAGES = ('prepare_data',)
 

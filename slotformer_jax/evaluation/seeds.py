@@ -59,6 +59,26 @@ def _per_step_mean(curves: list[list[Any]]) -> list[float | None]:
   return out
 
 
+def fold(per_seed: dict[int, Any]) -> Any:
+  """{seed: results} of one shape -> the same nesting with `statistics`
+  in place of every number (a seed lacking a key counts as missing
+  there); lists and strings are left out (None). E.g. Aloe's metrics per
+  question type."""
+  present = [v for v in per_seed.values() if v is not None]
+  if present and all(isinstance(v, dict) for v in present):
+    keys = dict.fromkeys(k for v in present for k in v)
+    out = {}
+    for key in keys:
+      folded = fold({seed: (v or {}).get(key)
+                     for seed, v in per_seed.items()})
+      if folded is not None:
+        out[key] = folded
+    return out
+  if any(isinstance(v, (list, str, dict)) for v in present):
+    return None
+  return statistics(per_seed)
+
+
 def summarise(per_seed: dict[int, dict[str, Any]], excluded: dict[int, str],
               seeds: tuple[int, ...]) -> dict[str, Any]:
   """The run's summary of the seeds' evaluations.

@@ -14,6 +14,15 @@ Workdir layout (next to the video pipeline's)::
                                   metrics_<split>.json, predictions_test.json
     vqa/answer_prior_<split>.json
 
+Several seeds (config.seeds, docs/seeds.md): chain s (seed s's slot model
+and SlotFormer) gets its own slots in seed_<s>/vqa/slots/ and its own Aloe,
+trained with seed s where a one-seed run draws with config.seed; the K
+Aloes train in one program (one stacked checkpoint in
+vqa/<inputs>_s<vqa.seed>/), each is evaluated into
+seed_<s>/vqa/<inputs>_s<vqa.seed>/, and the run's
+vqa/<inputs>_s<vqa.seed>/metrics_<split>.json holds every metric's mean,
+std and per-seed values.
+
 Questions and vocabulary: the embedded family ('clevrer_like') keeps them in
 its dataset folder; for CLEVRER set `vqa.questions_root` (the folder with
 questions/) and optionally `vqa.vocab_file` (default: built from the
@@ -43,16 +52,19 @@ from slotformer_jax.data.slots import SlotSource
 from slotformer_jax.errors import ConfigError
 from slotformer_jax.errors import MissingInputError
 from slotformer_jax.errors import UserError
+from slotformer_jax.evaluation import seeds as seeds_lib
 from slotformer_jax.files import read_json
 from slotformer_jax.files import write_json_atomic
 from slotformer_jax.run import Run
 from slotformer_jax.runtime import sharding
+from slotformer_jax.stages import fit as fit_lib
 from slotformer_jax.tasks import vqa as task
 from slotformer_jax.train import steps
 from slotformer_jax.train.trainer import Stage
 from slotformer_jax.train.trainer import abstract_train_state
 from slotformer_jax.train.trainer import checkpointer_for
 from slotformer_jax.train.trainer import fit
+from slotformer_jax.workdir.paths import command
 
 logger = logging.getLogger(__name__)
 
@@ -74,17 +86,30 @@ def _check_inputs(vqa: ml_collections.ConfigDict) -> None:
 
 
 def _slots_path(run: Run, split: str) -> str:
-  return os.path.join(run.paths.vqa, 'slots', f'{split}.npy')
+  return os.path.join(run.paths.vqa_slots, f'{split}.npy')
+
+
+def _chains(run: Run) -> list[Run]:
+  """The run, or with several seeds each seed view (chain s)."""
+  return run.seed_views() if run.seeds is not None else [run]
 
 
 def vqa_slots(run: Run) -> None:
-  """Writes each split's observed slots followed by SlotFormer's rollout."""
+  """Writes each split's observed slots followed by SlotFormer's rollout
+  (several seeds: each chain's, SlotFormer seed s on slot model seed s's
+  slots)."""
+  for chain in _chains(run):
+    _vqa_slots(chain)
+
+
+def _vqa_slots(run: Run) -> None:
+  """`vqa_slots` of one chain."""
   config = run.config
   vqa = config.vqa
   dynamics = run.dynamics_section(SLOTFORMER)
   trained = run.dynamics(SLOTFORMER)
   params, step, model = trained.params, trained.step, trained.module
-  meta_path = os.path.join(run.paths.vqa, 'slots', 'meta.json')
+  meta_path = os.path.join(run.paths.vqa_slots, 'meta.json')
   meta = {'slotformer_step': step, 'video_length': vqa.video_length,
           'rollout_frames': vqa.rollout_frames}
   if os.path.exists(meta_path) and read_json(meta_path) == meta and all(
@@ -278,26 +303,53 @@ def drawn_batch_sizes(vqa: ml_collections.ConfigDict,
   return sizes[0], sizes[1]
 
 
-def train_vqa(run: Run) -> None:
-  """Trains Aloe on the training questions (resumable); a question set of
-  one kind (open-only, choice-only) trains on that kind."""
+def aloe_seed(run_seed: int, vqa: ml_collections.ConfigDict) -> int:
+  """What Aloe draws with (initialisation, dropout, question order) in a
+  run of seed `run_seed`: run_seed * 1000 + vqa.seed."""
+  return run_seed * 1000 + vqa.seed
+
+
+def _train_stage(run: Run, directory: str, vocab: vqa_data.Vocabulary,
+                 stream_seed: int) -> Stage:
+  """Aloe's stage on `run`'s (a chain's) training slots, its questions
+  drawn with `stream_seed`."""
   config, mesh = run.config, run.mesh
   vqa = config.vqa
-  vocab = vqa_questions.vocabulary(config)
   batches = question_batches(run, 'train', questions_with_videos(
       run, 'train', vocab))
   open_total, choice_total = drawn_batch_sizes(vqa, batches)
   open_size = sharding.per_host_batch_size(open_total, mesh)
   choice_size = sharding.per_host_batch_size(choice_total, mesh)
-  seed = config.seed * 1000 + vqa.seed
-  stage = aloe_stage(
-      vqa, run.paths.aloe(vqa.inputs, vqa.seed), vocab,
-      run.slot_model.slot_shape,
+  return aloe_stage(
+      vqa, directory, vocab, run.slot_model.slot_shape,
       lambda start_step: batches.train_batches(
-          open_size, choice_size, seed=seed, start_step=start_step,
+          open_size, choice_size, seed=stream_seed, start_step=start_step,
           process_index=jax.process_index(),
           process_count=jax.process_count()), config.logging)
-  fit(stage, mesh=mesh, seed=seed)
+
+
+def train_vqa(run: Run) -> None:
+  """Trains Aloe on the training questions (resumable); a question set of
+  one kind (open-only, choice-only) trains on that kind. Several seeds:
+  chain s's Aloe with seed s, all in one program (`aloe_seed` of s for
+  its initialisation and step RNG; questions in the shared or per-seed
+  order, config.seed_data_order)."""
+  config = run.config
+  vqa = config.vqa
+  vocab = vqa_questions.vocabulary(config)
+  directory = run.paths.aloe(vqa.inputs, vqa.seed)
+  if run.seeds is None:
+    seed = aloe_seed(config.seed, vqa)
+    fit(_train_stage(run, directory, vocab, seed), mesh=run.mesh, seed=seed)
+    return
+  stages = [_train_stage(view, directory, vocab, aloe_seed(stream, vqa))
+            for view, stream in zip(run.seed_views(),
+                                    fit_lib.stream_seeds(config))]
+  seeds = dataclasses.replace(
+      fit_lib.seeds_of(config),
+      values=tuple(aloe_seed(s, vqa) for s in run.seeds))
+  fit(fit_lib.stacked_stage(stages), mesh=run.mesh,
+      seed=aloe_seed(config.seed, vqa), seeds=seeds)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -309,12 +361,16 @@ class Aloe:
     params: its newest parameters ({'params': ...}, replicated).
     step: their step.
     vocab: the vocabulary its word and answer ids index.
+    diverged_at: a seed of a several-seed run: the update in which it
+      diverged (its parameters are then its last finite ones), 0: it did
+      not.
   """
 
   module: Any
   params: Any
   step: int
   vocab: vqa_data.Vocabulary
+  diverged_at: int = 0
 
 
 def load_aloe(run: Run, inputs: str | None = None,
@@ -331,6 +387,14 @@ def load_aloe(run: Run, inputs: str | None = None,
   vocab = vqa_questions.vocabulary(run.config)
   model, init = model_and_init(vqa, vocab, run.slot_model.slot_shape)
   directory = run.paths.aloe(inputs, seed)
+  if run.stacked is not None:  # a seed view: its share of the stacked Aloe
+    params, step, diverged_at = inference.restore_seed(
+        directory, jax.eval_shape(lambda: {'params': init(
+            jax.random.key(0))}), run.mesh, run.stacked, what='Aloe',
+        train_command=command(run.paths.root, 'train_vqa'),
+        num_train_steps=vqa.num_train_steps)
+    return Aloe(module=model, params=params, step=step, vocab=vocab,
+                diverged_at=diverged_at)
   checkpointer = checkpointer_for(directory, read_only=True)
   if checkpointer.latest_step() is None:
     raise MissingInputError(f'no Aloe checkpoint under {directory}; run '
@@ -343,11 +407,39 @@ def load_aloe(run: Run, inputs: str | None = None,
 
 def evaluate_vqa(run: Run) -> dict[str, Any]:
   """Metrics per question type on `vqa.eval_split` (+ the answer prior);
-  on a split without answers (CLEVRER's test), the prediction file."""
+  on a split without answers (CLEVRER's test), the prediction file.
+  Several seeds: each chain's Aloe on its own slots, then every metric's
+  mean, std and per-seed values (a diverged seed named and left out)."""
+  if run.seeds is None:
+    return _evaluate(run, load_aloe(run))
+  vqa = run.config.vqa
+  per_seed, excluded = {}, {}
+  for view in run.seed_views():
+    aloe = load_aloe(view)
+    if aloe.diverged_at:
+      excluded[view.seed] = f'Aloe diverged in update {aloe.diverged_at}'
+      logger.warning('VQA: seed %d not evaluated (%s)', view.seed,
+                     excluded[view.seed])
+      continue
+    per_seed[view.seed] = _evaluate(view, aloe)
+  summary = {'seeds': list(run.seeds), 'excluded': {
+      str(seed): reason for seed, reason in excluded.items()},
+             'std': seeds_lib.STD,
+             'metrics': seeds_lib.fold(per_seed)}
+  if jax.process_index() == 0:
+    write_json_atomic(os.path.join(
+        run.paths.aloe_results(vqa.inputs, vqa.seed),
+        f'metrics_{vqa.eval_split}.json'), summary, sort_keys=False)
+  logger.info('VQA %s on %s, %d seeds: %s', vqa.inputs, vqa.eval_split,
+              len(per_seed), json.dumps(summary['metrics']))
+  return summary
+
+
+def _evaluate(run: Run, aloe: Aloe) -> dict[str, Any]:
+  """`evaluate_vqa` of one chain with its `aloe`."""
   config, mesh = run.config, run.mesh
   vqa = config.vqa
   split = vqa.eval_split
-  aloe = load_aloe(run)
   vocab = aloe.vocab
   joined = questions_with_videos(run, split, vocab, scoring=True)
   questions = joined.questions
@@ -374,7 +466,7 @@ def evaluate_vqa(run: Run) -> dict[str, Any]:
     for k, i in enumerate(choice_ids):
       n = int(valid[k].sum())
       choice_correct[choice_index[i]] = (logits[k, :n] > 0).tolist()
-  directory = run.paths.aloe(vqa.inputs, vqa.seed)
+  directory = run.paths.aloe_results(vqa.inputs, vqa.seed)
   has_answers = all(q.answer >= 0 for q in questions if q.is_descriptive)
   results = metrics.results() if has_answers else {}
   if has_answers:

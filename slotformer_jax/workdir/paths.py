@@ -155,9 +155,22 @@ class Paths:
   def vqa(self) -> str:
     return os.path.join(self.root, 'vqa')
 
+  @property
+  def vqa_slots(self) -> str:
+    """Each split's slots + SlotFormer rollout read by Aloe: vqa/slots/;
+    a seed view's (its chain's) under seed_<s>/vqa/slots/."""
+    return os.path.join(self._of_seed(self.root, 'vqa'), 'slots')
+
   def aloe(self, inputs: str, seed: int) -> str:
-    """Aloe on `inputs` ('rollout', 'observed', 'blind') with `seed`."""
+    """Aloe on `inputs` ('rollout', 'observed', 'blind') with `seed`: its
+    checkpoints (with several seeds the stacked one, shared by the seed
+    views) and a one-seed run's results."""
     return os.path.join(self.vqa, f'{inputs}_s{seed}')
+
+  def aloe_results(self, inputs: str, seed: int) -> str:
+    """Where Aloe's evaluation writes: `aloe` for a one-seed run (and
+    the several seeds' summary); a seed view's under seed_<s>/vqa/."""
+    return os.path.join(self._of_seed(self.root, 'vqa'), f'{inputs}_s{seed}')
 
 
 def command(workdir: str, mode: str | None = None) -> str:

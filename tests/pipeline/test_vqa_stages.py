@@ -165,3 +165,79 @@ def test_missing_vqa_inputs_are_one_line_errors(tmp_path):
   with pytest.raises(UserError, match='--mode=vqa_slots'):
     vqa_stages.question_batches(Run.create(config, str(tmp_path / 'run')),
                                 'train', vqa_questions.join_videos([], []))
+
+
+@pytest.mark.slow
+def test_aloe_of_seed_k_is_the_one_seed_aloe_on_chain_k(tmp_path):
+  """config.seeds=(0, 1), per-seed question order: chain k's Aloe (trained
+  with the other in one program, on chain k's slots) equals the one-seed
+  run with seed k on those slots; the summary folds both evaluations."""
+  import jax  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.stages import vqa as vqa_stages  # pylint: disable=g-import-not-at-top
+  config = _synthetic_vqa_config('tiny')
+  config.data.data_dir = str(tmp_path / 'data')
+  config.data.num_workers = 1
+  config.vqa.num_train_steps = 3
+  config.vqa.log_every = config.vqa.checkpoint_every = 3
+  prepare_data(config)
+  seeds = (0, 1)
+  rng = np.random.default_rng(0)
+  chains = {}
+  for seed in seeds:  # stand-ins for each chain's SAVi + SlotFormer slots
+    chains[seed] = {split: rng.normal(size=(
+        config.data[f'num_{split}'],
+        config.vqa.video_length + config.vqa.rollout_frames,
+        config.savi.num_slots, config.savi.slot_size)).astype(np.float32)
+                    for split in ('train', 'val', 'test')}
+
+  def write_slots(directory, seed):
+    os.makedirs(directory, exist_ok=True)
+    for split, slots in chains[seed].items():
+      np.save(os.path.join(directory, f'{split}.npy'), slots)
+
+  mesh = sharding.make_mesh()
+  several = config.copy_and_resolve_references()
+  several.seeds, several.seed_data_order = seeds, 'per_seed'
+  workdir = str(tmp_path / 'seeds')
+  for seed in seeds:
+    write_slots(Paths.of(workdir).for_seed(seed).vqa_slots, seed)
+  run_stage(several, workdir, mesh, 'train_vqa')
+  summary = run_stage(several, workdir, mesh, 'evaluate_vqa')
+  run = Run.create(several, workdir, mesh)
+  per_seed = {}
+  for index, seed in enumerate(seeds):
+    one = config.copy_and_resolve_references()
+    one.seed = seed
+    own = str(tmp_path / f'one_{seed}')
+    write_slots(Paths.of(own).vqa_slots, seed)
+    run_stage(one, own, mesh, 'train_vqa')
+    per_seed[seed] = run_stage(one, own, mesh, 'evaluate_vqa')
+    expected = vqa_stages.load_aloe(Run.create(one, own, mesh))
+    got = vqa_stages.load_aloe(run.for_seed(index))
+    assert got.step == expected.step == 3
+    # Attention key biases get no gradient (softmax ignores a shift shared
+    # by every key) but rounding noise, which Adam scales to lr-sized
+    # steps: they differ between any two programs, and change nothing.
+    for path, value in jax.tree_util.tree_leaves_with_path(
+        jax.device_get(got.params)):
+      name = jax.tree_util.keystr(path)
+      if "['key']['bias']" in name:
+        continue
+      reference = expected.params
+      for key in path:
+        reference = reference[key.key]
+      np.testing.assert_allclose(value, jax.device_get(reference),
+                                 atol=2e-5, rtol=2e-5, err_msg=name)
+    with open(os.path.join(Paths.of(workdir).for_seed(seed).aloe_results(
+        config.vqa.inputs, config.vqa.seed), 'metrics_test.json')) as f:
+      mine = json.load(f)['descriptive']['accuracy']
+    assert mine == pytest.approx(per_seed[seed]['descriptive']['accuracy'],
+                                 abs=1e-6)
+  folded = summary['metrics']['descriptive']['accuracy']
+  assert summary['seeds'] == list(seeds) and folded['num_seeds'] == 2
+  assert folded['mean'] == pytest.approx(np.mean(
+      [per_seed[s]['descriptive']['accuracy'] for s in seeds]), abs=1e-6)
+  with open(os.path.join(Paths.of(workdir).aloe(config.vqa.inputs,
+                                                config.vqa.seed),
+                         'metrics_test.json')) as f:
+    assert json.load(f) == summary
