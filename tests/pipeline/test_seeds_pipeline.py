@@ -282,6 +282,26 @@ def test_a_diverged_seed_is_left_out_and_named():
   assert 'No seed evaluated' in seeds_lib.format_table(nothing, 'SAVi')
 
 
+def test_nested_task_metrics_fold_into_mean_std_and_each_seed():
+  # Aloe's metrics per question type (stages/vqa.py evaluate_vqa).
+  folded = seeds_lib.fold({
+      0: {'descriptive': {'accuracy': 0.5}, 'per_option': 0.25,
+          'left_out': {'questions': 3, 'videos_not_converted': ['v1']}},
+      1: {'descriptive': {'accuracy': 0.7}, 'per_option': float('nan')},
+      2: {'descriptive': {'accuracy': 0.9}, 'per_option': 0.75}})
+  accuracy = folded['descriptive']['accuracy']
+  assert accuracy['mean'] == pytest.approx(0.7)
+  assert accuracy['std'] == pytest.approx(np.std([0.5, 0.7, 0.9]))
+  assert accuracy['per_seed'] == {'0': 0.5, '1': 0.7, '2': 0.9}
+  # Not finite or missing: shown as null, left out of the mean.
+  assert folded['per_option']['per_seed']['1'] is None
+  assert folded['per_option']['num_seeds'] == 2
+  assert folded['per_option']['mean'] == pytest.approx(0.5)
+  assert folded['left_out'] == {'questions': {
+      'mean': 3.0, 'std': 0.0, 'num_seeds': 1,
+      'per_seed': {'0': 3.0, '1': None, '2': None}}}  # the list left out
+
+
 def test_what_takes_several_seeds_is_said_in_one_line():
   config = micro_config('savi', '/nonexistent')
   config.seeds = SEEDS
