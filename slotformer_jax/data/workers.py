@@ -258,7 +258,10 @@ def worker_batches(make_bytes: bytes, start_step: int, num_workers: int,
       batch = {key: np.ndarray(shape, np.dtype(dtype), buffer, offset).copy()
                for key, dtype, shape, offset in layout}
       del buffer
-      controls[index].send(slot)
+      try:
+        controls[index].send(slot)  # the slot is free again
+      except OSError:  # BrokenPipeError: the worker died after this batch;
+        pass  # its next `_receive` names it (after what it had sent)
       yield batch
       step += 1
   finally:
