@@ -175,6 +175,11 @@ class Run:
     """`for_seed` of every seed, in config.seeds order."""
     return [self.for_seed(index) for index in range(len(self.seeds))]
 
+  def chains(self) -> list[Run]:
+    """The runs a per-seed stage goes through: this one, or with several
+    seeds every seed view (chain s: stage-1 seed s and what follows)."""
+    return self.seed_views() if self.seeds is not None else [self]
+
   def readout_chains(self, readout_seeds: Sequence[int]
                      ) -> list[tuple[Run, tuple[int, ...]]]:
     """(chain, the seeds of the task models fitted on it): a one-seed
@@ -183,7 +188,7 @@ class Run:
     task model s on chain s (`readout_seeds` not used)."""
     if self.seeds is None:
       return [(self, tuple(readout_seeds))]
-    return [(view, (view.seed,)) for view in self.seed_views()]
+    return [(view, (view.seed,)) for view in self.chains()]
 
   # ---- what the config asks for ----------------------------------------------
 

@@ -358,7 +358,7 @@ SEEDED_CHAINS = {'savi': _VIDEO_PREDICTION_CHAIN,
                  'steve': ('tokenize_frames', 'train_steve',
                            *_VIDEO_PREDICTION_CHAIN)}
 # A task's stages that take several seeds, after the chain of its slot
-# model (stages/contact.py: readout_chains).
+# model (run.py: Run.readout_chains).
 SEEDED_TASK_STAGES = {'contact': ('train_readout', 'evaluate_readout'),
                       'planning': ('train_readout', 'plan'),
                       'vqa': ('vqa_slots', 'train_vqa', 'evaluate_vqa')}

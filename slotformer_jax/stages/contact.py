@@ -7,7 +7,7 @@ readout on each condition (tasks/contact.py has the protocol and the pure
 parts). Every file is written atomically; a readout seed whose
 `selection.json` exists is not refitted.
 
-Seeds (`readout_chains`): a one-seed run fits `readout.seeds` readouts on
+Seeds (`Run.readout_chains`): a one-seed run fits `readout.seeds` readouts on
 its one chain (slot model -> SlotFormer), the official Physion protocol; a
 several-seed run (config.seeds, docs/seeds.md) fits one readout per chain,
 chain s's with seed s, so the spread covers the whole chain. Either way
@@ -133,13 +133,6 @@ def rollout_fn(run: Run):
   return rollout
 
 
-def readout_chains(run: Run) -> list[tuple[Run, tuple[int, ...]]]:
-  """(chain, readout seeds on it): `[(run, readout.seeds)]` for a one-seed
-  run; for several seeds (config.seeds) `(run.for_seed(k), (seed k,))` per
-  seed, readout seed s on chain s (readout.seeds is not used then)."""
-  return run.readout_chains(run.config.readout.seeds)
-
-
 def _features_by_condition(run: Run, split: str, conditions):
   slots, labels = load_split(run, split)
   rollout = rollout_fn(run) if contact.ROLLOUT in conditions else None
@@ -154,7 +147,7 @@ def _trained(run: Run, condition: str, seed: int) -> bool:
 
 
 def train_readout(run: Run) -> None:
-  """Fits the readout per chain, condition and seed (`readout_chains`);
+  """Fits the readout per chain, condition and seed (`Run.readout_chains`);
   selection on validation."""
   readout = run.config.readout
   conditions = tuple(readout.conditions)
@@ -163,7 +156,7 @@ def train_readout(run: Run) -> None:
   if run.seeds is not None:
     logger.info('seeds %s: one readout per chain, seed s on chain s '
                 '(readout.seeds is not used)', run.seeds)
-  for chain, seeds in readout_chains(run):
+  for chain, seeds in run.readout_chains(readout.seeds):
     if all(_trained(chain, c, seed) for c in conditions for seed in seeds):
       logger.info('readouts of seeds %s already trained', seeds)
       continue
@@ -211,14 +204,14 @@ def _fit_one(run: Run, model: Any, condition: str, seed: int,
 
 def evaluate_readout(run: Run) -> dict[str, Any]:
   """Test accuracy at the validation-chosen checkpoint and threshold, per
-  readout of `readout_chains`; mean and std over them."""
+  readout of `Run.readout_chains`; mean and std over them."""
   readout = run.config.readout
   conditions = tuple(readout.conditions)
   test_split = contact.readout_splits(readout)[2]
   accuracies = {c: [] for c in conditions}
   val_accuracies = {c: [] for c in conditions}
   seeds_evaluated, picture = [], None
-  for chain, seeds in readout_chains(run):
+  for chain, seeds in run.readout_chains(readout.seeds):
     test, labels = _features_by_condition(chain, test_split, conditions)
     for seed in seeds:
       seeds_evaluated.append(seed)

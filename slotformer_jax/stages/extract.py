@@ -30,11 +30,8 @@ logger = logging.getLogger(__name__)
 def extract_slots(run: Run) -> None:
   """Writes slots/<split>/ of every `extraction.splits` split (several
   seeds: seed_<s>/slots/<split>/ of each seed)."""
-  if run.seeds is not None:
-    for view in run.seed_views():
-      _extract(view)
-    return
-  _extract(run)
+  for chain in run.chains():
+    _extract(chain)
 
 
 def _extract(run: Run) -> None:

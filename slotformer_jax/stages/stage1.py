@@ -218,7 +218,7 @@ def derive(run: Run, name: str) -> None:
                    in_shardings=(sharding.replicated_sharding(run.mesh),
                                  batched),
                    out_shardings=batched)
-  for view in (run.seed_views() if run.seeds is not None else [run]):
+  for view in run.chains():
     _derive(view, derived, encode)
 
 

@@ -89,16 +89,11 @@ def _slots_path(run: Run, split: str) -> str:
   return os.path.join(run.paths.vqa_slots, f'{split}.npy')
 
 
-def _chains(run: Run) -> list[Run]:
-  """The run, or with several seeds each seed view (chain s)."""
-  return run.seed_views() if run.seeds is not None else [run]
-
-
 def vqa_slots(run: Run) -> None:
   """Writes each split's observed slots followed by SlotFormer's rollout
   (several seeds: each chain's, SlotFormer seed s on slot model seed s's
   slots)."""
-  for chain in _chains(run):
+  for chain in run.chains():
     _vqa_slots(chain)
 
 
