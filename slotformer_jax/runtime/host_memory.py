@@ -23,9 +23,14 @@ What: before jax allocates, ``keep_freed_memory()`` calls glibc's
   reuse an arena that already exists;
 * ``M_MMAP_MAX = 0``: malloc no longer serves large blocks by their own
   ``mmap``; they come from the heap like small ones, so they can be reused;
-* ``M_TRIM_THRESHOLD = TRIM_THRESHOLD_BYTES`` (2 GiB - 1): free space at the
-  top of the heap is given back to the kernel only beyond that, so the next
-  step's buffer lands on pages that are already mapped.
+* ``M_TRIM_THRESHOLD = -1``: free space at the top of the heap is never
+  given back to the kernel ("-1 disables trimming completely", mallopt(3)),
+  so the next step's buffer lands on pages that are already mapped. The
+  largest positive value (2 GiB - 1, mallopt's int) was the setting before:
+  the three-seed SlotFormer program (L_I on) frees more than 2 GiB at the
+  top of the heap after each step, which was then returned and faulted in
+  again (60 steps: 12.6-12.8 M faults, 25-26 s system time; never trimming:
+  2.55 M, 6.4-6.8 s; docs/performance.md, "Host memory churn").
 
 The process then keeps up to its high-water mark of heap memory mapped (the
 resident size stays near the peak instead of shrinking between steps); no
@@ -55,11 +60,13 @@ SWITCH_ENV = 'SLOTFORMER_MALLOC_TUNING'
 M_TRIM_THRESHOLD = -1
 M_MMAP_MAX = -4
 M_ARENA_MAX = -8
-# Free space kept at the top of the heap: the largest value mallopt's int
-# takes (2 GiB - 1). Measured on 60 SlotFormer steps (L_I on, one arena,
-# no mmap): 1 GiB still trimmed (1.62 M faults, 5.6 s system), 2 GiB - 1:
-# 0.93 M, 3.7 s; 8 GiB (only through GLIBC_TUNABLES): 0.75 M, 3.4 s.
-TRIM_THRESHOLD_BYTES = (1 << 31) - 1
+# Free space kept at the top of the heap before it is trimmed: -1 (read by
+# glibc as the largest size_t) never trims. Measured on 60 SlotFormer steps
+# (L_I on, one arena, no mmap): 1 GiB still trimmed (1.62 M faults, 5.6 s
+# system), 2 GiB - 1: 0.93 M, 3.7 s (one seed); with three seeds in one
+# program 2 GiB - 1 trimmed every step (12.8 M, 25.9 s) and -1 did not
+# (2.55 M, 6.4 s).
+TRIM_THRESHOLD_BYTES = -1
 
 _applied: tuple[tuple[int, int], ...] | None = None
 

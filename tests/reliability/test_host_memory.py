@@ -54,16 +54,32 @@ def big():
 thread = threading.Thread(target=big)
 thread.start()
 thread.join()
+# Larger than 2 GiB (argv[1] MiB; 0: skipped), as the scratch of a
+# three-seed SlotFormer program: the heap's free top then passes any
+# positive trim threshold mallopt takes; it must still not be returned.
+huge = int(sys.argv[1]) << 20 if len(sys.argv) > 1 else 0
+huge_faults = []
+for _ in range(2 if huge else 0):
+  before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+  block = libc.malloc(huge)
+  if not block:
+    huge_faults.append(None)
+    break
+  ctypes.memset(block, 1, huge)
+  libc.free(block)
+  huge_faults.append(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before)
 print(json.dumps({'applied': applied, 'faults': faults,
-                  'pages': size // 4096, 'threaded': threaded}))
+                  'pages': size // 4096, 'threaded': threaded,
+                  'huge_faults': huge_faults}))
 '''
 
 
-def _run(**env):
+def _run(*args, **env):
   environ = dict(os.environ, PYTHONPATH=REPO)
   environ.pop('GLIBC_TUNABLES', None)
   environ.update(env)
-  result = subprocess.run([sys.executable, '-c', _PROGRAM], env=environ,
+  result = subprocess.run([sys.executable, '-c', _PROGRAM, *args],
+                          env=environ,
                           capture_output=True, text=True, check=True)
   return json.loads(result.stdout)
 
@@ -84,6 +100,18 @@ def test_a_freed_large_block_is_not_faulted_in_again():
   assert None not in kept['threaded'], kept
   assert max(kept['threaded'][1:]) < 0.01 * (100 << 20) // 4096, kept
   assert min(churned['threaded']) > 0.9 * (100 << 20) // 4096, churned
+
+
+@pytest.mark.skipif(platform.libc_ver()[0] != 'glibc',
+                    reason='mallopt is glibc\'s')
+def test_a_freed_block_above_2_gib_is_kept_too():
+  # 2,304 MiB: above 2 GiB - 1, the largest positive trim threshold.
+  kept = _run('2304', SLOTFORMER_MALLOC_TUNING='1')
+  pages = (2304 << 20) // 4096
+  assert None not in kept['huge_faults'], kept['huge_faults']
+  first, second = kept['huge_faults']
+  assert first > 0.9 * pages, kept['huge_faults']
+  assert second < 0.01 * pages, kept['huge_faults']
 
 
 def test_off_switch_and_user_tunables_win():
