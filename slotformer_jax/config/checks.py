@@ -408,10 +408,7 @@ def seeds_problems(config: ml_collections.ConfigDict,
                     f'{config.seed_axis!r}')
   if problems or seeds is None or len(seeds) < 2:
     return problems
-  task = config.task
-  if task == 'planning' and config.data.name == 'phyre':
-    task = None  # stages/planning_rendered.py: one seed
-  seeded = seeded_stages(config.slot_model, task)
+  seeded = seeded_stages(config.slot_model, config.task)
   refused = sorted(s for s in stages
                    if s not in seeded + _SEED_FREE_STAGES)
   if refused:

@@ -9,6 +9,7 @@ slots' frame 0) and SlotFormer's rollout from them.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 from typing import Any
@@ -86,55 +87,111 @@ def rollout_features(run: Run, first_slots: np.ndarray) -> np.ndarray:
   return np.concatenate(out).astype(np.float32)
 
 
-def train_readout(run: Run) -> None:
-  """Fits the classifiers on the training tasks' rollouts; the epoch is
-  chosen by AUCCESS over the dev tasks' rendered candidates."""
-  config = run.config
-  phyre_rendered.check_candidates(config.readout)
-  train = load_rendered(run, phyre_rendered.splits(config.readout)[0])
-  dev = phyre_rendered.dev_tasks(train.tasks, config.readout.dev_share,
-                                 config.seed)
+@dataclasses.dataclass(frozen=True)
+class TrainingSet:
+  """What a chain's classifiers are fitted on and selected by.
+
+  Attributes:
+    features: float32 [V, S, N, D], `rollout_features` of every training
+      rollout.
+    outcomes: int64 [V], each rollout's (planning.SOLVED / NOT_SOLVED).
+    fit_rows: the rows of the training tasks the classifiers fit on.
+    labels: float32 [len(fit_rows)], 1 where that rollout solves its task.
+    is_dev: bool [V], rows of the dev tasks (selection by AUCCESS).
+    dev_groups: dev task -> its rows.
+    tasks: [V], each rollout's task.
+  """
+  features: np.ndarray
+  outcomes: np.ndarray
+  fit_rows: np.ndarray
+  labels: np.ndarray
+  is_dev: np.ndarray
+  dev_groups: dict[str, list[int]]
+  tasks: list[str]
+
+
+def training_set(run: Run) -> TrainingSet:
+  """The training rollouts of `run`'s chain (its slots and SlotFormer),
+  the dev tasks drawn with `run.seed` (config.seed; seed s on chain s).
+
+  Raises:
+    ConfigError: the training tasks cannot be split by readout.dev_share.
+  """
+  readout = run.config.readout
+  train = load_rendered(run, phyre_rendered.splits(readout)[0])
+  dev = phyre_rendered.dev_tasks(train.tasks, readout.dev_share, run.seed)
   is_dev = np.array([t in dev for t in train.tasks])
   if is_dev.all() or not is_dev.any():
     raise ConfigError(f'{len(set(train.tasks))} training tasks cannot be '
-                      f'split by readout.dev_share={config.readout.dev_share}')
-  features = rollout_features(run, train.first_slots)
-  dev_groups = {task: rows for task, rows
-                in phyre_rendered.group_by_task(train.tasks).items()
-                if task in dev}
+                      f'split by readout.dev_share={readout.dev_share}')
   fit_rows = np.flatnonzero(~is_dev)
-  labels = (train.outcomes[fit_rows] == planning.SOLVED).astype(np.float32)
-  logger.info('classifier training set: %d rollouts of %d tasks (%.1f%% '
-              'solving); dev: %d tasks', len(fit_rows),
-              len(set(train.tasks)) - len(dev), 100 * labels.mean(), len(dev))
+  return TrainingSet(
+      features=rollout_features(run, train.first_slots),
+      outcomes=train.outcomes, fit_rows=fit_rows,
+      labels=(train.outcomes[fit_rows] == planning.SOLVED).astype(np.float32),
+      is_dev=is_dev,
+      dev_groups={task: rows for task, rows
+                  in phyre_rendered.group_by_task(train.tasks).items()
+                  if task in dev},
+      tasks=list(train.tasks))
+
+
+def fit_classifier(readout: Any, condition: str, data: TrainingSet,
+                   seed: int) -> tuple[Any, Any, dict[str, Any]]:
+  """(module, params, fit log) of the classifier of `condition` fitted
+  with `seed` on `data`, its epoch chosen by dev AUCCESS."""
+  model = phyre_rendered.build_classifier(readout, condition,
+                                          data.features.shape[1])
+  inputs = phyre_rendered.condition_features(data.features, condition)
+  rows = np.flatnonzero(data.is_dev)
+
+  def dev_auccess(params):
+    scores = np.full(len(inputs), -np.inf)
+    scores[rows] = readout_lib.predict(model, params, inputs[rows])
+    return phyre_rendered.task_auccess(scores, data.outcomes,
+                                       data.dev_groups)
+
   fit_config = readout_lib.FitConfig(
-      epochs=config.readout.epochs, batch_size=config.readout.batch_size,
-      learning_rate=config.readout.learning_rate,
-      warmup_fraction=config.readout.warmup_fraction)
-  num_selected = features.shape[1]
-  for condition in config.readout.conditions:
-    model = phyre_rendered.build_classifier(config.readout, condition,
-                                            num_selected)
-    inputs = phyre_rendered.condition_features(features, condition)
-    for seed in config.readout.seeds:
-      directory = run.paths.planner(condition, seed)
-      if os.path.exists(os.path.join(directory, 'selection.json')):
-        continue
+      epochs=readout.epochs, batch_size=readout.batch_size,
+      learning_rate=readout.learning_rate,
+      warmup_fraction=readout.warmup_fraction)
+  params, log = readout_lib.fit(model, (inputs[data.fit_rows], data.labels),
+                                dev_auccess, fit_config, seed=seed)
+  return model, params, log
 
-      def dev_auccess(params, model=model, inputs=inputs):
-        scores = np.full(len(inputs), -np.inf)
-        rows = np.flatnonzero(is_dev)
-        scores[rows] = readout_lib.predict(model, params, inputs[rows])
-        return phyre_rendered.task_auccess(scores, train.outcomes, dev_groups)
 
-      params, log = readout_lib.fit(model, (inputs[fit_rows], labels),
-                                    dev_auccess, fit_config, seed=seed)
+def train_readout(run: Run) -> None:
+  """Fits the classifiers on the training tasks' rollouts, per chain and
+  seed (`Run.readout_chains`: a one-seed run readout.seeds on its chain,
+  a several-seed run seed s on chain s); the epoch is chosen by AUCCESS
+  over the dev tasks' rendered candidates."""
+  readout = run.config.readout
+  phyre_rendered.check_candidates(readout)
+  if run.seeds is not None:
+    logger.info('seeds %s: one classifier per chain, seed s on chain s '
+                '(readout.seeds is not used)', run.seeds)
+  for chain, seeds in run.readout_chains(readout.seeds):
+    todo = [(condition, seed) for condition in readout.conditions
+            for seed in seeds if not _trained(chain, condition, seed)]
+    if not todo:
+      logger.info('classifiers of seeds %s already trained', seeds)
+      continue
+    data = training_set(chain)
+    logger.info('classifier training set: %d rollouts of %d tasks (%.1f%% '
+                'solving); dev: %d tasks', len(data.fit_rows),
+                len(set(data.tasks)) - len(data.dev_groups),
+                100 * data.labels.mean(),
+                len(data.dev_groups))
+    for condition, seed in todo:
+      _, params, log = fit_classifier(readout, condition, data, seed)
+      directory = chain.paths.planner(condition, seed)
       # params first: a seed counts as trained once selection.json exists.
       write_atomic(os.path.join(directory, 'params.msgpack'),
                    serialization.msgpack_serialize(params))
       write_json_atomic(os.path.join(directory, 'selection.json'), {
           'dev_auccess_rendered': log['best_score'],
-          'best_epoch': log['best_epoch'], 'dev_tasks': sorted(dev),
+          'best_epoch': log['best_epoch'],
+          'dev_tasks': sorted(data.dev_groups),
           'dev_scores': log['scores'], 'train_losses': log['losses']},
                         sort_keys=False)
       logger.info('classifier %s seed %d: dev AUCCESS (rendered candidates) '
@@ -142,36 +199,54 @@ def train_readout(run: Run) -> None:
                   log['best_epoch'])
 
 
+def load_classifier(run: Run, condition: str, seed: int,
+                    num_selected: int) -> tuple[Any, Any]:
+  """(module, params) of the classifier of `condition` and `seed` on
+  `run`'s chain, over `num_selected` rollout steps.
+
+  Raises:
+    MissingInputError: not trained (the message names the stage).
+  """
+  path = os.path.join(run.paths.planner(condition, seed), 'params.msgpack')
+  if not os.path.exists(path):
+    raise MissingInputError(
+        f'no trained classifier at {path}; run --mode=train_readout')
+  with open(path, 'rb') as f:
+    params = serialization.msgpack_restore(f.read())
+  return (phyre_rendered.build_classifier(run.config.readout, condition,
+                                          num_selected), params)
+
+
+def _trained(run: Run, condition: str, seed: int) -> bool:
+  return os.path.exists(os.path.join(run.paths.planner(condition, seed),
+                                     'selection.json'))
+
+
 def plan(run: Run) -> dict[str, Any]:
   """Ranks the rendered candidates of every test task; AUCCESS per method
-  (random ranking, each classifier, oracle), with the protocol stated."""
-  config = run.config
-  phyre_rendered.check_candidates(config.readout)
-  test = load_rendered(run, phyre_rendered.splits(config.readout)[1])
-  groups = phyre_rendered.group_by_task(test.tasks)
-  features = rollout_features(run, test.first_slots)
-  seeds = tuple(config.readout.seeds)
-  results: dict[str, list[float]] = {}
-  rng_scores = [np.random.default_rng(seed).random(len(test.outcomes))
-                for seed in seeds]
-  results['random'] = [phyre_rendered.task_auccess(s, test.outcomes, groups)
-                       for s in rng_scores]
-  for condition in config.readout.conditions:
-    model = phyre_rendered.build_classifier(config.readout, condition,
-                                            features.shape[1])
-    inputs = phyre_rendered.condition_features(features, condition)
-    values = []
+  (random ranking, each classifier, oracle) and seed (per chain with
+  several seeds), with the protocol stated."""
+  readout = run.config.readout
+  phyre_rendered.check_candidates(readout)
+  results: dict[str, list[float]] = {'random': []}
+  seeds_evaluated = []
+  for chain, seeds in run.readout_chains(readout.seeds):
+    test = load_rendered(chain, phyre_rendered.splits(readout)[1])
+    groups = phyre_rendered.group_by_task(test.tasks)
+    features = rollout_features(chain, test.first_slots)
     for seed in seeds:
-      path = os.path.join(run.paths.planner(condition, seed),
-                          'params.msgpack')
-      if not os.path.exists(path):
-        raise MissingInputError(
-            f'no trained classifier at {path}; run --mode=train_readout')
-      with open(path, 'rb') as f:
-        params = serialization.msgpack_restore(f.read())
-      scores = readout_lib.predict(model, params, inputs)
-      values.append(phyre_rendered.task_auccess(scores, test.outcomes, groups))
-    results[condition] = values
+      seeds_evaluated.append(seed)
+      results['random'].append(phyre_rendered.task_auccess(
+          np.random.default_rng(seed).random(len(test.outcomes)),
+          test.outcomes, groups))
+      for condition in readout.conditions:
+        model, params = load_classifier(chain, condition, seed,
+                                        features.shape[1])
+        scores = readout_lib.predict(
+            model, params,
+            phyre_rendered.condition_features(features, condition))
+        results.setdefault(condition, []).append(
+            phyre_rendered.task_auccess(scores, test.outcomes, groups))
   results['oracle'] = [phyre_rendered.task_auccess(
       (test.outcomes == planning.SOLVED).astype(np.float64), test.outcomes,
       groups)]
@@ -179,6 +254,9 @@ def plan(run: Run) -> dict[str, Any]:
       name: {'auccess': values, 'mean': float(np.mean(values)),
              'std': float(np.std(values))}
       for name, values in results.items()}
+  # Which seed each AUCCESS entry is; 'per_seed': each on its own chain.
+  summary['seeds'] = seeds_evaluated
+  summary['chains'] = 'one' if run.seeds is None else 'per_seed'
   sizes = [len(i) for i in groups.values()]
   summary.update(
       protocol=phyre_rendered.PROTOCOL_NOTE, candidates=phyre_rendered.RENDERED,
@@ -190,7 +268,7 @@ def plan(run: Run) -> dict[str, Any]:
   directory = run.paths.planning
   write_json_atomic(os.path.join(directory, 'results.json'), summary,
                     sort_keys=False)
-  table = phyre_planning.format_table(summary, config.readout.fold)
+  table = phyre_planning.format_table(summary, readout.fold)
   header = (f'{phyre_rendered.PROTOCOL_NOTE}. {len(groups)} test tasks, '
             f'{min(sizes)}-{max(sizes)} candidates each, '
             f'{100 * summary["solving_share"]:.1f}% solving.')

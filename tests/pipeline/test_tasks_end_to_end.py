@@ -86,7 +86,7 @@ def _contact_micro_config(data_dir):
   return config
 
 
-def test_the_tasks_take_several_seeds_rendered_planning_does_not():
+def test_every_task_takes_several_seeds():
   contact_stages = ['prepare_data', 'train_savi', 'extract_slots',
                     'train_slotformer', 'train_readout', 'evaluate_readout']
   config = _contact_micro_config('/nonexistent')
@@ -96,14 +96,10 @@ def test_the_tasks_take_several_seeds_rendered_planning_does_not():
   planning.seeds = (0, 1)
   assert checks.seeds_problems(planning, ['train_savi', 'train_readout',
                                           'plan']) == []
-  # The real PHYRE's rendered rollouts (stages/planning_rendered.py): not yet.
+  # The real PHYRE's rendered rollouts (stages/planning_rendered.py) too.
   planning.data.name = 'phyre'
-  [problem] = checks.seeds_problems(planning, ['train_savi', 'train_readout',
-                                               'plan'])
-  assert problem.endswith('plan, train_readout do not take several seeds '
-                          'yet (their per-seed inputs and outputs are not '
-                          'built): run them with one seed '
-                          '(--config.seed=<s>, no --config.seeds)')
+  assert checks.seeds_problems(planning, ['train_savi', 'train_readout',
+                                          'plan']) == []
   vqa = load_config('synthetic_vqa', 'tiny')
   vqa.seeds = (0, 1)
   assert checks.seeds_problems(vqa, ['train_savi', 'vqa_slots', 'train_vqa',

@@ -11,6 +11,7 @@ import json
 import os
 from pathlib import Path
 
+import jax
 import numpy as np
 import pytest
 
@@ -185,3 +186,38 @@ def test_planning_stages_on_the_rendered_layout(converted, tmp_path):
     assert planning.auccess([4, 4]) - 1e-9 <= summary[name]['mean'] <= 1.0
   text = open(os.path.join(workdir, 'planning', 'results.md')).read()
   assert 'NOT the official protocol' in text
+
+
+@pytest.mark.slow
+def test_rendered_planning_with_seeds_fits_one_classifier_per_chain(
+    converted, tmp_path):
+  """config.seeds=(0, 1): classifier s is fitted with seed s on chain s's
+  rollout features (its slots and SlotFormer), its dev tasks drawn with s,
+  as the one-seed run of seed s would; one AUCCESS per chain."""
+  config = micro_config(converted)
+  config.seeds = (0, 1)
+  workdir = str(tmp_path / 'run')
+  mesh = sharding.make_mesh()
+  for stage in ('train_savi', 'extract_slots', 'train_slotformer',
+                'train_readout'):
+    run_stage(config, workdir, mesh, stage)
+  summary = run_stage(config, workdir, mesh, 'plan')
+  assert summary['seeds'] == [0, 1] and summary['chains'] == 'per_seed'
+  for name in ('random', 'first_frame', 'rollout'):
+    assert len(summary[name]['auccess']) == 2
+  run = Run.create(config, workdir, mesh)
+  fitted = {}
+  for index, seed in enumerate(config.seeds):
+    view = run.for_seed(index)
+    data = planning_rendered.training_set(view)
+    _, params, _ = planning_rendered.fit_classifier(
+        config.readout, 'rollout', data, seed)
+    _, fitted[seed] = planning_rendered.load_classifier(
+        view, 'rollout', seed, data.features.shape[1])
+    jax.tree.map(np.testing.assert_array_equal, fitted[seed],
+                 jax.device_get(params))
+    assert os.path.exists(os.path.join(
+        workdir, f'seed_{seed}', 'planning', 'rollout', f'seed_{seed}',
+        'selection.json'))
+  assert not all(np.array_equal(a, b) for a, b in zip(
+      jax.tree.leaves(fitted[0]), jax.tree.leaves(fitted[1])))
