@@ -269,8 +269,10 @@ def _quiet_teardown() -> None:
 
 def _run(run: Run, selected: tuple[str, ...]) -> None:
   if run.paths.foreign_stage1:
-    # Before any data is made: the read-only stage 1 must fit.
-    chain.check_identities(run.slot_model, run.paths)
+    # Before any data is made: the read-only stage 1 must fit (with the
+    # run's seeds, when several).
+    chain.check_identities(run.slot_model, run.paths,
+                           run.chains()[0].stacked)
   # config.json only ever records settings that are used from here on.
   new_workdir = not os.path.exists(run.paths.config_file)
   changes = accept_config(run.config.to_dict(), run.paths,

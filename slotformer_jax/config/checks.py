@@ -419,12 +419,6 @@ def seeds_problems(config: ml_collections.ConfigDict,
         f'{"does" if len(refused) == 1 else "do"} not take several seeds '
         'yet (their per-seed inputs and outputs are not built): run them '
         'with one seed (--config.seed=<s>, no --config.seeds)')
-  chained = [s for s in stages if s in seeded and s not in SEEDED_STAGES]
-  if chained and config.stage1_workdir is not None:
-    problems.append(
-        f'seeds={tuple(seeds)} with a read-only stage 1 (stage1_workdir='
-        f'{config.stage1_workdir!r}) is not built yet: {", ".join(chained)} '
-        'of several seeds read their own workdir\'s stacked stage 1')
   return problems
 
 

@@ -47,11 +47,14 @@ def part_identity(part: Part, paths: Paths,
       command(paths.stage1, part.mode))
 
 
-def check_identities(slot_model: SlotModel, paths: Paths
+def check_identities(slot_model: SlotModel, paths: Paths,
+                     stacked: StackedSeed | None = None
                      ) -> dict[str, dict[str, Any]]:
   """{part name: identity} of every part, checked against this config
-  without reading parameters (e.g. a read-only stage 1 before any work)."""
-  return {part.name: part_identity(part, paths) for part in slot_model.parts}
+  (`stacked`: trained with the run's several seeds) without reading
+  parameters (e.g. a read-only stage 1 before any work)."""
+  return {part.name: part_identity(part, paths, stacked)
+          for part in slot_model.parts}
 
 
 def parent_of(slot_model: SlotModel, part: Part, identities: dict[str, Any],
@@ -187,15 +190,18 @@ def check_slots_current(paths: Paths, split: str, expected: dict[str, Any],
 
 def check_foreign_stage1(slot_model: SlotModel, paths: Paths, mesh: Mesh,
                          splits: tuple[str, ...],
-                         slots_fields: dict[str, Any]) -> Loaded:
+                         slots_fields: dict[str, Any],
+                         stacked: StackedSeed | None = None) -> Loaded:
   """A stage 1 read from another workdir (`config.stage1_workdir`) is
   read-only: its parts must be trained to their full length with this
   config's settings, the slots of `splits` complete and made by it.
+  `stacked` (with `paths` of that seed): one seed of a stage 1 trained with
+  the run's several seeds, and that seed's slots.
 
   Raises:
     UserError: what is missing or different, and where to fix it.
   """
-  loaded = load(slot_model, paths, mesh)
+  loaded = load(slot_model, paths, mesh, stacked)
   for key, step in loaded.steps.items():
     total = slot_model.num_train_steps[key]
     if step < total:

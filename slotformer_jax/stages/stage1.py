@@ -61,12 +61,16 @@ def stage_functions(run: Run) -> dict[str, Any]:
 
 def uses_foreign_stage1(run: Run, what: str) -> bool:
   """True (after checking it) when stage 1 is another workdir's: the stage
-  `what` then has nothing to do here."""
+  `what` then has nothing to do here. Several seeds: that workdir's stage 1
+  must have been trained with the same seeds; every seed's share and slots
+  are checked (a seed view: its own)."""
   if not run.paths.foreign_stage1:
     return False
-  chain.check_foreign_stage1(run.slot_model, run.paths, run.mesh,
-                             tuple(run.config.extraction.splits),
-                             run.slots_fields)
+  views = [run] if run.seed_index is not None else run.chains()
+  for view in views:
+    chain.check_foreign_stage1(view.slot_model, view.paths, view.mesh,
+                               tuple(view.config.extraction.splits),
+                               view.slots_fields, view.stacked)
   logger.info('%s: using the read-only stage 1 in %s', what,
               run.paths.stage1)
   return True

@@ -23,6 +23,7 @@ from slotformer_jax import dynamics as dynamics_lib
 from slotformer_jax.config import checks
 from slotformer_jax.data.slots import SlotSource
 from slotformer_jax.data.slots import read_meta
+from slotformer_jax.errors import UserError
 from slotformer_jax.evaluation import evaluate as evaluate_lib
 from slotformer_jax.evaluation import seeds as seeds_lib
 from slotformer_jax.run import Run
@@ -219,6 +220,33 @@ def test_a_rerun_resumes_where_the_seeds_stopped(seeded, tmp_path):
       atol=0, rtol=0)
 
 
+def test_a_read_only_stage1_of_several_seeds(seeded, tmp_path):
+  """stage1_workdir with seeds (0, 1): stage 1 and its slots are read from
+  the other workdir, seed s's SlotFormer trains on its seed s's slots (the
+  same stacked state as that run's own SlotFormer); a stage 1 of other
+  seeds is refused in one line before any work."""
+  config, workdir, _ = seeded
+  ablation = config.copy_and_resolve_references()
+  ablation.stage1_workdir = workdir
+  other = str(tmp_path / 'ablation')
+  run_stages(ablation, other, _mesh(2), STAGES[:3])
+  assert not os.path.exists(os.path.join(other, 'savi'))
+  assert not os.path.exists(os.path.join(other, 'seed_0', 'slots'))
+  shapes = dynamics_lib.param_shapes(
+      config.slotformer, 'slotformer',
+      Run.create(config, workdir, _mesh(1)).slot_model.slot_shape)
+  chex.assert_trees_all_close(
+      _stacked_params(os.path.join(other, 'slotformer'), shapes),
+      _stacked_params(os.path.join(workdir, 'slotformer'), shapes),
+      atol=0, rtol=0)
+  ablation.seeds = (0, 2)
+  run = Run.create(ablation, str(tmp_path / 'refused'), _mesh(2))
+  with pytest.raises(UserError, match='seeds') as raised:
+    chain.check_identities(run.slot_model, run.paths, run.chains()[0].stacked)
+  assert '\n' not in str(raised.value)
+  assert not os.path.exists(str(tmp_path / 'refused'))
+
+
 @pytest.mark.slow
 def test_each_seed_has_its_pictures_and_explorer(seeded):
   config, workdir, _ = seeded
@@ -313,9 +341,8 @@ def test_what_takes_several_seeds_is_said_in_one_line():
       'extract_slots, train_slotformer, train_slot_lstm, evaluate, render, '
       "explore only for now (slot_model='savi'; docs/seeds.md); "
       'train_readout does not')
-  config.stage1_workdir = '/elsewhere'
-  assert 'read-only stage 1' in checks.seeds_problems(
-      config, ['extract_slots'])[0]
+  config.stage1_workdir = '/elsewhere'  # a read-only stage 1 too
+  assert checks.seeds_problems(config, ['extract_slots']) == []
   # The STEVE chain takes them too (test_steve_seeds_pipeline.py).
   steve = micro_config('steve', '/nonexistent')
   steve.seeds = SEEDS
