@@ -151,9 +151,9 @@ class Seeds:
       and only the batch is split.
     loop: how the program runs the K steps (`steps.seeds_train_step`):
       'vmap' (one batched step), 'unroll' (the one-seed step written K times
-      into the program) or 'auto': 'unroll' on CPU when the seeds are not
-      split over devices (the one-seed kernels, faster there), else
-      'vmap' (`loop_on`).
+      into the program) or 'auto': 'unroll' on CPU (the one-seed kernels,
+      faster there; and XLA:CPU partitions some vmapped convolutions split
+      over devices wrongly, `loop_on`), 'vmap' on accelerators.
   """
 
   values: tuple[int, ...]
@@ -176,12 +176,18 @@ class Seeds:
 
   def loop_on(self, mesh: Mesh) -> str:
     """'vmap' or 'unroll' for a program on `mesh` (see `loop`). A program
-    for an accelerator always batches the seeds unless told 'unroll'."""
+    for an accelerator always batches the seeds unless told 'unroll'.
+
+    On CPU 'auto' unrolls, also with the seeds split on a 'seed' axis:
+    vmapped and split, XLA:CPU (jaxlib 0.10.2) turns the dVAE's 1x1
+    output convolution into a grouped convolution it then partitions into
+    an invalid one (3 output features for 2 groups: the first step fails),
+    and the transposed convolution of SAVi's decoder computes another loss
+    unless its accelerator form is used (`seeds_update`)."""
     if self.loop != 'auto':
       return self.loop
-    split = sharding.SEED_AXIS in mesh.axis_names
     on_cpu = mesh.devices.flat[0].platform == 'cpu'
-    return 'unroll' if on_cpu and not split else 'vmap'
+    return 'unroll' if on_cpu else 'vmap'
 
   @property
   def several(self) -> bool:

@@ -66,7 +66,14 @@ def _steve(directory, num_steps=NUM_STEPS, interrupt_after=None):
       interrupt_after=interrupt_after)
 
 
-STAGES = {'savi': _savi, 'slotformer': _slotformer, 'steve': _steve}
+def _dvae(directory, num_steps=NUM_STEPS, interrupt_after=None):
+  return test_steve_training._dvae_stage(
+      directory, num_steps, test_steve_training._source(),
+      interrupt_after=interrupt_after)
+
+
+STAGES = {'savi': _savi, 'slotformer': _slotformer, 'steve': _steve,
+          'dvae': _dvae}
 
 
 def _mesh(devices):
@@ -109,14 +116,18 @@ def _assert_seeds_equal_one_seed_runs(state, one_seed_runs, name, seeds,
 
 
 # 4 devices and STEVE: about a minute each on 2 cores, in the slow suite.
-# loop 'auto': 'unroll' on 1 CPU device, 'vmap' split over 4 (2 x 2).
+# loop 'auto': 'unroll' on CPU (1 device, or split over 4: 2 x 2); 'vmap'
+# split over 4 as on an accelerator.
 @pytest.mark.parametrize('name,devices,loop', [
     ('savi', 1, 'auto'), ('slotformer', 1, 'auto'), ('savi', 1, 'vmap'),
     pytest.param('slotformer', 1, 'vmap', marks=pytest.mark.slow),
     pytest.param('savi', 4, 'auto', marks=pytest.mark.slow),
     pytest.param('slotformer', 4, 'auto', marks=pytest.mark.slow),
+    pytest.param('savi', 4, 'vmap', marks=pytest.mark.slow),
     pytest.param('steve', 1, 'auto', marks=pytest.mark.slow),
-    pytest.param('steve', 4, 'auto', marks=pytest.mark.slow)])
+    pytest.param('steve', 4, 'auto', marks=pytest.mark.slow),
+    # Vmapped and split, XLA:CPU miscompiled its 1x1 output convolution.
+    pytest.param('dvae', 4, 'auto', marks=pytest.mark.slow)])
 def test_seed_k_of_k_seeds_is_the_one_seed_run(tmp_path, one_seed_runs,
                                                name, devices, loop):
   """On 4 devices: 2 seeds x 2 data devices (the 'seed' mesh axis); seed k
@@ -125,7 +136,7 @@ def test_seed_k_of_k_seeds_is_the_one_seed_run(tmp_path, one_seed_runs,
   device)."""
   seeds = Seeds(SEEDS, loop=loop)
   assert seeds.loop_on(_mesh(devices)) == (
-      'vmap' if loop == 'vmap' or devices == 4 else 'unroll')
+      'vmap' if loop == 'vmap' else 'unroll')
   state = fit(STAGES[name](tmp_path), mesh=_mesh(devices), seed=0,
               seeds=seeds)
   if devices == 4:
