@@ -5,6 +5,14 @@ before any test module imports jax.
 """
 
 import os
+import signal
+
+# A test run started as a background job of a script (`cmd &`, nohup)
+# inherits SIGINT ignored, and so would every process a test starts: the
+# tests that press Ctrl-C on one (tests/reliability) would see it ignored,
+# as such a run rightly does. The tests start theirs as from a terminal.
+if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+  signal.signal(signal.SIGINT, signal.default_int_handler)
 
 _FLAG = '--xla_force_host_platform_device_count=4'
 if _FLAG not in os.environ.get('XLA_FLAGS', ''):

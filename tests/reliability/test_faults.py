@@ -320,7 +320,9 @@ def test_ctrl_c_during_prepare_is_one_line_and_the_rerun_finishes(tmp_path):
   converter and its workers): one `interrupted:` line, exit status 130, no
   traceback; the rerun converts what is left. Before: a KeyboardInterrupt
   traceback from the converter and one from each worker."""
-  source = _obj3d_source(tmp_path / 'OBJ3D', videos=96, frames=8)
+  # 384 videos in 192 shards: a few seconds of converting on an idle box
+  # (96 took 0.6 s, and a fast run ended before the signal arrived).
+  source = _obj3d_source(tmp_path / 'OBJ3D', videos=384, frames=8)
   command = [sys.executable, '-u', '-m', 'slotformer_jax.data.prepare',
              '--dataset=obj3d', f'--source={source}',
              f'--data_dir={tmp_path / "data"}', '--splits=train',
@@ -333,7 +335,7 @@ def test_ctrl_c_during_prepare_is_one_line_and_the_rerun_finishes(tmp_path):
                                start_new_session=True)
   deadline = time.monotonic() + 240
   # Signalled once the first shard is done (its progress record), while the
-  # 47 others are still to write: a fixed sleep raced a fast machine.
+  # 191 others are still to write: a fixed sleep raced a fast machine.
   while not list((tmp_path / 'data').glob('**/_progress/train-[0-9]*.json')):
     assert process.poll() is None and time.monotonic() < deadline, (
         log.read_text()[-3000:])
@@ -350,4 +352,4 @@ def test_ctrl_c_during_prepare_is_one_line_and_the_rerun_finishes(tmp_path):
   rerun = subprocess.run(command, env=_env(tmp_path), capture_output=True,
                          text=True, timeout=600)
   assert rerun.returncode == 0, rerun.stderr[-3000:]
-  assert 'train: 96' in rerun.stdout + rerun.stderr
+  assert 'train: 384' in rerun.stdout + rerun.stderr
