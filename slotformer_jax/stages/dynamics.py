@@ -120,20 +120,24 @@ def dynamics_stage(section: ml_collections.ConfigDict, name: str,
 
 
 def train_dynamics(run: Run, name: str) -> None:
-  """Trains dynamics model `name` on the current slots of the 'train' split
-  (several seeds: `train_dynamics_seeds`)."""
-  if run.seeds is not None:
-    train_dynamics_seeds(run, name)
-    return
+  """Trains dynamics model `name` on the current slots of the 'train'
+  split, in one program for the run's one seed or all its seeds (the
+  module docstring): each chain's stage (`seed_stage`; stacked with
+  several seeds), its identity recording the seeds, its parent the stage 1
+  every chain's slots were checked to descend from."""
   section = run.dynamics_section(name)
   # The dynamics' own stream of batches: seed + 1, apart from stage 1's.
-  seed = run.config.seed + 1
-  stage, parent = seed_stage(run, name, seed)
-  fit_stage(stage, mesh=run.mesh, seed=seed, what=name,
+  built = [seed_stage(chain, name, stream) for chain, stream
+           in zip(run.chains(), stream_seeds(run.config, offset=1))]
+  stages = [stage for stage, _ in built]
+  # Seed s's initialisation and step RNG: s + 1, as its one-seed run's.
+  fit_stage(stages[0] if len(stages) == 1 else stacked_stage(stages),
+            mesh=run.mesh, seed=run.config.seed + 1, what=name,
             identity_fields=dynamics_lib.identity_fields(
                 run.config.seed, section, name),
-            parent=parent, model_fields=dynamics_lib.model_fields(section,
-                                                                  name))
+            parent=built[0][1],
+            model_fields=dynamics_lib.model_fields(section, name),
+            seeds=seeds_of(run.config, offset=1))
 
 
 def seed_stage(view: Run, name: str, stream_seed: int
@@ -162,27 +166,6 @@ def seed_stage(view: Run, name: str, stream_seed: int
                          logging_config=view.config.logging,
                          reader_workers=view.config.data.reader_workers)
   return stage, parent
-
-
-def train_dynamics_seeds(run: Run, name: str) -> None:
-  """Trains dynamics model `name` for every seed of config.seeds in one
-  program, seed s on the slots of stage-1 seed s (see the module
-  docstring); its identity records the seeds, its parent the stacked
-  stage 1 they share (each seed's slots are checked to descend from it,
-  `seed_stage`)."""
-  views = run.seed_views()
-  section = run.dynamics_section(name)
-  stages = [seed_stage(view, name, stream)[0]
-            for view, stream in zip(views, stream_seeds(run.config,
-                                                        offset=1))]
-  # Seed s's initialisation and step RNG: s + 1, as its one-seed run's.
-  fit_stage(stacked_stage(stages), mesh=run.mesh,
-            seed=run.config.seed + 1, what=name,
-            identity_fields=dynamics_lib.identity_fields(
-                run.config.seed, section, name),
-            parent=views[0].stage1.slots_parent,
-            model_fields=dynamics_lib.model_fields(section, name),
-            seeds=seeds_of(run.config, offset=1))
 
 
 def _rollout_images(slot_model, slot_params, model, burn_in: int,

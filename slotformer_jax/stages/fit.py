@@ -36,11 +36,13 @@ def seeds_of(config: ml_collections.ConfigDict, offset: int = 0
 
 def stream_seeds(config: ml_collections.ConfigDict, offset: int = 0
                  ) -> tuple[int, ...]:
-  """Each of the run's several seeds' data-order seed for a stage whose
-  own stream is `offset` apart from the run's (the dynamics: 1):
-  config.seed + offset for every seed (the shared order), or seed
-  s + offset ('per_seed')."""
+  """Each chain's data-order seed for a stage whose own stream is `offset`
+  apart from the run's (the dynamics: 1): one seed, (config.seed +
+  offset,); several, config.seed + offset for every seed (the shared
+  order), or seed s + offset ('per_seed')."""
   values = several_seeds(config)
+  if values is None:
+    return (config.seed + offset,)
   if config.seed_data_order == 'per_seed':
     return tuple(seed + offset for seed in values)
   return (config.seed + offset,) * len(values)
