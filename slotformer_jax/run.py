@@ -176,9 +176,12 @@ class Run:
     return [self.for_seed(index) for index in range(len(self.seeds))]
 
   def chains(self) -> list[Run]:
-    """The runs a per-seed stage goes through: this one, or with several
-    seeds every seed view (chain s: stage-1 seed s and what follows)."""
-    return self.seed_views() if self.seeds is not None else [self]
+    """The runs a per-seed stage goes through: a one-seed run or a seed
+    view itself; a several-seed run every seed view (chain s: stage-1
+    seed s and what follows)."""
+    if self.seeds is None or self.seed_index is not None:
+      return [self]
+    return self.seed_views()
 
   def readout_chains(self, readout_seeds: Sequence[int]
                      ) -> list[tuple[Run, tuple[int, ...]]]:

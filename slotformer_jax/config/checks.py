@@ -347,9 +347,8 @@ def validate(config: ml_collections.ConfigDict, stages: Sequence[str], *,
 # The stages that take several seeds (config.seeds): stage 1's first part
 # (no parent, no derived input) of any slot model, and the chain after it
 # of SAVi and STEVE, seed s on stage-1 seed s (docs/seeds.md), with the
-# contact readouts, the embedded planning task's classifiers and Aloe (task
-# model s on chain s). Every other stage refuses them: planning on the real
-# PHYRE's rendered rollouts.
+# readouts of every task (contact, planning on either layout) and Aloe
+# (task model s on chain s).
 SEEDED_STAGES = ('train_savi', 'train_dvae')
 _VIDEO_PREDICTION_CHAIN = ('extract_slots', 'train_slotformer',
                            'train_slot_lstm', 'evaluate', 'render',

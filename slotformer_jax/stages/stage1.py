@@ -66,8 +66,7 @@ def uses_foreign_stage1(run: Run, what: str) -> bool:
   are checked (a seed view: its own)."""
   if not run.paths.foreign_stage1:
     return False
-  views = [run] if run.seed_index is not None else run.chains()
-  for view in views:
+  for view in run.chains():
     chain.check_foreign_stage1(view.slot_model, view.paths, view.mesh,
                                tuple(view.config.extraction.splits),
                                view.slots_fields, view.stacked)

@@ -333,18 +333,15 @@ def train_vqa(run: Run) -> None:
   vqa = config.vqa
   vocab = vqa_questions.vocabulary(config)
   directory = run.paths.aloe(vqa.inputs, vqa.seed)
-  if run.seeds is None:
-    seed = aloe_seed(config.seed, vqa)
-    fit(_train_stage(run, directory, vocab, seed), mesh=run.mesh, seed=seed)
-    return
-  stages = [_train_stage(view, directory, vocab, aloe_seed(stream, vqa))
-            for view, stream in zip(run.seed_views(),
-                                    fit_lib.stream_seeds(config))]
-  seeds = dataclasses.replace(
-      fit_lib.seeds_of(config),
-      values=tuple(aloe_seed(s, vqa) for s in run.seeds))
-  fit(fit_lib.stacked_stage(stages), mesh=run.mesh,
-      seed=aloe_seed(config.seed, vqa), seeds=seeds)
+  stages = [_train_stage(chain, directory, vocab, aloe_seed(stream, vqa))
+            for chain, stream in zip(run.chains(),
+                                     fit_lib.stream_seeds(config))]
+  seeds = fit_lib.seeds_of(config)
+  if seeds is not None:
+    seeds = dataclasses.replace(
+        seeds, values=tuple(aloe_seed(s, vqa) for s in run.seeds))
+  fit(stages[0] if len(stages) == 1 else fit_lib.stacked_stage(stages),
+      mesh=run.mesh, seed=aloe_seed(config.seed, vqa), seeds=seeds)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -77,6 +77,18 @@ def _stacked_params(directory, shapes):
   return jax.device_get(params)
 
 
+def _assert_same_slotformer(config, workdir, reference):
+  """The stacked SlotFormer of `workdir` equals `reference`'s, bit for
+  bit."""
+  shapes = dynamics_lib.param_shapes(
+      config.slotformer, 'slotformer',
+      Run.create(config, reference, _mesh(1)).slot_model.slot_shape)
+  chex.assert_trees_all_close(
+      _stacked_params(os.path.join(workdir, 'slotformer'), shapes),
+      _stacked_params(os.path.join(reference, 'slotformer'), shapes),
+      atol=0, rtol=0)
+
+
 def test_each_seed_has_its_slots_and_evaluation(seeded):
   config, workdir, results = seeded
   assert not os.path.exists(os.path.join(workdir, 'slots'))
@@ -211,13 +223,7 @@ def test_a_rerun_resumes_where_the_seeds_stopped(seeded, tmp_path):
       savi_checkpoints)
   assert os.path.getmtime(seed0_test) == before
   assert read_meta(seed1)['complete']
-  shapes = dynamics_lib.param_shapes(
-      config.slotformer, 'slotformer',
-      Run.create(config, copy, _mesh(1)).slot_model.slot_shape)
-  chex.assert_trees_all_close(
-      _stacked_params(os.path.join(copy, 'slotformer'), shapes),
-      _stacked_params(os.path.join(workdir, 'slotformer'), shapes),
-      atol=0, rtol=0)
+  _assert_same_slotformer(config, copy, workdir)
 
 
 def test_a_read_only_stage1_of_several_seeds(seeded, tmp_path):
@@ -232,13 +238,7 @@ def test_a_read_only_stage1_of_several_seeds(seeded, tmp_path):
   run_stages(ablation, other, _mesh(2), STAGES[:3])
   assert not os.path.exists(os.path.join(other, 'savi'))
   assert not os.path.exists(os.path.join(other, 'seed_0', 'slots'))
-  shapes = dynamics_lib.param_shapes(
-      config.slotformer, 'slotformer',
-      Run.create(config, workdir, _mesh(1)).slot_model.slot_shape)
-  chex.assert_trees_all_close(
-      _stacked_params(os.path.join(other, 'slotformer'), shapes),
-      _stacked_params(os.path.join(workdir, 'slotformer'), shapes),
-      atol=0, rtol=0)
+  _assert_same_slotformer(config, other, workdir)
   ablation.seeds = (0, 2)
   run = Run.create(ablation, str(tmp_path / 'refused'), _mesh(2))
   with pytest.raises(UserError, match='seeds') as raised:
