@@ -437,11 +437,11 @@ def seeds_program(config, step: str, mesh: Mesh, num_seeds: int
   stage = train_stage(config, step, mesh)
   seed = config.seed
   if step == 'steve':
-    # stage1._train_part_seeds: K one-seed stages (each seed's tokens; the
+    # fit.fit_chains: K one-seed stages (each seed's tokens; the
     # same shapes), stacked.
     stage = stacked_stage([stage] * num_seeds)
   if step == 'slotformer':
-    # train_dynamics_seeds: K one-seed stages (each seed's slots and
+    # fit.fit_chains: K one-seed stages (each seed's slots and
     # decoder; the same shapes), stacked.
     seed = config.seed + 1
     one = dataclasses.replace(stage, frozen_params=None)

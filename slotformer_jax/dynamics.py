@@ -8,6 +8,7 @@ nothing of the slot model but its slot shape (N, D).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 import dataclasses
 from typing import Any
 
@@ -15,10 +16,13 @@ import jax
 from jax.sharding import Mesh
 import jax.numpy as jnp
 import ml_collections
+import numpy as np
 
 from slotformer_jax import inference
 from slotformer_jax.config.sections import SLOT_LSTM
 from slotformer_jax.config.sections import SLOTFORMER
+from slotformer_jax.frames import labelled_grid
+from slotformer_jax.frames import to_uint8
 from slotformer_jax.modules.slot_lstm import SlotLSTM
 from slotformer_jax.modules.slotformer import SlotFormer
 from slotformer_jax.workdir import identity as identity_lib
@@ -129,3 +133,37 @@ def load(paths: Paths, mesh: Mesh, name: str,
         train_command=train_command, num_train_steps=section.num_train_steps)
   return Loaded(name=name, module=build(section, name), params=params,
                 step=step, diverged_at=diverged_at)
+
+
+def rollout_images(slot_model: Any, slot_params: Any, model: DynamicsModel,
+                   burn_in: int, rollout: int, name: str
+                   ) -> Callable[[Any, dict[str, Any]], dict[str, Any]] | None:
+  """The training stage's TensorBoard pictures, (params, batch) -> {'rollout':
+  strip}: the first clip of the batch, its frames (when the batch has them),
+  its extracted slots decoded, and the burn-in slots followed by the model's
+  rollout, decoded. None for a slot model without a pixel decoder (STEVE
+  would generate every frame token by token)."""
+  if slot_model.image_decoder(slot_params) is None:
+    return None
+
+  @jax.jit
+  def decode(params, slots):
+    predicted = inference.rollout_slots(params, slots[:, :burn_in],
+                                        model=model, num_steps=rollout)
+    both = jnp.concatenate([slots, jnp.concatenate(
+        [slots[:, :burn_in], predicted], axis=1)])
+    return slot_model.decode(slot_params, both).recon
+
+  def images(params, batch):
+    recon = np.asarray(jax.device_get(decode(params, batch['slots'][:1])))
+    rows = {}
+    if 'video' in batch:  # the rollout's frames (L_I reads no others)
+      frames = batch['video'][0]
+      rows['real frames'] = np.concatenate([np.full(
+          (burn_in + rollout - len(frames), *frames.shape[1:]), 255,
+          np.uint8), frames])  # white under the burn-in
+    rows['slots decoded'] = to_uint8(recon[0])
+    rows[f'burn-in {burn_in} + {name}'] = to_uint8(recon[1])
+    return {'rollout': labelled_grid(rows)}
+
+  return images

@@ -97,8 +97,17 @@ class Run:
     path = os.path.join(workdir, 'config.json')
     if not os.path.exists(path):
       raise MissingInputError(f'{workdir} has no config.json: not a run')
-    config = ml_collections.ConfigDict(read_json(path))
-    return cls.create(config, workdir, mesh)
+    settings = read_json(path)
+    # A workdir from before a field was added: the value its absence
+    # stands for (identity.ADDED_FIELDS), so the code reads every field.
+    for name, value in identity_lib.ADDED_FIELDS.items():
+      *sections, field = name.split('.')
+      section = settings
+      for key in sections:
+        section = section.get(key) if isinstance(section, dict) else None
+      if isinstance(section, dict) and field not in section:
+        section[field] = value
+    return cls.create(ml_collections.ConfigDict(settings), workdir, mesh)
 
   def check(self, stages: tuple[str, ...], *, num_devices: int | None = None,
             num_processes: int | None = None) -> None:

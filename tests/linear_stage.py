@@ -15,7 +15,8 @@ def linear_stage(directory, *, tensorboard=False, **config_changes) -> Stage:
   trainer field set, `config_changes` on top; TensorBoard when asked."""
   config = ml_collections.ConfigDict(dict(
       num_train_steps=3, learning_rate=1e-2, warmup_fraction=0.0,
-      grad_clip=0.0, min_lr_fraction=0.0, stop_check_every=1, batch_size=4,
+      grad_clip=0.0, min_lr_fraction=0.0,
+      group_learning_rates={}, stop_check_every=1, batch_size=4,
       log_every=1, checkpoint_every=2))
   config.update(config_changes)
 

@@ -307,7 +307,7 @@ def validate(config: ml_collections.ConfigDict, stages: Sequence[str], *,
       for key in ('burn_in', 'rollout', 'frame_stride', 'embed_dim',
                   'num_layers') + (_TRAINING_INTS if f'train_{name}' in stages
                                    else ()):
-        value = section.get(key)
+        value = section[key]
         if not isinstance(value, int) or value < 1:
           problems.append(f'{name}.{key} must be an integer >= 1, got '
                           f'{value!r}')
@@ -425,7 +425,7 @@ def _check_vqa_batches(vqa: ml_collections.ConfigDict, problems: list[str],
                        divisible: Callable[[str, Any], None]) -> None:
   """Aloe's two batches: each an integer >= 0 (0: that kind of question is
   not drawn), not both 0, each split over the devices."""
-  sizes = {f'vqa.{name}': vqa.get(name)
+  sizes = {f'vqa.{name}': vqa[name]
            for name in ('open_batch_size', 'choice_batch_size')}
   for name, size in sizes.items():
     if not isinstance(size, int) or isinstance(size, bool) or size < 0:
@@ -444,7 +444,7 @@ def _check_splits(config: ml_collections.ConfigDict, stages,
   extracted: before, evaluation.split='valid' was accepted, three stages
   trained, and evaluation then asked, forever, for slots that the
   extraction (of extraction.splits only) never makes."""
-  extracted = tuple(config.extraction.get('splits', ()))
+  extracted = tuple(config.extraction.splits)
   wanted = []
   if set(stages) & {'evaluate', 'render', 'explore'}:
     wanted.append(('evaluation.split', config.evaluation.split))

@@ -88,6 +88,9 @@ def base_config() -> ml_collections.ConfigDict:
   # chips wait for the reader (benchmarks/gpu_check.sh says 'input-bound';
   # docs/performance.md, "Feeding the chips"). The batches are the same.
   config.data.reader_workers = 0
+  # Worker processes that generate the embedded datasets (None: one per
+  # core); not part of a run's identity.
+  config.data.num_workers = ml_collections.config_dict.placeholder(int)
 
   # ---- stage 1: SAVi ------------------------------------------------------
   config.savi = savi = ml_collections.ConfigDict()
@@ -135,6 +138,9 @@ def base_config() -> ml_collections.ConfigDict:
   savi.num_train_steps = 80_000
   savi.learning_rate = 2e-4
   savi.min_lr_fraction = 0.0
+  # {top-level parameter name: peak learning rate} of parts trained at
+  # their own rate (STEVE's token decoder); {}: one rate for all.
+  savi.group_learning_rates = {}
   savi.warmup_fraction = 0.025
   savi.grad_clip = 0.05  # max global gradient norm
   savi.log_every = 100
@@ -157,6 +163,8 @@ def base_config() -> ml_collections.ConfigDict:
   dvae.batch_size = 64  # single frames
   dvae.num_train_steps = 700_000
   dvae.learning_rate = 1e-3
+  dvae.min_lr_fraction = 0.0  # the official schedule ends at 0
+  dvae.group_learning_rates = {}
   dvae.warmup_fraction = 0.05
   dvae.grad_clip = 0.0  # none
   dvae.tokenize_batch_size = 16  # videos per batch when tokenizing
@@ -184,6 +192,7 @@ def base_config() -> ml_collections.ConfigDict:
   steve.clip_length = 6
   steve.num_train_steps = 460_000
   steve.learning_rate = 1e-4
+  steve.min_lr_fraction = 0.0  # the official schedule ends at 0
   steve.group_learning_rates = {'decoder': 3e-4}  # the token decoder
   steve.warmup_fraction = 0.05
   steve.grad_clip = 0.05
@@ -224,6 +233,7 @@ def base_config() -> ml_collections.ConfigDict:
   dyn.num_train_steps = 200_000
   dyn.learning_rate = 2e-4
   dyn.min_lr_fraction = 0.0
+  dyn.group_learning_rates = {}
   dyn.warmup_fraction = 0.05
   dyn.grad_clip = 0.0  # the paper uses none
   dyn.log_every = 100
@@ -386,10 +396,14 @@ def vqa_config() -> ml_collections.ConfigDict:
   # in configs/clevrer_vqa.py, 0 here).
   vqa.open_batch_size = 128  # descriptive questions per step
   vqa.choice_batch_size = 128  # multiple-choice questions per step
+  # {question type: weight of its multiple-choice questions in the training
+  # draws}; {} (or 1): as many as the training split has.
+  vqa.choice_type_weights = {}
   vqa.num_train_steps = 240_000
   vqa.learning_rate = 1e-3
   vqa.warmup_fraction = 0.1
   vqa.min_lr_fraction = 0.0
+  vqa.group_learning_rates = {}
   vqa.grad_clip = 0.0
   vqa.log_every = 100
   vqa.checkpoint_every = 2000

@@ -52,5 +52,5 @@ def reads_readout_splits(config: ml_collections.ConfigDict) -> bool:
   """Whether the task's readout reads the data splits `readout.splits`
   names: contact, and planning on the rendered PHYRE layout; the embedded
   PHYRE-like tasks split by task, not by data split."""
-  return config.get('task') == 'contact' or (
-      config.get('task') == 'planning' and config.data.name == 'phyre')
+  return config.task == 'contact' or (
+      config.task == 'planning' and config.data.name == 'phyre')

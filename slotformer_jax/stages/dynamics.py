@@ -21,29 +21,22 @@ from typing import Any
 
 import jax
 from jax.sharding import Mesh
-import jax.numpy as jnp
 import ml_collections
-import numpy as np
 
 from slotformer_jax import dynamics as dynamics_lib
-from slotformer_jax import inference
 from slotformer_jax import losses
 from slotformer_jax.config.sections import SLOT_LSTM
 from slotformer_jax.config.sections import SLOTFORMER
 from slotformer_jax.data import pipeline
 from slotformer_jax.errors import ConfigError
-from slotformer_jax.frames import labelled_grid
-from slotformer_jax.frames import to_uint8
 from slotformer_jax.modules import initializers
 from slotformer_jax.run import Run
 from slotformer_jax.runtime import precision
 from slotformer_jax.runtime import sharding
 from slotformer_jax.slot_models import chain
 from slotformer_jax.slot_models.base import SlotModel
-from slotformer_jax.stages.fit import fit_stage
-from slotformer_jax.stages.fit import seeds_of
-from slotformer_jax.stages.fit import stacked_stage
-from slotformer_jax.stages.fit import stream_seeds
+from slotformer_jax.stages.fit import Training
+from slotformer_jax.stages.fit import fit_chains
 from slotformer_jax.train import steps
 from slotformer_jax.train.trainer import Stage
 
@@ -84,8 +77,10 @@ def dynamics_stage(section: ml_collections.ConfigDict, name: str,
                                                slot_params)
   video_fields = ('video',) if decoder is not None else ()
   model = dynamics_lib.build(section, name)
-  local_batch_size = sharding.per_host_batch_size(section.batch_size, mesh)
   example = dynamics_lib.example(section, slot_model.slot_shape)
+  images = dynamics_lib.rollout_images(slot_model, slot_params, model,
+                                       section.burn_in, rollout, name)
+  local_batch_size = sharding.per_host_batch_size(section.batch_size, mesh)
 
   def batches_for_seed(stream_seed, start_step):
     return pipeline.train_batches(
@@ -112,10 +107,7 @@ def dynamics_stage(section: ml_collections.ConfigDict, name: str,
       batches_for_seed=batches_for_seed,
       frozen_params=decoder_params,
       logging=logging_config,
-      images=(_rollout_images(slot_model, slot_params, model,
-                              section.burn_in, rollout, name)
-              if slot_model.image_decoder(slot_params) is not None
-              else None),
+      images=images,
   )
 
 
@@ -123,21 +115,18 @@ def train_dynamics(run: Run, name: str) -> None:
   """Trains dynamics model `name` on the current slots of the 'train'
   split, in one program for the run's one seed or all its seeds (the
   module docstring): each chain's stage (`seed_stage`; stacked with
-  several seeds), its identity recording the seeds, its parent the stage 1
-  every chain's slots were checked to descend from."""
+  several seeds), its parent the stage 1 every chain's slots were checked
+  to descend from."""
   section = run.dynamics_section(name)
-  # The dynamics' own stream of batches: seed + 1, apart from stage 1's.
-  built = [seed_stage(chain, name, stream) for chain, stream
-           in zip(run.chains(), stream_seeds(run.config, offset=1))]
-  stages = [stage for stage, _ in built]
-  # Seed s's initialisation and step RNG: s + 1, as its one-seed run's.
-  fit_stage(stages[0] if len(stages) == 1 else stacked_stage(stages),
-            mesh=run.mesh, seed=run.config.seed + 1, what=name,
-            identity_fields=dynamics_lib.identity_fields(
-                run.config.seed, section, name),
-            parent=built[0][1],
-            model_fields=dynamics_lib.model_fields(section, name),
-            seeds=seeds_of(run.config, offset=1))
+  training = Training(
+      what=name,
+      chain_stage=lambda chain, stream: seed_stage(chain, name, stream),
+      model_fields=dynamics_lib.model_fields(section, name),
+      identity_fields=dynamics_lib.identity_fields(run.config.seed, section,
+                                                   name),
+      # Its own stream of batches and RNG: seed + 1, apart from stage 1's.
+      offset=1)
+  fit_chains(run, training)
 
 
 def seed_stage(view: Run, name: str, stream_seed: int
@@ -155,9 +144,10 @@ def seed_stage(view: Run, name: str, stream_seed: int
                                  view.slot_model, view.stage1)
   parent = chain.check_slots_current(view.paths, 'train', loaded.slots_parent,
                                      view.slots_fields, slot_model.label)
-  decoder, _ = image_loss_decoder(section, name, slot_model, loaded.params)
-  # L_I compares the rollout frames only: the burn-in frames are not read.
-  source = view.slots('train', ('video',) if decoder is not None else (),
+  # L_I (`image_loss_decoder`) reads the videos, and compares the rollout
+  # frames only: the burn-in frames are not read.
+  source = view.slots('train',
+                      ('video',) if section.image_loss_weight > 0 else (),
                       video_from=section.burn_in)
   stage = dynamics_stage(section, name, view.paths.dynamics(name),
                          view.mesh, slot_model, loaded.params, source,
@@ -166,36 +156,6 @@ def seed_stage(view: Run, name: str, stream_seed: int
                          logging_config=view.config.logging,
                          reader_workers=view.config.data.reader_workers)
   return stage, parent
-
-
-def _rollout_images(slot_model, slot_params, model, burn_in: int,
-                    rollout: int, name: str):
-  """TensorBoard rollout strip of the first clip of a training batch: its
-  frames (when the batch has them), its extracted slots decoded, and the
-  burn-in slots followed by the model's rollout, decoded (slot models with
-  a pixel decoder only: STEVE would generate every frame token by token)."""
-
-  @jax.jit
-  def decode(params, slots):
-    predicted = inference.rollout_slots(params, slots[:, :burn_in],
-                                        model=model, num_steps=rollout)
-    both = jnp.concatenate([slots, jnp.concatenate(
-        [slots[:, :burn_in], predicted], axis=1)])
-    return slot_model.decode(slot_params, both).recon
-
-  def images(params, batch):
-    recon = np.asarray(jax.device_get(decode(params, batch['slots'][:1])))
-    rows = {}
-    if 'video' in batch:  # the rollout's frames (L_I reads no others)
-      frames = batch['video'][0]
-      rows['real frames'] = np.concatenate([np.full(
-          (burn_in + rollout - len(frames), *frames.shape[1:]), 255,
-          np.uint8), frames])  # white under the burn-in
-    rows['slots decoded'] = to_uint8(recon[0])
-    rows[f'burn-in {burn_in} + {name}'] = to_uint8(recon[1])
-    return {'rollout': labelled_grid(rows)}
-
-  return images
 
 
 def train_slotformer(run: Run) -> None:

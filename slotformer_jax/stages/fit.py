@@ -1,18 +1,26 @@
-"""Training a stage of the pipeline: its identity stamped, its architecture
+"""Training a stage of the pipeline: one trainer stage per chain of the run
+(stacked with several seeds), its identity stamped, its architecture
 checked, then the trainer's loop (train/trainer.py), which knows nothing of
-workdirs."""
+workdirs.
+
+A stage says what it trains in a `Training` and hands it to `fit_chains`:
+
+    fit_chains(run, Training(what='slotformer', chain_stage=..., offset=1,
+                             identity_fields=..., model_fields=...))
+"""
 
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 from typing import Any
 
 import jax
-from jax.sharding import Mesh
 import jax.numpy as jnp
 import ml_collections
 
 from slotformer_jax.config.sections import several_seeds
+from slotformer_jax.run import Run
 from slotformer_jax.train.state import TrainState
 from slotformer_jax.train.trainer import Seeds
 from slotformer_jax.train.trainer import Stage
@@ -34,18 +42,12 @@ def seeds_of(config: ml_collections.ConfigDict, offset: int = 0
                loop=config.seed_loop)
 
 
-def stream_seeds(config: ml_collections.ConfigDict, offset: int = 0
-                 ) -> tuple[int, ...]:
-  """Each chain's data-order seed for a stage whose own stream is `offset`
-  apart from the run's (the dynamics: 1): one seed, (config.seed +
-  offset,); several, config.seed + offset for every seed (the shared
-  order), or seed s + offset ('per_seed')."""
-  values = several_seeds(config)
-  if values is None:
-    return (config.seed + offset,)
-  if config.seed_data_order == 'per_seed':
-    return tuple(seed + offset for seed in values)
-  return (config.seed + offset,) * len(values)
+def stream_seeds(seeds: Seeds | None, seed: int) -> tuple[int, ...]:
+  """Each chain's data-order seed, for a stage whose stream is `seed`
+  (config.seed + its offset) and whose `seeds` are `seeds_of` it: one seed,
+  (seed,); several, `seed` for every seed (the shared order) or each its
+  own ('per_seed')."""
+  return (seed,) if seeds is None else seeds.stream_seeds(seed)
 
 
 def stacked_stage(stages: list[Stage]) -> Stage:
@@ -76,20 +78,61 @@ def stamped_fields(identity_fields: dict[str, Any], seeds: Seeds | None
       seeds.values, seeds.data_order))
 
 
-def fit_stage(stage: Stage, *, mesh: Mesh, seed: int, what: str,
-              identity_fields: dict[str, Any], parent: dict[str, Any] | None,
-              model_fields: dict[str, Any],
-              seeds: Seeds | None = None) -> TrainState:
-  """`fit` after stamping the stage's run identity (a stage made with other
-  settings or from another parent is set aside and retrained; see
-  `identity.start_stage`) and checking that its checkpoints have the
-  architecture of `model_fields`.
+@dataclasses.dataclass(frozen=True)
+class Training:
+  """What a training stage of the pipeline trains (`fit_chains`).
 
-  Several `seeds`: they join the identity (with their data order), so a
-  stage trained with other seeds (or one) is set aside; the checkpoints
-  hold the one stacked state (train/trainer.py)."""
-  identity_fields = stamped_fields(identity_fields, seeds)
-  identity_lib.start_stage(stage.directory, identity_fields, parent, what)
-  identity_lib.check_model_config(stage.directory, model_fields, what)
-  identity_lib.write_model_config(stage.directory, model_fields)
-  return fit(stage, mesh=mesh, seed=seed, seeds=seeds)
+  Attributes:
+    what: its name in messages ('SAVi', 'slotformer').
+    chain_stage: (chain, stream seed) -> (the one-seed trainer `Stage` on
+      that chain's data (`Run.chains`: the run, or a seed view), its batches
+      drawn with the stream seed; the parent its identity records, e.g. the
+      stage 1 its slots descend from, or None).
+    identity_fields: what shapes the trained model (besides its parent).
+    model_fields: its architecture, checked against its checkpoints.
+    offset: its own stream of batches and RNG: config.seed + offset (with
+      several seeds: each seed + offset), apart from other stages' (the
+      dynamics: 1, stage 1: 0).
+    shared_data: every seed trains on the same data (SAVi, the dVAE: the
+      training videos): with several seeds, one stage on the run whose
+      `batches_for_seed` draws each seed's batches in its data order;
+      otherwise (the dynamics, STEVE) one stage per chain, stacked
+      (`stacked_stage`).
+  """
+
+  what: str
+  chain_stage: Callable[[Run, int], tuple[Stage, dict[str, Any] | None]]
+  identity_fields: dict[str, Any]
+  model_fields: dict[str, Any]
+  offset: int = 0
+  shared_data: bool = False
+
+
+def fit_chains(run: Run, training: Training) -> TrainState:
+  """Trains `training` for the run's one seed or all its seeds in one
+  program, resumably.
+
+  Each chain's stage (`training.chain_stage`; with `shared_data` one stage
+  on the run), stacked with several seeds. Its identity records its fields,
+  the seeds with their data order, and the first chain's parent (every
+  chain's was checked by its `chain_stage`): a stage made with other
+  settings, seeds or from another parent is set aside and retrained
+  (`identity.start_stage`); its checkpoints must have the architecture of
+  `model_fields`. Then the trainer's loop (`train.trainer.fit`).
+  """
+  seed = run.config.seed + training.offset
+  seeds = seeds_of(run.config, training.offset)
+  identity_fields = stamped_fields(training.identity_fields, seeds)
+  if training.shared_data or seeds is None:
+    built = [training.chain_stage(run, seed)]
+  else:
+    built = [training.chain_stage(chain, stream) for chain, stream
+             in zip(run.chains(), seeds.stream_seeds(seed))]
+  stages = [stage for stage, _ in built]
+  stage = stages[0] if len(stages) == 1 else stacked_stage(stages)
+  identity_lib.start_stage(stage.directory, identity_fields, built[0][1],
+                           training.what)
+  identity_lib.check_model_config(stage.directory, training.model_fields,
+                                  training.what)
+  identity_lib.write_model_config(stage.directory, training.model_fields)
+  return fit(stage, mesh=run.mesh, seed=seed, seeds=seeds)

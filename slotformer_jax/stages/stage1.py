@@ -13,7 +13,7 @@ every seed on the shared training videos; the derived data are computed
 per seed view (`Run.for_seed`) by its share of the stacked part, into
 `seed_<s>/` (STEVE's `seed_<s>/tokens/train/`); a part trained on another
 (STEVE) trains the K seeds in one program, seed s on seed s's derived
-data (`_train_part_seeds`). One stacked checkpoint per part.
+data (`stages/fit.py` `fit_chains`). One stacked checkpoint per part.
 """
 
 from __future__ import annotations
@@ -35,10 +35,8 @@ from slotformer_jax.runtime import sharding
 from slotformer_jax.slot_models import chain
 from slotformer_jax.slot_models.base import Derived
 from slotformer_jax.slot_models.base import Part
-from slotformer_jax.stages.fit import fit_stage
-from slotformer_jax.stages.fit import seeds_of
-from slotformer_jax.stages.fit import stacked_stage
-from slotformer_jax.stages.fit import stream_seeds
+from slotformer_jax.stages.fit import Training
+from slotformer_jax.stages.fit import fit_chains
 from slotformer_jax.train import steps
 from slotformer_jax.train.trainer import Stage
 from slotformer_jax.workdir import identity as identity_lib
@@ -152,38 +150,21 @@ def check_derived_current(run: Run, derived: Derived, split: str,
 def train_part(run: Run, name: str) -> None:
   """Trains part `name` of the slot model on the training videos (resumable);
   set aside and retrained when its settings or its parent changed. Several
-  seeds: a part trained on another (STEVE on the dVAE's tokens) trains seed
-  s on stage-1 seed s's data (`_train_part_seeds`); one without (SAVi, the
-  dVAE) on the training videos every seed shares."""
+  seeds, in one program: a part without a parent (SAVi, the dVAE) trains
+  every seed on the training videos they share; a part trained on another
+  (STEVE on the dVAE's tokens) trains seed s on stage-1 seed s's data,
+  each checked to come from the stacked parent part (`_parent`)."""
   part = _part(run, name)
   if uses_foreign_stage1(run, part.label):
     return
-  if run.seeds is not None and (part.parent is not None or part.reads):
-    _train_part_seeds(run, part)
-    return
-  parent = _parent(run, part)
-  stage = _view_stage(run, part, parent, run.config.seed)
-  fit_stage(stage, mesh=run.mesh, seed=run.config.seed, what=part.label,
-            identity_fields=dict(part.identity_fields), parent=parent,
-            model_fields=dict(part.model_fields),
-            seeds=seeds_of(run.config))
-
-
-def _train_part_seeds(run: Run, part: Part) -> None:
-  """Trains `part` for every seed of config.seeds in one program: seed s
-  on the training videos with seed s's derived data (`seed_<s>/tokens/`,
-  made by stage-1 seed s), its initialisation and step RNG drawn with s,
-  its batches in config.seed's order (shared) or s's ('per_seed'). One
-  stacked checkpoint; its parent the stacked parent part every seed's data
-  is checked to descend from."""
-  views = run.seed_views()
-  parent = _parent(views[0], part)
-  stages = [_view_stage(view, part, parent, stream)
-            for view, stream in zip(views, stream_seeds(run.config))]
-  fit_stage(stacked_stage(stages), mesh=run.mesh, seed=run.config.seed,
-            what=part.label, identity_fields=dict(part.identity_fields),
-            parent=parent, model_fields=dict(part.model_fields),
-            seeds=seeds_of(run.config))
+  parent = _parent(run.chains()[0], part)
+  fit_chains(run, Training(
+      what=part.label,
+      chain_stage=lambda chain, stream: (
+          _view_stage(chain, part, parent, stream), parent),
+      identity_fields=dict(part.identity_fields),
+      model_fields=dict(part.model_fields),
+      shared_data=part.parent is None and not part.reads))
 
 
 def _view_stage(run: Run, part: Part, parent: dict[str, Any] | None,

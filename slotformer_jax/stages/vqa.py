@@ -227,7 +227,7 @@ def question_batches(run: Run, split: str, joined: vqa_questions.Joined
       stride=vqa.frame_stride, max_choices=vqa.max_choices,
       blind=vqa.inputs == 'blind',
       choice_weights=(dict(vqa.choice_type_weights)
-                      if vqa.get('choice_type_weights') else None))
+                      if vqa.choice_type_weights else None))
 
 
 # ----------------------------------------------------------------------------
@@ -333,10 +333,10 @@ def train_vqa(run: Run) -> None:
   vqa = config.vqa
   vocab = vqa_questions.vocabulary(config)
   directory = run.paths.aloe(vqa.inputs, vqa.seed)
-  stages = [_train_stage(chain, directory, vocab, aloe_seed(stream, vqa))
-            for chain, stream in zip(run.chains(),
-                                     fit_lib.stream_seeds(config))]
   seeds = fit_lib.seeds_of(config)
+  stages = [_train_stage(chain, directory, vocab, aloe_seed(stream, vqa))
+            for chain, stream in zip(run.chains(), fit_lib.stream_seeds(
+                seeds, config.seed))]
   if seeds is not None:
     seeds = dataclasses.replace(
         seeds, values=tuple(aloe_seed(s, vqa) for s in run.seeds))

@@ -25,23 +25,21 @@ def make_optimizer(stage_config: ml_collections.ConfigDict
   """Adam over the stage's schedule; global-norm clipping if `grad_clip` > 0.
 
   Reads `learning_rate`, `num_train_steps`, `warmup_fraction`, `grad_clip`,
-  and, when the section has them, `min_lr_fraction` (the dVAE's and STEVE's
-  sections have none: their official schedules end at 0, and a new field
-  would change their run identities) and `group_learning_rates` (STEVE's): {top-level parameter name: peak learning rate} for
-  parts trained faster (STEVE's decoder: 3e-4 vs 1e-4), on the same warm-up +
-  cosine shape; clipping stays global over all parameters. The returned
-  schedule is the default group's.
+  `min_lr_fraction` and `group_learning_rates`: {top-level parameter name:
+  peak learning rate} for parts trained faster (STEVE's decoder: 3e-4 vs
+  1e-4), on the same warm-up + cosine shape; clipping stays global over all
+  parameters. The returned schedule is the default group's.
   """
   def schedule_for(peak: float) -> optax.Schedule:
     return learning_rate_schedule(
         peak, stage_config.num_train_steps, stage_config.warmup_fraction,
-        stage_config.get('min_lr_fraction', 0.0))
+        stage_config.min_lr_fraction)
 
   schedule = schedule_for(stage_config.learning_rate)
   transforms = []
   if stage_config.grad_clip:
     transforms.append(optax.clip_by_global_norm(stage_config.grad_clip))
-  groups = dict(stage_config.get('group_learning_rates') or {})
+  groups = dict(stage_config.group_learning_rates or {})
   if groups:
     optimizers = {name: optax.adam(schedule_for(peak))
                   for name, peak in groups.items()}

@@ -193,6 +193,13 @@ class Seeds:
   def several(self) -> bool:
     return len(self.values) > 1
 
+  def stream_seeds(self, shared: int) -> tuple[int, ...]:
+    """Each seed's data-order seed: `shared` (the run's stream) for every
+    seed, or each seed's own value ('per_seed')."""
+    if self.data_order == 'per_seed':
+      return self.values
+    return (shared,) * len(self.values)
+
   def plain(self) -> dict[str, Any]:
     return {'seeds': list(self.values), 'data_order': self.data_order}
 

@@ -50,6 +50,17 @@ NOT_SHAPING = ('log_every', 'checkpoint_every', 'stop_check_every',
 ADDED_FIELDS: dict[str, Any] = {
     'vqa.layer_norm_epsilon': 1e-6,
     'vqa.min_lr_fraction': 0.0,
+    # Training fields every section has since their defaults were set
+    # (before, only some sections had them; the code read their absence as
+    # these values).
+    'dvae.min_lr_fraction': 0.0,
+    'steve.min_lr_fraction': 0.0,
+    'savi.group_learning_rates': {},
+    'dvae.group_learning_rates': {},
+    'slotformer.group_learning_rates': {},
+    'slot_lstm.group_learning_rates': {},
+    'vqa.group_learning_rates': {},
+    'vqa.choice_type_weights': {},
     'readout.layer_norm_epsilon': 1e-6,
     'readout.dropout_rate': 0.0,
     'evaluation.skip_first_frame': False,

@@ -343,7 +343,8 @@ def test_every_shipped_config_passes_the_checks_of_its_whole_run(spec):
 def _nan_stage(directory, checkpoint_every):
   config = ml_collections.ConfigDict(dict(
       num_train_steps=4, learning_rate=1e-2, warmup_fraction=0.0,
-      grad_clip=0.0, min_lr_fraction=0.0, stop_check_every=1, batch_size=4,
+      grad_clip=0.0, min_lr_fraction=0.0,
+      group_learning_rates={}, stop_check_every=1, batch_size=4,
       log_every=2,
       checkpoint_every=checkpoint_every))
 

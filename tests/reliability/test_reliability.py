@@ -261,15 +261,42 @@ def test_a_workdir_from_before_an_added_field_stays_usable(tmp_path):
   accept(config, workdir)
   path = os.path.join(workdir, 'config.json')
   saved = files.read_json(path)
-  for name in identity_lib.ADDED_FIELDS:  # as written before these existed
+  # As written before these existed (where the config has the value their
+  # absence stands for; synthetic_vqa sets its own choice_type_weights).
+  for name, old in identity_lib.ADDED_FIELDS.items():
     *section, field = name.split('.')
-    (saved.get(section[0], {}) if section else saved).pop(field, None)
+    holder = saved.get(section[0], {}) if section else saved
+    if field in holder and (old is None or holder[field] == old):
+      del holder[field]
   files.write_json_atomic(path, saved)
   assert accept(config, workdir) == []
   # Another value than the one the old code used is a change.
   config.vqa.layer_norm_epsilon = 1e-5
   with pytest.raises(UserError, match=r'vqa.layer_norm_epsilon: \(absent\)'):
     accept(config, workdir)
+
+
+def test_run_open_reads_an_added_field_as_its_old_value(tmp_path):
+  """`Run.open` of a workdir whose config.json predates fields gives them
+  the values their absence stands for, so code reading them works."""
+  from slotformer_jax.train import optim
+  config = pipeline_helpers.load_config('synthetic_vqa', 'tiny')
+  workdir = str(tmp_path / 'run')
+  accept(config, workdir)
+  path = os.path.join(workdir, 'config.json')
+  saved = files.read_json(path)
+  for section in ('savi', 'dvae', 'vqa'):
+    del saved[section]['group_learning_rates']
+  del saved['dvae']['min_lr_fraction'], saved['vqa']['choice_type_weights']
+  files.write_json_atomic(path, saved)
+  opened = Run.open(workdir).config
+  assert opened.dvae.min_lr_fraction == 0.0
+  assert dict(opened.vqa.choice_type_weights) == {}
+  for section in ('savi', 'dvae', 'vqa'):
+    assert dict(opened[section].group_learning_rates) == {}
+    optim.make_optimizer(opened[section])
+  # Values the workdir has are kept.
+  assert opened.vqa.learning_rate == config.vqa.learning_rate
 
 
 def test_a_stage_made_with_other_settings_is_set_aside(copied):

@@ -262,7 +262,8 @@ def _toy_stage(directory, num_steps=4):
 
   config = ml_collections.ConfigDict(dict(
       num_train_steps=num_steps, learning_rate=1e-2, warmup_fraction=0.25,
-      grad_clip=0.0, min_lr_fraction=0.0, stop_check_every=1, batch_size=4,
+      grad_clip=0.0, min_lr_fraction=0.0,
+      group_learning_rates={}, stop_check_every=1, batch_size=4,
       log_every=1, checkpoint_every=2))
   return Stage(name='toy', directory=str(directory), config=config,
                loss_fn=loss_fn, init_params=_toy_init, batches=batches)

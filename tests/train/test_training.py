@@ -132,7 +132,8 @@ def test_train_step_traces_once():
 def _stage_config(num_steps):
   return ml_collections.ConfigDict(dict(
       num_train_steps=num_steps, learning_rate=1e-3, warmup_fraction=0.25,
-      grad_clip=0.05, min_lr_fraction=0.0, stop_check_every=1, batch_size=4,
+      grad_clip=0.05, min_lr_fraction=0.0,
+      group_learning_rates={}, stop_check_every=1, batch_size=4,
       log_every=1, checkpoint_every=2))
 
 

@@ -36,7 +36,7 @@ def make_dataset(data_config: Any) -> Path:
   """
   name = data_config.name
   root = resolve_data_dir(data_config.data_dir)
-  workers = data_config.get('num_workers', None)
+  workers = data_config.num_workers
   if name not in families.NAMES:
     raise ValueError(f'{name!r} is not an embedded family '
                      f'({families.NAMES}); real datasets are converted')

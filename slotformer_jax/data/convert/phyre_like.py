@@ -150,4 +150,4 @@ def build_video_dataset(data_config: Any, data_dir: str | os.PathLike[str]
   return embedded.build(
       video_family(config, data_config.num_train, data_config.num_val,
                    data_config.positive_ratio, labels, layouts), data_dir,
-      num_workers=data_config.get('num_workers', None))
+      num_workers=data_config.num_workers)

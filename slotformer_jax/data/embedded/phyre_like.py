@@ -109,7 +109,7 @@ def video_generation(data_config: Any) -> tuple[PhyreLikeConfig, int]:
   training tasks, which do not depend on the fold: one dataset (of fold 0)
   serves every fold."""
   config = config_from_data_config(data_config)
-  layouts = int(data_config.get('dynamics_layouts', 0) or 0)
+  layouts = int(data_config.dynamics_layouts)
   if layouts < 0:
     raise ValueError(f'data.dynamics_layouts must be >= 0, got {layouts}')
   if layouts:

@@ -115,23 +115,17 @@ class SyntheticConfig:
 
 
 def config_from_data_config(data_config: Any) -> SyntheticConfig:
-  """The generation parameters named by a data config (defaults filled in)."""
+  """The generation parameters named by a data config (the dataclass's
+  defaults for those it does not name)."""
   defaults = SyntheticConfig()
-  return SyntheticConfig(
-      resolution=tuple(data_config.get('resolution', defaults.resolution)),
-      num_frames=int(data_config.get('num_frames', defaults.num_frames)),
-      min_objects=int(data_config.get('min_objects', defaults.min_objects)),
-      max_objects=int(data_config.get('max_objects', defaults.max_objects)),
-      seed=int(data_config.get('seed', defaults.seed)),
-      num_train=int(data_config.get('num_train', defaults.num_train)),
-      num_val=int(data_config.get('num_val', defaults.num_val)),
-      num_test=int(data_config.get('num_test', defaults.num_test)),
-      supersample=int(data_config.get('supersample', defaults.supersample)),
-      object_scale=float(data_config.get('object_scale',
-                                         defaults.object_scale)),
-      distinct_colors=bool(data_config.get('distinct_colors',
-                                           defaults.distinct_colors)),
-  )
+  values = {}
+  for field in dataclasses.fields(SyntheticConfig):
+    if field.name in data_config:
+      # As the default's type (an int given for object_scale is a float):
+      # the dataset's folder name hashes these values.
+      kind = type(getattr(defaults, field.name))
+      values[field.name] = kind(data_config[field.name])
+  return SyntheticConfig(**values)
 
 
 def dataset_dir(config: SyntheticConfig,
