@@ -33,6 +33,7 @@ import ml_collections
 from slotformer_jax import dynamics as dynamics_lib
 from slotformer_jax import slot_models
 from slotformer_jax.config import checks as config_checks
+from slotformer_jax.config.sections import SLOT_LSTM
 from slotformer_jax.config.sections import dynamics_section
 from slotformer_jax.config.sections import several_seeds
 from slotformer_jax.data.embedded import families
@@ -102,6 +103,8 @@ class Run:
     # stands for (identity.ADDED_FIELDS), so the code reads every field.
     for name, value in identity_lib.ADDED_FIELDS.items():
       *sections, field = name.split('.')
+      if sections[:1] == [SLOT_LSTM]:
+        continue  # overrides only: a field it lacks is SlotFormer's
       section = settings
       for key in sections:
         section = section.get(key) if isinstance(section, dict) else None
