@@ -22,8 +22,13 @@ os.environ.setdefault('JAX_PLATFORMS', 'cpu')
 # The faster XLA:CPU convolution path, as main.py uses it (imports no jax).
 from slotformer_jax.runtime import xla_flags  # noqa: E402
 xla_flags.apply_fast_cpu_flags()
-# Freed step buffers stay mapped, as in main.py (runtime/host_memory.py).
+# Freed step buffers stay mapped, as in main.py, but without main's one
+# malloc arena: the suite compiles far more than it steps, and one arena
+# slows XLA's compiler threads down (runtime/host_memory.py). Set in the
+# environment, so the processes tests start (main among them) do the same;
+# a value already there wins.
 from slotformer_jax.runtime import host_memory  # noqa: E402
+os.environ.setdefault(host_memory.SWITCH_ENV, host_memory.NO_ARENA_LIMIT)
 host_memory.keep_freed_memory()
 
 import tempfile  # noqa: E402

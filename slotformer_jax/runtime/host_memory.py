@@ -34,11 +34,36 @@ What: before jax allocates, ``keep_freed_memory()`` calls glibc's
 
 The process then keeps up to its high-water mark of heap memory mapped (the
 resident size stays near the peak instead of shrinking between steps); no
-result changes, only where the bytes live. It does nothing when
+result changes, only where the bytes live.
 
-* ``$SLOTFORMER_MALLOC_TUNING`` is ``0`` / ``false`` / ``no`` / ``off``;
+The price of one arena: every thread takes the same malloc lock and
+allocates next to the others, so threads that allocate at the same time on
+different cores slow each other down. XLA's compiler does that: 20 small
+programs compiled in one process took 10.1-11.2 s with the three settings
+and 7.2-8.8 s without them on the 2-core box (the same on one core: 11.3-11.7
+against 12.0-12.7 s), and the test suite, which compiles far more than it
+steps, ran 1-3 % slower (docs/performance.md, "Host memory churn"). A
+training run compiles a few programs and then steps thousands of times, so
+``main`` keeps all three; a process that mostly compiles small programs (the
+tests' conftest) asks for ``no-arena-limit``: the two other settings, which
+cost nothing there.
+
+``$SLOTFORMER_MALLOC_TUNING`` chooses:
+
+* unset, ``1`` / ``true`` / ``yes`` / ``on``: all three settings;
+* ``no-arena-limit``: ``M_MMAP_MAX`` and ``M_TRIM_THRESHOLD`` only (blocks a
+  thread allocates above 64 MiB are still mapped afresh);
+* ``0`` / ``false`` / ``no`` / ``off``: none.
+
+It does nothing (whatever the switch says) when
+
 * ``$GLIBC_TUNABLES`` already sets a ``glibc.malloc.`` tunable (the user's
   choice wins, as for ``$XLA_FLAGS`` in ``xla_flags``);
+* the process may compute on an accelerator: ``$JAX_PLATFORMS`` names
+  another platform first, or, unset, a jax accelerator plugin (libtpu, a
+  ``jax_plugins`` package or entry point: CUDA, ROCm) is installed. There
+  the steps' buffers live on the device and these settings were never
+  measured; a CPU run on such a host says ``JAX_PLATFORMS=cpu`` to get them;
 * the C library is not glibc (musl, macOS: their allocators differ) or
   ``mallopt`` refuses a value.
 
@@ -49,6 +74,8 @@ A preloaded allocator (``LD_PRELOAD`` of tcmalloc or jemalloc) replaces
 from __future__ import annotations
 
 import ctypes
+import importlib.metadata
+import importlib.util
 import logging
 import os
 import platform
@@ -70,10 +97,26 @@ TRIM_THRESHOLD_BYTES = -1
 
 _applied: tuple[tuple[int, int], ...] | None = None
 
+ALL = 'all'
+NO_ARENA_LIMIT = 'no-arena-limit'
+OFF = 'off'
+_OFF_VALUES = ('0', 'false', 'no', 'off')
+_ALL_VALUES = ('', '1', 'true', 'yes', 'on', 'all')
+# Modules of jax's accelerator plugins that are not `jax_plugins.*`.
+_ACCELERATOR_MODULES = ('libtpu',)
 
-def _disabled(environ) -> bool:
-  return environ.get(SWITCH_ENV, '1').strip().lower() in (
-      '0', 'false', 'no', 'off')
+
+def level(environ) -> str:
+  """ALL, NO_ARENA_LIMIT or OFF, from $SLOTFORMER_MALLOC_TUNING."""
+  value = environ.get(SWITCH_ENV, '').strip().lower()
+  if value in _OFF_VALUES:
+    return OFF
+  if value == NO_ARENA_LIMIT:
+    return NO_ARENA_LIMIT
+  if value not in _ALL_VALUES:
+    logger.warning('$%s=%r is not one of 1, %s, 0: using 1 (all settings)',
+                   SWITCH_ENV, value, NO_ARENA_LIMIT)
+  return ALL
 
 
 def _user_tunes_malloc(environ) -> bool:
@@ -87,10 +130,36 @@ def _is_glibc() -> bool:
     return False
 
 
-def settings() -> tuple[tuple[int, int], ...]:
+def may_compute_on_accelerator(environ) -> bool:
+  """Whether jax may pick a TPU or GPU backend in this process.
+
+  Decided before jax starts (the settings must come first): from
+  $JAX_PLATFORMS when set (its first platform), else from the accelerator
+  plugins jax would discover. A plugin installed on a machine without its
+  chip reads as "may": the process then runs untuned, as before.
+  """
+  platforms = environ.get('JAX_PLATFORMS', '').strip().lower()
+  if platforms:
+    return platforms.split(',')[0].strip() != 'cpu'
+  if any(importlib.util.find_spec(name) is not None
+         for name in _ACCELERATOR_MODULES):
+    return True
+  if importlib.util.find_spec('jax_plugins') is not None:
+    return True
+  try:
+    return bool(importlib.metadata.entry_points(group='jax_plugins'))
+  except Exception:  # a broken distribution's metadata: assume none
+    return False
+
+
+def settings(which: str = ALL) -> tuple[tuple[int, int], ...]:
   """(mallopt parameter, value) pairs `keep_freed_memory` sets, in order."""
-  return ((M_ARENA_MAX, 1), (M_MMAP_MAX, 0),
-          (M_TRIM_THRESHOLD, TRIM_THRESHOLD_BYTES))
+  heap = ((M_MMAP_MAX, 0), (M_TRIM_THRESHOLD, TRIM_THRESHOLD_BYTES))
+  if which == ALL:
+    return ((M_ARENA_MAX, 1),) + heap
+  if which == NO_ARENA_LIMIT:
+    return heap
+  return ()
 
 
 def keep_freed_memory(environ=None) -> bool:
@@ -101,7 +170,9 @@ def keep_freed_memory(environ=None) -> bool:
   """
   global _applied
   environ = os.environ if environ is None else environ
-  if _disabled(environ) or _user_tunes_malloc(environ) or not _is_glibc():
+  which = level(environ)
+  if (which == OFF or _user_tunes_malloc(environ) or not _is_glibc()
+      or may_compute_on_accelerator(environ)):
     return False
   if _applied is not None:
     return True
@@ -111,9 +182,9 @@ def keep_freed_memory(environ=None) -> bool:
     return False
   mallopt.argtypes = (ctypes.c_int, ctypes.c_int)
   mallopt.restype = ctypes.c_int
-  for parameter, value in settings():
+  for parameter, value in settings(which):
     if mallopt(parameter, value) != 1:  # glibc returns 1 on success
       logger.debug('mallopt(%d, %d) refused', parameter, value)
       return False
-  _applied = settings()
+  _applied = settings(which)
   return True

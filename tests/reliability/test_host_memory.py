@@ -75,9 +75,11 @@ print(json.dumps({'applied': applied, 'faults': faults,
 
 
 def _run(*args, **env):
-  environ = dict(os.environ, PYTHONPATH=REPO)
+  environ = dict(os.environ, PYTHONPATH=REPO, JAX_PLATFORMS='cpu')
   environ.pop('GLIBC_TUNABLES', None)
   environ.update(env)
+  if environ['JAX_PLATFORMS'] is None:
+    del environ['JAX_PLATFORMS']
   result = subprocess.run([sys.executable, '-c', _PROGRAM, *args],
                           env=environ,
                           capture_output=True, text=True, check=True)
@@ -120,3 +122,50 @@ def test_off_switch_and_user_tunables_win():
   assert not host_memory.keep_freed_memory(
       environ={'GLIBC_TUNABLES': 'glibc.malloc.mmap_threshold=1000000'})
   assert _run(GLIBC_TUNABLES='glibc.malloc.arena_max=2')['applied'] is False
+
+
+@pytest.mark.skipif(platform.libc_ver()[0] != 'glibc',
+                    reason='mallopt is glibc\'s')
+def test_without_the_arena_limit_only_the_threads_large_blocks_churn():
+  kept = _run(SLOTFORMER_MALLOC_TUNING='no-arena-limit')
+  pages = kept['pages']
+  assert kept['applied'], kept
+  # The main thread's 57 MiB block is reused, as with all three settings.
+  assert max(kept['faults'][1:]) < 0.01 * pages, kept
+  # A thread's own arena maps a 100 MiB block afresh every time.
+  assert min(kept['threaded']) > 0.9 * (100 << 20) // 4096, kept
+
+
+def test_the_switch_values():
+  level = host_memory.level
+  assert level({}) == level({host_memory.SWITCH_ENV: 'ON'}) == host_memory.ALL
+  assert level({host_memory.SWITCH_ENV: ' no-arena-limit '}) == (
+      host_memory.NO_ARENA_LIMIT)
+  assert level({host_memory.SWITCH_ENV: 'False'}) == host_memory.OFF
+  assert host_memory.settings(host_memory.OFF) == ()
+  assert host_memory.M_ARENA_MAX not in dict(
+      host_memory.settings(host_memory.NO_ARENA_LIMIT))
+
+
+def test_a_mistyped_switch_says_so_and_applies_all(caplog):
+  assert host_memory.level(
+      {host_memory.SWITCH_ENV: 'no_arena'}) == host_memory.ALL
+  assert "'no_arena' is not one of" in caplog.text
+
+
+def test_a_process_that_may_use_an_accelerator_is_left_alone(tmp_path):
+  may = host_memory.may_compute_on_accelerator
+  assert not may({'JAX_PLATFORMS': 'cpu'})
+  assert may({'JAX_PLATFORMS': 'tpu'}) and may({'JAX_PLATFORMS': 'cuda,cpu'})
+  assert not may({'JAX_PLATFORMS': 'cpu,cuda'})
+  # JAX_PLATFORMS unset: an installed plugin (as jax[cuda12] installs one
+  # under the jax_plugins namespace) is enough.
+  plugin = tmp_path / 'jax_plugins' / 'xla_fake'
+  plugin.mkdir(parents=True)
+  (plugin / '__init__.py').write_text('')
+  with_plugin = _run(JAX_PLATFORMS=None,
+                     PYTHONPATH=os.pathsep.join([REPO, str(tmp_path)]))
+  assert with_plugin['applied'] is False, with_plugin
+  told_cpu = _run(JAX_PLATFORMS='cpu',
+                  PYTHONPATH=os.pathsep.join([REPO, str(tmp_path)]))
+  assert told_cpu['applied'] is True, told_cpu
