@@ -165,7 +165,7 @@ def settings(which: str = ALL) -> tuple[tuple[int, int], ...]:
 def keep_freed_memory(environ=None) -> bool:
   """Applies `settings()` with glibc's mallopt; True when all were accepted.
 
-  Call it once, early (main, benchmarks, the tests' conftest): settings
+  Call it once, early (main, the tests' conftest): settings
   apply to every allocation from then on, in every thread. Idempotent.
   """
   global _applied

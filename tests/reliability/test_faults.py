@@ -353,3 +353,38 @@ def test_ctrl_c_during_prepare_is_one_line_and_the_rerun_finishes(tmp_path):
                          text=True, timeout=600)
   assert rerun.returncode == 0, rerun.stderr[-3000:]
   assert 'train: 384' in rerun.stdout + rerun.stderr
+
+
+_WAIT_PROGRAM = r'''
+import concurrent.futures, signal, threading, traceback
+from slotformer_jax.data.convert import pool
+future = concurrent.futures.Future()
+# Ctrl-C 0.3 s into the wait; the future would finish only after 30 s.
+threading.Timer(0.3, signal.raise_signal, (signal.SIGINT,)).start()
+finisher = threading.Timer(30, future.set_result, (1,))
+finisher.daemon = True
+finisher.start()
+try:
+  pool.wait_done([future])
+  print('not interrupted')
+except KeyboardInterrupt as error:
+  frames = traceback.extract_tb(error.__traceback__)
+  print('raised in', frames[-1].filename.rsplit('/', 1)[-1], frames[-1].name)
+  print('handler restored',
+        signal.getsignal(signal.SIGINT) is signal.default_int_handler)
+'''
+
+
+def test_ctrl_c_while_waiting_on_workers_is_raised_outside_any_lock():
+  """The converter's Ctrl-C once ended in "RuntimeError: release unlocked
+  lock" with a traceback: the KeyboardInterrupt landed inside threading's
+  Condition.wait under `as_completed`. `wait_done` notes Ctrl-C and raises
+  it from its own frame, at once, with the default handler put back."""
+  started = time.monotonic()
+  result = subprocess.run([sys.executable, '-c', _WAIT_PROGRAM],
+                          env=dict(os.environ, PYTHONPATH=ROOT),
+                          capture_output=True, text=True, timeout=60)
+  assert result.returncode == 0, result.stderr[-3000:]
+  assert result.stdout.splitlines() == [
+      'raised in pool.py __exit__', 'handler restored True'], result.stdout
+  assert time.monotonic() - started < 20  # not after the future's 30 s

@@ -5,6 +5,14 @@ generator): 'spawn' workers that die with their parent.
 unsafe. A killed parent (kill -9, OOM) must not leave workers rendering
 forever: on Linux the kernel kills them (PR_SET_PDEATHSIG), and everywhere a
 watchdog thread exits the worker once its parent is gone.
+
+The parent waits on the workers' futures through `wait_done`, never through
+a bare `Future.result()` / `as_completed`: Python raises Ctrl-C's
+KeyboardInterrupt wherever the main thread is, and inside threading's
+`Condition.wait` (how futures are waited on) it can leave the condition's
+lock released, so the process ended with "RuntimeError: release unlocked
+lock" and a traceback instead of its one `interrupted:` line (seen once in
+tests/reliability/test_faults.py).
 """
 
 from __future__ import annotations
@@ -22,6 +30,8 @@ from typing import TypeVar
 
 _PR_SET_PDEATHSIG = 1
 T = TypeVar('T')
+# How often a wait on the workers wakes up to see whether Ctrl-C came.
+_POLL_SECONDS = 0.2
 
 
 def _die_with_parent(parent_pid: int) -> None:
@@ -64,6 +74,52 @@ class _Pool(concurrent.futures.ProcessPoolExecutor):
       signal.signal(signal.SIGINT, previous)
 
 
+class _CtrlCDeferred:
+  """Within the block, Ctrl-C is noted (`received`) instead of raised; the
+  block's end raises the KeyboardInterrupt, outside any lock. Main thread
+  only, and only where Ctrl-C would raise KeyboardInterrupt (Python's
+  default handler): a handler the program set (training's, main's with
+  several processes) or an ignored SIGINT is left as it is."""
+
+  def __init__(self):
+    self.received = False
+    self._previous = None
+
+  def __enter__(self) -> _CtrlCDeferred:
+    if (threading.current_thread() is threading.main_thread()
+        and signal.getsignal(signal.SIGINT) is signal.default_int_handler):
+      self._previous = signal.signal(signal.SIGINT, self._note)
+    return self
+
+  def _note(self, signum, frame) -> None:
+    del signum, frame
+    self.received = True
+
+  def __exit__(self, exc_type, *exc) -> bool:
+    if self._previous is not None:
+      signal.signal(signal.SIGINT, self._previous)
+    if self.received and exc_type is None:
+      raise KeyboardInterrupt
+    return False
+
+
+def wait_done(futures) -> set[concurrent.futures.Future]:
+  """Blocks until one of `futures` is done and returns those done; Ctrl-C
+  meanwhile raises KeyboardInterrupt here (module docstring)."""
+  with _CtrlCDeferred() as ctrl_c:
+    while not ctrl_c.received:
+      done, _ = concurrent.futures.wait(
+          futures, timeout=_POLL_SECONDS,
+          return_when=concurrent.futures.FIRST_COMPLETED)
+      if done:
+        return done
+  raise AssertionError('unreachable: Ctrl-C raises when the block ends')
+
+
+def _make_each(make: Callable[[int], T], indices: range) -> list[T]:
+  return [make(index) for index in indices]
+
+
 def process_pool(num_workers: int) -> concurrent.futures.ProcessPoolExecutor:
   """A 'spawn' pool whose workers exit when this process dies and ignore
   Ctrl-C (the parent handles it). Unlike multiprocessing.Pool (which
@@ -87,7 +143,12 @@ def ordered_map(make: Callable[[int], T], count: int,
     return
   pool = process_pool(workers)
   try:
-    yield from pool.map(make, range(count), chunksize=4)
+    # Four indices per task, as Executor.map(chunksize=4) would send them.
+    futures = [pool.submit(_make_each, make, range(start, min(start + 4, count)))
+               for start in range(0, count, 4)]
+    for future in futures:
+      wait_done([future])
+      yield from future.result()
   except concurrent.futures.process.BrokenProcessPool as error:
     raise RuntimeError(
         'Data-generation worker processes died (out of memory?). With the '

@@ -59,6 +59,7 @@ from slotformer_jax.data.convert import chunked_writer
 from slotformer_jax.data.convert import media
 from slotformer_jax.data.convert.checksums import record_checksums
 from slotformer_jax.data.convert.pool import process_pool
+from slotformer_jax.data.convert.pool import wait_done
 from slotformer_jax.data.video_names import NAMES_FILE
 from slotformer_jax.files import confined
 from slotformer_jax.files import write_json_atomic
@@ -326,20 +327,27 @@ def _run_tasks(tasks: list[_ShardTask], num_workers: int, progress: bool,
     pool = process_pool(num_workers)
     try:
       futures = {pool.submit(_convert_shard, task): task for task in tasks}
-      for future in concurrent.futures.as_completed(futures):
-        task = futures[future]
-        try:
-          payload = future.result()
-        except concurrent.futures.process.BrokenProcessPool as error:
-          raise RuntimeError(
-              'Conversion worker processes died (out of memory?). With the '
-              '"spawn" start method they re-import the main script, so a '
-              'script that converts data must do so under '
-              "`if __name__ == '__main__':`; or use --num_workers=1.") from error
-        skipped += len(payload['skipped'])
-        bar.update(len(task.jobs))
-        bar.set_postfix(skipped=skipped)
-        yield task, payload
+      order = {future: index for index, future in enumerate(futures)}
+      pending = set(futures)
+      while pending:
+        # Not as_completed: Ctrl-C must not land inside its locks (pool.py).
+        done = wait_done(pending)
+        pending -= done
+        for future in sorted(done, key=order.__getitem__):
+          task = futures[future]
+          try:
+            payload = future.result()
+          except concurrent.futures.process.BrokenProcessPool as error:
+            raise RuntimeError(
+                'Conversion worker processes died (out of memory?). With the '
+                '"spawn" start method they re-import the main script, so a '
+                'script that converts data must do so under '
+                "`if __name__ == '__main__':`; or use --num_workers=1."
+            ) from error
+          skipped += len(payload['skipped'])
+          bar.update(len(task.jobs))
+          bar.set_postfix(skipped=skipped)
+          yield task, payload
     finally:
       # On an error or Ctrl-C, drop queued shards instead of converting them.
       pool.shutdown(wait=True, cancel_futures=True)
