@@ -163,9 +163,9 @@ def test_a_process_that_may_use_an_accelerator_is_left_alone(tmp_path):
   plugin = tmp_path / 'jax_plugins' / 'xla_fake'
   plugin.mkdir(parents=True)
   (plugin / '__init__.py').write_text('')
-  with_plugin = _run(JAX_PLATFORMS=None,
+  with_plugin = _run(JAX_PLATFORMS=None, SLOTFORMER_MALLOC_TUNING='1',
                      PYTHONPATH=os.pathsep.join([REPO, str(tmp_path)]))
   assert with_plugin['applied'] is False, with_plugin
-  told_cpu = _run(JAX_PLATFORMS='cpu',
+  told_cpu = _run(JAX_PLATFORMS='cpu', SLOTFORMER_MALLOC_TUNING='1',
                   PYTHONPATH=os.pathsep.join([REPO, str(tmp_path)]))
   assert told_cpu['applied'] is True, told_cpu
