@@ -41,12 +41,15 @@ allocates next to the others, so threads that allocate at the same time on
 different cores slow each other down. XLA's compiler does that: 20 small
 programs compiled in one process took 10.1-11.2 s with the three settings
 and 7.2-8.8 s without them on the 2-core box (the same on one core: 11.3-11.7
-against 12.0-12.7 s), and the test suite, which compiles far more than it
-steps, ran 1-3 % slower (docs/performance.md, "Host memory churn"). A
-training run compiles a few programs and then steps thousands of times, so
-``main`` keeps all three; a process that mostly compiles small programs (the
-tests' conftest) asks for ``no-arena-limit``: the two other settings, which
-cost nothing there.
+against 12.0-12.7 s). Steps pay a little too: 200 quickstart SAVi steps,
+whose 57 MiB scratch fits a thread's own heap, ran fastest without the
+limit (18.2-19.7 s against 20.3-20.8 s wall). But the 3-seed SlotFormer
+step with L_I needs it: 60 steps took 17.4 M faults and 42 s of system time
+without it, 2.3-2.6 M and 8 s with it (docs/performance.md, "Host memory
+churn"). A training run compiles a few programs and then steps thousands
+of times, so ``main`` keeps all three; a process that mostly compiles
+small programs (the tests' conftest) asks for ``no-arena-limit``: the two
+other settings, which cost nothing there.
 
 ``$SLOTFORMER_MALLOC_TUNING`` chooses:
 
@@ -153,7 +156,8 @@ def may_compute_on_accelerator(environ) -> bool:
 
 
 def settings(which: str = ALL) -> tuple[tuple[int, int], ...]:
-  """(mallopt parameter, value) pairs `keep_freed_memory` sets, in order."""
+  """(mallopt parameter, value) pairs `keep_freed_memory` sets for a
+  `level` (ALL, NO_ARENA_LIMIT, OFF), in order."""
   heap = ((M_MMAP_MAX, 0), (M_TRIM_THRESHOLD, TRIM_THRESHOLD_BYTES))
   if which == ALL:
     return ((M_ARENA_MAX, 1),) + heap
