@@ -106,14 +106,13 @@ class _CtrlCDeferred:
 def wait_done(futures) -> set[concurrent.futures.Future]:
   """Blocks until one of `futures` is done and returns those done; Ctrl-C
   meanwhile raises KeyboardInterrupt here (module docstring)."""
-  with _CtrlCDeferred() as ctrl_c:
-    while not ctrl_c.received:
+  done = set()
+  with _CtrlCDeferred() as ctrl_c:  # raises on leaving if Ctrl-C came
+    while not done and not ctrl_c.received:
       done, _ = concurrent.futures.wait(
           futures, timeout=_POLL_SECONDS,
           return_when=concurrent.futures.FIRST_COMPLETED)
-      if done:
-        return done
-  raise AssertionError('unreachable: Ctrl-C raises when the block ends')
+  return done
 
 
 def _make_each(make: Callable[[int], T], indices: range) -> list[T]:
