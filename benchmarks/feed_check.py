@@ -9,7 +9,11 @@ squares) at the step's resolution, converted by
 ``python -m slotformer_jax.data.prepare`` (so 'video' is decoded from
 array_record as in training); any other field of the batch (slots, tokens,
 ...) is random, memory-mapped from a .npy file next to it (read as the
-extracted slots are).
+extracted slots are). A step that reads slots (SlotFormer) is fed as in
+training, by a `SlotSource` over a slot extraction written here (random
+slots), with the fixture's videos when the step reads frames; their
+clips then start where the step's shorter video begins (L_I reads the
+rollout's frames only: `video_from`).
 """
 
 from __future__ import annotations
@@ -25,6 +29,7 @@ import numpy as np
 import reader_speed  # benchmarks/reader_speed.py
 from slotformer_jax.config import defaults
 from slotformer_jax.data import pipeline
+from slotformer_jax.data import slots
 from slotformer_jax.data import sources
 from slotformer_jax.data.convert import prepare
 from slotformer_jax.runtime import sharding
@@ -80,6 +85,8 @@ def fixture_source(spec: dict[str, Any], frames: int, workdir: Path,
     data.resolution = (height, width)
     videos = sources.get_video_source(data, 'train')
     num_videos = len(videos)
+  if 'slots' in spec:
+    return _slot_source(spec, frames, workdir, videos, num_videos)
   rng = np.random.default_rng(0)
   arrays = {}
   for key, value in spec.items():
@@ -99,18 +106,40 @@ def fixture_source(spec: dict[str, Any], frames: int, workdir: Path,
   return FixtureSource(videos, arrays, num_videos)
 
 
+def _slot_source(spec: dict[str, Any], frames: int, workdir: Path,
+                 videos: Any, num_videos: int) -> slots.SlotSource:
+  """Random slots of `num_videos` videos of `frames` frames, read as
+  training reads extracted slots, with `videos` behind them (or none)."""
+  if set(spec) - {'slots', 'video'}:
+    raise ValueError(f'a slot step reads slots and video, not {sorted(spec)}')
+  _, length, num_slots, slot_size = spec['slots'].shape
+  directory = str(workdir / f'slots_{num_videos}x{frames}x{num_slots}'
+                            f'x{slot_size}')
+  if not (slots.read_meta(directory) or {}).get('complete'):
+    writer = slots.SlotWriter(directory, num_videos, num_slots, slot_size,
+                              savi_step=0)
+    rng = np.random.default_rng(0)
+    for index in range(num_videos):
+      writer.add(index, rng.normal(size=(frames, num_slots, slot_size))
+                 .astype(np.float32))
+    writer.close()
+  video_from = length - spec['video'].shape[1] if 'video' in spec else 0
+  return slots.SlotSource(directory, videos, video_from=video_from)
+
+
 def time_fed_vs_resident(compiled, state, frozen, spec: dict[str, Any],
                          mesh, *, frame_stride: int, reader_workers: int,
-                         repeats: int, workdir: Path) -> dict[str, Any]:
+                         repeats: int, workdir: Path,
+                         num_videos: int = 64) -> dict[str, Any]:
   """Per-step seconds of `compiled` (state, batch, frozen) -> (state,
   metrics) fed by the reader vs on one resident batch; neither blocks on
   the device per step (as the trainer), each run blocks once at its end."""
-  batch_size, clip_length = next(iter(spec.values())).shape[:2]
-  for value in spec.values():
-    if len(value.shape) > 1:
-      clip_length = value.shape[1]
+  batch_size = next(iter(spec.values())).shape[0]
+  # The longest time axis (a slot step's video may start later in the clip).
+  clip_length = max(value.shape[1] for value in spec.values()
+                    if len(value.shape) > 1)
   frames = max(50, (clip_length - 1) * frame_stride + 1)
-  source = fixture_source(spec, frames, workdir)
+  source = fixture_source(spec, frames, workdir, num_videos)
   stream = pipeline.train_batches(
       source, batch_size=batch_size, clip_length=clip_length, seed=0,
       fields=tuple(spec), frame_stride=frame_stride,

@@ -52,6 +52,15 @@ export JAX_COMPILATION_CACHE_DIR="$OUT_DIR/cache"
 export JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS=0
 export JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES=0
 START=$SECONDS
+# A row for a case whose process ended without writing one (a crash, a
+# usage error): its exit status and the last line it printed, quotes and
+# control characters removed so the row stays one line of JSON.
+failed_row() {  # rows_file config step dtype exit_status stderr_file
+  local last
+  last=$(grep -v '^[[:space:]]*$' "$6" 2>/dev/null | tail -n 1 \
+         | tr -d '"\\|[:cntrl:]' | cut -c1-300)
+  echo "{\"config\": \"$2\", \"step\": \"$3\", \"dtype\": \"$4\", \"error\": \"failed (exit $5): ${last:-no output}\"}" >>"$1"
+}
 # Phase 1: the compiles, in parallel (CPU-bound), bounded by the budget.
 for dtype in ${GPU_CHECK_DTYPES:-float32 bfloat16}; do
   for case in "${CASES[@]}"; do
@@ -72,12 +81,15 @@ for dtype in ${GPU_CHECK_DTYPES:-float32 bfloat16}; do
       continue
     fi
     limit=$((left < CASE_TIMEOUT_S ? left : CASE_TIMEOUT_S))
+    before=$(wc -l <"$ROWS")
     timeout "$limit" python benchmarks/gpu_check.py --config="$config" \
       --step="$step" --dtype="$dtype" --json="$ROWS" "${SMOKE[@]}" \
       >/dev/null 2>"$OUT_DIR/last_stderr.txt"
     rc=$?
     if ((rc == 124)); then
       echo "{\"config\": \"$config\", \"step\": \"$step\", \"dtype\": \"$dtype\", \"error\": \"timed out after ${limit} s\"}" >>"$ROWS"
+    elif (($(wc -l <"$ROWS") == before)); then
+      failed_row "$ROWS" "$config" "$step" "$dtype" "$rc" "$OUT_DIR/last_stderr.txt"
     fi
   done
 done
@@ -95,13 +107,17 @@ if ((FED_BUDGET_S > 0)); then
       echo "{\"config\": \"$config\", \"step\": \"$step\", \"dtype\": \"float32\", \"error\": \"skipped: time budget of ${FED_BUDGET_S} s spent\"}" >>"$FED_ROWS"
       continue
     fi
+    before=$(wc -l <"$FED_ROWS")
     timeout "$left" python benchmarks/gpu_check.py --config="$config" \
       --step="$step" --dtype=float32 --json="$FED_ROWS" --fed \
       --reader_workers="${GPU_CHECK_READER_WORKERS:-2}" \
       --fed_dir="$OUT_DIR/feed" "${SMOKE[@]}" \
       >/dev/null 2>"$OUT_DIR/last_fed_stderr.txt"
-    if (($? == 124)); then
+    rc=$?
+    if ((rc == 124)); then
       echo "{\"config\": \"$config\", \"step\": \"$step\", \"dtype\": \"float32\", \"error\": \"timed out after ${left} s\"}" >>"$FED_ROWS"
+    elif (($(wc -l <"$FED_ROWS") == before)); then
+      failed_row "$FED_ROWS" "$config" "$step" float32 "$rc" "$OUT_DIR/last_fed_stderr.txt"
     fi
   done
 fi

@@ -11,6 +11,7 @@ import subprocess
 import sys
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -140,6 +141,44 @@ def test_tiny_savi_step_compiles_for_a_tpu_slice(tmp_path):
   assert 0 < row['hbm_bytes'] < row['chip_hbm']
 
 
+@pytest.mark.parametrize('spec_name', ['slots_with_rollout_video',
+                                       'video_only'])
+def test_the_fed_step_gets_the_batch_it_was_compiled_for(
+    tmp_path, monkeypatch, spec_name):
+  """benchmarks/feed_check.py feeds an AOT-compiled step from the real
+  reader: the batch must have the step's shapes, also when a slot step's
+  video is shorter than its clip (L_I reads the rollout's frames only),
+  which once failed as 'Argument types differ'."""
+  monkeypatch.syspath_prepend(os.path.join(ROOT, 'benchmarks'))
+  import feed_check  # pylint: disable=g-import-not-at-top
+  spec = {'video': jax.ShapeDtypeStruct((2, 4, 16, 16, 3), np.uint8)}
+  if spec_name == 'slots_with_rollout_video':
+    spec = {'slots': jax.ShapeDtypeStruct((2, 6, 3, 4), np.float32),
+            **spec}
+  mesh = jax.sharding.Mesh(np.array(jax.local_devices()[:1]),
+                           (sharding.DATA_AXIS,))
+
+  def step(state, batch, frozen):
+    del frozen
+    total = sum(jnp.sum(value.astype(jnp.float32))
+                for value in batch.values())
+    return state + 1, {'loss': total}
+
+  state = jnp.zeros((), jnp.int32)
+  compiled = jax.jit(step).lower(state, spec, None).compile()
+  result = feed_check.time_fed_vs_resident(
+      compiled, state, None, spec, mesh, frame_stride=1, reader_workers=0,
+      repeats=2, workdir=tmp_path, num_videos=4)
+  assert result['fed_ms'] > 0 and result['resident_ms'] > 0, result
+  assert result['verdict'] in ('input-bound', 'compute-bound')
+
+
+# The script runs `python`: the one running the tests, not whatever the
+# PATH finds first (a venv not activated).
+_PYTHON_FIRST = os.pathsep.join(
+    [os.path.dirname(sys.executable), os.environ.get('PATH', '')])
+
+
 @pytest.mark.slow
 def test_gpu_check_smoke_writes_its_table(tmp_path):
   """benchmarks/gpu_check.sh --smoke on this machine's device (CPU here):
@@ -148,7 +187,8 @@ def test_gpu_check_smoke_writes_its_table(tmp_path):
   result = subprocess.run(
       ['bash', os.path.join(ROOT, 'benchmarks', 'gpu_check.sh'), '--smoke',
        str(tmp_path)], capture_output=True, text=True, timeout=1500,
-      check=False, env=dict(os.environ, GPU_CHECK_CASES='obj3d slotformer',
+      check=False, env=dict(os.environ, PATH=_PYTHON_FIRST,
+                            GPU_CHECK_CASES='obj3d slotformer',
                             GPU_CHECK_DTYPES='float32',
                             GPU_CHECK_BUDGET_S='1200',
                             GPU_CHECK_CASE_TIMEOUT_S='600',
@@ -172,6 +212,30 @@ def test_gpu_check_smoke_writes_its_table(tmp_path):
   assert fed['reader_workers'] == 2 and fed['fed_ms'] > 0, fed
   assert fed['verdict'] in ('input-bound', 'compute-bound')
   assert f"| synthetic:tiny | slotformer | 2 | {fed['fed_ms']:.1f} |" in table
+
+
+def test_gpu_check_names_a_case_that_crashed(tmp_path):
+  """A case whose process ends without writing its row (here a usage
+  error) still gets one, with the exit status and its last line, in the
+  JSON rows and the table: the first GPU run must not end in an empty
+  table and exit status 0."""
+  result = subprocess.run(
+      ['bash', os.path.join(ROOT, 'benchmarks', 'gpu_check.sh'), '--smoke',
+       str(tmp_path)], capture_output=True, text=True, timeout=600,
+      check=False, env=dict(os.environ, PATH=_PYTHON_FIRST,
+                            GPU_CHECK_CASES='obj3d no_such_step',
+                            GPU_CHECK_DTYPES='float32',
+                            GPU_CHECK_FED_CASES='obj3d no_such_step',
+                            GPU_CHECK_FED_BUDGET_S='300'))
+  assert result.returncode == 0, result.stderr[-2000:]
+  for name in ('gpu_check.jsonl', 'gpu_check_fed.jsonl'):
+    (row,) = [json.loads(line)
+              for line in (tmp_path / name).read_text().splitlines()]
+    assert row['step'] == 'no_such_step', row
+    assert row['error'].startswith('failed (exit 2): '), row
+    assert 'invalid choice' in row['error'], row
+  table = (tmp_path / 'gpu_check.md').read_text()
+  assert table.count('failed (exit 2)') == 2, table
 
 
 @pytest.mark.parametrize('name', ['synthetic_vqa', 'synthetic_contact:tiny',
