@@ -31,6 +31,7 @@ import json
 import os
 import sys
 import time
+import traceback
 from pathlib import Path
 
 sys.path.insert(0, os.path.dirname(__file__))
@@ -169,6 +170,7 @@ def main(argv=None) -> int:
     if row is None:
       return 0
   except Exception as error:  # pylint: disable=broad-except
+    traceback.print_exc()  # the whole story to stderr; the row gets a line
     message = str(error).strip().splitlines()[0][:300] if str(error) else ''
     row = dict(config=config_name, step=args.step, dtype=args.dtype,
                error=f'{type(error).__name__}: {message}')

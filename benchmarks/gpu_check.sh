@@ -15,6 +15,7 @@
 # Expects an installed jax with CUDA (pip install -e . 'jax[cuda12]==<the
 # installed jax>' beforehand): nothing is downloaded at run time. Writes
 # OUT_DIR/gpu_check.jsonl (one JSON line per case) and OUT_DIR/gpu_check.md.
+# Each case's stderr (a traceback, if it failed) is in OUT_DIR/stderr/.
 # Environment: GPU_CHECK_BUDGET_S (default 420: under 8 minutes with the
 # table), GPU_CHECK_CASE_TIMEOUT_S (default 150), GPU_CHECK_DTYPES (default
 # "float32 bfloat16"), GPU_CHECK_CASES ("config step;..." to run a subset).
@@ -31,7 +32,7 @@ cd "$(dirname "$0")/.."
 SMOKE=()
 if [[ "${1:-}" == "--smoke" ]]; then SMOKE=(--smoke); shift; fi
 OUT_DIR="${1:-/tmp/gpu_check}"
-mkdir -p "$OUT_DIR"
+mkdir -p "$OUT_DIR/stderr"  # stderr of each case (its traceback, if it failed)
 ROWS="$OUT_DIR/gpu_check.jsonl"
 : > "$ROWS"
 BUDGET_S="${GPU_CHECK_BUDGET_S:-420}"
@@ -84,12 +85,12 @@ for dtype in ${GPU_CHECK_DTYPES:-float32 bfloat16}; do
     before=$(wc -l <"$ROWS")
     timeout "$limit" python benchmarks/gpu_check.py --config="$config" \
       --step="$step" --dtype="$dtype" --json="$ROWS" "${SMOKE[@]}" \
-      >/dev/null 2>"$OUT_DIR/last_stderr.txt"
+      >/dev/null 2>"$OUT_DIR/stderr/${config}_${step}_${dtype}.txt"
     rc=$?
     if ((rc == 124)); then
       echo "{\"config\": \"$config\", \"step\": \"$step\", \"dtype\": \"$dtype\", \"error\": \"timed out after ${limit} s\"}" >>"$ROWS"
     elif (($(wc -l <"$ROWS") == before)); then
-      failed_row "$ROWS" "$config" "$step" "$dtype" "$rc" "$OUT_DIR/last_stderr.txt"
+      failed_row "$ROWS" "$config" "$step" "$dtype" "$rc" "$OUT_DIR/stderr/${config}_${step}_${dtype}.txt"
     fi
   done
 done
@@ -112,12 +113,12 @@ if ((FED_BUDGET_S > 0)); then
       --step="$step" --dtype=float32 --json="$FED_ROWS" --fed \
       --reader_workers="${GPU_CHECK_READER_WORKERS:-2}" \
       --fed_dir="$OUT_DIR/feed" "${SMOKE[@]}" \
-      >/dev/null 2>"$OUT_DIR/last_fed_stderr.txt"
+      >/dev/null 2>"$OUT_DIR/stderr/fed_${config}_${step}.txt"
     rc=$?
     if ((rc == 124)); then
       echo "{\"config\": \"$config\", \"step\": \"$step\", \"dtype\": \"float32\", \"error\": \"timed out after ${left} s\"}" >>"$FED_ROWS"
     elif (($(wc -l <"$FED_ROWS") == before)); then
-      failed_row "$FED_ROWS" "$config" "$step" float32 "$rc" "$OUT_DIR/last_fed_stderr.txt"
+      failed_row "$FED_ROWS" "$config" "$step" float32 "$rc" "$OUT_DIR/stderr/fed_${config}_${step}.txt"
     fi
   done
 fi

@@ -236,6 +236,9 @@ def test_gpu_check_names_a_case_that_crashed(tmp_path):
     assert 'invalid choice' in row['error'], row
   table = (tmp_path / 'gpu_check.md').read_text()
   assert table.count('failed (exit 2)') == 2, table
+  # Each case's whole stderr is kept beside the rows.
+  for name in ('obj3d_no_such_step_float32.txt', 'fed_obj3d_no_such_step.txt'):
+    assert 'invalid choice' in (tmp_path / 'stderr' / name).read_text()
 
 
 @pytest.mark.parametrize('name', ['synthetic_vqa', 'synthetic_contact:tiny',
