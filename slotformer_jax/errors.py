@@ -67,6 +67,19 @@ def one_line(message: object, limit: int = 20000) -> str:
   return shown(joined, limit)
 
 
+def brief(error: BaseException, limit: int = 300) -> str:
+  """``Type: first line`` of an exception in about `limit` characters. A
+  longer line keeps its start and its end, where libraries put the reason
+  (tensorstore: ``... Failed to write 47768 bytes to file 8: No space left
+  on device [os_error_code='28']`` after two long paths)."""
+  text = str(error).strip()
+  first = text.splitlines()[0] if text else ''
+  if len(first) > limit:
+    tail = limit // 3
+    first = f'{first[:limit - tail]} ... {first[-tail:]}'
+  return f'{type(error).__name__}: {first}'
+
+
 def printable(message: object, limit: int = 20000) -> str:
   """A message of several lines as a command prints it: each line through
   `shown` (so a newline quoted inside a name was already escaped where it

@@ -16,6 +16,7 @@ import jax
 from jax.sharding import Sharding
 import orbax.checkpoint as ocp
 
+from slotformer_jax.errors import brief
 from slotformer_jax.errors import ConfigError
 from slotformer_jax.errors import MissingInputError
 from slotformer_jax.errors import UserError
@@ -32,12 +33,6 @@ def abstract_like(tree: Any, sharding: Sharding) -> Any:
   return jax.tree.map(
       lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=sharding),
       tree)
-
-
-def _one_line(error: BaseException) -> str:
-  text = str(error).strip().splitlines()
-  first = text[0] if text else ''
-  return f'{type(error).__name__}: {first[:300]}'
 
 
 class Checkpointer:
@@ -72,7 +67,7 @@ class Checkpointer:
       # Async: the failure may be this save's or an earlier one's.
       raise CheckpointSaveError(
           f'saving checkpoints to {self.directory} failed by step {step} '
-          f'({_one_line(error)}); training stopped. Free disk space (or fix '
+          f'({brief(error)}); training stopped. Free disk space (or fix '
           'the folder) and re-run: it resumes from the last saved step '
           f'({self.last_saved_step()}).') from None
 
@@ -98,13 +93,13 @@ class Checkpointer:
             '%s: checkpoint step(s) %s in %s could not be read (%s); using '
             'the newest intact checkpoint, step %d', what,
             [s for s, _ in failures], self.directory,
-            _one_line(failures[0][1]), candidate)
+            brief(failures[0][1]), candidate)
       return restored, candidate
     newest, error = failures[0]
     raise ConfigError(
         f'no checkpoint in {self.directory} can be restored into the {what} '
         f'model built from the current config (tried steps '
-        f'{[s for s, _ in failures]}; step {newest}: {_one_line(error)}). '
+        f'{[s for s, _ in failures]}; step {newest}: {brief(error)}). '
         'Either the config differs from the one it was trained with, or the '
         'checkpoints are damaged: use the training config, or delete the '
         'folder to retrain.') from None

@@ -53,6 +53,7 @@ import numpy as np
 import optax
 import tqdm
 
+from slotformer_jax.errors import brief
 from slotformer_jax.errors import ConfigError
 from slotformer_jax.errors import UserError
 from slotformer_jax.files import append_line_atomic
@@ -581,8 +582,7 @@ def fit(stage: Stage, *, mesh: Mesh, seed: int,
       if not failed:
         raise UserError(
             f'{stage.name}: saving a checkpoint to {checkpointer.directory} '
-            f'failed ({type(error).__name__}: '
-            f'{str(error).strip().splitlines()[0][:300] if str(error).strip() else ""}).'
+            f'failed ({brief(error)}).'
             ' Free disk space and re-run: it resumes from the last saved '
             f'step ({checkpointer.last_saved_step()}).') from None
     finally:

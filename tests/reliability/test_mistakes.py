@@ -31,6 +31,7 @@ import ml_collections
 import numpy as np
 import pytest
 
+from slotformer_jax import errors
 from slotformer_jax.config import checks as config_checks
 from slotformer_jax.errors import UserError
 from slotformer_jax.workdir.lock import FileLock
@@ -572,3 +573,18 @@ def test_clevrer_without_test_videos_names_the_splits_flag(tmp_path,
                           ), error
   assert 'without them convert the others: --splits=train,val' in error
   assert not (tmp_path / 'data').exists()
+
+
+def test_a_long_error_line_keeps_its_reason():
+  """An error quoted in a one-line message keeps the end of a long first
+  line, where tensorstore puts the reason after two paths: a full disk
+  under a deep run folder once read '... Failed writing: "/tmp/pytest-o'."""
+  path = '/a/deep/run/folder/' + 'x' * 300
+  error = ValueError(f'RESOURCE_EXHAUSTED: Error writing local file "{path}":'
+                     ' Failed to write 47768 bytes to file 8: No space left '
+                     "on device [os_error_code='28']\nsecond line")
+  line = errors.brief(error)
+  assert line.startswith('ValueError: RESOURCE_EXHAUSTED: Error writing')
+  assert line.endswith("No space left on device [os_error_code='28']")
+  assert len(line) < 330 and 'second line' not in line
+  assert errors.brief(KeyError('k')) == "KeyError: 'k'"
