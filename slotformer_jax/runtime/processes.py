@@ -122,6 +122,7 @@ class PeerWatchdog:
     self.interval = min(interval, timeout / 4)
     self._beats = 0
     self._stop = threading.Event()
+    self._verdict = threading.Event()  # a peer is lost: this process ends
     self._thread = threading.Thread(target=self._watch, daemon=True,
                                     name='peer-watchdog')
 
@@ -193,6 +194,7 @@ class PeerWatchdog:
   def _lost(self, what: str) -> None:
     if self._stop.is_set():
       return
+    self._verdict.set()
     print(f'error: {what}; stopping process {self.process_id} too. Re-run '
           'every process with the same command: training resumes from the '
           'last saved checkpoint.', file=sys.stderr, flush=True)
@@ -249,4 +251,9 @@ class PeerWatchdog:
     lost (an error in a collective usually means one is)."""
     if self._thread.is_alive():
       self._thread.join(self.timeout + 4 * self.interval)
+      if self._verdict.is_set():
+        # It is ending the process; process 0 first waits for the others
+        # (up to `timeout`), so the verdict alone is not the end: returning
+        # now would print the collective's traceback after the one line.
+        self._thread.join(self.timeout + 4 * self.interval + 2)
 
