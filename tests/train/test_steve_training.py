@@ -82,12 +82,13 @@ def test_decoder_group_learning_rate():
 
 
 def _stage_config(num_steps, **extra):
-  return ml_collections.ConfigDict(dict(
+  # `extra` may replace a field (group_learning_rates), not only add one.
+  fields = dict(
       num_train_steps=num_steps, learning_rate=1e-3, warmup_fraction=0.25,
       grad_clip=0.05, min_lr_fraction=0.0,
       group_learning_rates={}, stop_check_every=1, batch_size=4,
-      log_every=1, checkpoint_every=2,
-      **extra))
+      log_every=1, checkpoint_every=2)
+  return ml_collections.ConfigDict({**fields, **extra})
 
 
 class _Interrupted(Exception):
