@@ -173,10 +173,16 @@ def test_the_fed_step_gets_the_batch_it_was_compiled_for(
   assert result['verdict'] in ('input-bound', 'compute-bound')
 
 
-# The script runs `python`: the one running the tests, not whatever the
-# PATH finds first (a venv not activated).
-_PYTHON_FIRST = os.pathsep.join(
-    [os.path.dirname(sys.executable), os.environ.get('PATH', '')])
+def _run_gpu_check(out_dir, timeout, **env):
+  """benchmarks/gpu_check.sh --smoke into `out_dir`, with `env` added. The
+  script runs `python`: the one running the tests first on the PATH, not
+  whatever the PATH finds first (a venv not activated)."""
+  path = os.pathsep.join([os.path.dirname(sys.executable),
+                          os.environ.get('PATH', '')])
+  return subprocess.run(
+      ['bash', os.path.join(ROOT, 'benchmarks', 'gpu_check.sh'), '--smoke',
+       str(out_dir)], capture_output=True, text=True, timeout=timeout,
+      check=False, env=dict(os.environ, PATH=path, **env))
 
 
 @pytest.mark.slow
@@ -184,16 +190,13 @@ def test_gpu_check_smoke_writes_its_table(tmp_path):
   """benchmarks/gpu_check.sh --smoke on this machine's device (CPU here):
   the cached-compile phase, the timed run and the table, one case; then
   the same step fed by the reader (workers + device prefetch)."""
-  result = subprocess.run(
-      ['bash', os.path.join(ROOT, 'benchmarks', 'gpu_check.sh'), '--smoke',
-       str(tmp_path)], capture_output=True, text=True, timeout=1500,
-      check=False, env=dict(os.environ, PATH=_PYTHON_FIRST,
-                            GPU_CHECK_CASES='obj3d slotformer',
-                            GPU_CHECK_DTYPES='float32',
-                            GPU_CHECK_BUDGET_S='1200',
-                            GPU_CHECK_CASE_TIMEOUT_S='600',
-                            GPU_CHECK_FED_CASES='obj3d slotformer',
-                            GPU_CHECK_FED_BUDGET_S='600'))
+  result = _run_gpu_check(tmp_path, 1500,
+                          GPU_CHECK_CASES='obj3d slotformer',
+                          GPU_CHECK_DTYPES='float32',
+                          GPU_CHECK_BUDGET_S='1200',
+                          GPU_CHECK_CASE_TIMEOUT_S='600',
+                          GPU_CHECK_FED_CASES='obj3d slotformer',
+                          GPU_CHECK_FED_BUDGET_S='600')
   assert result.returncode == 0, result.stderr[-2000:]
   (row,) = [json.loads(line)
             for line in (tmp_path / 'gpu_check.jsonl').read_text().splitlines()]
@@ -219,14 +222,11 @@ def test_gpu_check_names_a_case_that_crashed(tmp_path):
   error) still gets one, with the exit status and its last line, in the
   JSON rows and the table: the first GPU run must not end in an empty
   table and exit status 0."""
-  result = subprocess.run(
-      ['bash', os.path.join(ROOT, 'benchmarks', 'gpu_check.sh'), '--smoke',
-       str(tmp_path)], capture_output=True, text=True, timeout=600,
-      check=False, env=dict(os.environ, PATH=_PYTHON_FIRST,
-                            GPU_CHECK_CASES='obj3d no_such_step',
-                            GPU_CHECK_DTYPES='float32',
-                            GPU_CHECK_FED_CASES='obj3d no_such_step',
-                            GPU_CHECK_FED_BUDGET_S='300'))
+  result = _run_gpu_check(tmp_path, 600,
+                          GPU_CHECK_CASES='obj3d no_such_step',
+                          GPU_CHECK_DTYPES='float32',
+                          GPU_CHECK_FED_CASES='obj3d no_such_step',
+                          GPU_CHECK_FED_BUDGET_S='300')
   assert result.returncode == 0, result.stderr[-2000:]
   for name in ('gpu_check.jsonl', 'gpu_check_fed.jsonl'):
     (row,) = [json.loads(line)
