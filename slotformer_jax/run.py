@@ -79,7 +79,15 @@ class Run:
   @classmethod
   def create(cls, config: ml_collections.ConfigDict, workdir: str,
              mesh: Mesh | None = None) -> Run:
-    """The run of `config` in `workdir` (on every device by default)."""
+    """The run of `config` in `workdir` (on every device by default).
+
+    Raises:
+      ConfigError: a field holds a value outside its declared choices
+        (before anything is built from it).
+    """
+    problems = config_checks.choice_problems(config)
+    if problems:
+      raise ConfigError('config: ' + '; '.join(problems))
     slot_model = slot_models.get(config)
     if config.compute_dtype not in slot_model.compute_dtypes:
       raise ConfigError(

@@ -20,14 +20,23 @@ from typing import Any
 
 import ml_collections
 
+from slotformer_jax.config import defaults
+from slotformer_jax.config.defaults import CHOICES
+from slotformer_jax.config.defaults import FRAME_METRICS
+from slotformer_jax.config.defaults import OBJECT_METRICS
 from slotformer_jax.config.sections import DYNAMICS_MODELS
 from slotformer_jax.config.sections import dynamics_section
 from slotformer_jax.config.sections import reads_readout_splits
 from slotformer_jax.config.sections import trained_dynamics
 from slotformer_jax.errors import ConfigError
 
-FRAME_METRICS = ('psnr', 'ssim', 'lpips')
-OBJECT_METRICS = ('ari', 'fg_ari', 'fg_miou', 'ar')
+# Every section builder declares its fields' choices (`defaults.one_of`)
+# when it runs: run them all once, so that a config read back from a
+# workdir is checked as one built from a config file.
+for _build in (defaults.base_config, defaults.vqa_config,
+               defaults.contact_readout_config,
+               defaults.planning_readout_config):
+  _build()
 
 _TRAINING_INTS = ('batch_size', 'num_train_steps', 'log_every',
                   'checkpoint_every')
@@ -319,20 +328,12 @@ def validate(config: ml_collections.ConfigDict, stages: Sequence[str], *,
     positive('evaluation', ('num_videos',), allow_zero=('num_videos',))
     if 'evaluate' in stages:
       divisible('evaluation.batch_size', config.evaluation.batch_size)
-    unknown = [m for m in config.evaluation.metrics
-               if m not in FRAME_METRICS + OBJECT_METRICS]
-    if unknown:
-      problems.append(
-          f'unknown evaluation.metrics {unknown}; known: '
-          f'{", ".join(FRAME_METRICS + OBJECT_METRICS)}')
-    if config.evaluation.clips not in ('first', 'clevrer'):
-      problems.append("evaluation.clips must be 'first' or 'clevrer', got "
-                      f'{config.evaluation.clips!r}')
   if 'render' in stages:
     positive('render', ('num_videos', 'fps', 'scale', 'strip_every'))
   if 'explore' in stages:
     positive('explore', ('num_videos', 'fps', 'scale'))
 
+  problems.extend(choice_problems(config))
   problems.extend(seeds_problems(config, stages))
   problems.extend(check_field_kinds(config))
   problems[:] = list(dict.fromkeys(problems))  # the same line from two checks
@@ -373,6 +374,35 @@ def seeded_stages(slot_model: str, task: str | None = None
           + (SEEDED_TASK_STAGES.get(task, ()) if chain else ()))
 
 
+def _listed(values: Sequence[Any]) -> str:
+  return ', '.join(repr(v) for v in values)
+
+
+def choice_problems(config: ml_collections.ConfigDict,
+                    fields: Sequence[str] | None = None) -> list[str]:
+  """One line per field of `config` (or of `fields`) with a fixed set of
+  values (`defaults.CHOICES`) that holds another value; a tuple field may
+  hold any of them, each once."""
+  problems = []
+  for field in fields if fields is not None else sorted(CHOICES):
+    node, *path = config, *field.split('.')
+    for key in path:
+      node = node.get(key) if isinstance(node, ml_collections.ConfigDict) \
+          else None
+    if node is None:
+      continue  # a section this config has not got
+    values = CHOICES[field]
+    if isinstance(node, (tuple, list)):
+      unknown = [v for v in node if v not in values]
+      if unknown or len(set(node)) != len(node):
+        problems.append(f'{field}={tuple(node)!r}: each must be one of '
+                        f'{_listed(values)}, once')
+    elif node not in values:
+      problems.append(f'{field} must be one of {_listed(values)}, got '
+                      f'{node!r}')
+  return problems
+
+
 def seeds_problems(config: ml_collections.ConfigDict,
                    stages: Sequence[str]) -> list[str]:
   """One line per bad `seeds` / `seed_data_order` / `on_seed_divergence` /
@@ -391,17 +421,8 @@ def seeds_problems(config: ml_collections.ConfigDict,
       duplicates = sorted({s for s in seeds if list(seeds).count(s) > 1})
       problems.append(f'seeds must be distinct, got {tuple(seeds)!r} '
                       f'({", ".join(map(str, duplicates))} repeated)')
-  order = config.seed_data_order
-  if order not in ('shared', 'per_seed'):
-    problems.append("seed_data_order must be 'shared' or 'per_seed', got "
-                    f'{order!r}')
-  on_divergence = config.on_seed_divergence
-  if on_divergence not in ('stop', 'continue'):
-    problems.append("on_seed_divergence must be 'stop' or 'continue', got "
-                    f'{on_divergence!r}')
-  if config.seed_loop not in ('auto', 'vmap', 'unroll'):
-    problems.append("seed_loop must be 'auto', 'vmap' or 'unroll', got "
-                    f'{config.seed_loop!r}')
+  problems.extend(choice_problems(config, (
+      'seed_data_order', 'on_seed_divergence', 'seed_loop')))
   if not isinstance(config.seed_axis, bool):
     problems.append(f'seed_axis must be True or False, got '
                     f'{config.seed_axis!r}')

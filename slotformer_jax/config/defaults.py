@@ -8,7 +8,31 @@ training settings"). Any field can be overridden on the command line, e.g.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+from typing import Any
+
 import ml_collections
+
+# Every field with a fixed set of values: {dotted field: its values}, each
+# declared where its default is set (`one_of`). config/checks.py refuses any
+# other value before any work; a tuple field takes any of them, each once.
+CHOICES: dict[str, tuple[Any, ...]] = {}
+
+
+def one_of(field: str, default: Any, values: Sequence[Any]) -> Any:
+  """`default`, after declaring that `field` takes one of `values` (or,
+  for a tuple field, a selection of them)."""
+  values = tuple(values)
+  chosen = default if isinstance(default, tuple) else (default,)
+  if not set(chosen) <= set(values):
+    raise ValueError(f'{field}: default {default!r} is not among {values}')
+  CHOICES[field] = values
+  return default
+
+
+# The rollout metrics (evaluation/metrics.py): of the frames, of the objects.
+FRAME_METRICS = ('psnr', 'ssim', 'lpips')
+OBJECT_METRICS = ('ari', 'fg_ari', 'fg_miou', 'ar')
 
 
 def base_config() -> ml_collections.ConfigDict:
@@ -34,11 +58,13 @@ def base_config() -> ml_collections.ConfigDict:
   # 'shared': every seed sees the batches of `seed`'s stream (a one-seed
   # run's order; what the seed-k-equals-run-k check needs); 'per_seed':
   # seed s draws its batches with s.
-  config.seed_data_order = 'shared'
+  config.seed_data_order = one_of('seed_data_order', 'shared',
+                                  ('shared', 'per_seed'))
   # A seed whose loss or parameters become non-finite is named in one line;
   # 'stop': the run stops (nothing non-finite saved); 'continue': it keeps
   # its last finite parameters and the others go on (all diverged: stop).
-  config.on_seed_divergence = 'stop'
+  config.on_seed_divergence = one_of('on_seed_divergence', 'stop',
+                                     ('stop', 'continue'))
   # Split the stacked state on a 'seed' mesh axis beside 'data' when each
   # process's devices split into len(seeds) groups (e.g. 4 seeds x 2 data
   # on 8 devices); otherwise, or False, the seeds are replicated on every
@@ -49,11 +75,12 @@ def base_config() -> ml_collections.ConfigDict:
   # times into the program: the one-seed kernels) or 'auto': 'unroll' on
   # CPU when the seeds are not split over devices, else 'vmap'
   # (docs/seeds.md has the timings).
-  config.seed_loop = 'auto'
+  config.seed_loop = one_of('seed_loop', 'auto', ('auto', 'vmap', 'unroll'))
   # 'float32' or 'bfloat16': the dtype the training losses and the rollout
   # evaluation compute in; parameters, optimiser state and checkpoints stay
   # float32 either way (slotformer_jax/runtime/precision.py).
-  config.compute_dtype = 'float32'
+  config.compute_dtype = one_of('compute_dtype', 'float32',
+                                ('float32', 'bfloat16'))
   # Which stage-1 model extracts the slots: 'savi' (incl. stochastic SAVi)
   # or 'steve' (dVAE + STEVE, `config.dvae` / `config.steve`).
   config.slot_model = 'savi'
@@ -73,7 +100,8 @@ def base_config() -> ml_collections.ConfigDict:
   config.data.data_dir = ml_collections.config_dict.placeholder(str)
   # Real datasets: 'rgb' (as converted) or 'bgr' (the official CLEVRER
   # models saw OpenCV's BGR frames; the official Physion ones saw RGB).
-  config.data.channel_order = 'rgb'
+  config.data.channel_order = one_of('data.channel_order', 'rgb',
+                                     ('rgb', 'bgr'))
   # Real datasets: which conversion under <data_dir>/<name> to read when
   # `resolution` does not single one out (None: the only / matching one).
   config.data.prepared_config = ml_collections.config_dict.placeholder(str)
@@ -104,12 +132,14 @@ def base_config() -> ml_collections.ConfigDict:
   # 'boxes' / 'points': conditional SAVi, slots from the first frame's boxes
   # (or their centres) through an MLP (hidden 256); slot 0 is a zero
   # background box, slot 1 + i box row i, so num_slots >= box rows + 1.
-  savi.initial_slots = 'learned'
+  savi.initial_slots = one_of('savi.initial_slots', 'learned',
+                              ('learned', 'gaussian', 'boxes', 'points'))
   # padding: 'same' (XLA) or 'pytorch' (K//2 on both sides: the official
   # models; differs from 'same' only at stride 2).
   savi.encoder = ml_collections.ConfigDict(dict(
       features=(64, 64, 64, 64), kernel_size=5, strides=(1, 1, 1, 1),
-      output_size=128, padding='same'))
+      output_size=128,
+      padding=one_of('savi.encoder.padding', 'same', ('same', 'pytorch'))))
   savi.slot_attention = ml_collections.ConfigDict(dict(
       num_iterations=2, mlp_size=256))
   # f_trans. kind: 'transformer' (over one frame's slots), 'transformer_lstm'
@@ -118,19 +148,22 @@ def base_config() -> ml_collections.ConfigDict:
   # pre_norm: Pre-LN Transformer; for 'residual_mlp' the residual is taken
   # from the normalised input. dropout_rate: the Transformer's.
   savi.predictor = ml_collections.ConfigDict(dict(
-      kind='transformer', num_layers=2, num_heads=4, mlp_size=512,
+      kind=one_of('savi.predictor.kind', 'transformer',
+                  ('transformer', 'transformer_lstm', 'residual_mlp')),
+      num_layers=2, num_heads=4, mlp_size=512,
       lstm_size=0, pre_norm=True, dropout_rate=0.0))
   # Head on the initial slots before Slot Attention: 'none', 'linear' or
   # 'mlp' (Linear -> LN -> ReLU -> Linear); it predicts (mean, log-variance):
   # stochastic SAVi samples, deterministic SAVi keeps the mean.
-  savi.posterior_head = 'none'
+  savi.posterior_head = one_of('savi.posterior_head', 'none',
+                               ('none', 'linear', 'mlp'))
   savi.decoder = ml_collections.ConfigDict(dict(
       broadcast_resolution=(8, 8), features=(64, 64, 64, 64), kernel_size=5))
   # Of every LayerNorm: 1e-6 (flax) or 1e-5 (PyTorch, the official models).
   savi.layer_norm_epsilon = 1e-6
   # 'flax' (lecun-normal kernels, zero biases, orthogonal recurrent kernels)
   # or 'pytorch' (PyTorch's defaults, see modules/initializers.py).
-  savi.init = 'flax'
+  savi.init = one_of('savi.init', 'flax', ('flax', 'pytorch'))
   # Training (Adam, linear warm-up then cosine decay; both start / end at
   # min_lr_fraction * learning_rate).
   savi.batch_size = 64
@@ -177,7 +210,8 @@ def base_config() -> ml_collections.ConfigDict:
   # padding as savi.encoder's ('pytorch': the official Conv2d).
   steve.encoder = ml_collections.ConfigDict(dict(
       features=(64, 64, 64, 64), kernel_size=5, strides=(2, 1, 1, 1),
-      output_size=192, padding='same'))
+      output_size=192,
+      padding=one_of('steve.encoder.padding', 'same', ('same', 'pytorch'))))
   # Of the encoder, Slot Attention and the predictor (1e-5: PyTorch's, the
   # official model); the token decoder uses 1e-5 always.
   steve.layer_norm_epsilon = 1e-6
@@ -218,14 +252,16 @@ def base_config() -> ml_collections.ConfigDict:
   # The paper lists no dropout; the official PyTorch code keeps
   # nn.TransformerEncoderLayer's default of 0.1.
   dyn.dropout_rate = 0.1
-  dyn.positional_encoding = 'temporal'  # 'naive': ablation (per-token P.E.)
+  # 'naive': the ablation's per-token positional encoding.
+  dyn.positional_encoding = one_of('slotformer.positional_encoding',
+                                   'temporal', ('temporal', 'naive'))
   dyn.residual = False  # predict S_t + f(...) (the paper's remark)
   # 0: the context is the last burn_in frames. > burn_in: it grows from the
   # burn_in observed frames by one predicted frame per step up to
   # max_context frames, then slides (PHYRE: burn_in 1, max_context 6).
   dyn.max_context = 0
   dyn.layer_norm_epsilon = 1e-6  # 1e-5: PyTorch's, the official models
-  dyn.init = 'flax'  # or 'pytorch' (see savi.init)
+  dyn.init = one_of('slotformer.init', 'flax', ('flax', 'pytorch'))  # as savi.init
   dyn.teacher_forcing = False  # ablation: feed ground-truth slots back
   dyn.image_loss_weight = 1.0  # lambda of L_I (0 disables L_I)
   dyn.frame_stride = 1  # temporal subsampling of the slot sequences
@@ -262,9 +298,11 @@ def base_config() -> ml_collections.ConfigDict:
   ev.savi_metrics = True
   # 'first': each video from frame 0; 'clevrer': the official CLEVRER clips
   # (no object entering during the rollout).
-  ev.clips = 'first'
+  ev.clips = one_of('evaluation.clips', 'first', ('first', 'clevrer'))
   ev.chunk_length = 16  # frames per call in SAVi's whole-video evaluation
-  ev.metrics = ('psnr', 'ssim', 'lpips', 'ari', 'fg_ari', 'fg_miou', 'ar')
+  ev.metrics = one_of(
+      'evaluation.metrics', FRAME_METRICS + OBJECT_METRICS,
+      FRAME_METRICS + OBJECT_METRICS)
   # None: a plain argmax over the alpha masks gives the predicted segments.
   # 0.5 reproduces the official post-processing (pixels where every alpha is
   # below it go to the weakest slot, taken as background).
@@ -272,11 +310,13 @@ def base_config() -> ml_collections.ConfigDict:
   # AR's ground-truth boxes: 'segmentation' (the boxes of the id map) or
   # 'object_masks' (each object's full mask, overlapped parts included: the
   # official convention; needs a dataset that stores 'boxes', e.g. CLEVRER).
-  ev.ar_gt_boxes = 'segmentation'
+  ev.ar_gt_boxes = one_of('evaluation.ar_gt_boxes', 'segmentation',
+                          ('segmentation', 'object_masks'))
   # FG-mIoU over the objects of a frame: 'skip' (mean over the ids with
   # pixels) or 'zero' (an id below the frame's largest one but without
   # pixels counts IoU 0: the official convention).
-  ev.miou_absent_ids = 'skip'
+  ev.miou_absent_ids = one_of('evaluation.miou_absent_ids', 'skip',
+                              ('skip', 'zero'))
   # The slot model's whole-video metrics (FG-ARI, ARI, FG-mIoU, PSNR): over
   # every frame (False) or leaving out the first (True: the SAVi paper's
   # MOVi convention, whose conditional SAVi sees that frame's boxes). The
@@ -370,7 +410,8 @@ def vqa_config() -> ml_collections.ConfigDict:
   # Which slots Aloe reads: 'observed' (SAVi's slots of the video),
   # 'rollout' (plus SlotFormer's rollout after it, read by predictive
   # questions), 'blind' (zeros: the question-only baseline).
-  vqa.inputs = 'rollout'
+  vqa.inputs = one_of('vqa.inputs', 'rollout',
+                      ('observed', 'rollout', 'blind', 'future'))
   vqa.seed = 0  # Aloe's initialisation and question order (runs per seed)
   vqa.video_length = 128  # observed frames of a video
   vqa.rollout_frames = 32  # frames rolled out after it (official: to 160)
@@ -387,7 +428,7 @@ def vqa_config() -> ml_collections.ConfigDict:
   vqa.mlp_size = 512
   vqa.head_size = 128
   vqa.dropout_rate = 0.1  # nn.TransformerEncoderLayer's default
-  vqa.positions = 'token'  # 'token' (official) or 'frame'
+  vqa.positions = one_of('vqa.positions', 'token', ('token', 'frame'))  # official: token
   # The Transformer's LayerNorms: flax's 1e-6 here (what docs/vqa.md
   # measured); the official model has PyTorch's 1e-5 (configs/clevrer_vqa.py).
   vqa.layer_norm_epsilon = 1e-6
@@ -446,7 +487,7 @@ def contact_readout_config() -> ml_collections.ConfigDict:
   # --config.readout.features=N can set it).
   r.features = ml_collections.config_dict.placeholder(int)
   # 'unordered' (official) or 'both_orders' (invariant to the slot order).
-  r.pairs = 'unordered'
+  r.pairs = one_of('readout.pairs', 'unordered', ('unordered', 'both_orders'))
   r.epochs = 50
   r.batch_size = 64
   r.learning_rate = 1e-3
@@ -490,6 +531,6 @@ def planning_readout_config() -> ml_collections.ConfigDict:
   r.num_pictures = 0  # planning/test_task_<k>.png rankings (embedded tasks)
   # The rendered PHYRE layout: its fold, the candidates ranked, its splits.
   r.fold = 0
-  r.candidates = 'rendered'
+  r.candidates = one_of('readout.candidates', 'rendered', ('rendered',))
   r.splits = ml_collections.ConfigDict(dict(train='train', test='val'))
   return r

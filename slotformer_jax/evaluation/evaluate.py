@@ -46,8 +46,8 @@ import ml_collections
 import numpy as np
 
 from slotformer_jax import inference
-from slotformer_jax.config.checks import FRAME_METRICS
-from slotformer_jax.config.checks import OBJECT_METRICS
+from slotformer_jax.config.defaults import FRAME_METRICS
+from slotformer_jax.config.defaults import OBJECT_METRICS
 from slotformer_jax.config.sections import SLOT_LSTM
 from slotformer_jax.config.sections import SLOTFORMER
 from slotformer_jax.data import pipeline

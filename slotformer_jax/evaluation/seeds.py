@@ -20,8 +20,8 @@ from typing import Any
 
 import numpy as np
 
-from slotformer_jax.config.checks import FRAME_METRICS
-from slotformer_jax.config.checks import OBJECT_METRICS
+from slotformer_jax.config.defaults import FRAME_METRICS
+from slotformer_jax.config.defaults import OBJECT_METRICS
 from slotformer_jax.files import write_json_atomic
 
 STD = ('population standard deviation over the seeds in the mean (numpy '

@@ -341,6 +341,94 @@ def test_every_shipped_config_passes_the_checks_of_its_whole_run(spec):
             num_processes=1)
 
 
+# Fields holding a path or a name of something outside the config: their
+# value is checked where it is read (the data stage, the question reader).
+_CHECKED_WHERE_READ = ('data.data_dir', 'data.prepared_config',
+                       'stage1_workdir', 'vqa.questions_root',
+                       'vqa.vocab_file')
+# Checked against the dataset's spec once it declares its splits and fields
+# (issue 50, the dataset modules): not yet before the data stage.
+_DATASET_DEPENDENT = ('data.name', 'data.launch_side', 'data.scenario',
+                      'data.predictive_design', 'evaluation.split',
+                      'readout.splits.train', 'readout.splits.val',
+                      'readout.splits.test', 'readout.label_field',
+                      'vqa.eval_split')
+
+
+def _string_fields(config, prefix=''):
+  for key in config.keys():
+    value = config[key]
+    if isinstance(value, ml_collections.ConfigDict):
+      yield from _string_fields(value, f'{prefix}{key}.')
+    elif isinstance(value, str):
+      yield f'{prefix}{key}'
+
+
+@pytest.mark.parametrize('spec', list(_every_config_spec()))
+def test_a_wrong_value_of_any_string_field_is_one_line_before_any_work(spec):
+  # What main runs before it takes the workdir's lock and makes any data.
+  from slotformer_jax import stages  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.run import Run  # pylint: disable=g-import-not-at-top
+  fields = [f for f in _string_fields(config_checks.load_config_file(spec))
+            if f not in _CHECKED_WHERE_READ + _DATASET_DEPENDENT]
+  assert fields
+  for field in fields:
+    config = config_checks.load_config_file(spec)
+    *sections, name = field.split('.')
+    node = config
+    for section in sections:
+      node = node[section]
+    node[name] = 'no_such_value'
+    with pytest.raises(UserError) as error:
+      run = Run.create(config, '/nonexistent/run')
+      run.check(stages.selected_stages(run, 'all'), num_devices=1,
+                num_processes=1)
+    line = str(error.value)
+    assert '\n' not in line and field in line and "'no_such_value'" in line, (
+        field, line)
+
+
+def test_declared_choices_are_the_ones_the_modules_take():
+  # The config declares each field's values once; the modules below it
+  # (which a config never imports) must take exactly those.
+  from slotformer_jax.config.defaults import CHOICES  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.modules import encoders, initializers, slot_init  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.modules import stochastic_savi, transitions  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.runtime import precision  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.evaluation import metrics  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.modules import aloe, readouts, slotformer  # pylint: disable=g-import-not-at-top
+  assert CHOICES['savi.initial_slots'] == slot_init.INITIAL_SLOTS
+  assert CHOICES['savi.init'] == initializers.INITIALIZATIONS
+  assert CHOICES['slotformer.init'] == initializers.INITIALIZATIONS
+  assert CHOICES['savi.encoder.padding'] == encoders.PADDINGS
+  assert CHOICES['steve.encoder.padding'] == encoders.PADDINGS
+  assert CHOICES['savi.predictor.kind'] == transitions.PREDICTORS
+  assert CHOICES['savi.posterior_head'] == stochastic_savi.POSTERIOR_HEADS
+  assert CHOICES['compute_dtype'] == precision.COMPUTE_DTYPES
+  assert CHOICES['evaluation.miou_absent_ids'] == metrics.ABSENT_ID_CONVENTIONS
+  assert CHOICES['slotformer.positional_encoding'] == (slotformer.TEMPORAL,
+                                                       slotformer.NAIVE)
+  assert CHOICES['vqa.positions'] == (aloe.TOKEN, aloe.FRAME)
+  assert CHOICES['readout.pairs'] == (readouts.UNORDERED,
+                                      readouts.BOTH_ORDERS)
+
+
+def test_a_positional_encoding_typo_is_one_line_before_any_data(tmp_path):
+  result = _main('--config=' + SYNTHETIC + ':tiny',
+                 f'--workdir={tmp_path / "run"}',
+                 '--config.slotformer.positional_encoding=temporl',
+                 cwd=str(tmp_path))
+  assert result.returncode == 1
+  line = _one_error_line(result)
+  assert ("slotformer.positional_encoding must be one of 'temporal', "
+          "'naive', got 'temporl'") in line, line
+  # No dataset and no workdir made (main's XLA-flag probe cache aside).
+  data = tmp_path / 'data'
+  assert not data.exists() or sorted(os.listdir(data)) == [
+      'xla_flag_probes.json']
+  assert not (tmp_path / 'run').exists()
+
+
 def _nan_stage(directory, checkpoint_every):
   config = ml_collections.ConfigDict(dict(
       num_train_steps=4, learning_rate=1e-2, warmup_fraction=0.0,

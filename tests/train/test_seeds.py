@@ -392,8 +392,8 @@ def test_bad_seed_choices_are_one_line_each():
       _config(seed_data_order='random', on_seed_divergence='skip'),
       ('train_savi',))
   assert problems == [
-      "seed_data_order must be 'shared' or 'per_seed', got 'random'",
-      "on_seed_divergence must be 'stop' or 'continue', got 'skip'"]
+      "seed_data_order must be one of 'shared', 'per_seed', got 'random'",
+      "on_seed_divergence must be one of 'stop', 'continue', got 'skip'"]
 
 
 def test_stages_without_several_seeds_refuse_them_in_one_line():
