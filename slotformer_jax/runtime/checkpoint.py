@@ -59,6 +59,14 @@ _DIGEST_FORMAT = 'slotformer_jax checkpoint digest'
 _DAMAGED = '.damaged-'  # a step set aside: '30.damaged-20250102T030405'
 
 
+def _sha256(f) -> str:
+  """Hex SHA-256 of an open binary file (hashlib.file_digest is 3.11+)."""
+  digest = hashlib.sha256()
+  while chunk := f.read(1 << 20):
+    digest.update(chunk)
+  return digest.hexdigest()
+
+
 def write_digest(step_directory: str) -> None:
   """Records the size and SHA-256 of every file of a finished step."""
   listed = {}
@@ -72,7 +80,7 @@ def write_digest(step_directory: str) -> None:
       with open(path, 'rb') as f:
         listed[relative.replace(os.sep, '/')] = {
             'bytes': os.fstat(f.fileno()).st_size,
-            'sha256': hashlib.file_digest(f, 'sha256').hexdigest()}
+            'sha256': _sha256(f)}
   write_json_atomic(os.path.join(step_directory, DIGEST_FILE),
                     {'format': _DIGEST_FORMAT, 'version': 1, 'files': listed})
 
@@ -110,7 +118,7 @@ def damage_of(step_directory: str) -> str | None:
   for name, file, sha256 in files:
     try:
       with open(file, 'rb') as f:
-        actual = hashlib.file_digest(f, 'sha256').hexdigest()
+        actual = _sha256(f)
     except OSError as error:
       return f'{shown(name, 120)} cannot be read ({brief(error)})'
     if actual != sha256:
