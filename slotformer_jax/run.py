@@ -80,6 +80,9 @@ class Run:
   def create(cls, config: ml_collections.ConfigDict, workdir: str,
              mesh: Mesh | None = None) -> Run:
     """The run of `config` in `workdir` (on every device by default)."""
+    shapes = config_checks.check_field_shapes(config)
+    if shapes:  # the slot model reads its (H, W) fields as it is made
+      raise ConfigError('config: ' + '; '.join(shapes))
     slot_model = slot_models.get(config)
     if config.compute_dtype not in slot_model.compute_dtypes:
       raise ConfigError(
@@ -133,7 +136,8 @@ class Run:
                      else num_devices),
         num_processes=(jax.process_count() if num_processes is None
                        else num_processes),
-        slot_model_problems=self.slot_model.check_config(frozenset(stages)),
+        slot_model_problems=lambda: self.slot_model.check_config(
+            frozenset(stages)),
         video_length=video_length)
 
   # ---- who this process is ------------------------------------------------
