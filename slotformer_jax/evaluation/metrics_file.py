@@ -32,7 +32,11 @@ _UNREADABLE = ('eval/metrics.json is not what --mode=evaluate writes: re-run '
 def clean(values) -> list[float | None]:
   """Per-step values for the page: 4 decimals, non-finite as None (and so
   an int too large for a float, such as 10**400 in a JSON file)."""
-  return [_finite(v) for v in values]
+  try:
+    return [None if v is None or not math.isfinite(v) else round(float(v), 4)
+            for v in values]
+  except OverflowError:
+    return [_finite(v) for v in values]
 
 
 def _finite(value) -> float | None:
