@@ -587,11 +587,11 @@ def discover(source: Path, split: str, options: Options) -> list[RecordJob]:
   return jobs
 
 
-@functools.lru_cache(maxsize=4)
 def _is_int(leaf: Leaf) -> bool:
   return leaf.dtype != 'bytes' and np.dtype(leaf.dtype).kind in 'iu'
 
 
+@functools.lru_cache(maxsize=4)
 def _parser(leaves: tuple[tuple[str, Leaf], ...]
             ) -> tfds.core.example_parser.ExampleParserNp:
   """Integer features as the int64 the proto holds (`_declared_ints` casts
