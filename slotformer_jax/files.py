@@ -22,6 +22,8 @@ import pathlib
 import secrets
 from typing import Any, Iterator
 
+import numpy as np
+
 from slotformer_jax.errors import UserError
 from slotformer_jax.errors import shown
 
@@ -169,6 +171,39 @@ def confined(folder: str | os.PathLike[str], name: str, *, what: str,
 class UntrustedFileError(UserError, ValueError):
   """A file from elsewhere (a download, a shared run folder) that is not
   what it should be: the message names the file and what is wrong."""
+
+
+def int_in_range(value: Any, low: int, high: int, *, what: str) -> Any:
+  """An integer read from a file (JSON, a record, a pickle), checked before
+  anything casts it: a Python or NumPy int (not a bool; not a float, even
+  3.0), or an integer NumPy array (every element), with low <= value <=
+  high. Returns a Python int (an array: the array, unchanged), so that a
+  later cast to int32 (or uint16, ...) can no longer wrap 2**32 + 5 to 5.
+
+  Raises:
+    UntrustedFileError: one line naming `what` (the file and the field).
+  """
+  if isinstance(value, np.ndarray):
+    if value.dtype.kind not in 'iu':
+      raise UntrustedFileError(f'{what} holds {value.dtype} values, not '
+                               'integers')
+    if value.size and not (low <= int(value.min())
+                           and int(value.max()) <= high):
+      bad = int(value.min()) if int(value.min()) < low else int(value.max())
+      raise UntrustedFileError(f'{what} holds {bad}, outside [{low}, '
+                               f'{high}]')
+    return value
+  if isinstance(value, (bool, np.bool_)) or not isinstance(
+      value, (int, np.integer)):
+    raise UntrustedFileError(f'{what} is {shown(repr(value), 40)}, not an '
+                             'integer')
+  value = int(value)
+  if not low <= value <= high:
+    shown_value = (str(value) if value.bit_length() <= 128
+                   else f'a {value.bit_length()}-bit integer')
+    raise UntrustedFileError(f'{what} is {shown_value}, outside [{low}, '
+                             f'{high}]')
+  return value
 
 
 def depth_of(value: Any) -> int:

@@ -82,10 +82,12 @@ class Run:
     """The run of `config` in `workdir` (on every device by default).
 
     Raises:
-      ConfigError: a field holds a value outside its declared choices
-        (before anything is built from it).
+      ConfigError: a field holds a value outside its declared choices, or
+        a tuple of the wrong shape (before anything is built from it: the
+        slot model reads its (H, W) fields as it is made).
     """
-    problems = config_checks.choice_problems(config)
+    problems = (config_checks.choice_problems(config)
+                + config_checks.check_field_shapes(config))
     if problems:
       raise ConfigError('config: ' + '; '.join(problems))
     slot_model = slot_models.get(config)
@@ -141,7 +143,8 @@ class Run:
                      else num_devices),
         num_processes=(jax.process_count() if num_processes is None
                        else num_processes),
-        slot_model_problems=self.slot_model.check_config(frozenset(stages)),
+        slot_model_problems=lambda: self.slot_model.check_config(
+            frozenset(stages)),
         video_length=video_length)
 
   # ---- who this process is ------------------------------------------------

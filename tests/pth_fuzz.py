@@ -7,8 +7,9 @@
       CASES mutations of tests/data/official_tiny.pth; one JSON line per
       case, each comparing the reader with `reference_read` below.
 
-`reference_read` is the oracle, written apart from the reader: the stock
-unpickler with recording stand-ins, the documented rules checked one by one,
+`reference_read` is the oracle, written apart from the reader: pickle's
+Python unpickler with recording stand-ins, the documented rules checked one
+by one (dict keys and set members too, before they are hashed),
 and every tensor value gathered by explicit indices (`np.indices`) that are
 asserted to lie inside the storage bytes. A case passes when the reader
 returns what the reference returns (bit for bit), or when both refuse and
@@ -87,9 +88,41 @@ class _Unknown:
     self.state = state
 
 
-class _RecordingUnpickler(pickle.Unpickler):
+def _key_allowed(key) -> bool:
+  """The documented rule for dict keys and set members: text, bytes, a
+  bool, None, an int of magnitude below 2**61 - 1 (hashed to itself), or
+  an object hashed by identity (the stand-ins here)."""
+  if type(key) in (str, bytes, bool, type(None)):
+    return True
+  if type(key) is int:
+    return abs(key) < 2**61 - 1
+  return type(key).__hash__ is object.__hash__
+
+
+def _keys_checked(load, keys):
+  """`load` (an opcode of pickle's Python unpickler), after `keys(self)`
+  (the keys it is about to hash) are checked."""
+  def checked(self):
+    if not all(_key_allowed(key) for key in keys(self)):
+      raise Refused('a dict key or set member whose hash a file can steer')
+    load(self)
+  return checked
+
+
+class _RecordingUnpickler(pickle._Unpickler):  # pylint: disable=protected-access
   """Records tensors and storages; one reference per storage key, with
-  every persistent id that named it."""
+  every persistent id that named it. pickle's Python unpickler, whose
+  opcodes that hash keys are wrapped to check them first (the items since
+  the last mark are `self.stack` there)."""
+
+  dispatch = dict(pickle._Unpickler.dispatch)  # pylint: disable=protected-access
+  for _opcode, _keys in ((pickle.SETITEM, lambda u: u.stack[-2:-1]),
+                         (pickle.SETITEMS, lambda u: u.stack[::2]),
+                         (pickle.DICT, lambda u: u.stack[::2]),
+                         (pickle.ADDITEMS, lambda u: u.stack),
+                         (pickle.FROZENSET, lambda u: u.stack)):
+    dispatch[_opcode[0]] = _keys_checked(dispatch[_opcode[0]], _keys)
+  del _opcode, _keys
 
   def __init__(self, file):
     super().__init__(file)

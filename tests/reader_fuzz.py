@@ -25,7 +25,12 @@ trees (a node deleted, retyped, renamed, nested 10 to 100,000 deep,
 duplicated 1,000 times, hostile strings: escape sequences, '../..',
 absolute paths, NUL, 100,000 characters), protobuf features (dropped,
 retyped, emptied, repeated, huge counts, non-UTF-8 text), PNG headers that
-claim other sizes (up to 10^6 x 10^6), truncations and byte flips.
+claim other sizes (up to 10^6 x 10^6), truncations and byte flips; every
+integer field set to the edges of int32 / int64 and past them (2^31,
+2^32 + k, 2^63 - 1, -2^63, 10^400) and to floats where an int is due, and
+one key repeated a thousand times (JSON text keys cannot be given one hash
+value: Python randomizes str hashes; the .pth reader's int keys can, see
+tests/official/test_pth_reader_hostile.py).
 """
 
 from __future__ import annotations
@@ -68,7 +73,15 @@ HOSTILE_STRINGS = (
 HOSTILE_VALUES = (None, True, False, 0, 1, -1, 3, 2**31, 2**63, 10**30,
                   1.5, -0.0, 1e308, float('nan'), [], {}, [1, 2, 3],
                   {'a': 1}, [[[]]])
+# Every number field is also set to these (`int` mutations): the edges of
+# int32 / int64 and past them (2**32 + k wraps to k in int32), an int too
+# large for a float, and floats where an int is due.
+INTEGER_EXTREMES = (2**31 - 1, 2**31, 2**32 + 5, 2**40, -2**32 + 3,
+                    2**63 - 1, 2**63, 2**64 + 1, -2**63, -2**63 - 1,
+                    10**400, -10**400, 2**16 + 2, 3.0, 0.5, 1e400,
+                    float('nan'))
 _DEEP = '"__deep__"'
+_RAW = '"__raw__"'
 
 
 def _paths(tree: Any, prefix: tuple = ()) -> list[tuple]:
@@ -102,8 +115,28 @@ def mutate_json(rng: random.Random, tree: Any) -> tuple[str, str]:
   path = rng.choice(_paths(tree))
   node = _get(tree, path)
   where = '/'.join(map(str, path))[-80:] or '<top>'
+  # Every number field (ints, and floats that may receive an int too large
+  # for a float).
+  integers = [p for p in _paths(tree) if type(_get(tree, p)) in (int, float)]
   kind = rng.choice(('delete', 'type', 'string', 'number', 'deep', 'wrap',
-                     'duplicate', 'rename', 'swap'))
+                     'duplicate', 'rename', 'swap', 'int', 'int', 'keys'))
+  if kind == 'int' and integers:
+    path = rng.choice(integers)
+    where = '/'.join(map(str, path))[-80:] or '<top>'
+    value = rng.choice(INTEGER_EXTREMES)
+    shown = (f'{value!r}' if not isinstance(value, int)
+             or value.bit_length() < 100 else f'<{value.bit_length()}-bit>')
+    return f'int {where} -> {shown}', json.dumps(_set(tree, path, value))
+  if kind == 'keys' and isinstance(node, dict) and node:
+    # One key many times (JSON allows it; the last wins), with every value
+    # of the node in turn: text keys cannot be made to share a hash value
+    # (Python randomizes str hashes), repeated ones are their collision.
+    key = rng.choice(sorted(node))
+    values = list(node.values()) * (1000 // len(node) + 1)
+    raw = '{' + ', '.join(f'{json.dumps(key)}: {json.dumps(v)}'
+                          for v in values[:1000] + [node[key]]) + '}'
+    text = json.dumps(_set(tree, path, '__raw__'))
+    return f'keys {where} {key[:20]!r} x1001', text.replace(_RAW, raw, 1)
   if kind == 'delete' and path:
     parent = _get(tree, path[:-1])
     del parent[path[-1]]
@@ -114,7 +147,7 @@ def mutate_json(rng: random.Random, tree: Any) -> tuple[str, str]:
             json.dumps(_set(tree, path, value)))
   if kind == 'number':
     value = rng.choice((0, -1, 1, 2**31 - 1, 2**31, 2**63, 10**20, -10**20,
-                        1e6, 0.5, '7', '-3', '1' * 30))
+                        10**400, 1e6, 0.5, '7', '-3', '1' * 30))
     return f'number {where} -> {value!r}', json.dumps(_set(tree, path,
                                                             value))
   if kind == 'deep':
@@ -309,7 +342,8 @@ class MoviRecords(MoviMetadata):
     elif kind == 'value':
       if feature.int64_list.value:
         feature.int64_list.value[0] = rng.choice(
-            (-1, 0, 10**9, 2**62, -2**62, 255, 256))
+            (-1, 0, 10**9, 2**62, -2**62, 255, 256, 2**31 - 1, 2**31,
+             2**32 + 5, 2**40, -2**32 + 3, 2**16 + 2, 2**63 - 1, -2**63))
       elif feature.float_list.value:
         feature.float_list.value[0] = rng.choice((float('nan'), 1e38,
                                                   -1e38))

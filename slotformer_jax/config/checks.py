@@ -250,15 +250,62 @@ def check_field_kinds(config: ml_collections.ConfigDict) -> list[str]:
   return problems
 
 
+# Tuple-valued fields, by name (as `_FIELD_KINDS`): how many entries each
+# must have (None: any number). A single value where a tuple is meant
+# (`features = 64` in a config file), or an (H, W) of another length
+# (`--config.data.resolution=32` arrives as (32,)), failed where the field
+# was first used, in a traceback.
+_FIELD_SHAPES = (
+    (r'^(resolution|broadcast_resolution)$', 2, '(H, W): a tuple of 2'),
+    (r'^(encoder|decoder)\.(features|strides)$|^evaluation\.metrics$|'
+     r'^extraction\.splits$|^readout\.(seeds|conditions|selected_steps)$',
+     None, 'a tuple'),
+)
+
+
+def check_field_shapes(config: ml_collections.ConfigDict) -> list[str]:
+  """One line per tuple field of the wrong shape (`_FIELD_SHAPES`), and
+  per encoder whose strides and features differ in length (one stride per
+  layer)."""
+  problems = []
+  for dotted, value in _leaves(config):
+    if value is None:  # an unset placeholder: its default applies
+      continue
+    parts = dotted.split('.')
+    for pattern, length, describes in _FIELD_SHAPES:
+      if not (re.search(pattern, parts[-1])
+              or re.search(pattern, '.'.join(parts[-2:]))):
+        continue
+      if not isinstance(value, (tuple, list)) or (
+          length is not None and len(value) != length):
+        problems.append(f'{dotted} must be {describes}, got {value!r}')
+      break
+    if parts[-1] == 'strides' and isinstance(value, (tuple, list)):
+      section = config
+      for part in parts[:-1]:
+        section = section[part]
+      features = section.get('features')
+      if isinstance(features, (tuple, list)) and len(features) != len(
+          value):
+        where = '.'.join(parts[:-1])
+        problems.append(
+            f'{where}.strides {tuple(value)!r} and {where}.features '
+            f'{tuple(features)!r} must have one entry per layer each')
+  return problems
+
+
 def validate(config: ml_collections.ConfigDict, stages: Sequence[str], *,
              num_devices: int, num_processes: int = 1,
-             slot_model_problems: Sequence[str] = (),
+             slot_model_problems: Callable[[], Sequence[str]] | Sequence[
+                 str] = (),
              video_length: Callable[[str], int | None] = lambda split: None
              ) -> None:
   """Raises one UserError listing every problem of `stages` (main's modes).
 
   Args:
-    slot_model_problems: the slot model's own (`SlotModel.check_config`).
+    slot_model_problems: the slot model's own (`SlotModel.check_config`),
+      or a function giving them: called only once the fields have their
+      kinds and shapes (a decoder size check needs an (H, W)).
     video_length: split -> frames per video when known without making data
       (None: unknown, checked later by the stage that reads them).
   """
@@ -336,10 +383,12 @@ def validate(config: ml_collections.ConfigDict, stages: Sequence[str], *,
   problems.extend(choice_problems(config))
   problems.extend(seeds_problems(config, stages))
   problems.extend(check_field_kinds(config))
+  problems.extend(check_field_shapes(config))
   problems[:] = list(dict.fromkeys(problems))  # the same line from two checks
   _check_splits(config, stages, problems)
   if not problems:  # sizes and lengths need the integers above to be sane
-    problems.extend(slot_model_problems)
+    problems.extend(slot_model_problems() if callable(slot_model_problems)
+                    else slot_model_problems)
     _check_lengths(config, stages, dynamics, problems, video_length)
   if problems:
     raise ConfigError('config: ' + '; '.join(problems))

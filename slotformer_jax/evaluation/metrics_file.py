@@ -16,6 +16,7 @@ import os
 from typing import Any
 
 from slotformer_jax.files import UntrustedFileError
+from slotformer_jax.files import int_in_range
 from slotformer_jax.files import read_untrusted_json
 
 logger = logging.getLogger(__name__)
@@ -29,9 +30,22 @@ _UNREADABLE = ('eval/metrics.json is not what --mode=evaluate writes: re-run '
 
 
 def clean(values) -> list[float | None]:
-  """Per-step values for the page: 4 decimals, non-finite as None."""
-  return [None if v is None or not math.isfinite(v) else round(float(v), 4)
-          for v in values]
+  """Per-step values for the page: 4 decimals, non-finite as None (and so
+  an int too large for a float, such as 10**400 in a JSON file)."""
+  try:
+    return [None if v is None or not math.isfinite(v) else round(float(v), 4)
+            for v in values]
+  except OverflowError:
+    return [_finite(v) for v in values]
+
+
+def _finite(value) -> float | None:
+  try:
+    value = None if value is None else float(value)
+  except OverflowError:
+    return None
+  return None if value is None or not math.isfinite(value) else round(
+      value, 4)
 
 
 def _curve(value: Any) -> list[float | None] | None:
@@ -85,7 +99,9 @@ def read_curves(path: str, identity: dict[str, Any],
   protocol = results.get('protocol', {})
   protocol = protocol if isinstance(protocol, dict) else {}
   videos, split = protocol.get('num_videos', 'the'), protocol.get('split', '')
-  videos = videos if isinstance(videos, int) and not isinstance(
-      videos, bool) else 'the'
+  try:
+    videos = int_in_range(videos, 0, 10**12, what='num_videos')
+  except UntrustedFileError:
+    videos = 'the'
   return curves, (f'the run: eval/metrics.json, mean over {videos} '
                   f'{split if _name(split) else ""} videos')

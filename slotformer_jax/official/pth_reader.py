@@ -15,6 +15,14 @@ trusted:
   `collections.OrderedDict` to itself, and every other global (an
   optimizer's or scheduler's bookkeeping) becomes an inert `Opaque` record
   that is never called. A state dict holding such a record is refused.
+* Every dict key and set member is checked before it is hashed (pickle's
+  pure-Python unpickler, whose dict opcodes can be replaced): a str, bytes,
+  bool, None, an int below 2**61 - 1 in magnitude (its hash is itself) or
+  one of the reader's records (hashed by identity). A tuple, float or
+  larger int is refused: a file can give thousands of them one hash value
+  (multiples of 2**61 - 1 all hash alike), and inserting n of them takes
+  n**2 steps (20,000 took 2 s, minutes to hours within the limits below);
+  no checkpoint has such keys (optimizer states use small ints).
 * Before the pickle runs, its opcodes are scanned (`pickletools`, pure
   Python): every length it declares must be present in the data, memo
   indices must be ones a pickler could have written, and the opcode count is
@@ -45,6 +53,7 @@ import math
 import os
 import pickle
 import pickletools
+import sys
 import zipfile
 from typing import Any
 
@@ -266,9 +275,82 @@ class _NewStateDict(_Inert):
     return _StateDict(*args)
 
 
-class _Unpickler(pickle.Unpickler):
+# Ints in (-_HASH_MODULUS, _HASH_MODULUS) hash to themselves (but -1 -> -2).
+_HASH_MODULUS = sys.hash_info.modulus
+
+
+class _KeyRefused(pickle.UnpicklingError):
+  """A dict key or set member whose hash a file could steer."""
+
+
+def _check_key(key: Any) -> None:
+  kind = type(key)
+  if kind in (str, bytes, bool, type(None)) or (
+      kind is int and -_HASH_MODULUS < key < _HASH_MODULUS) or (
+          kind.__hash__ is object.__hash__):
+    return
+  what = f'the int {_fmt(key)}' if kind is int else f'a {kind.__name__}'
+  raise _KeyRefused(
+      f'a dict key or set member is {what}; checkpoints have text or small '
+      'int keys only (keys like it can be made to share one hash value, '
+      'which makes reading them take quadratic time)')
+
+
+def _pop_items(unpickler: pickle._Unpickler) -> list:  # pylint: disable=protected-access
+  items = unpickler.pop_mark()
+  for key in items[::2]:
+    _check_key(key)
+  return items
+
+
+class _Unpickler(pickle._Unpickler):  # pylint: disable=protected-access
   """See the module docstring: maps globals, never imports from the file,
-  reads no storage."""
+  reads no storage, checks every key before it is hashed.
+
+  pickle's pure-Python unpickler (the C one fills dicts without a hook):
+  about 1 us per opcode, 1 s at `Limits.max_pickle_ops`.
+  """
+
+  dispatch = dict(pickle._Unpickler.dispatch)  # pylint: disable=protected-access
+
+  def _setitem(self):
+    value = self.stack.pop()
+    key = self.stack.pop()
+    _check_key(key)
+    self.stack[-1][key] = value
+
+  def _setitems(self):
+    items = _pop_items(self)
+    target = self.stack[-1]
+    for i in range(0, len(items), 2):
+      target[items[i]] = items[i + 1]
+
+  def _dict(self):
+    items = _pop_items(self)
+    self.append({items[i]: items[i + 1] for i in range(0, len(items), 2)})
+
+  def _additems(self):
+    items = self.pop_mark()
+    for item in items:
+      _check_key(item)
+    target = self.stack[-1]
+    if isinstance(target, set):
+      target.update(items)
+    else:
+      for item in items:
+        target.add(item)
+
+  def _frozenset(self):
+    items = self.pop_mark()
+    for item in items:
+      _check_key(item)
+    self.append(frozenset(items))
+
+  dispatch[pickle.SETITEM[0]] = _setitem
+  dispatch[pickle.SETITEMS[0]] = _setitems
+  dispatch[pickle.DICT[0]] = _dict
+  dispatch[pickle.ADDITEMS[0]] = _additems
+  dispatch[pickle.FROZENSET[0]] = _frozenset
 
   def __init__(self, file):
     super().__init__(file)
@@ -348,6 +430,8 @@ def _unpickle(data: bytes, where: str, limits: Limits,
     return unpickler.load(), unpickler
   except CheckpointError:
     raise
+  except _KeyRefused as error:
+    raise CheckpointError(f'{where}: {error}') from None
   except Exception as error:  # pylint: disable=broad-except
     # A crafted pickle can make the unpickler raise nearly anything (a call
     # of OrderedDict with the wrong arguments, a BUILD into a record...).

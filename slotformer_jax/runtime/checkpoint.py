@@ -1,16 +1,33 @@
 """A thin wrapper over orbax's CheckpointManager for one training stage.
 
 Saves are asynchronous; a run killed mid-save leaves only a temporary folder
-that orbax ignores, so the next run resumes from the last complete step. A
-checkpoint that is complete but damaged (disk fault, truncated file) is
-skipped with a warning and the newest intact one is used.
+that orbax ignores, so the next run resumes from the last complete step.
+
+Once orbax has finished a step, process 0 writes `<step>/sha256.json`: the
+size and SHA-256 of every file of the step. A restore checks it first, so a
+step whose bytes differ from what was saved (a disk fault, a truncated or
+overwritten file) is never loaded: training sets it aside as
+`<step>.damaged-<time>` (orbax ignores that name, and the step can be saved
+again) and resumes from the newest intact step; a read-only restore
+(evaluation, extraction) skips it. With several processes, process 0 checks
+and every process restores the step it chose.
+
+A step without sha256.json (saved before digests were written, or killed in
+the moment between orbax finishing it and its digest) restores as before:
+nothing is recorded retroactively, since a digest taken now would bless
+whatever bytes are there, and a read-only workdir must not be written.
+Orbax's own read errors still skip such a step.
 """
 
 from __future__ import annotations
 
+import hashlib
+import json
 import logging
 import os
-from typing import Any
+import threading
+import time
+from typing import Any, Callable
 
 import jax
 from jax.sharding import Sharding
@@ -20,12 +37,106 @@ from slotformer_jax.errors import brief
 from slotformer_jax.errors import ConfigError
 from slotformer_jax.errors import MissingInputError
 from slotformer_jax.errors import UserError
+from slotformer_jax.errors import shown
+from slotformer_jax.files import confined
+from slotformer_jax.files import OutsideFolderError
+from slotformer_jax.files import write_json_atomic
+from slotformer_jax.runtime import processes
 
 logger = logging.getLogger(__name__)
 
 
 class CheckpointSaveError(UserError):
   """Writing a checkpoint failed (disk full, permissions): training stops."""
+
+
+class DamagedCheckpointError(UserError):
+  """Every checkpoint step there is holds other bytes than were saved."""
+
+
+DIGEST_FILE = 'sha256.json'
+_DIGEST_FORMAT = 'slotformer_jax checkpoint digest'
+_DAMAGED = '.damaged-'  # a step set aside: '30.damaged-20250102T030405'
+
+
+def _sha256(f) -> str:
+  """Hex SHA-256 of an open binary file (hashlib.file_digest is 3.11+)."""
+  digest = hashlib.sha256()
+  while chunk := f.read(1 << 20):
+    digest.update(chunk)
+  return digest.hexdigest()
+
+
+def write_digest(step_directory: str) -> None:
+  """Records the size and SHA-256 of every file of a finished step."""
+  listed = {}
+  for root, folders, names in os.walk(step_directory):
+    folders.sort()
+    for name in sorted(names):
+      path = os.path.join(root, name)
+      relative = os.path.relpath(path, step_directory)
+      if relative == DIGEST_FILE or not os.path.isfile(path):
+        continue
+      with open(path, 'rb') as f:
+        listed[relative.replace(os.sep, '/')] = {
+            'bytes': os.fstat(f.fileno()).st_size,
+            'sha256': _sha256(f)}
+  write_json_atomic(os.path.join(step_directory, DIGEST_FILE),
+                    {'format': _DIGEST_FORMAT, 'version': 1, 'files': listed})
+
+
+def damage_of(step_directory: str) -> str | None:
+  """Why a step's files are not what was saved (one phrase), or None: they
+  match its sha256.json, or it has none (a step saved before digests)."""
+  path = os.path.join(step_directory, DIGEST_FILE)
+  if not os.path.lexists(path):
+    return None
+  try:
+    with open(path, 'rb') as f:
+      digest = json.loads(f.read(64 << 20))
+    listed = digest['files']
+    if digest.get('format') != _DIGEST_FORMAT or not isinstance(listed, dict):
+      raise ValueError('not a digest')
+    expected = [(name, int(entry['bytes']), str(entry['sha256']))
+                for name, entry in listed.items()]
+  except (OSError, ValueError, TypeError, KeyError, AttributeError):
+    return f'its {DIGEST_FILE} is unreadable'
+  # Sizes first: a truncated file is found without hashing the rest.
+  files = []
+  for name, size, sha256 in expected:
+    try:
+      file = confined(step_directory, name, what='a file of sha256.json',
+                      nested=True)
+      actual = os.path.getsize(file)
+    except OutsideFolderError:
+      return f'its {DIGEST_FILE} is unreadable'
+    except OSError:
+      return f'{shown(name, 120)} is missing'
+    if actual != size:
+      return f'{shown(name, 120)} holds {actual} bytes, {size} were saved'
+    files.append((name, file, sha256))
+  for name, file, sha256 in files:
+    try:
+      with open(file, 'rb') as f:
+        actual = _sha256(f)
+    except OSError as error:
+      return f'{shown(name, 120)} cannot be read ({brief(error)})'
+    if actual != sha256:
+      return f'{shown(name, 120)} holds other bytes than were saved'
+  return None
+
+
+def set_aside(directory: str, step: int) -> str:
+  """Renames step folder `step` to a name orbax ignores; returns it."""
+  stamp = time.strftime('%Y%m%dT%H%M%S')
+  for attempt in range(100):
+    name = f'{step}{_DAMAGED}{stamp}' + (f'-{attempt}' if attempt else '')
+    target = os.path.join(directory, name)
+    if not os.path.lexists(target):
+      os.rename(os.path.join(directory, str(step)), target)
+      return name
+  raise FileExistsError(f'no free name for step {step} set aside in '
+                        f'{directory}')
 
 
 def abstract_like(tree: Any, sharding: Sharding) -> Any:
@@ -41,11 +152,14 @@ class Checkpointer:
   def __init__(self, directory: str, *, max_to_keep: int = 2,
                read_only: bool = False):
     self.directory = os.path.abspath(directory)
+    self.read_only = read_only
     self._manager = ocp.CheckpointManager(
         self.directory,
         options=ocp.CheckpointManagerOptions(
             max_to_keep=max_to_keep, create=not read_only,
             read_only=read_only))
+    # The thread that writes the digest of the step being saved.
+    self._digester: threading.Thread | None = None
 
   def latest_step(self) -> int | None:
     return self._manager.latest_step()
@@ -60,9 +174,15 @@ class Checkpointer:
       CheckpointSaveError: this or the previous save failed.
     """
     try:
-      self._manager.save(step, args=ocp.args.StandardSave(state),
-                         force=force)
+      self._join_digester()
+      saved = self._manager.save(step, args=ocp.args.StandardSave(state),
+                                 force=force)
       self._manager.check_for_errors()
+      if saved and jax.process_index() == 0:
+        self._digester = threading.Thread(
+            target=self._digest_when_finished, args=(step,),
+            name=f'checkpoint digest {step}', daemon=True)
+        self._digester.start()
     except Exception as error:  # pylint: disable=broad-except
       # Async: the failure may be this save's or an earlier one's.
       raise CheckpointSaveError(
@@ -75,34 +195,128 @@ class Checkpointer:
     steps = self.all_steps()
     return steps[-1] if steps else 'none'
 
-  def _restore_newest_intact(self, restore_step, what: str,
-                             step: int | None) -> tuple[Any, int]:
-    """Tries `step` (default: newest first, then older ones)."""
+  def _digest_when_finished(self, step: int) -> None:
+    """(A thread of process 0.) Once orbax has finished `step`, records its
+    digest; a failed save is reported by the next save or wait instead."""
+    try:
+      self._manager.wait_until_finished()
+    except Exception:  # pylint: disable=broad-except
+      return
+    step_directory = os.path.join(self.directory, str(step))
+    try:
+      if os.path.isdir(step_directory):
+        write_digest(step_directory)
+    except OSError as error:
+      logger.warning('checkpoint step %d in %s: its %s could not be written '
+                     '(%s); it will restore unchecked', step, self.directory,
+                     DIGEST_FILE, brief(error))
+
+  def _join_digester(self) -> None:
+    if self._digester is not None:
+      self._digester.join()
+      self._digester = None
+
+  def _agreed(self, values: list[int], *, every: bool = False) -> list[int]:
+    """Process 0's `values` (`every`: the minimum over the processes),
+    the same on every process; with one process, `values`."""
+    if jax.process_count() == 1 or not values:
+      return values
+    rows = processes.gathered(values)
+    return [int(v) for v in (rows.min(axis=0) if every else rows[0])]
+
+  def _restore_newest_intact(self, restore_step: Callable[[int], Any],
+                             what: str, step: int | None,
+                             train_command: str | None = None
+                             ) -> tuple[Any, int]:
+    """Tries `step` (default: newest first, then older ones), never one
+    whose bytes differ from what was saved. Writable: the damaged steps,
+    and the unreadable ones newer than the restored one (orbax would refuse
+    to save those steps again), are set aside."""
+    self._join_digester()
     candidates = [step] if step is not None else self.all_steps()[::-1]
     if not candidates:
       raise FileNotFoundError(f'no checkpoint in {self.directory}')
-    failures = []
-    for candidate in candidates:
+    # Process 0 checks the digests; every process goes by its verdict.
+    reasons = {}
+    if jax.process_index() == 0:
+      for candidate in candidates:
+        reason = damage_of(os.path.join(self.directory, str(candidate)))
+        if reason is not None:
+          reasons[candidate] = reason
+    damaged = self._agreed([int(c in reasons) for c in candidates])
+    for candidate, is_damaged in zip(candidates, damaged):
+      if is_damaged and candidate not in reasons:
+        reasons[candidate] = 'found by process 0'
+    failures, restored, chosen = [], None, None
+    for candidate, is_damaged in zip(candidates, damaged):
+      if is_damaged:
+        continue
+      error = None
       try:
         restored = restore_step(candidate)
-      except Exception as error:  # pylint: disable=broad-except
-        failures.append((candidate, error))
-        continue
-      if failures:
-        logger.warning(
-            '%s: checkpoint step(s) %s in %s could not be read (%s); using '
-            'the newest intact checkpoint, step %d', what,
-            [s for s, _ in failures], self.directory,
-            brief(failures[0][1]), candidate)
-      return restored, candidate
+      except Exception as raised:  # pylint: disable=broad-except
+        error = raised
+      # A step is used only when every process could read it.
+      if self._agreed([int(error is None)], every=True) == [1]:
+        chosen = candidate
+        break
+      failures.append((candidate, error or RuntimeError(
+          'another process could not read it')))
+    set_aside_names = self._set_aside_unusable(
+        [c for c, bad in zip(candidates, damaged) if bad]
+        + ([c for c, _ in failures] if chosen is not None else []))
+    damage = self._damage_note(reasons, set_aside_names)
+    if chosen is not None:
+      if damage or failures:
+        aside = [set_aside_names[c] for c, _ in failures
+                 if c in set_aside_names]
+        unreadable = (f'step(s) {[c for c, _ in failures]} could not be read '
+                      f'({brief(failures[0][1])})'
+                      + (f', set aside as {", ".join(aside)}' if aside else '')
+                      + '; ' if failures else '')
+        logger.warning('%s: in %s, %s%susing the newest intact checkpoint, '
+                       'step %d', what, self.directory,
+                       f'{damage}; ' if damage else '', unreadable, chosen)
+      return restored, chosen
+    if not failures:
+      raise DamagedCheckpointError(
+          f'{what}: no intact checkpoint in {self.directory}: {damage}. '
+          + ('Re-run the same command: it trains from step 0 (or put back '
+             'an intact copy of the step first).' if not self.read_only
+             else 'Re-run the training stage'
+             + (f' ({train_command})' if train_command else '')
+             + ': it sets the damaged step aside and trains again.'))
     newest, error = failures[0]
     raise ConfigError(
         f'no checkpoint in {self.directory} can be restored into the {what} '
         f'model built from the current config (tried steps '
-        f'{[s for s, _ in failures]}; step {newest}: {brief(error)}). '
+        f'{[s for s, _ in failures]}; step {newest}: {brief(error)}'
+        f'{"; " + damage if damage else ""}). '
         'Either the config differs from the one it was trained with, or the '
         'checkpoints are damaged: use the training config, or delete the '
         'folder to retrain.') from None
+
+  def _set_aside_unusable(self, steps: list[int]) -> dict[int, str]:
+    """{step: new name} of `steps` renamed by process 0 (writable only);
+    every process then sees the folder without them."""
+    if self.read_only or not steps:
+      return {}
+    names = {}
+    if jax.process_index() == 0:
+      for step in steps:
+        names[step] = set_aside(self.directory, step)
+    self._agreed([0])  # the renames are done before anyone lists
+    self._manager.reload()
+    return names
+
+  def _damage_note(self, reasons: dict[int, str],
+                   names: dict[int, str]) -> str:
+    """'step 30 is damaged (...), set aside as 30.damaged-...' for each."""
+    notes = []
+    for step, reason in sorted(reasons.items(), reverse=True):
+      aside = (f', set aside as {names[step]}' if step in names else '')
+      notes.append(f'step {step} is damaged ({reason}){aside}')
+    return '; '.join(notes)
 
   def restore(self, abstract_state: Any, step: int | None = None,
               what: str = 'training') -> Any:
@@ -127,7 +341,8 @@ class Checkpointer:
     return fields['params'], step
 
   def restore_fields(self, abstract_fields: dict[str, Any],
-                     step: int | None = None, what: str = 'model'
+                     step: int | None = None, what: str = 'model',
+                     train_command: str | None = None
                      ) -> tuple[dict[str, Any], int]:
     """Only the named fields of a saved state ({'params': ...,
     'diverged_at': ...} of a SeedsState) and the step."""
@@ -139,16 +354,24 @@ class Checkpointer:
           item=abstract_fields, restore_args=restore_args,
           partial_restore=True))
       return {name: restored[name] for name in abstract_fields}
-    return self._restore_newest_intact(restore_step, what, step)
+    return self._restore_newest_intact(restore_step, what, step,
+                                       train_command)
 
   def wait_until_finished(self) -> None:
-    self._manager.wait_until_finished()
+    """Until the saves in flight, and their digests, are written."""
+    try:
+      self._manager.wait_until_finished()
+    finally:
+      self._join_digester()
 
   def check_for_errors(self) -> None:
     self._manager.check_for_errors()
 
   def close(self) -> None:
-    self._manager.close()
+    try:
+      self._manager.close()
+    finally:
+      self._join_digester()
 
 
 def restore_params(stage_directory: str, param_shapes: Any,
@@ -188,6 +411,6 @@ def restore_fields(stage_directory: str, shapes: dict[str, Any],
       raise MissingInputError(f'no {what} checkpoint under {directory}. '
                               f'Train it first: {train_command}')
     return checkpointer.restore_fields(abstract_like(shapes, sharding),
-                                       what=what)
+                                       what=what, train_command=train_command)
   finally:
     checkpointer.close()

@@ -96,6 +96,15 @@ def agreed_signal(local_signal: int) -> tuple[int, list[int]]:
   return int(signals.max()), signalled
 
 
+def gathered(values: list[int]) -> np.ndarray:
+  """Every process's `values` as int64 [process_count, len(values)], the
+  same on every process (a collective: each calls it with as many values,
+  at the same point)."""
+  from jax.experimental import multihost_utils  # pylint: disable=g-import-not-at-top
+  rows = multihost_utils.process_allgather(np.asarray(values, np.int64))
+  return np.asarray(rows).reshape(jax.process_count(), len(values))
+
+
 class PeerWatchdog:
   """Heartbeats of every process under `directory` (shared by all).
 

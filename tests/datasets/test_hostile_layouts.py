@@ -211,6 +211,41 @@ def test_a_video_name_that_is_not_utf8_is_one_line(movi_download, tmp_path,
   assert 'unreadable MOVi example (UnicodeDecodeError' in line, line
 
 
+@pytest.mark.parametrize('key, value', [
+    ('instances/bbox_frames/ragged_flat_values', 2**32 + 5),
+    ('instances/bbox_frames/ragged_flat_values', 2**40),
+    ('instances/bbox_frames/ragged_flat_values', -2**32 + 3),
+    ('instances/bbox_frames/ragged_flat_values', 2**31),
+    ('instances/bbox_frames/ragged_flat_values', -1),
+    ('instances/bbox_frames/ragged_flat_values', 3),  # T: past the video
+    ('instances/bbox_frames/ragged_flat_values', 2**63 - 1),
+    ('instances/bbox_frames/ragged_flat_values', -2**63),
+    ('metadata/num_instances', 2**16 + 2),  # uint16: it wrapped to 2
+    ('metadata/num_instances', -2**63),
+])
+def test_an_integer_of_a_record_out_of_range_is_one_line(
+    movi_download, tmp_path, capsys, key, value):
+  """Before: the parser cast int64 to the declared int32 (uint16), so
+  2**32 + 5 converted as frame 5, 2**40 as 0, -2**32 + 3 as 3, and
+  2**16 + 2 instances as 2, with status 0. Every integer is now checked
+  against its declared type before the cast, then by meaning (a frame of
+  the video); nothing is written."""
+  source = _copy(movi_download, tmp_path)
+
+  def edit(features):
+    features[key].int64_list.value[0] = value
+  _rewrite_record(source, edit)
+  assert _convert(source, tmp_path / 'data') == 1
+  line = _one_error_line(capsys)
+  assert 'record 0' in line, line
+  if value not in (3, -1):
+    assert (f'{key.split("/ragged")[0]} holds {value}, outside' in line
+            or f'{key} holds {value}, outside' in line), line
+  assert not any(p.is_file() and 'tfrecord' in p.name
+                 for p in (tmp_path / 'data').rglob('*')), list(
+                     (tmp_path / 'data').rglob('*'))
+
+
 # --------------------------------------------------------------------------
 # CLEVRER questions and vocabularies
 # --------------------------------------------------------------------------
@@ -390,4 +425,145 @@ def test_a_physion_label_row_with_too_few_columns_is_one_line(tmp_path):
                   'short\n')
   with pytest.raises(ValueError, match=r'labels.csv:3: 1 columns, the label '
                      'is column 3'):
+    physion.read_labels(path)
+
+
+# --------------------------------------------------------------------------
+# Integers read from a file: range-checked before any cast (issue 53)
+# --------------------------------------------------------------------------
+
+from slotformer_jax import files  # noqa: E402
+from slotformer_jax.data.convert import clevrer  # noqa: E402
+
+
+@pytest.mark.parametrize('value', [2**31, 2**32 + 5, 2**40, -2**32 + 3, -1,
+                                   2**63 - 1, -2**63, 10**400, 3.0, True,
+                                   '7', np.int64(2**40)])
+def test_an_int_from_a_file_outside_its_range_is_one_line(value):
+  with pytest.raises(files.UntrustedFileError) as caught:
+    files.int_in_range(value, 0, 2**31 - 1, what='x.json: frame')
+  message = str(caught.value)
+  assert message.startswith('x.json: frame is ') and '\n' not in message
+  assert len(message) < 120, message  # 10**400 is not printed in full
+  assert files.int_in_range(np.int32(7), 0, 9, what='x') == 7
+  array = np.asarray([0, 2**40])
+  with pytest.raises(files.UntrustedFileError, match='holds 1099511627776'):
+    files.int_in_range(array, 0, 2**31 - 1, what='x')
+  with pytest.raises(files.UntrustedFileError, match='float64 values'):
+    files.int_in_range(np.zeros(2), 0, 9, what='x')
+
+
+@pytest.mark.parametrize('counts, needle', [
+    ([2**64, 0], 'is 18446744073709551616, outside'),  # OverflowError before
+    ([2**62] * 4 + [16], 'is 4611686018427387904, outside'),  # sum wrapped
+    ([1.5, 14.5], 'not a list of integers'),  # truncated to 1, 14 before
+    ([True, 15], 'not a list of integers'),
+    ('0' + 'o' * 30 + '0', 'more than 9 characters'),  # a 150-bit run
+])
+def test_clevrer_mask_runs_out_of_range_are_refused(counts, needle):
+  with pytest.raises(ValueError, match=needle):
+    clevrer.decode_rle({'size': [4, 4], 'counts': counts})
+
+
+@pytest.mark.parametrize('size', [[2**32 + 4, 4], [4.0, 4], [10**400, 4]])
+def test_clevrer_mask_sizes_out_of_range_are_refused(size):
+  with pytest.raises(ValueError, match='an RLE size is'):
+    clevrer.rle_size({'size': size, 'counts': [16]})
+
+
+@pytest.mark.parametrize('scene_index', [2**32, -1, 1e400, 2.0])
+def test_a_clevrer_scene_index_out_of_range_is_one_line(tmp_path,
+                                                        scene_index):
+  """1e400 (JSON's way to write infinity) was an OverflowError traceback;
+  2.0 was read as 2."""
+  (tmp_path / 'questions').mkdir()
+  (tmp_path / 'questions' / 'train.json').write_text(json.dumps(
+      [{'scene_index': scene_index, 'video_filename': 'video_00000.mp4',
+        'questions': []}]).replace('Infinity', '1e400'))
+  with pytest.raises(ValueError, match='cannot read the questions') as caught:
+    clevrer._split_questions(tmp_path, 'train')  # pylint: disable=protected-access
+  assert 'a scene_index is' in str(caught.value)
+
+
+@pytest.mark.parametrize('object_id', [2**32, 2**32 + 1, 1.0, -2**63])
+def test_a_clevrer_object_id_out_of_range_skips_the_video(tmp_path,
+                                                          object_id):
+  """1.0 and 2**32 + 1 were read as 1 (int()); now the video is skipped
+  with a line naming the annotation."""
+  annotation = tmp_path / 'annotation_00000.json'
+  objects = [{'object_id': 0, 'color': 'red', 'material': 'metal',
+              'shape': 'cube'},
+             {'object_id': object_id, 'color': 'blue', 'material': 'rubber',
+              'shape': 'sphere'}]
+  annotation.write_text(json.dumps({
+      'object_property': objects,
+      'motion_trajectory': [{'objects': [{'object_id': 0,
+                                          'inside_camera_view': True}]}]}))
+  job = clevrer.VideoJob(key='video_00000', index=0,
+                         video=tmp_path / 'video_00000.mp4',
+                         annotation=annotation, annotation_expected=True,
+                         proposal=None, proposal_expected=False)
+  with pytest.raises(media.SkipVideo) as caught:
+    clevrer._read_annotation(job, clevrer.Options())  # pylint: disable=protected-access
+  assert caught.value.reason == 'bad_annotation'
+  assert 'an object_id is' in caught.value.message, caught.value.message
+
+
+def _phyre_folder(root, meta=None, line=None):
+  fx.write_json(root / phyre.META_FILE, {
+      'format': phyre.FORMAT, 'format_version': phyre.FORMAT_VERSION,
+      'tier': 'ball', 'eval_setup': 'ball_within_template', 'fold': 0,
+      'fps': 1, 'frame_size': [8, 8], **(meta or {})})
+  (root / 'train' / 'frames').mkdir(parents=True)
+  fx.write_png(root / 'train' / 'frames' / '0.png',
+               np.zeros((24, 8, 3), np.uint8))
+  entry = {'id': '0', 'task': '00002:013', 'action': [0.1, 0.2, 0.3],
+           'success': True, 'num_frames': 3, **(line or {})}
+  (root / 'train' / phyre.INDEX_FILE).write_text(
+      json.dumps(entry).replace('Infinity', '1e400') + '\n')
+
+
+@pytest.mark.parametrize('fold', [2**32, -1, 10**400, 1.0])
+def test_a_phyre_fold_out_of_range_is_one_line(tmp_path, capsys, fold):
+  root = tmp_path / 'PHYRE'
+  _phyre_folder(root, meta={'fold': fold})
+  assert prepare.main(['--dataset=phyre', f'--source={root}',
+                       f'--data_dir={tmp_path / "data"}', '--num_workers=1',
+                       '--no_progress', '--splits=train']) == 1
+  line = _one_error_line(capsys)
+  assert 'meta.json: fold is' in line, line
+  assert not (tmp_path / 'data').exists()
+
+
+@pytest.mark.parametrize('line, needle', [
+    ({'task': '4294967301:013'}, "the task's template number is 4294967301"),
+    ({'task': '99999999999999999999999:013'}, "template number is"),
+    ({'action': [10**400, 0.0, 0.0]}, 'OverflowError'),  # a traceback before
+    ({'action': [1e400, 0.0, 0.0]}, None),  # inf: a float, read as before
+    ({'num_frames': 3.0}, 'num_frames is 3.0'),
+    ({'num_frames': 2**32 + 3}, 'num_frames 4294967299 is not in 1..10000'),
+])
+def test_phyre_index_numbers_out_of_range_skip_the_rollout(tmp_path, line,
+                                                           needle):
+  root = tmp_path / 'PHYRE'
+  _phyre_folder(root, line=line)
+  options = phyre.Options(resolution=(8, 8), num_frames=3)
+  (job,) = phyre.discover(root, 'train', options)
+  if needle is None:
+    assert job.problem is None
+    return
+  with pytest.raises(media.SkipVideo) as caught:
+    phyre.convert_rollout(job, options)
+  assert caught.value.reason == 'bad_annotation'
+  assert needle in caught.value.message, caught.value.message
+
+
+@pytest.mark.parametrize('label', ['4294967297', '2', '-1', '1e400', '1.0',
+                                   'inf'])
+def test_a_physion_label_that_is_no_0_1_true_false_is_one_line(tmp_path,
+                                                                label):
+  """Labels are read as one of four words, never cast (checked)."""
+  path = tmp_path / 'labels.csv'
+  path.write_text(f'stimulus,ground truth outcome\nname_img,{label}\n')
+  with pytest.raises(ValueError, match='is not True/False'):
     physion.read_labels(path)

@@ -267,6 +267,30 @@ def test_run_curves_of_a_malformed_metrics_file_are_left_out(tmp_path,
     assert curves is None and 'not what --mode=evaluate writes' in note
 
 
+@pytest.mark.parametrize('value', ['1' + '0' * 400, '-1' + '0' * 400, 'NaN',
+                                   'Infinity', '1e400'],
+                         ids=['10**400', '-10**400', 'nan', 'inf', '1e400'])
+def test_a_number_too_large_for_a_float_is_left_out_as_nan_is(tmp_path,
+                                                              value):
+  """10**400 is valid JSON; before, the page ended in `OverflowError: int
+  too large to convert to float` and a traceback. It is now a gap in the
+  curve, as NaN and infinity are, and a num_videos that large is not
+  printed."""
+  identity = {'slotformer': {'run_id': 'a', 'step': 4}}
+  os.makedirs(tmp_path / 'eval')
+  text = json.dumps({
+      'identity': identity, 'protocol': {'num_videos': 'VALUE',
+                                         'split': 'test'},
+      'rollout': {'slotformer': {'psnr': {'per_step': [1.5, 'VALUE']}}}})
+  with open(tmp_path / 'eval' / 'metrics.json', 'w') as f:
+    f.write(text.replace('"VALUE"', value))
+  curves, note = explore.run_curves(
+      str(tmp_path / 'eval' / 'metrics.json'), identity,
+      {'slotformer': 'SlotFormer'})
+  assert curves == {'psnr': {'SlotFormer': [1.5, None]}}, note
+  assert note == 'the run: eval/metrics.json, mean over the test videos'
+
+
 def test_a_full_disk_while_writing_the_page_is_one_line(tmp_path,
                                                         monkeypatch):
   """ENOSPC from the page's atomic write: one UserError line (main prints

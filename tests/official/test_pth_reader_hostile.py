@@ -20,6 +20,7 @@ import struct
 import subprocess
 import sys
 import tarfile
+import time
 import tracemalloc
 import zipfile
 
@@ -578,3 +579,65 @@ def test_the_converter_escapes_keys_it_does_not_know(tmp_path):
       done.stderr[-3000:])
   assert '\\x1b[2J' in errors[0], errors[0]
   assert not workdir.exists()
+
+
+# ---------------------------------------------------------------------------
+# Keys whose hashes a file can steer (issue 53).
+
+_P = 2**61 - 1  # ints that differ by a multiple of it hash alike
+
+
+def _with_side(side) -> bytes:
+  body = pf.Reduce(pf.ORDERED_DICT, ([('w', pf.tensor(
+      '0', 'FloatStorage', 2, 0, (2,), (1,)))],))
+  return pf.archive_bytes(pf.dumps({'state_dict': body, 'side': side}),
+                          {'0': bytes(8)})
+
+
+@pytest.mark.parametrize('keys, needle', [
+    ([(i + 1) * _P for i in range(20_000)], 'the int 2305843009213693951'),
+    ([-(i + 1) * _P for i in range(3)], 'the int -2305843009213693951'),
+    ([2**64, 1], 'the int 18446744073709551616'),
+    ([(1, 2), (3, 4)], 'a tuple'),
+    ([0.5, 1.5], 'a float'),
+], ids=['20000_colliding_ints', 'negative', 'int_2_64', 'tuples', 'floats'])
+def test_dict_keys_whose_hash_a_file_can_steer_are_refused_at_once(
+    tmp_path, keys, needle):
+  """Before: 20,000 int keys that are multiples of 2**61 - 1 (all one hash
+  value) took 2.1 s to unpickle, 4x per doubling (hours within the limits);
+  now the first is refused."""
+  path = tmp_path / 'side.pth'
+  path.write_bytes(_with_side({key: 0 for key in keys}))
+  started = time.perf_counter()
+  with pytest.raises(pth_reader.CheckpointError) as caught:
+    pth_reader.read_checkpoint(str(path))
+  took = time.perf_counter() - started
+  message = str(caught.value)
+  assert str(path) in message and '\n' not in message
+  assert f'a dict key or set member is {needle}' in message, message
+  assert took < 1.0, took
+
+
+def test_set_members_are_checked_as_keys(tmp_path):
+  for opcodes, needle in (
+      # EMPTY_SET MARK <ints> ADDITEMS; MARK <ints> FROZENSET
+      (b'\x8f(' + pf.encode_int(2 * _P) + pf.encode_int(3 * _P) + b'\x90',
+       'the int 4611686018427387902'),
+      (b'(' + pf.encode_int(2 * _P) + b'\x91', 'the int 4611686018427387902'),
+      (b'((\x88\x89Nt\x91', 'a tuple')):  # frozenset({(True, False, None)})
+    path = tmp_path / 'set.pth'
+    pickle_bytes = b'\x80\x04' + opcodes + b'.'
+    path.write_bytes(pf.archive_bytes(pickle_bytes, {}))
+    with pytest.raises(pth_reader.CheckpointError, match=needle):
+      pth_reader.read_checkpoint(str(path))
+
+
+def test_small_int_and_text_keys_are_read_as_before(tmp_path):
+  """An optimizer state's int keys (0..n-1), text, bytes and None."""
+  keys = [0, 1, -1, -2, _P - 1, -(_P - 1), 'a', b'b', None]
+  path = tmp_path / 'keys.pth'
+  path.write_bytes(_with_side({key: 7 for key in keys}))
+  loaded = pth_reader.read_checkpoint(str(path))
+  assert list(loaded['side']) == keys
+  fixture = pth_reader.read_checkpoint(FIXTURE)
+  assert sorted(fixture['opt_state_dict']['state']) == [0, 1]

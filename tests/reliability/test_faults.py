@@ -165,10 +165,25 @@ def test_a_full_disk_under_tensorboard_leaves_the_trainer_s_line(
   assert warnings and 'No space left on device' in warnings[-1], warnings
 
 
-def test_asyncio_s_unretrieved_futures_are_not_printed(caplog):
+@pytest.fixture
+def main_logging():
+  """main's logging set up for one test, then undone: it stops the
+  package's records at its own handler (propagate False), which left every
+  later caplog test of the session (in test_host_memory, test_reliability,
+  test_seeds) seeing no record."""
+  package = logging.getLogger('slotformer_jax')
+  saved = (list(package.handlers), package.level, package.propagate)
+  main_lib._configure_logging()  # pylint: disable=protected-access
+  yield
+  package.handlers[:] = saved[0]
+  package.setLevel(saved[1])
+  package.propagate = saved[2]
+
+
+def test_asyncio_s_unretrieved_futures_are_not_printed(caplog, main_logging):
   """orbax's failed writes on a full disk each left an asyncio 'Task
   exception was never retrieved' line (about 40 after the trainer's)."""
-  main_lib._configure_logging()  # pylint: disable=protected-access
+  del main_logging
   asyncio_logger = logging.getLogger('asyncio')
   with caplog.at_level(logging.ERROR):
     for text in ('Task exception was never retrieved',

@@ -302,6 +302,55 @@ def test_values_that_cannot_work_fail_before_work(tmp_path, field, value,
   assert not os.path.exists(tmp_path / 'data')
 
 
+@pytest.mark.parametrize('field, value, expected', [
+    ('data.resolution', (32,), 'data.resolution must be (H, W): a tuple of '
+     '2, got (32,)'),
+    ('data.resolution', 32, 'data.resolution must be (H, W): a tuple of 2, '
+     'got 32'),
+    ('data.resolution', (8, 8, 8), 'data.resolution must be (H, W)'),
+    ('savi.decoder.broadcast_resolution', (8,), 'savi.decoder.'
+     'broadcast_resolution must be (H, W): a tuple of 2, got (8,)'),
+    ('savi.encoder.features', 64, 'savi.encoder.features must be a tuple, '
+     'got 64'),
+    ('savi.encoder.strides', (2,), 'savi.encoder.strides (2,) and '
+     'savi.encoder.features (32, 32, 32, 32) must have one entry per layer'),
+    ('savi.decoder.features', 32, 'savi.decoder.features must be a tuple'),
+    ('evaluation.metrics', 'psnr', 'evaluation.metrics must be a tuple'),
+])
+def test_a_field_of_the_wrong_shape_is_one_line_before_work(
+    tmp_path, field, value, expected):
+  """Before: `--config.data.resolution=32` (which arrives as (32,)) ended in
+  `ValueError: resolution must be (H, W) >= 8, got (32,)` from a dataclass,
+  with a traceback; a broadcast grid of one entry, in a ValueError from
+  the decoder's size check; strides and features of other lengths, in the
+  encoder at the first step."""
+  config = pipeline_helpers.load_config('synthetic', 'tiny')
+  config.data.data_dir = str(tmp_path / 'data')
+  *sections, name = field.split('.')
+  tree = config.to_dict()  # as a config file writes it: any type
+  node = tree
+  for section in sections:
+    node = node[section]
+  node[name] = value
+  config = ml_collections.ConfigDict(tree)
+  with pytest.raises(UserError) as error:
+    check(config, ('train_savi', 'evaluate'), num_devices=1)
+  assert expected in str(error.value), str(error.value)
+  assert not os.path.exists(tmp_path / 'data')
+
+
+def test_the_wrong_resolution_on_the_command_line_is_one_line(tmp_path):
+  """The issue's command: one line, status 1, nothing written."""
+  result = _main(f'--config={SYNTHETIC}:tiny', '--mode=train_savi',
+                 '--config.data.resolution=32',
+                 f'--workdir={tmp_path / "run"}', cwd=str(tmp_path))
+  line = _one_error_line(result)
+  assert result.returncode == 1, result.stderr
+  assert 'data.resolution must be (H, W): a tuple of 2, got (32,)' in line
+  assert not os.path.exists(tmp_path / 'run')
+  assert not os.path.exists(tmp_path / 'data' / 'synthetic_obj3d')
+
+
 @pytest.mark.parametrize('open_size, choice_size, expected', [
     (0, 8, None), (8, 0, None),  # one kind of question is not drawn
     (0, 0, 'vqa.open_batch_size and vqa.choice_batch_size are both 0'),
@@ -327,6 +376,7 @@ def test_aloe_batch_sizes_may_leave_out_one_kind_of_question(
 def test_every_shipped_config_passes_the_field_kinds(spec):
   config = config_checks.load_config_file(spec)
   assert config_checks.check_field_kinds(config) == []
+  assert config_checks.check_field_shapes(config) == []
   assert slot_models.get(config).check_config(frozenset()) == []
 
 

@@ -369,6 +369,34 @@ def test_sigkill_of_one_process_stops_the_other_with_one_line(
   _assert_same_params(workdir, uninterrupted, data_dir)
 
 
+@pytest.mark.slow
+def test_both_processes_resume_from_the_same_intact_step(
+    data_dir, uninterrupted, tmp_path):
+  """The newest step damaged on disk: process 0 finds it, sets it aside,
+  and both processes resume from the step before (issue 53)."""
+  workdir = str(tmp_path / 'run')
+  every = ['--config.savi.checkpoint_every=4']
+  _finished(Run(workdir, data_dir, STEPS, extra=every))
+  checkpoints = os.path.join(workdir, 'savi', 'checkpoints')
+  assert sorted(os.listdir(checkpoints)) == ['12', '8']
+  files = [os.path.join(root, name)
+           for root, _, names in os.walk(os.path.join(checkpoints, '12'))
+           for name in names if name != 'sha256.json']
+  largest = max(files, key=os.path.getsize)
+  with open(largest, 'r+b') as f:
+    f.seek(os.path.getsize(largest) // 2)
+    f.write(b'\xff' * 1024)
+  run = Run(workdir, data_dir, STEPS, extra=every)
+  _finished(run)
+  for i in (0, 1):
+    assert 'savi: resumed from step 8' in run.log(i), run.log(i)[-3000:]
+  assert 'step 12 is damaged' in run.log(0), run.log(0)[-3000:]
+  names = sorted(os.listdir(checkpoints))
+  assert [n for n in names if n.isdigit()] == ['12', '8'], names
+  assert [n for n in names if not n.isdigit()][0].startswith('12.damaged-')
+  _assert_same_params(workdir, uninterrupted, data_dir)
+
+
 def _train_log(workdir, stage='savi'):
   """{step: {metric: value}} of a stage's train_log.jsonl, timing left out."""
   with open(os.path.join(workdir, stage, 'train_log.jsonl')) as f:

@@ -70,6 +70,7 @@ import tensorflow_datasets as tfds
 
 from slotformer_jax.data.convert import media
 from slotformer_jax.data.convert import writer
+from slotformer_jax.files import int_in_range
 
 logger = logging.getLogger(__name__)
 
@@ -199,7 +200,7 @@ def rle_counts(counts: str | Sequence[int]) -> np.ndarray:
     ValueError: malformed string.
   """
   if not isinstance(counts, str):
-    return np.asarray(counts, np.int64)
+    return _runs(counts)
   runs: list[int] = []
   position = 0
   while position < len(counts):
@@ -207,6 +208,8 @@ def rle_counts(counts: str | Sequence[int]) -> np.ndarray:
     while more:
       if position >= len(counts):
         raise ValueError('RLE string ends inside a number')
+      if shift > 40:  # a run of 2**40 pixels: no mask; and no slow bigint
+        raise ValueError('an RLE number of more than 9 characters')
       group = ord(counts[position]) - 48
       if not 0 <= group < 64:
         raise ValueError(f'bad RLE character {counts[position]!r}')
@@ -219,11 +222,26 @@ def rle_counts(counts: str | Sequence[int]) -> np.ndarray:
     if len(runs) > 2:
       value += runs[-2]
     runs.append(value)
-  return np.asarray(runs, np.int64)
+  return _runs(runs)
+
+
+# A run is at most a whole mask (CLEVRER's are 480 x 320); so bounded, no
+# sum of a file's runs wraps in int64.
+_MAX_RUN = 2**32
+
+
+def _runs(values: Any) -> np.ndarray:
+  """int64 [K] of a list of run lengths, each checked before the cast."""
+  if not isinstance(values, list) or not all(type(v) is int
+                                             for v in values):
+    raise ValueError('RLE counts are not a list of integers')
+  for value in (min(values), max(values)) if values else ():
+    int_in_range(value, 0, _MAX_RUN, what='an RLE run length')
+  return np.asarray(values, np.int64)
 
 
 def _checked_runs(mask: Mapping[str, Any]) -> tuple[np.ndarray, int, int]:
-  height, width = (int(v) for v in mask['size'])
+  height, width = rle_size(mask)
   runs = rle_counts(mask['counts'])
   if (runs < 0).any() or int(runs.sum()) != height * width:
     raise ValueError(f'RLE runs sum to {int(runs.sum())}, not '
@@ -253,7 +271,8 @@ def sample_rle(mask: Mapping[str, Any], rows: np.ndarray,
 
 
 def rle_size(mask: Mapping[str, Any]) -> tuple[int, int]:
-  return int(mask['size'][0]), int(mask['size'][1])
+  return tuple(int_in_range(mask['size'][i], 1, 2**16, what='an RLE size')
+               for i in range(2))
 
 
 # ----------------------------------------------------------------------------
@@ -303,7 +322,9 @@ def _split_questions(source: Path, split: str) -> dict[int, str] | None:
       entries = json.load(f)
     out = {}
     for entry in entries:
-      out[int(entry['scene_index'])] = json.dumps(entry, sort_keys=True)
+      out[int_in_range(entry['scene_index'], 0, 2**31 - 1,
+                       what='a scene_index')] = json.dumps(entry,
+                                                           sort_keys=True)
   except (OSError, ValueError, KeyError, TypeError) as error:
     raise ValueError(f'CLEVRER: cannot read the questions in {path}: expected '
                      'a JSON list of {"scene_index", "video_filename", '
@@ -397,7 +418,8 @@ def _read_annotation(job: VideoJob, options: Options) -> _Annotation:
   try:
     objects = data['object_property']
     trajectory = data['motion_trajectory']
-    ids = [int(o['object_id']) for o in objects]
+    ids = [int_in_range(o['object_id'], 0, 2**31 - 1, what='an object_id')
+           for o in objects]
     if sorted(ids) != list(range(len(ids))):
       raise ValueError(f'object ids {ids} are not 0..N-1')
     if len(ids) > options.max_objects:
@@ -407,15 +429,16 @@ def _read_annotation(job: VideoJob, options: Options) -> _Annotation:
           f'{options.max_objects}')
     attributes = np.full((options.max_objects, 3), -1, np.int32)
     for o in objects:
-      attributes[int(o['object_id'])] = (
+      attributes[o['object_id']] = (
           _vocab_index(COLORS, o['color'], 'color'),
           _vocab_index(MATERIALS, o['material'], 'material'),
           _vocab_index(SHAPES, o['shape'], 'shape'))
     in_view = np.zeros((len(trajectory), options.max_objects), bool)
     for t, frame in enumerate(trajectory):
       for o in frame['objects']:
-        object_id = int(o['object_id'])
-        if not 0 <= object_id < len(ids):
+        object_id = int_in_range(o['object_id'], 0, 2**31 - 1,
+                                 what=f'an object_id of frame {t}')
+        if not object_id < len(ids):
           raise ValueError(f'frame {t} lists unknown object {object_id}')
         in_view[t, object_id] = bool(o['inside_camera_view'])
   except media.SkipVideo:

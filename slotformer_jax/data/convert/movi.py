@@ -82,6 +82,7 @@ from slotformer_jax.data.convert import writer
 from slotformer_jax.errors import shown
 from slotformer_jax.files import UntrustedFileError
 from slotformer_jax.files import confined
+from slotformer_jax.files import int_in_range
 from slotformer_jax.files import read_untrusted_json
 
 NAME = 'movi'
@@ -586,15 +587,46 @@ def discover(source: Path, split: str, options: Options) -> list[RecordJob]:
   return jobs
 
 
+def _is_int(leaf: Leaf) -> bool:
+  return leaf.dtype != 'bytes' and np.dtype(leaf.dtype).kind in 'iu'
+
+
 @functools.lru_cache(maxsize=4)
 def _parser(leaves: tuple[tuple[str, Leaf], ...]
             ) -> tfds.core.example_parser.ExampleParserNp:
+  """Integer features as the int64 the proto holds (`_declared_ints` casts
+  them once checked: the parser would wrap 2**32 + 5 to 5 in int32)."""
   string = tfds.features.Text().get_serialized_info().np_dtype
   specs = {key: tfds.features.TensorInfo(
       shape=leaf.shape, dtype=string if leaf.dtype == 'bytes'
-      else np.dtype(leaf.dtype), sequence_rank=leaf.sequence_rank)
+      else np.dtype(np.int64) if _is_int(leaf) else np.dtype(leaf.dtype),
+      sequence_rank=leaf.sequence_rank)
            for key, leaf in leaves}
   return tfds.core.example_parser.ExampleParserNp(specs)
+
+
+def _declared_ints(example: dict[str, Any], leaves: tuple[tuple[str, Leaf],
+                                                          ...], where: str
+                   ) -> dict[str, Any]:
+  """`example` with every integer feature checked to fit the dtype
+  features.json declares (uint16 instance counts, int32 frame indices)
+  and cast to it.
+
+  Raises:
+    UntrustedFileError: a value outside that dtype, naming the feature.
+  """
+  for key, leaf in leaves:
+    if key not in example or not _is_int(leaf):
+      continue
+    info = np.iinfo(np.dtype(leaf.dtype))
+    def cast(value, key=key, leaf=leaf, info=info):
+      return int_in_range(np.asarray(value, np.int64), int(info.min),
+                          int(info.max), what=f'{where}: {key}'
+                          ).astype(leaf.dtype)
+    value = example[key]
+    example[key] = ([cast(v) for v in value] if isinstance(value, list)
+                    else cast(value))
+  return example
 
 
 def _decode_png(data: bytes, shape: Sequence[int | None], where: str
@@ -672,7 +704,8 @@ def convert_record(job: RecordJob, plan: _Plan) -> dict[str, Any]:
   where = f'{job.shard} record {job.span.index}'
   try:
     data = tfrecord.read_record(job.shard, job.span)
-    example = _parser(plan.leaves).parse_example(data)
+    example = _declared_ints(_parser(plan.leaves).parse_example(data),
+                             plan.leaves, where)
     missing = [k for k in REQUIRED_FEATURES
                if k not in example and k not in (_BBOXES, _BBOX_FRAMES)]
     if missing:

@@ -52,6 +52,7 @@ from slotformer_jax.data.convert import writer
 from slotformer_jax.errors import shown
 from slotformer_jax.files import UntrustedFileError
 from slotformer_jax.files import confined
+from slotformer_jax.files import int_in_range
 from slotformer_jax.files import read_untrusted_json
 
 logger = logging.getLogger(__name__)
@@ -175,9 +176,7 @@ def read_meta(source: Path) -> dict[str, Any]:
     raise UntrustedFileError(f'{path}: eval_setup '
                              f'{shown(repr(meta["eval_setup"]), 80)} is not '
                              'a PHYRE eval setup name')
-  if isinstance(meta['fold'], bool) or not isinstance(meta['fold'], int):
-    raise UntrustedFileError(f'{path}: fold {shown(repr(meta["fold"]), 40)} '
-                             'is not an integer')
+  int_in_range(meta['fold'], 0, 2**31 - 1, what=f'{path}: fold')
   return meta
 
 
@@ -210,12 +209,18 @@ def _job_from_line(line: str, number: int, split_dir: Path,
     num_frames = _field(entry, 'num_frames', (int,))
     if not 1 <= num_frames <= 10_000:
       raise ValueError(f'num_frames {num_frames} is not in 1..10000')
+    task = _field(entry, 'task', (str,))
+    template = task.split(':')[0]
+    if re.fullmatch('[0-9]+', template):  # stored as int32
+      int_in_range(int(template), 0, 2**31 - 1,
+                   what='the task\'s template number')
     return RolloutJob(
-        key=key, frames=frames, task=_field(entry, 'task', (str,)),
+        key=key, frames=frames, task=task,
         action=tuple(float(a) for a in action),
         success=_field(entry, 'success', (bool,)), num_frames=num_frames,
         frame_size=frame_size)
-  except (KeyError, TypeError, ValueError, RecursionError) as error:
+  except (KeyError, TypeError, ValueError, RecursionError,
+          OverflowError) as error:  # OverflowError: an action of 10**400
     return RolloutJob(key=f'line_{number}', frames=split_dir / FRAMES_DIR,
                       problem=f'{split_dir / INDEX_FILE}:{number}: '
                       f'{type(error).__name__}: {shown(str(error), 200)}')
@@ -297,7 +302,8 @@ def convert_rollout(job: RolloutJob, options: Options) -> dict[str, Any]:
       'label': int(job.success),
       'action': np.asarray(job.action, np.float32),
       'task': job.task,
-      'template': int(template) if template.isdigit() else -1,
+      'template': (int(template) if re.fullmatch('[0-9]+', template)
+                   else -1),
       'rollout_id': job.key,
   }
 

@@ -1,0 +1,259 @@
+"""A checkpoint whose bytes differ from what was saved is never restored
+(issue 53): each step's files are recorded in `<step>/sha256.json` once
+orbax has finished it; a restore checks them first. Training sets a damaged
+step aside (`<step>.damaged-<time>`) and resumes from the newest intact one,
+and the rerun finishes; a damaged step that is the only one is one line
+whose advice works; read-only restores (evaluation, extraction) skip it
+without renaming anything; steps saved before digests still restore.
+
+The one-parameter linear stage (tests/linear_stage.py) runs the trainer's
+own loop in seconds; two processes agreeing on the step: the slow test in
+test_multiprocess.py.
+"""
+
+import glob
+import json
+import logging
+import os
+
+import jax
+from jax.sharding import Mesh
+import numpy as np
+import pytest
+
+from slotformer_jax.errors import UserError
+from slotformer_jax.runtime import checkpoint as checkpoint_lib
+from slotformer_jax.runtime import processes
+from slotformer_jax.runtime import sharding
+from slotformer_jax.train.trainer import fit
+
+from linear_stage import linear_stage
+
+
+def _mesh():
+  return Mesh(np.asarray(jax.devices()[:1]), ('data',))
+
+
+def _train(directory, steps=4, every=2):
+  return fit(linear_stage(directory, num_train_steps=steps,
+                          checkpoint_every=every), mesh=_mesh(), seed=0)
+
+
+def _largest_file(step_directory):
+  files = [f for f in glob.glob(os.path.join(step_directory, '**'),
+                                recursive=True)
+           if os.path.isfile(f) and not f.endswith(checkpoint_lib.DIGEST_FILE)]
+  return max(files, key=os.path.getsize)
+
+
+def _overwrite(step_directory, count=1024):
+  """`count` bytes in the middle of the step's largest file replaced."""
+  path = _largest_file(step_directory)
+  size = os.path.getsize(path)
+  with open(path, 'r+b') as f:
+    f.seek(max(0, size // 2 - count // 2))
+    old = f.read(min(count, size))
+    f.seek(max(0, size // 2 - count // 2))
+    f.write(bytes(b ^ 0x5A for b in old))
+
+
+def _truncate(step_directory):
+  path = _largest_file(step_directory)
+  os.truncate(path, os.path.getsize(path) // 2)
+
+
+def _warnings(caplog):
+  """This project's warning lines (orbax's own are left out)."""
+  return [r.getMessage() for r in caplog.records
+          if r.levelno == logging.WARNING
+          and r.name.startswith('slotformer_jax')]
+
+
+def _listing(directory):
+  return sorted(os.listdir(directory))
+
+
+def _snapshot(directory):
+  out = {}
+  for root, _, names in os.walk(directory):
+    for name in names:
+      path = os.path.join(root, name)
+      with open(path, 'rb') as f:
+        out[os.path.relpath(path, directory)] = f.read()
+  return out
+
+
+@pytest.fixture(scope='module')
+def trained(tmp_path_factory):
+  """A linear stage trained 4 steps (checkpoints 2 and 4) and its params."""
+  directory = tmp_path_factory.mktemp('damaged') / 'linear'
+  state = _train(directory)
+  return directory, np.asarray(state.params['w'])
+
+
+@pytest.fixture
+def copied(trained, tmp_path):
+  import shutil  # pylint: disable=g-import-not-at-top
+  directory, params = trained
+  copy = tmp_path / 'linear'
+  shutil.copytree(directory, copy)
+  return copy, params
+
+
+def test_every_saved_step_records_its_files(trained):
+  directory, _ = trained
+  checkpoints = directory / 'checkpoints'
+  assert _listing(checkpoints) == ['2', '4']
+  for step in ('2', '4'):
+    with open(checkpoints / step / checkpoint_lib.DIGEST_FILE) as f:
+      digest = json.load(f)
+    files = {os.path.relpath(p, checkpoints / step)
+             for p in glob.glob(str(checkpoints / step / '**'), recursive=True)
+             if os.path.isfile(p)}
+    assert set(digest['files']) == files - {checkpoint_lib.DIGEST_FILE}
+    assert checkpoint_lib.damage_of(str(checkpoints / step)) is None
+
+
+@pytest.mark.parametrize('damage', [_overwrite, _truncate])
+def test_a_damaged_newest_step_is_set_aside_and_the_rerun_finishes(
+    copied, damage, caplog):
+  directory, params = copied
+  checkpoints = directory / 'checkpoints'
+  damage(str(checkpoints / '4'))
+  with caplog.at_level(logging.WARNING):
+    state = _train(directory)
+  # One warning line names the step, why, where it went, and the step used.
+  lines = _warnings(caplog)
+  assert len(lines) == 1, lines
+  assert 'step 4 is damaged' in lines[0]
+  assert ('holds other bytes than were saved' if damage is _overwrite
+          else 'bytes, ') in lines[0]
+  assert 'set aside as 4.damaged-' in lines[0]
+  assert 'newest intact checkpoint, step 2' in lines[0]
+  # Resumed from 2 and saved step 4 again (no StepAlreadyExistsError):
+  # the same parameters as the uninterrupted run.
+  assert int(state.step) == 4
+  np.testing.assert_array_equal(np.asarray(state.params['w']), params)
+  names = _listing(checkpoints)
+  assert names[:2] == ['2', '4'] and len(names) == 3
+  assert names[2].startswith('4.damaged-')
+  assert checkpoint_lib.damage_of(str(checkpoints / '4')) is None
+  # The next run finds everything intact.
+  caplog.clear()
+  with caplog.at_level(logging.WARNING):
+    _train(directory)
+  assert not _warnings(caplog)
+
+
+def test_a_damaged_only_step_is_one_line_whose_advice_works(tmp_path):
+  directory = tmp_path / 'linear'
+  _train(directory, steps=4, every=4)
+  checkpoints = directory / 'checkpoints'
+  _overwrite(str(checkpoints / '4'))
+  with pytest.raises(checkpoint_lib.DamagedCheckpointError) as raised:
+    _train(directory, steps=4, every=4)
+  message = str(raised.value)
+  assert '\n' not in message
+  assert 'step 4 is damaged' in message and 'set aside as 4.damaged-' in message
+  assert 'Re-run the same command: it trains from step 0' in message
+  # Following it: the rerun trains from step 0 and saves step 4 again.
+  state = _train(directory, steps=4, every=4)
+  assert int(state.step) == 4
+  assert _listing(checkpoints)[0] == '4'
+  assert checkpoint_lib.damage_of(str(checkpoints / '4')) is None
+
+
+def test_steps_saved_before_digests_still_restore(copied, caplog):
+  directory, params = copied
+  checkpoints = directory / 'checkpoints'
+  for step in ('2', '4'):
+    os.remove(checkpoints / step / checkpoint_lib.DIGEST_FILE)
+  checkpointer = checkpoint_lib.Checkpointer(str(checkpoints),
+                                             read_only=True)
+  with caplog.at_level(logging.WARNING):
+    fields, step = checkpointer.restore_fields(
+        {'params': {'w': jax.ShapeDtypeStruct((3,), np.float32)}})
+  checkpointer.close()
+  assert step == 4 and not _warnings(caplog)
+  np.testing.assert_array_equal(np.asarray(fields['params']['w']), params)
+  # Nothing is recorded retroactively (a read-only restore writes nothing).
+  assert not os.path.exists(checkpoints / '4' / checkpoint_lib.DIGEST_FILE)
+  # Such a step cut short is still skipped by orbax's own read error, and
+  # training sets it aside so that the step can be saved again.
+  _truncate(str(checkpoints / '4'))
+  with caplog.at_level(logging.WARNING):
+    state = _train(directory)
+  assert 'could not be read' in caplog.text and '4.damaged-' in caplog.text
+  assert int(state.step) == 4
+
+
+def _restore_read_only(directory):
+  return checkpoint_lib.restore_params(
+      str(directory), {'w': jax.ShapeDtypeStruct((3,), np.float32)},
+      sharding.replicated_sharding(_mesh()), what='linear',
+      train_command='python -m train_linear')
+
+
+def test_read_only_restores_skip_a_damaged_step_and_rename_nothing(
+    copied, caplog):
+  directory, _ = copied
+  checkpoints = directory / 'checkpoints'
+  _overwrite(str(checkpoints / '4'))
+  before = _snapshot(directory)
+  with caplog.at_level(logging.WARNING):
+    params, step = _restore_read_only(directory)
+  assert step == 2
+  assert 'step 4 is damaged' in caplog.text and 'set aside' not in caplog.text
+  assert np.asarray(params['w']).shape == (3,)
+  # Every step damaged: one line naming the training command; nothing moved.
+  _truncate(str(checkpoints / '2'))
+  before = _snapshot(directory)
+  with pytest.raises(UserError) as raised:
+    _restore_read_only(directory)
+  message = str(raised.value)
+  assert '\n' not in message
+  assert 'no intact checkpoint' in message
+  assert 'step 4 is damaged' in message and 'step 2 is damaged' in message
+  assert 'python -m train_linear' in message
+  assert _snapshot(directory) == before
+
+
+def test_a_damaged_digest_file_counts_as_damage(copied):
+  directory, _ = copied
+  step = directory / 'checkpoints' / '4'
+  for text in ('{', '{"format": 3}', json.dumps(
+      {'format': 'slotformer_jax checkpoint digest', 'version': 1,
+       'files': {'../2/default/_METADATA': {'bytes': 1, 'sha256': 'x'}}})):
+    (step / checkpoint_lib.DIGEST_FILE).write_text(text)
+    assert 'sha256.json is unreadable' in checkpoint_lib.damage_of(str(step))
+  os.remove(step / checkpoint_lib.DIGEST_FILE)
+  assert checkpoint_lib.damage_of(str(step)) is None
+
+
+def test_processes_go_by_process_0s_verdict(copied, monkeypatch):
+  """Process 1 (simulated) reads no digest: it skips the steps process 0
+  found damaged and uses the step every process could read."""
+  directory, _ = copied
+  checkpoints = directory / 'checkpoints'
+  calls = []
+
+  def gathered(values):
+    calls.append(list(values))
+    if len(calls) == 1:  # the verdicts: process 0 found step 4 damaged
+      return np.asarray([[1, 0], [0, 0]])
+    return np.asarray([values, values])
+  class SecondProcess:  # jax as checkpoint.py sees it (orbax keeps its own)
+    process_index = staticmethod(lambda: 1)
+    process_count = staticmethod(lambda: 2)
+
+    def __getattr__(self, name):
+      return getattr(jax, name)
+  monkeypatch.setattr(checkpoint_lib, 'jax', SecondProcess())
+  monkeypatch.setattr(processes, 'gathered', gathered)
+  checkpointer = checkpoint_lib.Checkpointer(str(checkpoints),
+                                             read_only=True)
+  _, step = checkpointer.restore_fields(
+      {'params': {'w': jax.ShapeDtypeStruct((3,), np.float32)}})
+  checkpointer.close()
+  assert step == 2
+  assert calls[0] == [0, 0]  # process 1 checked nothing itself
