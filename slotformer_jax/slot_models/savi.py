@@ -385,7 +385,9 @@ class Savi(SlotModel):
       return decoded.alpha_masks[..., 0], decoded.recon
 
     alpha, recon = jax.lax.map(frame, jnp.swapaxes(slots, 0, 1))
-    return jnp.swapaxes(alpha, 0, 1), jnp.swapaxes(recon, 0, 1), carry
+    if recon is not None:  # None: RGB is not one of its targets
+      recon = jnp.swapaxes(recon, 0, 1)
+    return jnp.swapaxes(alpha, 0, 1), recon, carry
 
   def image_decoder(self, params: Any) -> tuple[Any, Any]:
     return self.decoder, params[NAME]['decoder']
