@@ -236,12 +236,13 @@ def test_flow_depth_savi_loss_one_term_per_target_and_every_head_learns():
       rtol=1e-6)
   np.testing.assert_allclose(loss, metrics['recon_loss'], rtol=1e-6)
 
-  def term(name):
-    return lambda p: loss_fn(p, batch, None, jax.random.key(1))[1][name]
+  def terms(p):
+    metrics = loss_fn(p, batch, None, jax.random.key(1))[1]
+    return jnp.stack([metrics['recon_loss_flow'], metrics['recon_loss_depth']])
 
-  decoder = lambda grads: grads['decoder']
-  flow_grads = decoder(jax.grad(term('recon_loss_flow'))(params))
-  depth_grads = decoder(jax.grad(term('recon_loss_depth'))(params))
+  grads = jax.jit(jax.jacrev(terms))(params)['decoder']
+  flow_grads = jax.tree_util.tree_map(lambda g: g[0], grads)
+  depth_grads = jax.tree_util.tree_map(lambda g: g[1], grads)
   # The flow term trains the flow columns of `readout` (and the alpha
   # column) but not the depth head; the depth term the depth head.
   assert np.abs(flow_grads['readout']['kernel'][..., :3]).sum() > 0
