@@ -11,7 +11,8 @@ readout head per target and the loss one term per target
 (`losses.savi_loss`).
 
 The data contract: the batch field, dtype, shape and range each target
-arrives in (the data side makes them; docs/targets.md says the same):
+arrives in (the data side makes them; docs/savi_plus_plus.md says the
+same):
 
   rgb    'video'  uint8 [B, T, H, W, 3] in [0, 255], the frames; the model
                   compares them in its own range (`frames.frames_to_model`:
