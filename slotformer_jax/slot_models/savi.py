@@ -293,8 +293,10 @@ class Savi(SlotModel):
         images=_training_images(self.model, self.targets)),)
 
   def check_config(self, stages: frozenset[str]) -> list[str]:
-    """The frame size the decoder can produce (known from the config alone;
-    found at the first training step otherwise, after making the data)."""
+    """At least one target; the encoder Transformer's width a multiple of
+    its heads; the frame size the decoder can produce (known from the
+    config alone; found at the first training step otherwise, after making
+    the data)."""
     del stages
     problems = []
     names = target_names(self.section)
@@ -375,7 +377,7 @@ class Savi(SlotModel):
                    rgb=model_to_unit(decoded.rgb), targets=decoded.targets)
 
   def observe(self, params: Any, slots: jax.Array, video: jax.Array,
-              carry: Any) -> tuple[jax.Array, jax.Array, Any]:
+              carry: Any) -> tuple[jax.Array, jax.Array | None, Any]:
     """SAVi's account of the real frames is its extracted slots decoded (a
     frame at a time: one frame's decoder activations in memory)."""
     del video

@@ -3,6 +3,8 @@ the encoder with a Transformer over the feature map, and a SAVi++ built
 from `config.savi` (savi.encoder.kind='resnet34', targets flow + depth)."""
 
 import functools
+import importlib.util
+import os
 
 import jax
 import jax.numpy as jnp
@@ -161,3 +163,26 @@ def test_savi_plus_plus_forward_and_loss_on_a_two_frame_clip():
   assert np.isfinite(loss)
   assert set(metrics) == {'recon_loss', 'recon_loss_flow',
                           'recon_loss_depth', 'kl'}
+
+
+def _param_counts():
+  script = os.path.join(os.path.dirname(__file__), '..', '..', 'benchmarks',
+                        'param_counts.py')
+  spec = importlib.util.spec_from_file_location('param_counts', script)
+  module = importlib.util.module_from_spec(spec)
+  spec.loader.exec_module(module)
+  return module
+
+
+def test_parameter_counts_of_the_docs_table():
+  """benchmarks/param_counts.py: SAVi's counts by hand equal the measured
+  ones, and this project's are those of docs/savi_plus_plus.md."""
+  counts = _param_counts()
+  for model in ('SAVi-S', 'SAVi++'):
+    assert counts.savi_parts_by_hand(model) == counts.SAVI_MEASURED[model]
+  assert counts.our_parts('SAVi-S') == {
+      'encoder': 83_744, 'initializer': 34_176, 'corrector': 189_888,
+      'predictor': 132_480, 'decoder': 513_156}
+  assert counts.our_parts('SAVi++') == {
+      'encoder': 21_975_744, 'initializer': 34_176, 'corrector': 198_144,
+      'predictor': 329_856, 'decoder': 513_221}
