@@ -19,6 +19,7 @@ import ml_collections
 import numpy as np
 
 from slotformer_jax import inference
+from slotformer_jax import targets as targets_lib
 from slotformer_jax.config.sections import SLOT_LSTM
 from slotformer_jax.config.sections import SLOTFORMER
 from slotformer_jax.frames import labelled_grid
@@ -141,8 +142,10 @@ def rollout_images(slot_model: Any, slot_params: Any, model: DynamicsModel,
   """The training stage's TensorBoard pictures, (params, batch) -> {'rollout':
   strip}: the first clip of the batch, its frames (when the batch has them),
   its extracted slots decoded, and the burn-in slots followed by the model's
-  rollout, decoded. None for a slot model without a pixel decoder (STEVE
-  would generate every frame token by token)."""
+  rollout, decoded (the frames; a SAVi that reconstructs no frames: its
+  first target, flow in colour or depth in grey). None for a slot model
+  without a pixel decoder (STEVE would generate every frame token by
+  token)."""
   if slot_model.image_decoder(slot_params) is None:
     return None
 
@@ -152,10 +155,17 @@ def rollout_images(slot_model: Any, slot_params: Any, model: DynamicsModel,
                                         model=model, num_steps=rollout)
     both = jnp.concatenate([slots, jnp.concatenate(
         [slots[:, :burn_in], predicted], axis=1)])
-    return slot_model.decode(slot_params, both).recon
+    decoded = slot_model.decode(slot_params, both)
+    if decoded.recon is not None:  # frames in [0, 1]
+      return {targets_lib.RGB.name: decoded.recon}
+    target = next(iter(decoded.targets))  # in its data's range
+    return {target: decoded.targets[target]}
 
   def images(params, batch):
-    recon = np.asarray(jax.device_get(decode(params, batch['slots'][:1])))
+    (target, recon), = jax.device_get(
+        decode(params, batch['slots'][:1])).items()
+    if target != targets_lib.RGB.name:
+      recon = targets_lib.picture(targets_lib.TARGETS[target], recon)
     rows = {}
     if 'video' in batch:  # the rollout's frames (L_I reads no others)
       frames = batch['video'][0]

@@ -26,7 +26,7 @@ PACKAGE = pathlib.Path(__file__).resolve().parent.parent / 'slotformer_jax'
 FLOORS = (
     # plumbing every floor may use
     ('slotformer_jax', 'slotformer_jax.errors', 'slotformer_jax.files',
-     'slotformer_jax.frames'),
+     'slotformer_jax.frames', 'slotformer_jax.targets'),
     # run bookkeeping: paths, identities, settings, locks (plain files)
     ('slotformer_jax.workdir',),
     # run-time pieces shared by training, evaluation and the tasks

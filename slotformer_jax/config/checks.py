@@ -183,8 +183,10 @@ _FIELD_KINDS = (
     # Aloe draws no question of a kind whose batch is 0 (open-only or
     # choice-only training); one must be > 0 (`validate`).
     (r'^vqa\.(open|choice)_batch_size$', 'int', 0, None, 'an integer >= 0'),
+    # SAVi's encoder has no Transformer with 0 layers (the default).
+    (r'^transformer\.num_layers$', 'int', 0, None, 'an integer >= 0'),
     (r'batch_size$|_every$|^num_(slots|layers|heads|iterations|train_steps|'
-     r'frames|candidates)$|^(slot|mlp|hidden|vocab|output|head|word)_size$|'
+     r'frames|candidates)$|^(slot|mlp|hidden|vocab|output|head|word|qkv)_size$|'
      r'^(embed_dim|d_model|kernel_size|chunk_length|clip_length|burn_in|'
      r'rollout|frame_stride|mlp_ratio|epochs|fps|scale|strip_every|'
      r'rollout_steps|video_length|observed_frames|predicted_frames|'

@@ -13,6 +13,8 @@ from typing import Any
 
 import ml_collections
 
+from slotformer_jax import targets
+
 # Every field with a fixed set of values: {dotted field: its values}, each
 # declared where its default is set (`one_of`). config/checks.py refuses any
 # other value before any work; a tuple field takes any of them, each once.
@@ -134,12 +136,31 @@ def base_config() -> ml_collections.ConfigDict:
   # background box, slot 1 + i box row i, so num_slots >= box rows + 1.
   savi.initial_slots = one_of('savi.initial_slots', 'learned',
                               ('learned', 'gaussian', 'boxes', 'points'))
-  # padding: 'same' (XLA) or 'pytorch' (K//2 on both sides: the official
-  # models; differs from 'same' only at stride 2).
+  # What the decoder reconstructs, one readout head and one loss term per
+  # target (slotformer_jax/targets.py has the batch fields and ranges):
+  # 'rgb' (the frames), 'flow' (optical flow as SAVi's colour picture: SAVi's
+  # MOVi models), 'depth' (log(1 + depth)); ('flow', 'depth') is SAVi++'s.
+  # Without RGB the frame metrics (PSNR, SSIM, LPIPS) and the frame pictures
+  # are skipped; SlotFormer's L_I compares the same targets.
+  savi.targets = one_of('savi.targets', targets.DEFAULT, targets.NAMES)
+  # The per-frame encoder: a backbone, the soft position embedding, then per
+  # position LayerNorm + MLP (mlp_size hidden, None: output_size; then
+  # output_size) and, with transformer.num_layers > 0, ReLU(Dense(qkv_size))
+  # and a Pre-LN Transformer of that width over the positions (SAVi++: 4
+  # layers, 4 heads, qkv_size 64, mlp_size 1024). kind: 'cnn' (the conv
+  # layers of features / kernel_size / strides / padding) or 'resnet34'
+  # (SAVi++'s ResNet-34: group norm, the small-input stem, 128x128 frames ->
+  # a 16x16 map of 512 channels; modules/resnet.py). padding: 'same' (XLA)
+  # or 'pytorch' (K//2 on both sides: the official models; differs from
+  # 'same' only at stride 2).
   savi.encoder = ml_collections.ConfigDict(dict(
+      kind=one_of('savi.encoder.kind', 'cnn', ('cnn', 'resnet34')),
       features=(64, 64, 64, 64), kernel_size=5, strides=(1, 1, 1, 1),
       output_size=128,
-      padding=one_of('savi.encoder.padding', 'same', ('same', 'pytorch'))))
+      padding=one_of('savi.encoder.padding', 'same', ('same', 'pytorch')),
+      mlp_size=ml_collections.config_dict.placeholder(int),
+      transformer=ml_collections.ConfigDict(dict(
+          num_layers=0, num_heads=4, qkv_size=64, mlp_size=1024))))
   savi.slot_attention = ml_collections.ConfigDict(dict(
       num_iterations=2, mlp_size=256))
   # f_trans. kind: 'transformer' (over one frame's slots), 'transformer_lstm'

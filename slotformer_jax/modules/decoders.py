@@ -29,6 +29,9 @@ from slotformer_jax.modules import convolution
 from slotformer_jax.modules import platform
 from slotformer_jax.modules.encoders import SoftPositionEmbedding
 
+# The target whose reconstruction is `DecodedSlots.recon` (the frames).
+RGB = 'rgb'
+
 
 def _sub_pixel_taps(kernel_size: int, stride: int, padding: int):
   """Which transposed-conv kernel tap feeds each (phase, offset) pair.
@@ -202,20 +205,34 @@ class DecodedSlots:
   """Decoder outputs. Leading dims `...` are whatever the slots had.
 
   Attributes:
-    recon: [..., H, W, 3] the alpha-composited frame.
-    rgb: [..., N, H, W, 3] each slot's own reconstruction.
+    recon: [..., H, W, 3] the alpha-composited frame, or None when RGB is
+      not one of the decoder's targets.
+    rgb: [..., N, H, W, 3] each slot's own reconstruction, or None (as
+      recon).
     alpha_masks: [..., N, H, W, 1] softmax over slots of the alpha logits.
     segmentation: [..., H, W] int32 argmax slot of the alpha masks.
+    targets: {name: [..., H, W, C]} the alpha-composited reconstruction of
+      every target other than RGB ('flow', 'depth'), or None when RGB is
+      the only one.
   """
 
-  recon: jax.Array
-  rgb: jax.Array
+  recon: jax.Array | None
+  rgb: jax.Array | None
   alpha_masks: jax.Array
   segmentation: jax.Array
+  targets: dict[str, jax.Array] | None = None
+
+  def reconstructions(self) -> dict[str, jax.Array]:
+    """{target name: [..., H, W, C]} of every target, RGB ('rgb') first
+    when it is one."""
+    out = {} if self.recon is None else {RGB: self.recon}
+    out.update(self.targets or {})
+    return out
 
 
 class SpatialBroadcastDecoder(nn.Module):
-  """Decodes every slot independently into RGB + alpha, then composites.
+  """Decodes every slot independently into its targets (RGB by default) +
+  alpha, then composites.
 
   Attributes:
     output_resolution: (H, W) of the frames.
@@ -225,6 +242,14 @@ class SpatialBroadcastDecoder(nn.Module):
     kernel_size: of every transposed-conv layer.
     kernels: 'auto' (the CPU forms on CPU, the plain convolutions on GPU /
       TPU), 'cpu' or 'accelerator' (`slotformer_jax.modules.platform`).
+    targets: ((name, channels), ...) of what it reconstructs (SAVi's
+      `Readout`: one linear head per target on every slot's features, the
+      alpha masks shared): 'rgb' fills `recon` / `rgb`, the others
+      `DecodedSlots.targets`. The first target's head and the alpha logit
+      are one pointwise layer, `readout` (channels + 1 outputs, the alpha
+      last): an RGB decoder keeps the tree it always had, and a decoder of
+      one other target has the same tree. Every further target t has its
+      own, `readout_<t>`.
   """
 
   output_resolution: tuple[int, int] = (64, 64)
@@ -232,6 +257,7 @@ class SpatialBroadcastDecoder(nn.Module):
   features: Sequence[int] = (64, 64, 64, 64)
   kernel_size: int = 5
   kernels: str = platform.AUTO
+  targets: tuple[tuple[str, int], ...] = ((RGB, 3),)
 
   @nn.compact
   def __call__(self, slots: jax.Array,
@@ -264,30 +290,61 @@ class SpatialBroadcastDecoder(nn.Module):
           f'{tuple(self.broadcast_resolution)} with {len(self.features)} '
           f'layers, expected {tuple(self.output_resolution)}; change '
           'broadcast_resolution or the number of layers')
-    x = PointwiseConv(4, name='readout')(x)
+    _check_targets(self.targets)
+    features = x
+    (first, first_channels), *others = self.targets
+    x = PointwiseConv(first_channels + 1, name='readout')(x)
     x = x.reshape(*batch_shape, num_slots, *x.shape[1:])
-    rgb, alpha_logits = x[..., :3], x[..., 3:]
-    recon, alpha_masks = composite(rgb, alpha_logits, presence)
+    per_slot = {first: x[..., :first_channels]}
+    alpha_logits = x[..., first_channels:]
+    for name, channels in others:
+      values = PointwiseConv(channels, name=f'readout_{name}')(features)
+      per_slot[name] = values.reshape(*batch_shape, num_slots,
+                                      *values.shape[1:])
+    rgb = per_slot.pop(RGB, None)
+    if rgb is not None:
+      recon, alpha_masks = composite(rgb, alpha_logits, presence)
+    else:
+      recon, alpha_masks = None, slot_weights(alpha_logits, presence)
+    composites = {name: jnp.sum(values * alpha_masks, axis=-4)
+                  for name, values in per_slot.items()}
     segmentation = jnp.argmax(alpha_masks[..., 0], axis=-3).astype(jnp.int32)
     return DecodedSlots(recon=recon, rgb=rgb, alpha_masks=alpha_masks,
-                        segmentation=segmentation)
+                        segmentation=segmentation,
+                        targets=composites or None)
+
+
+def _check_targets(targets: Sequence[tuple[str, int]]) -> None:
+  names = [name for name, _ in targets]
+  if (not names or len(set(names)) != len(names)
+      or any(channels < 1 for _, channels in targets)):
+    raise ValueError('decoder targets must be distinct (name, channels >= 1) '
+                     f'pairs, at least one, got {tuple(targets)!r}')
+
+
+def slot_weights(alpha_logits: jax.Array,
+                 presence: jax.Array | None = None) -> jax.Array:
+  """The alpha masks: the softmax over slots of alpha_logits [..., N, H, W,
+  1] -> [..., N, H, W, 1]. An absent slot (presence, optional bool [...,
+  N], False) has its logits replaced by the dtype's lowest value: its alpha
+  is exactly 0 and the others' renormalise among themselves, the frame the
+  present slots alone decode to (no NaN if every slot is absent: the
+  weights are then uniform)."""
+  if presence is not None:
+    lowest = jnp.finfo(alpha_logits.dtype).min
+    alpha_logits = jnp.where(presence[..., None, None, None], alpha_logits,
+                             lowest)
+  return jax.nn.softmax(alpha_logits, axis=-4)
 
 
 def composite(rgb: jax.Array, alpha_logits: jax.Array,
               presence: jax.Array | None = None
               ) -> tuple[jax.Array, jax.Array]:
-  """Alpha compositing of per-slot images: the softmax over slots.
+  """Alpha compositing of per-slot images: the softmax over slots
+  (`slot_weights`).
 
   rgb [..., N, H, W, 3], alpha_logits [..., N, H, W, 1], presence optional
   bool [..., N] -> (recon [..., H, W, 3], alpha_masks [..., N, H, W, 1]).
-  An absent slot's logits become the dtype's lowest value: its alpha is
-  exactly 0 and the others' renormalise among themselves, the frame the
-  present slots alone decode to (no NaN if every slot is absent: the
-  weights are then uniform).
   """
-  if presence is not None:
-    lowest = jnp.finfo(alpha_logits.dtype).min
-    alpha_logits = jnp.where(presence[..., None, None, None], alpha_logits,
-                             lowest)
-  alpha_masks = jax.nn.softmax(alpha_logits, axis=-4)
+  alpha_masks = slot_weights(alpha_logits, presence)
   return jnp.sum(rgb * alpha_masks, axis=-4), alpha_masks

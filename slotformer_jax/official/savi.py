@@ -76,6 +76,8 @@ def convert_savi(state_dict: dict[str, np.ndarray],
           'starts from one learned vector per slot (init_latents)')
   common.require(config, 'savi.layer_norm_epsilon', common.PYTORCH_LN_EPSILON,
           "uses PyTorch's LayerNorm epsilon")
+  common.require(config, 'savi.targets', ('rgb',), 'reconstructs RGB frames')
+  common.require(config, 'savi.encoder.kind', 'cnn', 'encodes with a CNN')
   common.require(config, 'savi.encoder.strides', common.official_encoder_strides(config),
           f'strides its encoder so at {tuple(config.data.resolution)}')
   if max(config.savi.encoder.strides) > 1:

@@ -17,7 +17,8 @@ Shapes at this boundary:
   slots        float32 [B, T, N, D] (N, D = `slot_shape`)
   Decoded      recon [..., H, W, 3] in [0, 1] or None (a model that decodes
                no pixels), alpha_masks [..., N, H, W, 1] (softmax over the
-               N slots), rgb [..., N, H, W, 3] or None
+               N slots), rgb [..., N, H, W, 3] or None, targets {name:
+               [..., H, W, C]} of its other reconstruction targets or None
 """
 
 from __future__ import annotations
@@ -51,11 +52,15 @@ class Decoded:
       to 1): the predicted segmentation is their argmax.
     rgb: [..., N, H, W, 3] in [0, 1], each slot's own reconstruction, or None
       for decoders that have none (STEVE generates one frame for all slots).
+    targets: {name: [..., H, W, C]} what it reconstructs besides the frames
+      (SAVi's 'flow', 'depth'), in the range of their batch fields
+      (slotformer_jax/targets.py), or None.
   """
 
   alpha_masks: jax.Array
   recon: jax.Array | None = None
   rgb: jax.Array | None = None
+  targets: dict[str, jax.Array] | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -225,6 +230,13 @@ class SlotModel(abc.ABC):
     (PSNR, SSIM, LPIPS) and the pictures of frames need them."""
     return True
 
+  @property
+  def image_loss_fields(self) -> tuple[str, ...]:
+    """The video fields SlotFormer's image loss L_I compares the decoded
+    rollout with (`image_decoder`): the frames by default; SAVi with other
+    targets reads theirs (slotformer_jax/targets.py)."""
+    return ('video',)
+
   def check_config(self, stages: frozenset[str]) -> list[str]:
     """One line per problem of its own settings for the stages a run will
     execute (checked before any work); none by default."""
@@ -327,7 +339,9 @@ class SlotModel(abc.ABC):
   def image_decoder(self, params: Any) -> tuple[Any, Any] | None:
     """(decoder module, its frozen params) for SlotFormer's image loss L_I
     (the decoder maps slots [..., N, D] to an object with `.recon` in the
-    range of `to_model`), or None when the model has no differentiable
-    pixel decoder."""
+    range of `to_model`, or with `reconstructions()`, {target: [..., H, W,
+    C]}: 'rgb' in that range, the others in their batch fields'
+    (slotformer_jax/targets.py; the fields `image_loss_fields`)), or None
+    when the model has no differentiable pixel decoder."""
     del params
     return None

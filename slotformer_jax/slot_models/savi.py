@@ -1,10 +1,14 @@
 """SAVi (and stochastic / conditional SAVi) as the slot model:
 `config.slot_model='savi'`, settings in `config.savi`.
 
-Stage 1 is one part, `savi` (mode `train_savi`): frame reconstruction (+ the
-KL of stochastic SAVi) on clips of `savi.clip_length` frames. Slots decode
-through SAVi's spatial-broadcast decoder, whose per-slot alpha masks are the
-segmentation and whose frozen copy gives SlotFormer's image loss L_I.
+Stage 1 is one part, `savi` (mode `train_savi`): reconstruction of its
+targets (`savi.targets`: the frames, or SAVi's optical flow and depth; see
+slotformer_jax/targets.py for their batch fields) (+ the KL of stochastic
+SAVi) on clips of `savi.clip_length` frames. Slots decode through SAVi's
+spatial-broadcast decoder, whose per-slot alpha masks are the segmentation
+and whose frozen copy gives SlotFormer's image loss L_I (on the same
+targets). The encoder is a CNN or SAVi++'s ResNet-34 (+ Transformer):
+`savi.encoder.kind`.
 
 Workdir (inside the stage-1 workdir)::
 
@@ -20,12 +24,14 @@ from __future__ import annotations
 import functools
 from typing import Any
 
+import flax.linen as nn
 import jax
 import jax.numpy as jnp
 import ml_collections
 import numpy as np
 
 from slotformer_jax import losses
+from slotformer_jax import targets as targets_lib
 from slotformer_jax.errors import ConfigError
 from slotformer_jax.frames import frames_to_model
 from slotformer_jax.frames import labelled_grid
@@ -36,6 +42,11 @@ from slotformer_jax.modules import slot_init
 from slotformer_jax.modules.slot_init import slot_initializer
 from slotformer_jax.modules.decoders import SpatialBroadcastDecoder
 from slotformer_jax.modules.encoders import CNNEncoder
+from slotformer_jax.modules.encoders import ConvStack
+from slotformer_jax.modules.encoders import FrameEncoder
+from slotformer_jax.modules.resnet import ResNet
+from slotformer_jax.modules.resnet import RESNET34_STAGES
+from slotformer_jax.modules.transformer import TransformerEncoder
 from slotformer_jax.modules.savi import FrameStep
 from slotformer_jax.modules.slot_attention import SlotAttention
 from slotformer_jax.modules.stochastic_savi import GaussianSlotSampler
@@ -57,16 +68,66 @@ NAME = 'savi'
 # --------------------------------------------------------------------------
 
 
+# Fields of `config.savi` added after workdirs were made (issue 51): at the
+# value their absence stands for (identity.ADDED_FIELDS) they are left out
+# of the run identity and model_config.json, which stay what they were.
+_ADDED = ('targets', 'encoder.kind', 'encoder.mlp_size',
+          'encoder.transformer')
+
+
+def target_names(savi: ml_collections.ConfigDict) -> tuple[str, ...]:
+  """`savi.targets` (RGB frames for a config from before the field)."""
+  return tuple(savi.get('targets', targets_lib.DEFAULT))
+
+
 def build_decoder(decoder: ml_collections.ConfigDict,
-                  resolution: tuple[int, int]) -> SpatialBroadcastDecoder:
+                  resolution: tuple[int, int],
+                  targets: tuple[str, ...] | None = None
+                  ) -> SpatialBroadcastDecoder:
   """SAVi's spatial-broadcast decoder from `config.savi.decoder`, for frames
-  of `resolution` (H, W). Alone (SlotFormer's frozen image decoder), its
+  of `resolution` (H, W), reconstructing `targets` (`config.savi.targets`;
+  None: RGB frames). Alone (SlotFormer's frozen image decoder), its
   parameters are `savi_params['decoder']`."""
   return SpatialBroadcastDecoder(
       output_resolution=tuple(resolution),
       broadcast_resolution=tuple(decoder.broadcast_resolution),
       features=tuple(decoder.features),
-      kernel_size=decoder.kernel_size)
+      kernel_size=decoder.kernel_size,
+      targets=targets_lib.channels(targets))
+
+
+def build_encoder(encoder: ml_collections.ConfigDict,
+                  layer_norm_epsilon: float) -> nn.Module:
+  """The per-frame encoder from `config.savi.encoder`: today's CNNEncoder
+  for a CNN without a Transformer (its parameter tree), else a FrameEncoder
+  of the CNN's conv layers or SAVi++'s ResNet-34."""
+  kind = encoder.get('kind', 'cnn')
+  transformer = encoder.get('transformer')
+  num_layers = transformer.num_layers if transformer is not None else 0
+  if kind == 'cnn' and not num_layers:
+    return CNNEncoder(
+        features=tuple(encoder.features), kernel_size=encoder.kernel_size,
+        strides=tuple(encoder.strides), output_size=encoder.output_size,
+        padding=encoder.padding, layer_norm_epsilon=layer_norm_epsilon,
+        mlp_size=encoder.get('mlp_size'))
+  if kind == 'cnn':
+    backbone = ConvStack(
+        features=tuple(encoder.features), kernel_size=encoder.kernel_size,
+        strides=tuple(encoder.strides), padding=encoder.padding)
+  elif kind == 'resnet34':
+    backbone = ResNet(stage_sizes=RESNET34_STAGES)
+  else:
+    raise ValueError(f"encoder kind must be 'cnn' or 'resnet34', got "
+                     f'{kind!r}')
+  return FrameEncoder(
+      backbone=backbone, output_size=encoder.output_size,
+      mlp_size=encoder.get('mlp_size'),
+      transformer=TransformerEncoder(
+          num_layers=num_layers, num_heads=transformer.num_heads,
+          mlp_size=transformer.mlp_size, pre_norm=True,
+          layer_norm_epsilon=layer_norm_epsilon) if num_layers else None,
+      qkv_size=transformer.qkv_size if num_layers else encoder.output_size,
+      layer_norm_epsilon=layer_norm_epsilon)
 
 
 def build_savi(savi: ml_collections.ConfigDict,
@@ -88,12 +149,7 @@ def build_savi(savi: ml_collections.ConfigDict,
         stochastic=savi.stochastic, layer_norm_epsilon=epsilon)
   predictor = savi.predictor
   return SAVi(
-      encoder=CNNEncoder(
-          features=tuple(savi.encoder.features),
-          kernel_size=savi.encoder.kernel_size,
-          strides=tuple(savi.encoder.strides),
-          output_size=savi.encoder.output_size,
-          padding=savi.encoder.padding, layer_norm_epsilon=epsilon),
+      encoder=build_encoder(savi.encoder, epsilon),
       initializer=slot_initializer(savi.initial_slots, savi.num_slots,
                                    savi.slot_size),
       frame_step=FrameStep(
@@ -107,23 +163,41 @@ def build_savi(savi: ml_collections.ConfigDict,
               dropout_rate=predictor.dropout_rate,
               layer_norm_epsilon=epsilon),
           posterior_head=posterior_head),
-      decoder=build_decoder(savi.decoder, resolution))
+      decoder=build_decoder(savi.decoder, resolution, target_names(savi)))
 
 
 def model_fields(savi: ml_collections.ConfigDict,
                  data: ml_collections.ConfigDict) -> dict[str, Any]:
   """The settings that determine SAVi's parameter shapes / behaviour."""
-  section = savi.to_dict()
+  section = _without_added_defaults(savi)
   fields = {key: section[key] for key in (
       'num_slots', 'slot_size', 'encoder', 'slot_attention', 'predictor',
       'decoder', 'stochastic', 'initial_slots', 'posterior_head',
       'layer_norm_epsilon')}
+  if 'targets' in section:  # recorded only when not RGB (older workdirs)
+    fields['targets'] = section['targets']
   fields['resolution'] = list(data.resolution)
   # A SAVi that saw BGR frames (the official CLEVRER ones) needs
   # BGR frames; recorded only when not RGB, so older workdirs still match.
   if data.channel_order != 'rgb':
     fields['channel_order'] = data.channel_order
   return identity_lib.plain(fields)
+
+
+def _without_added_defaults(savi: ml_collections.ConfigDict
+                            ) -> dict[str, Any]:
+  """`savi.to_dict()` without the `_ADDED` fields that hold the value their
+  absence stands for."""
+  section = savi.to_dict()
+  for name in _ADDED:
+    *parents, field = name.split('.')
+    node = section
+    for key in parents:
+      node = node.get(key, {})
+    if (field in node and identity_lib.plain(node[field])
+        == identity_lib.ADDED_FIELDS[f'{NAME}.{name}']):
+      del node[field]
+  return section
 
 
 def is_conditional(savi: ml_collections.ConfigDict) -> bool:
@@ -176,8 +250,27 @@ class Savi(SlotModel):
     return ('boxes',) if is_conditional(self.section) else ()
 
   @property
+  def targets(self) -> tuple[targets_lib.Target, ...]:
+    """What its decoder reconstructs (`savi.targets`)."""
+    return targets_lib.of(target_names(self.section))
+
+  @property
+  def decodes_pixels(self) -> bool:
+    """Frames only when RGB is one of its targets (SAVi reconstructing
+    flow / depth alone is scored on its masks)."""
+    return targets_lib.RGB in self.targets
+
+  @property
+  def image_loss_fields(self) -> tuple[str, ...]:
+    return tuple(target.field for target in self.targets)
+
+  @property
   def parts(self) -> tuple[Part, ...]:
     savi, config = self.section, self.config
+    # The frames feed the encoder whatever the targets; the other targets'
+    # fields are what the loss compares with.
+    target_fields = tuple(t.field for t in self.targets
+                          if t != targets_lib.RGB)
     clip = np.zeros((1, savi.clip_length, *self.resolution, 3), np.float32)
     # The shapes of the conditional initialiser do not depend on the number
     # of box rows.
@@ -190,24 +283,40 @@ class Savi(SlotModel):
         name=NAME, label=self.label, module=self.model, section=savi,
         example=(clip,), example_kwargs=boxes,
         loss=precision.with_compute_dtype(loss, config.compute_dtype),
-        batch_fields=('video',) + self.conditioning_fields,
+        batch_fields=('video',) + target_fields + self.conditioning_fields,
         clip_length=savi.clip_length,
         model_fields=model_fields(savi, config.data),
         identity_fields=identity_lib.stage_fields(
-            config.seed, config.data.to_dict(), NAME, savi.to_dict()),
-        init=savi.init, images=_training_images(self.model)),)
+            config.seed, config.data.to_dict(), NAME,
+            _without_added_defaults(savi)),
+        init=savi.init,
+        images=_training_images(self.model, self.targets)),)
 
   def check_config(self, stages: frozenset[str]) -> list[str]:
-    """The frame size the decoder can produce (known from the config alone;
-    found at the first training step otherwise, after making the data)."""
+    """At least one target; the encoder Transformer's width a multiple of
+    its heads; the frame size the decoder can produce (known from the
+    config alone; found at the first training step otherwise, after making
+    the data)."""
     del stages
+    problems = []
+    names = target_names(self.section)
+    if not names:
+      problems.append(
+          "savi.targets=() names no target; e.g. --config.savi.targets="
+          "'(\"rgb\",)' or '(\"flow\", \"depth\")'")
+    transformer = self.section.encoder.get('transformer')
+    if (transformer is not None and transformer.num_layers > 0
+        and transformer.qkv_size % transformer.num_heads):
+      problems.append(
+          f'savi.encoder.transformer.qkv_size={transformer.qkv_size} must be '
+          f'a multiple of its num_heads={transformer.num_heads}')
     resolution, decoder = self.resolution, self.section.decoder
     sizes = decoder_resolutions(decoder.broadcast_resolution,
                                 len(decoder.features))
     if resolution in sizes:
-      return []
+      return problems
     listed = ', '.join(f'{h}x{w}' for h, w in sizes)
-    return [
+    return problems + [
         f'data.resolution {resolution} is not a size the SAVi decoder can '
         f'produce: it doubles its {tuple(decoder.broadcast_resolution)} '
         f'broadcast grid (savi.decoder.broadcast_resolution) once per '
@@ -216,11 +325,22 @@ class Savi(SlotModel):
         'data.resolution or savi.decoder.broadcast_resolution']
 
   def check_data(self, source: Any, split: str) -> None:
-    """Conditional SAVi needs boxes in the data and a slot per box row plus
-    the background slot."""
-    if not is_conditional(self.section) or not len(source):
+    """Its targets need their fields in the data; conditional SAVi needs
+    boxes and a slot per box row plus the background slot."""
+    if not len(source):
       return
     item = source[0]
+    missing = [t for t in self.targets if t.field not in item]
+    if missing:
+      names = target_names(self.section)
+      raise ConfigError(
+          f'savi.targets={names!r} reconstructs '
+          f'{", ".join(repr(t.field) for t in missing)}, but the {split} '
+          f'videos of data.name={self.config.data.name!r} have no such '
+          'field (slotformer_jax/targets.py says what each must hold); '
+          "use --config.savi.targets='(\"rgb\",)' or data that has them")
+    if not is_conditional(self.section):
+      return
     option = f'savi.initial_slots={self.section.initial_slots!r}'
     if 'boxes' not in item:
       raise ConfigError(
@@ -249,12 +369,15 @@ class Savi(SlotModel):
              presence: jax.Array | None = None) -> Decoded:
     decoded = self.decoder.apply({'params': params[NAME]['decoder']}, slots,
                                  presence)
+    if decoded.recon is None:  # RGB is not one of its targets
+      return Decoded(alpha_masks=decoded.alpha_masks,
+                     targets=decoded.targets)
     return Decoded(recon=model_to_unit(decoded.recon),
                    alpha_masks=decoded.alpha_masks,
-                   rgb=model_to_unit(decoded.rgb))
+                   rgb=model_to_unit(decoded.rgb), targets=decoded.targets)
 
   def observe(self, params: Any, slots: jax.Array, video: jax.Array,
-              carry: Any) -> tuple[jax.Array, jax.Array, Any]:
+              carry: Any) -> tuple[jax.Array, jax.Array | None, Any]:
     """SAVi's account of the real frames is its extracted slots decoded (a
     frame at a time: one frame's decoder activations in memory)."""
     del video
@@ -264,32 +387,44 @@ class Savi(SlotModel):
       return decoded.alpha_masks[..., 0], decoded.recon
 
     alpha, recon = jax.lax.map(frame, jnp.swapaxes(slots, 0, 1))
-    return jnp.swapaxes(alpha, 0, 1), jnp.swapaxes(recon, 0, 1), carry
+    if recon is not None:  # None: RGB is not one of its targets
+      recon = jnp.swapaxes(recon, 0, 1)
+    return jnp.swapaxes(alpha, 0, 1), recon, carry
 
   def image_decoder(self, params: Any) -> tuple[Any, Any]:
     return self.decoder, params[NAME]['decoder']
 
 
-def _training_images(model: SAVi):
+def _training_images(model: SAVi, targets: tuple[targets_lib.Target, ...]):
   """TensorBoard pictures of the first clip of a training batch: its frames,
-  SAVi's reconstruction and the slot masks over the frames."""
+  SAVi's reconstruction of each target (the frames; flow in SAVi's colours;
+  depth as a grey map with its range in the label, the data's above it) and
+  the slot masks over the frames."""
 
   @jax.jit
   def run(params, video, boxes):
     output = model.apply({'params': params}, frames_to_model(video),
                          boxes=boxes)
-    return (model_to_unit(output.decoded.recon),
-            output.decoded.alpha_masks[..., 0])
+    decoded = output.decoded
+    recon = (None if decoded.recon is None
+             else model_to_unit(decoded.recon))
+    return recon, decoded.targets, decoded.alpha_masks[..., 0]
 
   def images(params, batch):
     video = batch['video'][:1]
     boxes = batch['boxes'][:1, 0] if 'boxes' in batch else None
-    recon, alpha = jax.device_get(run(params, video, boxes))
+    recon, others, alpha = jax.device_get(run(params, video, boxes))
     frames = np.asarray(video[0], np.float32) / 255.0
-    return {'reconstruction': labelled_grid({
-        'input': video[0],
-        'reconstruction': to_uint8(recon[0]),
-        'slot masks': to_uint8(mask_overlay(frames, alpha[0])),
-    })}
+    rows = {'input': video[0]}
+    if recon is not None:
+      rows['reconstruction'] = to_uint8(recon[0])
+    truth = {t.name: np.asarray(batch[t.field][0]) for t in targets
+             if t != targets_lib.RGB and t.field in batch}
+    decoded = {name: values[0] for name, values in (others or {}).items()}
+    for label, row in targets_lib.picture_rows(targets, truth,
+                                               decoded).items():
+      rows[label] = to_uint8(row)
+    rows['slot masks'] = to_uint8(mask_overlay(frames, alpha[0]))
+    return {'reconstruction': labelled_grid(rows)}
 
   return images

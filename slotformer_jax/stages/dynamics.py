@@ -75,7 +75,7 @@ def dynamics_stage(section: ml_collections.ConfigDict, name: str,
   rollout = section.rollout
   decoder, decoder_params = image_loss_decoder(section, name, slot_model,
                                                slot_params)
-  video_fields = ('video',) if decoder is not None else ()
+  video_fields = slot_model.image_loss_fields if decoder is not None else ()
   model = dynamics_lib.build(section, name)
   example = dynamics_lib.example(section, slot_model.slot_shape)
   images = dynamics_lib.rollout_images(slot_model, slot_params, model,
@@ -147,7 +147,8 @@ def seed_stage(view: Run, name: str, stream_seed: int
   # L_I (`image_loss_decoder`) reads the videos, and compares the rollout
   # frames only: the burn-in frames are not read.
   source = view.slots('train',
-                      ('video',) if section.image_loss_weight > 0 else (),
+                      slot_model.image_loss_fields
+                      if section.image_loss_weight > 0 else (),
                       video_from=section.burn_in)
   stage = dynamics_stage(section, name, view.paths.dynamics(name),
                          view.mesh, slot_model, loaded.params, source,

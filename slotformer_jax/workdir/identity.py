@@ -27,6 +27,7 @@ import uuid
 
 import jax
 
+from slotformer_jax import targets
 from slotformer_jax.errors import ConfigError
 from slotformer_jax.errors import MissingInputError
 from slotformer_jax.errors import UserError
@@ -81,6 +82,13 @@ ADDED_FIELDS: dict[str, Any] = {
     'readout.negatives_per_task': 40,
     'readout.num_pictures': 0,
     'readout.rollout_steps': 10,
+    # SAVi's targets and encoder choices (issue 51): RGB frames, the CNN,
+    # its position MLP as wide as its output, no Transformer after it.
+    'savi.targets': list(targets.DEFAULT),
+    'savi.encoder.kind': 'cnn',
+    'savi.encoder.mlp_size': None,
+    'savi.encoder.transformer': {'num_layers': 0, 'num_heads': 4,
+                                 'qkv_size': 64, 'mlp_size': 1024},
 }
 
 
