@@ -204,6 +204,7 @@ def describe(config_name: str, step: str) -> dict[str, Any]:
   _benchmarks_on_path()
   os.environ.setdefault('JAX_PLATFORMS', 'cpu')
   import tpu_compile  # pylint: disable=g-import-not-at-top
+  from slotformer_jax import datasets
   from slotformer_jax import slot_models  # pylint: disable=g-import-not-at-top
   config = tpu_compile.load_config(config_name)
   batch = tpu_compile.batch_of(config, step)
@@ -263,7 +264,7 @@ def _fixture(work: Path, dataset: str, resolution: int, frames: int,
   import reader_speed  # pylint: disable=g-import-not-at-top
   from slotformer_jax.config import defaults  # pylint: disable=g-import-not-at-top
   from slotformer_jax.data import sources  # pylint: disable=g-import-not-at-top
-  from slotformer_jax.data.convert import prepare  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.data import prepare  # pylint: disable=g-import-not-at-top
   root = work / f'{dataset}_r{resolution}_t{frames}_v{videos}'
   if not (root / 'done').exists():
     if not (root / 'OBJ3D' / 'train').is_dir():
@@ -277,7 +278,7 @@ def _fixture(work: Path, dataset: str, resolution: int, frames: int,
   data = defaults.base_config().data
   data.name, data.data_dir = 'obj3d', str(root / 'data')
   data.resolution = (resolution, resolution)
-  return sources.get_video_source(data, 'train')
+  return datasets.get_video_source(data, 'train')
 
 
 def _slot_dir(work: Path, num_videos: int, frames: int, slot_shape,
@@ -298,7 +299,7 @@ def _slot_dir(work: Path, num_videos: int, frames: int, slot_shape,
 
 
 def _token_dir(work: Path, num_videos: int, frames: int, tokens: int) -> str:
-  from slotformer_jax.data import tokens as tokens_lib  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.data import slots as tokens_lib  # pylint: disable=g-import-not-at-top
   import numpy as np  # pylint: disable=g-import-not-at-top
   folder = work / f'tokens_v{num_videos}_t{frames}_{tokens}'
   meta = tokens_lib.read_meta(str(folder))
@@ -341,7 +342,7 @@ def measure_stream(s: Stream, work: Path, videos: int,
   import numpy as np  # pylint: disable=g-import-not-at-top
   from slotformer_jax.data import pipeline  # pylint: disable=g-import-not-at-top
   from slotformer_jax.data import slots  # pylint: disable=g-import-not-at-top
-  from slotformer_jax.data import tokens as tokens_lib  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.data import slots as tokens_lib  # pylint: disable=g-import-not-at-top
   first_rows = lambda batch: next(iter(batch.values())).shape[0]
   if s.kind == 'whole_video':  # whole videos, random order: frames/s read
     import reader_speed  # pylint: disable=g-import-not-at-top

@@ -29,9 +29,9 @@ import time
 import flax.linen as nn
 import numpy as np
 
-from slotformer_jax.data.convert import contact
-from slotformer_jax.data.convert import synthetic
-from slotformer_jax.data.embedded import contact as contact_data
+from slotformer_jax.datasets import synthetic_contact as contact
+from slotformer_jax.datasets import synthetic
+from slotformer_jax.datasets import synthetic_contact as contact_data
 from slotformer_jax.modules import readouts
 from slotformer_jax.tasks import readout as readout_lib
 

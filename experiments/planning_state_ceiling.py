@@ -36,7 +36,7 @@ import time
 import flax.linen as nn
 import numpy as np
 
-from slotformer_jax.data.embedded import phyre_like as phyre_like_data
+from slotformer_jax.datasets import synthetic_phyre as phyre_like_data
 from slotformer_jax.tasks import phyre_planning
 from slotformer_jax.tasks import planning
 from slotformer_jax.tasks import readout as readout_lib

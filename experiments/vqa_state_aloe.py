@@ -54,11 +54,11 @@ import jax
 import numpy as np
 
 from slotformer_jax.data import vqa as vqa_data
-from slotformer_jax.data.convert import clevrer_like
-from slotformer_jax.data.convert import questions as question_generator
-from slotformer_jax.data.convert.pool import ordered_map
-from slotformer_jax.data.embedded import clevrer_like as clevrer_like_data
-from slotformer_jax.data.embedded.synthetic import COLORS, SHAPES
+from slotformer_jax.datasets import clevrer_like
+from slotformer_jax.datasets import clevrer_like_questions as question_generator
+from slotformer_jax.data.write.pool import ordered_map
+from slotformer_jax.datasets import clevrer_like as clevrer_like_data
+from slotformer_jax.datasets.synthetic import COLORS, SHAPES
 from slotformer_jax.data.events import EventLog
 from slotformer_jax.tasks import vqa as task
 from slotformer_jax.train import optim

@@ -41,9 +41,9 @@ import time
 import numpy as np
 from sklearn.linear_model import LogisticRegression
 
-from slotformer_jax.data.convert import clevrer_like
-from slotformer_jax.data.convert import questions as question_generator
-from slotformer_jax.data.embedded import clevrer_like as clevrer_like_data
+from slotformer_jax.datasets import clevrer_like
+from slotformer_jax.datasets import clevrer_like_questions as question_generator
+from slotformer_jax.datasets import clevrer_like as clevrer_like_data
 
 MARGINS = np.round(np.arange(-1.0, 0.61, 0.05), 3)
 

@@ -27,8 +27,8 @@ import time
 import numpy as np
 from sklearn.linear_model import LogisticRegression
 
-from slotformer_jax.data.convert import clevrer_like
-from slotformer_jax.data.embedded import clevrer_like as clevrer_like_data
+from slotformer_jax.datasets import clevrer_like
+from slotformer_jax.datasets import clevrer_like as clevrer_like_data
 from slotformer_jax.data.sources import resolve_data_dir
 
 _QUESTION_FILES = {'train': 'train', 'val': 'validation'}

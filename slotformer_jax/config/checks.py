@@ -244,16 +244,19 @@ def check_field_kinds(config: ml_collections.ConfigDict) -> list[str]:
 def validate(config: ml_collections.ConfigDict, stages: Sequence[str], *,
              num_devices: int, num_processes: int = 1,
              slot_model_problems: Sequence[str] = (),
+             data_problems: Sequence[str] = (),
              video_length: Callable[[str], int | None] = lambda split: None
              ) -> None:
   """Raises one UserError listing every problem of `stages` (main's modes).
 
   Args:
     slot_model_problems: the slot model's own (`SlotModel.check_config`).
+    data_problems: those of `config.data` and `evaluation.clips`, which the
+      dataset knows (`datasets.config_problems`).
     video_length: split -> frames per video when known without making data
       (None: unknown, checked later by the stage that reads them).
   """
-  problems = []
+  problems = list(data_problems)
 
   def positive(section: str, names: Sequence[str], allow_zero=()) -> None:
     node = config
@@ -325,9 +328,6 @@ def validate(config: ml_collections.ConfigDict, stages: Sequence[str], *,
       problems.append(
           f'unknown evaluation.metrics {unknown}; known: '
           f'{", ".join(FRAME_METRICS + OBJECT_METRICS)}')
-    if config.evaluation.clips not in ('first', 'clevrer'):
-      problems.append("evaluation.clips must be 'first' or 'clevrer', got "
-                      f'{config.evaluation.clips!r}')
   if 'render' in stages:
     positive('render', ('num_videos', 'fps', 'scale', 'strip_every'))
   if 'explore' in stages:

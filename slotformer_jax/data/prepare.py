@@ -5,14 +5,14 @@ Usage::
     python -m slotformer_jax.data.prepare --dataset=clevrer \\
         --source=/path/to/CLEVRER --data_dir=/path/to/data
 
-``--dataset`` is one of obj3d, clevrer, physion, phyre, movi; ``--source``
-is the folder holding the files in their published layout (see
-docs/datasets.md; a missing part is reported with the expected layout). The
-result goes to ``<data_dir>/<name>/<config>/1.0.0`` where ``<config>``
-encodes the conversion parameters, and is read by
-``sources.get_video_source`` with data config ``name=<name>``,
-``data_dir=<data_dir>``; ``<name>`` is the dataset, or for MOVi the variant
-of the download (``movi_a`` ... ``movi_f``).
+``--dataset`` is the ``command`` of a converted dataset
+(``slotformer_jax/datasets/``: obj3d, clevrer, physion, phyre, movi, and any
+registered one); ``--source`` is the folder holding the files in their
+published layout (see docs/datasets.md; a missing part is reported with the
+expected layout). The result goes to ``<data_dir>/<name>/<config>/2.0.0``
+where ``<config>`` encodes the conversion parameters, and is read with data
+config ``name=<name>``, ``data_dir=<data_dir>``; ``<name>`` is the dataset,
+or for MOVi the variant of the download.
 
 Conversion runs in ``--num_workers`` processes with a progress bar and is
 resumable: re-running the same command after an interruption converts only
@@ -27,29 +27,28 @@ shard present writes the metadata.
 
 from __future__ import annotations
 
-import argparse
-import dataclasses
-import logging
 import signal
 import sys
-from collections.abc import Sequence
-from pathlib import Path
-from types import ModuleType
-from typing import Any
 
-from slotformer_jax.data import chunked
-from slotformer_jax.data.convert import clevrer
-from slotformer_jax.data.convert import movi
-from slotformer_jax.data.convert import obj3d
-from slotformer_jax.data.convert import physion
-from slotformer_jax.data.convert import phyre
-from slotformer_jax.data.convert import writer
-from slotformer_jax.data.data_dir import resolve_data_dir
-from slotformer_jax.errors import printable
+try:
+  import argparse
+  import dataclasses
+  import logging
+  from collections.abc import Sequence
+  from pathlib import Path
+  from typing import Any
 
-DATASETS: dict[str, ModuleType] = {
-    'obj3d': obj3d, 'clevrer': clevrer, 'physion': physion, 'phyre': phyre,
-    'movi': movi}
+  from slotformer_jax import datasets
+  from slotformer_jax.data import chunked
+  from slotformer_jax.data.sources import resolve_data_dir
+  from slotformer_jax.data.write import convert as writer
+  from slotformer_jax.datasets import clevrer
+  from slotformer_jax.datasets.base import ConversionError
+  from slotformer_jax.errors import printable
+except KeyboardInterrupt:  # Ctrl-C while the libraries import
+  if __name__ == '__main__':  # not a worker re-importing this file
+    print('interrupted: Ctrl-C; nothing was converted yet', file=sys.stderr)
+  sys.exit(128 + signal.SIGINT)
 
 # CLI flag -> Options field; a flag given for a dataset without that field is
 # an error rather than silently ignored.
@@ -73,13 +72,25 @@ def parse_resolution(text: str) -> tuple[int, int]:
   return values  # type: ignore[return-value]
 
 
+def _defaults(what: str) -> str:
+  """'clevrer 64, movi 64, ...': each converter's default option `what`
+  (the paper's; 'resolution': its height)."""
+  values = []
+  for command, dataset in sorted(datasets.converters().items()):
+    value = getattr(dataset.options(), what, None)
+    if value is not None:
+      values.append(f'{command} {value[0] if what == "resolution" else value}')
+  return ', '.join(values)
+
+
 def build_parser() -> argparse.ArgumentParser:
   parser = argparse.ArgumentParser(
       prog='python -m slotformer_jax.data.prepare',
       description=__doc__.split('\n\n')[0],
       formatter_class=argparse.RawDescriptionHelpFormatter,
       epilog='Per-dataset layouts and defaults: docs/datasets.md')
-  parser.add_argument('--dataset', required=True, choices=sorted(DATASETS))
+  parser.add_argument('--dataset', required=True,
+                      choices=sorted(datasets.converters()))
   parser.add_argument('--source', required=True, type=Path,
                       help='folder with the downloaded files (published '
                       'layout)')
@@ -91,11 +102,9 @@ def build_parser() -> argparse.ArgumentParser:
                       '(default: all)')
   parser.add_argument('--resolution', type=parse_resolution, default=None,
                       help='H or HxW of the stored frames (default: the '
-                      'paper\'s, 64 for obj3d/clevrer/movi (the SAVi paper), '
-                      '128 for physion/phyre)')
+                      f'paper\'s: {_defaults("resolution")})')
   parser.add_argument('--num_frames', type=int, default=None,
-                      help='frames kept per video (obj3d 50, clevrer 128, '
-                      'physion 150, phyre 15)')
+                      help=f'frames kept per video ({_defaults("num_frames")})')
   parser.add_argument('--max_objects', type=int, default=None,
                       help='clevrer: rows of the per-object arrays (6); '
                       'movi: rows of the per-instance arrays, ids above it '
@@ -137,9 +146,10 @@ def build_parser() -> argparse.ArgumentParser:
   return parser
 
 
-def make_options(module: ModuleType, args: argparse.Namespace) -> Any:
+def make_options(dataset: datasets.Converted, args: argparse.Namespace
+                 ) -> Any:
   """The dataset's Options from the CLI flags that were given."""
-  fields = {f.name for f in dataclasses.fields(module.Options)}
+  fields = {f.name for f in dataclasses.fields(dataset.options)}
   kwargs = {}
   for flag, field in _OPTION_FLAGS.items():
     value = getattr(args, flag)
@@ -148,35 +158,35 @@ def make_options(module: ModuleType, args: argparse.Namespace) -> Any:
     if field not in fields:
       raise ValueError(f'--{flag} does not apply to --dataset={args.dataset}')
     kwargs[field] = value
-  return module.Options(**kwargs)
+  return dataset.options(**kwargs)
 
 
-def selected_splits(module: ModuleType, text: str | None,
+def selected_splits(dataset: datasets.Converted, text: str | None,
                     source: Path | None = None) -> tuple[str, ...]:
   if not text:
     # A dataset whose splits depend on the download (MOVi-A has no 'test').
-    if source is not None and hasattr(module, 'available_splits'):
-      return module.available_splits(source)
-    return module.SPLITS
+    if source is not None and dataset.available_splits is not None:
+      return dataset.available_splits(source)
+    return dataset.splits
   splits = tuple(s.strip() for s in text.split(',') if s.strip())
-  unknown = [s for s in splits if s not in module.SPLITS]
+  unknown = [s for s in splits if s not in dataset.splits]
   if unknown:
-    raise ValueError(f'unknown splits {unknown}; {module.NAME} has '
-                     f'{module.SPLITS}')
+    raise ValueError(f'unknown splits {unknown}; {dataset.command} has '
+                     f'{dataset.splits}')
   return splits
 
 
 def run(args: argparse.Namespace) -> writer.ConversionResult:
   """Discovers, converts and reports; see the module docstring."""
-  module = DATASETS[args.dataset]
+  dataset = datasets.converters()[args.dataset]
   source = args.source.expanduser()
   if not source.is_dir():
     raise FileNotFoundError(
         f'--source={source} is not a folder. Expected the published '
-        f'{args.dataset} layout:\n{module.LAYOUT}')
-  options = make_options(module, args)
-  splits = selected_splits(module, args.splits, source)
-  spec = module.dataset_spec(options, source)
+        f'{args.dataset} layout:\n{dataset.layout}')
+  options = make_options(dataset, args)
+  splits = selected_splits(dataset, args.splits, source)
+  spec = dataset.spec(options, source)
   if args.limit is not None:
     if args.limit < 1:
       raise ValueError(f'--limit must be >= 1, got {args.limit}')
@@ -185,7 +195,7 @@ def run(args: argparse.Namespace) -> writer.ConversionResult:
         params={**spec.params, 'limit': args.limit})
   jobs = {}
   for split in splits:
-    found = module.discover(source, split, options)
+    found = dataset.discover(source, split, options)
     jobs[split] = found[:args.limit] if args.limit else found
     logging.info('%s %s: %d videos', args.dataset, split, len(jobs[split]))
   data_dir = resolve_data_dir(args.data_dir)
@@ -212,7 +222,7 @@ def main(argv: Sequence[str] | None = None) -> int:
   args = parser.parse_args(argv)
   try:
     run(args)
-  except (FileNotFoundError, ValueError, writer.ConversionError) as error:
+  except (FileNotFoundError, ValueError, ConversionError) as error:
     # Input problems: a clear message, no traceback; names from the
     # download are escaped where they are quoted, `printable` keeps
     # anything else a terminal acts on from reaching it.

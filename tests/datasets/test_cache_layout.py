@@ -17,10 +17,10 @@ from __future__ import annotations
 import pytest
 
 from pipeline_helpers import load_config
-from slotformer_jax.data.embedded import clevrer_like
-from slotformer_jax.data.embedded import contact
-from slotformer_jax.data.embedded import phyre_like
-from slotformer_jax.data.embedded import synthetic
+from slotformer_jax.datasets import clevrer_like
+from slotformer_jax.datasets import synthetic_contact as contact
+from slotformer_jax.datasets import synthetic_phyre as phyre_like
+from slotformer_jax.datasets import synthetic
 
 EXPECTED = {
     'synthetic:': 'synthetic_obj3d/r32x32_t24_o2-3_s0_n1000-50-100_aa2_862a7904/2.0.0',

@@ -9,10 +9,12 @@ import json
 import numpy as np
 import pytest
 
-from slotformer_jax.data.convert import clevrer_like
-from slotformer_jax.data.convert import synthetic
-from slotformer_jax.data.embedded import clevrer_like as clevrer_like_data
-from slotformer_jax.data.embedded import synthetic as synthetic_data
+from slotformer_jax import datasets
+
+from slotformer_jax.datasets import clevrer_like
+from slotformer_jax.datasets import synthetic
+from slotformer_jax.datasets import clevrer_like as clevrer_like_data
+from slotformer_jax.datasets import synthetic as synthetic_data
 from slotformer_jax.data.events import EventLog
 from dataset_fixtures import data_section
 
@@ -124,16 +126,15 @@ def test_config_rejects_too_many_objects():
 
 def test_build_dataset_writes_videos_questions_and_vocabulary(tmp_path):
   import json  # pylint: disable=g-import-not-at-top
-  from slotformer_jax.data import sources  # pylint: disable=g-import-not-at-top
   from slotformer_jax.data import vqa  # pylint: disable=g-import-not-at-top
-  from slotformer_jax.data.convert import make  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.data.write import generate  # pylint: disable=g-import-not-at-top
   from slotformer_jax.errors import MissingInputError  # pylint: disable=g-import-not-at-top
   data = data_section(
       name='clevrer_like', data_dir=str(tmp_path), resolution=(32, 32),
       observed_frames=12,
       predicted_frames=8, num_train=3, num_val=1, num_test=2, num_workers=1)
-  make.make_dataset(data)
-  source = sources.get_video_source(data, 'test')
+  generate.make_dataset(datasets.get('clevrer_like'), data)
+  source = datasets.get_video_source(data, 'test')
   assert len(source) == 2
   item = source[1]
   assert item['video'].shape == (20, 32, 32, 3)
@@ -161,8 +162,8 @@ def test_build_dataset_writes_videos_questions_and_vocabulary(tmp_path):
   video_mtime = (root / 'test' / 'video.npy').stat().st_mtime_ns
   # ... which the readers refuse until the data stage has made them.
   with pytest.raises(MissingInputError, match='--mode=prepare_data'):
-    sources.get_video_source(data, 'test')
-  assert clevrer_like.build_dataset(config, tmp_path) == root
+    datasets.get_video_source(data, 'test')
+  assert clevrer_like.generate(config, generate.Output(tmp_path)) == root
   assert vqa.read_clevrer_questions(root, 'test') == scenes
   assert (root / 'test' / 'video.npy').stat().st_mtime_ns == video_mtime
 
@@ -261,7 +262,7 @@ def _bank_shot() -> clevrer_like.Scene:
 
 
 def test_bank_shot_collision_that_extrapolation_misses():
-  from slotformer_jax.data.convert import questions  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.datasets import clevrer_like_questions as questions  # pylint: disable=g-import-not-at-top
   config = dataclasses.replace(DEFLECTED, predicted_frames=12)
   scene = _bank_shot()
   sim = clevrer_like.simulate(scene, config)

@@ -7,10 +7,11 @@ import dataclasses
 import numpy as np
 import pytest
 
-from slotformer_jax.data.convert import contact
-from slotformer_jax.data.convert import synthetic
-from slotformer_jax.data.embedded import contact as contact_data
-from slotformer_jax.data.embedded import synthetic as synthetic_data
+from slotformer_jax.data.write.generate import Output
+from slotformer_jax.datasets import synthetic_contact as contact
+from slotformer_jax.datasets import synthetic
+from slotformer_jax.datasets import synthetic_contact as contact_data
+from slotformer_jax.datasets import synthetic as synthetic_data
 
 TINY = contact_data.ContactConfig(resolution=(16, 16), num_frames=24,
                                   observed_frames=8, supersample=1,
@@ -85,14 +86,14 @@ def test_written_dataset_reads_back(tmp_path):
   from slotformer_jax.data import sources  # pylint: disable=g-import-not-at-top
   config = dataclasses.replace(TINY, num_train=1, num_readout_train=2,
                                num_readout_val=0, num_readout_test=0)
-  path = contact.build_contact_dataset(config, tmp_path)
+  path = contact.generate(config, Output(tmp_path))
   source = sources.TfdsVideoSource(path, 'readout_train')
   assert len(source) == 2
   item = source[1]
   expected = contact.generate_video(config, 'readout_train', 1)
   for key, value in expected.items():
     np.testing.assert_array_equal(item[key], value, err_msg=key)
-  assert contact.build_contact_dataset(config, tmp_path) == path
+  assert contact.generate(config, Output(tmp_path)) == path
 
 
 def test_parallel_build_writes_the_serial_videos_in_order(tmp_path):
@@ -101,7 +102,7 @@ def test_parallel_build_writes_the_serial_videos_in_order(tmp_path):
   # would put a video at the wrong record.
   config = dataclasses.replace(TINY, num_train=0, num_readout_train=9,
                                num_readout_val=0, num_readout_test=0)
-  path = contact.build_contact_dataset(config, tmp_path, num_workers=2)
+  path = contact.generate(config, Output(tmp_path, 2))
   source = sources.TfdsVideoSource(path, 'readout_train')
   assert len(source) == 9
   for index in range(9):

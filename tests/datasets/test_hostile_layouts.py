@@ -24,12 +24,12 @@ import pytest
 
 import dataset_fixtures as fx
 from slotformer_jax.data import vqa
-from slotformer_jax.data.convert import media
-from slotformer_jax.data.convert import movi
-from slotformer_jax.data.convert import phyre
-from slotformer_jax.data.convert import physion
-from slotformer_jax.data.convert import prepare
-from slotformer_jax.data.convert import tfrecord
+from slotformer_jax.data import media
+from slotformer_jax.datasets import movi
+from slotformer_jax.datasets import phyre
+from slotformer_jax.datasets import physion
+from slotformer_jax.data import prepare
+from slotformer_jax.data import tfrecord
 
 
 def _tree(folder):
@@ -156,7 +156,7 @@ def _rewrite_record(source, edit):
   example = tf_example_pb2.Example.FromString(
       next(tfrecord.iter_records(shard)))
   edit(example.features.feature)
-  tfrecord.write_records(shard, [example.SerializeToString()])
+  fx.write_tfrecords(shard, [example.SerializeToString()])
 
 
 @pytest.mark.parametrize('claim', [(10**6, 10**6), (12000, 12000), (17, 16)])

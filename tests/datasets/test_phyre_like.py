@@ -7,8 +7,8 @@ import dataclasses
 import numpy as np
 import pytest
 
-from slotformer_jax.data.convert import phyre_like as phyre_writer
-from slotformer_jax.data.embedded import phyre_like as phyre_data
+from slotformer_jax.datasets import synthetic_phyre as phyre_writer
+from slotformer_jax.datasets import synthetic_phyre as phyre_data
 from slotformer_jax.worlds import phyre_like as p
 
 CONFIG = phyre_data.PhyreLikeConfig(tasks_per_template=5, num_candidates=40)
@@ -194,9 +194,7 @@ def test_dynamics_layouts_are_never_labelled_tasks_and_fold_free():
 
 
 def test_dynamics_layouts_change_only_their_own_dataset_name():
-  labels = {}
-  plain = phyre_writer.video_family(CONFIG, 8, 0, 0.2, labels)
-  with_layouts = phyre_writer.video_family(CONFIG, 8, 0, 0.2, labels,
-                                           layouts=5)
+  plain = phyre_writer.Videos(CONFIG, 8, 0, 0.2)
+  with_layouts = phyre_writer.Videos(CONFIG, 8, 0, 0.2, layouts=5)
   assert with_layouts.slug == plain.slug + '_l5'
   assert not plain.slug.endswith('_l0')

@@ -470,8 +470,8 @@ def test_the_lock_still_refuses_a_live_holder(tmp_path):
 
 def test_an_unwritable_prepare_output_is_one_line(tmp_path, capsys):
   import dataset_fixtures as fx  # pylint: disable=g-import-not-at-top
-  from slotformer_jax.data.convert import obj3d  # pylint: disable=g-import-not-at-top
-  from slotformer_jax.data.convert import prepare  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.datasets import obj3d  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.data import prepare  # pylint: disable=g-import-not-at-top
   for split in ('train', 'val', 'test'):
     for t in range(1, 7):
       fx.write_png(tmp_path / 'OBJ3D' / split / '0'
@@ -560,7 +560,7 @@ def test_clevrer_without_test_videos_names_the_splits_flag(tmp_path,
   # The test videos are only for VQA's test predictions, but converting
   # every split is the default: the line asked for videos/test and stopped.
   import dataset_fixtures as fx  # pylint: disable=g-import-not-at-top
-  from slotformer_jax.data.convert import prepare  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.data import prepare  # pylint: disable=g-import-not-at-top
   source = tmp_path / 'CLEVRER'
   fx.write_clevrer_video(source, 'train', 0, num_frames=4)
   fx.write_clevrer_video(source, 'val', 10000, num_frames=4)
