@@ -119,7 +119,7 @@ def main():
   parser.add_argument('--heads', nargs='+', default=['mlp', 'logistic'])
   parser.add_argument('--templates', nargs='+', default=None,
                       help='override config.data.templates (names of '
-                      'data/embedded/phyre_like.ALL_TEMPLATES)')
+                      'worlds/phyre_like.ALL_TEMPLATES)')
   parser.add_argument('--tasks_per_template', type=int, default=None)
   args = parser.parse_args()
   path, _, variant = args.config.partition(':')

@@ -431,10 +431,6 @@ def open_prepared_dataset(
 # ----------------------------------------------------------------------------
 
 DATA_DIR_ENV = 'SLOTFORMER_DATA_DIR'
-# The TFDS version folder of a generated TFDS dataset: 2.0.0 is the chunked
-# layout (data/chunked.py TFDS_VERSION); a 1.0.0 folder of an older checkout
-# (whole-video records) is left alone and a 2.0.0 one generated.
-GENERATED_VERSION = '2.0.0'
 # The command that makes generated data (stages/data.py); every --mode runs
 # it first, so readers only meet a missing dataset outside main.
 PREPARE_COMMAND = ('python -m slotformer_jax.main --config=<config> '
@@ -459,8 +455,10 @@ def resolve_data_dir(data_dir: str | os.PathLike[str] | None) -> Path:
 def generated_dir(data_dir: str | os.PathLike[str], name: str, slug: str
                   ) -> Path:
   """The TFDS version folder of generated dataset ``name`` whose generation
-  parameters give ``slug``."""
-  return Path(data_dir) / name / slug / GENERATED_VERSION
+  parameters give ``slug``: the chunked layout's version (a 1.0.0 folder of
+  an older checkout, whole-video records, is left alone and a 2.0.0 one
+  generated)."""
+  return Path(data_dir) / name / slug / chunked.TFDS_VERSION
 
 
 def is_complete(dataset_dir: str | os.PathLike[str]) -> bool:

@@ -35,6 +35,7 @@ import ml_collections
 import numpy as np
 import tensorflow_datasets as tfds
 
+from slotformer_jax.data import chunked
 from slotformer_jax.data import integrity
 from slotformer_jax.data import sources
 from slotformer_jax.data.video_names import read_recorded_names
@@ -51,10 +52,8 @@ FIRST_CLIPS = 'first'
 # every evaluated clip of the first `num_videos` videos; frames are
 # `start + i * frame_stride` for i < burn_in + rollout.
 ClipRule = Callable[[Any, int, int, int, int], list[tuple[int, int]]]
-# The TFDS version folder of converted datasets (the chunked layout).
-CONVERTED_VERSION = '2.0.0'
-# Stored tensors as raw bytes: the fastest numpy round trip, and the files
-# are no larger, as array_record compresses every record anyway.
+# Stored tensors as raw bytes: the fastest numpy round trip (measured:
+# docs/datasets.md, "Record layout").
 TENSOR_ENCODING = tfds.features.Encoding.BYTES
 
 
@@ -69,13 +68,6 @@ def digest_name(readable: str, params: Mapping[str, Any]) -> str:
   shows the main parameters and changes with any of them."""
   payload = json.dumps(dict(params), sort_keys=True, default=str)
   return f'{readable}_{hashlib.sha256(payload.encode()).hexdigest()[:8]}'
-
-
-def pad_rows(values: Sequence[int], rows: int, fill: int = -1) -> np.ndarray:
-  """int32 [rows]: ``values`` then ``fill``."""
-  out = np.full((rows,), fill, np.int32)
-  out[:len(values)] = np.asarray(values, np.int32)
-  return out
 
 
 @dataclasses.dataclass(frozen=True)
@@ -146,14 +138,14 @@ class Dataset:
     return None
 
 
-def clips_problem(dataset: Dataset, clips: str) -> str | None:
-  """The config line of an ``evaluation.clips`` the dataset does not
-  offer, or None."""
-  offered = (FIRST_CLIPS, *dataset.clip_rules)
+def clips_problem(name: str, clips: str) -> str | None:
+  """The config line of an ``evaluation.clips`` that dataset ``name`` does
+  not offer, or None."""
+  offered = (FIRST_CLIPS, *get(name).clip_rules)
   if clips in offered:
     return None
   return (f'evaluation.clips must be one of {", ".join(map(repr, offered))} '
-          f'for data.name={dataset.names[0]!r}, got {clips!r}')
+          f'for data.name={name!r}, got {clips!r}')
 
 
 # ----------------------------------------------------------------------------
@@ -224,7 +216,7 @@ class Conversion:
     """
     top = confined(data_dir, self.name, what='the dataset name')
     return confined(top, self.config_name,
-                    what='the conversion folder name') / CONVERTED_VERSION
+                    what='the conversion folder name') / chunked.TFDS_VERSION
 
 
 class ConversionError(RuntimeError):
@@ -441,10 +433,8 @@ class Generated(Dataset):
         raise ValueError(
             f'{data_config.name} split {split!r} is empty or unknown; splits '
             f'are {tuple(sizes)} with sizes {list(sizes.values())}')
-    return sources.open_generated(
-        self.what, self.folder(parameters,
-                               sources.resolve_data_dir(data_config.data_dir)),
-        split)
+    return sources.open_generated(self.what, self.dataset_dir(data_config),
+                                  split)
 
 
 # ----------------------------------------------------------------------------

@@ -42,7 +42,7 @@ What is stored per video (records in video-index order):
   ``visible``: bool [T, M] (mask non-empty). Row k - 1 is label k.
 * ``in_view``: bool [T, O], the annotation's per-frame ``inside_camera_view``
   of each object: it defines the frames where objects enter, which the
-  official evaluation clips avoid (evaluation/clevrer_clips.py).
+  official evaluation clips avoid (datasets/clevrer.py).
 * ``num_objects``: int32; ``colors``, ``materials``, ``shapes``: int32 [O]
   indices into COLORS / MATERIALS / SHAPES (-1 padding).
 * ``has_annotations``, ``has_masks``: bool (False for the test split, or

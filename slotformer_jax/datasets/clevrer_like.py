@@ -75,7 +75,7 @@ from slotformer_jax.errors import MissingInputError
 # QUESTIONS_VERSION; the event-log types are in data/events.py).
 # 2: future_collision_fraction.
 GENERATOR_VERSION = 2
-# The questions generated from the event logs (data/convert/questions.py).
+# The questions generated from the event logs (datasets/clevrer_like_questions.py).
 # Not part of the folder name: a dataset whose complete.json names an older
 # version gets new questions from its stored event logs (its videos do not
 # change), so the readers refuse it until the data stage has done that.
@@ -92,7 +92,7 @@ QUESTIONS_VERSION = 2
 # pair in view at the end carries the extrapolation's verdict
 # (EventLog.extrapolated) so that the questions balance the labels within
 # each verdict (docs/vqa.md, "Issue 12, round 4"); see
-# data/convert/clevrer_like.py.
+# datasets/clevrer_like.py.
 PREDICTIVE_DESIGNS = ('direct', 'deflected')
 
 DATASET_NAME = 'clevrer_like'

@@ -547,9 +547,6 @@ def generate_video(config: SyntheticConfig, split: str, index: int
 # ----------------------------------------------------------------------------
 
 
-# Raw bytes (base.TENSOR_ENCODING): measured on 64x64x40 videos (2 cores),
-# the default NONE reads ~200 videos/s, ZLIB ~700, BYTES ~1,300-1,800, for
-# files of the same size (array_record compresses every record anyway).
 DESCRIPTION = ('OBJ3D-like synthetic videos rendered with pybullet: static '
                'CLEVR objects hit by a launched sphere.')
 

@@ -13,12 +13,10 @@ from slotformer_jax import datasets
 
 from slotformer_jax.datasets import clevrer_like
 from slotformer_jax.datasets import synthetic
-from slotformer_jax.datasets import clevrer_like as clevrer_like_data
-from slotformer_jax.datasets import synthetic as synthetic_data
 from slotformer_jax.data.events import EventLog
 from dataset_fixtures import data_section
 
-CONFIG = clevrer_like_data.ClevrerLikeConfig(
+CONFIG = clevrer_like.ClevrerLikeConfig(
     observed_frames=12, predicted_frames=8, num_train=4, num_val=2,
     num_test=2)
 
@@ -121,7 +119,7 @@ def test_generate_video_render_and_event_log_roundtrip():
 
 def test_config_rejects_too_many_objects():
   with pytest.raises(ValueError):
-    clevrer_like_data.ClevrerLikeConfig(max_objects=7, max_entering=2)
+    clevrer_like.ClevrerLikeConfig(max_objects=7, max_entering=2)
 
 
 def test_build_dataset_writes_videos_questions_and_vocabulary(tmp_path):
@@ -138,10 +136,10 @@ def test_build_dataset_writes_videos_questions_and_vocabulary(tmp_path):
   assert len(source) == 2
   item = source[1]
   assert item['video'].shape == (20, 32, 32, 3)
-  config = clevrer_like_data.config_from_data_config(data)
+  config = clevrer_like.config_from_data_config(data)
   np.testing.assert_array_equal(
       item['video'], clevrer_like.generate_video(config, 'test', 1)['video'])
-  root = clevrer_like_data.dataset_dir(config, tmp_path)
+  root = clevrer_like.dataset_dir(config, tmp_path)
   vocab = vqa.Vocabulary.load(root / 'vocab.json')
   scenes = vqa.read_clevrer_questions(root, 'test')
   assert [s['scene_index'] for s in scenes] == [15000, 15001]
@@ -206,7 +204,7 @@ def test_direct_design_is_the_generator_of_before():
   # The default design keeps the slugs (so the datasets already built) and
   # the event logs of generator version 2: values pinned before the field
   # existed.
-  assert (clevrer_like_data.ClevrerLikeConfig().slug
+  assert (clevrer_like.ClevrerLikeConfig().slug
           == 'r32x32_t24+16_o2-4+1_s0_038d4ccb')
   config = dataclasses.replace(CONFIG, future_collision_fraction=1.0)
   assert config.slug == 'r32x32_t12+8_o2-4+1_s0_41f59940'
@@ -254,7 +252,7 @@ def _bank_shot() -> clevrer_like.Scene:
   m (surface to surface) in front of B. A reaches C after the 12 observed
   frames and pushes it into B; A itself never reaches B."""
   return clevrer_like.Scene(
-      shapes=np.full(3, synthetic_data.SHAPES.index('cylinder'), np.int32),
+      shapes=np.full(3, synthetic.SHAPES.index('cylinder'), np.int32),
       colors=np.array([1, 2, 3], np.int32), sizes=np.zeros(3, np.int32),
       xy=np.array([[-2.6, 0.5], [0.0, 0.5], [1.1, 0.5]]), yaw=np.zeros(3),
       velocity=np.array([[2.5, 0.0], [0.0, 0.0], [0.0, 0.0]]),

@@ -12,10 +12,9 @@ import pytest
 from slotformer_jax.data.write.generate import Output
 from slotformer_jax.data import sources
 from slotformer_jax.datasets import synthetic
-from slotformer_jax.datasets import synthetic as synthetic_data
 from slotformer_jax.worlds import supersample
 
-TINY = synthetic_data.SyntheticConfig(resolution=(32, 32), num_frames=8,
+TINY = synthetic.SyntheticConfig(resolution=(32, 32), num_frames=8,
                                       num_train=4, num_val=2, num_test=2,
                                       seed=0)
 # Long enough for the launched sphere to reach the static objects.
@@ -93,7 +92,7 @@ def test_shapes_and_dtypes():
   for key in ('shapes', 'colors', 'sizes'):
     assert (ex[key][:n] >= 0).all() and (ex[key][n:] == -1).all(), key
   # The launched sphere.
-  assert synthetic_data.SHAPES[ex['shapes'][n - 1]] == 'sphere'
+  assert synthetic.SHAPES[ex['shapes'][n - 1]] == 'sphere'
   assert ex['segmentations'].max() <= n
 
 
@@ -207,7 +206,7 @@ def test_boxes_from_segmentation_example():
 def test_build_writes_all_splits_in_order(built):
   _, path = built
   assert path.is_dir() and TINY.slug in os.fspath(path)
-  for split in synthetic_data.SPLITS:
+  for split in synthetic.SPLITS:
     source = sources.TfdsVideoSource(path, split)
     assert len(source) == TINY.num_videos(split)
     for i in range(len(source)):
@@ -257,7 +256,7 @@ def test_failed_build_is_not_reused(tmp_path, monkeypatch):
   monkeypatch.setattr(synthetic, 'generate_video', flaky)
   with pytest.raises(RuntimeError, match='boom'):
     synthetic.generate(config, Output(tmp_path, 1))
-  path = synthetic_data.dataset_dir(config, tmp_path)
+  path = synthetic.dataset_dir(config, tmp_path)
   assert not (path / 'dataset_info.json').exists()
   monkeypatch.setattr(synthetic, 'generate_video', original)
   assert synthetic.generate(config, Output(tmp_path, 1)) == path
@@ -278,8 +277,8 @@ def test_parallel_build_matches_serial(built, tmp_path):
 
 def test_invalid_configs():
   with pytest.raises(ValueError):
-    synthetic_data.SyntheticConfig(min_objects=4, max_objects=3)
+    synthetic.SyntheticConfig(min_objects=4, max_objects=3)
   with pytest.raises(ValueError):
-    synthetic_data.SyntheticConfig(resolution=(4, 4))
+    synthetic.SyntheticConfig(resolution=(4, 4))
   with pytest.raises(ValueError):
     synthetic.generate_video(TINY, 'training', 0)

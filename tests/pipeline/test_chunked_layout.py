@@ -413,15 +413,14 @@ def test_an_old_folder_is_read_and_a_new_conversion_next_to_it_wins(
 
 
 def test_token_batches_with_frames_match_the_old_layout(folders, tmp_path):
-  from slotformer_jax.data import slots as tokens  # pylint: disable=g-import-not-at-top
   rng = np.random.default_rng(0)
   token_dir = str(tmp_path / 'tokens')
-  w = tokens.TokenWriter(token_dir, len(LENGTHS), 4, dvae_step=0)
+  w = slots.TokenWriter(token_dir, len(LENGTHS), 4, dvae_step=0)
   for i, t in enumerate(LENGTHS):
     w.add(i, rng.integers(0, 4096, (t, 4)))
   w.close()
-  old = tokens.TokenSource(token_dir, _open(folders, 0))
-  new = tokens.TokenSource(token_dir, _open(folders, 4))
+  old = slots.TokenSource(token_dir, _open(folders, 0))
+  new = slots.TokenSource(token_dir, _open(folders, 4))
   assert new.supports_clips and not old.supports_clips
   for fields in (('video', 'tokens'), ('tokens', 'video'), ('tokens',)):
     for step in range(4):
