@@ -136,6 +136,12 @@ def test_build_dataset_writes_videos_questions_and_vocabulary(tmp_path):
   assert len(source) == 2
   item = source[1]
   assert item['video'].shape == (20, 32, 32, 3)
+  # What the spec says a video holds.
+  spec = datasets.get('clevrer_like').features()
+  assert sorted(item) == sorted(spec)
+  for key, feature in spec.items():
+    assert item[key].dtype == feature.np_dtype, key
+    assert item[key].ndim == len(feature.shape), key
   config = clevrer_like.config_from_data_config(data)
   np.testing.assert_array_equal(
       item['video'], clevrer_like.generate_video(config, 'test', 1)['video'])
