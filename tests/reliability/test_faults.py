@@ -165,9 +165,16 @@ def test_a_full_disk_under_tensorboard_leaves_the_trainer_s_line(
   assert warnings and 'No space left on device' in warnings[-1], warnings
 
 
-def test_asyncio_s_unretrieved_futures_are_not_printed(caplog):
+def test_asyncio_s_unretrieved_futures_are_not_printed(caplog, monkeypatch):
   """orbax's failed writes on a full disk each left an asyncio 'Task
   exception was never retrieved' line (about 40 after the trainer's)."""
+  # main's logging stops the package's records from propagating: restored
+  # afterwards, or every later test reading caplog sees none of them.
+  package_logger = logging.getLogger('slotformer_jax')
+  for name in ('handlers', 'propagate', 'level'):
+    value = getattr(package_logger, name)
+    monkeypatch.setattr(package_logger, name,
+                        list(value) if name == 'handlers' else value)
   main_lib._configure_logging()  # pylint: disable=protected-access
   asyncio_logger = logging.getLogger('asyncio')
   with caplog.at_level(logging.ERROR):
