@@ -54,7 +54,7 @@ from slotformer_jax.data import chunked  # noqa: E402
 from slotformer_jax.data import pipeline  # noqa: E402
 from slotformer_jax.data import slots  # noqa: E402
 from slotformer_jax.data import sources  # noqa: E402
-from slotformer_jax.data.convert import prepare  # noqa: E402
+from slotformer_jax.data import prepare  # noqa: E402
 
 
 @dataclasses.dataclass(frozen=True)

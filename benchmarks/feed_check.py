@@ -27,11 +27,11 @@ import jax
 import numpy as np
 
 import reader_speed  # benchmarks/reader_speed.py
+from slotformer_jax import datasets
 from slotformer_jax.config import defaults
 from slotformer_jax.data import pipeline
 from slotformer_jax.data import slots
-from slotformer_jax.data import sources
-from slotformer_jax.data.convert import prepare
+from slotformer_jax.data import prepare
 from slotformer_jax.runtime import sharding
 from slotformer_jax.train import trainer
 
@@ -83,7 +83,7 @@ def fixture_source(spec: dict[str, Any], frames: int, workdir: Path,
     data = defaults.base_config().data
     data.name, data.data_dir = 'obj3d', str(data_dir)
     data.resolution = (height, width)
-    videos = sources.get_video_source(data, 'train')
+    videos = datasets.get_video_source(data, 'train')
     num_videos = len(videos)
   if 'slots' in spec:
     return _slot_source(spec, frames, workdir, videos, num_videos)

@@ -261,9 +261,9 @@ def _fixture(work: Path, dataset: str, resolution: int, frames: int,
              videos: int):
   """Converted OBJ3D-layout videos of `frames` frames at `resolution`."""
   import reader_speed  # pylint: disable=g-import-not-at-top
+  from slotformer_jax import datasets  # pylint: disable=g-import-not-at-top
   from slotformer_jax.config import defaults  # pylint: disable=g-import-not-at-top
-  from slotformer_jax.data import sources  # pylint: disable=g-import-not-at-top
-  from slotformer_jax.data.convert import prepare  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.data import prepare  # pylint: disable=g-import-not-at-top
   root = work / f'{dataset}_r{resolution}_t{frames}_v{videos}'
   if not (root / 'done').exists():
     if not (root / 'OBJ3D' / 'train').is_dir():
@@ -277,7 +277,7 @@ def _fixture(work: Path, dataset: str, resolution: int, frames: int,
   data = defaults.base_config().data
   data.name, data.data_dir = 'obj3d', str(root / 'data')
   data.resolution = (resolution, resolution)
-  return sources.get_video_source(data, 'train')
+  return datasets.get_video_source(data, 'train')
 
 
 def _slot_dir(work: Path, num_videos: int, frames: int, slot_shape,
@@ -298,13 +298,13 @@ def _slot_dir(work: Path, num_videos: int, frames: int, slot_shape,
 
 
 def _token_dir(work: Path, num_videos: int, frames: int, tokens: int) -> str:
-  from slotformer_jax.data import tokens as tokens_lib  # pylint: disable=g-import-not-at-top
   import numpy as np  # pylint: disable=g-import-not-at-top
   folder = work / f'tokens_v{num_videos}_t{frames}_{tokens}'
-  meta = tokens_lib.read_meta(str(folder))
+  from slotformer_jax.data import slots  # pylint: disable=g-import-not-at-top
+  meta = slots.read_meta(str(folder))
   if not meta or not meta.get('complete'):
     rng = np.random.default_rng(0)
-    writer = tokens_lib.TokenWriter(str(folder), num_videos, tokens,
+    writer = slots.TokenWriter(str(folder), num_videos, tokens,
                                     dvae_step=0)
     for video in range(num_videos):
       writer.add(video, rng.integers(0, 4096, (frames, tokens),
@@ -341,7 +341,6 @@ def measure_stream(s: Stream, work: Path, videos: int,
   import numpy as np  # pylint: disable=g-import-not-at-top
   from slotformer_jax.data import pipeline  # pylint: disable=g-import-not-at-top
   from slotformer_jax.data import slots  # pylint: disable=g-import-not-at-top
-  from slotformer_jax.data import tokens as tokens_lib  # pylint: disable=g-import-not-at-top
   first_rows = lambda batch: next(iter(batch.values())).shape[0]
   if s.kind == 'whole_video':  # whole videos, random order: frames/s read
     import reader_speed  # pylint: disable=g-import-not-at-top
@@ -354,7 +353,7 @@ def measure_stream(s: Stream, work: Path, videos: int,
       source = _fixture(work, s.dataset, s.resolution, s.video_frames, videos)
       fields = ('video',)
       if s.tokens:
-        source = tokens_lib.TokenSource(
+        source = slots.TokenSource(
             _token_dir(work, videos, s.video_frames, s.tokens), source)
         fields += ('tokens',)
     else:

@@ -127,7 +127,7 @@ def write_movi_metadata(folder: Path, fraction: float
                         ) -> list[tuple[str, str]]:
   sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'tests'))
   import dataset_fixtures as fx  # pylint: disable=g-import-not-at-top
-  from slotformer_jax.data.convert import movi  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.datasets import movi  # pylint: disable=g-import-not-at-top
   root = folder / 'movi_a' / '16x16' / '1.0.0'
   fx.write_movi(root, shard_lengths={'train': [1]}, num_frames=3, size=16,
                 seed=0, instances=(1, 2))
@@ -157,7 +157,7 @@ def write_movi_metadata(folder: Path, fraction: float
 
 
 def read_movi_metadata(path: str) -> str:
-  from slotformer_jax.data.convert import movi  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.datasets import movi  # pylint: disable=g-import-not-at-top
   try:
     info = movi.read_source(Path(path))
     return f'read {sum(map(len, info.shard_lengths.values()))} shards'
@@ -168,7 +168,7 @@ def read_movi_metadata(path: str) -> str:
 def write_movi_record(folder: Path, fraction: float) -> list[tuple[str, str]]:
   sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'tests'))
   import dataset_fixtures as fx  # pylint: disable=g-import-not-at-top
-  from slotformer_jax.data.convert import movi  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.datasets import movi  # pylint: disable=g-import-not-at-top
   # MOVi's 24 frames at the largest side the reader takes (the fixture
   # makes every MOVi feature: flows, depth... of random 16-bit values, so
   # MAX_SOURCE_FRAMES of them would take tens of GiB to write); the time
@@ -184,7 +184,7 @@ def write_movi_record(folder: Path, fraction: float) -> list[tuple[str, str]]:
 
 
 def read_movi_record(path: str) -> str:
-  from slotformer_jax.data.convert import movi  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.datasets import movi  # pylint: disable=g-import-not-at-top
   options = movi.Options(resolution=(128, 128), max_objects=10)
   jobs = movi.discover(Path(path), 'train', options)
   item = movi.dataset_spec(options, Path(path)).convert_fn(jobs[0])
@@ -234,7 +234,7 @@ def read_vocabulary(path: str) -> str:
 
 
 def write_phyre_index(folder: Path, fraction: float) -> list[tuple[str, str]]:
-  from slotformer_jax.data.convert import phyre  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.datasets import phyre  # pylint: disable=g-import-not-at-top
   root = folder / 'PHYRE'
   (root / 'train' / 'frames').mkdir(parents=True)
   (root / phyre.META_FILE).write_text(json.dumps({
@@ -254,7 +254,7 @@ def write_phyre_index(folder: Path, fraction: float) -> list[tuple[str, str]]:
 
 
 def read_phyre_index(path: str) -> str:
-  from slotformer_jax.data.convert import phyre  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.datasets import phyre  # pylint: disable=g-import-not-at-top
   options = phyre.Options(resolution=(8, 8), num_frames=3)
   return f'read {len(phyre.discover(Path(path), "train", options))} jobs'
 
@@ -277,7 +277,7 @@ def write_physion_lists(folder: Path, fraction: float
 
 
 def read_physion_lists(path: str) -> str:
-  from slotformer_jax.data.convert import physion  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.datasets import physion  # pylint: disable=g-import-not-at-top
   files = physion._listed_files(  # pylint: disable=protected-access
       Path(path) / 'source', 'train', physion.Options(split_files=path))
   return f'read {len(files)} paths'
@@ -285,7 +285,7 @@ def read_physion_lists(path: str) -> str:
 
 def write_physion_labels(folder: Path, fraction: float
                          ) -> list[tuple[str, str]]:
-  from slotformer_jax.data.convert import physion  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.datasets import physion  # pylint: disable=g-import-not-at-top
   limit = int(physion.MAX_LABEL_FILE_BYTES * fraction)
   row = 'pilot_dominoes_%07d_img,True\n'
   count = (limit - 40) // len(row % 0)
@@ -300,7 +300,7 @@ def write_physion_labels(folder: Path, fraction: float
 
 
 def read_physion_labels(path: str) -> str:
-  from slotformer_jax.data.convert import physion  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.datasets import physion  # pylint: disable=g-import-not-at-top
   return f'read {len(physion.read_labels(Path(path)))} labels'
 
 

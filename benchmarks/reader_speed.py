@@ -36,10 +36,11 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
+from slotformer_jax import datasets
+
 from slotformer_jax.config import defaults
 from slotformer_jax.data import pipeline
-from slotformer_jax.data.convert import prepare
-from slotformer_jax.data import sources
+from slotformer_jax.data import prepare
 
 RES = 64
 FRAMES = 50
@@ -123,7 +124,7 @@ def main() -> None:
     data = defaults.base_config().data
     data.name, data.data_dir = 'obj3d', str(work / 'data')
     data.resolution = (RES, RES)
-    source = sources.get_video_source(data, 'train')
+    source = datasets.get_video_source(data, 'train')
     shards = sorted(source.dataset_dir.glob('*.array_record-*'))
     size = sum(p.stat().st_size for p in shards)
     print(f'{len(source)} videos of {FRAMES}x{RES}x{RES}: {size / 2**20:.1f} '

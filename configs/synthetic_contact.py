@@ -12,7 +12,7 @@ at a *bumper* standing off the line to the yellow object, so that whether it
 reaches the yellow object is decided by a bounce after the observed frames
 (data seed 2; experiments/contact_state_ceiling.py measures why).
 
-Videos (data/convert/contact.py): a red sphere launched at (or beside) a
+Videos (datasets/synthetic_contact.py): a red sphere launched at (or beside) a
 yellow object among 1-2 distractors, pybullet, 32x32, 24 frames at 20 fps; the
 label is whether red and yellow touch at any physics substep; half the videos
 of every split touch, always after the 8 observed frames. The models are the
@@ -109,14 +109,14 @@ def get_config(variant: str = ''):
     r.batch_size = 8
   elif variant == 'side':
     # The agent launched from the left / right edge, across the camera's
-    # view (data/convert/contact.py: launch_side); a new data seed.
+    # view (datasets/synthetic_contact.py: launch_side); a new data seed.
     data.launch_side = 'side'
     data.seed = 1
   elif variant == 'bank':
     # Observing the direct launches answers the question from the agent's
     # heading alone (simulator states of the observed frames: 94-97%); a
     # bank shot off a bumper (object row 1) hides the answer in a collision
-    # after the observed frames (data/convert/contact.py: scenario).
+    # after the observed frames (datasets/synthetic_contact.py: scenario).
     data.launch_side = 'side'
     data.scenario = 'bank'
     data.seed = 2

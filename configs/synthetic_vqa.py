@@ -1,10 +1,10 @@
 """Embedded CLEVRER-style VQA, sized for a 2-core CPU.
 
-Videos of the CLEVRER-like family (slotformer_jax/data/convert/clevrer_like.py):
+Videos of the CLEVRER-like family (slotformer_jax/datasets/clevrer_like.py):
 2-4 objects, some moving, up to one entering from a side, 24 observed frames
 at 32x32 and 16 more simulated frames that only predictive questions ask
 about; questions of CLEVRER's four types from the simulator's event log
-(slotformer_jax/data/convert/questions.py).
+(slotformer_jax/datasets/clevrer_like_questions.py).
 
 Pipeline: SAVi -> slots -> SlotFormer -> rollout of 16 frames after each
 video -> Aloe (small) on 4 slot frames with stride 7; `vqa.inputs` picks

@@ -13,7 +13,7 @@ head is the task's own readout (modules/readouts.PhysionReadout,
 'both_orders') and, as a second opinion, a small MLP on the flattened
 states. Epoch and threshold are chosen on readout_val, accuracy is reported
 on readout_test (mean +- std over seeds). No rendering: every video is the
-accepted physics-only pass of data/convert/contact.generate_states.
+accepted physics-only pass of datasets/synthetic_contact.generate_states.
 
   nice -n 19 python experiments/contact_state_ceiling.py \
       --config=configs/synthetic_contact.py:side
@@ -29,9 +29,8 @@ import time
 import flax.linen as nn
 import numpy as np
 
-from slotformer_jax.data.convert import contact
-from slotformer_jax.data.convert import synthetic
-from slotformer_jax.data.embedded import contact as contact_data
+from slotformer_jax.datasets import synthetic_contact as contact
+from slotformer_jax.datasets import synthetic
 from slotformer_jax.modules import readouts
 from slotformer_jax.tasks import readout as readout_lib
 
@@ -68,7 +67,7 @@ def state_features(example: dict[str, np.ndarray], scale: float,
   return np.concatenate([pos, vel, radius], -1).astype(np.float32)
 
 
-def load(config: contact_data.ContactConfig, split: str, limit: int,
+def load(config: contact.ContactConfig, split: str, limit: int,
          all_objects: bool):
   n = min(config.num_videos(split), limit)
   feats, labels, onsets = [], [], []
@@ -122,7 +121,7 @@ def main():
   for item in args.override:
     key, value = item.split('=', 1)
     run_config.data[key.removeprefix('data.')] = eval(value)  # pylint: disable=eval-used
-  config = contact_data.config_from_data_config(run_config.data)
+  config = contact.config_from_data_config(run_config.data)
   start = time.time()
   limits = {'readout_train': min(args.limit, args.train_limit),
             'readout_val': args.limit, 'readout_test': args.limit}

@@ -36,7 +36,7 @@ import time
 import flax.linen as nn
 import numpy as np
 
-from slotformer_jax.data.embedded import phyre_like as phyre_like_data
+from slotformer_jax.datasets import synthetic_phyre as phyre_like_data
 from slotformer_jax.tasks import phyre_planning
 from slotformer_jax.tasks import planning
 from slotformer_jax.tasks import readout as readout_lib
@@ -119,7 +119,7 @@ def main():
   parser.add_argument('--heads', nargs='+', default=['mlp', 'logistic'])
   parser.add_argument('--templates', nargs='+', default=None,
                       help='override config.data.templates (names of '
-                      'data/embedded/phyre_like.ALL_TEMPLATES)')
+                      'worlds/phyre_like.ALL_TEMPLATES)')
   parser.add_argument('--tasks_per_template', type=int, default=None)
   args = parser.parse_args()
   path, _, variant = args.config.partition(':')

@@ -41,8 +41,8 @@ import numpy as np
 
 from slotformer_jax.run import Run
 from slotformer_jax.workdir.paths import Paths
-from slotformer_jax.data.embedded import clevrer_like as clevrer_like_data
-from slotformer_jax.data.embedded.synthetic import COLORS, SHAPES
+from slotformer_jax.datasets import clevrer_like as clevrer_like_data
+from slotformer_jax.datasets.synthetic import COLORS, SHAPES
 from slotformer_jax.data.slots import SlotSource
 from slotformer_jax.data.sources import resolve_data_dir
 from slotformer_jax.runtime import sharding

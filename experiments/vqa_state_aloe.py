@@ -54,11 +54,10 @@ import jax
 import numpy as np
 
 from slotformer_jax.data import vqa as vqa_data
-from slotformer_jax.data.convert import clevrer_like
-from slotformer_jax.data.convert import questions as question_generator
-from slotformer_jax.data.convert.pool import ordered_map
-from slotformer_jax.data.embedded import clevrer_like as clevrer_like_data
-from slotformer_jax.data.embedded.synthetic import COLORS, SHAPES
+from slotformer_jax.datasets import clevrer_like
+from slotformer_jax.datasets import clevrer_like_questions as question_generator
+from slotformer_jax.data.write.pool import ordered_map
+from slotformer_jax.datasets.synthetic import COLORS, SHAPES
 from slotformer_jax.data.events import EventLog
 from slotformer_jax.tasks import vqa as task
 from slotformer_jax.train import optim
@@ -136,7 +135,7 @@ def one_choice_questions(question: vqa_data.EncodedQuestion,
   return out
 
 
-def _simulated(config: clevrer_like_data.ClevrerLikeConfig, num_slots: int,
+def _simulated(config: clevrer_like.ClevrerLikeConfig, num_slots: int,
                slot_size: int, split: str, index: int
                ) -> tuple[dict[str, Any], np.ndarray]:
   video = clevrer_like.generate_video(config, split, index, render=False)
@@ -146,7 +145,7 @@ def _simulated(config: clevrer_like_data.ClevrerLikeConfig, num_slots: int,
   return log.to_dict(), slots
 
 
-def simulate_split(config: clevrer_like_data.ClevrerLikeConfig, split: str,
+def simulate_split(config: clevrer_like.ClevrerLikeConfig, split: str,
                    num_slots: int, slot_size: int, num_workers: int | None
                    ) -> tuple[list[dict[str, Any]], np.ndarray]:
   """(event logs, state slots [V, T, num_slots, slot_size]) of a split."""
@@ -158,15 +157,15 @@ def simulate_split(config: clevrer_like_data.ClevrerLikeConfig, split: str,
 class SplitData:
   """Encoded questions of one split and the slots each one reads."""
 
-  def __init__(self, config: clevrer_like_data.ClevrerLikeConfig, split: str,
+  def __init__(self, config: clevrer_like.ClevrerLikeConfig, split: str,
                logs: list[dict[str, Any]], slots: np.ndarray,
                vocab: vqa_data.Vocabulary, vqa: Any, *, observed_only: bool,
                named_only: bool):
     scenes = question_generator.generate_split(
         [EventLog.from_dict(d) for d in logs], config.seed,
-        split, video_filenames=[clevrer_like_data.video_filename(split, i)
+        split, video_filenames=[clevrer_like.video_filename(split, i)
                                 for i in range(len(logs))],
-        scene_offset=clevrer_like_data.SCENE_OFFSETS[split])
+        scene_offset=clevrer_like.SCENE_OFFSETS[split])
     if observed_only:
       slots = slots[:, :config.observed_frames]
     self.slots = slots
@@ -291,7 +290,7 @@ def main() -> None:
     config.vqa.dropout_rate = args.dropout
   if args.choice_batch_size is not None:
     config.vqa.choice_batch_size = args.choice_batch_size
-  family = clevrer_like_data.config_from_data_config(config.data)
+  family = clevrer_like.config_from_data_config(config.data)
   vocab = vqa_data.Vocabulary(
       vqa_data.make_vocabulary(question_generator.template_words()),
       vqa_data.make_vocabulary(question_generator.template_answers()))

@@ -41,9 +41,8 @@ import time
 import numpy as np
 from sklearn.linear_model import LogisticRegression
 
-from slotformer_jax.data.convert import clevrer_like
-from slotformer_jax.data.convert import questions as question_generator
-from slotformer_jax.data.embedded import clevrer_like as clevrer_like_data
+from slotformer_jax.datasets import clevrer_like
+from slotformer_jax.datasets import clevrer_like_questions as question_generator
 
 MARGINS = np.round(np.arange(-1.0, 0.61, 0.05), 3)
 
@@ -55,7 +54,7 @@ def _module(path: str, name: str):
   return module
 
 
-def option_rows(config: clevrer_like_data.ClevrerLikeConfig, split: str,
+def option_rows(config: clevrer_like.ClevrerLikeConfig, split: str,
                 option_features=None) -> dict[str, np.ndarray]:
   """Per predictive option of ``split``: extrapolated and future clearance
   [m], label (1 = correct), state-probe features, the extrapolation's
@@ -69,9 +68,9 @@ def option_rows(config: clevrer_like_data.ClevrerLikeConfig, split: str,
   seconds = time.process_time() - start
   scenes = question_generator.generate_split(
       logs, config.seed, split,
-      video_filenames=[clevrer_like_data.video_filename(split, i)
+      video_filenames=[clevrer_like.video_filename(split, i)
                        for i in range(len(logs))],
-      scene_offset=clevrer_like_data.SCENE_OFFSETS[split])
+      scene_offset=clevrer_like.SCENE_OFFSETS[split])
   horizon = config.predicted_frames
   extrapolated, future, label, features, verdicts = [], [], [], [], []
   num_questions = 0
@@ -130,7 +129,7 @@ def main() -> None:
   args = parser.parse_args()
   data = _module(args.config, 'vqa_config').get_config(args.variant).data
   config = dataclasses.replace(
-      clevrer_like_data.config_from_data_config(data),
+      clevrer_like.config_from_data_config(data),
       num_train=args.num_train, num_val=args.num_val, num_test=args.num_test)
   probe = _module(os.path.join(os.path.dirname(os.path.abspath(__file__)),
                                'vqa_state_probe.py'), 'vqa_state_probe')

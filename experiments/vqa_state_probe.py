@@ -27,8 +27,7 @@ import time
 import numpy as np
 from sklearn.linear_model import LogisticRegression
 
-from slotformer_jax.data.convert import clevrer_like
-from slotformer_jax.data.embedded import clevrer_like as clevrer_like_data
+from slotformer_jax.datasets import clevrer_like
 from slotformer_jax.data.sources import resolve_data_dir
 
 _QUESTION_FILES = {'train': 'train', 'val': 'validation'}
@@ -60,7 +59,7 @@ def option_features(positions: np.ndarray, a: int, b: int, observed: int,
   return state, float(future)
 
 
-def _rows(config: clevrer_like_data.ClevrerLikeConfig, root: str, split: str):
+def _rows(config: clevrer_like.ClevrerLikeConfig, root: str, split: str):
   with open(os.path.join(root, 'questions',
                          f'{_QUESTION_FILES[split]}.json')) as f:
     scenes = json.load(f)
@@ -102,8 +101,8 @@ def main() -> None:
   module = importlib.util.module_from_spec(spec)
   spec.loader.exec_module(module)
   data = module.get_config().data
-  config = clevrer_like_data.config_from_data_config(data)
-  root = str(clevrer_like_data.dataset_dir(
+  config = clevrer_like.config_from_data_config(data)
+  root = str(clevrer_like.dataset_dir(
       config, resolve_data_dir(data.get('data_dir', None))))
   start = time.time()
   train, val = _rows(config, root, 'train'), _rows(config, root, 'val')

@@ -34,7 +34,7 @@ import tqdm
 
 from slotformer_jax import stages
 from slotformer_jax.config import checks as config_checks
-from slotformer_jax.data.data_dir import default_data_dir
+from slotformer_jax.data.sources import default_data_dir
 from slotformer_jax.errors import CommandLineError
 from slotformer_jax.errors import UserError
 from slotformer_jax.errors import one_line

@@ -36,10 +36,9 @@ from slotformer_jax.config import checks as config_checks
 from slotformer_jax.config.sections import SLOT_LSTM
 from slotformer_jax.config.sections import dynamics_section
 from slotformer_jax.config.sections import several_seeds
-from slotformer_jax.data.embedded import families
+from slotformer_jax import datasets
 from slotformer_jax.data.slots import SlotSource
 from slotformer_jax.data.sources import VideoSource
-from slotformer_jax.data.sources import get_video_source
 from slotformer_jax.errors import ConfigError
 from slotformer_jax.errors import MissingInputError
 from slotformer_jax.files import read_json
@@ -128,9 +127,14 @@ class Run:
     settings) as one ConfigError, before any work: nothing is made, trained
     or written. Video lengths are read from data already there."""
 
+    data = self.config.data
+    dataset = datasets.DATASETS.get(data.name)  # unknown: a problem below
+
     def video_length(split: str) -> int | None:
-      if self.config.data.name in families.NAMES:  # from its parameters
-        return int(families.generation_config(self.config.data).num_frames)
+      # A generated dataset's from its parameters, else from its data.
+      known = dataset.num_frames(data) if dataset is not None else None
+      if known is not None:
+        return known
       try:
         source = self.videos(split)
         return len(source[0]['video']) if len(source) else None
@@ -145,6 +149,8 @@ class Run:
                        else num_processes),
         slot_model_problems=lambda: self.slot_model.check_config(
             frozenset(stages)),
+        data_problems=datasets.config_problems(self.config),
+        dataset_splits=dataset.splits if dataset is not None else (),
         video_length=video_length)
 
   # ---- who this process is ------------------------------------------------
@@ -239,7 +245,7 @@ class Run:
 
   def videos(self, split: str) -> VideoSource:
     """The videos of `split` (opened, never made: see stages/data.py)."""
-    return get_video_source(self.config.data, split)
+    return datasets.get_video_source(self.config.data, split)
 
   def slots(self, split: str, video_fields: tuple[str, ...] = (), *,
             video_from: int = 0) -> SlotSource:

@@ -76,6 +76,16 @@ def encode_rle(mask: np.ndarray) -> dict[str, Any]:
           'counts': ''.join(chars)}
 
 
+def write_tfrecords(path: Path, records) -> Path:
+  """A TFRecord file of ``records`` (as ``tf.io.TFRecordWriter`` without
+  options), framed by data/tfrecord.py."""
+  from slotformer_jax.data import tfrecord  # pylint: disable=g-import-not-at-top
+  with open(path, 'wb') as f:
+    for data in records:
+      f.write(tfrecord.encode_record(data))
+  return path
+
+
 def write_png(path: Path, image: np.ndarray) -> Path:
   path.parent.mkdir(parents=True, exist_ok=True)
   Image.fromarray(image).save(path)
@@ -364,7 +374,6 @@ def write_movi(folder: Path, *, name: str = 'movi_a',
   """
   import tensorflow_datasets as tfds  # pylint: disable=g-import-not-at-top
   from tensorflow_datasets.core import example_serializer  # pylint: disable=g-import-not-at-top
-  from slotformer_jax.data.convert import tfrecord  # pylint: disable=g-import-not-at-top
   shard_lengths = shard_lengths or {'train': [3, 2], 'validation': [2]}
   folder.mkdir(parents=True, exist_ok=True)
   features = movi_a_features(num_frames, size, size)
@@ -398,7 +407,7 @@ def write_movi(folder: Path, *, name: str = 'movi_a',
                                     example))
       path = folder / (f'{name}-{split}.tfrecord-{index:05d}-of-'
                        f'{len(lengths):05d}')
-      tfrecord.write_records(path, records)
+      write_tfrecords(path, records)
       num_bytes += path.stat().st_size
     split_infos.append(tfds.core.SplitInfo(
         name=split, shard_lengths=list(lengths), num_bytes=num_bytes,

@@ -252,10 +252,10 @@ class MoviMetadata(Reader):
   def __init__(self, folder: Path):
     super().__init__(folder)
     import dataset_fixtures as fx  # pylint: disable=g-import-not-at-top
-    from slotformer_jax.data.convert import media  # pylint: disable=g-import-not-at-top
-    from slotformer_jax.data.convert import movi  # pylint: disable=g-import-not-at-top
-    from slotformer_jax.data.convert import tfrecord  # pylint: disable=g-import-not-at-top
-    from slotformer_jax.data.convert import writer  # pylint: disable=g-import-not-at-top
+    from slotformer_jax.data import media  # pylint: disable=g-import-not-at-top
+    from slotformer_jax.datasets import movi  # pylint: disable=g-import-not-at-top
+    from slotformer_jax.data import tfrecord  # pylint: disable=g-import-not-at-top
+    from slotformer_jax.data.write import convert as writer  # pylint: disable=g-import-not-at-top
     self.movi, self.writer, self.media = movi, writer, media
     self.base = folder / 'base'
     fx.write_movi(self.base, shard_lengths={'train': [1]}, num_frames=3,
@@ -277,7 +277,7 @@ class MoviMetadata(Reader):
     movi.read_source.cache_clear()
     options = movi.Options(resolution=(16, 16), max_objects=4)
     jobs = movi.discover(case, 'train', options)
-    spec = movi.dataset_spec(options, case)
+    spec = movi.DATASET.spec(options, case)
     spec.dataset_dir(case / 'data')  # the output folder stays inside
     if not jobs:  # a split listed without shards: nothing to convert
       return None
@@ -305,9 +305,11 @@ class MoviRecords(MoviMetadata):
 
   def __init__(self, folder: Path):
     super().__init__(folder)
-    from slotformer_jax.data.convert import tfrecord  # pylint: disable=g-import-not-at-top
+    import dataset_fixtures  # pylint: disable=g-import-not-at-top
+    from slotformer_jax.data import tfrecord  # pylint: disable=g-import-not-at-top
     from tensorflow_datasets.proto import tf_example_pb2  # pylint: disable=g-import-not-at-top
     self.tfrecord, self.pb2 = tfrecord, tf_example_pb2
+    self.write_tfrecords = dataset_fixtures.write_tfrecords
     self.shard = next(self.base.glob('*-train.tfrecord-*'))
     self.record = next(tfrecord.iter_records(self.shard))
 
@@ -361,7 +363,7 @@ class MoviRecords(MoviMetadata):
       name[0] = rng.choice((b'\xff\xfe\xfd', b'\x1b[2J', b'../../x',
                             b'a' * 100_000))
       what = f'video_name {name[0][:12]!r}'
-    self.tfrecord.write_records(shard, [example.SerializeToString()])
+    self.write_tfrecords(shard, [example.SerializeToString()])
     return what
 
 
@@ -437,8 +439,8 @@ class Phyre(Reader):
   def __init__(self, folder: Path):
     super().__init__(folder)
     import dataset_fixtures as fx  # pylint: disable=g-import-not-at-top
-    from slotformer_jax.data.convert import media  # pylint: disable=g-import-not-at-top
-    from slotformer_jax.data.convert import phyre  # pylint: disable=g-import-not-at-top
+    from slotformer_jax.data import media  # pylint: disable=g-import-not-at-top
+    from slotformer_jax.datasets import phyre  # pylint: disable=g-import-not-at-top
     self.phyre, self.media = phyre, media
     self.refusals = (FileNotFoundError, ValueError)
     self.meta = {'format': phyre.FORMAT,
@@ -480,7 +482,7 @@ class Phyre(Reader):
   def read(self, case):
     phyre = self.phyre
     options = phyre.Options(resolution=(8, 8), num_frames=4)
-    phyre.dataset_spec(options, case).dataset_dir(case / 'data')
+    phyre.DATASET.spec(options, case).dataset_dir(case / 'data')
     for job in phyre.discover(case, 'train', options):
       try:
         item = _convert(lambda job=job: phyre.convert_rollout(job, options),
@@ -499,7 +501,7 @@ class PhysionLists(Reader):
 
   def __init__(self, folder: Path):
     super().__init__(folder)
-    from slotformer_jax.data.convert import physion  # pylint: disable=g-import-not-at-top
+    from slotformer_jax.datasets import physion  # pylint: disable=g-import-not-at-top
     self.physion = physion
     self.refusals = (FileNotFoundError, ValueError)
     self.listed = {'Dominoes': ['PhysionTrainMP4s/Dominoes_training_MP4s/'

@@ -31,11 +31,16 @@ FLOORS = (
     ('slotformer_jax.workdir',),
     # run-time pieces shared by training, evaluation and the tasks
     ('slotformer_jax.runtime',),
+    # reading (sources, chunks, checksums, slots, questions, the downloads'
+    # decoders) and the input pipeline
     ('slotformer_jax.data',),
     # simulators a run uses too (planning's PHYRE-like world)
     ('slotformer_jax.worlds',),
-    # the offline writers (the data stage's), above every reader
-    ('slotformer_jax.data.convert', 'slotformer_jax.data.prepare'),
+    # one module per dataset and their registry; what reads by their facts
+    ('slotformer_jax.datasets', 'slotformer_jax.data.vqa_questions'),
+    # the writing room (the data stage's and the prepare CLI's), above every
+    # reader
+    ('slotformer_jax.data.write', 'slotformer_jax.data.prepare'),
     ('slotformer_jax.modules',),
     ('slotformer_jax.config',),
     ('slotformer_jax.losses',),
@@ -57,14 +62,17 @@ TRAINING = ('slotformer_jax.train', 'slotformer_jax.losses',
 # (who, must never reach, why): `who` and `forbidden` are module prefixes;
 # reaching is through any chain of imports.
 BOUNDARIES = (
-    ('slotformer_jax.data.sources', 'slotformer_jax.data.convert',
+    ('slotformer_jax.data.sources', 'slotformer_jax.data.write',
      'reading never writes: opening data never makes it'),
+    ('slotformer_jax.datasets', 'slotformer_jax.data.write',
+     'a dataset says how it is made; only the writing room writes it'),
     ('slotformer_jax.evaluation', 'slotformer_jax.train',
      'evaluation uses the run-time pieces, never training code'),
-    ('slotformer_jax.evaluation', 'slotformer_jax.data.convert',
-     'a run-time rule (CLEVRER\'s evaluation clips) lives with evaluation'),
-    ('slotformer_jax.tasks', 'slotformer_jax.data.convert',
-     'a task simulates with run-time code, not a converter'),
+    ('slotformer_jax.evaluation', 'slotformer_jax.data.write',
+     'evaluation reads a dataset\'s rules (CLEVRER\'s clips), never a '
+     'writer'),
+    ('slotformer_jax.tasks', 'slotformer_jax.data.write',
+     'a task simulates with run-time code, not a writer'),
     ('slotformer_jax.slot_models', 'slotformer_jax.evaluation',
      'a model draws its pictures with frames.py, not evaluation code'),
     ('slotformer_jax.train', 'slotformer_jax.workdir',
@@ -194,7 +202,21 @@ def boundary_violations(graph: dict[str, set[str]],
   return out
 
 
-GRAPH = import_graph(PACKAGE)
+# Packages that import every module of theirs by name at run time
+# (importlib): the edges the statements do not show.
+IMPORTS_EVERY_MODULE = ('slotformer_jax.datasets',)
+
+
+def with_package_imports(graph: dict[str, set[str]]) -> dict[str, set[str]]:
+  """`graph` with an edge from each of IMPORTS_EVERY_MODULE to each of its
+  direct modules."""
+  for package in IMPORTS_EVERY_MODULE:
+    graph[package] |= {name for name in graph
+                       if name.rsplit('.', 1)[0] == package}
+  return graph
+
+
+GRAPH = with_package_imports(import_graph(PACKAGE))
 
 
 def test_no_import_circle():
@@ -221,10 +243,19 @@ def test_each_boundary_catches_a_violation():
                                                                  forbidden)
 
 
-def test_offline_writers_do_not_import_the_readers_sources():
-  for name in GRAPH:
-    if name.startswith('slotformer_jax.data.convert'):
-      assert 'slotformer_jax.data.sources' not in reachable(GRAPH, name), name
+def dataset_modules(graph: dict[str, set[str]]) -> set[str]:
+  """Every module of datasets/ but the interface (base.py) and the
+  registry."""
+  return {name for name in graph if _under(name, ('slotformer_jax.datasets',))
+          and name not in ('slotformer_jax.datasets',
+                           'slotformer_jax.datasets.base')}
+
+
+def test_the_writing_room_names_no_dataset():
+  """data/write/ writes whatever a dataset module describes: it reaches the
+  interface (datasets/base.py), never one dataset's module."""
+  assert forbidden_reaches(GRAPH, ('slotformer_jax.data.write',),
+                           tuple(dataset_modules(GRAPH))) == []
 
 
 def test_stages_and_tasks_write_files_atomically():
@@ -258,9 +289,9 @@ def test_the_graph_sees_imports():
       'slotformer_jax.slot_models']
   assert 'slotformer_jax.runtime.sharding' in reachable(
       GRAPH, 'slotformer_jax.evaluation.evaluate')
-  assert 'slotformer_jax.data.embedded.synthetic' in reachable(
-      GRAPH, 'slotformer_jax.data.sources')
-  assert 'slotformer_jax.data.convert.synthetic' in reachable(
+  assert {'slotformer_jax.datasets.synthetic',
+          'slotformer_jax.datasets.clevrer'} <= GRAPH['slotformer_jax.datasets']
+  assert 'slotformer_jax.data.write.generate' in reachable(
       GRAPH, 'slotformer_jax.stages.data')
   assert len(GRAPH) > 80
 
@@ -299,15 +330,19 @@ def test_the_checker_catches_an_upward_import(tmp_path):
 
 
 # --------------------------------------------------------------------------
-# Reading never writes; the rules a run uses live outside the converters
+# Reading never writes; the rules a run uses live outside the writers
 # --------------------------------------------------------------------------
 
-# What reading must never reach: the offline writers (generators,
-# converters, the checksum recorder data/convert/checksums.py) and the lock.
-WRITING = ('slotformer_jax.data.convert', 'slotformer_jax.data.prepare',
+# What reading must never reach: the writing room (the converters' shared
+# steps, the generators' Output, the record and checksum writers, the
+# prepare CLI) and the lock.
+WRITING = ('slotformer_jax.data.write', 'slotformer_jax.data.prepare',
            'slotformer_jax.workdir.lock')
-# Where a run opens data: videos, and the VQA questions and vocabulary.
-READERS = ('slotformer_jax.data.sources', 'slotformer_jax.data.vqa_questions')
+# Where a run opens data: the sources, every dataset module (a dataset holds
+# its converter or generator, which make examples and write only through the
+# Output the data stage hands them), the VQA questions and vocabulary.
+READERS = ('slotformer_jax.data.sources', 'slotformer_jax.datasets',
+           'slotformer_jax.data.vqa_questions')
 # Calls that write files; a reader's own modules make none.
 WRITE_CALLS = ('write_json_atomic', 'write_atomic', 'append_line_atomic',
                'record_checksums', 'np.save', 'np.savez', 'json.dump',
@@ -329,9 +364,12 @@ def forbidden_reaches(graph: dict[str, set[str]], starts, forbidden
 
 
 def readers_and_what_they_reach(graph: dict[str, set[str]]) -> set[str]:
-  """The readers and every module of data/ they reach (outside convert/)."""
-  return {m for r in READERS for m in reachable(graph, r)
-          if _under(m, ('slotformer_jax.data',)) and not _under(m, WRITING)}
+  """The readers, every dataset module and every module of data/, datasets/
+  and worlds/ they reach (outside the writing room)."""
+  return {m for r in (*READERS, *dataset_modules(graph))
+          for m in reachable(graph, r)
+          if _under(m, ('slotformer_jax.data', 'slotformer_jax.datasets',
+                        'slotformer_jax.worlds')) and not _under(m, WRITING)}
 
 
 def write_calls(files: dict[str, pathlib.Path], names) -> list[str]:
@@ -352,25 +390,26 @@ def write_calls(files: dict[str, pathlib.Path], names) -> list[str]:
 
 
 def test_reading_reaches_no_writer():
-  """data/sources.py and what it reaches import no generator, converter,
-  checksum recorder or lock (`data.integrity` only verifies)."""
+  """data/sources.py, the dataset modules and what they reach import nothing
+  of the writing room and no lock (`data.integrity` only verifies)."""
   assert forbidden_reaches(GRAPH, readers_and_what_they_reach(GRAPH),
                            WRITING) == []
 
 
-def test_the_sources_modules_write_nothing():
-  # data/vqa.py is left out: it also saves the vocabulary for the
-  # generator (Vocabulary.save), which the readers never call.
-  reached = {m for m in reachable(GRAPH, 'slotformer_jax.data.sources')
-             if _under(m, ('slotformer_jax.data',))}
-  assert 'slotformer_jax.data.integrity' in reached
+def test_the_reading_modules_write_nothing():
+  """Nor do they write a file themselves: a generator writes through the
+  Output it is handed (data/write/generate.py)."""
+  reached = readers_and_what_they_reach(GRAPH)
+  assert {'slotformer_jax.data.integrity', 'slotformer_jax.datasets.clevrer',
+          'slotformer_jax.datasets.clevrer_like',
+          'slotformer_jax.data.vqa'} <= reached
   assert write_calls(modules_of(PACKAGE), reached) == []
 
 
-def test_tasks_and_evaluation_reach_no_converter():
+def test_tasks_and_evaluation_reach_no_writer():
   """The run-time rules they use (the PHYRE-like world, CLEVRER's clips)
-  are in worlds/ and evaluation/, not with the offline writers."""
-  converters = ('slotformer_jax.data.convert',)
+  are in worlds/ and the dataset modules, not with the writers."""
+  converters = ('slotformer_jax.data.write',)
   assert forbidden_reaches(GRAPH, ('slotformer_jax.tasks',), converters) == []
   assert forbidden_reaches(GRAPH, ('slotformer_jax.evaluation',),
                            converters) == []
@@ -378,20 +417,35 @@ def test_tasks_and_evaluation_reach_no_converter():
 
 def test_the_checker_catches_reading_that_writes():
   graph = {name: set(edges) for name, edges in GRAPH.items()}
-  graph['slotformer_jax.data.embedded.synthetic'].add(
-      'slotformer_jax.data.convert.synthetic')
+  graph['slotformer_jax.datasets.synthetic'].add(
+      'slotformer_jax.data.write.generate')
   graph['slotformer_jax.data.integrity'].add(
-      'slotformer_jax.data.convert.checksums')
+      'slotformer_jax.data.write.records')
   graph['slotformer_jax.data.vqa'].add('slotformer_jax.workdir.lock')
   caught = forbidden_reaches(graph, readers_and_what_they_reach(graph),
                              WRITING)
   for reader, writer in [
-      ('slotformer_jax.data.sources', 'slotformer_jax.data.convert.synthetic'),
-      ('slotformer_jax.data.sources', 'slotformer_jax.data.convert.checksums'),
-      ('slotformer_jax.data.embedded.synthetic',
-       'slotformer_jax.data.convert.synthetic'),
+      ('slotformer_jax.datasets', 'slotformer_jax.data.write.generate'),
+      ('slotformer_jax.data.sources', 'slotformer_jax.data.write.records'),
+      ('slotformer_jax.datasets.synthetic',
+       'slotformer_jax.data.write.generate'),
       ('slotformer_jax.data.vqa_questions', 'slotformer_jax.workdir.lock')]:
     assert (reader, writer) in caught
+  # A dataset module's own write call is found too.
+  files = modules_of(PACKAGE)
+  assert write_calls(files, readers_and_what_they_reach(GRAPH)) == []
+  assert any(c.startswith('slotformer_jax.data.write.generate:')
+             for c in write_calls(files, {'slotformer_jax.data.write.generate'}))
+
+
+def test_the_checker_catches_the_writing_room_naming_a_dataset():
+  graph = {name: set(edges) for name, edges in GRAPH.items()}
+  graph['slotformer_jax.data.write.convert'].add(
+      'slotformer_jax.datasets.clevrer')
+  assert ('slotformer_jax.data.write.convert',
+          'slotformer_jax.datasets.clevrer') in forbidden_reaches(
+              graph, ('slotformer_jax.data.write',),
+              tuple(dataset_modules(graph)))
 
 
 def test_the_checker_catches_a_write_call(tmp_path):
@@ -413,17 +467,16 @@ def test_the_checker_catches_a_write_call(tmp_path):
       'pkg.reader:3 open', 'pkg.reader:4 json.dump']
 
 
-def test_the_checker_catches_a_task_or_evaluation_reaching_a_converter():
+def test_the_checker_catches_a_task_or_evaluation_reaching_a_writer():
   graph = {name: set(edges) for name, edges in GRAPH.items()}
   graph['slotformer_jax.tasks.phyre_planning'].add(
-      'slotformer_jax.data.convert.phyre_like')
-  graph['slotformer_jax.evaluation.clevrer_clips'].add(
-      'slotformer_jax.data.convert.clevrer')
-  converters = ('slotformer_jax.data.convert',)
+      'slotformer_jax.data.write.generate')
+  graph['slotformer_jax.datasets.clevrer'].add(
+      'slotformer_jax.data.write.convert')
+  writers = ('slotformer_jax.data.write',)
   assert ('slotformer_jax.tasks.phyre_planning',
-          'slotformer_jax.data.convert.phyre_like') in forbidden_reaches(
-              graph, ('slotformer_jax.tasks',), converters)
-  caught = forbidden_reaches(graph, ('slotformer_jax.evaluation',),
-                             converters)
+          'slotformer_jax.data.write.generate') in forbidden_reaches(
+              graph, ('slotformer_jax.tasks',), writers)
+  caught = forbidden_reaches(graph, ('slotformer_jax.evaluation',), writers)
   assert ('slotformer_jax.evaluation.evaluate',
-          'slotformer_jax.data.convert.clevrer') in caught
+          'slotformer_jax.data.write.convert') in caught

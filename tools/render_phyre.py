@@ -49,7 +49,7 @@ from typing import Any, Dict, Iterator, List, Optional, Sequence, Tuple
 import numpy as np
 from PIL import Image
 
-# Must match slotformer_jax/data/convert/phyre.py (FORMAT, FORMAT_VERSION).
+# Must match slotformer_jax/datasets/phyre.py (FORMAT, FORMAT_VERSION).
 FORMAT = 'slotformer-phyre-rollouts'
 FORMAT_VERSION = 1
 STEPS_PER_SECOND = 60  # PHYRE's simulation rate

@@ -300,6 +300,8 @@ def validate(config: ml_collections.ConfigDict, stages: Sequence[str], *,
              num_devices: int, num_processes: int = 1,
              slot_model_problems: Callable[[], Sequence[str]] | Sequence[
                  str] = (),
+             data_problems: Sequence[str] = (),
+             dataset_splits: Sequence[str] = (),
              video_length: Callable[[str], int | None] = lambda split: None
              ) -> None:
   """Raises one UserError listing every problem of `stages` (main's modes).
@@ -308,10 +310,14 @@ def validate(config: ml_collections.ConfigDict, stages: Sequence[str], *,
     slot_model_problems: the slot model's own (`SlotModel.check_config`),
       or a function giving them: called only once the fields have their
       kinds and shapes (a decoder size check needs an (H, W)).
+    data_problems: those of `config.data` and `evaluation.clips`, which the
+      dataset knows (`datasets.config_problems`).
+    dataset_splits: the splits the dataset has (`Dataset.splits`; empty:
+      not known), which every split the stages read must be.
     video_length: split -> frames per video when known without making data
       (None: unknown, checked later by the stage that reads them).
   """
-  problems = []
+  problems = list(data_problems)
 
   def positive(section: str, names: Sequence[str], allow_zero=()) -> None:
     node = config
@@ -387,7 +393,7 @@ def validate(config: ml_collections.ConfigDict, stages: Sequence[str], *,
   problems.extend(check_field_kinds(config))
   problems.extend(check_field_shapes(config))
   problems[:] = list(dict.fromkeys(problems))  # the same line from two checks
-  _check_splits(config, stages, problems)
+  _check_splits(config, stages, problems, dataset_splits)
   if not problems:  # sizes and lengths need the integers above to be sane
     problems.extend(slot_model_problems() if callable(slot_model_problems)
                     else slot_model_problems)
@@ -511,9 +517,10 @@ def _check_vqa_batches(vqa: ml_collections.ConfigDict, problems: list[str],
 
 
 def _check_splits(config: ml_collections.ConfigDict, stages,
-                  problems: list[str]) -> None:
-  """The splits the later stages read must be ones whose slots are
-  extracted: before, evaluation.split='valid' was accepted, three stages
+                  problems: list[str],
+                  dataset_splits: Sequence[str] = ()) -> None:
+  """The splits the later stages read must be the dataset's, and ones whose
+  slots are extracted: before, evaluation.split='valid' was accepted, three stages
   trained, and evaluation then asked, forever, for slots that the
   extraction (of extraction.splits only) never makes."""
   extracted = tuple(config.extraction.splits)
@@ -532,6 +539,23 @@ def _check_splits(config: ml_collections.ConfigDict, stages,
           f'{field}={split!r} is not one of the splits whose slots are '
           f'extracted (extraction.splits: {", ".join(extracted)}); use one '
           'of them, or add it to extraction.splits if the dataset has it')
+  if not dataset_splits:
+    return
+  # Every split the run's stages may read must be the dataset's.
+  read = [(f'extraction.splits[{i}]', split)
+          for i, split in enumerate(extracted)]
+  if not config.task:
+    read.append(('evaluation.split', config.evaluation.split))
+  if reads_readout_splits(config):
+    read += [(f'readout.splits.{k}', v)
+             for k, v in sorted(config.readout.splits.items())]
+  if config.task == 'vqa':
+    read.append(('vqa.eval_split', config.vqa.eval_split))
+  for field, split in read:
+    if split not in dataset_splits:
+      problems.append(f'{field}={split!r} is not a split of '
+                      f'{config.data.name} (it has '
+                      f'{", ".join(dataset_splits)})')
 
 
 def _check_lengths(config, stages, dynamics, problems, video_length) -> None:

@@ -317,9 +317,10 @@ def base_config() -> ml_collections.ConfigDict:
   # Also score SAVi's own reconstruction / segmentation of every frame of the
   # evaluated clips (about 40% of the evaluation time on a CPU).
   ev.savi_metrics = True
-  # 'first': each video from frame 0; 'clevrer': the official CLEVRER clips
-  # (no object entering during the rollout).
-  ev.clips = one_of('evaluation.clips', 'first', ('first', 'clevrer'))
+  # 'first': each video from frame 0, or a rule of the dataset's (its
+  # module's `clip_rules`: 'clevrer', the official CLEVRER clips, where no
+  # object enters during the rollout); checked against the dataset.
+  ev.clips = 'first'
   ev.chunk_length = 16  # frames per call in SAVi's whole-video evaluation
   ev.metrics = one_of(
       'evaluation.metrics', FRAME_METRICS + OBJECT_METRICS,

@@ -15,7 +15,7 @@ are::
     ...       (the last chunk holds the remaining 1..K frames)
 
 each record on its own (``group_size:1``) and, by default, uncompressed
-(``prepare --compress_records`` compresses them; below), videos one after
+(``prepare --compress_records`` compresses them), videos one after
 the other in index order. ``video_chunks.json`` (this module's ``INDEX_FILE``,
 covered by ``checksums.json``) holds the layout, ``K``, the time-axis fields
 and, per split, every video's frame count and first record, so a reader
@@ -28,45 +28,13 @@ rank >= 2 whose first dimension is the video's (``(T, ...)`` or ``(None,
 derived feature dicts (time fields with their first dimension free; the
 header: the other fields), decoded with TFDS's numpy decoder as the
 whole-video records were, so values are bit-identical across layouts.
-
-Chunk size ``K`` (:data:`FRAMES_PER_CHUNK`), measured with
-``benchmarks/clip_reader.py --chunks=1,2,4,8`` on one pinned core (table in
-docs/datasets.md, "Record layout"): smaller chunks read fewer unneeded
-frames but pay the per-record cost (lookup, decompression set-up, proto)
-more often and compress worse; larger ones decompress more unneeded frames.
-Delivered clip frames/s per core, whole videos -> K=1 / 2 / 4 / 8:
-
-* OBJ3D SAVi (6 of 50 frames): 2,519 -> 12,172 / 14,103 / 12,838 / 11,210
-* CLEVRER SAVi (6 of 128): 959 -> 11,379 / 14,380 / 14,061 / 10,369
-* OBJ3D SlotFormer L_I (16 of 50 + slots): 6,965 -> 13,778 / 18,113 /
-  18,571 / 16,662
-* CLEVRER SlotFormer L_I (16 stride 2 of 128 + slots): 2,144 -> 6,249 /
-  9,233 / 9,736 / 9,806
-* Physion dVAE (1 of 150, 128x128): 21 -> 2,853 / 1,764 / 1,082 / 591
-* file size relative to whole videos: +19 % / +15 % / +10 % / +7 %
-
-K = 4: best or within 10 % of the best for 6- and 16-frame clips, for
-10 % more disk (measured with compressed chunks, before they became
-uncompressed by default; not re-measured over K since).
-
-Compression. array_record's default (zstd) costs more per record than
-the frames it saves: reading one compressed 4-frame chunk took 330-450 us
-against 80-120 us uncompressed (44 KB records of the OBJ3D-like fixture,
-loaded box), and end to end, per core, uncompressed chunks deliver 2.3-3.0x
-the clip frames of compressed ones for 1.45x the disk (idle 2-core box)
-(`benchmarks/clip_reader.py --chunks=4,4z`; the numbers in
-docs/performance.md, "Feeding the chips"). A chip's host cores are the
-scarcer thing, so chunks are written uncompressed by default;
-``--compress_records`` keeps the smaller files where disk or network
-bandwidth is short. CLEVRER's 10k training videos of 128 frames are 15.7 GB
-of raw 64x64 frames (63 GB at 128x128) either way before compression.
-Still records rather than one raw memory map: the checksums, resumable
-conversion, per-video header and TFDS metadata keep working unchanged.
+Why K = 4 (:data:`FRAMES_PER_CHUNK`) and uncompressed chunks: the
+measurements in docs/datasets.md, "Record layout".
 
 This module is the layout and its index as the reader sees them (reading
-never writes); ``data/convert/chunked_writer.py`` serialises videos into
+never writes); ``data/write/records.py`` serialises videos into
 records and writes folders (the embedded families), and
-``data/convert/writer.py`` writes converted datasets shard by shard with it.
+``data/write/convert.py`` writes converted datasets shard by shard with it.
 """
 
 from __future__ import annotations

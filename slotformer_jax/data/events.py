@@ -1,8 +1,8 @@
 """What happens in a CLEVRER-like video, as its questions need it: the event
 log (collisions, objects entering / exiting, the state at the end of the
 video, the counterfactual worlds) written by the simulator
-(`data/convert/clevrer_like.py`) and read by the question generator
-(`data/convert/questions.py`).
+(`datasets/clevrer_like.py`) and read by the question generator
+(`datasets/clevrer_like_questions.py`).
 JSON-serialisable, one per video in `events.jsonl`.
 """
 

@@ -6,7 +6,7 @@ size, modification time and crc32. Opening a split compares sizes (always)
 and, when a file's modification time changed, its crc32: a truncated or
 rewritten file is found before any step reads it, at the cost of one stat
 per file on a healthy cache. The writers record the file
-(`data/convert/checksums.py`), so a reader never writes.
+(`data/write/records.py`), so a reader never writes.
 """
 
 from __future__ import annotations

@@ -6,7 +6,7 @@ has ``question_id``, ``question_type`` (descriptive, explanatory, predictive,
 counterfactual), ``question`` and either ``answer`` or ``choices``
 ``[{'choice_id', 'choice', 'answer': 'correct' | 'wrong'}]``; the test split
 has no answers). The embedded generator
-(:mod:`slotformer_jax.data.convert.questions`) writes the same layout.
+(:mod:`slotformer_jax.datasets.clevrer_like_questions`) writes the same layout.
 
 Text is tokenised like the official Aloe re-implementation: lower case, '?'
 dropped, split on single spaces (so "cube," is its own word). A vocabulary
@@ -97,10 +97,10 @@ class Vocabulary:
     return cls(make_vocabulary(words),
                make_vocabulary(seen_answers if answers is None else answers))
 
-  def save(self, path: str | os.PathLike[str]) -> None:
-    with open(path, 'w') as f:
-      json.dump({'q_vocab': self.questions, 'a_vocab': self.answers}, f,
-                indent=1, sort_keys=True)
+  def to_json(self) -> str:
+    """What :meth:`load` reads back (the generator writes it)."""
+    return json.dumps({'q_vocab': self.questions, 'a_vocab': self.answers},
+                      indent=1, sort_keys=True)
 
   @classmethod
   def load(cls, path: str | os.PathLike[str]) -> Vocabulary:

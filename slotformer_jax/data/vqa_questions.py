@@ -1,10 +1,11 @@
 """Where a VQA config's questions and vocabulary come from.
 
-The embedded family ('clevrer_like') keeps them in its dataset folder
-(written by the data stage, `--mode=prepare_data`; reading here only opens
-it); for CLEVRER set `vqa.questions_root` (the folder with questions/) and
-optionally `vqa.vocab_file` (e.g. the official CLEVRER_vocab.json; default:
-built from the training questions and CLEVRER's answers).
+A dataset that holds its questions says where (`Dataset.questions_root`:
+the generated CLEVRER-like one keeps them in its folder, written by the data
+stage, `--mode=prepare_data`; reading here only opens it); otherwise (CLEVRER)
+set `vqa.questions_root` (the folder with questions/) and optionally
+`vqa.vocab_file` (e.g. the official CLEVRER_vocab.json; default: built from
+the training questions and CLEVRER's answers).
 
 A question reads the slots of the video its `video_filename` names, found by
 name among the converted split's videos (`join_videos`): a video skipped at
@@ -18,27 +19,24 @@ import os
 
 import ml_collections
 
-from slotformer_jax.data import sources
+from slotformer_jax import datasets
 from slotformer_jax.data import vqa as vqa_data
-from slotformer_jax.data.data_dir import resolve_data_dir
-from slotformer_jax.data.embedded import clevrer_like
 from slotformer_jax.data.video_names import name_key
-from slotformer_jax.data.video_names import read_recorded_names
 from slotformer_jax.errors import ConfigError
-from slotformer_jax.errors import UserError
 
 
 def questions_root(config: ml_collections.ConfigDict) -> str:
   """The folder holding questions/ (and maybe vocab.json).
 
   Raises:
-    MissingInputError: the embedded dataset is not generated (names the
+    MissingInputError: the generated dataset is not there (names the
       command).
-    ConfigError: CLEVRER without `vqa.questions_root`.
+    ConfigError: a dataset without questions of its own and no
+      `vqa.questions_root`.
   """
-  if config.data.name == 'clevrer_like':
-    return str(clevrer_like.complete_dataset_dir(
-        config.data, resolve_data_dir(config.data.data_dir)))
+  held = datasets.get(config.data.name).questions_root(config.data)
+  if held is not None:
+    return str(held)
   if not config.vqa.questions_root:
     raise ConfigError('set vqa.questions_root to the folder holding '
                      "CLEVRER's questions/{train,validation,test}.json")
@@ -136,20 +134,7 @@ def split_video_names(data_config: ml_collections.ConfigDict, split: str
       converts it again).
     MissingInputError: the dataset is not there.
   """
-  if data_config.name == 'clevrer_like':
-    root = clevrer_like.complete_dataset_dir(
-        data_config, resolve_data_dir(data_config.data_dir))
-    count = len(clevrer_like.NpyVideoSource(root, split))
-    return [clevrer_like.video_filename(split, i) for i in range(count)]
-  dataset_dir = sources.real_dataset_dir(data_config)
-  names = read_recorded_names(dataset_dir, split)
-  if names is None:
-    raise UserError(
-        f'{dataset_dir} records no video names for split {split!r} '
-        '(converted by an older version, and its _progress/ files are '
-        'gone), so questions cannot be joined to its videos by name; '
-        f'convert it again: {sources.reconversion_command(data_config)}')
-  return names
+  return datasets.get(data_config.name).video_names(data_config, split)
 
 
 def joined_questions(config: ml_collections.ConfigDict, split: str,

@@ -45,6 +45,7 @@ import jax.numpy as jnp
 import ml_collections
 import numpy as np
 
+from slotformer_jax import datasets
 from slotformer_jax import inference
 from slotformer_jax.config.defaults import FRAME_METRICS
 from slotformer_jax.config.defaults import OBJECT_METRICS
@@ -54,7 +55,6 @@ from slotformer_jax.data import pipeline
 from slotformer_jax.data.pipeline import ClipSource
 from slotformer_jax.errors import ConfigError
 from slotformer_jax.evaluation import metrics as metrics_lib
-from slotformer_jax.evaluation.clevrer_clips import eval_clip_starts
 from slotformer_jax.files import atomic_text
 from slotformer_jax.files import write_json_atomic
 from slotformer_jax.frames import frames_to_model
@@ -522,7 +522,7 @@ def evaluate(eval_config: ml_collections.ConfigDict,
     identity: what all of them are made from (stages/lineage.py), recorded
       with the metrics.
     source: the slots of the split with the `video_fields(eval_config)`.
-    videos: the split's videos (read for the CLEVRER clips only).
+    videos: the split's videos (read by a dataset's clip rule only).
     num_true: ground-truth segmentation ids (`num_true_ids`).
     compute_dtype: 'float32' or 'bfloat16' (rollouts and decoding).
     output_dir: where to write (None: nowhere).
@@ -647,40 +647,15 @@ def evaluation_clips(kind: str, source: Any, time_fields: tuple[str, ...],
   """The evaluated clips of the first `num_videos` videos.
 
   `kind` (`evaluation.clips`): 'first' evaluates each video from its first
-  frame; 'clevrer' takes the official CLEVRER clips (per half-clip block of
-  the video, the first start where no object enters late; see
-  `evaluation/clevrer_clips.py`), which reads the stored `in_view` of
-  `videos`.
+  frame; any other is a clip rule of the dataset (`datasets/base.py`, e.g.
+  CLEVRER's official clips, which read the stored `in_view` of `videos`).
   """
-  if kind == 'first':
+  if kind == datasets.FIRST_CLIPS:
     return ClipSource(source, [(i, 0) for i in range(num_videos)],
                       time_fields)
-  if kind != 'clevrer':
-    raise ValueError(f"evaluation.clips must be 'first' or 'clevrer', got "
-                     f'{kind!r}')
-  clips = clevrer_clips(videos, num_videos, burn_in, rollout, frame_stride)
+  clips = datasets.clip_rule(kind)(videos, num_videos, burn_in, rollout,
+                                   frame_stride)
   return ClipSource(source, clips, time_fields)
-
-
-def clevrer_clips(videos: Any, num_videos: int, burn_in: int, rollout: int,
-                  frame_stride: int) -> list[tuple[int, int]]:
-  """(video, start) of the official CLEVRER evaluation clips of the first
-  `num_videos` videos (items with `in_view` [T, O] and `has_annotations`)."""
-  clips = []
-  for video in progress.bar(range(num_videos), desc='find evaluation clips',
-                            unit='video'):
-    item = videos[video]
-    if not bool(np.asarray(item.get('has_annotations', True))):
-      raise ValueError(
-          f'video {video} has no CLEVRER annotations (the test split has '
-          "none); evaluate on the 'val' split")
-    starts = eval_clip_starts(item['in_view'], burn_in, rollout,
-                              frame_stride)
-    clips += [(video, int(start)) for start in starts]
-  if not clips:
-    raise ValueError('no CLEVRER evaluation clip without entering objects '
-                     f'in the first {num_videos} videos')
-  return clips
 
 
 def _check_has_segmentations(source: Any, names: tuple[str, ...]) -> None:

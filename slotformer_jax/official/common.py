@@ -34,15 +34,6 @@ SLOTFORMER_STAGE = SLOTFORMER
 DVAE_STAGE = 'dvae'
 STEVE_STAGE = 'steve'
 
-# Datasets whose official models saw OpenCV's BGR frames: CLEVRER's
-# read the videos with cv2 (nerv's VideoReader without to_rgb). Physion's
-# did not: its frames were written to JPEG by cv2.imwrite (colours kept)
-# and read back with PIL's convert('RGB').
-BGR_DATASETS = ('clevrer',)
-# Datasets whose official models saw RGB frames (PIL).
-RGB_DATASETS = ('obj3d', 'phyre', 'physion')
-
-
 # nn.LayerNorm's default in PyTorch, in every official model.
 PYTORCH_LN_EPSILON = 1e-5
 

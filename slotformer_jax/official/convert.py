@@ -52,6 +52,7 @@ import ml_collections
 from ml_collections import config_flags
 import numpy as np
 
+from slotformer_jax import datasets
 from slotformer_jax import dynamics
 from slotformer_jax.config import checks as config_checks
 from slotformer_jax.errors import UserError
@@ -89,16 +90,18 @@ DEFAULT_READOUT_THRESHOLD = official_readouts.DEFAULT_THRESHOLD
 
 
 def check_channel_order(config: ml_collections.ConfigDict) -> None:
-  """The official CLEVRER models saw BGR frames: refuse RGB; the other
-  official models (OBJ3D, PHYRE, Physion) saw RGB: refuse BGR."""
+  """The official models of a dataset saw the frames of its spec's
+  `official_channel_order` (CLEVRER's BGR, read with OpenCV; OBJ3D's,
+  PHYRE's and Physion's RGB): refuse the other order."""
   channel_order = config.data.channel_order
-  if config.data.name in common.BGR_DATASETS and channel_order != 'bgr':
+  dataset = datasets.DATASETS.get(config.data.name)
+  official = dataset.official_channel_order if dataset else None
+  if official == 'bgr' and channel_order != 'bgr':
     raise common.ConversionError(
         f'the official {config.data.name} models were trained on BGR frames '
         "(OpenCV); add --config.data.channel_order=bgr here and to every "
         'later command on this workdir (the SAVi model config records it)')
-  if (config.data.name in common.RGB_DATASETS
-      and channel_order != 'rgb'):
+  if official == 'rgb' and channel_order != 'rgb':
     raise common.ConversionError(
         f'the official {config.data.name} models were trained on RGB frames '
         f'(read with PIL), not {channel_order!r}; drop '

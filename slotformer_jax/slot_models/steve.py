@@ -42,7 +42,7 @@ import ml_collections
 import numpy as np
 
 from slotformer_jax import losses
-from slotformer_jax.data import tokens as tokens_lib
+from slotformer_jax.data import slots as extracted
 from slotformer_jax.frames import frames_to_model
 from slotformer_jax.frames import model_to_unit
 from slotformer_jax.modules.dvae import DOWNSAMPLING as DVAE_DOWNSAMPLING
@@ -376,9 +376,9 @@ class Steve(SlotModel):
         splits=TOKENIZED_SPLITS,
         encode=functools.partial(tokenize, dvae=self.dvae),
         writer=lambda directory, num_videos, step, parent: (
-            tokens_lib.TokenWriter(directory, num_videos, height * width,
-                                   step, parent=parent)),
-        reader=tokens_lib.TokenSource, read_meta=tokens_lib.read_meta,
+            extracted.TokenWriter(directory, num_videos, height * width,
+                                  step, parent=parent)),
+        reader=extracted.TokenSource, read_meta=extracted.read_meta,
         batch_size=self.config.dvae.tokenize_batch_size,
         chunk_length=self.config.extraction.chunk_length),)
 

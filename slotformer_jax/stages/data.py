@@ -5,8 +5,8 @@ reads is made here, at the head of the stage table; `selected_stages` runs
 it first for every `--mode`, and when the data are there it costs a stat
 per file. For the dataset of `config.data`:
 
-* an embedded family (`data/embedded/`) is generated when missing
-  (`data/convert/make.py`; the OBJ3D-like one under a lock, so processes
+* a generated dataset (`datasets/base.py:Generated`) is made when missing
+  (`data/write/generate.py`; the OBJ3D-like one under a lock, so processes
   sharing a data dir make it once);
 * every split the run reads (:func:`splits_read`) is checked against the
   checksums recorded with it: a folder without them (made by an older
@@ -20,8 +20,9 @@ per file. For the dataset of `config.data`:
   which names the conversion command (a run that only reads its extracted
   slots needs none);
 * what other readers need is made too: the CLEVRER-like questions come with
-  their dataset, the PHYRE-like task labels that planning reads are
-  simulated here.
+  their dataset, and what a task reads besides the videos
+  (`Generated.task_data`: the PHYRE-like task labels planning reads) is
+  made with them.
 """
 
 from __future__ import annotations
@@ -32,17 +33,13 @@ from pathlib import Path
 
 import ml_collections
 
+from slotformer_jax import datasets
 from slotformer_jax.config.sections import reads_readout_splits
 from slotformer_jax.data import integrity
-from slotformer_jax.data import sources
-from slotformer_jax.data.convert import make
-from slotformer_jax.data.convert import writer
-from slotformer_jax.data.convert import phyre_like
-from slotformer_jax.data.convert.checksums import record_checksums
-from slotformer_jax.data.data_dir import resolve_data_dir
-from slotformer_jax.data.embedded import families
-from slotformer_jax.data.embedded import phyre_like as phyre_like_data
 from slotformer_jax.data.video_names import NAMES_FILE
+from slotformer_jax.data.write import convert as writer
+from slotformer_jax.data.write import generate
+from slotformer_jax.data.write.records import record_checksums
 from slotformer_jax.errors import MissingInputError
 from slotformer_jax.run import Run
 
@@ -67,11 +64,10 @@ def prepare_data(run: Run) -> None:
   data belong to the data dir, not to one workdir."""
   config = run.config
   prepare_dataset(config.data, splits_read(config))
-  if config.data.name == 'synthetic_phyre' and config.task == 'planning':
-    # Planning scores every candidate of every task against these.
-    phyre_like.build_task_labels(
-        phyre_like_data.config_from_data_config(config.data),
-        resolve_data_dir(config.data.data_dir))
+  dataset = datasets.get(config.data.name)
+  task_data = dataset.task_data.get(config.task)
+  if task_data is not None:
+    task_data(config.data, generate.output(config.data))
 
 
 def prepare_dataset(data_config: ml_collections.ConfigDict,
@@ -86,19 +82,18 @@ def prepare_dataset(data_config: ml_collections.ConfigDict,
     UserError: a converted dataset is damaged (names the conversion
       command), or the name is unknown.
   """
-  name = data_config.name
-  if name in families.NAMES:
-    folder = make.make_dataset(data_config)
-    if name != 'clevrer_like':  # .npy folders carry no checksums
-      _check_embedded(data_config, folder, splits)
-  elif name in sources.REAL_DATASETS:
-    _check_converted(data_config, splits)
+  dataset = datasets.get(data_config.name)
+  if isinstance(dataset, datasets.Generated):
+    folder = generate.make_dataset(dataset, data_config)
+    if dataset.checksummed:
+      _check_generated(dataset, data_config, folder, splits)
   else:
-    raise sources.unknown_dataset(name)
+    _check_converted(dataset, data_config, splits)
 
 
-def _check_embedded(data_config: ml_collections.ConfigDict, folder: Path,
-                    splits: Sequence[str] | None) -> None:
+def _check_generated(dataset: datasets.Generated,
+                     data_config: ml_collections.ConfigDict, folder: Path,
+                     splits: Sequence[str] | None) -> None:
   for split in splits or (None,):
     try:
       if not integrity.verify_checksums(folder, split):
@@ -107,14 +102,15 @@ def _check_embedded(data_config: ml_collections.ConfigDict, folder: Path,
       # A cache is regenerable: say so, set it aside, build it again.
       logger.warning('the %s dataset cache is damaged (%s); regenerating it',
                      data_config.name, error)
-      make.discard_dataset(folder)
-      folder = make.make_dataset(data_config)
+      generate.discard_dataset(folder)
+      folder = generate.make_dataset(dataset, data_config)
 
 
-def _check_converted(data_config: ml_collections.ConfigDict,
+def _check_converted(dataset: datasets.Converted,
+                     data_config: ml_collections.ConfigDict,
                      splits: Sequence[str] | None) -> None:
   try:
-    folder = sources.real_dataset_dir(data_config)
+    folder = dataset.dataset_dir(data_config)
   except MissingInputError:
     logger.info('the %s dataset is not converted; a stage that reads it '
                 'says how', data_config.name)
@@ -126,7 +122,7 @@ def _check_converted(data_config: ml_collections.ConfigDict,
         logger.info('recording checksums of %s', folder)
         record_checksums(folder)
     except integrity.DamagedDataset as error:
-      raise sources.damaged_real_dataset(data_config, error) from None
+      raise dataset.damaged(data_config, error) from None
   if not (folder / NAMES_FILE).is_file() and writer.record_video_names(
       folder):
     logger.info('recorded the video names of %s (converted before they '

@@ -28,8 +28,8 @@ import numpy as np
 
 from slotformer_jax import inference
 from slotformer_jax.config.sections import SLOTFORMER
-from slotformer_jax.data.data_dir import resolve_data_dir
-from slotformer_jax.data.embedded import phyre_like as phyre_like_data
+from slotformer_jax.data.sources import resolve_data_dir
+from slotformer_jax.datasets import synthetic_phyre as phyre_like_data
 from slotformer_jax.errors import ConfigError
 from slotformer_jax.errors import MissingInputError
 from slotformer_jax.files import write_atomic

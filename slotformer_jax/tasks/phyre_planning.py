@@ -41,7 +41,7 @@ import numpy as np
 from PIL import Image
 from PIL import ImageDraw
 
-from slotformer_jax.data.embedded import phyre_like as phyre_like_data
+from slotformer_jax.datasets import synthetic_phyre as phyre_like_data
 from slotformer_jax.modules import readouts
 from slotformer_jax.tasks import planning
 from slotformer_jax.tasks import readout as readout_lib

@@ -1,4 +1,4 @@
-"""PHYRE planning on the real, pre-rendered layout (data/convert/phyre.py):
+"""PHYRE planning on the real, pre-rendered layout (datasets/phyre.py):
 the pure parts (the stages are in stages/planning_rendered.py).
 
 What the layout holds (tools/render_phyre.py, the official selection):

@@ -2,6 +2,6 @@
 
 A world here is code a run needs after its data exist (the planning task
 places actions in the PHYRE-like scenes and simulates them), so it cannot
-live with the offline writers in `data/convert/`, which only the data stage
-runs; the generators import it from here.
+live with the writers in `data/write/`, which only the data stage
+runs; the generators (datasets/) import it from here.
 """

@@ -33,23 +33,80 @@ World: W x H = 10 x 10 m, y up, gravity 9.8 m/s^2; frames are rendered at
 
 Planning uses this module at run time (it draws actions into first frames
 and simulates them: tasks/phyre_planning.py); the data stage uses it to
-write the labels and training videos (data/convert/phyre_like.py). The
-parameters, :class:`PhyreLikeConfig`, are the dataset's
-(data/embedded/phyre_like.py).
+write the labels and training videos (datasets/synthetic_phyre.py, which
+names its folders by these parameters, :class:`PhyreLikeConfig`).
 """
 
 from __future__ import annotations
 
 import dataclasses
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 import pymunk
 
-from slotformer_jax.data.embedded.phyre_like import ALL_TEMPLATES
-from slotformer_jax.data.embedded.phyre_like import PhyreLikeConfig
 from slotformer_jax.worlds.supersample import downsample_rgb
 from slotformer_jax.worlds.supersample import downsample_segmentation
+
+# The first templates (the default set: their tasks and cached datasets must
+# not change) and templates added later, which a config selects by name.
+TEMPLATES: tuple[str, ...] = ('ledge', 'tower', 'stack')
+ALL_TEMPLATES: tuple[str, ...] = TEMPLATES + ('ramp',)
+
+
+@dataclasses.dataclass(frozen=True)
+class PhyreLikeConfig:
+  """Generation parameters.
+
+  Attributes:
+    resolution: (H, W) of rendered frames.
+    fps: rendered frames per simulated second (PHYRE/SlotFormer: 1).
+    sim_seconds: simulated time; frames = fps * sim_seconds + 1.
+    success_seconds: continuous green-goal contact needed to solve.
+    templates: which templates to use.
+    tasks_per_template: tasks drawn per template.
+    num_candidates: size of the fixed candidate action set.
+    train_share: share of each template's tasks used for training.
+    fold: which within-template train/test shuffle.
+    seed: base seed of tasks and candidate actions.
+    max_instances: mask ids 1..max_instances (bodies of a task + red ball).
+  """
+
+  resolution: tuple[int, int] = (64, 64)
+  fps: int = 2
+  sim_seconds: float = 5.0
+  success_seconds: float = 1.0
+  templates: tuple[str, ...] = TEMPLATES
+  tasks_per_template: int = 25
+  num_candidates: int = 200
+  train_share: float = 0.8
+  fold: int = 0
+  seed: int = 0
+  max_instances: int = 8
+
+  def __post_init__(self):
+    object.__setattr__(self, 'resolution',
+                       tuple(int(r) for r in self.resolution))
+    object.__setattr__(self, 'templates', tuple(self.templates))
+    unknown = set(self.templates) - set(ALL_TEMPLATES)
+    if unknown:
+      raise ValueError(f'unknown templates {sorted(unknown)}; '
+                       f'choose from {ALL_TEMPLATES}')
+    if self.success_seconds > self.sim_seconds:
+      raise ValueError('success_seconds must be <= sim_seconds')
+    if not 0.0 < self.train_share < 1.0:
+      raise ValueError(f'train_share must be in (0, 1), got {self.train_share}')
+
+  @property
+  def num_frames(self) -> int:
+    return int(round(self.fps * self.sim_seconds)) + 1
+
+
+def config_from_data_config(data_config: Any) -> PhyreLikeConfig:
+  fields = {f.name for f in dataclasses.fields(PhyreLikeConfig)}
+  return PhyreLikeConfig(**{key: data_config[key] for key in fields
+                            if key in data_config})
 
 WORLD = 10.0                    # [m], the scene is WORLD x WORLD
 GRAVITY = 9.8                   # [m/s^2]

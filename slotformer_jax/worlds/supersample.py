@@ -1,7 +1,7 @@
 """Anti-aliasing by supersampling: frames rendered at f x the resolution,
 reduced to it.
 
-Shared by the renderers of the generators (data/convert/) and of the
+Shared by the renderers of the generators (datasets/) and of the
 PHYRE-like world, which planning renders at run time; integer arithmetic
 only, so the frames are bit-exact across numpy versions.
 """

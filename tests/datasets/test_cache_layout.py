@@ -1,10 +1,10 @@
 """The folders of the embedded datasets, pinned: a data dir made by an
 earlier version stays usable.
 
-Readers compute where a dataset lives from its generation parameters
-(data/embedded/); the generators write there. The expected paths below were
-computed with the code before the reading side moved out of data/convert/
-(issue 35), for the data sections of every shipped config: they pin the
+Readers compute where a dataset lives from its generation parameters (each
+dataset module of datasets/); the generators write there. The expected paths
+below were computed with the code before the reading side moved out of the
+converters (issue 35), for the data sections of every shipped config: they pin the
 cache layout. A change here makes every existing data dir regenerate; do it
 only with a generator version bump. The version folder of the TFDS
 families went from 1.0.0 to 2.0.0 with the chunked record layout
@@ -17,10 +17,10 @@ from __future__ import annotations
 import pytest
 
 from pipeline_helpers import load_config
-from slotformer_jax.data.embedded import clevrer_like
-from slotformer_jax.data.embedded import contact
-from slotformer_jax.data.embedded import phyre_like
-from slotformer_jax.data.embedded import synthetic
+from slotformer_jax.datasets import clevrer_like
+from slotformer_jax.datasets import synthetic_contact as contact
+from slotformer_jax.datasets import synthetic_phyre as phyre_like
+from slotformer_jax.datasets import synthetic
 
 EXPECTED = {
     'synthetic:': 'synthetic_obj3d/r32x32_t24_o2-3_s0_n1000-50-100_aa2_862a7904/2.0.0',

@@ -9,14 +9,14 @@ import json
 import numpy as np
 import pytest
 
-from slotformer_jax.data.convert import clevrer_like
-from slotformer_jax.data.convert import synthetic
-from slotformer_jax.data.embedded import clevrer_like as clevrer_like_data
-from slotformer_jax.data.embedded import synthetic as synthetic_data
+from slotformer_jax import datasets
+
+from slotformer_jax.datasets import clevrer_like
+from slotformer_jax.datasets import synthetic
 from slotformer_jax.data.events import EventLog
 from dataset_fixtures import data_section
 
-CONFIG = clevrer_like_data.ClevrerLikeConfig(
+CONFIG = clevrer_like.ClevrerLikeConfig(
     observed_frames=12, predicted_frames=8, num_train=4, num_val=2,
     num_test=2)
 
@@ -119,28 +119,33 @@ def test_generate_video_render_and_event_log_roundtrip():
 
 def test_config_rejects_too_many_objects():
   with pytest.raises(ValueError):
-    clevrer_like_data.ClevrerLikeConfig(max_objects=7, max_entering=2)
+    clevrer_like.ClevrerLikeConfig(max_objects=7, max_entering=2)
 
 
 def test_build_dataset_writes_videos_questions_and_vocabulary(tmp_path):
   import json  # pylint: disable=g-import-not-at-top
-  from slotformer_jax.data import sources  # pylint: disable=g-import-not-at-top
   from slotformer_jax.data import vqa  # pylint: disable=g-import-not-at-top
-  from slotformer_jax.data.convert import make  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.data.write import generate  # pylint: disable=g-import-not-at-top
   from slotformer_jax.errors import MissingInputError  # pylint: disable=g-import-not-at-top
   data = data_section(
       name='clevrer_like', data_dir=str(tmp_path), resolution=(32, 32),
       observed_frames=12,
       predicted_frames=8, num_train=3, num_val=1, num_test=2, num_workers=1)
-  make.make_dataset(data)
-  source = sources.get_video_source(data, 'test')
+  generate.make_dataset(datasets.get('clevrer_like'), data)
+  source = datasets.get_video_source(data, 'test')
   assert len(source) == 2
   item = source[1]
   assert item['video'].shape == (20, 32, 32, 3)
-  config = clevrer_like_data.config_from_data_config(data)
+  # What the spec says a video holds.
+  spec = datasets.get('clevrer_like').features()
+  assert sorted(item) == sorted(spec)
+  for key, feature in spec.items():
+    assert item[key].dtype == feature.np_dtype, key
+    assert item[key].ndim == len(feature.shape), key
+  config = clevrer_like.config_from_data_config(data)
   np.testing.assert_array_equal(
       item['video'], clevrer_like.generate_video(config, 'test', 1)['video'])
-  root = clevrer_like_data.dataset_dir(config, tmp_path)
+  root = clevrer_like.dataset_dir(config, tmp_path)
   vocab = vqa.Vocabulary.load(root / 'vocab.json')
   scenes = vqa.read_clevrer_questions(root, 'test')
   assert [s['scene_index'] for s in scenes] == [15000, 15001]
@@ -161,8 +166,8 @@ def test_build_dataset_writes_videos_questions_and_vocabulary(tmp_path):
   video_mtime = (root / 'test' / 'video.npy').stat().st_mtime_ns
   # ... which the readers refuse until the data stage has made them.
   with pytest.raises(MissingInputError, match='--mode=prepare_data'):
-    sources.get_video_source(data, 'test')
-  assert clevrer_like.build_dataset(config, tmp_path) == root
+    datasets.get_video_source(data, 'test')
+  assert clevrer_like.generate(config, generate.Output(tmp_path)) == root
   assert vqa.read_clevrer_questions(root, 'test') == scenes
   assert (root / 'test' / 'video.npy').stat().st_mtime_ns == video_mtime
 
@@ -205,7 +210,7 @@ def test_direct_design_is_the_generator_of_before():
   # The default design keeps the slugs (so the datasets already built) and
   # the event logs of generator version 2: values pinned before the field
   # existed.
-  assert (clevrer_like_data.ClevrerLikeConfig().slug
+  assert (clevrer_like.ClevrerLikeConfig().slug
           == 'r32x32_t24+16_o2-4+1_s0_038d4ccb')
   config = dataclasses.replace(CONFIG, future_collision_fraction=1.0)
   assert config.slug == 'r32x32_t12+8_o2-4+1_s0_41f59940'
@@ -253,7 +258,7 @@ def _bank_shot() -> clevrer_like.Scene:
   m (surface to surface) in front of B. A reaches C after the 12 observed
   frames and pushes it into B; A itself never reaches B."""
   return clevrer_like.Scene(
-      shapes=np.full(3, synthetic_data.SHAPES.index('cylinder'), np.int32),
+      shapes=np.full(3, synthetic.SHAPES.index('cylinder'), np.int32),
       colors=np.array([1, 2, 3], np.int32), sizes=np.zeros(3, np.int32),
       xy=np.array([[-2.6, 0.5], [0.0, 0.5], [1.1, 0.5]]), yaw=np.zeros(3),
       velocity=np.array([[2.5, 0.0], [0.0, 0.0], [0.0, 0.0]]),
@@ -261,7 +266,7 @@ def _bank_shot() -> clevrer_like.Scene:
 
 
 def test_bank_shot_collision_that_extrapolation_misses():
-  from slotformer_jax.data.convert import questions  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.datasets import clevrer_like_questions as questions  # pylint: disable=g-import-not-at-top
   config = dataclasses.replace(DEFLECTED, predicted_frames=12)
   scene = _bank_shot()
   sim = clevrer_like.simulate(scene, config)

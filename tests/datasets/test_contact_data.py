@@ -7,17 +7,16 @@ import dataclasses
 import numpy as np
 import pytest
 
-from slotformer_jax.data.convert import contact
-from slotformer_jax.data.convert import synthetic
-from slotformer_jax.data.embedded import contact as contact_data
-from slotformer_jax.data.embedded import synthetic as synthetic_data
+from slotformer_jax.data.write.generate import Output
+from slotformer_jax.datasets import synthetic_contact as contact
+from slotformer_jax.datasets import synthetic
 
-TINY = contact_data.ContactConfig(resolution=(16, 16), num_frames=24,
+TINY = contact.ContactConfig(resolution=(16, 16), num_frames=24,
                                   observed_frames=8, supersample=1,
                                   num_train=2, num_readout_train=2,
                                   num_readout_val=2, num_readout_test=2)
-SPHERE = synthetic_data.SHAPES.index('sphere')
-SMALL = synthetic_data.SIZES.index('small')
+SPHERE = synthetic.SHAPES.index('sphere')
+SMALL = synthetic.SIZES.index('small')
 
 
 def _head_on_scene(patient_x: float) -> synthetic.Scene:
@@ -78,21 +77,21 @@ def test_generator_is_deterministic_and_labels_as_designed():
 
 def test_bad_config():
   with pytest.raises(ValueError, match='observed_frames'):
-    contact_data.ContactConfig(num_frames=8, observed_frames=8)
+    contact.ContactConfig(num_frames=8, observed_frames=8)
 
 
 def test_written_dataset_reads_back(tmp_path):
   from slotformer_jax.data import sources  # pylint: disable=g-import-not-at-top
   config = dataclasses.replace(TINY, num_train=1, num_readout_train=2,
                                num_readout_val=0, num_readout_test=0)
-  path = contact.build_contact_dataset(config, tmp_path)
+  path = contact.generate(config, Output(tmp_path))
   source = sources.TfdsVideoSource(path, 'readout_train')
   assert len(source) == 2
   item = source[1]
   expected = contact.generate_video(config, 'readout_train', 1)
   for key, value in expected.items():
     np.testing.assert_array_equal(item[key], value, err_msg=key)
-  assert contact.build_contact_dataset(config, tmp_path) == path
+  assert contact.generate(config, Output(tmp_path)) == path
 
 
 def test_parallel_build_writes_the_serial_videos_in_order(tmp_path):
@@ -101,7 +100,7 @@ def test_parallel_build_writes_the_serial_videos_in_order(tmp_path):
   # would put a video at the wrong record.
   config = dataclasses.replace(TINY, num_train=0, num_readout_train=9,
                                num_readout_val=0, num_readout_test=0)
-  path = contact.build_contact_dataset(config, tmp_path, num_workers=2)
+  path = contact.generate(config, Output(tmp_path, 2))
   source = sources.TfdsVideoSource(path, 'readout_train')
   assert len(source) == 9
   for index in range(9):
@@ -140,7 +139,7 @@ def test_front_launch_datasets_are_unchanged_by_the_option():
   # The slug of the default (front) config, as before `launch_side` existed:
   # cached datasets keep their names (the generated videos are unchanged,
   # checked against the previous generator when the option was added).
-  config = contact_data.ContactConfig(resolution=(16, 16), supersample=1,
+  config = contact.ContactConfig(resolution=(16, 16), supersample=1,
                                       num_frames=12, observed_frames=6)
   assert config.slug == 'r16x16_t12_obs6_d1-2_s0_n1000-400-100-200_19cd5100'
 
@@ -167,7 +166,7 @@ def test_bank_labels_on_simulated_cases():
   # The agent hits the (heavier) bumper head-on; the bumper goes on and
   # hits the patient, the agent never does: the patient moved, yet the
   # label (agent touches patient) is False.
-  large = synthetic_data.SIZES.index('large')
+  large = synthetic.SIZES.index('large')
   out = contact.simulate(_bank_scene(large, 1.4), BANK, render=False)
   bump = int(out['bump_frame'])
   radius = synthetic.SIZE_RADII
@@ -215,9 +214,9 @@ def test_bank_generator_is_deterministic_and_labels_as_designed():
 
 def test_bank_config_variant():
   from configs import synthetic_contact  # pylint: disable=g-import-not-at-top
-  bank = contact_data.config_from_data_config(
+  bank = contact.config_from_data_config(
       synthetic_contact.get_config('bank').data)
   assert (bank.scenario, bank.launch_side, bank.seed) == ('bank', 'side', 2)
-  side = contact_data.config_from_data_config(
+  side = contact.config_from_data_config(
       synthetic_contact.get_config('side').data)
   assert (side.scenario, side.launch_side, side.seed) == ('direct', 'side', 1)

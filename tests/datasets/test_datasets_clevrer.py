@@ -9,13 +9,14 @@ import numpy as np
 import pytest
 
 import dataset_fixtures as fx
-from slotformer_jax.data.convert import clevrer
-from slotformer_jax.data.convert import media
+from slotformer_jax import datasets
+from slotformer_jax.datasets import clevrer
+from slotformer_jax.data import media
 from slotformer_jax.data import pipeline
-from slotformer_jax.data.convert import prepare
+from slotformer_jax.data import prepare
 from slotformer_jax.data import sources
-from slotformer_jax.data.convert import writer
-from slotformer_jax.evaluation import clevrer_clips
+from slotformer_jax.data.write import convert as writer
+from slotformer_jax.datasets import clevrer as clevrer_clips
 from dataset_fixtures import data_section
 
 # ffmpeg runs as a subprocess (fork + exec at once), which JAX's fork warning
@@ -185,7 +186,7 @@ def converted(tmp_path_factory):
 def source_for(data_dir: Path, split: str, **extra) -> sources.VideoSource:
   config = data_section(name='clevrer', data_dir=str(data_dir),
                         resolution=(RES, RES), **extra)
-  return sources.get_video_source(config, split)
+  return datasets.get_video_source(config, split)
 
 
 def expected_masks(t: int) -> tuple[np.ndarray, np.ndarray]:
@@ -459,7 +460,7 @@ def test_unprepared_dataset_error_names_the_command(tmp_path):
   config = data_section(name='clevrer', data_dir=str(tmp_path))
   with pytest.raises(FileNotFoundError,
                      match='python -m slotformer_jax.data.prepare'):
-    sources.get_video_source(config, 'train')
+    datasets.get_video_source(config, 'train')
 
 
 def test_rle_round_trip():

@@ -12,10 +12,10 @@ import pytest
 import tensorflow_datasets as tfds
 
 import dataset_fixtures as fx
-from slotformer_jax.data import sources
-from slotformer_jax.data.convert import media
-from slotformer_jax.data.convert import movi
-from slotformer_jax.data.convert import prepare
+from slotformer_jax import datasets
+from slotformer_jax.data import media
+from slotformer_jax.datasets import movi
+from slotformer_jax.data import prepare
 from slotformer_jax.errors import MissingInputError
 from dataset_fixtures import data_section
 
@@ -49,7 +49,7 @@ def converted(movi_download, tmp_path_factory):
 
 
 def _source(data_dir, split, resolution=(32, 32)):
-  return sources.get_video_source(data_section(
+  return datasets.get_video_source(data_section(
       name='movi_a', data_dir=str(data_dir), resolution=resolution), split)
 
 
@@ -245,13 +245,13 @@ def test_a_damaged_download_is_one_error_line_naming_the_file(
 
 def test_a_record_that_is_not_an_example_names_the_file(movi_download,
                                                         tmp_path, capsys):
-  from slotformer_jax.data.convert import tfrecord  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.data import tfrecord  # pylint: disable=g-import-not-at-top
   folder, _ = movi_download
   shard = 'movi_a-validation.tfrecord-00000-of-00001'
   copy = _damaged_copy(folder, tmp_path, shard, lambda data: data)
   # Valid framing and checksums around bytes that are no Example proto.
   records = list(tfrecord.iter_records(copy / shard))
-  tfrecord.write_records(copy / shard, [records[0], b'\xff' * 64])
+  fx.write_tfrecords(copy / shard, [records[0], b'\xff' * 64])
   assert _convert(copy, tmp_path / 'data', '--splits=val') == 1
   line = _one_error_line(capsys)
   assert f'{shard} record 1: unreadable MOVi example' in line, line

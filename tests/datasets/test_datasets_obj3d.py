@@ -18,11 +18,13 @@ import numpy as np
 import pytest
 
 import dataset_fixtures as fx
-from slotformer_jax.data.convert import obj3d
+from slotformer_jax.datasets.base import Conversion
+from slotformer_jax import datasets
+from slotformer_jax.datasets import obj3d
 from slotformer_jax.data import pipeline
-from slotformer_jax.data.convert import prepare
+from slotformer_jax.data import prepare
 from slotformer_jax.data import sources
-from slotformer_jax.data.convert import writer
+from slotformer_jax.data.write import convert as writer
 from pipeline_helpers import slots_of
 from pipeline_helpers import run_stage
 from dataset_fixtures import data_section
@@ -82,7 +84,7 @@ def converted(tmp_path_factory):
 
 def test_shapes_frame_selection_and_order(converted):
   _, data_dir = converted
-  train = sources.get_video_source(data_config(data_dir), 'train')
+  train = datasets.get_video_source(data_config(data_dir), 'train')
   assert len(train) == len(TRAIN_VIDEOS)
   for index, number in enumerate(TRAIN_VIDEOS):
     item = train[index]
@@ -96,7 +98,7 @@ def test_shapes_frame_selection_and_order(converted):
     np.testing.assert_array_equal(video[:, 0, 0], [[255, 0, 0]] * KEEP)
   # The RGBA video: alpha dropped without compositing.
   assert train[1]['video'][0, -1, -1].tolist() == [frame_level(1, 1)] * 3
-  assert [len(sources.get_video_source(data_config(data_dir), s))
+  assert [len(datasets.get_video_source(data_config(data_dir), s))
           for s in ('val', 'test')] == [2, 1]
   # OBJ3D has no masks or boxes.
   assert 'segmentations' not in train[0]
@@ -104,11 +106,11 @@ def test_shapes_frame_selection_and_order(converted):
 
 def test_channel_order_and_training_batches(converted):
   _, data_dir = converted
-  bgr = sources.get_video_source(data_config(data_dir, channel_order='bgr'),
+  bgr = datasets.get_video_source(data_config(data_dir, channel_order='bgr'),
                                  'train')
   np.testing.assert_array_equal(bgr[0]['video'][0, 0, 0], [0, 0, 255])
   batch = next(pipeline.train_batches(
-      sources.get_video_source(data_config(data_dir), 'train'), batch_size=3,
+      datasets.get_video_source(data_config(data_dir), 'train'), batch_size=3,
       clip_length=3, seed=0, frame_stride=2, prefetch=0))
   assert batch['video'].shape == (3, 3, RES, RES, 3)
   steps = np.diff(batch['video'][:, :, -1, -1].astype(float).mean(-1), axis=1)
@@ -138,7 +140,7 @@ def test_bad_inputs_are_skipped_and_reported(tmp_path, capsys):
   assert 'Skipped 3 videos' in writer.summary(result)
   report = json.loads((result.dataset_dir / writer.REPORT_FILE).read_text())
   assert sorted(s['key'] for s in report['skipped']) == ['3', '4', '5']
-  names = sources.get_video_source(data_config(tmp_path / 'data'), 'train')
+  names = datasets.get_video_source(data_config(tmp_path / 'data'), 'train')
   assert [str(names[i]['video_name'].item(), 'utf-8')
           for i in range(4)] == list(TRAIN_VIDEOS)
 
@@ -157,10 +159,10 @@ def test_missing_folders_name_the_layout(tmp_path, capsys):
   assert 'is not a folder' in capsys.readouterr().err
 
 
-def _spec_and_jobs(root: Path) -> tuple[writer.DatasetSpec,
+def _spec_and_jobs(root: Path) -> tuple[Conversion,
                                         dict[str, list[obj3d.VideoJob]]]:
   options = obj3d.Options(resolution=(RES, RES), num_frames=KEEP)
-  spec = obj3d.dataset_spec(options, root)
+  spec = obj3d.DATASET.spec(options, root)
   return spec, {'train': obj3d.discover(root, 'train', options)}
 
 
@@ -220,7 +222,7 @@ def test_multi_host_conversion_reads_only_own_shards(tmp_path):
     # Host 0 finishes first and cannot write the metadata yet.
     assert result.complete == (host == 1)
   assert seen == {0: ['0', '2'], 1: ['1', '10']}
-  source = sources.get_video_source(data_config(tmp_path / 'data'), 'train')
+  source = datasets.get_video_source(data_config(tmp_path / 'data'), 'train')
   assert [str(source[i]['video_name'].item(), 'utf-8')
           for i in range(len(source))] == list(TRAIN_VIDEOS)
 
@@ -230,8 +232,8 @@ def test_parallel_workers_match_serial(tmp_path, converted):
   assert prepare.main(convert_args(root, tmp_path / 'data', '--splits=train',
                                    '--num_workers=2',
                                    '--videos_per_shard=2')) == 0
-  serial = sources.get_video_source(data_config(serial_dir), 'train')
-  parallel = sources.get_video_source(data_config(tmp_path / 'data'), 'train')
+  serial = datasets.get_video_source(data_config(serial_dir), 'train')
+  parallel = datasets.get_video_source(data_config(tmp_path / 'data'), 'train')
   for i in range(len(serial)):
     np.testing.assert_array_equal(parallel[i]['video'], serial[i]['video'])
   # Running the finished conversion again converts nothing.
@@ -289,15 +291,15 @@ def test_config_fields_select_conversion_and_channel_order(converted,
   config = tiny_obj3d_config(data_dir)
   config.lock()   # as main.py's --config flag: only existing fields
   with pytest.raises(ValueError, match='data.prepared_config'):
-    sources.get_video_source(config.data, 'train')
+    datasets.get_video_source(config.data, 'train')
   config.data.prepared_config = obj3d.Options(
       resolution=(RES, RES), num_frames=KEEP).config_name
   config.data.channel_order = 'bgr'
-  source = sources.get_video_source(config.data, 'train')
+  source = datasets.get_video_source(config.data, 'train')
   assert len(source) == len(TRAIN_VIDEOS)
   np.testing.assert_array_equal(source[0]['video'][0, 0, 0], [0, 0, 255])
   config.data.prepared_config += '_first2'
-  assert len(sources.get_video_source(config.data, 'train')) == 2
+  assert len(datasets.get_video_source(config.data, 'train')) == 2
 
 
 def test_obj3d_config_runs_the_pipeline_on_converted_data(converted, tmp_path):

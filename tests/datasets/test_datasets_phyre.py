@@ -18,8 +18,9 @@ import numpy as np
 import pytest
 
 import dataset_fixtures as fx
-from slotformer_jax.data.convert import phyre
-from slotformer_jax.data.convert import prepare
+from slotformer_jax import datasets
+from slotformer_jax.datasets import phyre
+from slotformer_jax.data import prepare
 from slotformer_jax.data import sources
 from dataset_fixtures import data_section
 
@@ -125,7 +126,7 @@ def convert_args(source: Path, data_dir: Path, *extra: str) -> list[str]:
 
 
 def source_for(data_dir: Path, split: str) -> sources.VideoSource:
-  return sources.get_video_source(data_section(
+  return datasets.get_video_source(data_section(
       name='phyre', data_dir=str(data_dir), resolution=(SCENE, SCENE)), split)
 
 

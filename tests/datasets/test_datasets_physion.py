@@ -9,9 +9,10 @@ import numpy as np
 import pytest
 
 import dataset_fixtures as fx
-from slotformer_jax.data.convert import physion
+from slotformer_jax import datasets
+from slotformer_jax.datasets import physion
 from slotformer_jax.data import pipeline
-from slotformer_jax.data.convert import prepare
+from slotformer_jax.data import prepare
 from slotformer_jax.data import sources
 from dataset_fixtures import data_section
 
@@ -68,7 +69,7 @@ def convert(root: Path, data_dir: Path, *extra: str) -> int:
 
 
 def source_for(data_dir: Path, split: str) -> sources.VideoSource:
-  return sources.get_video_source(data_section(
+  return datasets.get_video_source(data_section(
       name='physion', data_dir=str(data_dir), resolution=(RES, RES)), split)
 
 

@@ -24,12 +24,12 @@ import pytest
 
 import dataset_fixtures as fx
 from slotformer_jax.data import vqa
-from slotformer_jax.data.convert import media
-from slotformer_jax.data.convert import movi
-from slotformer_jax.data.convert import phyre
-from slotformer_jax.data.convert import physion
-from slotformer_jax.data.convert import prepare
-from slotformer_jax.data.convert import tfrecord
+from slotformer_jax.data import media
+from slotformer_jax.datasets import movi
+from slotformer_jax.datasets import phyre
+from slotformer_jax.datasets import physion
+from slotformer_jax.data import prepare
+from slotformer_jax.data import tfrecord
 
 
 def _tree(folder):
@@ -156,7 +156,7 @@ def _rewrite_record(source, edit):
   example = tf_example_pb2.Example.FromString(
       next(tfrecord.iter_records(shard)))
   edit(example.features.feature)
-  tfrecord.write_records(shard, [example.SerializeToString()])
+  fx.write_tfrecords(shard, [example.SerializeToString()])
 
 
 @pytest.mark.parametrize('claim', [(10**6, 10**6), (12000, 12000), (17, 16)])
@@ -433,7 +433,7 @@ def test_a_physion_label_row_with_too_few_columns_is_one_line(tmp_path):
 # --------------------------------------------------------------------------
 
 from slotformer_jax import files  # noqa: E402
-from slotformer_jax.data.convert import clevrer  # noqa: E402
+from slotformer_jax.datasets import clevrer  # noqa: E402
 
 
 @pytest.mark.parametrize('value', [2**31, 2**32 + 5, 2**40, -2**32 + 3, -1,

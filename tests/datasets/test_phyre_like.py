@@ -7,11 +7,10 @@ import dataclasses
 import numpy as np
 import pytest
 
-from slotformer_jax.data.convert import phyre_like as phyre_writer
-from slotformer_jax.data.embedded import phyre_like as phyre_data
+from slotformer_jax.datasets import synthetic_phyre as phyre_writer
 from slotformer_jax.worlds import phyre_like as p
 
-CONFIG = phyre_data.PhyreLikeConfig(tasks_per_template=5, num_candidates=40)
+CONFIG = phyre_writer.PhyreLikeConfig(tasks_per_template=5, num_candidates=40)
 
 
 def _action(x: float, y: float, radius: float) -> tuple[float, float, float]:
@@ -89,12 +88,12 @@ def test_generator_is_deterministic_and_split_within_templates():
 
 def test_bad_config():
   with pytest.raises(ValueError, match='unknown templates'):
-    phyre_data.PhyreLikeConfig(templates=('seesaw',))
+    phyre_writer.PhyreLikeConfig(templates=('seesaw',))
 
 
 # ---- the 'ramp' template ----------------------------------------------------
 
-RAMP_CONFIG = phyre_data.PhyreLikeConfig(templates=('ramp',),
+RAMP_CONFIG = phyre_writer.PhyreLikeConfig(templates=('ramp',),
                                          tasks_per_template=4,
                                          num_candidates=40)
 
@@ -156,17 +155,17 @@ def test_ramp_tasks_deterministic_and_unsolved_without_action():
 def test_default_templates_unchanged():
   # The first templates keep their names, order, tasks and dataset folder
   # names (cached datasets are found by slug) when templates are added.
-  assert phyre_data.TEMPLATES == ('ledge', 'tower', 'stack')
-  assert phyre_data.ALL_TEMPLATES[:3] == phyre_data.TEMPLATES
-  assert phyre_data.PhyreLikeConfig().templates == phyre_data.TEMPLATES
-  config = phyre_data.PhyreLikeConfig(resolution=(32, 32))
-  assert phyre_data.slug(config) == (
+  assert phyre_writer.TEMPLATES == ('ledge', 'tower', 'stack')
+  assert phyre_writer.ALL_TEMPLATES[:3] == phyre_writer.TEMPLATES
+  assert phyre_writer.PhyreLikeConfig().templates == phyre_writer.TEMPLATES
+  config = phyre_writer.PhyreLikeConfig(resolution=(32, 32))
+  assert phyre_writer.slug(config) == (
       'r32x32_f2_t5_k1_3x25_c200_fold0_s0_35de6daa')
   assert all(b.angle == 0.0 for t in p.all_tasks(CONFIG) for b in t.bodies)
 
 
 def test_dynamics_layouts_are_never_labelled_tasks_and_fold_free():
-  config = phyre_data.PhyreLikeConfig(templates=('stack', 'tower'),
+  config = phyre_writer.PhyreLikeConfig(templates=('stack', 'tower'),
                                       tasks_per_template=4, num_candidates=6,
                                       resolution=(16, 16))
   layouts = p.layout_tasks(config, 3)
@@ -194,9 +193,7 @@ def test_dynamics_layouts_are_never_labelled_tasks_and_fold_free():
 
 
 def test_dynamics_layouts_change_only_their_own_dataset_name():
-  labels = {}
-  plain = phyre_writer.video_family(CONFIG, 8, 0, 0.2, labels)
-  with_layouts = phyre_writer.video_family(CONFIG, 8, 0, 0.2, labels,
-                                           layouts=5)
+  plain = phyre_writer.Videos(CONFIG, 8, 0, 0.2)
+  with_layouts = phyre_writer.Videos(CONFIG, 8, 0, 0.2, layouts=5)
   assert with_layouts.slug == plain.slug + '_l5'
   assert not plain.slug.endswith('_l0')

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from slotformer_jax.data import vqa
-from slotformer_jax.data.convert import questions as qg
+from slotformer_jax.datasets import clevrer_like_questions as qg
 from slotformer_jax.data.events import Collision
 from slotformer_jax.data.events import EventLog
 

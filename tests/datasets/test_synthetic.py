@@ -9,12 +9,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from slotformer_jax.data.write.generate import Output
 from slotformer_jax.data import sources
-from slotformer_jax.data.convert import synthetic
-from slotformer_jax.data.embedded import synthetic as synthetic_data
+from slotformer_jax.datasets import synthetic
 from slotformer_jax.worlds import supersample
 
-TINY = synthetic_data.SyntheticConfig(resolution=(32, 32), num_frames=8,
+TINY = synthetic.SyntheticConfig(resolution=(32, 32), num_frames=8,
                                       num_train=4, num_val=2, num_test=2,
                                       seed=0)
 # Long enough for the launched sphere to reach the static objects.
@@ -50,7 +50,7 @@ def long_videos() -> list[dict[str, np.ndarray]]:
 @pytest.fixture(scope='module')
 def built(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
   root = tmp_path_factory.mktemp('data')
-  return root, synthetic.build_synthetic_dataset(TINY, root, num_workers=1)
+  return root, synthetic.generate(TINY, Output(root, 1))
 
 
 def test_generator_is_deterministic():
@@ -92,7 +92,7 @@ def test_shapes_and_dtypes():
   for key in ('shapes', 'colors', 'sizes'):
     assert (ex[key][:n] >= 0).all() and (ex[key][n:] == -1).all(), key
   # The launched sphere.
-  assert synthetic_data.SHAPES[ex['shapes'][n - 1]] == 'sphere'
+  assert synthetic.SHAPES[ex['shapes'][n - 1]] == 'sphere'
   assert ex['segmentations'].max() <= n
 
 
@@ -206,7 +206,7 @@ def test_boxes_from_segmentation_example():
 def test_build_writes_all_splits_in_order(built):
   _, path = built
   assert path.is_dir() and TINY.slug in os.fspath(path)
-  for split in synthetic_data.SPLITS:
+  for split in synthetic.SPLITS:
     source = sources.TfdsVideoSource(path, split)
     assert len(source) == TINY.num_videos(split)
     for i in range(len(source)):
@@ -225,7 +225,7 @@ def test_cache_is_reused(built, monkeypatch):
     raise AssertionError('generator called although the cache exists')
 
   monkeypatch.setattr(synthetic, 'generate_video', fail)
-  assert synthetic.build_synthetic_dataset(TINY, root, num_workers=1) == path
+  assert synthetic.generate(TINY, Output(root, 1)) == path
   assert {p: p.stat().st_mtime_ns for p in path.iterdir()} == stamps
 
 
@@ -233,7 +233,7 @@ def test_parameter_change_builds_a_new_folder(built):
   root, path = built
   changed = dataclasses.replace(TINY, seed=1, num_train=2, num_val=1,
                                 num_test=1)
-  new_path = synthetic.build_synthetic_dataset(changed, root, num_workers=1)
+  new_path = synthetic.generate(changed, Output(root, 1))
   assert new_path != path and new_path.is_dir() and path.is_dir()
   assert len(sources.TfdsVideoSource(new_path, 'train')) == 2
   # Each parameter alone changes the folder name.
@@ -255,20 +255,18 @@ def test_failed_build_is_not_reused(tmp_path, monkeypatch):
 
   monkeypatch.setattr(synthetic, 'generate_video', flaky)
   with pytest.raises(RuntimeError, match='boom'):
-    synthetic.build_synthetic_dataset(config, tmp_path, num_workers=1)
-  path = synthetic_data.dataset_dir(config, tmp_path)
+    synthetic.generate(config, Output(tmp_path, 1))
+  path = synthetic.dataset_dir(config, tmp_path)
   assert not (path / 'dataset_info.json').exists()
   monkeypatch.setattr(synthetic, 'generate_video', original)
-  assert synthetic.build_synthetic_dataset(config, tmp_path,
-                                           num_workers=1) == path
+  assert synthetic.generate(config, Output(tmp_path, 1)) == path
   assert len(sources.TfdsVideoSource(path, 'train')) == config.num_train
 
 
 def test_parallel_build_matches_serial(built, tmp_path):
   _, serial = built
   config = dataclasses.replace(TINY, num_val=0, num_test=0)  # train only
-  parallel = synthetic.build_synthetic_dataset(config, tmp_path,
-                                               num_workers=2)
+  parallel = synthetic.generate(config, Output(tmp_path, 2))
   a = sources.TfdsVideoSource(serial, 'train')
   b = sources.TfdsVideoSource(parallel, 'train')
   assert len(a) == len(b) == TINY.num_train
@@ -279,8 +277,8 @@ def test_parallel_build_matches_serial(built, tmp_path):
 
 def test_invalid_configs():
   with pytest.raises(ValueError):
-    synthetic_data.SyntheticConfig(min_objects=4, max_objects=3)
+    synthetic.SyntheticConfig(min_objects=4, max_objects=3)
   with pytest.raises(ValueError):
-    synthetic_data.SyntheticConfig(resolution=(4, 4))
+    synthetic.SyntheticConfig(resolution=(4, 4))
   with pytest.raises(ValueError):
     synthetic.generate_video(TINY, 'training', 0)

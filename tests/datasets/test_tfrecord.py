@@ -1,11 +1,12 @@
-"""TFRecord framing and CRC32C without TensorFlow (data/convert/tfrecord.py)."""
+"""TFRecord framing and CRC32C without TensorFlow (data/tfrecord.py)."""
 
 import struct
 
 import numpy as np
 import pytest
 
-from slotformer_jax.data.convert import tfrecord
+from dataset_fixtures import write_tfrecords
+from slotformer_jax.data import tfrecord
 
 
 def reference_crc32c(data: bytes) -> int:
@@ -43,7 +44,7 @@ def test_masked_crc_is_tensorflows():
 def test_round_trip_and_framing(tmp_path):
   records = [b'', b'a', bytes(range(256)) * 50]
   path = tmp_path / 'x.tfrecord'
-  tfrecord.write_records(path, records)
+  write_tfrecords(path, records)
   raw = path.read_bytes()
   # The framing by hand: length, its masked CRC, data, its masked CRC.
   (length,) = struct.unpack('<Q', raw[12 + 4:12 + 4 + 8])
@@ -56,7 +57,7 @@ def test_round_trip_and_framing(tmp_path):
 
 def test_truncated_and_damaged_files_name_the_file(tmp_path):
   path = tmp_path / 'x.tfrecord'
-  tfrecord.write_records(path, [b'x' * 100, b'y' * 100])
+  write_tfrecords(path, [b'x' * 100, b'y' * 100])
   good = path.read_bytes()
   path.write_bytes(good[:-10])
   with pytest.raises(tfrecord.TFRecordError, match='x.tfrecord: truncated'):

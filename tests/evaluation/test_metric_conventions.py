@@ -4,7 +4,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from slotformer_jax.data.convert.clevrer import boxes_from_masks
+from slotformer_jax.datasets.clevrer import boxes_from_masks
 from slotformer_jax.evaluation import evaluate
 from slotformer_jax.evaluation import metrics
 from slotformer_jax.modules.decoders import DecodedSlots

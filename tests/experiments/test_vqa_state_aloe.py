@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from slotformer_jax.data import vqa as vqa_data
-from slotformer_jax.data.embedded.synthetic import COLORS, SHAPES
+from slotformer_jax.datasets.synthetic import COLORS, SHAPES
 
 
 def _bench():

@@ -27,7 +27,7 @@ import official_reference as ref
 from configs import physion_contact
 from slotformer_jax.official import convert as convert_official
 from slotformer_jax.data import vqa_questions
-from slotformer_jax.data.convert import prepare
+from slotformer_jax.data import prepare
 from slotformer_jax.stages import vqa as vqa_stages
 from slotformer_jax.data import vqa as vqa_data
 from slotformer_jax.config.defaults import base_config
@@ -302,7 +302,7 @@ def test_aloe_shape_errors_name_key_and_field(aloe_setup, tmp_path):
   # Another vocabulary than the checkpoint's.
   bigger = vqa_data.Vocabulary(
       dict(vocab.questions, extra=len(vocab.questions)), vocab.answers)
-  bigger.save(tmp_path / 'other.json')
+  (tmp_path / 'other.json').write_text(bigger.to_json())
   config.vqa.vocab_file = str(tmp_path / 'other.json')
   with pytest.raises(families.ConversionError,
                      match=r'q_embedding.weight: checkpoint shape .* '

@@ -12,13 +12,14 @@ import numpy as np
 import pytest
 import tensorflow_datasets as tfds
 
+from slotformer_jax.datasets.base import Conversion
 from slotformer_jax.data import chunked
 from slotformer_jax.data import integrity
 from slotformer_jax.data import pipeline
 from slotformer_jax.data import slots
 from slotformer_jax.data import sources
-from slotformer_jax.data.convert import chunked_writer
-from slotformer_jax.data.convert import writer
+from slotformer_jax.data.write import records as chunked_writer
+from slotformer_jax.data.write import convert as writer
 from slotformer_jax.errors import UserError
 
 LENGTHS = [7, 9, 13, 6, 17, 8, 12, 10]
@@ -308,7 +309,7 @@ def _convert_job(job: _Job) -> dict:
 
 
 def test_the_converter_writes_the_chunked_layout(tmp_path):
-  spec = writer.DatasetSpec(
+  spec = Conversion(
       name='toy', config_name='cfg', description='toy videos', params={},
       features_fn=_features, convert_fn=_convert_job)
   jobs = {'train': [_Job(f'v{i}', i) for i in range(len(LENGTHS))]}
@@ -342,7 +343,7 @@ def _record_options(dataset_dir: Path) -> set[str]:
 
 
 def test_chunks_are_uncompressed_unless_asked_and_read_alike(tmp_path):
-  spec = writer.DatasetSpec(
+  spec = Conversion(
       name='toy', config_name='cfg', description='toy videos', params={},
       features_fn=_features, convert_fn=_convert_job)
   jobs = {'train': [_Job(f'v{i}', i) for i in range(len(LENGTHS))]}
@@ -374,7 +375,7 @@ def test_chunks_are_uncompressed_unless_asked_and_read_alike(tmp_path):
 
 def test_a_conversion_resumed_with_the_other_compression_is_one_line(
     tmp_path):
-  spec = writer.DatasetSpec(
+  spec = Conversion(
       name='toy', config_name='cfg', description='toy videos', params={},
       features_fn=_features, convert_fn=_convert_job)
   jobs = {'train': [_Job(f'v{i}', i) for i in range(len(LENGTHS))]}
@@ -412,15 +413,14 @@ def test_an_old_folder_is_read_and_a_new_conversion_next_to_it_wins(
 
 
 def test_token_batches_with_frames_match_the_old_layout(folders, tmp_path):
-  from slotformer_jax.data import tokens  # pylint: disable=g-import-not-at-top
   rng = np.random.default_rng(0)
   token_dir = str(tmp_path / 'tokens')
-  w = tokens.TokenWriter(token_dir, len(LENGTHS), 4, dvae_step=0)
+  w = slots.TokenWriter(token_dir, len(LENGTHS), 4, dvae_step=0)
   for i, t in enumerate(LENGTHS):
     w.add(i, rng.integers(0, 4096, (t, 4)))
   w.close()
-  old = tokens.TokenSource(token_dir, _open(folders, 0))
-  new = tokens.TokenSource(token_dir, _open(folders, 4))
+  old = slots.TokenSource(token_dir, _open(folders, 0))
+  new = slots.TokenSource(token_dir, _open(folders, 4))
   assert new.supports_clips and not old.supports_clips
   for fields in (('video', 'tokens'), ('tokens', 'video'), ('tokens',)):
     for step in range(4):

@@ -14,7 +14,7 @@ from pipeline_helpers import micro_config
 from pipeline_helpers import run_stages
 from pipeline_helpers import slots_of
 from slotformer_jax.run import Run
-from slotformer_jax.data.sources import get_video_source
+from slotformer_jax.datasets import get_video_source
 from slotformer_jax.errors import ConfigError
 from slotformer_jax.runtime import sharding
 from slotformer_jax.workdir import identity as identity_lib

@@ -10,11 +10,11 @@ import pytest
 from pipeline_helpers import load_config
 from pipeline_helpers import micro_config
 from pipeline_helpers import prepare_data
+from slotformer_jax import datasets
 from slotformer_jax import stages
-from slotformer_jax.data import sources
 from slotformer_jax.data import vqa_questions
-from slotformer_jax.data.data_dir import resolve_data_dir
-from slotformer_jax.data.embedded import phyre_like as phyre_like_data
+from slotformer_jax.data.sources import resolve_data_dir
+from slotformer_jax.datasets import synthetic_phyre as phyre_like_data
 from slotformer_jax.errors import MissingInputError
 from slotformer_jax.run import Run
 from slotformer_jax.runtime import sharding
@@ -71,7 +71,7 @@ def test_opening_missing_embedded_data_names_the_stage_and_writes_nothing(
   config = load_config(name, 'tiny')
   config.data.data_dir = str(tmp_path / 'data')
   (tmp_path / 'data').mkdir()
-  readers = [lambda: sources.get_video_source(config.data, 'train')]
+  readers = [lambda: datasets.get_video_source(config.data, 'train')]
   if name == 'synthetic_vqa':
     readers.append(lambda: vqa_questions.vocabulary(config))
   if name == 'synthetic_phyre':
@@ -92,7 +92,7 @@ def test_the_data_stage_makes_the_data_once(tmp_path):
   prepare_data(config)
   made = _snapshot(tmp_path / 'data')
   assert any(name.endswith('checksums.json') for name in made)
-  assert len(sources.get_video_source(config.data, 'test')) == 4
+  assert len(datasets.get_video_source(config.data, 'test')) == 4
   prepare_data(config)  # the data are there: a stat per file
   assert _snapshot(tmp_path / 'data') == made
 
@@ -105,4 +105,4 @@ def test_a_converted_dataset_that_is_not_there_is_left_to_its_reader(
   assert not (tmp_path / 'data').exists()
   with pytest.raises(MissingInputError,
                      match='slotformer_jax.data.prepare --dataset=obj3d'):
-    sources.get_video_source(config.data, 'train')
+    datasets.get_video_source(config.data, 'train')

@@ -13,10 +13,11 @@ import numpy as np
 import pytest
 
 from dataset_fixtures import data_section
+from slotformer_jax import datasets
 from slotformer_jax.data import pipeline
 from slotformer_jax.data import sources
-from slotformer_jax.data.convert import synthetic
-from slotformer_jax.data.embedded.synthetic import SyntheticConfig
+from slotformer_jax.datasets import synthetic
+from slotformer_jax.datasets.synthetic import SyntheticConfig
 from slotformer_jax.stages import data as data_stage
 
 
@@ -295,7 +296,7 @@ def data_root(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 def test_synthetic_source_through_the_pipeline(data_root):
-  source = sources.get_video_source(_data_config(data_root), 'train')
+  source = datasets.get_video_source(_data_config(data_root), 'train')
   assert len(source) == 4
   item = source[3]
   assert item['video'].shape == (8, 32, 32, 3) and item['video'].dtype == np.uint8
@@ -310,22 +311,24 @@ def test_synthetic_source_through_the_pipeline(data_root):
   assert batch['video'].shape == (3, 4, 32, 32, 3)
   assert batch['segmentations'].shape == (3, 4, 32, 32)
   assert batch['boxes'].shape == (3, 4, 6, 4) and batch['visible'].dtype == bool
-  val = sources.get_video_source(_data_config(data_root), 'val')
+  val = datasets.get_video_source(_data_config(data_root), 'val')
   batches = list(pipeline.eval_batches(val, batch_size=3, num_frames=5))
   assert len(batches) == 1  # 2 videos: one batch of 2, not of 3
   np.testing.assert_array_equal(batches[0]['mask'], [True, True])
   assert batches[0]['video'].shape == (2, 5, 32, 32, 3)
 
 
-@pytest.mark.parametrize('name', sources.REAL_DATASETS)
+@pytest.mark.parametrize('name', sorted(
+    name for name, dataset in datasets.DATASETS.items()
+    if isinstance(dataset, datasets.Converted)))
 def test_missing_real_dataset_error_names_the_path(tmp_path, name):
   config = _data_config(tmp_path, name=name)
   with pytest.raises(FileNotFoundError) as error:
-    sources.get_video_source(config, 'train')
+    datasets.get_video_source(config, 'train')
   message = str(error.value)
   assert str(tmp_path / name) in message
   # MOVi: one converter for every variant (--dataset=movi).
-  command = 'movi' if name in sources.MOVI_DATASETS else name
+  command = 'movi' if name.startswith('movi_') else name
   assert f'python -m slotformer_jax.data.prepare --dataset={command} ' in (
       message)
 
@@ -335,19 +338,19 @@ def test_prepared_real_dataset_is_opened(data_root, tmp_path):
   built = next((data_root / 'synthetic_obj3d').glob('*/2.0.0'))
   target = tmp_path / 'clevrer' / 'clevrer' / 'default' / '1.0.0'
   shutil.copytree(built, target)
-  source = sources.get_video_source(_data_config(tmp_path, name='clevrer'),
+  source = datasets.get_video_source(_data_config(tmp_path, name='clevrer'),
                                     'test')
   assert len(source) == 2 and source[1]['video'].shape == (8, 32, 32, 3)
   with pytest.raises(ValueError, match='64x64'):
-    sources.get_video_source(
+    datasets.get_video_source(
         _data_config(tmp_path, name='clevrer', resolution=(64, 64)), 'test')
   with pytest.raises(ValueError, match='no split'):
-    sources.get_video_source(_data_config(tmp_path, name='clevrer'), 'dev')
+    datasets.get_video_source(_data_config(tmp_path, name='clevrer'), 'dev')
 
 
 def test_unknown_dataset_name(tmp_path):
   with pytest.raises(ValueError, match='Unknown dataset'):
-    sources.get_video_source(_data_config(tmp_path, name='mnist'), 'train')
+    datasets.get_video_source(_data_config(tmp_path, name='mnist'), 'train')
 
 
 def test_default_data_dir(monkeypatch, tmp_path):
@@ -373,8 +376,9 @@ def test_clip_source_starts_each_clip_at_its_frame():
 
 
 def test_clevrer_evaluation_clips_skip_entering_objects():
-  from slotformer_jax.evaluation import clevrer_clips  # pylint: disable=g-import-not-at-top
-  from slotformer_jax.evaluation import evaluate  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.datasets import clevrer as clevrer_clips  # pylint: disable=g-import-not-at-top
+  # evaluation.clips='clevrer' through the registry, as evaluation finds it.
+  rule = datasets.clip_rule('clevrer')
   burn_in, rollout, stride, length = 4, 3, 2, 40
   span = (burn_in + rollout - 1) * stride  # 12 full-rate frames
   seen = clevrer_clips.MIN_BURN_IN_FRAMES_VISIBLE
@@ -386,7 +390,7 @@ def test_clevrer_evaluation_clips_skip_entering_objects():
   entering[:5, 1] = False
   videos = [{'in_view': calm, 'has_annotations': np.bool_(True)},
             {'in_view': entering, 'has_annotations': np.bool_(True)}]
-  clips = evaluate.clevrer_clips(videos, 2, burn_in, rollout, stride)
+  clips = rule(videos, 2, burn_in, rollout, stride)
   assert [s for v, s in clips if v == 0] == list(
       range(0, length - span, span // 2))
   late_entry = lambda start: (start + (burn_in - seen) * stride < 5
@@ -396,7 +400,7 @@ def test_clevrer_evaluation_clips_skip_entering_objects():
   assert late_entry(0) and entering_starts[0] == min(
       s for s in range(length - span) if not late_entry(s))
   with pytest.raises(ValueError, match="'val' split"):
-    evaluate.clevrer_clips(
+    rule(
         [{'in_view': calm, 'has_annotations': np.bool_(False)}], 1, burn_in,
         rollout, stride)
 

@@ -21,7 +21,7 @@ from pipeline_helpers import run_stages
 from pipeline_helpers import slots_of
 from slotformer_jax import slot_models
 from slotformer_jax.run import Run
-from slotformer_jax.data import tokens as tokens_lib
+from slotformer_jax.data import slots as tokens_lib
 from slotformer_jax.data.slots import read_meta
 from slotformer_jax.errors import UserError
 from slotformer_jax.evaluation import metrics as metrics_lib

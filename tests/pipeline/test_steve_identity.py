@@ -16,7 +16,7 @@ from slotformer_jax.slot_models import chain as chain_lib
 from slotformer_jax.slot_models import steve as steve_slots
 from slotformer_jax.stages import stage1
 from slotformer_jax.stages import video_prediction
-from slotformer_jax.data import tokens as tokens_lib
+from slotformer_jax.data import slots as tokens_lib
 from slotformer_jax.data.slots import SlotWriter
 from slotformer_jax.errors import ConfigError
 from slotformer_jax.errors import MissingInputError

@@ -28,7 +28,7 @@ import pytest
 from pipeline_helpers import micro_config
 from pipeline_helpers import run_stages
 from slotformer_jax.config import checks
-from slotformer_jax.data import tokens as tokens_lib
+from slotformer_jax.data import slots as tokens_lib
 from slotformer_jax.data.slots import SlotSource
 from slotformer_jax.data.slots import read_meta
 from slotformer_jax.run import Run

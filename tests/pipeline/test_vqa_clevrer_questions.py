@@ -28,9 +28,9 @@ import dataset_fixtures as fx
 from pipeline_helpers import load_config
 from pipeline_helpers import prepare_data
 from pipeline_helpers import run_stage
-from slotformer_jax.data import sources
+from slotformer_jax import datasets
+from slotformer_jax.data import prepare
 from slotformer_jax.data import vqa_questions
-from slotformer_jax.data.convert import prepare
 from slotformer_jax.data.video_names import NAMES_FILE
 from slotformer_jax.errors import UserError
 from slotformer_jax.run import Run
@@ -178,7 +178,7 @@ def test_a_folder_converted_before_the_names_gets_them_or_names_the_command(
   config = copy.deepcopy(config)
   shutil.copytree(config.data.data_dir, tmp_path / 'data')
   config.data.data_dir = str(tmp_path / 'data')
-  names = sources.real_dataset_dir(config.data) / NAMES_FILE
+  names = datasets.get('clevrer').dataset_dir(config.data) / NAMES_FILE
   recorded = json.loads(names.read_text())
   assert recorded == {'train': ['video_00000', 'video_00002', 'video_00003'],
                       'val': ['video_10799', 'video_10801']}

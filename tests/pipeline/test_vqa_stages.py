@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from pipeline_helpers import prepare_data
-from slotformer_jax.data.data_dir import resolve_data_dir
-from slotformer_jax.data.embedded import clevrer_like
+from slotformer_jax.data.sources import resolve_data_dir
+from slotformer_jax.datasets import clevrer_like
 from slotformer_jax.runtime import sharding
 from slotformer_jax.run import Run
 from slotformer_jax.workdir.paths import Paths

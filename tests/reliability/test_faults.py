@@ -37,7 +37,7 @@ import pipeline_helpers
 from slotformer_jax.workdir import lock as lock_lib
 from slotformer_jax import main as main_lib
 from slotformer_jax.config import checks as config_checks
-from slotformer_jax.data.convert import obj3d
+from slotformer_jax.datasets import obj3d
 from slotformer_jax.errors import UserError
 from slotformer_jax.workdir.lock import FileLock
 from slotformer_jax.runtime import checkpoint as checkpoint_lib
@@ -372,7 +372,7 @@ def test_ctrl_c_during_prepare_is_one_line_and_the_rerun_finishes(tmp_path):
 
 _WAIT_PROGRAM = r'''
 import concurrent.futures, signal, threading, traceback
-from slotformer_jax.data.convert import pool
+from slotformer_jax.data.write import pool
 future = concurrent.futures.Future()
 # Ctrl-C 0.3 s into the wait; the future would finish only after 30 s.
 threading.Timer(0.3, signal.raise_signal, (signal.SIGINT,)).start()

@@ -622,7 +622,7 @@ def _hold_dataset_lock(data_dir):
   """Locks the micro config's synthetic dataset as a live generator on
   this host would (this test's own pid): both processes then wait for it,
   outside any training loop."""
-  from slotformer_jax.data.embedded import synthetic  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.datasets import synthetic  # pylint: disable=g-import-not-at-top
   config = pipeline_helpers.micro_config('savi', data_dir)
   path = synthetic.dataset_dir(
       synthetic.config_from_data_config(config.data), data_dir)

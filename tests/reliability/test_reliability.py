@@ -32,6 +32,8 @@ import ml_collections
 import numpy as np
 import pytest
 
+from slotformer_jax import datasets
+
 from slotformer_jax.config import checks as config_checks
 from slotformer_jax import files
 from slotformer_jax.data import integrity
@@ -398,7 +400,7 @@ def test_damaged_synthetic_cache_is_regenerated(trained, tmp_path, damage,
                                                 caplog):
   config = _config(tmp_path / 'data')
   pipeline_helpers.prepare_data(config)
-  source = sources.get_video_source(config.data, 'train')
+  source = datasets.get_video_source(config.data, 'train')
   expected = source[3]['video']
   record = _record_file(source.dataset_dir)
   data = bytearray(open(record, 'rb').read())
@@ -412,38 +414,38 @@ def test_damaged_synthetic_cache_is_regenerated(trained, tmp_path, damage,
   # The reader refuses it (reading never writes); the data stage, which
   # every --mode runs first, regenerates it.
   with pytest.raises(UserError, match='damaged.*--mode=prepare_data'):
-    sources.get_video_source(config.data, 'train')
+    datasets.get_video_source(config.data, 'train')
   with caplog.at_level(logging.WARNING):
     pipeline_helpers.prepare_data(config)
   assert 'cache is damaged' in caplog.text and 'regenerating' in caplog.text
-  regenerated = sources.get_video_source(config.data, 'train')
+  regenerated = datasets.get_video_source(config.data, 'train')
   np.testing.assert_array_equal(regenerated[3]['video'], expected)
 
 
 def test_an_older_cache_gets_its_checksums_from_the_data_stage(trained):
   config, _ = trained
-  dataset_dir = sources.get_video_source(config.data, 'train').dataset_dir
+  dataset_dir = datasets.get_video_source(config.data, 'train').dataset_dir
   checksums = dataset_dir / integrity.CHECKSUMS_FILE
   recorded = files.read_json(checksums)
   os.remove(checksums)  # as a cache made before checksums were recorded
-  assert len(sources.get_video_source(config.data, 'val')) == 4
+  assert len(datasets.get_video_source(config.data, 'val')) == 4
   assert not checksums.exists()  # the reader writes nothing
   pipeline_helpers.prepare_data(config)
   assert files.read_json(checksums) == recorded
 
 
 def test_damaged_real_dataset_names_the_conversion_command(trained, tmp_path):
-  synthetic_dir = sources.get_video_source(trained[0].data, 'train'
+  synthetic_dir = datasets.get_video_source(trained[0].data, 'train'
                                            ).dataset_dir
   real = tmp_path / 'data' / 'obj3d' / 'cfg' / '1.0.0'
   shutil.copytree(synthetic_dir, real)
   config = _config(tmp_path / 'data')
   config.data.name = 'obj3d'
-  assert len(sources.get_video_source(config.data, 'train')) == 8
+  assert len(datasets.get_video_source(config.data, 'train')) == 8
   record = _record_file(real)
   with open(record, 'r+b') as f:
     f.truncate(os.path.getsize(record) - 100)
-  for read in (lambda: sources.get_video_source(config.data, 'train'),
+  for read in (lambda: datasets.get_video_source(config.data, 'train'),
                lambda: pipeline_helpers.prepare_data(config)):
     with pytest.raises(UserError, match=r'damaged.*slotformer_jax\.data\.'
                        'prepare --dataset=obj3d'):

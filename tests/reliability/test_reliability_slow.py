@@ -130,12 +130,13 @@ def _alive(pid):
 
 GENERATE = '''
 import sys
-from slotformer_jax.data.convert import synthetic
-from slotformer_jax.data.embedded.synthetic import SyntheticConfig
+from slotformer_jax.data.write.generate import Output
+from slotformer_jax.datasets import synthetic
+from slotformer_jax.datasets.synthetic import SyntheticConfig
 if __name__ == '__main__':  # spawn workers re-import this script
   config = SyntheticConfig(resolution=(32, 32), num_frames=12, num_train=64,
                            num_val=2, num_test=2)
-  synthetic.build_synthetic_dataset(config, sys.argv[1], num_workers=2)
+  synthetic.generate(config, Output(sys.argv[1], 2))
   print('done')
 '''
 

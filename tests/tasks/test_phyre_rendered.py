@@ -17,8 +17,8 @@ import pytest
 
 import dataset_fixtures as fx
 from configs import phyre as phyre_config
-from slotformer_jax.data.convert import phyre
-from slotformer_jax.data.convert import prepare
+from slotformer_jax.datasets import phyre
+from slotformer_jax.data import prepare
 from slotformer_jax.errors import ConfigError
 from slotformer_jax.errors import MissingInputError
 from slotformer_jax.tasks import phyre_rendered

@@ -8,7 +8,7 @@ import pytest
 
 from configs import synthetic_contact
 from configs import synthetic_phyre
-from slotformer_jax.data.embedded import phyre_like as phyre_data
+from slotformer_jax.datasets import synthetic_phyre as phyre_data
 from slotformer_jax.run import Run
 from slotformer_jax.stages import contact as contact_stages
 from slotformer_jax.tasks import contact

@@ -42,7 +42,7 @@ def _read(directory):
           e.encoded_image_string)))) for e in accumulator.Images(tag)]
     return scalars, images
   from tensorboardX.proto import event_pb2
-  from slotformer_jax.data.convert import tfrecord
+  from slotformer_jax.data import tfrecord
   for path in files:
     for record in tfrecord.iter_records(path):
       event = event_pb2.Event.FromString(bytes(record))

@@ -1,4 +1,5 @@
-"""CLEVRER: published layout and conversion.
+"""CLEVRER: the dataset, its published layout, its conversion and its
+official evaluation clips.
 
 Published layout (the archives from http://clevrer.csail.mit.edu/, unpacked
 as the official SlotFormer instructions describe)::
@@ -41,7 +42,7 @@ What is stored per video (records in video-index order):
   ``visible``: bool [T, M] (mask non-empty). Row k - 1 is label k.
 * ``in_view``: bool [T, O], the annotation's per-frame ``inside_camera_view``
   of each object: it defines the frames where objects enter, which the
-  official evaluation clips avoid (evaluation/clevrer_clips.py).
+  official evaluation clips avoid (datasets/clevrer.py).
 * ``num_objects``: int32; ``colors``, ``materials``, ``shapes``: int32 [O]
   indices into COLORS / MATERIALS / SHAPES (-1 padding).
 * ``has_annotations``, ``has_masks``: bool (False for the test split, or
@@ -52,6 +53,15 @@ What is stored per video (records in video-index order):
 
 O = ``Options.max_objects`` (6: CLEVRER videos hold at most 6 objects);
 M = O + 1 rows for instances (the official boxes are padded to 7 as well).
+
+Evaluation clips (``evaluation.clips='clevrer'``): an object that comes into
+view during the rollout (or late in the burn-in) cannot be predicted from the
+observed frames, so the official SlotFormer CLEVRER evaluation skips clips
+where one does: per half-clip block of a video, the first start without such
+an entry (:func:`eval_clip_starts`); training with ``filter_enter=True`` uses
+every such start (:func:`train_clip_starts`). Both read ``in_view`` (full
+frame rate); a clip takes frames ``start + i * frame_stride`` for
+``i < burn_in + rollout``.
 """
 
 from __future__ import annotations
@@ -68,9 +78,10 @@ from typing import Any
 import numpy as np
 import tensorflow_datasets as tfds
 
-from slotformer_jax.data.convert import media
-from slotformer_jax.data.convert import writer
+from slotformer_jax.data import media
+from slotformer_jax.datasets import base
 from slotformer_jax.files import int_in_range
+from slotformer_jax.runtime import progress
 
 logger = logging.getLogger(__name__)
 
@@ -111,7 +122,7 @@ _PROPOSAL_RE = re.compile(r'^proposal_(\d+)\.json$')
 
 
 @dataclasses.dataclass(frozen=True)
-class Options:
+class Options(base.ConversionOptions):
   """Conversion parameters.
 
   Attributes:
@@ -128,12 +139,10 @@ class Options:
   num_frames: int = 128
   max_objects: int = 6
   masks: str = 'auto'
+  version = CONVERTER_VERSION
 
   def __post_init__(self):
-    object.__setattr__(self, 'resolution',
-                       tuple(int(r) for r in self.resolution))
-    if len(self.resolution) != 2 or min(self.resolution) < 8:
-      raise ValueError(f'resolution must be (H, W) >= 8, got {self.resolution}')
+    super().__post_init__()
     if self.num_frames < 2:
       raise ValueError(f'num_frames must be >= 2, got {self.num_frames}')
     if not 1 <= self.max_objects <= 253:
@@ -146,15 +155,6 @@ class Options:
   def mask_rows(self) -> int:
     """M: instance rows (annotated objects + room for other proposals)."""
     return self.max_objects + 1
-
-  @property
-  def params(self) -> dict[str, Any]:
-    return {**dataclasses.asdict(self), 'converter_version': CONVERTER_VERSION}
-
-  @property
-  def config_name(self) -> str:
-    h, w = self.resolution
-    return writer.config_name(f'r{h}x{w}_t{self.num_frames}', self.params)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -280,12 +280,7 @@ def rle_size(mask: Mapping[str, Any]) -> tuple[int, int]:
 # ----------------------------------------------------------------------------
 
 
-def layout_error(source: Path, missing: Path,
-                 detail: str = '') -> FileNotFoundError:
-  """The error for a missing part of the published layout."""
-  return FileNotFoundError(
-      f'CLEVRER: {missing} not found{detail}. Expected the published layout '
-      f'under --source={source}:\n{LAYOUT}')
+layout_error = functools.partial(base.layout_error, 'CLEVRER', LAYOUT)
 
 
 def _index_files(folder: Path, pattern: re.Pattern[str],
@@ -672,7 +667,7 @@ def convert_video(job: VideoJob, options: Options) -> dict[str, Any]:
 def features(options: Options) -> tfds.features.FeaturesDict:
   t, (h, w), o = options.num_frames, options.resolution, options.max_objects
   m = options.mask_rows
-  tensor = writer.tensor
+  tensor = base.tensor
   return tfds.features.FeaturesDict({
       'video': tensor((t, h, w, 3), np.uint8),
       'segmentations': tensor((t, h, w), np.uint8),
@@ -693,15 +688,149 @@ def features(options: Options) -> tfds.features.FeaturesDict:
   })
 
 
-def dataset_spec(options: Options, source: Path) -> writer.DatasetSpec:
-  del source
+def describe(options: Options) -> str:
   h, w = options.resolution
-  return writer.DatasetSpec(
-      name=NAME, config_name=options.config_name,
-      description=(f'CLEVRER: {options.num_frames} full-rate frames per video '
-                   f'at {h}x{w} (RGB), derender-proposal masks with '
-                   'annotation-consistent object ids, per-frame '
-                   'inside_camera_view, VQA questions as JSON text.'),
-      params=options.params,
-      features_fn=functools.partial(features, options),
-      convert_fn=functools.partial(convert_video, options=options))
+  return (f'CLEVRER: {options.num_frames} full-rate frames per video at '
+          f'{h}x{w} (RGB), derender-proposal masks with '
+          'annotation-consistent object ids, per-frame '
+          'inside_camera_view, VQA questions as JSON text.')
+
+
+# ----------------------------------------------------------------------------
+# The official evaluation clips (no object entering late)
+# ----------------------------------------------------------------------------
+
+# Official filter: an object entering during the burn-in must be visible in
+# at least this many burn-in frames.
+MIN_BURN_IN_FRAMES_VISIBLE = 3
+
+
+def entering_frames(in_view: np.ndarray) -> np.ndarray:
+  """int64 [K]: frames t where some object goes from out of view to in view.
+
+  ``in_view``: bool [T, O] as stored (full frame rate). As in the official
+  code, an object visible from frame 0 does not enter, and a frame counts
+  once however many objects enter in it.
+  """
+  in_view = np.asarray(in_view, bool)
+  entered = (~in_view[:-1] & in_view[1:]).any(axis=1)
+  return np.nonzero(entered)[0].astype(np.int64) + 1
+
+
+def clip_has_entering_object(
+    enter_frames: np.ndarray, start: int, burn_in: int, rollout: int,
+    frame_stride: int,
+    min_burn_in_visible: int = MIN_BURN_IN_FRAMES_VISIBLE) -> bool:
+  """Whether an object enters too late in the clip to be evaluated.
+
+  The clip takes frames ``start + i * frame_stride`` for ``i < burn_in +
+  rollout``. Following the official filter, an entry counts when it
+  happens after clip frame ``burn_in - min_burn_in_visible`` (so the object
+  would be seen in fewer than ``min_burn_in_visible`` burn-in frames) and no
+  later than the last clip frame. Frame numbers are full-rate.
+  """
+  first = start + (burn_in - min_burn_in_visible) * frame_stride
+  last = start + (burn_in + rollout - 1) * frame_stride
+  enter_frames = np.asarray(enter_frames)
+  return bool(((enter_frames > first) & (enter_frames <= last)).any())
+
+
+def clevrer_eval_filter(item: Mapping[str, Any], burn_in: int, rollout: int,
+                        frame_stride: int, start: int = 0) -> bool:
+  """True if the clip of ``item`` at ``start`` may be used for evaluation.
+
+  Args:
+    item: a stored CLEVRER video (full frame rate, as read from the source),
+      with ``in_view`` and ``has_annotations``.
+    burn_in, rollout: clip frames observed / predicted.
+    frame_stride: temporal subsampling (2 in the paper).
+    start: first full-rate frame of the clip.
+
+  Returns:
+    False if an object enters during the rollout (or late in the burn-in,
+    see :func:`clip_has_entering_object`) or the clip does not fit in the
+    video; True otherwise.
+
+  Raises:
+    ValueError: the item has no annotations (test split).
+  """
+  if not bool(np.asarray(item['has_annotations'])):
+    raise ValueError('this CLEVRER video has no annotations (test split); '
+                     'the entering-object filter needs them')
+  in_view = np.asarray(item['in_view'])
+  last = start + (burn_in + rollout - 1) * frame_stride
+  if start < 0 or last >= in_view.shape[0]:
+    return False
+  return not clip_has_entering_object(entering_frames(in_view), start,
+                                      burn_in, rollout, frame_stride)
+
+
+def train_clip_starts(in_view: np.ndarray, burn_in: int, rollout: int,
+                      frame_stride: int) -> np.ndarray:
+  """int64 [K]: every start whose clip has no late entering object.
+
+  The official SlotFormer CLEVRER training set (``filter_enter=True``).
+  """
+  num_frames = np.asarray(in_view).shape[0]
+  enter = entering_frames(in_view)
+  span = (burn_in + rollout - 1) * frame_stride
+  return np.asarray([
+      s for s in range(num_frames - span)
+      if not clip_has_entering_object(enter, s, burn_in, rollout,
+                                      frame_stride)], np.int64)
+
+
+def eval_clip_starts(in_view: np.ndarray, burn_in: int, rollout: int,
+                     frame_stride: int) -> np.ndarray:
+  """int64 [K]: the official evaluation clips of one video.
+
+  The video is cut into blocks of half a clip span; in each block the first
+  start without a late entering object is taken (none if all have one).
+  Like the official loop, the last possible start is never a block start.
+  """
+  num_frames = np.asarray(in_view).shape[0]
+  enter = entering_frames(in_view)
+  span = (burn_in + rollout - 1) * frame_stride
+  interval = max(1, span // 2)
+  starts = []
+  for block in range(0, num_frames - span, interval):
+    for start in range(block, min(block + interval, num_frames - span)):
+      if not clip_has_entering_object(enter, start, burn_in, rollout,
+                                      frame_stride):
+        starts.append(start)
+        break
+  return np.asarray(starts, np.int64)
+
+
+def evaluation_clips(videos: Any, num_videos: int, burn_in: int,
+                     rollout: int, frame_stride: int
+                     ) -> list[tuple[int, int]]:
+  """(video, start) of the official CLEVRER evaluation clips of the first
+  `num_videos` videos (items with `in_view` [T, O] and `has_annotations`)."""
+  clips = []
+  for video in progress.bar(range(num_videos), desc='find evaluation clips',
+                            unit='video'):
+    item = videos[video]
+    if not bool(np.asarray(item.get('has_annotations', True))):
+      raise ValueError(
+          f'video {video} has no CLEVRER annotations (the test split has '
+          "none); evaluate on the 'val' split")
+    starts = eval_clip_starts(item['in_view'], burn_in, rollout,
+                              frame_stride)
+    clips += [(video, int(start)) for start in starts]
+  if not clips:
+    raise ValueError('no CLEVRER evaluation clip without entering objects '
+                     f'in the first {num_videos} videos')
+  return clips
+
+
+DATASET = base.register(base.Converted(
+    names=(NAME,), label='CLEVRER', command=NAME, splits=SPLITS,
+    layout=LAYOUT, features=functools.partial(features, Options()),
+    # The official models read the videos with OpenCV (nerv's VideoReader
+    # without to_rgb): converted frames are RGB, handed out as BGR with
+    # data.channel_order='bgr'.
+    official_channel_order='bgr',
+    clip_rules={'clevrer': evaluation_clips},
+    options=Options, discover=discover, convert=convert_video,
+    stored=features, describe=describe))

@@ -47,10 +47,10 @@ import numpy as np
 from slotformer_jax.data.events import NUM_VERDICTS
 from slotformer_jax.data.events import Collision
 from slotformer_jax.data.events import EventLog
-from slotformer_jax.data.embedded.synthetic import COLORS
-from slotformer_jax.data.embedded.synthetic import SHAPES
+from slotformer_jax.datasets.synthetic import COLORS
+from slotformer_jax.datasets.synthetic import SHAPES
 
-# Bump QUESTIONS_VERSION (data/embedded/clevrer_like.py) when the questions
+# Bump QUESTIONS_VERSION (datasets/clevrer_like.py) when the questions
 # generated from an event log change: a built dataset then regenerates its
 # questions from its stored event logs (the videos do not change).
 

@@ -13,12 +13,13 @@ tested without downloading anything:
   with pybullet's CPU TinyRenderer, returning RGB, instance masks, boxes, ...;
 * :func:`generate_video` ties the two together, deterministically per
   ``(seed, split, index)``;
-* :func:`build_synthetic_dataset` writes the three splits (:func:`features`)
-  once as a chunked ``array_record`` TFDS folder (``data/chunked.py``) into a
-  cache folder whose name encodes every generation parameter, if needed
-  (the data stage runs it). The parameters (:class:`SyntheticConfig`), the
-  folder they name and the labels of the stored ids are the reader's:
-  :mod:`slotformer_jax.data.embedded.synthetic`.
+* :func:`generate` writes the three splits (:func:`features`) once as a
+  chunked ``array_record`` TFDS folder (``data/chunked.py``) into a cache
+  folder whose name encodes every generation parameter
+  (:class:`SyntheticConfig`), if needed (the data stage runs it, under a
+  lock); ``data.name='synthetic'``. The stored ``shapes`` / ``colors`` /
+  ``sizes`` ids index SHAPES / COLORS / SIZES (the CLEVRER-like and contact
+  datasets reuse its objects, hence these names).
 
 Coordinates: world x points right, y away from the camera (into the scene), z up;
 lengths are metres, time is seconds.
@@ -32,9 +33,9 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import hashlib
 import json
 import os
-import shutil
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -43,20 +44,126 @@ import numpy as np
 import pybullet
 import tensorflow_datasets as tfds
 
-from slotformer_jax.data.convert import chunked_writer
-from slotformer_jax.data.convert.pool import ordered_map
-from slotformer_jax.data.data_dir import resolve_data_dir
-from slotformer_jax.data.embedded import folders
-from slotformer_jax.data.embedded.synthetic import COLORS
-from slotformer_jax.data.embedded.synthetic import NAME
-from slotformer_jax.data.embedded.synthetic import SHAPES
-from slotformer_jax.data.embedded.synthetic import SIZES
-from slotformer_jax.data.embedded.synthetic import SPLITS
-from slotformer_jax.data.embedded.synthetic import SyntheticConfig
-from slotformer_jax.data.embedded.synthetic import dataset_dir
-from slotformer_jax.workdir.lock import FileLock
+from slotformer_jax.data import sources
+from slotformer_jax.datasets import base
 from slotformer_jax.worlds.supersample import downsample_rgb
 from slotformer_jax.worlds.supersample import downsample_segmentation
+
+# Bump whenever the generator's output changes for identical parameters: it is
+# part of the cache folder name, so stale caches are never reused.
+GENERATOR_VERSION = 1
+
+# The TFDS builder's name: the family's folder under the data dir.
+NAME = 'synthetic_obj3d'
+SPLITS: tuple[str, ...] = ('train', 'val', 'test')
+
+# What the stored ids mean: shapes[k], colors[k], sizes[k] index these.
+SHAPES: tuple[str, ...] = ('cube', 'sphere', 'cylinder')
+COLORS: tuple[str, ...] = (
+    'gray', 'red', 'blue', 'green', 'brown', 'purple', 'cyan', 'yellow')
+SIZES: tuple[str, ...] = ('small', 'large')
+
+
+@dataclasses.dataclass(frozen=True)
+class SyntheticConfig:
+  """Generation parameters; together they identify a cached dataset.
+
+  Attributes:
+    resolution: (H, W) of the output frames.
+    num_frames: T, frames per video.
+    min_objects: minimum number of static objects per video.
+    max_objects: maximum number of static objects (the launched sphere comes on
+      top, so per-object arrays have ``max_objects + 1`` rows). Up to 7 fit
+      the layout region comfortably; 8 is slow to place, 10 does not fit.
+    seed: base seed; video ``i`` of split ``s`` uses ``(seed, s, i)``.
+    num_train, num_val, num_test: videos per split (0 skips a split).
+    supersample: render at ``supersample`` x the resolution and area-average
+      (anti-aliasing); masks are downsampled by majority vote.
+    object_scale: multiplies every object's size (larger objects cover more
+      pixels, which matters at low resolution).
+    distinct_colors: no two objects of a video share a colour (at most
+      len(COLORS) objects).
+  """
+
+  resolution: tuple[int, int] = (64, 64)
+  num_frames: int = 40
+  min_objects: int = 3
+  max_objects: int = 5
+  seed: int = 0
+  num_train: int = 1000
+  num_val: int = 100
+  num_test: int = 100
+  supersample: int = 2
+  object_scale: float = 1.0
+  distinct_colors: bool = False
+
+  def __post_init__(self):
+    # Accept lists (e.g. from ml_collections) but store a hashable tuple.
+    object.__setattr__(self, 'resolution', tuple(int(r) for r in self.resolution))
+    if len(self.resolution) != 2 or min(self.resolution) < 8:
+      raise ValueError(f'resolution must be (H, W) >= 8, got {self.resolution}')
+    if self.num_frames < 1:
+      raise ValueError(f'num_frames must be >= 1, got {self.num_frames}')
+    if not 1 <= self.min_objects <= self.max_objects:
+      raise ValueError('need 1 <= min_objects <= max_objects, got '
+                       f'{self.min_objects}..{self.max_objects}')
+    if self.max_objects + 1 > 254:
+      raise ValueError('uint8 masks hold at most 254 objects')
+    if min(self.num_train, self.num_val, self.num_test) < 0:
+      raise ValueError('split sizes must be >= 0')
+    if self.seed < 0:
+      raise ValueError(f'seed must be >= 0, got {self.seed}')
+    if self.supersample < 1:
+      raise ValueError(f'supersample must be >= 1, got {self.supersample}')
+    if self.distinct_colors and self.max_objects + 1 > len(COLORS):
+      raise ValueError(f'distinct_colors allows at most {len(COLORS) - 1} '
+                       f'static objects, got max_objects={self.max_objects}')
+    if not 0.25 <= self.object_scale <= 2.0:
+      raise ValueError(
+          f'object_scale must be in [0.25, 2], got {self.object_scale}')
+
+  @property
+  def max_objects_total(self) -> int:
+    """O: rows of the per-object arrays (static objects + launched sphere)."""
+    return self.max_objects + 1
+
+  def num_videos(self, split: str) -> int:
+    return {'train': self.num_train, 'val': self.num_val,
+            'test': self.num_test}[split]
+
+  @property
+  def slug(self) -> str:
+    """A readable, unique folder name for these parameters (+ code version)."""
+    h, w = self.resolution
+    payload = json.dumps(
+        {**dataclasses.asdict(self), 'generator_version': GENERATOR_VERSION},
+        sort_keys=True)
+    digest = hashlib.sha256(payload.encode()).hexdigest()[:8]
+    return (f'r{h}x{w}_t{self.num_frames}_o{self.min_objects}-{self.max_objects}'
+            f'_s{self.seed}_n{self.num_train}-{self.num_val}-{self.num_test}'
+            f'_aa{self.supersample}_{digest}')
+
+
+
+def config_from_data_config(data_config: Any) -> SyntheticConfig:
+  """The generation parameters named by a data config (the dataclass's
+  defaults for those it does not name)."""
+  defaults = SyntheticConfig()
+  values = {}
+  for field in dataclasses.fields(SyntheticConfig):
+    if field.name in data_config:
+      # As the default's type (an int given for object_scale is a float):
+      # the dataset's folder name hashes these values.
+      kind = type(getattr(defaults, field.name))
+      values[field.name] = kind(data_config[field.name])
+  return SyntheticConfig(**values)
+
+
+def dataset_dir(config: SyntheticConfig,
+                data_dir: str | os.PathLike[str]) -> Path:
+  """The TFDS version folder of ``config`` under cache root ``data_dir``."""
+  return sources.generated_dir(data_dir, NAME, config.slug)
+
 
 # CLEVR's palette (in the order of COLORS); green and brown are lifted a
 # little because CLEVR's are so dark that, under TinyRenderer's flat
@@ -440,11 +547,6 @@ def generate_video(config: SyntheticConfig, split: str, index: int
 # ----------------------------------------------------------------------------
 
 
-# Raw bytes. Measured on 64x64x40 videos (2 cores): the default NONE stores
-# uint8 as varint int64 lists and reads ~200 videos/s; ZLIB ~700 videos/s;
-# BYTES ~1,300-1,800 videos/s. The files are the same size (~22 KB per
-# video) for all three, as array_record already compresses every record.
-TENSOR_ENCODING = tfds.features.Encoding.BYTES
 DESCRIPTION = ('OBJ3D-like synthetic videos rendered with pybullet: static '
                'CLEVR objects hit by a launched sphere.')
 
@@ -453,11 +555,7 @@ def features(g: SyntheticConfig) -> tfds.features.FeaturesDict:
   """The fields of :func:`generate_video` (tensors stored as raw bytes)."""
   h, w = g.resolution
   t, o = g.num_frames, g.max_objects_total
-
-  def tensor(shape: tuple[int, ...], dtype: Any) -> tfds.features.Tensor:
-    return tfds.features.Tensor(shape=shape, dtype=dtype,
-                                encoding=TENSOR_ENCODING)
-
+  tensor = base.tensor
   return tfds.features.FeaturesDict({
       'video': tensor((t, h, w, 3), np.uint8),
       'segmentations': tensor((t, h, w), np.uint8),
@@ -472,51 +570,32 @@ def features(g: SyntheticConfig) -> tfds.features.FeaturesDict:
   })
 
 
-def _example_for_worker(config: SyntheticConfig, split: str, index: int
-                        ) -> dict[str, np.ndarray]:
-  # Module-level (picklable) so it can run in a spawned worker process.
-  return generate_video(config, split, index)
-
-
-def build_synthetic_dataset(config: SyntheticConfig,
-                            data_dir: str | os.PathLike[str] | None = None,
-                            *, num_workers: int | None = None) -> Path:
+def generate(config: SyntheticConfig, out: base.Output) -> Path:
   """Generates the dataset into the cache unless it is already there.
 
   Args:
     config: generation parameters; they determine the folder
       ``<data_dir>/synthetic_obj3d/<config.slug>/2.0.0``.
-    data_dir: cache root; default :func:`data_dir.default_data_dir`.
-    num_workers: generator processes (default: all cores).
+    out: what to write with (the data stage's).
 
   Returns:
     The TFDS version folder, readable with ``tfds.builder_from_directory``.
   """
-  root = resolve_data_dir(data_dir)
-  path = dataset_dir(config, root)
-  # Checked here (rather than letting tfds do it): constructing the builder
-  # logs a warning.
-  if folders.is_complete(path):
-    return path
-  # One generator per dataset; a generator killed earlier left its
-  # temporary folder behind, which the lock holder may remove.
-  with FileLock(os.fspath(path.parent / f'.{path.name}.lock'),
-                what=f'the synthetic dataset {path}', wait=True,
-                fix='set $SLOTFORMER_DATA_DIR or --config.data.data_dir to '
-                'a folder you can write'):
-    if folders.is_complete(path):  # built while we waited
-      return path
-    for leftover in path.parent.glob(f'incomplete.*_{path.name}'):
-      shutil.rmtree(leftover, ignore_errors=True)
-    # Record i of a split is video i (ordered_map keeps the index order).
-    splits = [s for s in SPLITS if config.num_videos(s) > 0]
-    chunked_writer.write_folder(
-        path, name=NAME, features=features(config), description=DESCRIPTION,
-        splits={s: ordered_map(functools.partial(_example_for_worker,
-                                                 config, s),
-                               config.num_videos(s), num_workers)
-                for s in splits},
-        sizes={s: config.num_videos(s) for s in splits},
-        metadata={'generation': json.loads(json.dumps(
-            dataclasses.asdict(config)))})
-  return path
+  path = dataset_dir(config, out.data_dir)
+  splits = [s for s in SPLITS if config.num_videos(s) > 0]
+  # One generator per dataset: processes sharing a data dir make it once.
+  return out.tfds_folder(
+      path, name=NAME, features=features(config), description=DESCRIPTION,
+      split_sizes={s: config.num_videos(s) for s in splits},
+      make=functools.partial(generate_video, config),
+      metadata={'generation': json.loads(json.dumps(
+          dataclasses.asdict(config)))},
+      lock=f'the synthetic dataset {path}')
+
+
+DATASET = base.register(base.Generated(
+    names=('synthetic',), label='OBJ3D-like', splits=SPLITS,
+    features=functools.partial(features, SyntheticConfig()),
+    what='the synthetic dataset', parameters=config_from_data_config,
+    folder=dataset_dir, generate=generate,
+    split_sizes=lambda config: {s: config.num_videos(s) for s in SPLITS}))

@@ -52,8 +52,8 @@ from typing import Any
 import numpy as np
 import tensorflow_datasets as tfds
 
-from slotformer_jax.data.convert import media
-from slotformer_jax.data.convert import writer
+from slotformer_jax.data import media
+from slotformer_jax.datasets import base
 from slotformer_jax.errors import shown
 from slotformer_jax.files import UntrustedFileError
 from slotformer_jax.files import confined
@@ -133,7 +133,7 @@ _SUBSETS: Mapping[str, tuple[str, str]] = {
 
 
 @dataclasses.dataclass(frozen=True)
-class Options:
+class Options(base.ConversionOptions):
   """Conversion parameters.
 
   Attributes:
@@ -149,12 +149,10 @@ class Options:
   num_frames: int = 150
   val_fraction: float = 0.05
   split_files: str | None = None
+  version = CONVERTER_VERSION
 
   def __post_init__(self):
-    object.__setattr__(self, 'resolution',
-                       tuple(int(r) for r in self.resolution))
-    if len(self.resolution) != 2 or min(self.resolution) < 8:
-      raise ValueError(f'resolution must be (H, W) >= 8, got {self.resolution}')
+    super().__post_init__()
     if self.num_frames < 1:
       raise ValueError(f'num_frames must be >= 1, got {self.num_frames}')
     if not 0.0 <= self.val_fraction < 1.0:
@@ -163,17 +161,11 @@ class Options:
 
   @property
   def params(self) -> dict[str, Any]:
-    params = {**dataclasses.asdict(self),
-              'converter_version': CONVERTER_VERSION}
+    params = super().params
     if self.split_files is not None:
       # The lists' content, not their location, decides the splits.
       params['split_files'] = _split_files_digest(Path(self.split_files))
     return params
-
-  @property
-  def config_name(self) -> str:
-    h, w = self.resolution
-    return writer.config_name(f'r{h}x{w}_t{self.num_frames}', self.params)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -205,12 +197,7 @@ def _split_files_digest(folder: Path) -> str:
   return digest.hexdigest()[:16]
 
 
-def layout_error(source: Path, missing: Path,
-                 detail: str = '') -> FileNotFoundError:
-  """The error for a missing part of the published layout."""
-  return FileNotFoundError(
-      f'Physion: {missing} not found{detail}. Expected the published layout '
-      f'under --source={source}:\n{LAYOUT}')
+layout_error = functools.partial(base.layout_error, 'Physion', LAYOUT)
 
 
 def stimulus_name(file_name: str) -> str:
@@ -425,7 +412,7 @@ def convert_video(job: VideoJob, options: Options) -> dict[str, Any]:
 def features(options: Options) -> tfds.features.FeaturesDict:
   h, w = options.resolution
   return tfds.features.FeaturesDict({
-      'video': writer.tensor((None, h, w, 3), np.uint8),
+      'video': base.tensor((None, h, w, 3), np.uint8),
       'label': tfds.features.Scalar(np.int32),
       'scenario': tfds.features.Scalar(np.int32),
       'bad_stimulus': tfds.features.Scalar(np.bool_),
@@ -433,14 +420,18 @@ def features(options: Options) -> tfds.features.FeaturesDict:
   })
 
 
-def dataset_spec(options: Options, source: Path) -> writer.DatasetSpec:
-  del source
+def describe(options: Options) -> str:
   h, w = options.resolution
-  return writer.DatasetSpec(
-      name=NAME, config_name=options.config_name,
-      description=(f'Physion: first {options.num_frames} frames per video at '
-                   f'{h}x{w} (RGB), contact labels for the Readout Fitting '
-                   'and Testing subsets.'),
-      params=options.params,
-      features_fn=functools.partial(features, options),
-      convert_fn=functools.partial(convert_video, options=options))
+  return (f'Physion: first {options.num_frames} frames per video at '
+          f'{h}x{w} (RGB), contact labels for the Readout Fitting '
+          'and Testing subsets.')
+
+
+DATASET = base.register(base.Converted(
+    names=(NAME,), label='Physion', command=NAME, splits=SPLITS,
+    layout=LAYOUT, features=functools.partial(features, Options()),
+    # The official frames were written to JPEG by cv2.imwrite (colours
+    # kept) and read back with PIL's convert('RGB').
+    official_channel_order='rgb',
+    options=Options, discover=discover, convert=convert_video,
+    stored=features, describe=describe))

@@ -1,10 +1,11 @@
 """Writing the chunked record layout (``data/chunked.py``): videos into
-records, and whole folders.
+records, whole folders, and the checksums the readers verify.
 
-:func:`write_folder` writes a complete TFDS folder (the embedded families;
+:func:`write_folder` writes a complete TFDS folder (the generated datasets;
 tests and benchmarks with ``frames_per_chunk=0`` for the whole-video
-layout); ``writer.py`` writes converted datasets shard by shard with
-:class:`VideoSerializer` and :func:`write_index`.
+layout); ``convert.py`` writes converted datasets shard by shard with
+:class:`VideoSerializer` and :func:`write_index`; :func:`record_checksums`
+writes ``checksums.json`` (``data/integrity.py`` verifies it).
 """
 
 from __future__ import annotations
@@ -26,11 +27,20 @@ from slotformer_jax.data.chunked import Layout
 from slotformer_jax.data.chunked import RECORD_OPTIONS
 from slotformer_jax.data.chunked import UNCOMPRESSED_RECORD_OPTIONS
 from slotformer_jax.data.chunked import TFDS_VERSION
-from slotformer_jax.data.convert.checksums import record_checksums
+from slotformer_jax.data.integrity import CHECKSUMS_FILE
+from slotformer_jax.data.integrity import checksummed_files
+from slotformer_jax.data.integrity import file_entry
 from slotformer_jax.files import write_json_atomic
 
 # The TFDS version folder of the whole-video layout before the chunked one.
 WHOLE_VIDEO_VERSION = '1.0.0'
+
+
+def record_checksums(dataset_dir: str | os.PathLike[str]) -> None:
+  """Writes checksums.json for every record / metadata file of the folder."""
+  dataset_dir = Path(dataset_dir)
+  write_json_atomic(dataset_dir / CHECKSUMS_FILE, {
+      p.name: file_entry(p) for p in checksummed_files(dataset_dir)})
 
 
 def _serializer(features: tfds.features.FeaturesDict | None) -> Any:

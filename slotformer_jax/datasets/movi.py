@@ -1,4 +1,5 @@
-"""Kubric's MOVi (MOVi-A ... MOVi-F, TFDS): layout and conversion.
+"""Kubric's MOVi (MOVi-A ... MOVi-F, TFDS): the datasets (one name per
+variant, one converter), their layout and conversion.
 
 Published layout: a TFDS version folder, as on Kubric's public bucket
 (``gs://kubric-public/tfds/movi_a/128x128/1.0.0``; 256x256 too)::
@@ -76,9 +77,9 @@ import tensorflow_datasets as tfds
 from google.protobuf.message import DecodeError
 from PIL import Image
 
-from slotformer_jax.data.convert import media
-from slotformer_jax.data.convert import tfrecord
-from slotformer_jax.data.convert import writer
+from slotformer_jax.data import media
+from slotformer_jax.data import tfrecord
+from slotformer_jax.datasets import base
 from slotformer_jax.errors import shown
 from slotformer_jax.files import UntrustedFileError
 from slotformer_jax.files import confined
@@ -481,7 +482,7 @@ def available_splits(source: Path) -> tuple[str, ...]:
 
 
 @dataclasses.dataclass(frozen=True)
-class Options:
+class Options(base.ConversionOptions):
   """Conversion parameters.
 
   Attributes:
@@ -492,12 +493,10 @@ class Options:
 
   resolution: tuple[int, int] = DEFAULT_RESOLUTION
   max_objects: int | None = None
+  version = CONVERTER_VERSION
 
   def __post_init__(self):
-    object.__setattr__(self, 'resolution',
-                       tuple(int(r) for r in self.resolution))
-    if len(self.resolution) != 2 or min(self.resolution) < 8:
-      raise ValueError(f'resolution must be (H, W) >= 8, got {self.resolution}')
+    super().__post_init__()
     if self.max_objects is not None and not 1 <= self.max_objects <= 255:
       raise ValueError(f'max_objects must be in [1, 255], got '
                        f'{self.max_objects}')
@@ -698,7 +697,7 @@ def convert_record(job: RecordJob, plan: _Plan) -> dict[str, Any]:
   """Reads, checks and converts one MOVi record.
 
   Raises:
-    writer.ConversionError: a damaged record (checksum, Example proto, PNG,
+    base.ConversionError: a damaged record (checksum, Example proto, PNG,
       or content that contradicts features.json), naming the file.
   """
   where = f'{job.shard} record {job.span.index}'
@@ -734,13 +733,13 @@ def convert_record(job: RecordJob, plan: _Plan) -> dict[str, Any]:
                        f'{count} instances')
     video_name = _text(example[_VIDEO_NAME])
   except tfrecord.TFRecordError as error:
-    raise writer.ConversionError(f'{error}: download this file again') from None
+    raise base.ConversionError(f'{error}: download this file again') from None
   except (Exception, DecodeError) as error:  # pylint: disable=broad-except
     # A record that passed its checksum but does not decode (protobuf, PNG,
     # shapes, a name that is not UTF-8): the file was written wrongly or is
     # not MOVi; name it. Anything the parsers raise on crafted bytes counts.
     detail = shown(str(error).splitlines()[0], 300) if str(error) else ''
-    raise writer.ConversionError(
+    raise base.ConversionError(
         f'{where}: unreadable MOVi example ({type(error).__name__}: '
         f'{detail}); download this file again') from None
 
@@ -755,7 +754,7 @@ def convert_record(job: RecordJob, plan: _Plan) -> dict[str, Any]:
     box_list = np.asarray(box_list, np.float32).reshape(-1, 4)
     if len(frame_list) != len(box_list) or (
         len(frame_list) and not 0 <= frame_list.min() <= frame_list.max() < t):
-      raise writer.ConversionError(
+      raise base.ConversionError(
           f'{where}: instance {k} has {len(box_list)} boxes for frames '
           f'{frame_list.tolist()}; download this file again')
     boxes[frame_list, k] = box_list
@@ -790,19 +789,19 @@ def features(num_frames: int, resolution: Sequence[int], rows: int
   h, w = resolution
   t = num_frames
   return tfds.features.FeaturesDict({
-      'video': writer.tensor((t, h, w, 3), np.uint8),
-      'segmentations': writer.tensor((t, h, w), np.uint8),
-      'boxes': writer.tensor((t, rows, 4), np.float32),
-      'visible': writer.tensor((t, rows), np.bool_),
-      'positions': writer.tensor((t, rows, 3), np.float32),
-      'velocities': writer.tensor((t, rows, 3), np.float32),
-      'image_positions': writer.tensor((t, rows, 2), np.float32),
-      'num_instances': writer.tensor((), np.int32),
+      'video': base.tensor((t, h, w, 3), np.uint8),
+      'segmentations': base.tensor((t, h, w), np.uint8),
+      'boxes': base.tensor((t, rows, 4), np.float32),
+      'visible': base.tensor((t, rows), np.bool_),
+      'positions': base.tensor((t, rows, 3), np.float32),
+      'velocities': base.tensor((t, rows, 3), np.float32),
+      'image_positions': base.tensor((t, rows, 2), np.float32),
+      'num_instances': base.tensor((), np.int32),
       'video_name': tfds.features.Text(),
   })
 
 
-def dataset_spec(options: Options, source: Path) -> writer.DatasetSpec:
+def conversion(options: Options, source: Path) -> base.Conversion:
   info = read_source(Path(source))
   rows = instance_rows(options, info)
   h, w = options.resolution
@@ -816,9 +815,9 @@ def dataset_spec(options: Options, source: Path) -> writer.DatasetSpec:
                source_resolution=info.resolution,
                resolution=options.resolution, rows=rows)
   sh, sw = info.resolution
-  return writer.DatasetSpec(
+  return base.Conversion(
       name=info.name,
-      config_name=writer.config_name(f'r{h}x{w}_t{info.num_frames}_m{rows}',
+      config_name=base.digest_name(f'r{h}x{w}_t{info.num_frames}_m{rows}',
                                      params),
       description=(f'Kubric {info.name} {info.version} ({sh}x{sw} TFDS) at '
                    f'{h}x{w}: video, instance segmentations (0 background, '
@@ -828,3 +827,16 @@ def dataset_spec(options: Options, source: Path) -> writer.DatasetSpec:
       features_fn=functools.partial(features, info.num_frames,
                                     options.resolution, rows),
       convert_fn=functools.partial(convert_record, plan=plan))
+
+
+# One name per variant: `data.name='movi_a'` reads what --dataset=movi made of
+# a MOVi-A download.
+DATASET = base.register(base.Converted(
+    names=tuple(MAX_INSTANCES), label='MOVi', command=NAME, splits=SPLITS,
+    layout=LAYOUT,
+    # The paper's version: SAVi's 24 frames at 64x64, MOVi-A/B/C's rows.
+    features=functools.partial(features, 24, DEFAULT_RESOLUTION,
+                               MAX_INSTANCES['movi_a']),
+    options=Options, discover=discover, conversion=conversion,
+    available_splits=available_splits,
+    download='/path/to/{name}/128x128/1.0.0'))

@@ -1,9 +1,10 @@
-"""Per-video conversion jobs -> a resumable ``array_record`` TFDS folder.
+"""Per-video conversion jobs -> a resumable ``array_record`` TFDS folder: the
+steps every converted dataset shares.
 
-The real-dataset converters (``obj3d.py``, ``clevrer.py``, ``physion.py``,
-``phyre.py``) each describe their output with a :class:`DatasetSpec` (feature
-spec + a per-video ``convert_fn``) and list their inputs as *jobs* (any
-picklable object with a unique ``key``); :func:`convert` does the rest:
+A converted dataset (``datasets/base.py:Converted``) describes its output with
+a :class:`~slotformer_jax.datasets.base.Conversion` (feature spec + a
+per-video ``convert_fn``) and lists its inputs as *jobs* (any picklable
+object with a unique ``key``); :func:`convert` does the rest:
 
 * the jobs of a split are cut into fixed chunks of ``videos_per_shard``; chunk
   ``i`` becomes shard file ``<name>-<split>.array_record-<i>-of-<n>``
@@ -25,9 +26,10 @@ picklable object with a unique ``key``); :func:`convert` does the rest:
   keys in record order (what joins question files to the rows by name,
   ``data/video_names.py``), then ``dataset_info.json`` / ``features.json`` are
   written with ``tfds.folder_dataset.write_metadata`` (no TensorFlow, no
-  builder class), after which ``tfds.builder_from_directory`` (hence
-  ``sources.open_prepared_dataset``) reads the folder. ``dataset_info.json``
-  is written last, so it doubles as the completion marker.
+  builder class), then ``checksums.json``; ``tfds.builder_from_directory``
+  (hence ``sources.open_prepared_dataset``) reads the folder.
+  ``dataset_info.json`` appears only in a finished folder, so it doubles as
+  the completion marker.
 
 Output folder: ``<data_dir>/<name>/<config_name>/<VERSION>/``; the config
 name encodes the conversion parameters (e.g. the resolution), so several
@@ -38,7 +40,6 @@ from __future__ import annotations
 
 import concurrent.futures
 import dataclasses
-import hashlib
 import json
 import logging
 import math
@@ -46,22 +47,22 @@ import os
 import shutil
 import time
 from collections import Counter
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any, Protocol
 
-import numpy as np
 import tensorflow_datasets as tfds
 import tqdm
 
 from slotformer_jax.data import chunked
-from slotformer_jax.data.convert import chunked_writer
-from slotformer_jax.data.convert import media
-from slotformer_jax.data.convert.checksums import record_checksums
-from slotformer_jax.data.convert.pool import process_pool
-from slotformer_jax.data.convert.pool import wait_done
+from slotformer_jax.data import media
 from slotformer_jax.data.video_names import NAMES_FILE
-from slotformer_jax.files import confined
+from slotformer_jax.data.write import records as chunked_writer
+from slotformer_jax.data.write.pool import process_pool
+from slotformer_jax.data.write.pool import wait_done
+from slotformer_jax.data.write.records import record_checksums
+from slotformer_jax.datasets.base import Conversion
+from slotformer_jax.datasets.base import ConversionError
 from slotformer_jax.files import write_json_atomic
 
 logger = logging.getLogger(__name__)
@@ -71,9 +72,6 @@ logger = logging.getLogger(__name__)
 # its chunks. Folders of the whole-video layout before it are '1.0.0' (still
 # read, see sources.TfdsVideoSource).
 VERSION = chunked.TFDS_VERSION
-# Raw bytes, as in synthetic.py: the fastest numpy round trip, and the files
-# are no larger since array_record compresses every record anyway.
-TENSOR_ENCODING = tfds.features.Encoding.BYTES
 
 _DATASET_INFO = 'dataset_info.json'
 _PROGRESS_DIR = '_progress'
@@ -84,62 +82,6 @@ class Job(Protocol):
   """One input video; ``key`` is unique within its split and stable."""
 
   key: str
-
-
-class ConversionError(RuntimeError):
-  """The conversion cannot (yet) produce a trustworthy dataset."""
-
-
-@dataclasses.dataclass(frozen=True)
-class DatasetSpec:
-  """What to write and how to make one example.
-
-  Attributes:
-    name: dataset name; the top folder and the shard-file prefix.
-    config_name: sub-folder encoding the conversion parameters.
-    description: free text stored in ``dataset_info.json``.
-    params: JSON-serialisable conversion parameters; recorded in the
-      manifest (a resumed run must use the same) and in the report.
-    features_fn: picklable ``() -> tfds.features.FeaturesDict``.
-    convert_fn: picklable ``job -> example dict`` (numpy arrays / scalars /
-      str matching the features); raises :class:`media.SkipVideo`.
-  """
-
-  name: str
-  config_name: str
-  description: str
-  params: Mapping[str, Any]
-  features_fn: Callable[[], tfds.features.FeaturesDict]
-  convert_fn: Callable[[Any], dict[str, Any]]
-
-  def dataset_dir(self, data_dir: str | os.PathLike[str]) -> Path:
-    """``<data_dir>/<name>/<config_name>/<VERSION>``.
-
-    Raises:
-      OutsideFolderError: a name (made from a downloaded file's fields:
-        MOVi's dataset name, PHYRE's eval setup) that would lead out of
-        ``data_dir``.
-    """
-    top = confined(data_dir, self.name, what='the dataset name')
-    return confined(top, self.config_name,
-                    what='the conversion folder name') / VERSION
-
-
-def config_name(readable: str, params: Mapping[str, Any]) -> str:
-  """``<readable>_<8 hex digits of a hash of params>``: a folder name.
-
-  ``readable`` shows the main parameters (e.g. 'r64x64_t50'); the hash makes
-  any other parameter (and the converter version, when it is in ``params``)
-  part of the name, so conversions that differ never share a folder.
-  """
-  payload = json.dumps(dict(params), sort_keys=True, default=str)
-  return f'{readable}_{hashlib.sha256(payload.encode()).hexdigest()[:8]}'
-
-
-def tensor(shape: Sequence[int | None], dtype: Any) -> tfds.features.Tensor:
-  """A raw-bytes Tensor feature (None in ``shape``: variable length)."""
-  return tfds.features.Tensor(shape=tuple(shape), dtype=dtype,
-                              encoding=TENSOR_ENCODING)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -184,7 +126,7 @@ class ConversionResult:
 
 @dataclasses.dataclass(frozen=True)
 class _ShardTask:
-  spec: DatasetSpec
+  spec: Conversion
   split: str
   index: int
   num_shards: int
@@ -272,7 +214,7 @@ def _convert_shard(task: _ShardTask) -> dict[str, Any]:
 
 
 def _check_manifest(dataset_dir: Path, split: str, keys: list[str],
-                    spec: DatasetSpec, videos_per_shard: int) -> None:
+                    spec: Conversion, videos_per_shard: int) -> None:
   """Records the split's job list, or checks it against an earlier run's."""
   path = _manifest_path(dataset_dir, split)
   manifest = {'keys': keys, 'videos_per_shard': videos_per_shard,
@@ -373,7 +315,7 @@ def _manifest_splits(dataset_dir: Path) -> list[str]:
                 for p in progress.glob('*-manifest.json'))
 
 
-def convert(spec: DatasetSpec, jobs: Mapping[str, Sequence[Job]],
+def convert(spec: Conversion, jobs: Mapping[str, Sequence[Job]],
             data_dir: str | os.PathLike[str], *,
             num_workers: int | None = None, videos_per_shard: int = 32,
             process_index: int = 0, process_count: int = 1,
@@ -540,7 +482,7 @@ def _check_skip_fraction(split_payloads: Mapping[str, list[dict[str, Any]]],
         'is missing), or raise --max_skip_fraction to accept the skips.')
 
 
-def _write_metadata(spec: DatasetSpec, dataset_dir: Path,
+def _write_metadata(spec: Conversion, dataset_dir: Path,
                     split_payloads: Mapping[str, list[dict[str, Any]]]) -> None:
   # Before dataset_info.json, the completion marker.
   _write_json_atomic(dataset_dir / NAMES_FILE, {
@@ -608,7 +550,7 @@ def record_video_names(dataset_dir: str | os.PathLike[str]) -> bool:
   return True
 
 
-def _write_report(spec: DatasetSpec, result: ConversionResult) -> None:
+def _write_report(spec: Conversion, result: ConversionResult) -> None:
   report = {
       'dataset': spec.name, 'config': spec.config_name,
       'params': json.loads(json.dumps(dict(spec.params))),
@@ -655,9 +597,3 @@ def summary(result: ConversionResult) -> str:
                  ' videos/s).')
   return '\n'.join(lines)
 
-
-def pad_rows(values: Sequence[int], rows: int, fill: int = -1) -> np.ndarray:
-  """int32 [rows]: ``values`` then ``fill``."""
-  out = np.full((rows,), fill, np.int32)
-  out[:len(values)] = np.asarray(values, np.int32)
-  return out

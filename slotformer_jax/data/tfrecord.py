@@ -20,7 +20,8 @@ data checksum. CRC32C is computed with numpy: the data is cut into rows of
 per byte column), then the row CRCs are chained through the linear map of
 ``_ROW`` zero bytes. That is about 100 MB/s on one core, enough not to
 dominate a conversion that also decodes PNGs; a pure-Python loop would be
-~50x slower.
+~50x slower. :func:`encode_record` frames one record (the test fixtures
+write MOVi-like downloads with it); nothing here writes a file.
 """
 
 from __future__ import annotations
@@ -220,10 +221,3 @@ def encode_record(data: bytes) -> bytes:
   return (length + _FOOTER.pack(masked_crc32c(length)) + data
           + _FOOTER.pack(masked_crc32c(data)))
 
-
-def write_records(path: str | os.PathLike[str],
-                  records: Iterable[bytes]) -> None:
-  """Writes a TFRecord file (as ``tf.io.TFRecordWriter`` without options)."""
-  with open(path, 'wb') as f:
-    for data in records:
-      f.write(encode_record(data))

@@ -1,4 +1,5 @@
-"""OBJ3D (G-SWM's release, as used by SlotFormer): layout and conversion.
+"""OBJ3D (G-SWM's release, as used by SlotFormer): the dataset, its layout
+and its conversion.
 
 Published layout (the download from the G-SWM repository, unpacked)::
 
@@ -31,8 +32,8 @@ from pathlib import Path
 import numpy as np
 import tensorflow_datasets as tfds
 
-from slotformer_jax.data.convert import media
-from slotformer_jax.data.convert import writer
+from slotformer_jax.data import media
+from slotformer_jax.datasets import base
 
 NAME = 'obj3d'
 SPLITS: tuple[str, ...] = ('train', 'val', 'test')
@@ -50,7 +51,7 @@ LAYOUT = """\
 
 
 @dataclasses.dataclass(frozen=True)
-class Options:
+class Options(base.ConversionOptions):
   """Conversion parameters.
 
   Attributes:
@@ -60,24 +61,12 @@ class Options:
 
   resolution: tuple[int, int] = DEFAULT_RESOLUTION
   num_frames: int = 50
+  version = CONVERTER_VERSION
 
   def __post_init__(self):
-    object.__setattr__(self, 'resolution',
-                       tuple(int(r) for r in self.resolution))
-    if len(self.resolution) != 2 or min(self.resolution) < 8:
-      raise ValueError(f'resolution must be (H, W) >= 8, got {self.resolution}')
+    super().__post_init__()
     if self.num_frames < 1:
       raise ValueError(f'num_frames must be >= 1, got {self.num_frames}')
-
-  @property
-  def params(self) -> dict[str, object]:
-    """Everything the stored content depends on (JSON-serialisable)."""
-    return {**dataclasses.asdict(self), 'converter_version': CONVERTER_VERSION}
-
-  @property
-  def config_name(self) -> str:
-    h, w = self.resolution
-    return writer.config_name(f'r{h}x{w}_t{self.num_frames}', self.params)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -88,12 +77,7 @@ class VideoJob:
   folder: Path
 
 
-def layout_error(source: Path, missing: Path,
-                 detail: str = '') -> FileNotFoundError:
-  """The error for a missing part of the published layout."""
-  return FileNotFoundError(
-      f'OBJ3D: {missing} not found{detail}. Expected the published layout '
-      f'under --source={source}:\n{LAYOUT}')
+layout_error = functools.partial(base.layout_error, 'OBJ3D', LAYOUT)
 
 
 def discover(source: Path, split: str, options: Options) -> list[VideoJob]:
@@ -146,18 +130,20 @@ def convert_video(job: VideoJob, options: Options) -> dict[str, object]:
 def features(options: Options) -> tfds.features.FeaturesDict:
   h, w = options.resolution
   return tfds.features.FeaturesDict({
-      'video': writer.tensor((options.num_frames, h, w, 3), np.uint8),
+      'video': base.tensor((options.num_frames, h, w, 3), np.uint8),
       'video_name': tfds.features.Text(),
   })
 
 
-def dataset_spec(options: Options, source: Path) -> writer.DatasetSpec:
-  del source  # nothing in the output depends on it beyond the videos
-  return writer.DatasetSpec(
-      name=NAME, config_name=options.config_name,
-      description=(f'OBJ3D (G-SWM): first {options.num_frames} frames per '
-                   f'video at {options.resolution[0]}x{options.resolution[1]}'
-                   ', RGB.'),
-      params=options.params,
-      features_fn=functools.partial(features, options),
-      convert_fn=functools.partial(convert_video, options=options))
+def describe(options: Options) -> str:
+  return (f'OBJ3D (G-SWM): first {options.num_frames} frames per video at '
+          f'{options.resolution[0]}x{options.resolution[1]}, RGB.')
+
+
+DATASET = base.register(base.Converted(
+    names=(NAME,), label='OBJ3D', command=NAME, splits=SPLITS, layout=LAYOUT,
+    features=functools.partial(features, Options()),
+    # The official models read the PNGs with PIL.
+    official_channel_order='rgb',
+    options=Options, discover=discover, convert=convert_video,
+    stored=features, describe=describe))

@@ -47,8 +47,8 @@ from typing import Any
 import numpy as np
 import tensorflow_datasets as tfds
 
-from slotformer_jax.data.convert import media
-from slotformer_jax.data.convert import writer
+from slotformer_jax.data import media
+from slotformer_jax.datasets import base
 from slotformer_jax.errors import shown
 from slotformer_jax.files import UntrustedFileError
 from slotformer_jax.files import confined
@@ -81,7 +81,7 @@ LAYOUT = """\
 
 
 @dataclasses.dataclass(frozen=True)
-class Options:
+class Options(base.ConversionOptions):
   """Conversion parameters.
 
   Attributes:
@@ -91,12 +91,10 @@ class Options:
 
   resolution: tuple[int, int] = DEFAULT_RESOLUTION
   num_frames: int = 15
+  version = CONVERTER_VERSION
 
   def __post_init__(self):
-    object.__setattr__(self, 'resolution',
-                       tuple(int(r) for r in self.resolution))
-    if len(self.resolution) != 2 or min(self.resolution) < 8:
-      raise ValueError(f'resolution must be (H, W) >= 8, got {self.resolution}')
+    super().__post_init__()
     if self.num_frames < 1:
       raise ValueError(f'num_frames must be >= 1, got {self.num_frames}')
 
@@ -127,12 +125,9 @@ class RolloutJob:
   problem: str | None = None
 
 
-def layout_error(source: Path, missing: Path,
-                 detail: str = '') -> FileNotFoundError:
-  """The error for a missing part of the documented layout."""
-  return FileNotFoundError(
-      f'PHYRE: {missing} not found{detail}. Expected the layout written by '
-      f'tools/render_phyre.py under --source={source}:\n{LAYOUT}')
+layout_error = functools.partial(
+    base.layout_error, 'PHYRE', LAYOUT,
+    what='the layout written by tools/render_phyre.py')
 
 
 def read_meta(source: Path) -> dict[str, Any]:
@@ -311,11 +306,11 @@ def convert_rollout(job: RolloutJob, options: Options) -> dict[str, Any]:
 def features(options: Options) -> tfds.features.FeaturesDict:
   h, w = options.resolution
   return tfds.features.FeaturesDict({
-      'video': writer.tensor((options.num_frames, h, w, 3), np.uint8),
+      'video': base.tensor((options.num_frames, h, w, 3), np.uint8),
       'num_frames': tfds.features.Scalar(np.int32),
       'num_moving_frames': tfds.features.Scalar(np.int32),
       'label': tfds.features.Scalar(np.int32),
-      'action': writer.tensor((3,), np.float32),
+      'action': base.tensor((3,), np.float32),
       'task': tfds.features.Text(),
       'template': tfds.features.Scalar(np.int32),
       'rollout_id': tfds.features.Text(),
@@ -326,7 +321,7 @@ def _meta_params(meta: Mapping[str, Any]) -> dict[str, Any]:
   return {k: meta[k] for k in _META_KEYS if k in meta}
 
 
-def dataset_spec(options: Options, source: Path) -> writer.DatasetSpec:
+def conversion(options: Options, source: Path) -> base.Conversion:
   """Reads meta.json: the rollouts' parameters are part of the folder name."""
   meta = _meta_params(read_meta(source))
   params = {**dataclasses.asdict(options), 'rollouts': meta,
@@ -334,10 +329,18 @@ def dataset_spec(options: Options, source: Path) -> writer.DatasetSpec:
   h, w = options.resolution
   readable = (f'{meta.get("eval_setup", "unknown")}_fold{meta.get("fold")}'
               f'_r{h}x{w}_t{options.num_frames}')
-  return writer.DatasetSpec(
-      name=NAME, config_name=writer.config_name(readable, params),
+  return base.Conversion(
+      name=NAME, config_name=base.digest_name(readable, params),
       description=(f'PHYRE rollouts ({json.dumps(meta, sort_keys=True)}), '
                    f'{options.num_frames} frames at {h}x{w}, success labels.'),
       params=params,
       features_fn=functools.partial(features, options),
       convert_fn=functools.partial(convert_rollout, options=options))
+
+
+DATASET = base.register(base.Converted(
+    names=(NAME,), label='PHYRE', command=NAME, splits=SPLITS, layout=LAYOUT,
+    features=functools.partial(features, Options()),
+    # The official models read the rendered frames as RGB.
+    official_channel_order='rgb',
+    options=Options, discover=discover, conversion=conversion))
