@@ -15,6 +15,7 @@ before any work, or a fault that ends in one line with nothing lost:
 test_explore.py; a signal ignored before training: test_reliability.py.)
 """
 
+import copy
 import errno
 import json
 import logging
@@ -165,9 +166,14 @@ def test_a_full_disk_under_tensorboard_leaves_the_trainer_s_line(
   assert warnings and 'No space left on device' in warnings[-1], warnings
 
 
-def test_asyncio_s_unretrieved_futures_are_not_printed(caplog):
+def test_asyncio_s_unretrieved_futures_are_not_printed(caplog, monkeypatch):
   """orbax's failed writes on a full disk each left an asyncio 'Task
   exception was never retrieved' line (about 40 after the trainer's)."""
+  # The package logger as main sets it up stops propagating: put it back
+  # after, or no later test's caplog sees the package's lines.
+  package = logging.getLogger('slotformer_jax')
+  for name in ('handlers', 'level', 'propagate'):
+    monkeypatch.setattr(package, name, copy.copy(getattr(package, name)))
   main_lib._configure_logging()  # pylint: disable=protected-access
   asyncio_logger = logging.getLogger('asyncio')
   with caplog.at_level(logging.ERROR):
