@@ -31,6 +31,7 @@ from __future__ import annotations
 import argparse
 import importlib.util
 import json
+import tempfile
 import time
 
 import flax.linen as nn
@@ -39,6 +40,7 @@ import numpy as np
 from slotformer_jax.datasets import synthetic_phyre as phyre_like_data
 from slotformer_jax.tasks import phyre_planning
 from slotformer_jax.tasks import planning
+from slotformer_jax.stages import readout_fit
 from slotformer_jax.tasks import readout as readout_lib
 from slotformer_jax.worlds import phyre_like
 
@@ -63,6 +65,14 @@ class Logistic(nn.Module):
   @nn.compact
   def __call__(self, x):
     return nn.Dense(1)(x)[..., 0]
+
+
+def fit_head(model, train, select, fit_config, seed):
+  """(params, log) of a head fitted as the pipeline fits its readouts
+  (`readout_fit.fit_readout`), in a folder thrown away after."""
+  with tempfile.TemporaryDirectory() as directory:
+    return readout_fit.fit_readout(directory, 'head', model, train, select,
+                                   fit_config, seed)
 
 
 def role_rows(tasks) -> tuple[str, ...]:
@@ -189,7 +199,7 @@ def main():
         model = heads[head]()
         aucs, accs, devs = [], [], []
         for seed in args.seeds:
-          params, log = readout_lib.fit(
+          params, log = fit_head(
               model, ((train_x - mean) / std, train_y),
               lambda p, model=model: planning.plan_auccess(
                   scores_of(model, p, 'dev'), outcomes['dev']),

@@ -40,7 +40,7 @@ OBJECT_METRICS = ('ari', 'fg_ari', 'fg_miou', 'ar')
 def base_config() -> ml_collections.ConfigDict:
   config = ml_collections.ConfigDict()
   config.seed = 0
-  # Several seeds trained at once, in one program (train/trainer.py `Seeds`):
+  # Several seeds trained at once, in one program (train/seeds.py `Seeds`):
   # None (the default) is one seed, `seed`, exactly as before. A tuple of
   # distinct ints, e.g. (0, 1, 2): a training stage stacks the seeds'
   # parameters and optimiser states on a leading axis, runs one jitted step

@@ -35,7 +35,7 @@ def several_seeds(config: ml_collections.ConfigDict
   """`config.seeds` when it names several seeds (trained in one program,
   each chained through the stages after stage 1: docs/seeds.md), else None:
   one seed, `config.seed` (also for a one-value `seeds`, as the trainer
-  reads it: stages/fit.py `seeds_of`)."""
+  reads it: train/seeds.py `Seeds.of_config`)."""
   seeds = config.seeds
   if seeds is None or len(seeds) < 2:
     return None

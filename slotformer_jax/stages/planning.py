@@ -35,6 +35,7 @@ from slotformer_jax.errors import MissingInputError
 from slotformer_jax.files import write_atomic
 from slotformer_jax.files import write_json_atomic
 from slotformer_jax.run import Run
+from slotformer_jax.stages import readout_fit
 from slotformer_jax.tasks import phyre_planning
 from slotformer_jax.tasks import planning
 from slotformer_jax.tasks import readout as readout_lib
@@ -191,11 +192,11 @@ def _train_chain(run: Run, seeds: tuple[int, ...]) -> None:
             phyre_planning.candidate_scores(model, params, by_split['dev'],
                     generation.num_candidates), outcomes['dev'])
 
-      params, log = readout_lib.fit(model, train, dev_auccess, fit_config,
-                                    seed=seed)
-      # params first: a seed counts as trained once selection.json exists.
-      write_atomic(os.path.join(directory, 'params.msgpack'),
-                   serialization.msgpack_serialize(params))
+      _, log = readout_fit.fit_readout(
+          directory, f'classifier {condition} seed {seed}', model, train,
+          dev_auccess, fit_config, seed)
+      # params.msgpack holds the chosen epoch's parameters (`fit_readout`);
+      # a seed counts as trained once selection.json exists.
       write_json_atomic(os.path.join(directory, 'selection.json'), {
           'dev_auccess': log['best_score'], 'best_epoch': log['best_epoch'],
           'dev_scores': log['scores'], 'train_losses': log['losses']},

@@ -32,8 +32,9 @@ from slotformer_jax.evaluation import seeds as seeds_lib
 from slotformer_jax.evaluation import visualize
 from slotformer_jax.run import Run
 from slotformer_jax.slot_models import chain
-from slotformer_jax.stages.fit import seeds_of
+from slotformer_jax.stages import dynamics as dynamics_stage
 from slotformer_jax.stages.fit import stamped_fields
+from slotformer_jax.train.seeds import Seeds
 from slotformer_jax.workdir import identity as identity_lib
 from slotformer_jax.workdir.paths import command
 
@@ -82,7 +83,7 @@ def evaluation_identity(run: Run, stage1_identity: dict[str, Any],
     identity_lib.check_identity_fields(
         found, stamped_fields(dynamics_lib.identity_fields(
             run.config.seed, run.dynamics_section(name), name),
-            None if run.stacked is None else seeds_of(run.config, offset=1)),
+            Seeds.of_config(run.config).map(dynamics_stage.dynamics_seed)),
         name, directory)
     if found.get('parent') != parent:
       raise UserError(

@@ -63,7 +63,6 @@ from slotformer_jax.train import steps
 from slotformer_jax.train.trainer import Stage
 from slotformer_jax.train.trainer import abstract_train_state
 from slotformer_jax.train.trainer import checkpointer_for
-from slotformer_jax.train.trainer import fit
 from slotformer_jax.workdir.paths import command
 
 logger = logging.getLogger(__name__)
@@ -325,23 +324,19 @@ def _train_stage(run: Run, directory: str, vocab: vqa_data.Vocabulary,
 
 def train_vqa(run: Run) -> None:
   """Trains Aloe on the training questions (resumable); a question set of
-  one kind (open-only, choice-only) trains on that kind. Several seeds:
-  chain s's Aloe with seed s, all in one program (`aloe_seed` of s for
-  its initialisation and step RNG; questions in the shared or per-seed
-  order, config.seed_data_order)."""
+  one kind (open-only, choice-only) trains on that kind. Each chain's Aloe
+  (`Run.chains`) on its slots, all in one program, drawing with `aloe_seed`
+  of its chain's seed (initialisation, step RNG; questions in the shared or
+  per-seed order, config.seed_data_order)."""
   config = run.config
   vqa = config.vqa
   vocab = vqa_questions.vocabulary(config)
   directory = run.paths.aloe(vqa.inputs, vqa.seed)
-  seeds = fit_lib.seeds_of(config)
-  stages = [_train_stage(chain, directory, vocab, aloe_seed(stream, vqa))
-            for chain, stream in zip(run.chains(), fit_lib.stream_seeds(
-                seeds, config.seed))]
-  if seeds is not None:
-    seeds = dataclasses.replace(
-        seeds, values=tuple(aloe_seed(s, vqa) for s in run.seeds))
-  fit(stages[0] if len(stages) == 1 else fit_lib.stacked_stage(stages),
-      mesh=run.mesh, seed=aloe_seed(config.seed, vqa), seeds=seeds)
+  fit_lib.fit_chains(run, fit_lib.Training(
+      what='VQA', identity_fields=None,
+      chain_stage=lambda chain, stream: (
+          _train_stage(chain, directory, vocab, stream), None),
+      seed_of=functools.partial(aloe_seed, vqa=vqa)))
 
 
 @dataclasses.dataclass(frozen=True)

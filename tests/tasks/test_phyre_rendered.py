@@ -211,7 +211,8 @@ def test_rendered_planning_with_seeds_fits_one_classifier_per_chain(
     view = run.for_seed(index)
     data = planning_rendered.training_set(view)
     _, params, _ = planning_rendered.fit_classifier(
-        config.readout, 'rollout', data, seed)
+        config.readout, 'rollout', data, seed,
+        str(tmp_path / f'again_{seed}'))
     _, fitted[seed] = planning_rendered.load_classifier(
         view, 'rollout', seed, data.features.shape[1])
     jax.tree.map(np.testing.assert_array_equal, fitted[seed],
