@@ -67,7 +67,7 @@ train K one-seed stages, one per seed (`stages.fit.fit_chains`): stacked
 [K, B, ...] batches (each seed its own tokens or slots) and, for
 SlotFormer with L_I, [K, ...] frozen decoder parameters, both split on
 'seed'. What the pipeline refuses with several seeds
-(`config.checks.seeds_problems`) and what runs one seed at a time
+(`stages.task.seeds_problems`) and what runs one seed at a time
 (eval_rollout: each seed's one-seed program; aloe and readout take one
 seed) is a 'not built' row. HBM, FLOPs and bytes
 are per chip as above, for all K seeds; `floor_per_seed_seconds` = floor / K.
@@ -109,6 +109,7 @@ from jax.sharding import Mesh  # noqa: E402
 from jax.sharding import NamedSharding  # noqa: E402
 
 from slotformer_jax import files  # noqa: E402
+from slotformer_jax.stages import task as task_lib
 from slotformer_jax import slot_models  # noqa: E402
 from slotformer_jax import dynamics as dynamics_lib  # noqa: E402
 from slotformer_jax.config.sections import SLOTFORMER  # noqa: E402
@@ -116,7 +117,6 @@ from slotformer_jax.data import vqa as vqa_data  # noqa: E402
 from slotformer_jax.evaluation import evaluate  # noqa: E402
 from slotformer_jax.run import Run  # noqa: E402
 from slotformer_jax.slot_models import chain  # noqa: E402
-from slotformer_jax.config import checks  # noqa: E402
 from slotformer_jax.stages import dynamics  # noqa: E402
 from slotformer_jax.slot_models.steve import build_steve  # noqa: E402
 from slotformer_jax.stages import readout_fit  # noqa: E402
@@ -311,7 +311,7 @@ def readout_model(config) -> tuple[Any, int]:
 def readout_fit_config(config) -> readout_lib.FitConfig:
   if config.task == 'contact':
     return contact.fit_config(config.readout)
-  r = config.readout  # as stages/planning_rendered.py builds it
+  r = config.readout  # as stages/planning/rendered.py builds it
   return readout_lib.FitConfig(epochs=r.epochs, batch_size=r.batch_size,
                                learning_rate=r.learning_rate,
                                warmup_fraction=r.warmup_fraction)
@@ -394,7 +394,7 @@ def several_seeds_refused(config, step: str, num_seeds: int) -> str | None:
     return (f'the {step} step runs one seed at a time (evaluation: each '
             "seed's one-seed program; the tasks take one seed; "
             'docs/seeds.md)')
-  problems = checks.seeds_problems(with_seeds(config, num_seeds),
+  problems = task_lib.seeds_problems(with_seeds(config, num_seeds),
                                    [STAGE_OF_STEP[step]])
   return '; '.join(problems) or None
 

@@ -5,7 +5,7 @@ The planning classifier on SAVi slots of the first frame (85.9 mean AUCCESS
 over 3 folds) is not beaten by the one on first frame + SlotFormer rollout
 (84.1). Before blaming SlotFormer, check the task itself: train a success
 classifier on SIMULATOR STATES of the embedded PHYRE-like tasks
-(worlds/phyre_like.py, configs/synthetic_phyre.py), once on the first
+(tasks/phyre_world.py, configs/synthetic_phyre.py), once on the first
 frame (+ the action) and once on later frames of the TRUE simulation. If the
 true future is not far above the first frame, no dynamics model can help.
 
@@ -42,7 +42,7 @@ from slotformer_jax.tasks import phyre_planning
 from slotformer_jax.tasks import planning
 from slotformer_jax.stages import readout_fit
 from slotformer_jax.tasks import readout as readout_lib
-from slotformer_jax.worlds import phyre_like
+from slotformer_jax.tasks import phyre_world as phyre_like
 
 ROLES = (phyre_like.GREEN, phyre_like.GOAL, phyre_like.DYNAMIC,
          phyre_like.STATIC, phyre_like.ACTION)
@@ -129,7 +129,7 @@ def main():
   parser.add_argument('--heads', nargs='+', default=['mlp', 'logistic'])
   parser.add_argument('--templates', nargs='+', default=None,
                       help='override config.data.templates (names of '
-                      'worlds/phyre_like.ALL_TEMPLATES)')
+                      'tasks/phyre_world.ALL_TEMPLATES)')
   parser.add_argument('--tasks_per_template', type=int, default=None)
   args = parser.parse_args()
   path, _, variant = args.config.partition(':')

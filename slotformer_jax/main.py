@@ -184,7 +184,7 @@ def main(argv):
   run = Run.create(config, workdir)
   selected = stages.selected_stages(run, mode)
   # Every check before any work: a bad value costs seconds, not a stage.
-  run.check(selected)
+  stages.check(run, selected)
   global _lock
   lock = workdir_lock(run.paths)
   if jax.process_index() == 0:

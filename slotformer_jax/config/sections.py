@@ -46,11 +46,3 @@ def trained_dynamics(config: ml_collections.ConfigDict) -> tuple[str, ...]:
   """The dynamics models a run trains and compares: SlotFormer, plus
   Slot-LSTM when `slot_lstm.train`."""
   return (SLOTFORMER,) + ((SLOT_LSTM,) if config.slot_lstm.train else ())
-
-
-def reads_readout_splits(config: ml_collections.ConfigDict) -> bool:
-  """Whether the task's readout reads the data splits `readout.splits`
-  names: contact, and planning on the rendered PHYRE layout; the embedded
-  PHYRE-like tasks split by task, not by data split."""
-  return config.task == 'contact' or (
-      config.task == 'planning' and config.data.name == 'phyre')

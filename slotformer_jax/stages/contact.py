@@ -28,6 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from slotformer_jax import inference
+from slotformer_jax.config import defaults
 from slotformer_jax.config.sections import SLOTFORMER
 from slotformer_jax.data import video_names
 from slotformer_jax.data.slots import SlotSource
@@ -42,6 +43,8 @@ from slotformer_jax.frames import to_uint8
 from slotformer_jax.run import Run
 from slotformer_jax.runtime import progress
 from slotformer_jax.stages import readout_fit
+from slotformer_jax.stages.task import Task
+from slotformer_jax.stages.task import register
 from slotformer_jax.tasks import contact
 from slotformer_jax.tasks import readout as readout_lib
 
@@ -354,3 +357,14 @@ def write_pictures(run: Run, rollout_slots: np.ndarray,
         seed)
     visualize.write_png(os.path.join(directory, f'test_{i}.png'),
                         visualize.titled(grid, title))
+
+
+TASK = register(Task(
+    name='contact', config='configs/synthetic_contact.py',
+    stages={'train_readout': train_readout,
+            'evaluate_readout': evaluate_readout},
+    seeded=('train_readout', 'evaluate_readout'),
+    section='readout', defaults=defaults.contact_readout_config,
+    reads=lambda config: tuple(
+        (f'readout.splits.{k}', v)
+        for k, v in sorted(config.readout.splits.items()))))

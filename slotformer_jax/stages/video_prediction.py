@@ -34,6 +34,8 @@ from slotformer_jax.run import Run
 from slotformer_jax.slot_models import chain
 from slotformer_jax.stages import dynamics as dynamics_stage
 from slotformer_jax.stages.fit import stamped_fields
+from slotformer_jax.stages.task import Task
+from slotformer_jax.stages.task import register
 from slotformer_jax.train.seeds import Seeds
 from slotformer_jax.workdir import identity as identity_lib
 from slotformer_jax.workdir.paths import command
@@ -210,3 +212,11 @@ def _explore(run: Run, trained: Evaluated) -> str | None:
       metrics_path=os.path.join(run.paths.eval, 'metrics.json'),
       output_dir=run.paths.explore,
       title=f'{run.config.data.name}: {run.slot_model.label} + SlotFormer')
+
+
+# Video prediction is the task of a config without one (config.task None).
+TASK = register(Task(
+    name=None, config='configs/synthetic.py',
+    stages={'evaluate': evaluate, 'render': render, 'explore': explore},
+    seeded=('evaluate', 'render', 'explore'),
+    reads=lambda config: (('evaluation.split', config.evaluation.split),)))

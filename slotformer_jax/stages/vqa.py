@@ -45,6 +45,7 @@ import numpy as np
 import tqdm
 
 from slotformer_jax import inference
+from slotformer_jax.config import defaults
 from slotformer_jax.config.sections import SLOTFORMER
 from slotformer_jax.data import vqa as vqa_data
 from slotformer_jax.data import vqa_questions
@@ -58,6 +59,8 @@ from slotformer_jax.files import write_json_atomic
 from slotformer_jax.run import Run
 from slotformer_jax.runtime import sharding
 from slotformer_jax.stages import fit as fit_lib
+from slotformer_jax.stages.task import Task
+from slotformer_jax.stages.task import register
 from slotformer_jax.tasks import vqa as task
 from slotformer_jax.train import steps
 from slotformer_jax.train.trainer import Stage
@@ -481,3 +484,12 @@ def _evaluate(run: Run, aloe: Aloe) -> dict[str, Any]:
           prior, sort_keys=False)
   logger.info('VQA %s on %s: %s', vqa.inputs, split, json.dumps(results))
   return results
+
+
+TASK = register(Task(
+    name='vqa', config='configs/synthetic_vqa.py',
+    stages={'vqa_slots': vqa_slots, 'train_vqa': train_vqa,
+            'evaluate_vqa': evaluate_vqa},
+    seeded=('vqa_slots', 'train_vqa', 'evaluate_vqa'),
+    section='vqa', defaults=defaults.vqa_config,
+    reads=lambda config: (('vqa.eval_split', config.vqa.eval_split),)))

@@ -13,12 +13,12 @@ import pytest
 
 from configs import synthetic_contact
 from configs import synthetic_phyre
-from slotformer_jax.config import checks
+from slotformer_jax.stages import task as task_lib
 from slotformer_jax.files import read_json
 from slotformer_jax.run import Run
 from slotformer_jax.runtime import sharding
 from slotformer_jax.stages import contact as contact_stage
-from slotformer_jax.stages import planning as planning_stage
+from slotformer_jax.stages.planning import embedded as planning_stage
 from slotformer_jax.stages import readout_fit
 from slotformer_jax.tasks import contact
 from slotformer_jax.tasks import phyre_planning
@@ -92,18 +92,18 @@ def test_every_task_takes_several_seeds():
                     'train_slotformer', 'train_readout', 'evaluate_readout']
   config = _contact_micro_config('/nonexistent')
   config.seeds = (0, 1)
-  assert checks.seeds_problems(config, contact_stages) == []
+  assert task_lib.seeds_problems(config, contact_stages) == []
   planning = synthetic_phyre.get_config('tiny')
   planning.seeds = (0, 1)
-  assert checks.seeds_problems(planning, ['train_savi', 'train_readout',
+  assert task_lib.seeds_problems(planning, ['train_savi', 'train_readout',
                                           'plan']) == []
-  # The real PHYRE's rendered rollouts (stages/planning_rendered.py) too.
+  # The real PHYRE's rendered rollouts (stages/planning/rendered.py) too.
   planning.data.name = 'phyre'
-  assert checks.seeds_problems(planning, ['train_savi', 'train_readout',
+  assert task_lib.seeds_problems(planning, ['train_savi', 'train_readout',
                                           'plan']) == []
   vqa = load_config('synthetic_vqa', 'tiny')
   vqa.seeds = (0, 1)
-  assert checks.seeds_problems(vqa, ['train_savi', 'vqa_slots', 'train_vqa',
+  assert task_lib.seeds_problems(vqa, ['train_savi', 'vqa_slots', 'train_vqa',
                                      'evaluate_vqa']) == []
 
 

@@ -24,7 +24,7 @@ from slotformer_jax.errors import MissingInputError
 from slotformer_jax.tasks import phyre_rendered
 from slotformer_jax.tasks import planning
 from slotformer_jax.runtime import sharding
-from slotformer_jax.stages import planning_rendered
+from slotformer_jax.stages.planning import rendered as planning_rendered
 from pipeline_helpers import run_stage
 from slotformer_jax.run import Run
 

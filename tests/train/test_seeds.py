@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 
 from slotformer_jax.errors import ConfigError
+from slotformer_jax.stages import task as task_lib
 from slotformer_jax.runtime import sharding
 from slotformer_jax.runtime.preemption import Preempted
 from slotformer_jax.train import seeds as seeds_lib
@@ -399,14 +400,12 @@ def _config(**fields):
     ((0, '1'), "seeds must be ints >= 0, got (0, '1')"),
 ])
 def test_bad_config_seeds_are_one_line(seeds, needle):
-  from slotformer_jax.config import checks
-  problems = checks.seeds_problems(_config(seeds=seeds), ('train_savi',))
+  problems = task_lib.seeds_problems(_config(seeds=seeds), ('train_savi',))
   assert problems == [problems[0]] and needle in problems[0]
 
 
 def test_bad_seed_choices_are_one_line_each():
-  from slotformer_jax.config import checks
-  problems = checks.seeds_problems(
+  problems = task_lib.seeds_problems(
       _config(seed_data_order='random', on_seed_divergence='skip'),
       ('train_savi',))
   assert problems == [
@@ -415,10 +414,9 @@ def test_bad_seed_choices_are_one_line_each():
 
 
 def test_stages_without_several_seeds_refuse_them_in_one_line():
-  from slotformer_jax.config import checks
   config = _config(seeds=(0, 1, 2))
-  assert checks.seeds_problems(config, ('prepare_data', 'train_savi')) == []
-  problems = checks.seeds_problems(
+  assert task_lib.seeds_problems(config, ('prepare_data', 'train_savi')) == []
+  problems = task_lib.seeds_problems(
       config, ('prepare_data', 'train_savi', 'extract_slots',
                'train_slotformer', 'train_slot_lstm', 'train_readout'))
   assert len(problems) == 1
@@ -429,7 +427,7 @@ def test_stages_without_several_seeds_refuse_them_in_one_line():
       'train_readout does not take several')
   # One seed (or none) is today's run: nothing refused.
   for one in (None, (3,)):
-    assert checks.seeds_problems(_config(seeds=one),
+    assert task_lib.seeds_problems(_config(seeds=one),
                                  ('train_slotformer', 'evaluate')) == []
 
 

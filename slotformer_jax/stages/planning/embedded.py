@@ -1,9 +1,7 @@
-"""The planning stages (`task='planning'`) on the embedded PHYRE-like tasks:
+"""Planning on the embedded PHYRE-like tasks (the task: __init__.py):
 `train_readout` (the success classifier, epoch chosen by dev AUCCESS) and
 `plan` (AUCCESS over every test task's candidates). The protocol and the pure
-parts are in tasks/phyre_planning.py; the real, pre-rendered PHYRE layout has
-its own stages in planning_rendered.py (the stage table picks by
-`data.name`).
+parts are in tasks/phyre_planning.py.
 
 Features of a (task, action) pair: the slot model encodes the first frame
 with the action's red ball drawn in, SlotFormer rolls the slots out.
@@ -39,7 +37,7 @@ from slotformer_jax.stages import readout_fit
 from slotformer_jax.tasks import phyre_planning
 from slotformer_jax.tasks import planning
 from slotformer_jax.tasks import readout as readout_lib
-from slotformer_jax.worlds import phyre_like
+from slotformer_jax.tasks import phyre_world
 
 logger = logging.getLogger(__name__)
 
@@ -76,7 +74,7 @@ class SlotFeatures:
 
     self._features = features
 
-  def __call__(self, task: phyre_like.Task, actions: np.ndarray
+  def __call__(self, task: phyre_world.Task, actions: np.ndarray
                ) -> np.ndarray:
     """float32 [A, 1 + rollout_steps, N, D]."""
     out = []
@@ -114,7 +112,7 @@ def task_candidates(run: Run, split_names: tuple[str, ...]):
   generation = phyre_like_data.config_from_data_config(config.data)
   labels = phyre_like_data.load_task_labels(
       generation, resolve_data_dir(config.data.data_dir))
-  actions = phyre_like.candidate_actions(generation)
+  actions = phyre_world.candidate_actions(generation)
   splits = phyre_planning.task_splits(config.data, config.readout)
   features = SlotFeatures(run)
   by_split = {name: _task_features(features, splits[name], labels, actions)

@@ -1,5 +1,5 @@
-"""The planning stages on the real, pre-rendered PHYRE layout
-(`task='planning'`, `data.name='phyre'`): `train_readout` and `plan` over
+"""Planning on the real, pre-rendered PHYRE layout (the task: __init__.py;
+a converted dataset): `train_readout` and `plan` over
 the rendered candidates of each task. What the layout holds, and why this is
 not the official protocol: tasks/phyre_rendered.py.
 
