@@ -28,12 +28,12 @@ Cases (shapes as the official configs):
   slotformer_synthetic
                     SlotFormer train step of configs/synthetic.py
 
-Several seeds (config.seeds, train/trainer.py):
+Several seeds (config.seeds, train/seeds.py):
 
   python benchmarks/step_time.py --seeds=3 --cases=savi_synthetic
 
 times, for each train-step case, K seeds in one program in both forms of
-`steps.seeds_train_step` ('vmap': one batched step; 'unroll': the one-seed
+`seeds.seeds_train_step` ('vmap': one batched step; 'unroll': the one-seed
 step written K times into the program, the trainer's choice on CPU) against K
 one-seed steps, the three alternating each repeat, and prints the medians
 and the ratios (the issue's bar: one program <= K one-seed steps, ratio
@@ -69,9 +69,8 @@ from slotformer_jax.evaluation import metrics  # noqa: E402
 from slotformer_jax.train import optim  # noqa: E402
 from slotformer_jax.runtime import precision  # noqa: E402
 from slotformer_jax.train import steps  # noqa: E402
-from slotformer_jax.train.state import SeedsState  # noqa: E402
 from slotformer_jax.train.state import TrainState  # noqa: E402
-from slotformer_jax.train import trainer  # noqa: E402
+from slotformer_jax.train import seeds as seeds_lib  # noqa: E402
 import synthetic  # noqa: E402  (configs/synthetic.py)
 from slotformer_jax import dynamics as dynamics_lib
 from slotformer_jax.slot_models.savi import build_decoder
@@ -115,26 +114,27 @@ def seeds_runners(loss_fn, params, batch, frozen, stage_config, num_seeds):
 
   The seeds' parameters are copies of `params` (the cost does not depend on
   the values); each one-program form is traced and compiled as the trainer
-  does (`trainer.seeds_update`, `trainer.jit_update`'s options on XLA:CPU
-  for that form)."""
+  does (`seeds.seeds_update`, `seeds.compiler_options` on XLA:CPU for
+  that form)."""
   optimizer, _ = optim.make_optimizer(stage_config)
   one_seed = TrainState.create(params, optimizer)
   mesh = jax.sharding.Mesh(np.asarray(jax.devices()[:1]), ('data',))
   holder = {'states': [one_seed] * num_seeds}
   runners = {}
   for loop in ('vmap', 'unroll'):
-    options = trainer._seeds_compiler_options(mesh, loop)  # pylint: disable=protected-access
-    update = jax.jit(trainer.seeds_update(loss_fn, optimizer,
-                                          tuple(range(num_seeds)), loop=loop),
+    options = seeds_lib.compiler_options(mesh, loop)
+    update = jax.jit(seeds_lib.seeds_update(loss_fn, optimizer,
+                                            tuple(range(num_seeds)),
+                                            loop=loop),
                      compiler_options=options)
-    holder[loop] = SeedsState.stack([one_seed] * num_seeds)
+    holder[loop] = seeds_lib.SeedsState.stack([one_seed] * num_seeds)
 
     def one_program(loop=loop, update=update):
       holder[loop], metrics_ = update(holder[loop], batch, frozen)
       return metrics_['loss']
 
     runners[loop] = one_program
-  vmap_options = trainer._seeds_compiler_options(mesh, 'vmap')  # pylint: disable=protected-access
+  vmap_options = seeds_lib.compiler_options(mesh, 'vmap')
   single = jax.jit(functools.partial(steps.train_step, loss_fn=loss_fn,
                                      optimizer=optimizer, seed=0),
                    compiler_options=vmap_options if SAME_OPTIONS else None)

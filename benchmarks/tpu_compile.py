@@ -33,9 +33,10 @@ project runs, built by the project's own code:
   readout              (physion: configs/physion_contact.py, phyre:
                        configs/phyre.py:planning; synthetic_contact:tiny and
                        synthetic_phyre:tiny too) the readout head's step
-                       that `tasks.readout.fit` runs, `make_train_step`, on
-                       the 'rollout' condition's features (the longest). Its
-                       loop is not sharded: one chip.
+                       that `stages.readout_fit.fit_readout` runs through
+                       the trainer (`trainer.jit_update` of its `Stage`), on
+                       the 'rollout' condition's features (the longest). It
+                       trains on one chip.
 
 The global batch is the config's (the paper's). A slice whose chip count
 does not divide it (a 256-chip pod slice and batch 64) compiles at one
@@ -55,19 +56,18 @@ between them may fit too.
 
 `--seeds=K,...` (default 1) compiles each train step (savi, dvae, steve,
 slotformer) once per K: K = 1 is the one-seed row above; K > 1 is the
-program `trainer.fit` runs for `config.seeds` of K seeds
-(`stages.fit.seeds_of`, as the pipeline builds it: the default shared data
-order, `seed_axis`, `seed_loop='auto'`, vmapped on a TPU):
-`trainer.jit_update(stage, seed_mesh, ..., seeds=...)` over the abstract
-`SeedsState` of `trainer.abstract_train_state(..., num_seeds=K)`, on
-`sharding.seed_mesh` of the slice (4 seeds x 2 data on 8 chips; the seeds
-replicated on every chip when a host's chips do not split into K groups).
-Stage 1's first part (savi, dvae) reads the shared [B, ...] batch; STEVE
-and SlotFormer are `stages.fit.stacked_stage` of K one-seed stages:
-stacked [K, B, ...] batches (each seed its own tokens or slots) and, for
+program `train.seeds.fit` runs for `config.seeds` of K seeds
+(`Seeds.of_config`, as the pipeline builds it: the default shared data
+order, `seed_axis`, `seed_loop='auto'`, vmapped on a TPU): the update and
+the abstract `SeedsState` of `train.seeds.program`, on `seeds.seed_mesh`
+of the slice (4 seeds x 2 data on 8 chips; the seeds replicated on every
+chip when a host's chips do not split into K groups). Stage 1's first
+part (savi, dvae) reads the shared [B, ...] batch; STEVE and SlotFormer
+train K one-seed stages, one per seed (`stages.fit.fit_chains`): stacked
+[K, B, ...] batches (each seed its own tokens or slots) and, for
 SlotFormer with L_I, [K, ...] frozen decoder parameters, both split on
 'seed'. What the pipeline refuses with several seeds
-(`config.checks.seeds_problems`) and what runs one seed at a time
+(`stages.task.seeds_problems`) and what runs one seed at a time
 (eval_rollout: each seed's one-seed program; aloe and readout take one
 seed) is a 'not built' row. HBM, FLOPs and bytes
 are per chip as above, for all K seeds; `floor_per_seed_seconds` = floor / K.
@@ -85,6 +85,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import importlib.util
 import os
 import re
@@ -108,6 +109,7 @@ from jax.sharding import Mesh  # noqa: E402
 from jax.sharding import NamedSharding  # noqa: E402
 
 from slotformer_jax import files  # noqa: E402
+from slotformer_jax.stages import task as task_lib
 from slotformer_jax import slot_models  # noqa: E402
 from slotformer_jax import dynamics as dynamics_lib  # noqa: E402
 from slotformer_jax.config.sections import SLOTFORMER  # noqa: E402
@@ -115,11 +117,9 @@ from slotformer_jax.data import vqa as vqa_data  # noqa: E402
 from slotformer_jax.evaluation import evaluate  # noqa: E402
 from slotformer_jax.run import Run  # noqa: E402
 from slotformer_jax.slot_models import chain  # noqa: E402
-from slotformer_jax.config import checks  # noqa: E402
 from slotformer_jax.stages import dynamics  # noqa: E402
-from slotformer_jax.stages.fit import seeds_of  # noqa: E402
-from slotformer_jax.stages.fit import stacked_stage  # noqa: E402
 from slotformer_jax.slot_models.steve import build_steve  # noqa: E402
+from slotformer_jax.stages import readout_fit  # noqa: E402
 from slotformer_jax.stages import stage1  # noqa: E402
 from slotformer_jax.stages import vqa as vqa_stages  # noqa: E402
 from slotformer_jax.tasks import contact  # noqa: E402
@@ -128,9 +128,11 @@ from slotformer_jax.tasks import phyre_rendered  # noqa: E402
 from slotformer_jax.tasks import readout as readout_lib  # noqa: E402
 from slotformer_jax.tasks import vqa as vqa_task  # noqa: E402
 from slotformer_jax.train import optim  # noqa: E402
+from slotformer_jax.train import seeds as seeds_lib  # noqa: E402
 from slotformer_jax.runtime import precision  # noqa: E402
 from slotformer_jax.runtime import sharding  # noqa: E402
 from slotformer_jax.train import trainer  # noqa: E402
+from slotformer_jax.train.state import TrainState  # noqa: E402
 from tpu_chips import CHIPS  # noqa: E402  (the spec-sheet peaks)
 
 GiB = 2**30
@@ -309,27 +311,33 @@ def readout_model(config) -> tuple[Any, int]:
 def readout_fit_config(config) -> readout_lib.FitConfig:
   if config.task == 'contact':
     return contact.fit_config(config.readout)
-  r = config.readout  # as stages/planning_rendered.py builds it
+  r = config.readout  # as stages/planning/rendered.py builds it
   return readout_lib.FitConfig(epochs=r.epochs, batch_size=r.batch_size,
                                learning_rate=r.learning_rate,
                                warmup_fraction=r.warmup_fraction)
 
 
 def readout_program(config, mesh: Mesh) -> tuple[Any, tuple]:
-  """`tasks.readout.fit`'s jitted step on one chip (the first of `mesh`)."""
-  one_chip = sharding.replicated_sharding(
-      Mesh(np.array(mesh.devices.flat[:1]), (sharding.DATA_AXIS,)))
+  """The readout head's jitted train step (`trainer.jit_update` of the
+  `Stage` `readout_fit.fit_readout` trains) on one chip (the first of
+  `mesh`), as the readouts train on the first device of each process."""
+  one_chip = Mesh(np.array(mesh.devices.flat[:1]), (sharding.DATA_AXIS,))
   model, _ = readout_model(config)
   batch = batch_spec(config, 'readout', config.readout.batch_size)
-  optimizer = readout_lib.make_optimizer(readout_fit_config(config),
-                                         steps_per_epoch=100)
-  step = readout_lib.make_train_step(model, optimizer, seed=0)
+  optimizer, _ = readout_lib.make_optimizer(readout_fit_config(config),
+                                            steps_per_epoch=100)
+  stage = trainer.Stage(
+      name='readout', directory=NOWHERE, config=config.readout,
+      loss_fn=functools.partial(readout_lib.readout_loss, model=model),
+      init_params=None, batches=None, optimizer=(optimizer, None),
+      rng_stream=readout_fit.DROPOUT_STREAM)
   example = jnp.zeros((1, *batch['features'].shape[1:]), jnp.float32)
   params = jax.eval_shape(
       lambda key: model.init(key, example)['params'], jax.random.key(0))
-  opt_state = jax.eval_shape(optimizer.init, params)
-  return step, _place((params, opt_state, batch['features'], batch['labels'],
-                       jax.ShapeDtypeStruct((), jnp.int32)), one_chip)
+  state = jax.eval_shape(lambda: TrainState.create(params, optimizer))
+  step = trainer.jit_update(stage, one_chip, optimizer, seed=0)
+  return step, (_place(state, sharding.replicated_sharding(one_chip)),
+                _place(batch, sharding.batch_sharding(one_chip)), None)
 
 
 def slot_param_shapes(slot_model) -> Any:
@@ -386,7 +394,7 @@ def several_seeds_refused(config, step: str, num_seeds: int) -> str | None:
     return (f'the {step} step runs one seed at a time (evaluation: each '
             "seed's one-seed program; the tasks take one seed; "
             'docs/seeds.md)')
-  problems = checks.seeds_problems(with_seeds(config, num_seeds),
+  problems = task_lib.seeds_problems(with_seeds(config, num_seeds),
                                    [STAGE_OF_STEP[step]])
   return '; '.join(problems) or None
 
@@ -414,61 +422,48 @@ def local_device_count(mesh: Mesh) -> int:
 
 
 def seeds_mesh(config, step: str, mesh: Mesh, num_seeds: int
-               ) -> tuple[trainer.Seeds, Mesh]:
-  """(the `Seeds` the pipeline trains `step` with, the mesh `trainer.fit`
+               ) -> tuple[seeds_lib.Seeds, Mesh]:
+  """(the `Seeds` the pipeline trains `step` with, the mesh `seeds.fit`
   makes of `mesh` for them)."""
   # Stage 1 draws with the seeds, the dynamics with seed + 1
-  # (stage1.train_part, dynamics.train_dynamics_seeds).
-  seeds = seeds_of(with_seeds(config, num_seeds),
-                   offset=1 if step == 'slotformer' else 0)
+  # (stage1.train_part, dynamics.dynamics_seed).
+  seeds = seeds_lib.Seeds.of_config(with_seeds(config, num_seeds))
+  if step == 'slotformer':
+    seeds = seeds.map(dynamics.dynamics_seed)
   if seeds.seed_axis:
-    mesh = sharding.seed_mesh(mesh, num_seeds, local_device_count(mesh))
+    mesh = seeds_lib.seed_mesh(mesh, num_seeds, local_device_count(mesh))
   return seeds, mesh
 
 
 def seeds_program(config, step: str, mesh: Mesh, num_seeds: int
                   ) -> tuple[Any, tuple]:
-  """The K-seed train step `trainer.fit` jits for `config.seeds` of
+  """The K-seed train step `seeds.fit` jits for `config.seeds` of
   `num_seeds` seeds on the slice `mesh` (a 'data' mesh, as `Run.mesh`),
   and its abstract arguments: the SeedsState, the batch (stacked per seed
   for STEVE and SlotFormer), the frozen parameters (per seed for
   SlotFormer)."""
   seeds, seed_mesh = seeds_mesh(config, step, mesh, num_seeds)
   stage = train_stage(config, step, mesh)
-  seed = config.seed
-  if step == 'steve':
-    # fit.fit_chains: K one-seed stages (each seed's tokens; the
-    # same shapes), stacked.
-    stage = stacked_stage([stage] * num_seeds)
-  if step == 'slotformer':
-    # fit.fit_chains: K one-seed stages (each seed's slots and
-    # decoder; the same shapes), stacked.
-    seed = config.seed + 1
-    one = dataclasses.replace(stage, frozen_params=None)
-    stacked = stacked_stage([one] * num_seeds)
-    frozen = None
-    if stage.frozen_params is not None:
-      frozen = jax.eval_shape(
-          lambda *trees: stacked_stage([
-              dataclasses.replace(stage, frozen_params=tree)
-              for tree in trees]).frozen_params,
-          *[stage.frozen_params] * num_seeds)
-    stage = dataclasses.replace(stacked, frozen_params=frozen)
-  optimizer, _ = optim.make_optimizer(stage.config)
-  update = trainer.jit_update(stage, seed_mesh, optimizer, seed, seeds=seeds)
-  state = trainer.abstract_train_state(stage.init_params, stage.config,
-                                       seed_mesh, num_seeds)
+  frozen = stage.frozen_params  # shapes: stacked here, placed below
+  stages = [stage]
+  if step in ('steve', 'slotformer'):
+    # fit.fit_chains: K one-seed stages (each seed's tokens or slots and
+    # decoder; the same shapes).
+    stages = [dataclasses.replace(stage, frozen_params=None)] * num_seeds
+    if frozen is not None:
+      frozen = jax.tree.map(
+          lambda x: jax.ShapeDtypeStruct((num_seeds, *x.shape), x.dtype),
+          frozen)
+  # The (seed, data) mesh is made above, for the slice's hosts.
+  program = seeds_lib.program(stages, seed_mesh,
+                              dataclasses.replace(seeds, seed_axis=False))
   spec = batch_spec(config, step, batch_of(config, step))
-  if trainer.stacked_batches(stage, seeds):
+  if len(stages) > 1:
     spec = jax.tree.map(
         lambda x: jax.ShapeDtypeStruct((num_seeds, *x.shape), x.dtype), spec)
-    batch = _place(spec, sharding.seed_batch_sharding(seed_mesh))
-  else:
-    batch = _place(spec, sharding.batch_sharding(seed_mesh))
-  frozen = (None if stage.frozen_params is None else _place(
-      stage.frozen_params,
-      trainer.frozen_sharding(stage, seed_mesh, seeds)))
-  return update, (state, batch, frozen)
+  return program.update, (
+      program.abstract_state(), _place(spec, program.batch_sharding),
+      None if frozen is None else _place(frozen, program.frozen_sharding))
 
 
 def train_stage(config, step: str, mesh: Mesh) -> trainer.Stage:

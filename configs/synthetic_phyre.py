@@ -7,7 +7,7 @@ runs SAVi -> slot extraction -> SlotFormer -> success classifiers (first
 frame only / + rollout, per seed, epoch chosen by AUCCESS on dev tasks) ->
 planning on the test tasks (AUCCESS next to random ranking and the oracle).
 
-Tasks (worlds/phyre_like.py): 3 templates x 25 tasks, 200 fixed
+Tasks (tasks/phyre_world.py): 3 templates x 25 tasks, 200 fixed
 candidate actions per task with simulated labels, within-template fold 0
 (80% train, of which 20% dev, 20% test), frames at 2 fps for 5 s, rendered
 at 32x32 here (the generator's default is 64x64).

@@ -24,6 +24,7 @@ from __future__ import annotations
 import argparse
 import importlib.util
 import json
+import tempfile
 import time
 
 import flax.linen as nn
@@ -32,6 +33,7 @@ import numpy as np
 from slotformer_jax.datasets import synthetic_contact as contact
 from slotformer_jax.datasets import synthetic
 from slotformer_jax.modules import readouts
+from slotformer_jax.stages import readout_fit
 from slotformer_jax.tasks import readout as readout_lib
 
 
@@ -46,6 +48,14 @@ class StateMLP(nn.Module):
     x = nn.relu(nn.Dense(self.width)(x))
     x = nn.relu(nn.Dense(self.width)(x))
     return nn.Dense(1)(x)[..., 0]
+
+
+def fit_head(model, train, select, fit_config, seed):
+  """(params, log) of a head fitted as the pipeline fits its readouts
+  (`readout_fit.fit_readout`), in a folder thrown away after."""
+  with tempfile.TemporaryDirectory() as directory:
+    return readout_fit.fit_readout(directory, 'head', model, train, select,
+                                   fit_config, seed)
 
 
 def state_features(example: dict[str, np.ndarray], scale: float,
@@ -86,7 +96,7 @@ def evaluate(model, train, val, test, seeds, epochs):
     def select(params):
       p = readout_lib.predict(model, params, val[0])
       return readout_lib.best_threshold(p, val[1])[1]
-    params, _ = readout_lib.fit(
+    params, _ = fit_head(
         model, train, select,
         readout_lib.FitConfig(epochs=epochs, batch_size=64,
                               learning_rate=1e-3), seed)

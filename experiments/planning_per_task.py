@@ -22,7 +22,7 @@ import argparse
 import numpy as np
 
 from slotformer_jax.run import Run
-from slotformer_jax.stages import planning as planning_stage
+from slotformer_jax.stages.planning import embedded as planning_stage
 from slotformer_jax.tasks import phyre_planning
 from slotformer_jax.tasks import planning
 

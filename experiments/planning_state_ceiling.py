@@ -5,7 +5,7 @@ The planning classifier on SAVi slots of the first frame (85.9 mean AUCCESS
 over 3 folds) is not beaten by the one on first frame + SlotFormer rollout
 (84.1). Before blaming SlotFormer, check the task itself: train a success
 classifier on SIMULATOR STATES of the embedded PHYRE-like tasks
-(worlds/phyre_like.py, configs/synthetic_phyre.py), once on the first
+(tasks/phyre_world.py, configs/synthetic_phyre.py), once on the first
 frame (+ the action) and once on later frames of the TRUE simulation. If the
 true future is not far above the first frame, no dynamics model can help.
 
@@ -31,6 +31,7 @@ from __future__ import annotations
 import argparse
 import importlib.util
 import json
+import tempfile
 import time
 
 import flax.linen as nn
@@ -39,8 +40,9 @@ import numpy as np
 from slotformer_jax.datasets import synthetic_phyre as phyre_like_data
 from slotformer_jax.tasks import phyre_planning
 from slotformer_jax.tasks import planning
+from slotformer_jax.stages import readout_fit
 from slotformer_jax.tasks import readout as readout_lib
-from slotformer_jax.worlds import phyre_like
+from slotformer_jax.tasks import phyre_world as phyre_like
 
 ROLES = (phyre_like.GREEN, phyre_like.GOAL, phyre_like.DYNAMIC,
          phyre_like.STATIC, phyre_like.ACTION)
@@ -63,6 +65,14 @@ class Logistic(nn.Module):
   @nn.compact
   def __call__(self, x):
     return nn.Dense(1)(x)[..., 0]
+
+
+def fit_head(model, train, select, fit_config, seed):
+  """(params, log) of a head fitted as the pipeline fits its readouts
+  (`readout_fit.fit_readout`), in a folder thrown away after."""
+  with tempfile.TemporaryDirectory() as directory:
+    return readout_fit.fit_readout(directory, 'head', model, train, select,
+                                   fit_config, seed)
 
 
 def role_rows(tasks) -> tuple[str, ...]:
@@ -119,7 +129,7 @@ def main():
   parser.add_argument('--heads', nargs='+', default=['mlp', 'logistic'])
   parser.add_argument('--templates', nargs='+', default=None,
                       help='override config.data.templates (names of '
-                      'worlds/phyre_like.ALL_TEMPLATES)')
+                      'tasks/phyre_world.ALL_TEMPLATES)')
   parser.add_argument('--tasks_per_template', type=int, default=None)
   args = parser.parse_args()
   path, _, variant = args.config.partition(':')
@@ -189,7 +199,7 @@ def main():
         model = heads[head]()
         aucs, accs, devs = [], [], []
         for seed in args.seeds:
-          params, log = readout_lib.fit(
+          params, log = fit_head(
               model, ((train_x - mean) / std, train_y),
               lambda p, model=model: planning.plan_auccess(
                   scores_of(model, p, 'dev'), outcomes['dev']),

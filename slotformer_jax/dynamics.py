@@ -111,8 +111,8 @@ def load(paths: Paths, mesh: Mesh, name: str,
          stacked: inference.StackedSeed | None = None) -> Loaded:
   """The newest parameters of dynamics model `name` of the run `paths`,
   trained on slots of `slot_shape` with `section`'s architecture;
-  `stacked`: that seed's share of a model trained with several seeds in one
-  program (one stacked checkpoint).
+  `stacked`: a seed view's share of the stacked checkpoint of a K-seed
+  run.
 
   Raises:
     UserError: never trained (the message names the stage), or trained with

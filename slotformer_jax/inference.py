@@ -35,6 +35,7 @@ from slotformer_jax.runtime import progress
 from slotformer_jax.runtime import sharding
 from slotformer_jax.runtime.checkpoint import restore_fields
 from slotformer_jax.runtime.checkpoint import restore_params
+from slotformer_jax.workdir import identity as identity_lib
 
 logger = logging.getLogger(__name__)
 
@@ -121,6 +122,11 @@ class StackedSeed:
   def seed(self) -> int:
     return self.seeds[self.index]
 
+  def identity_fields(self) -> dict[str, Any]:
+    """What the identity of a stacked stage records besides its own fields:
+    its seeds and their data order."""
+    return {'seeds': identity_lib.seeds_entry(self.seeds, self.data_order)}
+
 
 @jax.jit
 def _seed_slice(stacked: Any, index: jax.Array) -> Any:
@@ -132,7 +138,7 @@ def restore_seed(directory: str, shapes: Any, mesh: Mesh,
                  stacked: StackedSeed, *, what: str, train_command: str,
                  num_train_steps: int) -> tuple[Any, int, int]:
   """`restore` of one seed of a stage trained with several seeds in one
-  program (one checkpoint of the stacked [K, ...] state, train/trainer.py):
+  program (one checkpoint of the stacked [K, ...] state, train/seeds.py):
   seed `stacked.index`'s parameters of `shapes` (replicated), their step,
   and the update in which that seed diverged (its recorded `diverged_at`;
   0: it trained to the end, its parameters are then its last finite ones).

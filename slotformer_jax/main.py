@@ -44,8 +44,8 @@ from slotformer_jax.runtime import host_memory
 from slotformer_jax.runtime import processes
 from slotformer_jax.runtime import startup
 from slotformer_jax.runtime import xla_flags
+from slotformer_jax.runtime.preemption import Preempted
 from slotformer_jax.slot_models import chain
-from slotformer_jax.train.trainer import Preempted
 from slotformer_jax.workdir.lock import workdir_lock
 from slotformer_jax.workdir.paths import Paths
 from slotformer_jax.workdir.settings import accept_config
@@ -184,7 +184,7 @@ def main(argv):
   run = Run.create(config, workdir)
   selected = stages.selected_stages(run, mode)
   # Every check before any work: a bad value costs seconds, not a stage.
-  run.check(selected)
+  stages.check(run, selected)
   global _lock
   lock = workdir_lock(run.paths)
   if jax.process_index() == 0:
@@ -269,8 +269,8 @@ def _quiet_teardown() -> None:
 
 def _run(run: Run, selected: tuple[str, ...]) -> None:
   if run.paths.foreign_stage1:
-    # Before any data is made: the read-only stage 1 must fit (with the
-    # run's seeds, when several).
+    # Before any data is made: the read-only stage 1 must fit (stacked as
+    # the run's chains are).
     chain.check_identities(run.slot_model, run.paths,
                            run.chains()[0].stacked)
   # config.json only ever records settings that are used from here on.

@@ -121,38 +121,6 @@ class Run:
         section[field] = value
     return cls.create(ml_collections.ConfigDict(settings), workdir, mesh)
 
-  def check(self, stages: tuple[str, ...], *, num_devices: int | None = None,
-            num_processes: int | None = None) -> None:
-    """Every problem of the config for `stages` (and of the slot model's own
-    settings) as one ConfigError, before any work: nothing is made, trained
-    or written. Video lengths are read from data already there."""
-
-    data = self.config.data
-    dataset = datasets.DATASETS.get(data.name)  # unknown: a problem below
-
-    def video_length(split: str) -> int | None:
-      # A generated dataset's from its parameters, else from its data.
-      known = dataset.num_frames(data) if dataset is not None else None
-      if known is not None:
-        return known
-      try:
-        source = self.videos(split)
-        return len(source[0]['video']) if len(source) else None
-      except Exception:  # pylint: disable=broad-except
-        return None  # missing data: the stage that reads it says how to fix
-
-    config_checks.validate(
-        self.config, stages,
-        num_devices=(jax.device_count() if num_devices is None
-                     else num_devices),
-        num_processes=(jax.process_count() if num_processes is None
-                       else num_processes),
-        slot_model_problems=lambda: self.slot_model.check_config(
-            frozenset(stages)),
-        data_problems=datasets.config_problems(self.config),
-        dataset_splits=dataset.splits if dataset is not None else (),
-        video_length=video_length)
-
   # ---- who this process is ------------------------------------------------
 
   @property

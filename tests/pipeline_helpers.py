@@ -98,6 +98,7 @@ def slots_of(config, workdir, split, video_fields=()):
 
 
 def check(config, stages, **kwargs):
-  """Every check main runs before any work (`Run.check`)."""
-  Run.create(config, '/nonexistent/run', sharding.make_mesh()).check(
-      tuple(stages), **kwargs)
+  """Every check main runs before any work (`stages.check`)."""
+  from slotformer_jax import stages as stages_lib  # pylint: disable=g-import-not-at-top
+  stages_lib.check(Run.create(config, '/nonexistent/run',
+                              sharding.make_mesh()), tuple(stages), **kwargs)

@@ -34,8 +34,9 @@ FLOORS = (
     # reading (sources, chunks, checksums, slots, questions, the downloads'
     # decoders) and the input pipeline
     ('slotformer_jax.data',),
-    # simulators a run uses too (planning's PHYRE-like world)
-    ('slotformer_jax.worlds',),
+    # the planning task's simulator, which its embedded dataset's generator
+    # uses too: with the task, on the floor below the datasets
+    ('slotformer_jax.tasks.phyre_world',),
     # one module per dataset and their registry; what reads by their facts
     ('slotformer_jax.datasets', 'slotformer_jax.data.vqa_questions'),
     # the writing room (the data stage's and the prepare CLI's), above every
@@ -365,11 +366,12 @@ def forbidden_reaches(graph: dict[str, set[str]], starts, forbidden
 
 def readers_and_what_they_reach(graph: dict[str, set[str]]) -> set[str]:
   """The readers, every dataset module and every module of data/, datasets/
-  and worlds/ they reach (outside the writing room)."""
+  and the PHYRE-like world they reach (outside the writing room)."""
   return {m for r in (*READERS, *dataset_modules(graph))
           for m in reachable(graph, r)
           if _under(m, ('slotformer_jax.data', 'slotformer_jax.datasets',
-                        'slotformer_jax.worlds')) and not _under(m, WRITING)}
+                        'slotformer_jax.tasks.phyre_world'))
+          and not _under(m, WRITING)}
 
 
 def write_calls(files: dict[str, pathlib.Path], names) -> list[str]:
@@ -408,7 +410,8 @@ def test_the_reading_modules_write_nothing():
 
 def test_tasks_and_evaluation_reach_no_writer():
   """The run-time rules they use (the PHYRE-like world, CLEVRER's clips)
-  are in worlds/ and the dataset modules, not with the writers."""
+  are with the planning task and the dataset modules, not with the
+  writers."""
   converters = ('slotformer_jax.data.write',)
   assert forbidden_reaches(GRAPH, ('slotformer_jax.tasks',), converters) == []
   assert forbidden_reaches(GRAPH, ('slotformer_jax.evaluation',),

@@ -22,11 +22,8 @@ import ml_collections
 
 from slotformer_jax.config import defaults
 from slotformer_jax.config.defaults import CHOICES
-from slotformer_jax.config.defaults import FRAME_METRICS
-from slotformer_jax.config.defaults import OBJECT_METRICS
 from slotformer_jax.config.sections import DYNAMICS_MODELS
 from slotformer_jax.config.sections import dynamics_section
-from slotformer_jax.config.sections import reads_readout_splits
 from slotformer_jax.config.sections import trained_dynamics
 from slotformer_jax.errors import ConfigError
 
@@ -302,6 +299,8 @@ def validate(config: ml_collections.ConfigDict, stages: Sequence[str], *,
                  str] = (),
              data_problems: Sequence[str] = (),
              dataset_splits: Sequence[str] = (),
+             task_seeded: Sequence[str] = (),
+             task_splits: Sequence[tuple[str, str]] = (),
              video_length: Callable[[str], int | None] = lambda split: None
              ) -> None:
   """Raises one UserError listing every problem of `stages` (main's modes).
@@ -314,6 +313,9 @@ def validate(config: ml_collections.ConfigDict, stages: Sequence[str], *,
       dataset knows (`datasets.config_problems`).
     dataset_splits: the splits the dataset has (`Dataset.splits`; empty:
       not known), which every split the stages read must be.
+    task_seeded: the task's stages that take several seeds (`Task.seeded`).
+    task_splits: (field, split) of the data splits the task's stages read
+      (`Task.reads`), each of which must be extracted and the dataset's.
     video_length: split -> frames per video when known without making data
       (None: unknown, checked later by the stage that reads them).
   """
@@ -389,11 +391,11 @@ def validate(config: ml_collections.ConfigDict, stages: Sequence[str], *,
     positive('explore', ('num_videos', 'fps', 'scale'))
 
   problems.extend(choice_problems(config))
-  problems.extend(seeds_problems(config, stages))
+  problems.extend(seeds_problems(config, stages, task_seeded))
   problems.extend(check_field_kinds(config))
   problems.extend(check_field_shapes(config))
   problems[:] = list(dict.fromkeys(problems))  # the same line from two checks
-  _check_splits(config, stages, problems, dataset_splits)
+  _check_splits(config, task_splits, problems, dataset_splits)
   if not problems:  # sizes and lengths need the integers above to be sane
     problems.extend(slot_model_problems() if callable(slot_model_problems)
                     else slot_model_problems)
@@ -408,27 +410,19 @@ def validate(config: ml_collections.ConfigDict, stages: Sequence[str], *,
 # readouts of every task (contact, planning on either layout) and Aloe
 # (task model s on chain s).
 SEEDED_STAGES = ('train_savi', 'train_dvae')
-_VIDEO_PREDICTION_CHAIN = ('extract_slots', 'train_slotformer',
-                           'train_slot_lstm', 'evaluate', 'render',
-                           'explore')
-SEEDED_CHAINS = {'savi': _VIDEO_PREDICTION_CHAIN,
-                 'steve': ('tokenize_frames', 'train_steve',
-                           *_VIDEO_PREDICTION_CHAIN)}
-# A task's stages that take several seeds, after the chain of its slot
-# model (run.py: Run.readout_chains).
-SEEDED_TASK_STAGES = {'contact': ('train_readout', 'evaluate_readout'),
-                      'planning': ('train_readout', 'plan'),
-                      'vqa': ('vqa_slots', 'train_vqa', 'evaluate_vqa')}
+_STAGE2 = ('extract_slots', 'train_slotformer', 'train_slot_lstm')
+SEEDED_CHAINS = {'savi': _STAGE2,
+                 'steve': ('tokenize_frames', 'train_steve', *_STAGE2)}
 # Stages that do no training or extraction of their own with the seeds.
 _SEED_FREE_STAGES = ('prepare_data',)
 
 
-def seeded_stages(slot_model: str, task: str | None = None
+def seeded_stages(slot_model: str, task_seeded: Sequence[str] = ()
                   ) -> tuple[str, ...]:
-  """The stages that take several seeds with `slot_model` and `task`."""
+  """The stages that take several seeds with `slot_model`, whose task's
+  seeded stages are `task_seeded` (`Task.seeded`; they follow the chain)."""
   chain = SEEDED_CHAINS.get(slot_model, ())
-  return (SEEDED_STAGES + chain
-          + (SEEDED_TASK_STAGES.get(task, ()) if chain else ()))
+  return SEEDED_STAGES + chain + (tuple(task_seeded) if chain else ())
 
 
 def _listed(values: Sequence[Any]) -> str:
@@ -461,7 +455,8 @@ def choice_problems(config: ml_collections.ConfigDict,
 
 
 def seeds_problems(config: ml_collections.ConfigDict,
-                   stages: Sequence[str]) -> list[str]:
+                   stages: Sequence[str],
+                   task_seeded: Sequence[str] = ()) -> list[str]:
   """One line per bad `seeds` / `seed_data_order` / `on_seed_divergence` /
   `seed_axis` / `seed_loop`, and one naming the stages of `stages` that do
   not take several seeds yet (or the setting that keeps them from it)."""
@@ -485,7 +480,7 @@ def seeds_problems(config: ml_collections.ConfigDict,
                     f'{config.seed_axis!r}')
   if problems or seeds is None or len(seeds) < 2:
     return problems
-  seeded = seeded_stages(config.slot_model, config.task)
+  seeded = seeded_stages(config.slot_model, task_seeded)
   refused = sorted(s for s in stages
                    if s not in seeded + _SEED_FREE_STAGES)
   if refused:
@@ -516,24 +511,16 @@ def _check_vqa_batches(vqa: ml_collections.ConfigDict, problems: list[str],
                     'question a batch')
 
 
-def _check_splits(config: ml_collections.ConfigDict, stages,
+def _check_splits(config: ml_collections.ConfigDict,
+                  task_splits: Sequence[tuple[str, str]],
                   problems: list[str],
                   dataset_splits: Sequence[str] = ()) -> None:
-  """The splits the later stages read must be the dataset's, and ones whose
-  slots are extracted: before, evaluation.split='valid' was accepted, three stages
-  trained, and evaluation then asked, forever, for slots that the
-  extraction (of extraction.splits only) never makes."""
+  """The splits the stages read must be the dataset's, and those the task
+  reads ones whose slots are extracted: before, evaluation.split='valid'
+  was accepted, three stages trained, and evaluation then asked, forever,
+  for slots that the extraction (of extraction.splits only) never makes."""
   extracted = tuple(config.extraction.splits)
-  wanted = []
-  if set(stages) & {'evaluate', 'render', 'explore'}:
-    wanted.append(('evaluation.split', config.evaluation.split))
-  # Only where the task reads them (as the data stage: the embedded
-  # PHYRE-like planning splits by task and extracts 'train' only).
-  if reads_readout_splits(config) and (
-      set(stages) & {'train_readout', 'evaluate_readout', 'plan'}):
-    wanted += [(f'readout.splits.{k}', v)
-               for k, v in sorted(config.readout.splits.items())]
-  for field, split in wanted:
+  for field, split in task_splits:
     if split not in extracted:
       problems.append(
           f'{field}={split!r} is not one of the splits whose slots are '
@@ -541,16 +528,8 @@ def _check_splits(config: ml_collections.ConfigDict, stages,
           'of them, or add it to extraction.splits if the dataset has it')
   if not dataset_splits:
     return
-  # Every split the run's stages may read must be the dataset's.
   read = [(f'extraction.splits[{i}]', split)
-          for i, split in enumerate(extracted)]
-  if not config.task:
-    read.append(('evaluation.split', config.evaluation.split))
-  if reads_readout_splits(config):
-    read += [(f'readout.splits.{k}', v)
-             for k, v in sorted(config.readout.splits.items())]
-  if config.task == 'vqa':
-    read.append(('vqa.eval_split', config.vqa.eval_split))
+          for i, split in enumerate(extracted)] + list(task_splits)
   for field, split in read:
     if split not in dataset_splits:
       problems.append(f'{field}={split!r} is not a split of '

@@ -40,7 +40,7 @@ OBJECT_METRICS = ('ari', 'fg_ari', 'fg_miou', 'ar')
 def base_config() -> ml_collections.ConfigDict:
   config = ml_collections.ConfigDict()
   config.seed = 0
-  # Several seeds trained at once, in one program (train/trainer.py `Seeds`):
+  # Several seeds trained at once, in one program (train/seeds.py `Seeds`):
   # None (the default) is one seed, `seed`, exactly as before. A tuple of
   # distinct ints, e.g. (0, 1, 2): a training stage stacks the seeds'
   # parameters and optimiser states on a leading axis, runs one jitted step
@@ -541,7 +541,7 @@ def planning_readout_config() -> ml_collections.ConfigDict:
   # The official classifier trains with nn.TransformerEncoderLayer's 0.1.
   r.dropout_rate = 0.0
   # Classifier seeds on the run's one chain; with config.seeds one per chain
-  # (seed s on chain s) instead (stages/planning.py).
+  # (seed s on chain s) instead (stages/planning/embedded.py).
   r.seeds = (0, 1, 2)
   r.dev_share = 0.1  # training tasks held out to choose the epoch
   r.negatives_per_task = 40  # embedded tasks: failing actions kept per task

@@ -35,7 +35,7 @@ def several_seeds(config: ml_collections.ConfigDict
   """`config.seeds` when it names several seeds (trained in one program,
   each chained through the stages after stage 1: docs/seeds.md), else None:
   one seed, `config.seed` (also for a one-value `seeds`, as the trainer
-  reads it: stages/fit.py `seeds_of`)."""
+  reads it: train/seeds.py `Seeds.of_config`)."""
   seeds = config.seeds
   if seeds is None or len(seeds) < 2:
     return None
@@ -46,11 +46,3 @@ def trained_dynamics(config: ml_collections.ConfigDict) -> tuple[str, ...]:
   """The dynamics models a run trains and compares: SlotFormer, plus
   Slot-LSTM when `slot_lstm.train`."""
   return (SLOTFORMER,) + ((SLOT_LSTM,) if config.slot_lstm.train else ())
-
-
-def reads_readout_splits(config: ml_collections.ConfigDict) -> bool:
-  """Whether the task's readout reads the data splits `readout.splits`
-  names: contact, and planning on the rendered PHYRE layout; the embedded
-  PHYRE-like tasks split by task, not by data split."""
-  return config.task == 'contact' or (
-      config.task == 'planning' and config.data.name == 'phyre')

@@ -46,8 +46,8 @@ import tensorflow_datasets as tfds
 
 from slotformer_jax.data import sources
 from slotformer_jax.datasets import base
-from slotformer_jax.worlds.supersample import downsample_rgb
-from slotformer_jax.worlds.supersample import downsample_segmentation
+from slotformer_jax.data.supersample import downsample_rgb
+from slotformer_jax.data.supersample import downsample_segmentation
 
 # Bump whenever the generator's output changes for identical parameters: it is
 # part of the cache folder name, so stale caches are never reused.

@@ -3,7 +3,7 @@ of every candidate action on every task, and the SAVi / SlotFormer training
 videos.
 
 The tasks, physics, rendering and their parameters
-(:class:`PhyreLikeConfig`) are the world's (worlds/phyre_like.py); here, the
+(:class:`PhyreLikeConfig`) are the world's (tasks/phyre_world.py); here, the
 files they name under ``<data_dir>/synthetic_phyre/`` and how they are made
 (by the data stage):
 
@@ -28,20 +28,18 @@ import tensorflow_datasets as tfds
 
 from slotformer_jax.data import sources
 from slotformer_jax.datasets import base
-from slotformer_jax.worlds.phyre_like import ALL_TEMPLATES  # noqa: F401 (re-export)
-from slotformer_jax.worlds.phyre_like import INVALID
-from slotformer_jax.worlds.phyre_like import SOLVED
-from slotformer_jax.worlds.phyre_like import TEMPLATES  # noqa: F401 (re-export)
-from slotformer_jax.worlds.phyre_like import PhyreLikeConfig
-from slotformer_jax.worlds.phyre_like import Task
-from slotformer_jax.worlds.phyre_like import all_tasks
-from slotformer_jax.worlds.phyre_like import candidate_actions
-from slotformer_jax.worlds.phyre_like import config_from_data_config
-from slotformer_jax.worlds.phyre_like import label_candidates
-from slotformer_jax.worlds.phyre_like import layout_tasks
-from slotformer_jax.worlds.phyre_like import make_task
-from slotformer_jax.worlds.phyre_like import render_video
-from slotformer_jax.worlds.phyre_like import split_tasks
+from slotformer_jax.tasks.phyre_world import INVALID
+from slotformer_jax.tasks.phyre_world import SOLVED
+from slotformer_jax.tasks.phyre_world import PhyreLikeConfig
+from slotformer_jax.tasks.phyre_world import Task
+from slotformer_jax.tasks.phyre_world import all_tasks
+from slotformer_jax.tasks.phyre_world import candidate_actions
+from slotformer_jax.tasks.phyre_world import config_from_data_config
+from slotformer_jax.tasks.phyre_world import label_candidates
+from slotformer_jax.tasks.phyre_world import layout_tasks
+from slotformer_jax.tasks.phyre_world import make_task
+from slotformer_jax.tasks.phyre_world import render_video
+from slotformer_jax.tasks.phyre_world import split_tasks
 
 GENERATOR_VERSION = 1
 

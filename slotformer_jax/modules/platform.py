@@ -16,10 +16,10 @@ Each such layer takes a `kernels` field:
 * 'cpu' / 'accelerator': that form on every platform (tests, comparisons).
 
 `forms(kernels, layers)` makes the 'auto' layers of those kinds traced inside
-it take one form: the several-seed training step (train/trainer.py) takes
-the accelerator form of the transposed convolution, since its CPU form,
-vmapped over the seeds, computes otherwise when the seeds are split over
-devices (the other layers keep their CPU forms: faster there).
+it take one form: the K-seed training step (train/) takes the accelerator
+form of the transposed convolution, since its CPU form, vmapped over the
+stacked models, computes otherwise when they are split over devices (the
+other layers keep their CPU forms: faster there).
 
 Both forms compute the same function; they differ in rounding only.
 Parameters are declared outside the choice, so the parameter tree is the

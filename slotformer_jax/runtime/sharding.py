@@ -1,9 +1,7 @@
 """Data parallelism over every device of every host.
 
 One mesh axis, 'data': the global batch is split along it, parameters and
-optimiser state are replicated. Training K seeds at once (`seed_mesh`) adds
-a 'seed' axis beside it when every process's devices split into K groups:
-the stacked [K, ...] state is split on 'seed', the batch on 'data'. `jax.jit` with these shardings inserts the
+optimiser state are replicated. `jax.jit` with these shardings inserts the
 gradient all-reduce itself. The same code serves 1 CPU, N fake CPU devices
 (`XLA_FLAGS=--xla_force_host_platform_device_count=N`), a GPU node and a
 multi-host pod (after `jax.distributed.initialize()`).
@@ -22,7 +20,6 @@ from jax.sharding import PartitionSpec
 import numpy as np
 
 DATA_AXIS = 'data'
-SEED_AXIS = 'seed'
 
 
 def make_mesh() -> Mesh:
@@ -30,41 +27,13 @@ def make_mesh() -> Mesh:
   return Mesh(np.asarray(jax.devices()), (DATA_AXIS,))
 
 
-def seed_mesh(mesh: Mesh, num_seeds: int,
-              local_devices: int | None = None) -> Mesh:
-  """`mesh`'s devices as a (seed, data) grid for training `num_seeds` seeds
-  at once (e.g. 4 seeds x 2 data on 8 devices), or `mesh` itself (the seeds
-  then replicated on every device, only the batch split) when there is one
-  seed or the devices of a process do not split into `num_seeds` groups.
-
-  The seeds of one 'data' row sit on one process (device [s, d] is device
-  d * K + s of `mesh`), so each process still holds a contiguous block of
-  batch rows (`check_host_rows`). `local_devices`: the devices of one
-  process (default `jax.local_device_count()`; an ahead-of-time compile for
-  a TPU slice from a CPU host passes the slice's own).
-  """
-  devices = mesh.devices.reshape(-1)
-  if local_devices is None:
-    local_devices = jax.local_device_count()
-  if (num_seeds <= 1 or mesh.axis_names != (DATA_AXIS,)
-      or local_devices % num_seeds
-      or len(devices) % num_seeds):
-    return mesh
-  return Mesh(devices.reshape(-1, num_seeds).T, (SEED_AXIS, DATA_AXIS))
-
-
-def seed_sharding(mesh: Mesh) -> NamedSharding:
-  """A stacked [K, ...] tree split on 'seed' (replicated without one)."""
-  if SEED_AXIS in mesh.axis_names:
-    return NamedSharding(mesh, PartitionSpec(SEED_AXIS))
-  return replicated_sharding(mesh)
-
-
-def seed_batch_sharding(mesh: Mesh) -> NamedSharding:
-  """A [K, B, ...] batch (one per seed): K on 'seed' (when the mesh has
-  it), B on 'data'."""
-  seed_axis = SEED_AXIS if SEED_AXIS in mesh.axis_names else None
-  return NamedSharding(mesh, PartitionSpec(seed_axis, DATA_AXIS))
+def one_device_per_process() -> Mesh:
+  """A 'data' mesh of the first device of each process (for models too
+  small to gain from more: the readout heads)."""
+  first = {}
+  for device in jax.devices():
+    first.setdefault(device.process_index, device)
+  return Mesh(np.asarray([first[p] for p in sorted(first)]), (DATA_AXIS,))
 
 
 def batch_sharding(mesh: Mesh) -> NamedSharding:
@@ -108,17 +77,20 @@ def check_host_rows(mesh: Mesh) -> None:
 
 
 def to_global_batch(local_batch: dict[str, np.ndarray], mesh: Mesh,
-                    per_seed: bool = False) -> dict[str, jax.Array]:
-  """Assembles each host's slice into global arrays sharded on 'data'
-  (`per_seed`: [K, B, ...] batches, B on 'data', `seed_batch_sharding`)."""
-  sharding = seed_batch_sharding(mesh) if per_seed else batch_sharding(mesh)
+                    sharding: NamedSharding | None = None
+                    ) -> dict[str, jax.Array]:
+  """Assembles each host's slice into global arrays sharded on 'data', or
+  as `sharding` says (e.g. [K, B, ...]: B on 'data')."""
+  if sharding is None:
+    sharding = batch_sharding(mesh)
   return jax.tree.map(
       lambda x: jax.make_array_from_process_local_data(sharding, x),
       local_batch)
 
 
 def prefetch_to_device(host_batches: Iterator[dict[str, np.ndarray]],
-                       mesh: Mesh, size: int = 2, per_seed: bool = False
+                       mesh: Mesh, size: int = 2,
+                       sharding: NamedSharding | None = None
                        ) -> Iterator[tuple[dict[str, np.ndarray],
                                            dict[str, jax.Array]]]:
   """Yields ``(host batch, global batch)`` with up to `size` batches already
@@ -130,7 +102,7 @@ def prefetch_to_device(host_batches: Iterator[dict[str, np.ndarray]],
   while the previous step still runs. An error of `host_batches` is raised
   after the batches before it are handed out, at the step it would have
   been raised without prefetching. Closing this closes `host_batches`.
-  `per_seed`: [K, B, ...] host batches (see `to_global_batch`).
+  `sharding`: where the batches go (see `to_global_batch`).
   """
   if size < 1:
     raise ValueError(f'size must be >= 1, got {size}')
@@ -148,7 +120,7 @@ def prefetch_to_device(host_batches: Iterator[dict[str, np.ndarray]],
         except Exception as error:  # pylint: disable=broad-except
           failure = error
           break
-        ready.append((host, to_global_batch(host, mesh, per_seed)))
+        ready.append((host, to_global_batch(host, mesh, sharding)))
       if not ready:
         if failure is not None:
           raise failure

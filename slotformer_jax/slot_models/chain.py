@@ -32,7 +32,7 @@ logger = logging.getLogger(__name__)
 def part_identity(part: Part, paths: Paths,
                   stacked: StackedSeed | None = None) -> dict[str, Any]:
   """The identity of `part` in the stage-1 workdir, made with this config
-  (`stacked`: trained with the run's several seeds in one program).
+  (`stacked`: a seed view's share of a K-seed run's stacked checkpoint).
 
   Raises:
     MissingInputError: never trained (the message names its stage).
@@ -40,8 +40,7 @@ def part_identity(part: Part, paths: Paths,
   """
   fields = dict(part.identity_fields)
   if stacked is not None:
-    fields['seeds'] = identity_lib.seeds_entry(stacked.seeds,
-                                               stacked.data_order)
+    fields.update(stacked.identity_fields())
   return identity_lib.checked_identity(
       paths.model(part.name), fields, part.label,
       command(paths.stage1, part.mode))
@@ -51,7 +50,7 @@ def check_identities(slot_model: SlotModel, paths: Paths,
                      stacked: StackedSeed | None = None
                      ) -> dict[str, dict[str, Any]]:
   """{part name: identity} of every part, checked against this config
-  (`stacked`: trained with the run's several seeds) without reading
+  (`stacked`: of a seed view of a K-seed run) without reading
   parameters (e.g. a read-only stage 1 before any work)."""
   return {part.name: part_identity(part, paths, stacked)
           for part in slot_model.parts}
@@ -112,7 +111,7 @@ def param_shapes(part: Part) -> Any:
 def load_part(part: Part, paths: Paths, mesh: Mesh,
               stacked: StackedSeed | None = None) -> tuple[Any, int]:
   """The newest parameters of `part` (replicated) and their step;
-  `stacked`: that seed's share of a part trained with several seeds.
+  `stacked`: a seed view's share of a K-seed run's stacked part.
 
   Raises:
     UserError: no checkpoint, or one of another architecture.
@@ -144,8 +143,8 @@ def _restore_part(part: Part, paths: Paths, mesh: Mesh,
 def load(slot_model: SlotModel, paths: Paths, mesh: Mesh,
          stacked: StackedSeed | None = None) -> Loaded:
   """The trained stage 1 of the run `paths` (its `stage1` folder), checked;
-  `stacked`: that seed of a stage 1 trained with several seeds in one
-  program (its share of the stacked checkpoints, `Loaded.diverged_at`).
+  `stacked`: a seed view's share of a K-seed run's stacked checkpoints
+  (`Loaded.diverged_at`).
 
   Raises:
     UserError: missing, trained with another architecture or settings, or
@@ -195,8 +194,8 @@ def check_foreign_stage1(slot_model: SlotModel, paths: Paths, mesh: Mesh,
   """A stage 1 read from another workdir (`config.stage1_workdir`) is
   read-only: its parts must be trained to their full length with this
   config's settings, the slots of `splits` complete and made by it.
-  `stacked` (with `paths` of that seed): one seed of a stage 1 trained with
-  the run's several seeds, and that seed's slots.
+  `stacked` (with `paths` of that seed view): its share of a K-seed run's
+  stage 1, and its slots.
 
   Raises:
     UserError: what is missing or different, and where to fix it.

@@ -22,9 +22,9 @@ Workdir (inside the stage-1 workdir)::
     steve/checkpoints/  steve/identity.json (parent: the dVAE run id + step)
     slots/<split>/      meta 'parent' = the STEVE run id + step
 
-With several seeds (docs/seeds.md) dvae/ and steve/ hold one stacked
-checkpoint each, and seed s's tokens and slots are in seed_<s>/tokens/ and
-seed_<s>/slots/ (made by seed s's share of the stacked dVAE and STEVE).
+A K-seed run stacks its dVAEs and STEVEs in one
+checkpoint each; the tokens and slots of the chain of seed s are in
+seed_<s>/tokens/ and seed_<s>/slots/.
 
 Parameters (`Loaded.params`): {'dvae': the dVAE's, 'steve': STEVE's}.
 """

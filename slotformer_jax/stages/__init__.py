@@ -1,35 +1,42 @@
-"""The stage table: which stages a run executes, in which order.
+"""The stage table: which stages a run executes, in which order, and every
+check before the first of them.
 
 A run is the data stage (`prepare_data`: every `--mode` runs it first, so
 the stages after it find their data made and checked), stage 1 (the slot
 model's own parts, `stages/stage1.py`), slot extraction, stage 2
-(SlotFormer; the Slot-LSTM baseline when the config trains it), then either
-the video-prediction evaluation and pictures, or a downstream task: contact
-prediction, planning, or VQA. `--mode=all` runs them in table order;
-`--mode=<stage>` runs the data stage, then that one.
+(SlotFormer; the Slot-LSTM baseline when the config trains it), then the
+stages of its task (`config.task`, `stages/task.py`): video prediction's
+evaluation and pictures, or a downstream task's. `--mode=all` runs them in
+table order; `--mode=<stage>` runs the data stage, then that one.
 
 Every stage function is `(run: Run) -> None | results` (run.py).
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import importlib
+import pkgutil
+from collections.abc import Callable, Sequence
 from typing import Any
 
+import jax
+
+from slotformer_jax import datasets
+from slotformer_jax.config import checks as config_checks
 from slotformer_jax.errors import CommandLineError
-from slotformer_jax.errors import UserError
 from slotformer_jax.run import Run
-from slotformer_jax.stages import contact
 from slotformer_jax.stages import data
 from slotformer_jax.stages import dynamics
 from slotformer_jax.stages import extract
-from slotformer_jax.stages import planning
-from slotformer_jax.stages import planning_rendered
 from slotformer_jax.stages import stage1
-from slotformer_jax.stages import video_prediction
-from slotformer_jax.stages import vqa
+from slotformer_jax.stages import task as task_lib
 
 StageFn = Callable[[Run], Any]
+
+# Every module of the package is imported: each task module registers its
+# task (tests/test_layout.py counts these imports as edges).
+for _module in pkgutil.iter_modules(__path__):
+  importlib.import_module(f'{__name__}.{_module.name}')
 
 # Reading never writes: the data are made here, before every other stage.
 DATA: dict[str, StageFn] = {'prepare_data': data.prepare_data}
@@ -38,30 +45,6 @@ STAGE2: dict[str, StageFn] = {
     'train_slotformer': dynamics.train_slotformer,
     'train_slot_lstm': dynamics.train_slot_lstm,
 }
-VIDEO_PREDICTION: dict[str, StageFn] = {
-    'evaluate': video_prediction.evaluate,
-    'render': video_prediction.render,
-    'explore': video_prediction.explore,
-}
-# Downstream tasks, by `config.task`.
-TASKS: dict[str, dict[str, StageFn]] = {
-    'contact': {'train_readout': contact.train_readout,
-                'evaluate_readout': contact.evaluate_readout},
-    'planning': {'train_readout': planning.train_readout,
-                 'plan': planning.plan},
-    'vqa': {'vqa_slots': vqa.vqa_slots, 'train_vqa': vqa.train_vqa,
-            'evaluate_vqa': vqa.evaluate_vqa},
-}
-# The real PHYRE layout holds rendered rollouts, not a simulator.
-PLANNING_RENDERED: dict[str, StageFn] = {
-    'train_readout': planning_rendered.train_readout,
-    'plan': planning_rendered.plan,
-}
-# Where each task's stages come from, for messages.
-TASK_CONFIGS = {'contact': 'configs/synthetic_contact.py',
-                'planning': 'configs/synthetic_phyre.py',
-                'vqa': 'configs/synthetic_vqa.py',
-                None: 'configs/synthetic.py'}
 
 
 def stage_table(run: Run) -> dict[str, StageFn]:
@@ -69,16 +52,7 @@ def stage_table(run: Run) -> dict[str, StageFn]:
   table = dict(DATA)
   table.update(stage1.stage_functions(run))
   table.update(STAGE2)
-  task = run.task
-  if task is None:
-    table.update(VIDEO_PREDICTION)
-  elif task == 'planning' and run.config.data.name == 'phyre':
-    table.update(PLANNING_RENDERED)
-  elif task in TASKS:
-    table.update(TASKS[task])
-  else:
-    raise UserError(f'unknown task {task!r}; one of {sorted(TASKS)} (or '
-                    'none, for video prediction)')
+  table.update(task_lib.get(run.task).stages)
   return table
 
 
@@ -95,15 +69,52 @@ def selected_stages(run: Run, mode: str) -> tuple[str, ...]:
   return tuple(dict.fromkeys([*DATA, mode]))
 
 
+def check(run: Run, stages: Sequence[str], *, num_devices: int | None = None,
+          num_processes: int | None = None) -> None:
+  """Every problem of the config for `stages` (of the slot model's own
+  settings, the dataset's and the task's too) as one ConfigError, before
+  any work: nothing is made, trained or written. Video lengths are read
+  from data already there."""
+  config, stages = run.config, tuple(stages)
+  task = task_lib.get(run.task)
+  dataset = datasets.DATASETS.get(config.data.name)  # unknown: a problem
+
+  def video_length(split: str) -> int | None:
+    # A generated dataset's from its parameters, else from its data.
+    known = dataset.num_frames(config.data) if dataset is not None else None
+    if known is not None:
+      return known
+    try:
+      source = run.videos(split)
+      return len(source[0]['video']) if len(source) else None
+    except Exception:  # pylint: disable=broad-except
+      return None  # missing data: the stage that reads it says how to fix
+
+  config_checks.validate(
+      config, stages,
+      num_devices=(jax.device_count() if num_devices is None
+                   else num_devices),
+      num_processes=(jax.process_count() if num_processes is None
+                     else num_processes),
+      slot_model_problems=lambda: run.slot_model.check_config(
+          frozenset(stages)),
+      data_problems=(datasets.config_problems(config)
+                     + task.problems(config)),
+      dataset_splits=dataset.splits if dataset is not None else (),
+      task_seeded=task.seeded,
+      # The task's splits, where its stages run (they read them).
+      task_splits=(task.reads(config) if set(stages) & set(task.stages)
+                   and not task.problems(config) else ()),
+      video_length=video_length)
+
+
 def _not_a_stage(run: Run, mode: str, table: dict[str, StageFn]) -> str:
   """One line: what `--mode=<mode>` is not, and where it belongs."""
   line = (f'--mode={mode} does not apply to this config (slot_model='
           f'{run.config.slot_model!r}, task={run.task!r}); it runs '
           f'{", ".join(table)}')
-  owners = [task for task, stages in TASKS.items() if mode in stages]
-  if mode in VIDEO_PREDICTION:
-    owners = [None]
+  owners = task_lib.owners(mode)
   if owners:
     line += (f'. --mode={mode} belongs to ' + ' or '.join(
-        TASK_CONFIGS[task] for task in owners))
+        task.config for task in owners))
   return line + '.'

@@ -28,6 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from slotformer_jax import inference
+from slotformer_jax.config import defaults
 from slotformer_jax.config.sections import SLOTFORMER
 from slotformer_jax.data import video_names
 from slotformer_jax.data.slots import SlotSource
@@ -41,6 +42,9 @@ from slotformer_jax.files import write_json_atomic
 from slotformer_jax.frames import to_uint8
 from slotformer_jax.run import Run
 from slotformer_jax.runtime import progress
+from slotformer_jax.stages import readout_fit
+from slotformer_jax.stages.task import Task
+from slotformer_jax.stages.task import register
 from slotformer_jax.tasks import contact
 from slotformer_jax.tasks import readout as readout_lib
 
@@ -185,14 +189,13 @@ def _fit_one(run: Run, model: Any, condition: str, seed: int,
     probs = readout_lib.predict(model, params, val_features)
     return readout_lib.best_threshold(probs, val_labels)[1]
 
-  params, log = readout_lib.fit(model, train, val_accuracy,
-                                contact.fit_config(run.config.readout),
-                                seed=seed)
+  params, log = readout_fit.fit_readout(
+      directory, f'readout {condition} seed {seed}', model, train,
+      val_accuracy, contact.fit_config(run.config.readout), seed)
   probs = readout_lib.predict(model, params, val_features)
   threshold, accuracy = readout_lib.best_threshold(probs, val_labels)
-  # params first: a seed counts as trained once selection.json exists.
-  write_atomic(os.path.join(directory, 'params.msgpack'),
-               serialization.msgpack_serialize(params))
+  # params.msgpack holds the chosen epoch's parameters (`fit_readout`); a
+  # seed counts as trained once selection.json exists.
   write_json_atomic(os.path.join(directory, 'selection.json'), {
       'threshold': threshold, 'val_accuracy': accuracy,
       'best_epoch': log['best_epoch'], 'val_scores': log['scores'],
@@ -354,3 +357,14 @@ def write_pictures(run: Run, rollout_slots: np.ndarray,
         seed)
     visualize.write_png(os.path.join(directory, f'test_{i}.png'),
                         visualize.titled(grid, title))
+
+
+TASK = register(Task(
+    name='contact', config='configs/synthetic_contact.py',
+    stages={'train_readout': train_readout,
+            'evaluate_readout': evaluate_readout},
+    seeded=('train_readout', 'evaluate_readout'),
+    section='readout', defaults=defaults.contact_readout_config,
+    reads=lambda config: tuple(
+        (f'readout.splits.{k}', v)
+        for k, v in sorted(config.readout.splits.items()))))

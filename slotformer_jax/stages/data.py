@@ -34,7 +34,6 @@ from pathlib import Path
 import ml_collections
 
 from slotformer_jax import datasets
-from slotformer_jax.config.sections import reads_readout_splits
 from slotformer_jax.data import integrity
 from slotformer_jax.data.video_names import NAMES_FILE
 from slotformer_jax.data.write import convert as writer
@@ -42,20 +41,18 @@ from slotformer_jax.data.write import generate
 from slotformer_jax.data.write.records import record_checksums
 from slotformer_jax.errors import MissingInputError
 from slotformer_jax.run import Run
+from slotformer_jax.stages import task as task_lib
 
 logger = logging.getLogger(__name__)
 
 
 def splits_read(config: ml_collections.ConfigDict) -> tuple[str, ...]:
   """The data splits the stages of `config` open, in first-use order: stage
-  1 trains on 'train', extraction reads `extraction.splits`, video
-  prediction evaluates `evaluation.split`, a readout reads
-  `readout.splits` (VQA reads the extracted slots and its questions)."""
+  1 trains on 'train', extraction reads `extraction.splits`, the task the
+  splits it declares (`Task.reads`: video prediction its evaluated split,
+  a readout its `readout.splits`)."""
   splits = ['train', *config.extraction.splits]
-  if not config.task:
-    splits.append(config.evaluation.split)
-  if reads_readout_splits(config):
-    splits += list(config.readout.splits.values())
+  splits += [split for _, split in task_lib.get(config.task).reads(config)]
   return tuple(dict.fromkeys(splits))
 
 

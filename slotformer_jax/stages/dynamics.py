@@ -6,12 +6,11 @@ decodes the predicted slots through the slot model's frozen pixel decoder
 paper does on Physion. A model trained on other slots (or with other
 settings) is set aside and retrained from scratch.
 
-Several seeds (config.seeds): SlotFormer trains them in one program, seed
-s on the slots of stage-1 seed s (`seed_<s>/slots/train`), its L_I through
-stage-1 seed s's decoder, its initialisation and step RNG drawn with s + 1
-(as the one-seed run of seed s); every seed's batches are drawn in the same
-order (config.seed + 1's: the shared data order) or each with its own
-(s + 1, 'per_seed'). One stacked checkpoint in `slotformer/`.
+Each chain of the run (`Run.chains`) trains its own model on its own slots
+(a seed view of a K-seed run: `seed_<s>/slots/train`, L_I through its
+share of stage 1's decoder), drawing with its seed + 1 as the one-seed run
+of that seed; every chain in one program (`stages/fit.py` `fit_chains`),
+one checkpoint in `slotformer/`.
 """
 
 from __future__ import annotations
@@ -82,10 +81,10 @@ def dynamics_stage(section: ml_collections.ConfigDict, name: str,
                                        section.burn_in, rollout, name)
   local_batch_size = sharding.per_host_batch_size(section.batch_size, mesh)
 
-  def batches_for_seed(stream_seed, start_step):
+  def batches(start_step):
     return pipeline.train_batches(
         source, batch_size=local_batch_size,
-        clip_length=section.burn_in + rollout, seed=stream_seed,
+        clip_length=section.burn_in + rollout, seed=seed,
         start_step=start_step, fields=('slots',) + video_fields,
         frame_stride=section.frame_stride,
         process_index=jax.process_index(),
@@ -103,8 +102,7 @@ def dynamics_stage(section: ml_collections.ConfigDict, name: str,
       init_params=lambda rng: initializers.initialize(
           steps.init_params(model, rng, *example),
           jax.random.fold_in(rng, 1), section.init),
-      batches=functools.partial(batches_for_seed, seed),
-      batches_for_seed=batches_for_seed,
+      batches=batches,
       frozen_params=decoder_params,
       logging=logging_config,
       images=images,
@@ -113,10 +111,9 @@ def dynamics_stage(section: ml_collections.ConfigDict, name: str,
 
 def train_dynamics(run: Run, name: str) -> None:
   """Trains dynamics model `name` on the current slots of the 'train'
-  split, in one program for the run's one seed or all its seeds (the
-  module docstring): each chain's stage (`seed_stage`; stacked with
-  several seeds), its parent the stage 1 every chain's slots were checked
-  to descend from."""
+  split, every chain's in one program (the module docstring): each
+  chain's stage (`seed_stage`), its parent the stage 1 every chain's slots
+  were checked to descend from."""
   section = run.dynamics_section(name)
   training = Training(
       what=name,
@@ -125,8 +122,13 @@ def train_dynamics(run: Run, name: str) -> None:
       identity_fields=dynamics_lib.identity_fields(run.config.seed, section,
                                                    name),
       # Its own stream of batches and RNG: seed + 1, apart from stage 1's.
-      offset=1)
+      seed_of=dynamics_seed)
   fit_chains(run, training)
+
+
+def dynamics_seed(seed: int) -> int:
+  """What a dynamics model of the chain of `seed` draws with."""
+  return seed + 1
 
 
 def seed_stage(view: Run, name: str, stream_seed: int

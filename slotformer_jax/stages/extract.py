@@ -5,10 +5,9 @@ the slot model's state, so memory does not grow with the video length. A
 split whose slots came from the current slot-model checkpoint (and the same
 extraction settings) is skipped; stale slots are re-extracted.
 
-Several seeds (config.seeds): seed s's slots are extracted by its share of
-the stacked stage 1 into `seed_<s>/slots/<split>/`, with seed s where one
-seed draws with config.seed (stochastic SAVi's samples): the one-seed
-extraction of `Run.for_seed`, seed after seed.
+Chain after chain (`Run.chains`): a seed view of a K-seed run extracts
+with its share of stage 1 into `seed_<s>/slots/<split>/`, drawing with its
+seed (stochastic SAVi's samples) as a one-seed run draws with config.seed.
 """
 
 from __future__ import annotations
@@ -28,8 +27,8 @@ logger = logging.getLogger(__name__)
 
 
 def extract_slots(run: Run) -> None:
-  """Writes slots/<split>/ of every `extraction.splits` split (several
-  seeds: seed_<s>/slots/<split>/ of each seed)."""
+  """Writes slots/<split>/ of every `extraction.splits` split, each
+  chain's in its folders."""
   for chain in run.chains():
     _extract(chain)
 

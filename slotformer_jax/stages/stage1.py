@@ -8,12 +8,12 @@ part it descends from, a part trained from other settings or another parent
 is set aside and retrained, and a stage 1 read from another workdir
 (`config.stage1_workdir`) is only checked, never written.
 
-Several seeds (config.seeds): a part with no parent (SAVi, the dVAE) trains
-every seed on the shared training videos; the derived data are computed
-per seed view (`Run.for_seed`) by its share of the stacked part, into
-`seed_<s>/` (STEVE's `seed_<s>/tokens/train/`); a part trained on another
-(STEVE) trains the K seeds in one program, seed s on seed s's derived
-data (`stages/fit.py` `fit_chains`). One stacked checkpoint per part.
+Each chain of the run (`Run.chains`: the run, or each seed view of a
+K-seed run) has its own share of a part and its own derived data (in
+`seed_<s>/`, e.g. STEVE's `seed_<s>/tokens/train/`). A part with no parent
+(SAVi, the dVAE) trains on the run's training videos, a part trained on
+another (STEVE) on each chain's derived data; every chain's in one program
+(`stages/fit.py` `fit_chains`), one checkpoint per part.
 """
 
 from __future__ import annotations
@@ -59,9 +59,9 @@ def stage_functions(run: Run) -> dict[str, Any]:
 
 def uses_foreign_stage1(run: Run, what: str) -> bool:
   """True (after checking it) when stage 1 is another workdir's: the stage
-  `what` then has nothing to do here. Several seeds: that workdir's stage 1
-  must have been trained with the same seeds; every seed's share and slots
-  are checked (a seed view: its own)."""
+  `what` then has nothing to do here. That workdir's stage 1 must hold
+  every chain's share, each checked with its slots (a seed view: its
+  own)."""
   if not run.paths.foreign_stage1:
     return False
   for view in run.chains():
@@ -98,10 +98,10 @@ def part_stage(part: Part, directory: str, mesh: Mesh, source: Any, *,
     return initializers.initialize(params, jax.random.fold_in(rng, 1),
                                    part.init)
 
-  def batches_for_seed(stream_seed, start_step):
+  def batches(start_step):
     stream = pipeline.train_batches(
         source, batch_size=local_batch_size, clip_length=part.clip_length,
-        seed=stream_seed, start_step=start_step, fields=part.batch_fields,
+        seed=seed, start_step=start_step, fields=part.batch_fields,
         process_index=jax.process_index(), process_count=jax.process_count(),
         num_workers=reader_workers)
     return (part.with_batches(stream, start_step)
@@ -109,9 +109,8 @@ def part_stage(part: Part, directory: str, mesh: Mesh, source: Any, *,
 
   return Stage(name=part.name, directory=directory, config=part.section,
                loss_fn=part.loss, init_params=init_params,
-               batches=functools.partial(batches_for_seed, seed),
-               logging=logging_config, images=part.images,
-               batches_for_seed=batches_for_seed)
+               batches=batches,
+               logging=logging_config, images=part.images)
 
 
 def _parent(run: Run, part: Part) -> dict[str, Any] | None:
@@ -149,11 +148,11 @@ def check_derived_current(run: Run, derived: Derived, split: str,
 
 def train_part(run: Run, name: str) -> None:
   """Trains part `name` of the slot model on the training videos (resumable);
-  set aside and retrained when its settings or its parent changed. Several
-  seeds, in one program: a part without a parent (SAVi, the dVAE) trains
-  every seed on the training videos they share; a part trained on another
-  (STEVE on the dVAE's tokens) trains seed s on stage-1 seed s's data,
-  each checked to come from the stacked parent part (`_parent`)."""
+  set aside and retrained when its settings or its parent changed. Every
+  chain in one program: a part without a parent (SAVi, the dVAE) on the
+  training videos they share; a part trained on another (STEVE on the
+  dVAE's tokens) on each chain's data, each checked to come from the
+  chain's share of the parent part (`_parent`)."""
   part = _part(run, name)
   if uses_foreign_stage1(run, part.label):
     return
@@ -192,8 +191,8 @@ def _view_stage(run: Run, part: Part, parent: dict[str, Any] | None,
 def derive(run: Run, name: str) -> None:
   """Computes the derived data `name` of every split it is needed for, with
   the frozen part that makes it (skipped when it came from that part's
-  current checkpoint). Several seeds: seed s's with its share of the
-  stacked part, into `seed_<s>/`, seed after seed."""
+  current checkpoint), chain after chain (`Run.chains`), each with its
+  share of the part, into its folders."""
   derived = _derived(run, name)
   if uses_foreign_stage1(run, derived.name):
     return

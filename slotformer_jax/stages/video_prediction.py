@@ -32,8 +32,11 @@ from slotformer_jax.evaluation import seeds as seeds_lib
 from slotformer_jax.evaluation import visualize
 from slotformer_jax.run import Run
 from slotformer_jax.slot_models import chain
-from slotformer_jax.stages.fit import seeds_of
+from slotformer_jax.stages import dynamics as dynamics_stage
 from slotformer_jax.stages.fit import stamped_fields
+from slotformer_jax.stages.task import Task
+from slotformer_jax.stages.task import register
+from slotformer_jax.train.seeds import Seeds
 from slotformer_jax.workdir import identity as identity_lib
 from slotformer_jax.workdir.paths import command
 
@@ -82,7 +85,7 @@ def evaluation_identity(run: Run, stage1_identity: dict[str, Any],
     identity_lib.check_identity_fields(
         found, stamped_fields(dynamics_lib.identity_fields(
             run.config.seed, run.dynamics_section(name), name),
-            None if run.stacked is None else seeds_of(run.config, offset=1)),
+            Seeds.of_config(run.config).map(dynamics_stage.dynamics_seed)),
         name, directory)
     if found.get('parent') != parent:
       raise UserError(
@@ -209,3 +212,11 @@ def _explore(run: Run, trained: Evaluated) -> str | None:
       metrics_path=os.path.join(run.paths.eval, 'metrics.json'),
       output_dir=run.paths.explore,
       title=f'{run.config.data.name}: {run.slot_model.label} + SlotFormer')
+
+
+# Video prediction is the task of a config without one (config.task None).
+TASK = register(Task(
+    name=None, config='configs/synthetic.py',
+    stages={'evaluate': evaluate, 'render': render, 'explore': explore},
+    seeded=('evaluate', 'render', 'explore'),
+    reads=lambda config: (('evaluation.split', config.evaluation.split),)))

@@ -45,6 +45,7 @@ import numpy as np
 import tqdm
 
 from slotformer_jax import inference
+from slotformer_jax.config import defaults
 from slotformer_jax.config.sections import SLOTFORMER
 from slotformer_jax.data import vqa as vqa_data
 from slotformer_jax.data import vqa_questions
@@ -58,12 +59,13 @@ from slotformer_jax.files import write_json_atomic
 from slotformer_jax.run import Run
 from slotformer_jax.runtime import sharding
 from slotformer_jax.stages import fit as fit_lib
+from slotformer_jax.stages.task import Task
+from slotformer_jax.stages.task import register
 from slotformer_jax.tasks import vqa as task
 from slotformer_jax.train import steps
 from slotformer_jax.train.trainer import Stage
 from slotformer_jax.train.trainer import abstract_train_state
 from slotformer_jax.train.trainer import checkpointer_for
-from slotformer_jax.train.trainer import fit
 from slotformer_jax.workdir.paths import command
 
 logger = logging.getLogger(__name__)
@@ -325,23 +327,19 @@ def _train_stage(run: Run, directory: str, vocab: vqa_data.Vocabulary,
 
 def train_vqa(run: Run) -> None:
   """Trains Aloe on the training questions (resumable); a question set of
-  one kind (open-only, choice-only) trains on that kind. Several seeds:
-  chain s's Aloe with seed s, all in one program (`aloe_seed` of s for
-  its initialisation and step RNG; questions in the shared or per-seed
-  order, config.seed_data_order)."""
+  one kind (open-only, choice-only) trains on that kind. Each chain's Aloe
+  (`Run.chains`) on its slots, all in one program, drawing with `aloe_seed`
+  of its chain's seed (initialisation, step RNG; questions in the shared or
+  per-seed order, config.seed_data_order)."""
   config = run.config
   vqa = config.vqa
   vocab = vqa_questions.vocabulary(config)
   directory = run.paths.aloe(vqa.inputs, vqa.seed)
-  seeds = fit_lib.seeds_of(config)
-  stages = [_train_stage(chain, directory, vocab, aloe_seed(stream, vqa))
-            for chain, stream in zip(run.chains(), fit_lib.stream_seeds(
-                seeds, config.seed))]
-  if seeds is not None:
-    seeds = dataclasses.replace(
-        seeds, values=tuple(aloe_seed(s, vqa) for s in run.seeds))
-  fit(stages[0] if len(stages) == 1 else fit_lib.stacked_stage(stages),
-      mesh=run.mesh, seed=aloe_seed(config.seed, vqa), seeds=seeds)
+  fit_lib.fit_chains(run, fit_lib.Training(
+      what='VQA', identity_fields=None,
+      chain_stage=lambda chain, stream: (
+          _train_stage(chain, directory, vocab, stream), None),
+      seed_of=functools.partial(aloe_seed, vqa=vqa)))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -486,3 +484,12 @@ def _evaluate(run: Run, aloe: Aloe) -> dict[str, Any]:
           prior, sort_keys=False)
   logger.info('VQA %s on %s: %s', vqa.inputs, split, json.dumps(results))
   return results
+
+
+TASK = register(Task(
+    name='vqa', config='configs/synthetic_vqa.py',
+    stages={'vqa_slots': vqa_slots, 'train_vqa': train_vqa,
+            'evaluate_vqa': evaluate_vqa},
+    seeded=('vqa_slots', 'train_vqa', 'evaluate_vqa'),
+    section='vqa', defaults=defaults.vqa_config,
+    reads=lambda config: (('vqa.eval_split', config.vqa.eval_split),)))

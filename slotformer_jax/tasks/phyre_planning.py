@@ -1,7 +1,7 @@
 """PHYRE-style planning with a task-success classifier on SlotFormer rollouts:
-the pure parts (the stages are in stages/planning.py).
+the pure parts (the stages are in stages/planning/embedded.py).
 
-Protocol (SlotFormer Section 4.4; embedded tasks of worlds/phyre_like.py):
+Protocol (SlotFormer Section 4.4; embedded tasks of tasks/phyre_world.py):
 
 1. SAVi and SlotFormer are trained on videos of candidate actions on the
    training tasks (data split 'train').
@@ -26,7 +26,7 @@ then grows with its own predictions (the official PHYRE model, 6 frames).
 
 The real PHYRE layout (``config.data.name == 'phyre'``) has rendered
 rollouts instead of a simulator: tasks/phyre_rendered.py and
-stages/planning_rendered.py.
+stages/planning/rendered.py.
 
 Workdir: ``planning/<condition>/seed_<s>/{params.msgpack, selection.json}``,
 ``planning/results.json``, ``planning/results.md``.
@@ -45,7 +45,7 @@ from slotformer_jax.datasets import synthetic_phyre as phyre_like_data
 from slotformer_jax.modules import readouts
 from slotformer_jax.tasks import planning
 from slotformer_jax.tasks import readout as readout_lib
-from slotformer_jax.worlds import phyre_like
+from slotformer_jax.tasks import phyre_world
 
 FIRST_FRAME, ROLLOUT = 'first_frame', 'rollout'
 CONDITIONS = (FIRST_FRAME, ROLLOUT)
@@ -64,11 +64,11 @@ def build_classifier(r: ml_collections.ConfigDict, condition: str
 
 def task_splits(data: ml_collections.ConfigDict,
                 readout: ml_collections.ConfigDict
-                ) -> dict[str, list[phyre_like.Task]]:
+                ) -> dict[str, list[phyre_world.Task]]:
   """'train', 'dev' (`readout.dev_share` of the training tasks) and 'test'
   tasks of the embedded tasks of the `data` section."""
   generation = phyre_like_data.config_from_data_config(data)
-  splits = phyre_like.split_tasks(generation)
+  splits = phyre_world.split_tasks(generation)
   rng = np.random.default_rng([generation.seed, 19, generation.fold])
   train = list(splits['train'])
   order = rng.permutation(len(train))
@@ -78,14 +78,14 @@ def task_splits(data: ml_collections.ConfigDict,
           'test': list(splits['test'])}
 
 
-def first_frames(task: phyre_like.Task, actions: np.ndarray,
+def first_frames(task: phyre_world.Task, actions: np.ndarray,
                  resolution: tuple[int, int]) -> np.ndarray:
   """uint8 [A, H, W, 3]: the first frame with each action's red ball."""
   frames = []
   for action in actions:
-    bodies = list(task.bodies) + [phyre_like.action_ball(action)]
+    bodies = list(task.bodies) + [phyre_world.action_ball(action)]
     poses = [(b.position, b.angle) for b in bodies]
-    frames.append(phyre_like.render_state(bodies, poses, resolution)[0])
+    frames.append(phyre_world.render_state(bodies, poses, resolution)[0])
   return np.stack(frames)
 
 
@@ -100,19 +100,19 @@ def candidate_scores(model, params, task_features, num_candidates):
   return scores
 
 
-def write_ranking_picture(path: str, task: phyre_like.Task,
+def write_ranking_picture(path: str, task: phyre_world.Task,
                           scores: np.ndarray, outcomes: np.ndarray,
                           generation: phyre_like_data.PhyreLikeConfig,
                           top: int = 5) -> None:
   """The ``top`` best-scored valid candidates of a task, one row each: the
   simulated rollout (every other frame) with its score and outcome."""
-  actions = phyre_like.candidate_actions(generation)
+  actions = phyre_world.candidate_actions(generation)
   order = [i for i in planning.rank_actions(scores)
            if outcomes[i] != planning.INVALID][:top]
   scale, label_h = 2, 12
   rows = []
   for rank, index in enumerate(order, start=1):
-    video = phyre_like.render_video(task, actions[index], generation)['video']
+    video = phyre_world.render_video(task, actions[index], generation)['video']
     strip = np.concatenate([np.pad(
         np.repeat(np.repeat(frame, scale, 0), scale, 1),
         ((1, 1), (1, 1), (0, 0))) for frame in video[::2]], axis=1)

@@ -1,5 +1,5 @@
 """PHYRE planning on the real, pre-rendered layout (datasets/phyre.py):
-the pure parts (the stages are in stages/planning_rendered.py).
+the pure parts (the stages are in stages/planning/rendered.py).
 
 What the layout holds (tools/render_phyre.py, the official selection):
 rollouts of a *subset* of PHYRE's cached actions with their simulated

@@ -1,13 +1,13 @@
-"""Fitting a readout head on fixed slot features, with model selection on
-validation only.
+"""A readout head on fixed slot features: its loss, its training batches,
+its optimiser, its predictions, and the decision thresholds.
 
 Both downstream tasks train a small head (modules/readouts.py) on slot
-sequences that are computed once (observed slots, rollouts, ...). The head is
-tiny, so the features live in memory and the loop is a plain jitted Adam
-step over shuffled minibatches. After every epoch the head is scored on the
-validation split; the epoch (checkpoint) and the decision threshold that do
-best there are kept. The test split is never seen here (the official scripts
-pick both on test; we do not).
+sequences that are computed once (observed slots, rollouts, ...), so the
+features live in memory. The heads train through the shared trainer
+(stages/readout_fit.py): epochs over a shuffled training set, scored on the
+validation split after each; the epoch and the decision threshold that do
+best there are kept. The test split is never seen in training (the official
+scripts pick both on test; we do not).
 
 Shapes: features [num_examples, time, num_slots, slot_size], labels
 [num_examples] in {0, 1}.
@@ -16,7 +16,7 @@ Shapes: features [num_examples, time, num_slots, slot_size], labels
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import flax.linen as nn
@@ -82,87 +82,56 @@ def _jitted_apply(model: nn.Module) -> Callable:
   return _APPLY_CACHE[key]
 
 
-def make_optimizer(fit_config: FitConfig, steps_per_epoch: int
-                   ) -> optax.GradientTransformation:
-  """Adam with the cosine schedule (after a linear warm-up when
-  `fit_config.warmup_fraction` > 0) over all `fit_config.epochs`."""
+def schedule(fit_config: FitConfig, steps_per_epoch: int) -> optax.Schedule:
+  """Cosine decay over all `fit_config.epochs` (after a linear warm-up when
+  `fit_config.warmup_fraction` > 0)."""
   total = max(1, steps_per_epoch * fit_config.epochs)
   if fit_config.warmup_fraction == 0.0:
-    return optax.adam(optax.cosine_decay_schedule(fit_config.learning_rate,
-                                                  total))
-  return optax.adam(optax.warmup_cosine_decay_schedule(
+    return optax.cosine_decay_schedule(fit_config.learning_rate, total)
+  return optax.warmup_cosine_decay_schedule(
       0.0, fit_config.learning_rate,
-      max(1, int(fit_config.warmup_fraction * total)), max(total, 2), 0.0))
+      max(1, int(fit_config.warmup_fraction * total)), max(total, 2), 0.0)
 
 
-def make_train_step(model: nn.Module, optimizer: optax.GradientTransformation,
-                    seed: int) -> Callable:
-  """The jitted step (params, opt_state, features [B, ...], labels [B],
-  step index) -> (params, opt_state, loss) that `fit` runs."""
-  # A head with dropout (the PHYRE readout's Transformer, officially 0.1)
-  # trains with it, one key per step derived from the seed; `predict` and
-  # the selection are deterministic.
-  dropout = getattr(model, 'dropout_rate', 0.0) > 0
-  dropout_key = jax.random.fold_in(jax.random.key(seed), 1)
-
-  @jax.jit
-  def step(params, opt_state, x, y, step_index):
-    kwargs = {}
-    if dropout:
-      kwargs = {'deterministic': False, 'rngs': {
-          'dropout': jax.random.fold_in(dropout_key, step_index)}}
-    loss, grads = jax.value_and_grad(lambda p: readout_bce(
-        model.apply({'params': p}, x, **kwargs), y))(params)
-    updates, opt_state = optimizer.update(grads, opt_state, params)
-    return optax.apply_updates(params, updates), opt_state, loss
-  return step
+def make_optimizer(fit_config: FitConfig, steps_per_epoch: int
+                   ) -> tuple[optax.GradientTransformation, optax.Schedule]:
+  """(Adam over `schedule`, the schedule)."""
+  learning_rate = schedule(fit_config, steps_per_epoch)
+  return optax.adam(learning_rate), learning_rate
 
 
-def fit(model: nn.Module, train: tuple[np.ndarray, np.ndarray],
-        select: Callable[[Any], float], fit_config: FitConfig, seed: int
-        ) -> tuple[Any, dict[str, Any]]:
-  """Trains ``model`` on ``train`` and keeps the epoch ``select`` likes best.
+def readout_loss(params: Any, batch: dict[str, jax.Array], frozen_params: Any,
+                 rng: jax.Array, *, model: nn.Module
+                 ) -> tuple[jax.Array, dict[str, jax.Array]]:
+  """The trainer's loss of head `model` (`LossFn`): `readout_bce` of its
+  logits on batch['features'] against batch['labels']. A head with dropout
+  (the PHYRE readout's Transformer, officially 0.1) trains with it, drawn
+  with `rng` (one key per step); `predict` is deterministic."""
+  del frozen_params
+  kwargs = {}
+  if getattr(model, 'dropout_rate', 0.0) > 0:
+    kwargs = {'deterministic': False, 'rngs': {'dropout': rng}}
+  logits = model.apply({'params': params}, batch['features'], **kwargs)
+  return readout_bce(logits, batch['labels']), {}
 
-  Args:
-    model: a readout head, logits [B] from features [B, ...].
-    train: (features, labels) of the readout-training split.
-    select: params -> validation score (higher is better); it must only look
-      at validation data.
-    fit_config: optimisation settings.
-    seed: initialisation and shuffling seed.
 
-  Returns:
-    (best params, log) with log = {'best_epoch', 'best_score', 'scores'
-    (per epoch), 'losses' (mean training loss per epoch)}.
-  """
-  features, labels = train
-  if len(features) != len(labels) or not len(features):
-    raise ValueError(f'{len(features)} feature rows vs {len(labels)} labels')
+def training_batches(features: np.ndarray, labels: np.ndarray,
+                     batch_size: int, seed: int, start_step: int = 0,
+                     process_index: int = 0, process_count: int = 1
+                     ) -> Iterator[dict[str, np.ndarray]]:
+  """{'features', 'labels'} of every update from `start_step` on: epoch
+  after epoch, `batch_size` examples at a time in an order drawn anew each
+  epoch (`np.random.default_rng(seed).permutation`, one per epoch; the
+  len % batch_size examples at its end unused), this process's share of
+  each (rows [p * b, (p + 1) * b), b = batch_size / process_count)."""
   rng = np.random.default_rng(seed)
-  batch_size = min(fit_config.batch_size, len(features))
   steps_per_epoch = len(features) // batch_size
-  optimizer = make_optimizer(fit_config, steps_per_epoch)
-  params = model.init(jax.random.key(seed),
-                      jnp.asarray(features[:1]))['params']
-  opt_state = optimizer.init(params)
-  step = make_train_step(model, optimizer, seed)
-
-  best = (-np.inf, None, -1)
-  log: dict[str, Any] = {'scores': [], 'losses': []}
-  for epoch in range(fit_config.epochs):
-    order = rng.permutation(len(features))
-    losses = []
-    for i in range(steps_per_epoch):
-      index = order[i * batch_size:(i + 1) * batch_size]
-      params, opt_state, loss = step(params, opt_state,
-                                     jnp.asarray(features[index]),
-                                     jnp.asarray(labels[index]),
-                                     epoch * steps_per_epoch + i)
-      losses.append(float(loss))
-    score = float(select(params))
-    log['scores'].append(score)
-    log['losses'].append(float(np.mean(losses)))
-    if score > best[0]:
-      best = (score, jax.tree.map(np.asarray, params), epoch)
-  log['best_score'], log['best_epoch'] = best[0], best[2]
-  return best[1], log
+  share = batch_size // process_count
+  epoch, order = 0, rng.permutation(len(features))
+  for step in range(start_step, np.iinfo(np.int64).max):
+    target, index = divmod(step, steps_per_epoch)
+    while epoch < target:
+      epoch, order = epoch + 1, rng.permutation(len(features))
+    rows = order[index * batch_size:(index + 1) * batch_size][
+        process_index * share:(process_index + 1) * share]
+    yield {'features': features[rows], 'labels': labels[rows]}

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from slotformer_jax.datasets import synthetic_phyre as phyre_writer
-from slotformer_jax.worlds import phyre_like as p
+from slotformer_jax.tasks import phyre_world as p
 
 CONFIG = phyre_writer.PhyreLikeConfig(tasks_per_template=5, num_candidates=40)
 
@@ -155,9 +155,9 @@ def test_ramp_tasks_deterministic_and_unsolved_without_action():
 def test_default_templates_unchanged():
   # The first templates keep their names, order, tasks and dataset folder
   # names (cached datasets are found by slug) when templates are added.
-  assert phyre_writer.TEMPLATES == ('ledge', 'tower', 'stack')
-  assert phyre_writer.ALL_TEMPLATES[:3] == phyre_writer.TEMPLATES
-  assert phyre_writer.PhyreLikeConfig().templates == phyre_writer.TEMPLATES
+  assert p.TEMPLATES == ('ledge', 'tower', 'stack')
+  assert p.ALL_TEMPLATES[:3] == p.TEMPLATES
+  assert phyre_writer.PhyreLikeConfig().templates == p.TEMPLATES
   config = phyre_writer.PhyreLikeConfig(resolution=(32, 32))
   assert phyre_writer.slug(config) == (
       'r32x32_f2_t5_k1_3x25_c200_fold0_s0_35de6daa')

@@ -12,7 +12,7 @@ import pytest
 from slotformer_jax.data.write.generate import Output
 from slotformer_jax.data import sources
 from slotformer_jax.datasets import synthetic
-from slotformer_jax.worlds import supersample
+from slotformer_jax.data import supersample
 
 TINY = synthetic.SyntheticConfig(resolution=(32, 32), num_frames=8,
                                       num_train=4, num_val=2, num_test=2,

@@ -20,7 +20,7 @@ import pytest
 from pipeline_helpers import micro_config
 from pipeline_helpers import run_stages
 from slotformer_jax import dynamics as dynamics_lib
-from slotformer_jax.config import checks
+from slotformer_jax.stages import task as task_lib
 from slotformer_jax.data.slots import SlotSource
 from slotformer_jax.data.slots import read_meta
 from slotformer_jax.errors import UserError
@@ -333,18 +333,18 @@ def test_nested_task_metrics_fold_into_mean_std_and_each_seed():
 def test_what_takes_several_seeds_is_said_in_one_line():
   config = micro_config('savi', '/nonexistent')
   config.seeds = SEEDS
-  assert checks.seeds_problems(config, ['prepare_data', *STAGES,
+  assert task_lib.seeds_problems(config, ['prepare_data', *STAGES,
                                         'render', 'explore']) == []
-  problems = checks.seeds_problems(config, ['train_readout'])
+  problems = task_lib.seeds_problems(config, ['train_readout'])
   assert len(problems) == 1 and problems[0].startswith(
       'seeds=(0, 1) trains several seeds in train_savi, train_dvae, '
       'extract_slots, train_slotformer, train_slot_lstm, evaluate, render, '
       "explore only for now (slot_model='savi'; docs/seeds.md); "
       'train_readout does not')
   config.stage1_workdir = '/elsewhere'  # a read-only stage 1 too
-  assert checks.seeds_problems(config, ['extract_slots']) == []
+  assert task_lib.seeds_problems(config, ['extract_slots']) == []
   # The STEVE chain takes them too (test_steve_seeds_pipeline.py).
   steve = micro_config('steve', '/nonexistent')
   steve.seeds = SEEDS
-  assert checks.seeds_problems(steve, ['train_dvae', 'tokenize_frames',
+  assert task_lib.seeds_problems(steve, ['train_dvae', 'tokenize_frames',
                                        'train_steve', 'extract_slots']) == []

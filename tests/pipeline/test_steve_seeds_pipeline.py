@@ -27,7 +27,7 @@ import pytest
 
 from pipeline_helpers import micro_config
 from pipeline_helpers import run_stages
-from slotformer_jax.config import checks
+from slotformer_jax.stages import task as task_lib
 from slotformer_jax.data import slots as tokens_lib
 from slotformer_jax.data.slots import SlotSource
 from slotformer_jax.data.slots import read_meta
@@ -247,14 +247,14 @@ def test_slot_lstm_trains_every_seed_on_its_steve_slots(seeded, tmp_path):
 def test_the_steve_chain_takes_several_seeds_the_tasks_do_not():
   config = micro_config('steve', '/nonexistent')
   config.seeds = SEEDS
-  assert checks.seeds_problems(config, ['prepare_data', *STAGES,
+  assert task_lib.seeds_problems(config, ['prepare_data', *STAGES,
                                         'train_slot_lstm', 'render',
                                         'explore']) == []
-  problems = checks.seeds_problems(config, ['train_readout'])
+  problems = task_lib.seeds_problems(config, ['train_readout'])
   assert len(problems) == 1 and problems[0].startswith(
       'seeds=(0, 1) trains several seeds in train_savi, train_dvae, '
       'tokenize_frames, train_steve, extract_slots, train_slotformer, '
       'train_slot_lstm, evaluate, render, explore only for now '
       "(slot_model='steve'; docs/seeds.md); train_readout does not")
   config.stage1_workdir = '/elsewhere'  # a read-only stage 1 too
-  assert checks.seeds_problems(config, ['train_steve']) == []
+  assert task_lib.seeds_problems(config, ['train_steve']) == []

@@ -13,12 +13,13 @@ import pytest
 
 from configs import synthetic_contact
 from configs import synthetic_phyre
-from slotformer_jax.config import checks
+from slotformer_jax.stages import task as task_lib
 from slotformer_jax.files import read_json
 from slotformer_jax.run import Run
 from slotformer_jax.runtime import sharding
 from slotformer_jax.stages import contact as contact_stage
-from slotformer_jax.stages import planning as planning_stage
+from slotformer_jax.stages.planning import embedded as planning_stage
+from slotformer_jax.stages import readout_fit
 from slotformer_jax.tasks import contact
 from slotformer_jax.tasks import phyre_planning
 from slotformer_jax.tasks import planning as planning_lib
@@ -91,18 +92,18 @@ def test_every_task_takes_several_seeds():
                     'train_slotformer', 'train_readout', 'evaluate_readout']
   config = _contact_micro_config('/nonexistent')
   config.seeds = (0, 1)
-  assert checks.seeds_problems(config, contact_stages) == []
+  assert task_lib.seeds_problems(config, contact_stages) == []
   planning = synthetic_phyre.get_config('tiny')
   planning.seeds = (0, 1)
-  assert checks.seeds_problems(planning, ['train_savi', 'train_readout',
+  assert task_lib.seeds_problems(planning, ['train_savi', 'train_readout',
                                           'plan']) == []
-  # The real PHYRE's rendered rollouts (stages/planning_rendered.py) too.
+  # The real PHYRE's rendered rollouts (stages/planning/rendered.py) too.
   planning.data.name = 'phyre'
-  assert checks.seeds_problems(planning, ['train_savi', 'train_readout',
+  assert task_lib.seeds_problems(planning, ['train_savi', 'train_readout',
                                           'plan']) == []
   vqa = load_config('synthetic_vqa', 'tiny')
   vqa.seeds = (0, 1)
-  assert checks.seeds_problems(vqa, ['train_savi', 'vqa_slots', 'train_vqa',
+  assert task_lib.seeds_problems(vqa, ['train_savi', 'vqa_slots', 'train_vqa',
                                      'evaluate_vqa']) == []
 
 
@@ -140,9 +141,10 @@ def test_contact_task_with_seeds_fits_one_readout_per_chain(tmp_path):
       probs = readout_lib.predict(model, params, val[contact.ROLLOUT])
       return readout_lib.best_threshold(probs, val_labels)[1]
 
-    params, _ = readout_lib.fit(
-        model, (train[contact.ROLLOUT], train_labels), val_accuracy,
-        contact.fit_config(readout), seed=seed)
+    params, _ = readout_fit.fit_readout(
+        str(tmp_path / f'again_{seed}'), 'readout', model,
+        (train[contact.ROLLOUT], train_labels), val_accuracy,
+        contact.fit_config(readout), seed)
     jax.tree.map(np.testing.assert_array_equal, fitted[seed],
                  jax.device_get(params))
     assert read_json(os.path.join(directory, 'selection.json'))[
@@ -185,9 +187,9 @@ def test_planning_with_seeds_fits_one_classifier_per_chain(tmp_path):
           model, params, by_split['dev'], generation.num_candidates),
                                        outcomes['dev'])
 
-    params, _ = readout_lib.fit(model, train, dev_auccess,
-                                planning_stage.fit_config_of(config.readout),
-                                seed=seed)
+    params, _ = readout_fit.fit_readout(
+        str(tmp_path / f'again_{seed}'), 'classifier', model, train,
+        dev_auccess, planning_stage.fit_config_of(config.readout), seed)
     jax.tree.map(np.testing.assert_array_equal, fitted[seed],
                  jax.device_get(params))
   assert not all(np.array_equal(a, b) for a, b in zip(

@@ -36,6 +36,7 @@ from slotformer_jax.errors import UserError
 from slotformer_jax.run import Run
 from slotformer_jax.runtime import sharding
 from slotformer_jax.stages import vqa as vqa_stages
+from slotformer_jax.train import seeds as seeds_lib
 from slotformer_jax.workdir.paths import Paths
 
 pytestmark = pytest.mark.filterwarnings(
@@ -128,8 +129,8 @@ def test_training_questions_read_their_own_video_past_a_skipped_one(
   config, workdir = clevrer
   config = copy.deepcopy(config)
   captured = {}
-  monkeypatch.setattr(vqa_stages, 'fit',
-                      lambda stage, **_: captured.setdefault('stage', stage))
+  monkeypatch.setattr(seeds_lib, 'fit', lambda stages, **_: (
+      captured.setdefault('stage', stages[0])))
   run_stage(config, workdir, sharding.make_mesh(), 'train_vqa')
   vocab = vqa_questions.vocabulary(config)
   batches = captured['stage'].batches(0)
@@ -241,8 +242,8 @@ def test_a_batch_size_of_0_leaves_a_kind_out_and_nothing_to_draw_is_one_line(
     clevrer, tmp_path, monkeypatch):
   config, workdir = _one_kind_run(clevrer, tmp_path, ('descriptive',))
   captured = {}
-  monkeypatch.setattr(vqa_stages, 'fit',
-                      lambda stage, **_: captured.setdefault('stage', stage))
+  monkeypatch.setattr(seeds_lib, 'fit', lambda stages, **_: (
+      captured.setdefault('stage', stages[0])))
   mesh = sharding.make_mesh()
   config.vqa.open_batch_size = 0
   with pytest.raises(UserError) as error:

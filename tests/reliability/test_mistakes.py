@@ -387,8 +387,8 @@ def test_every_shipped_config_passes_the_checks_of_its_whole_run(spec):
   from slotformer_jax import stages  # pylint: disable=g-import-not-at-top
   from slotformer_jax.run import Run  # pylint: disable=g-import-not-at-top
   run = Run.create(config_checks.load_config_file(spec), '/nonexistent/run')
-  run.check(stages.selected_stages(run, 'all'), num_devices=1,
-            num_processes=1)
+  stages.check(run, stages.selected_stages(run, 'all'), num_devices=1,
+               num_processes=1)
 
 
 # Fields holding a path or a name of something outside the config: their
@@ -429,8 +429,8 @@ def test_a_wrong_value_of_any_string_field_is_one_line_before_any_work(spec):
     node[name] = 'no_such_value'
     with pytest.raises(UserError) as error:
       run = Run.create(config, '/nonexistent/run')
-      run.check(stages.selected_stages(run, 'all'), num_devices=1,
-                num_processes=1)
+      stages.check(run, stages.selected_stages(run, 'all'), num_devices=1,
+                   num_processes=1)
     line = str(error.value)
     assert '\n' not in line and field in line and "'no_such_value'" in line, (
         field, line)

@@ -36,9 +36,9 @@ import pytest
 
 from slotformer_jax.config import checks
 from slotformer_jax.errors import ConfigError
+from slotformer_jax.runtime import preemption
 from slotformer_jax.runtime import processes
 from slotformer_jax.runtime import sharding
-from slotformer_jax.train import trainer
 from slotformer_jax.runtime.checkpoint import Checkpointer
 
 import pipeline_helpers
@@ -193,19 +193,19 @@ def test_processes_agree_on_a_stop_every_k_steps(monkeypatch):
     return local_signal, [0] if local_signal else []
 
   monkeypatch.setattr(processes, 'agreed_signal', agreed_signal)
-  term = trainer._TermFlag()
+  term = preemption.StopSignals()
   term.received = signal.SIGTERM  # before update 1
   monkeypatch.setattr(jax, 'process_count', lambda: 2)
-  stops = [trainer._stop_signal(term, done, 12, every=5)[0]
+  stops = [preemption.stop_signal(term, done, 12, every=5)[0]
            for done in range(1, 13)]
   # Only after updates 5, 10 and the last (12) do the processes agree.
   assert agreements == [signal.SIGTERM] * 3
   assert [d for d, stop in enumerate(stops, 1) if stop] == [5, 10, 12]
-  assert [trainer.agrees_after(d, 12, 1) for d in range(1, 13)] == [True] * 12
+  assert [preemption.agrees_after(d, 12, 1) for d in range(1, 13)] == [True] * 12
   # One process: its own flag after every update, no collective.
   agreements.clear()
   monkeypatch.setattr(jax, 'process_count', lambda: 1)
-  assert [trainer._stop_signal(term, d, 12, every=5)[0]
+  assert [preemption.stop_signal(term, d, 12, every=5)[0]
           for d in (1, 2, 3)] == [signal.SIGTERM] * 3
   assert agreements == []
 

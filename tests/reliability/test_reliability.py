@@ -45,7 +45,7 @@ from slotformer_jax.runtime import checkpoint as checkpoint_lib
 from slotformer_jax.runtime import sharding
 from slotformer_jax.train import trainer
 from slotformer_jax.train.trainer import Diverged
-from slotformer_jax.train.trainer import Preempted
+from slotformer_jax.runtime.preemption import Preempted
 from slotformer_jax.train.trainer import fit
 from slotformer_jax.data.slots import read_meta
 from slotformer_jax.slot_models.savi import Savi

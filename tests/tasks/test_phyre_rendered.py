@@ -24,7 +24,7 @@ from slotformer_jax.errors import MissingInputError
 from slotformer_jax.tasks import phyre_rendered
 from slotformer_jax.tasks import planning
 from slotformer_jax.runtime import sharding
-from slotformer_jax.stages import planning_rendered
+from slotformer_jax.stages.planning import rendered as planning_rendered
 from pipeline_helpers import run_stage
 from slotformer_jax.run import Run
 
@@ -211,7 +211,8 @@ def test_rendered_planning_with_seeds_fits_one_classifier_per_chain(
     view = run.for_seed(index)
     data = planning_rendered.training_set(view)
     _, params, _ = planning_rendered.fit_classifier(
-        config.readout, 'rollout', data, seed)
+        config.readout, 'rollout', data, seed,
+        str(tmp_path / f'again_{seed}'))
     _, fitted[seed] = planning_rendered.load_classifier(
         view, 'rollout', seed, data.features.shape[1])
     jax.tree.map(np.testing.assert_array_equal, fitted[seed],

@@ -8,13 +8,12 @@ import pytest
 
 from configs import synthetic_contact
 from configs import synthetic_phyre
-from slotformer_jax.datasets import synthetic_phyre as phyre_data
 from slotformer_jax.run import Run
 from slotformer_jax.stages import contact as contact_stages
 from slotformer_jax.tasks import contact
 from slotformer_jax.tasks import phyre_planning
 from slotformer_jax.workdir.identity import flat_differences
-from slotformer_jax.worlds import phyre_like
+from slotformer_jax.tasks import phyre_world
 
 
 def test_condition_features():
@@ -54,39 +53,39 @@ def test_planning_task_splits_are_disjoint_and_within_template():
   names = {k: {(t.template, t.index) for t in v} for k, v in splits.items()}
   assert not names['train'] & names['dev']
   assert not (names['train'] | names['dev']) & names['test']
-  total = len(phyre_data.TEMPLATES) * config.data.tasks_per_template
+  total = len(phyre_world.TEMPLATES) * config.data.tasks_per_template
   assert sum(len(v) for v in names.values()) == total
   # Within-template: every template has training and test tasks (the dev
   # tasks are drawn from all training tasks, as phyre's create_dev_set).
   for split in ('train', 'test'):
     assert ({template for template, _ in names[split]}
-            == set(phyre_data.TEMPLATES))
+            == set(phyre_world.TEMPLATES))
 
 
 def test_first_frames_draw_the_action_ball():
-  config = phyre_data.PhyreLikeConfig(tasks_per_template=1)
-  task = phyre_like.make_task(config, 'stack', 0)
+  config = phyre_world.PhyreLikeConfig(tasks_per_template=1)
+  task = phyre_world.make_task(config, 'stack', 0)
   action = np.array([[0.1, 0.9, 0.5]])
   frame = phyre_planning.first_frames(task, action, (64, 64))[0]
-  red = (frame == phyre_like.KIND_RGB[phyre_like.ACTION]).all(-1)
+  red = (frame == phyre_world.KIND_RGB[phyre_world.ACTION]).all(-1)
   rows, cols = np.nonzero(red)
   # The ball's centre at (1 m, 9 m) of a 10 m scene: upper-left corner.
   assert abs(rows.mean() - 0.1 * 64) < 1.5 and abs(cols.mean() - 0.1 * 64) < 1.5
   # Without the ball it is the task's first frame of a real rollout.
-  video = phyre_like.render_video(task, action[0], config)
+  video = phyre_world.render_video(task, action[0], config)
   np.testing.assert_array_equal(video['video'][0], frame)
 
 
 def test_first_frames_draw_the_tilted_ramp_as_the_simulator():
   # The classifier's first frame must be the rollout's frame 0, tilted
   # bodies included (drawing the ramp flat would show another task).
-  config = phyre_data.PhyreLikeConfig(templates=('ramp',),
+  config = phyre_world.PhyreLikeConfig(templates=('ramp',),
                                       tasks_per_template=1)
-  task = phyre_like.make_task(config, 'ramp', 0)
+  task = phyre_world.make_task(config, 'ramp', 0)
   action = np.array([[0.5, 0.9, 0.2]])
-  assert phyre_like.is_valid(task, action[0])
+  assert phyre_world.is_valid(task, action[0])
   frame = phyre_planning.first_frames(task, action, (64, 64))[0]
-  video = phyre_like.render_video(task, action[0], config)
+  video = phyre_world.render_video(task, action[0], config)
   np.testing.assert_array_equal(video['video'][0], frame)
 
 

@@ -20,6 +20,7 @@ from linear_stage import linear_stage
 from slotformer_jax.data import pipeline
 from slotformer_jax.runtime import checkpoint as checkpoint_lib
 from slotformer_jax.runtime import sharding
+from slotformer_jax.runtime.preemption import Preempted
 from slotformer_jax.train import trainer
 
 
@@ -97,7 +98,7 @@ def test_sigterm_with_reader_workers_saves_and_resumes_bit_exact(tmp_path):
   # The batch of step k is taken while update k - DEVICE_PREFETCH + 1 runs.
   signal_at = 3 + trainer.DEVICE_PREFETCH - 1
   previous = signal.getsignal(signal.SIGTERM)
-  with pytest.raises(trainer.Preempted, match='stopped by SIGTERM after '
+  with pytest.raises(Preempted, match='stopped by SIGTERM after '
                      'step 4;'):
     trainer.fit(_worker_stage(tmp_path / 'b', signal_at=signal_at,
                               **settings), mesh=mesh, seed=0)

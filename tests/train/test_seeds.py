@@ -1,8 +1,9 @@
-"""Several seeds in one program (trainer.Seeds): seed k of a K-seed run is
+"""Several seeds in one program (train/seeds.py): seed k of a K-seed run is
 the one-seed run with seed k, on 1 and 4 devices and after a resume; a
 diverging seed is named in one line and stops the run or is left behind."""
 
 import dataclasses
+import functools
 import itertools
 import json
 import logging
@@ -18,14 +19,16 @@ import numpy as np
 import pytest
 
 from slotformer_jax.errors import ConfigError
+from slotformer_jax.stages import task as task_lib
 from slotformer_jax.runtime import sharding
-from slotformer_jax.train.state import SeedsState
+from slotformer_jax.runtime.preemption import Preempted
+from slotformer_jax.train import seeds as seeds_lib
+from slotformer_jax.train.seeds import Seeds
+from slotformer_jax.train.seeds import SeedsState
 from slotformer_jax.train.trainer import DEVICE_PREFETCH
 from slotformer_jax.train.trainer import Diverged
-from slotformer_jax.train.trainer import Preempted
-from slotformer_jax.train.trainer import Seeds
 from slotformer_jax.train.trainer import Stage
-from slotformer_jax.train.trainer import fit
+from slotformer_jax.train import trainer
 import test_steve_training
 import test_training
 
@@ -35,6 +38,13 @@ NUM_STEPS = 3
 # float32 operations batched, which XLA may order differently; measured
 # differences are ~1e-7 after 3 Adam steps, far below this bound.
 TOLERANCE = dict(atol=2e-5, rtol=2e-5)
+
+
+def _fit(stage, *, mesh, seed=0, seeds=None):
+  """The trainer as the pipeline calls it (`seeds.fit`): one stage every
+  seed shares; one seed without `seeds`."""
+  return seeds_lib.fit([stage], mesh=mesh,
+                       seeds=seeds if seeds is not None else Seeds((seed,)))
 
 
 def _one_device():
@@ -89,7 +99,8 @@ def one_seed_runs(tmp_path_factory):
     if (name, seed, devices) not in cache:
       directory = tmp_path_factory.mktemp(f'{name}_seed{seed}')
       cache[name, seed, devices] = jax.device_get(
-          fit(STAGES[name](directory), mesh=_mesh(devices), seed=seed))
+          trainer.fit(STAGES[name](directory), mesh=_mesh(devices),
+                      seed=seed))
     return cache[name, seed, devices]
   return get
 
@@ -137,8 +148,7 @@ def test_seed_k_of_k_seeds_is_the_one_seed_run(tmp_path, one_seed_runs,
   seeds = Seeds(SEEDS, loop=loop)
   assert seeds.loop_on(_mesh(devices)) == (
       'vmap' if loop == 'vmap' else 'unroll')
-  state = fit(STAGES[name](tmp_path), mesh=_mesh(devices), seed=0,
-              seeds=seeds)
+  state = _fit(STAGES[name](tmp_path), mesh=_mesh(devices), seeds=seeds)
   if devices == 4:
     assert state.params is not None
     leaf = jax.tree.leaves(state.params)[0]
@@ -155,11 +165,11 @@ def test_seed_k_of_k_seeds_is_the_one_seed_run(tmp_path, one_seed_runs,
 
 def test_seed_mesh_shapes():
   mesh = sharding.make_mesh()
-  assert dict(sharding.seed_mesh(mesh, 2).shape) == {'seed': 2, 'data': 2}
-  assert dict(sharding.seed_mesh(mesh, 4).shape) == {'seed': 4, 'data': 1}
+  assert dict(seeds_lib.seed_mesh(mesh, 2).shape) == {'seed': 2, 'data': 2}
+  assert dict(seeds_lib.seed_mesh(mesh, 4).shape) == {'seed': 4, 'data': 1}
   # 4 devices do not split into 3 seed groups: seeds replicated.
-  assert sharding.seed_mesh(mesh, 3) is mesh
-  assert sharding.seed_mesh(mesh, 1) is mesh
+  assert seeds_lib.seed_mesh(mesh, 3) is mesh
+  assert seeds_lib.seed_mesh(mesh, 1) is mesh
 
 
 @pytest.mark.slow
@@ -168,7 +178,7 @@ def test_seeds_replicated_when_the_devices_do_not_split(tmp_path,
   """3 seeds on 4 devices (or seed_axis=False): the seeds are replicated
   and the batch split in 4, as in the 4-device one-seed run."""
   seeds = (0, 1, 2)
-  state = fit(_savi(tmp_path), mesh=_mesh(4), seed=0, seeds=Seeds(seeds))
+  state = _fit(_savi(tmp_path), mesh=_mesh(4), seed=0, seeds=Seeds(seeds))
   assert jax.tree.leaves(state.params)[0].sharding.is_fully_replicated
   _assert_seeds_equal_one_seed_runs(state, one_seed_runs, 'savi', seeds, 4,
                                     checked=(2,))
@@ -182,12 +192,12 @@ def test_killed_k_seed_run_resumes_to_identical_state(tmp_path, devices,
   mesh = _mesh(devices)
   num_steps = 5
   seeds = Seeds(SEEDS, seed_axis=seed_axis)
-  uninterrupted = fit(_slotformer(tmp_path / 'a', num_steps), mesh=mesh,
+  uninterrupted = _fit(_slotformer(tmp_path / 'a', num_steps), mesh=mesh,
                       seed=0, seeds=seeds)
   with pytest.raises(test_training._Interrupted):  # after step 2's save
-    fit(_slotformer(tmp_path / 'b', num_steps, interrupt_after=3),
+    _fit(_slotformer(tmp_path / 'b', num_steps, interrupt_after=3),
         mesh=mesh, seed=0, seeds=seeds)
-  resumed = fit(_slotformer(tmp_path / 'b', num_steps), mesh=mesh, seed=0,
+  resumed = _fit(_slotformer(tmp_path / 'b', num_steps), mesh=mesh, seed=0,
                 seeds=seeds)
   assert isinstance(resumed, SeedsState)
   chex.assert_trees_all_close(jax.device_get(resumed),
@@ -200,7 +210,7 @@ def test_preempted_k_seed_run_resumes_to_identical_state(tmp_path):
   rerun ends where the uninterrupted run does."""
   good, _ = _toy_seeds()
   seeds = Seeds(good)
-  uninterrupted = jax.device_get(fit(_toy_stage(tmp_path / 'a', 5),
+  uninterrupted = jax.device_get(_fit(_toy_stage(tmp_path / 'a', 5),
                                      mesh=_one_device(), seed=0,
                                      seeds=seeds))
   stage = _toy_stage(tmp_path / 'b', 5)
@@ -217,24 +227,24 @@ def test_preempted_k_seed_run_resumes_to_identical_state(tmp_path):
       yield batch
 
   with pytest.raises(Preempted, match='stopped by SIGTERM after step 3;'):
-    fit(dataclasses.replace(stage, batches=batches), mesh=_one_device(),
+    _fit(dataclasses.replace(stage, batches=batches), mesh=_one_device(),
         seed=0, seeds=seeds)
-  resumed = jax.device_get(fit(_toy_stage(tmp_path / 'b', 5),
+  resumed = jax.device_get(_fit(_toy_stage(tmp_path / 'b', 5),
                                mesh=_one_device(), seed=0, seeds=seeds))
   chex.assert_trees_all_close(resumed, uninterrupted, atol=0, rtol=0)
 
 
 def test_resuming_with_other_seeds_is_one_line(tmp_path):
   good, _ = _toy_seeds()
-  fit(_toy_stage(tmp_path, num_steps=2), mesh=_one_device(), seed=0,
+  _fit(_toy_stage(tmp_path, num_steps=2), mesh=_one_device(), seed=0,
       seeds=Seeds(good))
   longer = _toy_stage(tmp_path, num_steps=4)
   with pytest.raises(ConfigError, match=(
       rf'trained with seeds \[{good[0]}, {good[1]}\] \(shared data order\), '
       rf'the config asks for seeds \[{good[0]}, 99\]')):
-    fit(longer, mesh=_one_device(), seed=0, seeds=Seeds((good[0], 99)))
+    _fit(longer, mesh=_one_device(), seed=0, seeds=Seeds((good[0], 99)))
   with pytest.raises(ConfigError, match='the config asks for one seed'):
-    fit(longer, mesh=_one_device(), seed=0)
+    _fit(longer, mesh=_one_device(), seed=0)
 
 
 @pytest.mark.parametrize('values', [(), (1, 1)])
@@ -280,7 +290,7 @@ def _toy_seeds():
 def test_a_diverging_seed_stops_the_run_in_one_line(tmp_path):
   good, bad = _toy_seeds()
   with pytest.raises(Diverged) as caught:
-    fit(_toy_stage(tmp_path), mesh=_one_device(), seed=0,
+    _fit(_toy_stage(tmp_path), mesh=_one_device(), seed=0,
         seeds=Seeds((good[0], bad, good[1])))
   message = str(caught.value)
   assert '\n' not in message
@@ -295,7 +305,7 @@ def test_a_diverging_seed_is_left_behind_and_the_others_go_on(tmp_path,
   good, bad = _toy_seeds()
   seeds = Seeds((good[0], bad, good[1]), on_divergence='continue')
   with caplog.at_level(logging.WARNING):
-    state = jax.device_get(fit(_toy_stage(tmp_path), mesh=_one_device(),
+    state = jax.device_get(_fit(_toy_stage(tmp_path), mesh=_one_device(),
                                seed=0, seeds=seeds))
   warnings = [r.getMessage() for r in caplog.records
               if 'diverged' in r.getMessage()]
@@ -319,7 +329,7 @@ def test_a_diverging_seed_is_left_behind_and_the_others_go_on(tmp_path,
   caplog.clear()
   longer = dataclasses.replace(_toy_stage(tmp_path, num_steps=6))
   with caplog.at_level(logging.WARNING):
-    state = jax.device_get(fit(longer, mesh=_one_device(), seed=0,
+    state = jax.device_get(_fit(longer, mesh=_one_device(), seed=0,
                                seeds=seeds))
   np.testing.assert_array_equal(state.diverged_at, [0, 1, 0])
   assert int(state.step[0]) == 6
@@ -330,37 +340,46 @@ def test_every_seed_diverging_stops_even_when_continuing(tmp_path):
   other_bad = next(s for s in range(bad + 1, 50)
                    if float(_toy_init(jax.random.key(s))['w']) < 0)
   with pytest.raises(Diverged, match='no seed is left'):
-    fit(_toy_stage(tmp_path), mesh=_one_device(), seed=0,
+    _fit(_toy_stage(tmp_path), mesh=_one_device(), seed=0,
         seeds=Seeds((bad, other_bad), on_divergence='continue'))
 
 
 def test_per_seed_data_order_gives_each_seed_its_stream(tmp_path):
+  """One stage per seed: seed k trains on stage k's batches, stacked."""
   drawn = []
 
-  def batches_for_seed(seed, start_step):
+  def batches_of(seed, start_step):
     for step in range(start_step, 100):
       drawn.append((seed, step))
       yield {'x': np.full((4, 1), 1.0 + seed + step, np.float32)}
 
-  stage = dataclasses.replace(_toy_stage(tmp_path, num_steps=2),
-                              batches_for_seed=batches_for_seed)
   good, _ = _toy_seeds()
-  state = fit(stage, mesh=_one_device(), seed=0,
-              seeds=Seeds(good, data_order='per_seed'))
+  stages = [dataclasses.replace(_toy_stage(tmp_path, num_steps=2),
+                                batches=functools.partial(batches_of, seed))
+            for seed in good]
+  state = seeds_lib.fit(stages, mesh=_one_device(),
+                        seeds=Seeds(good, data_order='per_seed'))
   # Each seed's own stream from step 0 (the device prefetch may have
   # drawn a step ahead of the last update).
   assert {(seed, step) for seed, step in drawn if step < 2} == {
       (good[0], 0), (good[0], 1), (good[1], 0), (good[1], 1)}
   assert {seed for seed, _ in drawn} == set(good)
   assert int(jax.device_get(state.step)[0]) == 2
+  # The seeds' losses: log(w) times their own batch's mean.
+  lines = [json.loads(line) for line in
+           (tmp_path / 'train_log.jsonl').read_text().splitlines()]
+  first = {r['seed']: r['loss'] for r in lines if r['step'] == 1}
+  for seed in good:
+    w = float(_toy_init(jax.random.key(seed))['w'])
+    np.testing.assert_allclose(first[seed], np.log(w) * (1.0 + seed),
+                               rtol=1e-6)
 
 
-def test_per_seed_data_order_needs_the_stage_to_offer_it(tmp_path):
+def test_stages_are_one_or_one_per_seed(tmp_path):
   good, _ = _toy_seeds()
-  with pytest.raises(ConfigError, match='per-seed data order is not '
-                     'available'):
-    fit(_toy_stage(tmp_path), mesh=_one_device(), seed=0,
-        seeds=Seeds(good, data_order='per_seed'))
+  with pytest.raises(ValueError, match='one stage or one per seed'):
+    seeds_lib.fit([_toy_stage(tmp_path)] * 3, mesh=_one_device(),
+                  seeds=Seeds(good))
 
 
 # ---- config.seeds -----------------------------------------------------
@@ -381,14 +400,12 @@ def _config(**fields):
     ((0, '1'), "seeds must be ints >= 0, got (0, '1')"),
 ])
 def test_bad_config_seeds_are_one_line(seeds, needle):
-  from slotformer_jax.config import checks
-  problems = checks.seeds_problems(_config(seeds=seeds), ('train_savi',))
+  problems = task_lib.seeds_problems(_config(seeds=seeds), ('train_savi',))
   assert problems == [problems[0]] and needle in problems[0]
 
 
 def test_bad_seed_choices_are_one_line_each():
-  from slotformer_jax.config import checks
-  problems = checks.seeds_problems(
+  problems = task_lib.seeds_problems(
       _config(seed_data_order='random', on_seed_divergence='skip'),
       ('train_savi',))
   assert problems == [
@@ -397,10 +414,9 @@ def test_bad_seed_choices_are_one_line_each():
 
 
 def test_stages_without_several_seeds_refuse_them_in_one_line():
-  from slotformer_jax.config import checks
   config = _config(seeds=(0, 1, 2))
-  assert checks.seeds_problems(config, ('prepare_data', 'train_savi')) == []
-  problems = checks.seeds_problems(
+  assert task_lib.seeds_problems(config, ('prepare_data', 'train_savi')) == []
+  problems = task_lib.seeds_problems(
       config, ('prepare_data', 'train_savi', 'extract_slots',
                'train_slotformer', 'train_slot_lstm', 'train_readout'))
   assert len(problems) == 1
@@ -411,15 +427,18 @@ def test_stages_without_several_seeds_refuse_them_in_one_line():
       'train_readout does not take several')
   # One seed (or none) is today's run: nothing refused.
   for one in (None, (3,)):
-    assert checks.seeds_problems(_config(seeds=one),
+    assert task_lib.seeds_problems(_config(seeds=one),
                                  ('train_slotformer', 'evaluate')) == []
 
 
 def test_default_config_is_one_seed():
-  from slotformer_jax.stages.fit import seeds_of
-  assert seeds_of(_config()) is None
-  assert seeds_of(_config(seeds=(4,))) is None
-  seeds = seeds_of(_config(seeds=(0, 1, 2), seed_data_order='per_seed',
-                           on_seed_divergence='continue'), offset=1)
+  config = _config(seed=5)
+  assert Seeds.of_config(config) == Seeds((5,))
+  # A one-value `seeds` is one seed: config.seed's.
+  assert Seeds.of_config(_config(seed=5, seeds=(4,))) == Seeds((5,))
+  assert not Seeds.of_config(config).several
+  seeds = Seeds.of_config(
+      _config(seeds=(0, 1, 2), seed_data_order='per_seed',
+              on_seed_divergence='continue')).map(lambda seed: seed + 1)
   assert seeds == Seeds((1, 2, 3), data_order='per_seed',
                         on_divergence='continue')

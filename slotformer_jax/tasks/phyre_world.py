@@ -46,8 +46,8 @@ from typing import Any
 import numpy as np
 import pymunk
 
-from slotformer_jax.worlds.supersample import downsample_rgb
-from slotformer_jax.worlds.supersample import downsample_segmentation
+from slotformer_jax.data.supersample import downsample_rgb
+from slotformer_jax.data.supersample import downsample_segmentation
 
 # The first templates (the default set: their tasks and cached datasets must
 # not change) and templates added later, which a config selects by name.

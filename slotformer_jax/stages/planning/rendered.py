@@ -1,5 +1,5 @@
-"""The planning stages on the real, pre-rendered PHYRE layout
-(`task='planning'`, `data.name='phyre'`): `train_readout` and `plan` over
+"""Planning on the real, pre-rendered PHYRE layout (the task: __init__.py;
+a converted dataset): `train_readout` and `plan` over
 the rendered candidates of each task. What the layout holds, and why this is
 not the official protocol: tasks/phyre_rendered.py.
 
@@ -26,6 +26,7 @@ from slotformer_jax.errors import MissingInputError
 from slotformer_jax.files import write_atomic
 from slotformer_jax.files import write_json_atomic
 from slotformer_jax.run import Run
+from slotformer_jax.stages import readout_fit
 from slotformer_jax.tasks import phyre_planning
 from slotformer_jax.tasks import phyre_rendered
 from slotformer_jax.tasks import planning
@@ -137,9 +138,11 @@ def training_set(run: Run) -> TrainingSet:
 
 
 def fit_classifier(readout: Any, condition: str, data: TrainingSet,
-                   seed: int) -> tuple[Any, Any, dict[str, Any]]:
+                   seed: int, directory: str
+                   ) -> tuple[Any, Any, dict[str, Any]]:
   """(module, params, fit log) of the classifier of `condition` fitted
-  with `seed` on `data`, its epoch chosen by dev AUCCESS."""
+  with `seed` on `data` in `directory` (`readout_fit.fit_readout`), its
+  epoch chosen by dev AUCCESS."""
   model = phyre_rendered.build_classifier(readout, condition,
                                           data.features.shape[1])
   inputs = phyre_rendered.condition_features(data.features, condition)
@@ -155,8 +158,9 @@ def fit_classifier(readout: Any, condition: str, data: TrainingSet,
       epochs=readout.epochs, batch_size=readout.batch_size,
       learning_rate=readout.learning_rate,
       warmup_fraction=readout.warmup_fraction)
-  params, log = readout_lib.fit(model, (inputs[data.fit_rows], data.labels),
-                                dev_auccess, fit_config, seed=seed)
+  params, log = readout_fit.fit_readout(
+      directory, f'classifier {condition} seed {seed}', model,
+      (inputs[data.fit_rows], data.labels), dev_auccess, fit_config, seed)
   return model, params, log
 
 
@@ -183,11 +187,10 @@ def train_readout(run: Run) -> None:
                 100 * data.labels.mean(),
                 len(data.dev_groups))
     for condition, seed in todo:
-      _, params, log = fit_classifier(readout, condition, data, seed)
       directory = chain.paths.planner(condition, seed)
-      # params first: a seed counts as trained once selection.json exists.
-      write_atomic(os.path.join(directory, 'params.msgpack'),
-                   serialization.msgpack_serialize(params))
+      _, _, log = fit_classifier(readout, condition, data, seed, directory)
+      # params.msgpack holds the chosen epoch's parameters (`fit_readout`);
+      # a seed counts as trained once selection.json exists.
       write_json_atomic(os.path.join(directory, 'selection.json'), {
           'dev_auccess_rendered': log['best_score'],
           'best_epoch': log['best_epoch'],

@@ -1,9 +1,7 @@
-"""The planning stages (`task='planning'`) on the embedded PHYRE-like tasks:
+"""Planning on the embedded PHYRE-like tasks (the task: __init__.py):
 `train_readout` (the success classifier, epoch chosen by dev AUCCESS) and
 `plan` (AUCCESS over every test task's candidates). The protocol and the pure
-parts are in tasks/phyre_planning.py; the real, pre-rendered PHYRE layout has
-its own stages in planning_rendered.py (the stage table picks by
-`data.name`).
+parts are in tasks/phyre_planning.py.
 
 Features of a (task, action) pair: the slot model encodes the first frame
 with the action's red ball drawn in, SlotFormer rolls the slots out.
@@ -35,10 +33,11 @@ from slotformer_jax.errors import MissingInputError
 from slotformer_jax.files import write_atomic
 from slotformer_jax.files import write_json_atomic
 from slotformer_jax.run import Run
+from slotformer_jax.stages import readout_fit
 from slotformer_jax.tasks import phyre_planning
 from slotformer_jax.tasks import planning
 from slotformer_jax.tasks import readout as readout_lib
-from slotformer_jax.worlds import phyre_like
+from slotformer_jax.tasks import phyre_world
 
 logger = logging.getLogger(__name__)
 
@@ -75,7 +74,7 @@ class SlotFeatures:
 
     self._features = features
 
-  def __call__(self, task: phyre_like.Task, actions: np.ndarray
+  def __call__(self, task: phyre_world.Task, actions: np.ndarray
                ) -> np.ndarray:
     """float32 [A, 1 + rollout_steps, N, D]."""
     out = []
@@ -113,7 +112,7 @@ def task_candidates(run: Run, split_names: tuple[str, ...]):
   generation = phyre_like_data.config_from_data_config(config.data)
   labels = phyre_like_data.load_task_labels(
       generation, resolve_data_dir(config.data.data_dir))
-  actions = phyre_like.candidate_actions(generation)
+  actions = phyre_world.candidate_actions(generation)
   splits = phyre_planning.task_splits(config.data, config.readout)
   features = SlotFeatures(run)
   by_split = {name: _task_features(features, splits[name], labels, actions)
@@ -191,11 +190,11 @@ def _train_chain(run: Run, seeds: tuple[int, ...]) -> None:
             phyre_planning.candidate_scores(model, params, by_split['dev'],
                     generation.num_candidates), outcomes['dev'])
 
-      params, log = readout_lib.fit(model, train, dev_auccess, fit_config,
-                                    seed=seed)
-      # params first: a seed counts as trained once selection.json exists.
-      write_atomic(os.path.join(directory, 'params.msgpack'),
-                   serialization.msgpack_serialize(params))
+      _, log = readout_fit.fit_readout(
+          directory, f'classifier {condition} seed {seed}', model, train,
+          dev_auccess, fit_config, seed)
+      # params.msgpack holds the chosen epoch's parameters (`fit_readout`);
+      # a seed counts as trained once selection.json exists.
       write_json_atomic(os.path.join(directory, 'selection.json'), {
           'dev_auccess': log['best_score'], 'best_epoch': log['best_epoch'],
           'dev_scores': log['scores'], 'train_losses': log['losses']},
