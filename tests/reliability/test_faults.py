@@ -36,7 +36,6 @@ import dataset_fixtures as fx
 import pipeline_helpers
 from slotformer_jax.workdir import lock as lock_lib
 from slotformer_jax import main as main_lib
-from slotformer_jax.config import checks as config_checks
 from slotformer_jax.datasets import obj3d
 from slotformer_jax.errors import UserError
 from slotformer_jax.workdir.lock import FileLock
@@ -85,7 +84,7 @@ def test_a_split_no_stage_extracts_fails_before_work(tmp_path, field, value,
   section, name = field.split('.')
   config[section][name] = value
   with pytest.raises(UserError) as caught:
-    config_checks.validate(config, stages, num_devices=1)
+    pipeline_helpers.check(config, stages, num_devices=1)
   message = str(caught.value)
   assert f"{field}='valid' is not one of the splits whose slots are " \
       'extracted (extraction.splits: train, val, test)' in message, message
@@ -98,7 +97,7 @@ def test_a_readout_split_no_stage_extracts_fails_before_work(tmp_path):
   config.readout.splits.test = 'readout_tset'
   with pytest.raises(UserError, match="readout.splits.test='readout_tset' "
                      'is not one of the splits whose slots are extracted'):
-    config_checks.validate(config, ('train_readout',), num_devices=1)
+    pipeline_helpers.check(config, ('train_readout',), num_devices=1)
 
 
 # --------------------------------------------------------------------------
