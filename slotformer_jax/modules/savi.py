@@ -19,11 +19,9 @@ through the decoder when there is one. `slot_models.savi.build_savi` builds the 
 from `config.savi`; docs/official_architectures.md lists which choices
 reproduce each official model.
 
-Parameter tree (the names of the flat SAVi this replaced; checkpoints and
-the official-weight converters rely on them): `encoder/`, the initialiser's
-variables at the top (`initial_slots`, `initial_slots_mean` /
-`initial_slots_log_sigma`, or `slot_init_mlp/`),
-`frame_step/{corrector,predictor,posterior_head}/`, `decoder/`.
+The parameter names are those of the flat SAVi this replaced (checkpoints
+and the official-weight converters rely on them; the tree:
+docs/official_architectures.md).
 
 Shapes: video [batch, time, height, width, 3] in [-1, 1]; encoder features
 [batch * time, num_inputs, feature_size]; slots [batch, time, num_slots,
