@@ -183,9 +183,8 @@ class PointwiseConv(nn.Module):
   Same parameters as `nn.Conv(features, (1, 1))` (kernel [1, 1, C_in,
   C_out], bias [C_out], same initialisers), so checkpoints are
   interchangeable. XLA:CPU's convolution path is ~3x slower than a matmul for
-  this shape in the decoder's training step (readout of 168 slot images at
-  64x64: 0.65 s vs 0.20 s forward + backward with the compositing,
-  docs/performance.md).
+  this shape in the decoder's training step (docs/experiments/performance.md,
+  "The 1x1 readout as a matmul").
   """
 
   features: int
