@@ -1,34 +1,19 @@
 """What a slot model reconstructs: its targets, the batch field and range of
 each, and how each is drawn.
 
-SlotFormer's SAVi reconstructs RGB frames. SAVi's own MOVi models
-reconstruct optical flow rendered as colour (google-research/
-slot-attention-video, `configs/movi/savi_conditional_*.py`:
-`config.targets = {"flow": 3}`), SAVi++ flow and depth (`savi++_conditional
-.py`: `{"flow": 3, "depth": 1}`). Here `config.savi.targets` names them, a
-tuple of names whose channel counts are fixed below; the decoder has one
-readout head per target and the loss one term per target
-(`losses.savi_loss`).
+SlotFormer's SAVi reconstructs RGB frames, SAVi's MOVi models optical flow
+rendered as colour, SAVi++ flow and depth. ``config.savi.targets`` names
+them; the decoder has one readout head per target and the loss one term per
+target (``losses.savi_loss``). The data contract (the data side makes them;
+each is compared as it arrives):
 
-The data contract: the batch field, dtype, shape and range each target
-arrives in (the data side makes them; docs/savi_plus_plus.md says the
-same):
-
-  rgb    'video'  uint8 [B, T, H, W, 3] in [0, 255], the frames; the model
-                  compares them in its own range (`frames.frames_to_model`:
-                  [-1, 1]).
+  rgb    'video'  uint8 [B, T, H, W, 3] in [0, 255] (the model: [-1, 1])
   flow   'flow'   float32 [B, T, H, W, 3] in [-1, 1]: `flow_to_rgb` of the
-                  backward optical flow (where each pixel of frame t was in
-                  frame t - 1, as MOVi's 'backward_flow', the flow SAVi
-                  reads by default): (delta row, delta column) in pixels of
-                  the delivered H x W (rescaled with the frames when they
-                  are resized or cropped), channels in that order.
-  depth  'depth'  float32 [B, T, H, W, 1], >= 0: `log_plus_depth` of the
-                  per-pixel distance from the camera in the scene's units
-                  (MOVi's 'depth' decoded with its 'depth_range').
+                  backward flow, in pixels of the delivered H x W
+  depth  'depth'  float32 [B, T, H, W, 1] >= 0: `log_plus_depth` of the
+                  distance from the camera
 
-The depth and flow fields are compared as they arrive: what the model
-predicts is exactly that field.
+Details and the official configs: docs/savi_plus_plus.md.
 """
 
 from __future__ import annotations

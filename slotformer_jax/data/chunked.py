@@ -1,40 +1,19 @@
 """Chunked video records: a training clip reads only the frames it holds.
 
-Layout ``chunked`` version 1 (TFDS version folder ``2.0.0`` of the converted
-and embedded datasets; the whole-video layout before it is ``1.0.0``). The
-folder stays an ``array_record`` TFDS folder (``dataset_info.json``,
-``features.json`` describing the *videos*, as before, and shard files
-``<name>-<split>.array_record-<i>-of-<n>``), but the records of one video
-are::
-
-    [header]  the video's per-video fields (scalars, strings, per-object
-              arrays), when the dataset has any
-    chunk 0   frames 0 .. K-1 of every time-axis field (video,
-              segmentations, boxes, visible, ...)
-    chunk 1   frames K .. 2K-1
-    ...       (the last chunk holds the remaining 1..K frames)
-
-each record on its own (``group_size:1``) and, by default, uncompressed
-(``prepare --compress_records`` compresses them), videos one after
-the other in index order. ``video_chunks.json`` (this module's ``INDEX_FILE``,
-covered by ``checksums.json``) holds the layout, ``K``, the time-axis fields
-and, per split, every video's frame count and first record, so a reader
-knows a video's length without decoding it and reads a clip's frames from
-``ceil``-many chunks instead of the whole video.
-
-Time-axis fields are the ``video`` and every other ``Tensor`` feature of
-rank >= 2 whose first dimension is the video's (``(T, ...)`` or ``(None,
-...)``); :func:`time_fields`. Records are TFDS-serialised examples of
-derived feature dicts (time fields with their first dimension free; the
-header: the other fields), decoded with TFDS's numpy decoder as the
-whole-video records were, so values are bit-identical across layouts.
-Why K = 4 (:data:`FRAMES_PER_CHUNK`) and uncompressed chunks: the
-measurements in docs/datasets.md, "Record layout".
+A video is a header record (its per-video fields, when it has any) followed
+by records of K consecutive frames of every time-axis field
+(:func:`time_fields`: ``video`` and every other tensor of rank >= 2 whose
+first dimension is the video's), in TFDS version folder ``2.0.0``.
+``video_chunks.json`` (``INDEX_FILE``) holds K and every video's frame count
+and first record, so a reader knows a video's length without decoding it and
+reads a clip from ``ceil``-many chunks; values are bit-identical to the
+whole-video records (``1.0.0``). The layout, and why K = 4
+(:data:`FRAMES_PER_CHUNK`) and uncompressed chunks: docs/datasets.md,
+"Record layout".
 
 This module is the layout and its index as the reader sees them (reading
-never writes); ``data/write/records.py`` serialises videos into
-records and writes folders (the embedded families), and
-``data/write/convert.py`` writes converted datasets shard by shard with it.
+never writes); ``data/write/records.py`` and ``data/write/convert.py`` write
+it.
 """
 
 from __future__ import annotations

@@ -2,27 +2,17 @@
 
 Usage::
 
-    python -m slotformer_jax.data.prepare --dataset=clevrer \\
+    python -m slotformer_jax.data.prepare --dataset=clevrer \
         --source=/path/to/CLEVRER --data_dir=/path/to/data
 
 ``--dataset`` is the ``command`` of a converted dataset
 (``slotformer_jax/datasets/``: obj3d, clevrer, physion, phyre, movi, and any
 registered one); ``--source`` is the folder holding the files in their
-published layout (see docs/datasets.md; a missing part is reported with the
-expected layout). The result goes to ``<data_dir>/<name>/<config>/2.0.0``
-where ``<config>`` encodes the conversion parameters, and is read with data
-config ``name=<name>``, ``data_dir=<data_dir>``; ``<name>`` is the dataset,
-or for MOVi the variant of the download.
-
-Conversion runs in ``--num_workers`` processes with a progress bar and is
-resumable: re-running the same command after an interruption converts only
-the missing shards. Unreadable / truncated videos and other per-video
-problems are skipped, counted and reported at the end (and listed in
-``conversion_report.json``); more than ``--max_skip_fraction`` skipped in a
-split fails the conversion. With several hosts, run the same command with
-``--process_index=p --process_count=P`` on each (shared ``data_dir``): each
-converts (and reads) only its share of the videos; the run that finds every
-shard present writes the metadata.
+published layout. The result goes to
+``<data_dir>/<name>/<config>/2.0.0``; conversion is parallel, resumable,
+skips and reports broken videos, and splits over hosts with
+``--process_index`` / ``--process_count``. The layouts and what every
+conversion does: docs/datasets.md.
 """
 
 from __future__ import annotations

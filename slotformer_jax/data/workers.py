@@ -2,35 +2,19 @@
 library only; no jax here).
 
 `worker_batches(make, start_step, num_workers)` yields ``make(start_step)``,
-``make(start_step + 1)``, ... like `pipeline._prefetched`, but the batches are
-built by ``num_workers`` processes: worker ``w`` builds the steps ``s`` with
-``(s - start_step) % num_workers == w``, in order, and the consumer takes
-them round-robin, so the stream is the same for any number of workers and
-after a resume at any step (``make`` is a pure function of the step).
-
-Why these choices (measured in docs/experiments/reader.md):
-
-* ``spawn`` processes, never ``fork`` (the parent has jax's threads). A
-  worker starts with a fresh interpreter and unpickles ``make`` (a
-  `functools.partial` of `pipeline.make_train_batch` with its source), about
-  1 s per worker, once per stream; it does not re-import the parent's main
-  module (`_start`), so no jax in the workers. Memory-mapped arrays in a source
-  (extracted slots, tokens, the embedded datasets) pickle as their file and
-  offset (`_dumps`), not as a copy of the data.
-* Batches come back through shared memory, not a pipe: a worker writes the
-  arrays into one of its ``depth`` blocks and sends only their layout; the
-  consumer copies them out (the batch is then an ordinary numpy array the
-  trainer may keep, e.g. for its image summaries) and hands the block back.
-  A 4.5 MiB batch takes ~1 ms this way and ~25 ms pickled through a pipe.
-* Workers ignore SIGINT and SIGTERM: Ctrl-C and a scheduler's SIGTERM go to
-  the whole process group, and the trainer, which saves a checkpoint and then
-  closes the stream, must keep getting batches until it stops. A worker
-  exits when the consumer closes its control pipe, which the kernel also
-  does when the consumer dies, so none outlives it.
-* Failures end the stream with one line naming the worker and the step: an
-  exception in ``make`` (re-raised as the same type when it pickles), or a
-  worker that dies (SIGKILL, the OOM killer), found by polling its liveness
-  while waiting, so nothing hangs.
+``make(start_step + 1)``, ... like `pipeline._prefetched`, but worker ``w``
+builds the steps ``s`` with ``(s - start_step) % num_workers == w`` and the
+consumer takes them round-robin, so the stream is the same for any number
+of workers and after a resume at any step (``make`` is a pure function of
+the step). Workers are ``spawn`` processes (the parent has jax's threads)
+that never import the parent's main module; memory-mapped arrays pickle as
+their file and offset (`_dumps`); batches come back through shared-memory
+blocks, not a pipe. Workers ignore SIGINT and SIGTERM (the trainer must get
+batches until it has saved) and exit when the consumer closes their control
+pipe or dies; an exception in ``make`` or a dead worker ends the stream
+with one line naming the worker and the step. Measurements:
+docs/experiments/reader.md and docs/performance.md, "Reader worker
+processes and device prefetch".
 """
 
 from __future__ import annotations

@@ -1,67 +1,18 @@
 """CLEVRER: the dataset, its published layout, its conversion and its
 official evaluation clips.
 
-Published layout (the archives from http://clevrer.csail.mit.edu/, unpacked
-as the official SlotFormer instructions describe)::
-
-    <source>/
-      videos/train/video_00000-01000/video_00000.mp4 ...   # 10,000 videos
-      videos/val/video_10000-11000/video_10000.mp4 ...     #  5,000
-      videos/test/video_15000-16000/video_15000.mp4 ...    #  5,000 (VQA only)
-      annotations/train/annotation_00000-01000/annotation_00000.json ...
-      annotations/val/annotation_10000-11000/annotation_10000.json ...
-      derender_proposals/proposal_00000.json ...   # "Object Masks and
-                                                   #  Attributes" (optional)
-      questions/train.json, validation.json (or val.json), test.json
-                                                   # (optional, VQA)
-
-Every video has 128 frames of 480x320. The test split has no annotations.
-
-What is stored per video (records in video-index order):
-
-* ``video``: uint8 [T, H, W, 3], all T = 128 frames (full rate: the x2
-  subsampling of the video-prediction experiments is a training-time
-  ``frame_stride``, and SAVi trains on full-rate clips), the whole 480x320
-  frame resized to H x W (aspect ratio not kept, as in the official code).
-  RGB; the official models saw BGR (OpenCV decoding), see the data config
-  field ``channel_order``.
-* ``segmentations``: uint8 [T, H, W] from the per-frame instance masks of
-  the derender proposals (COCO RLE), resized by nearest neighbour; where
-  masks overlap the earlier proposal of the frame wins (the official argmax).
-  Every proposal is an instance, as in the official evaluation; labels say
-  more than that: 0 = background, k in 1..N = annotated object
-  ``object_id == k - 1`` in every frame (proposals are tied to objects by
-  their predicted colour, material and shape, then by colour and shape
-  alone), and N + 1 .. M = the frame's other proposals (spurious or
-  ambiguous detections, duplicates; their labels hold within a frame only).
-  Such proposals are counted in ``num_unmatched_masks``, and the ones that
-  do not fit in M rows are left out and counted in ``num_dropped_masks``.
-* ``boxes``: float32 [T, M, 4] normalised (ymin, xmin, ymax, xmax) with pixel
-  edges (as ``synthetic.boxes_from_segmentation``), of each instance's own
-  resized mask (so overlapped parts count, as in the official boxes);
-  ``visible``: bool [T, M] (mask non-empty). Row k - 1 is label k.
-* ``in_view``: bool [T, O], the annotation's per-frame ``inside_camera_view``
-  of each object: it defines the frames where objects enter, which the
-  official evaluation clips avoid (datasets/clevrer.py).
-* ``num_objects``: int32; ``colors``, ``materials``, ``shapes``: int32 [O]
-  indices into COLORS / MATERIALS / SHAPES (-1 padding).
-* ``has_annotations``, ``has_masks``: bool (False for the test split, or
-  when masks are not converted); the arrays above are zeros then.
-* ``questions``: the video's entry of the split's question JSON, as JSON
-  text ('' when there is none), for the VQA stage; ``video_index``: int32;
-  ``video_name``: e.g. 'video_10000'.
-
-O = ``Options.max_objects`` (6: CLEVRER videos hold at most 6 objects);
-M = O + 1 rows for instances (the official boxes are padded to 7 as well).
+Stored per video (records in video-index order; O = ``Options.max_objects``
+= 6, M = O + 1 instance rows): ``video`` uint8 [T, H, W, 3] (all 128 frames,
+RGB), ``segmentations`` uint8 [T, H, W] (0 background, 1..N the annotated
+objects, above N the frame's other proposals), ``boxes`` float32 [T, M, 4],
+``visible`` bool [T, M], ``in_view`` bool [T, O], ``num_objects``,
+``colors`` / ``materials`` / ``shapes`` int32 [O], ``has_annotations``,
+``has_masks``, ``questions`` (JSON text), ``video_index``, ``video_name``.
 
 Evaluation clips (``evaluation.clips='clevrer'``): an object that comes into
-view during the rollout (or late in the burn-in) cannot be predicted from the
-observed frames, so the official SlotFormer CLEVRER evaluation skips clips
-where one does: per half-clip block of a video, the first start without such
-an entry (:func:`eval_clip_starts`); training with ``filter_enter=True`` uses
-every such start (:func:`train_clip_starts`). Both read ``in_view`` (full
-frame rate); a clip takes frames ``start + i * frame_stride`` for
-``i < burn_in + rollout``.
+view during the rollout cannot be predicted from the burn-in, so the official
+evaluation skips such clips (:func:`eval_clip_starts`, from ``in_view``).
+The layout, each field and the rules: docs/datasets.md, "CLEVRER".
 """
 
 from __future__ import annotations

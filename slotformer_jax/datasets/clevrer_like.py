@@ -1,46 +1,19 @@
-"""A CLEVRER-like scenario family with an event log from the simulator.
+"""A CLEVRER-like scenario family with an event log from the simulator
+(``data.name='clevrer_like'``).
 
 CLEVRER (Yi et al., 2020) videos show objects sliding, colliding and entering
-the scene from its sides; every video comes with the events that happened
-(collisions, entering, exiting), from which its questions are generated. This
-module builds such videos (``data.name='clevrer_like'``) on the same pybullet
-world as the OBJ3D-like generator (:mod:`slotformer_jax.datasets.synthetic`:
-objects, floor, camera, renderer, image helpers are imported from there):
+the scene, with the events that happened, from which its questions are
+generated. This module builds such videos on the OBJ3D-like pybullet world
+(:mod:`slotformer_jax.datasets.synthetic`): :func:`sample_scene` draws a
+scene, :func:`simulate` runs it (``removed=k``: the same world without object
+``k``, deterministically), :func:`event_log` gives the :class:`EventLog` that
+:mod:`slotformer_jax.datasets.clevrer_like_questions` reads, and
+:func:`generate` writes a dataset into the folder its
+:class:`ClevrerLikeConfig` names, which :class:`NpyVideoSource` reads.
 
-* :func:`sample_scene` draws objects present from frame 0 (some resting, some
-  moving, aimed roughly at another object) and objects that enter later from
-  the left or right side of the view; with ``predictive_design='deflected'``
-  three of them form a bank shot whose outcome is decided after the video
-  (see PREDICTIVE_DESIGNS);
-* :func:`simulate` runs the world for ``observed_frames + predicted_frames``
-  frames, checks contacts after *every* physics substep (a collision is the
-  onset of a contact between two objects), tracks which objects are in view,
-  and optionally renders the frames; ``removed=k`` re-simulates the same world
-  without object ``k`` (the counterfactual world), deterministically;
-* :func:`event_log` turns a simulation into an :class:`EventLog`, the only
-  thing the question generator (:mod:`slotformer_jax.datasets.clevrer_like_questions`)
-  reads; :func:`generate_video` ties everything together per
-  ``(seed, split, index)``; :func:`generate` writes a dataset (the data
-  stage runs it) into the folder its parameters (:class:`ClevrerLikeConfig`)
-  name, which :class:`NpyVideoSource` reads. Layout::
-
-  <data_dir>/clevrer_like/<slug>/
-    <split>/{video,segmentations,boxes,visible,num_objects}.npy
-    <split>/events.jsonl          one EventLog per video, in index order
-    questions/{train,validation,test}.json   (CLEVRER's file names)
-    vocab.json                    {'q_vocab', 'a_vocab'}
-    complete.json                 written last: the build finished, and by
-                                  which question generator
-
-
-Frames: frame 0 is the initial state, frame ``t`` is ``t * SUBSTEPS_PER_FRAME``
-physics steps later. A contact first seen after physics step ``s`` (1-based)
-happened during frame interval ``(t - 1, t]`` with ``t = ceil(s / SUBSTEPS)``;
-``t`` is the collision's onset frame (the first frame showing its effect).
-Only the first ``observed_frames`` frames are the "video"; what happens later
-is what predictive questions ask about.
-
-Object ids are 0-based rows of the per-object arrays (mask id = row + 1).
+Object ids are 0-based rows of the per-object arrays (mask id = row + 1); a
+collision's onset frame is the first frame that shows it. The family, its
+events, frames and folder layout: docs/vqa.md, "The CLEVRER-like family".
 """
 
 from __future__ import annotations

@@ -1,38 +1,15 @@
 """CLEVRER-style questions about CLEVRER-like videos, answered by the simulator.
 
-Questions are generated from a video's :class:`slotformer_jax.data.events.EventLog` only, by
-templates of CLEVRER's four types:
-
-* descriptive (open answer): counts of collisions / entering / moving objects,
-  whether an object moves at the end, colour or shape of the object that
-  collides with (or enters) ...;
-* explanatory (multiple choice): "which of the following is responsible for
-  the collision between A and B"; the presence of X is responsible if, in the
-  re-simulated world without X, A and B do not collide during the video; an
-  earlier collision between C and D is responsible if removing each of its
-  objects other than A and B prevents the target the same way (both kinds
-  are answered by re-simulation, so they never disagree);
-* predictive (multiple choice): "what will happen next"; a choice "A collides
-  with B" is correct iff they collide after the observed window (up to
-  ``MAX_PREDICTIVE`` questions per video, with disjoint choices); on videos
-  of the 'deflected' design (clevrer_like.PREDICTIVE_DESIGNS) the pairs are
-  split into choice kinds by what extrapolating the observed end says of
-  them (``EventLog.extrapolated``), so that it cannot tell the label;
-* counterfactual (multiple choice): "what will happen if X is removed"; a
-  choice is correct iff the pair collides, during the video, in the world
-  re-simulated without X.
-
-Every multiple-choice question has, within each choice kind ("the presence
-of ...", "the collision between ..." naming an object of the target or
-naming none, "... collides with ..."), as many correct as wrong choices (1
-or 2 of each; a kind offering only one label is left out), so neither the
-wording of a choice nor the template tells its label; open answers are
-balanced per template (each answer kept at most as often as the lower
-median answer count of its template), so a question-only model cannot do
-well. Objects are named "the <colour> <shape>" (colours are distinct in a
-video). The output uses CLEVRER's ``questions/<split>.json`` layout, so the
-same reader (:mod:`slotformer_jax.data.vqa`) serves embedded and real data;
-each question also records its ``template`` (CLEVRER's files do not).
+Questions come from a video's :class:`slotformer_jax.data.events.EventLog`
+only, by templates of CLEVRER's four types (descriptive, explanatory,
+predictive, counterfactual); explanatory and counterfactual answers come from
+re-simulating the world without an object. Choices are balanced per choice
+kind and open answers per template, so neither the wording nor the template
+tells a label and a question-only model cannot do well. The output uses
+CLEVRER's ``questions/<split>.json`` layout plus a ``template`` field, so one
+reader (:mod:`slotformer_jax.data.vqa`) serves embedded and real data. The
+templates, answers and balance rules: docs/vqa.md, "Questions (CLEVRER's
+four types)".
 """
 
 from __future__ import annotations

@@ -2,35 +2,13 @@
 
 The ``phyre`` simulator has no wheel for Python 3.11, so the project does not
 simulate; ``tools/render_phyre.py`` (run where ``pip install phyre`` works)
-renders the rollouts once into this layout::
-
-    <source>/
-      meta.json                  # how the rollouts were made, e.g.
-          {"format": "slotformer-phyre-rollouts", "format_version": 1,
-           "tier": "ball", "eval_setup": "ball_within_template", "fold": 0,
-           "fps": 1, "max_frames": 15, "background": "black",
-           "frame_size": [256, 256], "splits": ["train", "val"], ...}
-      train/rollouts.jsonl       # one JSON object per line and rollout:
-          {"id": "000000", "task": "00000:012", "action": [x, y, r],
-           "success": true, "num_frames": 9}
-      train/frames/000000.png    # that rollout's frames, RGB, stacked top to
-                                 # bottom: [num_frames * 256, 256, 3]
-      val/...
-
-``train`` holds rollouts of the fold's train + dev tasks and ``val`` those of
-its test tasks (the official SlotFormer split); frames are 1 simulated second
-apart (1 FPS) on a black background (the paper's choice), as many as the
-simulation produced up to ``max_frames``.
-
-Stored item (rollouts in id order): ``video`` uint8 [T, H, W, 3] with
-T = ``Options.num_frames`` (15): shorter rollouts are padded by repeating
-their last frame and longer ones cut, as the official loader does (128x128
-in the paper); ``num_frames`` int32 (frames before padding);
-``num_moving_frames`` int32 (frames up to the first one identical to its
-successor, i.e. before everything stopped; the official training clips only
-use moving frames); ``label`` int32 (1: the action solves the task);
-``action`` float32 [3] (x, y, radius in PHYRE's [0, 1] action space);
-``task`` ('TTTTT:VVV'), ``template`` int32, ``rollout_id``.
+renders the rollouts once (``train``: the fold's train + dev tasks, ``val``:
+its test tasks, 1 frame per simulated second). Stored per rollout (in id
+order): ``video`` uint8 [T, H, W, 3] (T = ``Options.num_frames`` = 15,
+shorter rollouts padded with their last frame, as officially),
+``num_frames``, ``num_moving_frames``, ``label`` (1: the action solves the
+task), ``action`` float32 [3], ``task``, ``template``, ``rollout_id``. The
+layout and each field: docs/datasets.md, "PHYRE".
 """
 
 from __future__ import annotations

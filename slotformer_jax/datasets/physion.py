@@ -1,40 +1,13 @@
 """Physion (NeurIPS 2021 benchmark): published layout and conversion.
 
-Published layout (the two mp4 archives and the readout labels, unpacked as
-the official SlotFormer instructions describe)::
-
-    <source>/
-      PhysionTrainMP4s/                     # PhysionTrainMP4s.tar.gz
-        Collide_training_MP4s/*.mp4         # "Training": 8 scenarios
-        Collide_readout_MP4s/*.mp4          # "Readout Fitting"
-        ... (Contain, Dominoes, Drape, Drop, Link, Roll, Support)
-        readout_labels.csv                  # from the benchmark repository
-      PhysionTestMP4s/                      # Physion.zip ("PhysionTest-Core")
-        Collide/mp4s-redyellow/*.mp4        # "Testing" (agent red, patient
-        ...                                 #  yellow)
-        labels.csv
-
-Label files: first column the stimulus name, column ``ground truth
-outcome`` True / False (whether the red agent touches the yellow patient).
-Names are matched after removing a trailing ``_img`` and ``-redyellow``.
-
-Splits written:
-
-* ``train`` / ``val``: the Training videos (dynamics training), split per
-  scenario by a hash of the file name (``Options.val_fraction``), or by the
-  official lists when ``Options.split_files`` names a folder holding
-  ``training_train.json``, ``training_val.json``, ``readout_train.json``,
-  ``readout_val.json``, ``test_test.json`` ({scenario: [relative mp4 path]}).
-* ``readout_train`` / ``readout_val``: the Readout Fitting videos, likewise.
-* ``test``: the Testing videos.
-
-Stored item: ``video`` uint8 [T, H, W, 3] with the first T = min(150, length)
-frames (the paper truncates at 150; the x3 subsampling is a training-time
-``frame_stride``), the whole frame resized to H x W (128x128 in the paper);
-``label`` int32 (1 contact, 0 none, -1 for the unlabelled Training
-subset); ``scenario`` int32 (index into SCENARIOS); ``bad_stimulus`` bool
-(the Testing stimuli the official evaluation leaves out); ``video_name``.
-Frames are RGB (see the data config field ``channel_order``).
+Splits: ``train`` / ``val`` (the Training videos, for the dynamics),
+``readout_train`` / ``readout_val`` (Readout Fitting), ``test`` (Testing).
+Stored per video: ``video`` uint8 [T, H, W, 3] (the first T = min(150,
+length) frames, RGB, the whole frame resized), ``label`` int32 (1: the red
+agent touches the yellow patient, 0: not, -1: unlabelled), ``scenario``
+int32 (index into SCENARIOS), ``bad_stimulus`` bool (left out by the
+official evaluation), ``video_name``. The layout, label files and split
+lists: docs/datasets.md, "Physion".
 """
 
 from __future__ import annotations

@@ -3,35 +3,15 @@
 Physion's OCP task (Bear et al., 2021; SlotFormer Section 4.3) shows a red
 *agent* and a yellow *patient* among distractors and asks whether the two
 touch at any time of the full video, given only its first part. This module
-builds that task (``data.name='synthetic_contact'``) on the OBJ3D-like
-scenes of :mod:`slotformer_jax.datasets.synthetic` (same engine, materials,
-camera and renderer; its helpers are imported, not copied), in a folder
-named by the generation parameters (:class:`ContactConfig`):
-
-* object row 0 is the yellow patient (a random shape), rows 1..n-2 are
-  distractors (never red or yellow), row n-1 is the red agent, a sphere
-  launched from the front of the scene (``launch_side='front'``: along the
-  camera's view direction) or from the left / right edge at the patient's
-  depth (``'side'``: across the view, so a hit and a near miss look
-  different in the image); with ``scenario='bank'`` it is launched from
-  the side at a *bumper* (row 1) and reaches the patient, or not, only by
-  bouncing off it after the observed frames (``bump_frame``), so that the
-  observed motion alone does not decide the label;
-* the label is whether agent and patient touch at ANY physics substep of the
-  whole video (``pybullet.getClosestPoints`` after every ``stepSimulation``,
-  not only at rendered frames), with the onset frame and per-frame
-  positions / velocities as simulator ground truth;
-* video ``i`` of a split wants label ``i % 2`` (exactly balanced splits) and
-  its scene is re-sampled until the simulation gives that label; a contact
-  must start after the first ``observed_frames`` frames, so the observed part
-  alone cannot answer (every positive video's onset is >= observed_frames);
-* the splits follow Physion: ``train`` (dynamics training: SAVi and
-  SlotFormer; the readout never sees it), ``readout_train``,
-  ``readout_val`` (threshold / checkpoint selection) and ``readout_test``.
-
-Determinism: a video is a pure function of ``(config, split, index)``; scenes
-are rejected with a physics-only pass (no rendering), then the accepted one is
-simulated again with rendering, which bullet reproduces step for step.
+builds it (``data.name='synthetic_contact'``) on the OBJ3D-like scenes of
+:mod:`slotformer_jax.datasets.synthetic`, in a folder named by
+:class:`ContactConfig`. The label is a contact at any physics substep; splits
+are exactly balanced, and a contact always starts after the observed frames,
+so the observed part alone cannot answer. Splits as Physion: ``train`` (the
+dynamics), ``readout_train``, ``readout_val``, ``readout_test``. A video is a
+pure function of ``(config, split, index)``. The scenarios (front, side,
+bank shot) and the rules: docs/downstream.md, "Physion-style object contact
+prediction".
 """
 
 from __future__ import annotations

@@ -2,30 +2,18 @@
 
 Protocol (the paper's): observe the slots of the first `burn_in` frames,
 roll the dynamics model out for `rollout_steps` frames, decode the predicted
-slots with the frozen slot model (SAVi's decoder; STEVE generates the frames
-token by token) and compare every decoded frame and its slot masks with the
-ground truth. Metrics are computed per rollout step, averaged over videos per
-step, then averaged over steps.
+slots with the frozen slot model and compare every decoded frame and its
+slot masks with the ground truth; metrics per rollout step, averaged over
+videos per step, then over steps. Methods: the dynamics models
+(`slotformer`, `slot_lstm`), `copy_last` (no dynamics) and
+`<slot model>_reconstruction` (the slot model's own slots of the future
+decoded: a reference, not a prediction); also the slot model's own
+segmentation of the videos. docs/evaluation.md says what each number is.
 
-Methods in one table:
-* `slotformer` (and `slot_lstm` when trained): the dynamics models.
-* `copy_last`: the last observed slots repeated (no dynamics at all).
-* `<slot model>_reconstruction` (`savi_reconstruction`,
-  `steve_reconstruction`): the slot model's own slots of the future frames
-  decoded: the best any dynamics model can do through this decoder (a
-  reference, not a prediction).
-
-Also reported: the slot model's own segmentation of the held-out videos (all
-frames, ARI / FG-ARI pooled over each whole video as SAVi reports them, the
-per-frame FG-ARI and FG-mIoU) and, where it reconstructs frames, their PSNR.
-
-The slot model arrives as an object with `name`, `label`,
-`reference_method`, `slot_shape`, `mask_source`, `decodes_pixels`, `decode`
-and `observe` (`slot_models.base.SlotModel`), the dynamics models as
-(module, params, step), every one trained: evaluation never builds or loads
-a model and reads only the config sections it is given, so it imports no
-training code. A slot model that decodes no pixels is scored on its masks:
-the frame metrics (PSNR, SSIM, LPIPS) are skipped, and the metrics say so.
+The slot model arrives as a `slot_models.base.SlotModel`, the dynamics
+models as (module, params, step), every one trained: evaluation never builds
+or loads a model, so it imports no training code. A slot model that decodes
+no pixels is scored on its masks only, and the metrics say so.
 """
 
 from __future__ import annotations

@@ -1,34 +1,15 @@
 """The run explorer: one offline page of a run's rollouts, slot by slot,
 with counterfactual rollouts computed by the model.
 
-Written by `--mode=explore` as `<workdir>/explore/index.html` (everything
-embedded: frames as PNG data URIs, the script and style inline; it opens
-from the file system, no server, no network) with `identity.json` beside it.
-For `explore.num_videos` held-out videos of `evaluation.split` it shows:
-
-* truth | the slot model's segmentation of it | SlotFormer | its predicted
-  segmentation | Slot-LSTM (when trained) | copy-last, playing in sync with a
-  frame slider (green border: observed burn-in frames, red: predicted);
-* each SlotFormer slot's decoded reconstruction (where it is visible) and
-  its alpha mask, colour-coded as the segmentation overlays (STEVE, which
-  has no per-slot reconstruction: its generated frame where the slot's
-  attention mask is);
-* the run's per-step metric curves (`eval/metrics.json`, when made from the
-  same models) and the same curves of this one video;
-* counterfactual rollouts of SlotFormer for every slot k, chosen by
-  clicking the slot:
-  - remove: slot k deleted from every burn-in frame and from the rollout.
-    In the dynamics model its tokens are masked out of attention as keys
-    (no other slot attends to it; with the temporal position encoding and
-    per-token LayerNorm / MLP the others are predicted exactly as from the
-    remaining slots alone); in the decoder it is dropped from the softmax
-    over slots (its alpha mask is 0, `SlotModel.decode(presence=...)`).
-  - freeze: slot k held at its last observed value in every predicted
-    frame (and so in the context the other slots are predicted from).
-  Each next to the factual rollout, with the per-pixel difference.
-
-Cost: all interventions of all videos are one batch of one jitted function
-(`Explorer`), compiled once per shape.
+``--mode=explore`` writes ``<workdir>/explore/index.html`` (everything
+embedded, no server, no network) with ``identity.json`` beside it, for
+``explore.num_videos`` held-out videos of ``evaluation.split``: every
+method's rollout and segmentation, SlotFormer's slots one by one, the
+per-step metric curves, and for every slot k two interventions, *remove*
+(k masked out of the dynamics model's attention and the decoder's softmax)
+and *freeze* (k held at its last observed value). All interventions of all
+videos are one batch of one jitted function (:class:`Explorer`), compiled
+once per shape. What the page shows and why: docs/explore.md.
 
 Shapes: slots [V, T, N, D] (V videos, T = burn_in + rollout frames), video
 uint8 [V, T, H, W, 3], segmentation int [V, T, H, W].

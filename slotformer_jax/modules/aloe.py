@@ -4,25 +4,13 @@ One sequence per (video, question[, choice]):
 
   [CLS] | slots of T frames (T * N tokens) | words of the text (L tokens)
 
-* a slot token is the slot concatenated with the type one-hot [0, 1], then
-  projected to ``d_model``;
-* a word token is a learned word embedding (``word_dim``) concatenated with
-  a 2-d question/choice flag (open questions: [0, 1] on every word; multiple
-  choice: [1, 0] on the question part, [0, 1] on the choice part) and the
-  type one-hot [1, 0], then projected to ``d_model``;
-* [CLS] is a learned, zero-initialised vector; learned, zero-initialised
-  positions are added to every token; a Pre-LN Transformer encoder (no final
-  LayerNorm) runs with a key-padding mask that hides padded words.
-
-The [CLS] output goes through an MLP to the open-answer logits, or, for a
-multiple-choice question (one sequence per choice), through another MLP to
-one logit per choice (a sigmoid gives P(choice is correct)).
-
-Positions: ``'token'`` (the official model) gives each of the 1 + T*N + L
-tokens its own vector, so slots of one frame are told apart by their index;
-``'frame'`` shares one vector among the slots of a frame (the SlotFormer
-paper's point about permutation equivariance), which makes the answer
-invariant to the order of the slots within each frame.
+Slot and word tokens carry type and question/choice flags, are projected to
+``d_model`` and get learned positions; a Pre-LN Transformer encoder with a
+key-padding mask over the words feeds [CLS] to an MLP of open-answer
+logits, or (one sequence per choice) to one logit per choice. Positions
+``'token'`` (official) give every token its own vector; ``'frame'`` shares
+one among a frame's slots, which makes the answer invariant to the slot
+order within a frame. The token features: docs/vqa.md, "Aloe".
 
 Shapes: slots [batch, time, num_slots, slot_size]; open questions: tokens
 [batch, L]; multiple choice: tokens [batch, num_choices, L]. Token ids come

@@ -5,9 +5,9 @@ XLA:CPU computes a convolution's kernel gradient as another convolution over
 the input transposed to [C_in, H, W, N]. When the input is the output of
 bias + ReLU (every decoder layer), XLA fuses that elementwise work into the
 transpose and emits an element loop that walks the input with a stride of
-H*W*C floats: on the SAVi decoder's 64x64 layer over 168 slot images that
-fused transpose took 0.39 s per step, where a transpose of a materialised
-array of the same shape takes 0.09 s (docs/performance.md). `conv2d`
+H*W*C floats, several times slower than a transpose of a materialised array
+(docs/experiments/performance.md, "Kernel gradients from a materialised
+transpose"). `conv2d`
 computes the same gradient from `x @ I` (an exact identity product, which
 XLA cannot see through and so materialises) transposed.
 

@@ -4,8 +4,8 @@ On CPU, every stride-s transposed convolution is evaluated as its exact
 sub-pixel re-parameterisation: one stride-1 convolution per output phase
 with the kernel taps that reach that phase, interleaved (depth-to-space).
 XLA:CPU runs strided transposed convolutions an order of magnitude slower
-than plain convolutions (the input-dilated form's gradient took 83 s where
-the phase form takes 1.1 s, docs/performance.md). On GPU / TPU the layers
+than plain convolutions (docs/performance.md, "Kernels per platform"). On
+GPU / TPU the layers
 are the plain input-dilated `lax.conv_general_dilated` that XLA maps onto
 the platform's own kernels; the choice is made when the computation is
 lowered (`slotformer_jax.modules.platform`). The parameters are the
@@ -183,9 +183,8 @@ class PointwiseConv(nn.Module):
   Same parameters as `nn.Conv(features, (1, 1))` (kernel [1, 1, C_in,
   C_out], bias [C_out], same initialisers), so checkpoints are
   interchangeable. XLA:CPU's convolution path is ~3x slower than a matmul for
-  this shape in the decoder's training step (readout of 168 slot images at
-  64x64: 0.65 s vs 0.20 s forward + backward with the compositing,
-  docs/performance.md).
+  this shape in the decoder's training step (docs/experiments/performance.md,
+  "The 1x1 readout as a matmul").
   """
 
   features: int

@@ -103,7 +103,7 @@ def position_mlp(x: jax.Array, *, mlp_size: int, output_size: int,
   batch, num_positions = x.shape[0], x.shape[1] * x.shape[2]
   # Per-position LayerNorm + MLP on a [B*H'*W', C] view: the same math;
   # XLA:CPU ran these layers' gradients 1.7x slower on the 3-D view
-  # (0.31 vs 0.18 s for 24 frames 64x64 in the StoSAVi step).
+  # (docs/experiments/performance.md).
   x = x.reshape(batch * num_positions, x.shape[-1])
   x = nn.LayerNorm(epsilon=layer_norm_epsilon, name='norm')(x)
   x = nn.Dense(mlp_size, name='mlp_hidden')(x)

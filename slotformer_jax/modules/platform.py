@@ -1,29 +1,18 @@
 """Choosing a kernel form per platform: one for XLA:CPU, one for accelerators.
 
-Some layers here are evaluated in a form that works around XLA:CPU (the
-decoder's phase-split transposed convolutions, `convolution.conv2d`'s kernel
-gradient, the explicit softmax(QK^T)V attention); GPU and TPU have their own
-kernels for the plain form (cuDNN / XLA:TPU convolutions, flash attention).
-Each such layer takes a `kernels` field:
-
-* 'auto' (the default): `jax.lax.platform_dependent`, so the choice is made
-  when the computation is *lowered*, for the platform it is lowered for.
-  An ahead-of-time compile for a TPU from a CPU host (compile-only devices of
-  `jax.experimental.topologies`) gets the accelerator form, a CPU run the CPU
-  form. On CPU the results are bit for bit those of the layers before the
-  choice existed (tests/modules/test_kernel_forms.py; the switch is resolved at
-  lowering, XLA never sees it).
-* 'cpu' / 'accelerator': that form on every platform (tests, comparisons).
-
-`forms(kernels, layers)` makes the 'auto' layers of those kinds traced inside
-it take one form: the K-seed training step (train/) takes the accelerator
-form of the transposed convolution, since its CPU form, vmapped over the
-stacked models, computes otherwise when they are split over devices (the
-other layers keep their CPU forms: faster there).
-
-Both forms compute the same function; they differ in rounding only.
-Parameters are declared outside the choice, so the parameter tree is the
-same whatever the form.
+Some layers are evaluated in a form that works around XLA:CPU (the decoder's
+phase-split transposed convolutions, `convolution.conv2d`'s kernel gradient,
+the explicit softmax(QK^T)V attention); GPU and TPU have their own kernels
+for the plain form. Each such layer takes a `kernels` field: 'auto' (the
+default: `jax.lax.platform_dependent`, chosen when the computation is
+lowered, so an ahead-of-time TPU compile from a CPU host gets the
+accelerator form), or 'cpu' / 'accelerator' everywhere. `forms(kernels,
+layers)` fixes the form of the 'auto' layers traced inside it: the K-seed
+step takes the accelerator form of the transposed convolution, whose CPU
+form, vmapped over stacked models, computes otherwise when they are split
+over devices. Both forms compute the same function up to rounding, with one
+parameter tree. Why and measured: docs/performance.md, "Kernels per
+platform".
 """
 
 from __future__ import annotations

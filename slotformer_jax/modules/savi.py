@@ -11,19 +11,12 @@
 Per frame t: CNN features h_t = encoder(x_t); S~'_t = head(S~_t) (the
 posterior head's mean, or a sample for stochastic SAVi); slots S_t =
 SlotAttention(S~'_t, h_t); the next frame's initial slots S~_{t+1} =
-f_trans(S_t). S~_1 comes from the initialiser (`modules/slot_init.py`). The
-time loop is one `nn.scan` of `FrameStep` over the frames, carrying (initial
-slots, predictor state); STEVE (`modules/steve.py`) runs the same loop with
-a SAVi whose decoder is elsewhere (`decoder=None`). Each frame's slots decode
-through the decoder when there is one. `slot_models.savi.build_savi` builds the parts
-from `config.savi`; docs/official_architectures.md lists which choices
-reproduce each official model.
-
-Parameter tree (the names of the flat SAVi this replaced; checkpoints and
-the official-weight converters rely on them): `encoder/`, the initialiser's
-variables at the top (`initial_slots`, `initial_slots_mean` /
-`initial_slots_log_sigma`, or `slot_init_mlp/`),
-`frame_step/{corrector,predictor,posterior_head}/`, `decoder/`.
+f_trans(S_t); S~_1 comes from the initialiser (`modules/slot_init.py`). The
+time loop is one `nn.scan` of `FrameStep` over the frames (STEVE runs it with
+`decoder=None`). `slot_models.savi.build_savi` builds the parts from
+`config.savi`. Which choices reproduce each official model, and the
+parameter tree (the flat SAVi's names, which checkpoints rely on):
+docs/official_architectures.md.
 
 Shapes: video [batch, time, height, width, 3] in [-1, 1]; encoder features
 [batch * time, num_inputs, feature_size]; slots [batch, time, num_slots,

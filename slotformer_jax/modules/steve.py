@@ -7,22 +7,13 @@
           decoder=TokenDecoder(...), token_grid=(h, w),
           feature_grid=(h', w'))
 
-Slot encoder: SAVi's parts without a pixel decoder, run by SAVi's own time
-loop (`modules.savi.encode_frames`). Per frame t: CNN features h_t; slots S_t =
-SlotAttention(S~_t, h_t), whose last iteration's attention (softmax over
-slots) is kept as per-slot masks at the feature resolution; S~_{t+1} =
-f_trans(S_t) (Transformer + per-slot LSTM); S~_1 are learned vectors.
-Decoder: an autoregressive Transformer over the frozen dVAE's tokens of the
-frame, conditioned on the frame's slots (`TokenDecoder`). SlotFormer's
-two-stage variant: the dVAE is trained first and frozen, so STEVE only
-learns to predict its tokens. `slot_models.steve.build_steve` builds it from
-`config.steve`.
-
-Parameter tree: SAVi's parts are STEVE's own fields, so their parameters
-(and their initial values) are those of the flat STEVE this replaced
-(`encoder/`, `initial_slots`, `frame_step/{corrector,predictor}/`), next to
-`decoder/` (the token decoder); checkpoints and the official converter rely
-on it.
+The slot encoder is SAVi's parts without a pixel decoder, run by SAVi's own
+time loop (`modules.savi.encode_frames`); the last Slot Attention iteration's
+attention (softmax over slots) is kept as per-slot masks. The decoder is an
+autoregressive Transformer over the frozen dVAE's tokens of the frame,
+conditioned on its slots (`TokenDecoder`): the dVAE is trained first, so
+STEVE only learns to predict its tokens. Its parameter names are those of
+the flat STEVE this replaced (docs/steve.md, "Parameter tree").
 
 Shapes: video [batch, time, height, width, 3] in [-1, 1];
 slots [batch, time, num_slots, slot_size];

@@ -1,32 +1,14 @@
 """The authors' Aloe for CLEVRER VQA -> this project's `Aloe` (config.vqa).
 
-Official model (pairlab/SlotFormer, slotformer/clevrer_vqa/models/:
-`CLEVRERAloe` wrapping `CLEVRERTransformerModel`, configs
-`aloe_clevrer_params-rollout.py` / `aloe_clevrer_params.py`, which differ
-only in the slots they read: with or without SlotFormer's rollout). Its
-state-dict keys are `transformer_model.<name>`:
-
-  q_embedding.weight [V, 14]              word_embedding/embedding
-  q_in_proj [144, 18]                     text_projection
-  vision_in_proj [144, slot_size + 2]     slot_projection
-  CLS [1, 1, 144] (zero-initialised)      cls [144]
-  transformer_encoder.pos_embedding       position [1 + T*N + L, 144]
-    [1, 1 + T*N + L, 144] (learnable)
-  transformer_encoder.layers.{i}          encoder/block_{i} (Pre-LN, ReLU,
-    (nn.TransformerEncoderLayer)            dropout 0.1, no final LayerNorm)
-  cls_answer_mlp.0 / .2                   open_head/layers_0 / layers_2
-  mc_answer_mlp.0 / .2                    choice_head/layers_0 / layers_2
-  text_token, vision_token, cls_token,    (fixed 2-d flags, not trained:
-    mc_question_token, mc_choice_token      checked equal to the constants
-                                            of modules/aloe.py)
-
-The token layout, the flags and their order ([word | question-or-choice
-flag | text flag], [slot | vision flag]), the key-padding mask over the
-words and the heads are the same in both codes (docs/official_weights.md).
-What the weights cannot tell is required of the config: one learned
-position per token (`vqa.positions='token'`) and PyTorch's LayerNorm
-epsilon (`vqa.layer_norm_epsilon=1e-5`); both are set by
-configs/clevrer_vqa.py.
+The official `CLEVRERAloe` (pairlab/SlotFormer, slotformer/clevrer_vqa/
+models/; configs `aloe_clevrer_params-rollout.py` / `aloe_clevrer_params.py`
+differ only in the slots they read) has state-dict keys
+`transformer_model.<name>`; its token layout, flags, padding mask and heads
+are the same as here. What the weights cannot tell is required of the
+config: one learned position per token (`vqa.positions='token'`) and
+PyTorch's LayerNorm epsilon (`vqa.layer_norm_epsilon=1e-5`), both set by
+configs/clevrer_vqa.py. The key mapping and the part-by-part comparison:
+docs/official_weights.md, "Aloe".
 """
 
 from __future__ import annotations

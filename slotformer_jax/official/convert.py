@@ -5,32 +5,14 @@ r"""Imports the authors' released PyTorch checkpoints into a workdir.
       --checkpoint=pretrained/savi_obj3d_params/model_40.pth \
       --checkpoint=pretrained/slotformer_obj3d_params/model_200.pth
 
-  python -m slotformer_jax.official.convert --config=configs/physion.py \
-      --workdir=runs/physion_official \
-      --checkpoint=pretrained/dvae_physion_params/model_20.pth \
-      --checkpoint=pretrained/steve_physion_params/model_10.pth \
-      --checkpoint=pretrained/slotformer_physion_params/model_25.pth
-
-  python -m slotformer_jax.official.convert --config=configs/clevrer_vqa.py \
-      --config.data.channel_order=bgr --workdir=runs/clevrer_official \
-      --config.vqa.vocab_file=CLEVRER_vocab.json \
-      --checkpoint=pretrained/aloe_clevrer_params-rollout/model_400.pth
-
 Each checkpoint's family (SAVi / stochastic SAVi, SlotFormer, dVAE, STEVE,
 SlotFormer on STEVE slots, Aloe, the Physion and PHYRE readouts) is
-recognised from its keys; the converted parameters go where the pipeline
-reads them (`savi/`, `dvae/`, `steve/`, `slotformer/` checkpoints, each with
-its `model_config.json` and run identity; Aloe in the VQA variant folder
-`vqa/<inputs>_s<seed>/` the config selects; a readout in
-`readout/<condition>/seed_<s>/` or `planning/<condition>/seed_<s>/`), so
-`--mode=extract_slots`, `evaluate`, `render`, `evaluate_vqa`,
-`evaluate_readout` and `plan` run on them unchanged. Stage-1 checkpoints
-are written first (dVAE before STEVE); the frozen copies a later checkpoint
-carries (SlotFormer's SAVi decoder, STEVE's dVAE, STEVESlotFormer's dVAE and
-token decoder) must equal what the workdir already holds.
-Reading `.pth` needs no torch (see official/pth_reader.py). The official
-optimizer state is not converted: a converted stage starts a fresh Adam state
-at its last step, so training does not resume it.
+recognised from its keys, and its parameters go where the pipeline reads
+them, so ``extract_slots``, ``evaluate``, ``render``, ``evaluate_vqa``,
+``evaluate_readout`` and ``plan`` run on them unchanged. The frozen copies a
+later checkpoint carries must equal what the workdir already holds; the
+optimizer state is not converted. Every family, command and check:
+docs/official_weights.md.
 """
 
 from __future__ import annotations

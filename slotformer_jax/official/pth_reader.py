@@ -21,8 +21,8 @@ trusted:
   one of the reader's records (hashed by identity). A tuple, float or
   larger int is refused: a file can give thousands of them one hash value
   (multiples of 2**61 - 1 all hash alike), and inserting n of them takes
-  n**2 steps (20,000 took 2 s, minutes to hours within the limits below);
-  no checkpoint has such keys (optimizer states use small ints).
+  n**2 steps (docs/reliability.md, "The `.pth` reader's dict keys"); no
+  checkpoint has such keys (optimizer states use small ints).
 * Before the pickle runs, its opcodes are scanned (`pickletools`, pure
   Python): every length it declares must be present in the data, memo
   indices must be ones a pickler could have written, and the opcode count is

@@ -1,33 +1,15 @@
 """The official readouts -> this project's readout heads (modules/readouts.py).
 
 The authors release no readout weights; these convert the `.pth` files a
-user trained with the official code:
-
-* Physion contact readout (slotformer/physion_vqa/models/readout.py,
-  `PhysionReadout`, config readout_physion_params.py) -> `PhysionReadout`
-  (configs/physion_contact.py):
-
-    comb_idx [P * 2] (buffer)     checked: the unordered pairs i < j of the
-                                  slot model's N slots (readout.pairs)
-    linear1 [F, 2D]               relation
-    linear2 [1, F]                logit
-
-* PHYRE success readout (slotformer/phyre_planning/models/readout.py,
-  `PHYREReadout`, config readout_phyre_params-fold0.py) -> `PhyreReadout`
-  (configs/phyre.py:planning):
-
-    in_proj [d_model, D]          in_proj
-    CLS [1, 1, d_model]           cls
-    transformer_encoder.layers.{i} transformer/block_{i} (Pre-LN, ReLU)
-    enc_t_pe [1, S, d_model]      checked: the sinusoidal encoding over the
-                                  S selected frames (t_pe='sin')
-    cls_mlp.0 / .2                cls_hidden / cls_logit
-
-A converted readout goes where `train_readout` writes its own:
-`readout/<condition>/seed_<s>/` (Physion) or `planning/<condition>/seed_<s>/`
-(PHYRE), the condition and seed being the config's only ones
-(`readout.conditions`, `readout.seeds`), so `evaluate_readout` / `plan` read
-it under the same config.
+user trained with the official code: the Physion contact readout
+(`PhysionReadout`, configs/physion_contact.py; its `comb_idx` buffer checked
+to be the unordered slot pairs) and the PHYRE success readout
+(`PHYREReadout`, configs/phyre.py:planning; its `enc_t_pe` checked to be the
+sinusoidal code over the selected frames). A converted readout goes where
+`train_readout` writes its own (`readout/<condition>/seed_<s>/` or
+`planning/<condition>/seed_<s>/`, the config's only condition and seed), so
+`evaluate_readout` / `plan` read it under the same config. The key mapping:
+docs/official_weights.md, "Physion readout" and "PHYRE readout".
 """
 
 from __future__ import annotations

@@ -1,32 +1,15 @@
 """STEVE as the slot model (the paper's Physion pipeline): `slot_model='steve'`,
 settings in `config.dvae` and `config.steve`.
 
-Stage 1 is a chain of two parts and the data between them: `train_dvae`
-(single frames, annealed Gumbel-softmax), `tokenize_frames` (the frozen
-dVAE's argmax tokens of every training frame, stored once), `train_steve`
-(slots through SAVi's encoder and Slot Attention, trained by its token
-decoder's cross-entropy against those tokens; its parent is the dVAE).
-Decoding slots *generates* a frame: greedy decoding of all h*w tokens with a
-key/value cache, then the dVAE's decoder; its alpha masks are the token
-decoder's last-layer cross-attention of each token over the slots (mean over
-heads), upsampled bilinearly to the frame. STEVE's own account of real
-frames is its Slot Attention masks (the last iteration's softmax over
-slots), upsampled as the official code does. It has no differentiable pixel
-decoder, so SlotFormer trains on its slots with L_S alone (as the paper),
-and it computes in float32 only.
-
-Workdir (inside the stage-1 workdir)::
-
-    dvae/checkpoints/   dvae/identity.json (parent: null)
-    tokens/train/       meta 'parent' = the dVAE run id + step
-    steve/checkpoints/  steve/identity.json (parent: the dVAE run id + step)
-    slots/<split>/      meta 'parent' = the STEVE run id + step
-
-A K-seed run stacks its dVAEs and STEVEs in one
-checkpoint each; the tokens and slots of the chain of seed s are in
-seed_<s>/tokens/ and seed_<s>/slots/.
-
-Parameters (`Loaded.params`): {'dvae': the dVAE's, 'steve': STEVE's}.
+Stage 1 is `train_dvae`, `tokenize_frames` (the frozen dVAE's tokens of every
+training frame, stored once) and `train_steve` (trained on those tokens; its
+parent is the dVAE). Decoding slots *generates* a frame token by token (a
+key/value cache, then the dVAE's decoder); its masks are the token decoder's
+last-layer cross-attention over the slots. STEVE has no differentiable pixel
+decoder, so SlotFormer trains on its slots with L_S alone (as the paper), and
+it computes in float32 only. Parameters (`Loaded.params`): {'dvae': the
+dVAE's, 'steve': STEVE's}. The stages, the files each writes and their
+parents: docs/steve.md; with several seeds: docs/seeds.md.
 """
 
 from __future__ import annotations

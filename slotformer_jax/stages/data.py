@@ -1,28 +1,17 @@
 """The data stage: makes and checks what the other stages read.
 
 Reading never writes (`data/sources.py` only opens data), so whatever a run
-reads is made here, at the head of the stage table; `selected_stages` runs
-it first for every `--mode`, and when the data are there it costs a stat
-per file. For the dataset of `config.data`:
-
-* a generated dataset (`datasets/base.py:Generated`) is made when missing
-  (`data/write/generate.py`; the OBJ3D-like one under a lock, so processes
-  sharing a data dir make it once);
-* every split the run reads (:func:`splits_read`) is checked against the
-  checksums recorded with it: a folder without them (made by an older
-  version) gets them recorded; a damaged embedded cache is set aside and
-  generated again, with a warning; a damaged converted dataset is refused
-  with one line naming the conversion command; a converted folder from
-  before ``video_names.json`` (the names that join question files to its
-  videos, ``data/video_names.py``) gets it from its conversion's progress
-  files;
-* a converted dataset that is not there is left to the stage that reads it,
-  which names the conversion command (a run that only reads its extracted
-  slots needs none);
-* what other readers need is made too: the CLEVRER-like questions come with
-  their dataset, and what a task reads besides the videos
-  (`Generated.task_data`: the PHYRE-like task labels planning reads) is
-  made with them.
+reads is made here, first for every `--mode`; when the data are there it
+costs a stat per file. A generated dataset (`datasets/base.py:Generated`)
+is made when missing, with what a task reads besides the videos
+(`Generated.task_data`) and the CLEVRER-like questions. Every split the run
+reads (:func:`splits_read`) is checked against its recorded checksums: a
+folder without them gets them; a damaged embedded cache is set aside and
+generated again; a damaged converted dataset is refused with one line
+naming the conversion command; a converted folder from before
+``video_names.json`` gets it from its conversion's progress files. A
+converted dataset that is not there is left to the stage that reads it,
+which names the conversion command.
 """
 
 from __future__ import annotations

@@ -1,32 +1,14 @@
 """VQA stages: slots (+ SlotFormer rollout) per video -> train Aloe -> evaluate.
 
-Run after the video pipeline (SAVi, extraction, SlotFormer):
-
-  python -m slotformer_jax.main --config=configs/synthetic_vqa.py \
-      --workdir=runs/vqa --mode=all     # everything, VQA included
-  ... --mode=train_vqa --config.vqa.inputs=observed --config.vqa.seed=1
-
-Workdir layout (next to the video pipeline's)::
-
-    vqa/slots/<split>.npy         float32 [V, video_length + rollout, N, D]
-    vqa/slots/meta.json           SAVi / SlotFormer steps they came from
-    vqa/<inputs>_s<seed>/         checkpoints/, train_log.jsonl,
-                                  metrics_<split>.json, predictions_test.json
-    vqa/answer_prior_<split>.json
-
-Several seeds (config.seeds, docs/seeds.md): chain s (seed s's slot model
-and SlotFormer) gets its own slots in seed_<s>/vqa/slots/ and its own Aloe,
-trained with seed s where a one-seed run draws with config.seed; the K
-Aloes train in one program (one stacked checkpoint in
-vqa/<inputs>_s<vqa.seed>/), each is evaluated into
-seed_<s>/vqa/<inputs>_s<vqa.seed>/, and the run's
-vqa/<inputs>_s<vqa.seed>/metrics_<split>.json holds every metric's mean,
-std and per-seed values.
-
-Questions and vocabulary: the embedded family ('clevrer_like') keeps them in
-its dataset folder; for CLEVRER set `vqa.questions_root` (the folder with
-questions/) and optionally `vqa.vocab_file` (default: built from the
-training questions and CLEVRER's answers).
+Run after the video pipeline (SAVi, extraction, SlotFormer): ``vqa_slots``
+writes every video's slots, and SlotFormer's rollout after them, to
+``vqa/slots/<split>.npy`` (float32 [V, video_length + rollout, N, D]);
+``train_vqa`` trains Aloe into ``vqa/<inputs>_s<seed>/``; ``evaluate_vqa``
+writes its metrics (and the answer prior) there. Questions and vocabulary
+come with the embedded family's dataset; for CLEVRER from
+``vqa.questions_root`` (and optionally ``vqa.vocab_file``). With several
+seeds each chain gets its own slots and Aloe (docs/seeds.md). The workdir
+files and the commands: docs/vqa.md, "Workdir".
 """
 
 from __future__ import annotations

@@ -1,35 +1,16 @@
 """PHYRE-style planning with a task-success classifier on SlotFormer rollouts:
 the pure parts (the stages are in stages/planning/embedded.py).
 
-Protocol (SlotFormer Section 4.4; embedded tasks of tasks/phyre_world.py):
-
-1. SAVi and SlotFormer are trained on videos of candidate actions on the
-   training tasks (data split 'train').
-2. For a (task, action) pair the red ball is drawn into the first frame,
-   SAVi encodes that frame, and SlotFormer rolls the slots out. The success
-   classifier (modules/readouts.PhyreReadout) sees ``[first-frame slots,
-   rolled-out slots]`` at ``readout.selected_steps`` ('rollout'), or the
-   first-frame slots alone ('first_frame', the paper's SAVi baseline). The
-   official test-time code feeds zero-padded frames here by mistake; we feed
-   the rollout, as the paper describes.
-3. ``train_readout``: classifiers are fitted on the training tasks' candidates
-   (all solving ones plus ``negatives_per_task`` failing ones per task) and the
-   epoch is chosen by AUCCESS on held-out *dev* training tasks (PHYRE's
-   create_dev_set), never on test tasks.
-4. ``plan``: every candidate of every test task is ranked by the classifier;
-   AUCCESS (tasks/planning.py) next to random ranking and the oracle
-   (simulated labels).
-
-SlotFormer's rollout starts from the first frame alone
-(``slotformer.burn_in`` = 1); with ``slotformer.max_context`` > 1 its context
-then grows with its own predictions (the official PHYRE model, 6 frames).
-
-The real PHYRE layout (``config.data.name == 'phyre'``) has rendered
-rollouts instead of a simulator: tasks/phyre_rendered.py and
-stages/planning/rendered.py.
-
-Workdir: ``planning/<condition>/seed_<s>/{params.msgpack, selection.json}``,
-``planning/results.json``, ``planning/results.md``.
+For a (task, action) pair of the embedded tasks (tasks/phyre_world.py) the
+red ball is drawn into the first frame, SAVi encodes it and SlotFormer rolls
+the slots out; the classifier (modules/readouts.PhyreReadout) sees the
+first-frame slots and the rollout at ``readout.selected_steps`` ('rollout'),
+or the first-frame slots alone ('first_frame', the paper's SAVi baseline).
+``train_readout`` chooses the epoch by AUCCESS on dev training tasks, never
+on test tasks; ``plan`` ranks every candidate of every test task (AUCCESS:
+tasks/planning.py). The real PHYRE layout has no simulator:
+tasks/phyre_rendered.py. Protocol and workdir files: docs/downstream.md,
+"PHYRE-style planning".
 """
 
 from __future__ import annotations

@@ -1,44 +1,21 @@
-"""PHYRE planning on the real, pre-rendered layout (datasets/phyre.py):
-the pure parts (the stages are in stages/planning/rendered.py).
+"""PHYRE planning on the real, pre-rendered layout (datasets/phyre.py): the
+pure parts (the stages are in stages/planning/rendered.py).
 
-What the layout holds (tools/render_phyre.py, the official selection):
-rollouts of a *subset* of PHYRE's cached actions with their simulated
-outcome. Split 'train' has the fold's train + dev tasks (per task
-int(int(2000 * pos_ratio) * data_ratio) solving and int(int(2000 * (1 -
-pos_ratio)) * data_ratio) failing actions: 40 + 160 at the official 0.2 /
-0.1), split 'val' the fold's test tasks (10 + 40 per task). No invalid
-action is rendered.
+The layout holds rollouts of a subset of PHYRE's cached actions, not the
+10,000 actions per test task the official protocol ranks (those need the
+``phyre`` package, which has no wheel for this Python). So
+(``readout.candidates='rendered'``, the only one implemented)
+``train_readout`` picks its epoch by AUCCESS on a dev share of the training
+tasks, never on test tasks, and ``plan`` ranks only the rendered candidates
+of every test task: that AUCCESS is not comparable with the paper's, and
+every output says so.
 
-The official protocol (phyre_planning/test_phyre_planning.py) trains the
-success classifier on the 'train' rollouts, picks its checkpoint on the
-'val' rollouts (the test tasks), and at test time ranks the first 10,000
-actions of PHYRE's 100k-action cache on every test task: each action's
-first frame is simulated with the ``phyre`` package, SAVi + SlotFormer +
-classifier score it, the actions the cache marks invalid are skipped, and
-AUCCESS is computed over the ranking. ``phyre`` has no wheel for this
-Python and the layout holds neither those actions' first frames nor their
-statuses, so here (``readout.candidates = 'rendered'``, the only one
-implemented):
-
-* ``train_readout`` fits the classifier on the rollouts of the 'train'
-  tasks minus a dev set (``readout.dev_share`` of every template's tasks)
-  and picks the epoch by AUCCESS over the dev tasks' rendered candidates
-  (never on test tasks);
-* ``plan`` ranks only the rendered candidates of every test task ('val'):
-  about 50 per task, 20% of them solving, where PHYRE's 10,000 have a few
-  per cent. That AUCCESS is NOT comparable with the paper's; every output
-  says so.
-
-Features: SAVi's slots of a rollout's first frame (the extracted slots'
-frame 0, i.e. the first frame with the red ball, as the official code
-encodes it) and SlotFormer's rollout from them (growing context with
-``slotformer.max_context``); the classifier sees the frames
-``readout.selected_steps`` (official (0, 3) at 1 fps), gathered before it,
-so it is built with ``selected_steps = range(len(selected_steps))`` (its
-temporal code depends on the number of selected frames only).
-
-Workdir: ``planning/<condition>/seed_<s>/{params.msgpack, selection.json}``,
-``planning/results.json``, ``planning/results.md``.
+Features: SAVi's slots of a rollout's first frame and SlotFormer's rollout
+from them. The classifier sees the frames ``readout.selected_steps``,
+gathered before it, so it is built with ``selected_steps =
+range(len(selected_steps))`` (its temporal code depends on their number
+only). The official protocol and what differs: docs/downstream.md, "Real
+datasets".
 """
 
 from __future__ import annotations

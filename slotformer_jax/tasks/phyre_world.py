@@ -1,40 +1,19 @@
 """The world of the embedded PHYRE-like 2-D planning benchmark (pymunk).
 
 PHYRE (Bakhtin et al., 2019; SlotFormer Section 4.4) asks for one action, a
-red ball (x, y, radius) placed in the first frame, that makes the green object
-touch the blue / purple goal for long enough. ``phyre`` itself has no wheel
-for this Python, so this module builds a small look-alike on pymunk (Chipmunk2D
-rigid bodies, the same class of engine as PHYRE's Box2D):
+red ball ``(x, y, r)`` in [0, 1]^3 placed in the first frame, that makes the
+green object touch the goal for long enough. ``phyre`` has no wheel for this
+Python, so this module builds a look-alike on pymunk: a *template* is a scene
+recipe, a *task* one instance of it (:func:`make_task`, a pure function of
+``(seed, template, task index)``); an action is INVALID when the ball leaves
+the scene or overlaps a body, SOLVED when green and goal touch for
+``success_seconds`` without a break. Every task is scored on one fixed set of
+candidate actions, and tasks are split within each template by ``fold``.
 
-* a *template* is a scene recipe, a *task* one random instance of it
-  (:func:`make_task`, a pure function of ``(seed, template, task index)``);
-  bodies are static (black), dynamic (gray), the green object, and the goal:
-  a purple static strip on the floor reaching to the wall;
-* an action is ``(x, y, r)`` in [0, 1]^3, mapped to a red ball at
-  ``(x W, y H)`` with radius between MIN/MAX_ACTION_RADIUS; it is INVALID when
-  the ball leaves the scene or overlaps any body (as PHYRE);
-* a valid action is SOLVED when green and goal touch without a break for
-  ``success_seconds`` at some time of the ``sim_seconds`` simulation (checked
-  after every physics step; PHYRE asks for 3 s, here 1 s by default since the
-  scenes are shorter);
-* every task is scored on one fixed set of ``num_candidates`` actions shared
-  by all tasks (PHYRE's fixed action set), with simulated labels;
-* tasks of every template are split into train / test inside the template
-  (PHYRE's "within-template" protocol), by a shuffle that depends on ``fold``.
-
-Templates: ``ledge``, ``tower``, ``stack`` (the default set) and ``ramp``
-(selected by name, e.g. ``configs/synthetic_phyre.py:ramp``): the green ball
-starts on a tilted static ramp, rolls off at once and flies over the goal
-basket unless the red ball meets it, so the first frame decides the outcome
-only through the motion that follows (docs/downstream.md, "Planning, ramp").
-
-World: W x H = 10 x 10 m, y up, gravity 9.8 m/s^2; frames are rendered at
-``fps`` with 2x supersampling (area-averaged RGB, majority-vote masks).
-
-Planning uses this module at run time (it draws actions into first frames
-and simulates them: tasks/phyre_planning.py); the data stage uses it to
-write the labels and training videos (datasets/synthetic_phyre.py, which
-names its folders by these parameters, :class:`PhyreLikeConfig`).
+Planning uses it at run time (tasks/phyre_planning.py); the data stage
+writes the labels and training videos with it (datasets/synthetic_phyre.py,
+folders named by :class:`PhyreLikeConfig`). The world, its templates and
+renderer: docs/downstream.md, "PHYRE-style planning".
 """
 
 from __future__ import annotations

@@ -603,8 +603,8 @@ def _with_side(side) -> bytes:
 ], ids=['20000_colliding_ints', 'negative', 'int_2_64', 'tuples', 'floats'])
 def test_dict_keys_whose_hash_a_file_can_steer_are_refused_at_once(
     tmp_path, keys, needle):
-  """Before: 20,000 int keys that are multiples of 2**61 - 1 (all one hash
-  value) took 2.1 s to unpickle, 4x per doubling (hours within the limits);
+  """Before: int keys that are multiples of 2**61 - 1 (all one hash value)
+  took time quadratic in their number to unpickle (docs/reliability.md);
   now the first is refused."""
   path = tmp_path / 'side.pth'
   path.write_bytes(_with_side({key: 0 for key in keys}))

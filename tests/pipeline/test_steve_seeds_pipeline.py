@@ -9,8 +9,8 @@ split on a 'seed' axis, the vmapped dVAE step fails on XLA:CPU
 (jaxlib 0.10.2: its 1x1 output convolution, batched over the seeds into a
 grouped convolution, is partitioned with 3 output features for 2 groups).
 
-The pipeline fixture takes about 95 s warm and 350 s cold on the 2-core
-box, so every test that runs it is `slow` (the default suite keeps the
+The pipeline fixture takes minutes on a 2-core CPU (docs/seeds.md), so
+every test that runs it is `slow` (the default suite keeps the
 config check; the SAVi chain with seeds, which shares every stage after
 stage 1, is in the default suite: test_seeds_pipeline.py).
 """

@@ -334,8 +334,8 @@ def test_ctrl_c_during_prepare_is_one_line_and_the_rerun_finishes(tmp_path):
   converter and its workers): one `interrupted:` line, exit status 130, no
   traceback; the rerun converts what is left. Before: a KeyboardInterrupt
   traceback from the converter and one from each worker."""
-  # 384 videos in 192 shards: a few seconds of converting on an idle box
-  # (96 took 0.6 s, and a fast run ended before the signal arrived).
+  # 384 videos in 192 shards: enough converting that the signal arrives
+  # before the run ends (96 were too few; docs/reliability.md, "Mistakes").
   source = _obj3d_source(tmp_path / 'OBJ3D', videos=384, frames=8)
   command = [sys.executable, '-u', '-m', 'slotformer_jax.data.prepare',
              '--dataset=obj3d', f'--source={source}',

@@ -3,37 +3,17 @@ steps every converted dataset shares.
 
 A converted dataset (``datasets/base.py:Converted``) describes its output with
 a :class:`~slotformer_jax.datasets.base.Conversion` (feature spec + a
-per-video ``convert_fn``) and lists its inputs as *jobs* (any picklable
-object with a unique ``key``); :func:`convert` does the rest:
-
-* the jobs of a split are cut into fixed chunks of ``videos_per_shard``; chunk
-  ``i`` becomes shard file ``<name>-<split>.array_record-<i>-of-<n>``
-  (records in job order, skipped videos left out; each video is a header
-  record and records of ``chunked.FRAMES_PER_CHUNK`` frames, the layout of
-  ``data/chunked.py``, indexed by ``video_chunks.json``), written to a temporary
-  name and renamed when complete, then marked done by a small JSON sidecar.
-  An interrupted conversion therefore resumes at shard granularity, and a
-  manifest of the job keys guards against resuming with a different input.
-* shards are converted in parallel worker processes ('spawn'), with a
-  progress bar; with ``process_count > 1`` host ``p`` converts only shards
-  ``p, p + P, ...`` (each host reads only its share of the source files).
-* :class:`media.SkipVideo` from ``convert_fn`` skips that video: it is logged
-  when its shard finishes, counted per reason, listed in
-  ``conversion_report.json`` and summarised at the end. If more than
-  ``max_skip_fraction`` of a split is skipped the conversion fails before
-  the metadata is written, so a broken download never becomes a dataset.
-* when every shard exists, ``video_names.json`` records each split's video
-  keys in record order (what joins question files to the rows by name,
-  ``data/video_names.py``), then ``dataset_info.json`` / ``features.json`` are
-  written with ``tfds.folder_dataset.write_metadata`` (no TensorFlow, no
-  builder class), then ``checksums.json``; ``tfds.builder_from_directory``
-  (hence ``sources.open_prepared_dataset``) reads the folder.
-  ``dataset_info.json`` appears only in a finished folder, so it doubles as
-  the completion marker.
-
-Output folder: ``<data_dir>/<name>/<config_name>/<VERSION>/``; the config
-name encodes the conversion parameters (e.g. the resolution), so several
-conversions of one dataset coexist.
+per-video ``convert_fn``) and lists its inputs as *jobs* (picklable, each
+with a unique ``key``); :func:`convert` cuts every split into shards of
+``videos_per_shard`` jobs, converts them in worker processes (host ``p`` of
+``P`` takes shards ``p, p + P, ...``), keeps every finished shard (so an
+interrupted conversion resumes), skips and counts the videos whose
+``convert_fn`` raises :class:`media.SkipVideo`, and writes the metadata only
+when every shard exists and at most ``max_skip_fraction`` of a split was
+skipped, so a broken download never becomes a dataset. Output:
+``<data_dir>/<name>/<config_name>/<VERSION>/`` in the layout of
+``data/chunked.py``; what a conversion promises: docs/datasets.md, "What
+every conversion does".
 """
 
 from __future__ import annotations
