@@ -22,7 +22,6 @@ import logging
 import os
 from typing import Any
 
-from flax import serialization
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -33,7 +32,6 @@ from slotformer_jax.config.sections import SLOTFORMER
 from slotformer_jax.data import video_names
 from slotformer_jax.data.slots import SlotSource
 from slotformer_jax.errors import ConfigError
-from slotformer_jax.errors import MissingInputError
 from slotformer_jax.errors import UserError
 from slotformer_jax.evaluation import visualize
 from slotformer_jax.files import read_json
@@ -75,14 +73,11 @@ def load_readout(run: Run, condition: str, seed: int) -> Readout:
     MissingInputError: not trained (the message names the stage).
   """
   directory = run.paths.readout(condition, seed)
-  selection_path = os.path.join(directory, 'selection.json')
-  if not os.path.exists(selection_path):
-    raise MissingInputError(
-        f'no trained readout in {directory}; run --mode=train_readout')
-  selection = read_json(selection_path, fix=f'Delete {directory} and '
-                        're-run --mode=train_readout.')
-  with open(os.path.join(directory, 'params.msgpack'), 'rb') as f:
-    params = serialization.msgpack_restore(f.read())
+  params = readout_fit.load_params(directory, 'readout',
+                                   marker='selection.json')
+  selection = read_json(os.path.join(directory, 'selection.json'),
+                        fix=f'Delete {directory} and re-run '
+                        '--mode=train_readout.')
   module = contact.build_readout(run.config.readout,
                                  run.slot_model.slot_shape[1])
   return Readout(module=module, params=params,

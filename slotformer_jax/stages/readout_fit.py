@@ -29,6 +29,7 @@ import jax.numpy as jnp
 import ml_collections
 import numpy as np
 
+from slotformer_jax.errors import MissingInputError
 from slotformer_jax.files import append_line_atomic
 from slotformer_jax.files import write_atomic
 from slotformer_jax.runtime import sharding
@@ -160,3 +161,17 @@ def _best_epoch(records: dict[int, dict[str, Any]], last: int) -> int:
     if epoch in records and records[epoch]['score'] > best_score:
       best, best_score = epoch, records[epoch]['score']
   return best
+
+
+def load_params(directory: str, what: str, marker: str = PARAMS_FILE) -> Any:
+  """The chosen epoch's parameters of the head `fit_readout` trained in
+  `directory` (`what` names it in the message).
+
+  Raises:
+    MissingInputError: `marker` is not in `directory` (not trained).
+  """
+  if not os.path.exists(os.path.join(directory, marker)):
+    raise MissingInputError(
+        f'no trained {what} in {directory}; run --mode=train_readout')
+  with open(os.path.join(directory, PARAMS_FILE), 'rb') as f:
+    return serialization.msgpack_restore(f.read())

@@ -19,7 +19,6 @@ import logging
 import os
 from typing import Any
 
-from flax import serialization
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -29,7 +28,6 @@ from slotformer_jax.config.sections import SLOTFORMER
 from slotformer_jax.data.sources import resolve_data_dir
 from slotformer_jax.datasets import synthetic_phyre as phyre_like_data
 from slotformer_jax.errors import ConfigError
-from slotformer_jax.errors import MissingInputError
 from slotformer_jax.files import write_atomic
 from slotformer_jax.files import write_json_atomic
 from slotformer_jax.run import Run
@@ -209,13 +207,8 @@ def load_classifier(run: Run, condition: str, seed: int) -> Any:
   Raises:
     MissingInputError: not trained (the message names the stage).
   """
-  directory = run.paths.planner(condition, seed)
-  path = os.path.join(directory, 'params.msgpack')
-  if not os.path.exists(path):
-    raise MissingInputError(
-        f'no trained classifier in {directory}; run --mode=train_readout')
-  with open(path, 'rb') as f:
-    params = serialization.msgpack_restore(f.read())
+  params = readout_fit.load_params(run.paths.planner(condition, seed),
+                                   'classifier')
   return phyre_planning.build_classifier(run.config.readout, condition), params
 
 

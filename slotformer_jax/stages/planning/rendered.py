@@ -14,7 +14,6 @@ import logging
 import os
 from typing import Any
 
-from flax import serialization
 import jax
 import numpy as np
 
@@ -22,7 +21,6 @@ from slotformer_jax import inference
 from slotformer_jax.config.sections import SLOTFORMER
 from slotformer_jax.data.slots import SlotSource
 from slotformer_jax.errors import ConfigError
-from slotformer_jax.errors import MissingInputError
 from slotformer_jax.files import write_atomic
 from slotformer_jax.files import write_json_atomic
 from slotformer_jax.run import Run
@@ -210,12 +208,8 @@ def load_classifier(run: Run, condition: str, seed: int,
   Raises:
     MissingInputError: not trained (the message names the stage).
   """
-  path = os.path.join(run.paths.planner(condition, seed), 'params.msgpack')
-  if not os.path.exists(path):
-    raise MissingInputError(
-        f'no trained classifier at {path}; run --mode=train_readout')
-  with open(path, 'rb') as f:
-    params = serialization.msgpack_restore(f.read())
+  params = readout_fit.load_params(run.paths.planner(condition, seed),
+                                   'classifier')
   return (phyre_rendered.build_classifier(run.config.readout, condition,
                                           num_selected), params)
 
