@@ -143,6 +143,17 @@ def base_config() -> ml_collections.ConfigDict:
   # Without RGB the frame metrics (PSNR, SSIM, LPIPS) and the frame pictures
   # are skipped; SlotFormer's L_I compares the same targets.
   savi.targets = one_of('savi.targets', targets.DEFAULT, targets.NAMES)
+  # SAVi++'s training augmentation (SAVi's RandomResizedCrop as
+  # savi++_conditional.py sets it): per training clip one crop keeping at
+  # least min_object_covered of the frame (width / height in
+  # aspect_ratio_range, area share in area_range, max_attempts draws, else
+  # the whole frame), resized back to data.resolution; frames, boxes, flow
+  # (rescaled) and depth alike (slotformer_jax/data/augment.py). Off: the
+  # clips as read, bit for bit.
+  savi.random_resized_crop = ml_collections.ConfigDict(dict(
+      enabled=False, min_object_covered=0.75,
+      aspect_ratio_range=(3 / 4, 4 / 3), area_range=(0.08, 1.0),
+      max_attempts=100))
   # The per-frame encoder: a backbone, the soft position embedding, then per
   # position LayerNorm + MLP (mlp_size hidden, None: output_size; then
   # output_size) and, with transformer.num_layers > 0, ReLU(Dense(qkv_size))
