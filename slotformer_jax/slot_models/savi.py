@@ -75,7 +75,8 @@ NAME = 'savi'
 # value their absence stands for (identity.ADDED_FIELDS) they are left out
 # of the run identity and model_config.json, which stay what they were.
 _ADDED = ('targets', 'encoder.kind', 'encoder.mlp_size',
-          'encoder.transformer', 'random_resized_crop')
+          'encoder.transformer', 'random_resized_crop',
+          'slot_attention.qkv_size', 'predictor.qkv_size')
 
 
 def target_names(savi: ml_collections.ConfigDict) -> tuple[str, ...]:
@@ -158,13 +159,15 @@ def build_savi(savi: ml_collections.ConfigDict,
       frame_step=FrameStep(
           corrector=SlotAttention(savi.slot_attention.num_iterations,
                                   savi.slot_attention.mlp_size,
+                                  qkv_size=savi.slot_attention.get('qkv_size'),
                                   layer_norm_epsilon=epsilon),
           predictor=build_predictor(
               predictor.kind, num_layers=predictor.num_layers,
               num_heads=predictor.num_heads, mlp_size=predictor.mlp_size,
               lstm_size=predictor.lstm_size, pre_norm=predictor.pre_norm,
               dropout_rate=predictor.dropout_rate,
-              layer_norm_epsilon=epsilon),
+              layer_norm_epsilon=epsilon,
+              qkv_size=predictor.get('qkv_size')),
           posterior_head=posterior_head),
       decoder=build_decoder(savi.decoder, resolution, target_names(savi)))
 
@@ -351,6 +354,13 @@ class Savi(SlotModel):
       problems.append(
           f'savi.encoder.transformer.qkv_size={transformer.qkv_size} must be '
           f'a multiple of its num_heads={transformer.num_heads}')
+    predictor = self.section.predictor
+    qkv_size = predictor.get('qkv_size')
+    if (qkv_size and predictor.kind != 'residual_mlp'
+        and qkv_size % predictor.num_heads):
+      problems.append(
+          f'savi.predictor.qkv_size={qkv_size} must be a multiple of its '
+          f'num_heads={predictor.num_heads}')
     resolution, decoder = self.resolution, self.section.decoder
     sizes = decoder_resolutions(decoder.broadcast_resolution,
                                 len(decoder.features))
