@@ -2,6 +2,7 @@
 back, damaged downloads, and the whole pipeline on it (configs/movi.py)."""
 
 import json
+import re
 import os
 import subprocess
 import sys
@@ -419,3 +420,39 @@ def test_pipeline_trains_and_evaluates_on_movi(converted, tmp_path):
     assert len(per_step) == T - 2 and all(v is not None for v in per_step)
   assert -1 <= metrics['savi']['fg_ari'] <= 1
   assert any(p.name.endswith('.gif') for p in (workdir / 'render').iterdir())
+
+
+@pytest.mark.slow
+def test_savi_plus_plus_trains_and_evaluates_on_movi(converted, tmp_path):
+  """`configs/movi.py:savipp_fixture` on the converted fixture with its flow
+  and depth: SAVi++ (ResNet-34 + Transformer encoder, conditional on the
+  boxes, the random resized crop, flow + depth targets), extraction,
+  SlotFormer with L_I on flow + depth, evaluation, rendering, explorer."""
+  data_dir, _ = converted
+  workdir = tmp_path / 'run'
+  env = dict(os.environ, PYTHONPATH=str(ROOT), JAX_PLATFORMS='cpu',
+             SLOTFORMER_DATA_DIR=str(tmp_path / 'cache'))
+  env.pop('XLA_FLAGS', None)  # one device: the fixture's batches are 2
+  result = subprocess.run(
+      [sys.executable, '-m', 'slotformer_jax.main',
+       f'--config={ROOT / "configs" / "movi.py"}:savipp_fixture',
+       f'--workdir={workdir}', f'--config.data.data_dir={data_dir}'],
+      cwd=str(tmp_path), env=env, capture_output=True, text=True,
+      timeout=900)
+  assert result.returncode == 0, result.stderr[-3000:]
+  log = result.stderr
+  for stage in ('train_savi', 'extract_slots', 'train_slotformer', 'evaluate',
+                'render', 'explore'):
+    assert f'{stage} took' in log, stage
+  # One loss per target in both stages (SAVi's recon, SlotFormer's L_I).
+  for term in ('recon_loss_flow', 'recon_loss_depth', 'image_loss_flow',
+               'image_loss_depth'):
+    assert re.search(rf'{term}=[0-9.]+', log), term
+  metrics = json.loads((workdir / 'eval' / 'metrics.json').read_text())
+  assert metrics['protocol']['split'] == 'val'
+  assert metrics['savi']['num_videos'] == 2
+  assert -1 <= metrics['savi']['fg_ari'] <= 1
+  assert 'psnr' not in metrics['savi']  # SAVi++ decodes no frames
+  for name in ('fg_ari', 'fg_miou', 'ar'):
+    per_step = metrics['rollout']['slotformer'][name]['per_step']
+    assert len(per_step) == T - 2 and all(v is not None for v in per_step)
