@@ -453,6 +453,10 @@ def test_savi_plus_plus_trains_and_evaluates_on_movi(converted, tmp_path):
   assert metrics['savi']['num_videos'] == 2
   assert -1 <= metrics['savi']['fg_ari'] <= 1
   assert 'psnr' not in metrics['savi']  # SAVi++ decodes no frames
+  # Its pictures show every method's flow and depth (no frames decoded).
+  render = workdir / 'render'
+  assert (render / 'rollout_000.png').exists()
+  assert (render / 'rollout_000.gif').exists()
   for name in ('fg_ari', 'fg_miou', 'ar'):
     per_step = metrics['rollout']['slotformer'][name]['per_step']
     assert len(per_step) == T - 2 and all(v is not None for v in per_step)
