@@ -327,15 +327,15 @@ def target_rows(targets: list[Any], out: dict[str, Any], methods: list[str],
   """{row label: float RGB [T, H, W, 3] in [0, 1]}: every method's decoded
   flow / depth of one video (`out`: the renderer's, batch dim removed).
   Depth: one grey scale for all methods, the range of the first method's
-  (SlotFormer's) depth over the video, written in the labels."""
+  (SlotFormer's) depth over the video, written under the labels."""
   rows = {}
   for target in targets:
     decoded = {m: np.asarray(out[f'{m} targets'][target.name])
                for m in methods}
     value_range = (targets_lib.depth_range(decoded[methods[0]])
                    if target.channels == 1 else None)
-    scale = ('' if value_range is None
-             else f' {value_range[0]:.2g}..{value_range[1]:.2g}')
+    scale = ('' if value_range is None  # on a line of its own
+             else f'\n{value_range[0]:.2g}..{value_range[1]:.2g}')
     for method in methods:
       rows[f'{labels[method]} {target.label}{scale}'] = targets_lib.picture(
           target, decoded[method], value_range)

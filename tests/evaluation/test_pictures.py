@@ -182,15 +182,15 @@ def test_target_rows_draw_flow_in_colour_and_depth_on_one_labelled_scale():
   rows = visualize.target_rows(targets_lib.of(('flow', 'depth')), out,
                                ['slotformer', 'copy_last'], labels)
   low, high = targets_lib.depth_range(out['slotformer targets']['depth'])
-  scale = f'{low:.2g}..{high:.2g}'
+  scale = f'\n{low:.2g}..{high:.2g}'
   flow, depth = targets_lib.TARGETS['flow'], targets_lib.TARGETS['depth']
   assert list(rows) == [
       f'SlotFormer {flow.label}', f'copy-last {flow.label}',
-      f'SlotFormer {depth.label} {scale}', f'copy-last {depth.label} {scale}']
+      f'SlotFormer {depth.label}{scale}', f'copy-last {depth.label}{scale}']
   for picture in rows.values():
     assert picture.shape == shape + (3,)
     assert 0.0 <= picture.min() and picture.max() <= 1.0
   np.testing.assert_allclose(rows[f'SlotFormer {flow.label}'],
                              (out['slotformer targets']['flow'] + 1) / 2)
   # copy-last's depth lies above SlotFormer's range: white on that scale.
-  assert np.all(rows[f'copy-last {depth.label} {scale}'] == 1.0)
+  assert np.all(rows[f'copy-last {depth.label}{scale}'] == 1.0)
