@@ -2,9 +2,9 @@ r"""Parameter counts of this project's SAVi-S and SAVi++ next to SAVi's own.
 
   python benchmarks/param_counts.py
 
-Builds this project's SAVi (`slot_models.savi.build_savi`) with the settings
-of SAVi's `configs/movi/savi_conditional_small.py` (SAVi-S) and
-`savi++_conditional.py` (SAVi++) as far as `config.savi` expresses them, and
+Builds this project's SAVi (`slot_models.savi.build_savi`) as
+configs/movi.py's `:savis` and `:savipp` ship it (SAVi's
+`configs/movi/savi_conditional_small.py` and `savi++_conditional.py`), and
 counts the parameters of each part with `jax.eval_shape` (nothing is
 computed). SAVi's counts are those of its own flax modules as its configs
 build them (google-research/slot-attention-video at ba8f15e, built with
@@ -20,6 +20,7 @@ and what explains every difference.
 
 from __future__ import annotations
 
+import importlib.util
 import os
 import sys
 
@@ -29,8 +30,8 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-from slotformer_jax.config.defaults import base_config  # noqa: E402
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, ROOT)
 from slotformer_jax.slot_models.savi import build_savi  # noqa: E402
 
 PARTS = ('encoder', 'initializer', 'corrector', 'predictor', 'decoder')
@@ -133,41 +134,20 @@ def savi_parts_by_hand(model: str) -> dict[str, tuple[int, int]]:
           'decoder': (decoder, decoder_grid)}
 
 
+# The shipped configs of these models (configs/movi.py's variants).
+VARIANTS = {'SAVi-S': 'savis', 'SAVi++': 'savipp'}
+
+
 def ours(model: str):
-  """This project's SAVi with `model`'s settings: (config.savi,
-  resolution)."""
-  config = base_config()
-  savi = config.savi
-  savi.num_slots = 24  # 23 + 1 (MOVi-D/E); no parameter depends on it
-  savi.slot_size = 128
-  savi.initial_slots = 'boxes'
-  savi.slot_attention.num_iterations = 1
-  savi.slot_attention.mlp_size = 256  # this project's SA always has one
-  savi.predictor.kind = 'transformer'
-  savi.predictor.num_layers = 1
-  savi.predictor.num_heads = 4
-  savi.predictor.pre_norm = False
-  savi.decoder.broadcast_resolution = (8, 8)
-  savi.decoder.features = (64, 64, 64, 64)
-  savi.decoder.kernel_size = 5
-  if model == 'SAVi-S':
-    savi.encoder.features = (32, 32, 32, 32)
-    savi.encoder.kernel_size = 5
-    savi.encoder.strides = (1, 1, 1, 1)
-    savi.encoder.output_size = 32
-    savi.encoder.mlp_size = 64
-    savi.predictor.mlp_size = 256
-    savi.targets = ('flow',)
-    return savi, (64, 64)
-  savi.encoder.kind = 'resnet34'
-  savi.encoder.output_size = 512
-  savi.encoder.mlp_size = 64
-  transformer = savi.encoder.transformer
-  transformer.num_layers, transformer.num_heads = 4, 4
-  transformer.qkv_size, transformer.mlp_size = 64, 1024
-  savi.predictor.mlp_size = 1024
-  savi.targets = ('flow', 'depth')
-  return savi, (128, 128)
+  """This project's SAVi as configs/movi.py ships `model` (its variant in
+  VARIANTS): (config.savi, resolution). No parameter depends on the number
+  of slots (11 on MOVi-A, 24 on MOVi-E)."""
+  spec = importlib.util.spec_from_file_location(
+      'movi_config', os.path.join(ROOT, 'configs', 'movi.py'))
+  module = importlib.util.module_from_spec(spec)
+  spec.loader.exec_module(module)
+  config = module.get_config(VARIANTS[model])
+  return config.savi, tuple(config.data.resolution)
 
 
 def count(tree) -> int:

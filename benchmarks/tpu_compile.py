@@ -225,7 +225,7 @@ def batch_spec(config, step: str, batch_size: int) -> dict[str, Any]:
     return {'features': f32(batch_size, frames, num_slots, slot_size),
             'labels': f32(batch_size)}
   if step == 'savi':
-    return {'video': u8(batch_size, config.savi.clip_length, *frame)}
+    return savi_batch_spec(config, batch_size)
   if step == 'dvae':
     return {'video': u8(batch_size, 1, *frame),
             'gumbel_temperature': f32(batch_size)}
@@ -244,12 +244,45 @@ def batch_spec(config, step: str, batch_size: int) -> dict[str, Any]:
     spec = {'slots': f32(batch_size, length, num_slots, slot_size)}
     if dyn.image_loss_weight > 0:
       # L_I's stream reads the rollout's frames only (`Run.slots`
-      # video_from=burn_in; the loss takes the last `rollout` frames).
-      spec['video'] = u8(batch_size, dyn.rollout, *frame)
+      # video_from=burn_in; the loss takes the last `rollout` frames):
+      # the fields of the slot model's targets (`image_loss_fields`).
+      spec.update(target_fields_spec(config, batch_size, dyn.rollout))
     return spec
   length = dyn.burn_in + config.evaluation.rollout_steps
   return {'slots': f32(batch_size, length, num_slots, slot_size),
           'video': u8(batch_size, length, *frame)}
+
+
+def target_fields_spec(config, batch_size: int, length: int
+                       ) -> dict[str, Any]:
+  """The batch fields of the slot model's targets over `length` frames
+  (slotformer_jax/targets.py's contract: the frames uint8, flow and depth
+  float32 [B, T, H, W, C])."""
+  slot_model = slot_models.get(config)
+  resolution = tuple(config.data.resolution)
+  spec = {}
+  for target in getattr(slot_model, 'targets', ()):
+    dtype = jnp.uint8 if target.field == 'video' else jnp.float32
+    spec[target.field] = jax.ShapeDtypeStruct(
+        (batch_size, length, *resolution, target.channels), dtype)
+  return spec or {'video': jax.ShapeDtypeStruct(
+      (batch_size, length, *resolution, 3), jnp.uint8)}
+
+
+def savi_batch_spec(config, batch_size: int) -> dict[str, Any]:
+  """SAVi's training batch after the input pipeline (and SAVi++'s crop):
+  the frames, its targets' fields and, conditional, the clip's boxes
+  float32 [B, T, O, 4] (O = data.max_instances, the rows the datasets
+  store)."""
+  savi = config.savi
+  spec = {'video': jax.ShapeDtypeStruct(
+      (batch_size, savi.clip_length, *config.data.resolution, 3), jnp.uint8)}
+  spec.update(target_fields_spec(config, batch_size, savi.clip_length))
+  if slot_models.get(config).conditioning_fields:
+    spec['boxes'] = jax.ShapeDtypeStruct(
+        (batch_size, savi.clip_length, config.data.max_instances, 4),
+        jnp.float32)
+  return spec
 
 
 def aloe_batch_spec(config, batch_size: int) -> dict[str, Any]:

@@ -120,7 +120,7 @@ def marker_video(num_frames: int, height: int, width: int,
 
 
 def movi_a_features(num_frames: int, height: int, width: int,
-                    video_as_sequence: bool = True):
+                    video_as_sequence: bool = True, flow_depth: bool = True):
   """MOVi-A's feature tree (Kubric's challenges/movi/movi_a.py) built from
   TFDS connectors. ``tfds.features.Video`` needs TensorFlow to be built, so
   the videos are ``Sequence(Image)``, which is how a Video is serialized
@@ -155,7 +155,7 @@ def movi_a_features(num_frames: int, height: int, width: int,
                  'yellow']),
       'material_label': tfds.features.ClassLabel(names=['metal', 'rubber']),
   }
-  return tfds.features.FeaturesDict({
+  tree = {
       'metadata': {
           'video_name': tfds.features.Text(), 'width': np.int32,
           'height': np.int32, 'num_frames': np.int32,
@@ -188,7 +188,19 @@ def movi_a_features(num_frames: int, height: int, width: int,
           tfds.features.Image(shape=(h, w, 1), dtype=u16), length=s),
       'normal': video(u16),
       'object_coordinates': video(u16),
-  })
+  }
+  if not flow_depth:  # a download without them (older or trimmed)
+    _drop_flow_depth(tree)
+  return tfds.features.FeaturesDict(tree)
+
+
+_FLOW_DEPTH = ('forward_flow', 'backward_flow', 'depth')
+
+
+def _drop_flow_depth(tree: dict[str, Any]) -> None:
+  for key in _FLOW_DEPTH:
+    del tree[key]
+    del tree['metadata'][f'{key}_range']
 
 
 _VIDEO_KEYS = ('video', 'normal', 'object_coordinates')
@@ -230,7 +242,8 @@ def encode_movi_images(example: dict[str, Any]) -> dict[str, Any]:
   encodes arrays with TensorFlow; it passes bytes through)."""
   out = dict(example)
   for key in _IMAGE_KEYS:
-    out[key] = [png_bytes(frame) for frame in example[key]]
+    if key in example:
+      out[key] = [png_bytes(frame) for frame in example[key]]
   return out
 
 
@@ -266,14 +279,32 @@ def boxes_from_ids(ids: np.ndarray, k: int):
   return boxes, frames
 
 
+def kubric_uint16(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+  """Kubric's encoding of float flows / depth: (uint16 values, float32
+  (min, max) of the video), value = stored / 65535 * (max - min) + min."""
+  low, high = float(values.min()), float(values.max())
+  high = max(high, low + 1.0)
+  stored = np.round((values - low) / (high - low) * 65535).astype(np.uint16)
+  return stored, np.asarray([low, high], np.float32)
+
+
 def movi_scene(rng: np.random.Generator, num_frames: int, height: int,
                width: int, num_instances: int, name: str) -> dict[str, Any]:
-  """A MOVi-A-like example: moving coloured squares on grey (``video`` and
-  ``segmentations`` consistent), one instance leaving the view, and the
-  other fields random but of MOVi's shapes."""
+  """A MOVi-A-like example: moving coloured squares on grey (``video``,
+  ``segmentations``, flows and depth consistent), one instance leaving the
+  view, and the other fields random but of MOVi's shapes. Flows: a square
+  moving by (dy, dx) per frame has backward flow (-dy, -dx) from frame 1 on
+  and forward flow (dy, dx) up to the last frame but one, the background
+  none; depth: instance k at 5 - k / 2 (later ones in front), the
+  background from 10 (top row) to 6 (bottom row)."""
   s, h, w = num_frames, height, width
   video = np.full((s, h, w, 3), 100, np.uint8)
   ids = np.zeros((s, h, w), np.uint8)
+  forward = np.zeros((s, h, w, 2), np.float32)
+  backward = np.zeros((s, h, w, 2), np.float32)
+  depth = np.broadcast_to(
+      (10.0 - 4.0 * np.arange(h) / max(h - 1, 1))[None, :, None, None],
+      (s, h, w, 1)).astype(np.float32)
   size = max(2, h // 5)
   start = rng.integers(0, [h - size, w - size], (num_instances, 2))
   step = rng.integers(-1, 2, (num_instances, 2))
@@ -287,6 +318,9 @@ def movi_scene(rng: np.random.Generator, num_frames: int, height: int,
       if y0 < y1 and x0 < x1:
         video[t, y0:y1, x0:x1] = colours[k]
         ids[t, y0:y1, x0:x1] = k + 1
+        depth[t, y0:y1, x0:x1] = 5.0 - k / 2
+        forward[t, y0:y1, x0:x1] = step[k] if t + 1 < s else 0
+        backward[t, y0:y1, x0:x1] = -step[k] if t else 0
   f32 = np.float32
   instances = []
   for k in range(num_instances):
@@ -308,12 +342,15 @@ def movi_scene(rng: np.random.Generator, num_frames: int, height: int,
         'material_label': 0,
     })
   u16 = np.uint16
+  forward, forward_range = kubric_uint16(forward)
+  backward, backward_range = kubric_uint16(backward)
+  depth, depth_range = kubric_uint16(depth)
   example = {
       'metadata': {'video_name': name, 'width': w, 'height': h,
                    'num_frames': s, 'num_instances': num_instances,
-                   'depth_range': np.asarray([1, 9], f32),
-                   'forward_flow_range': np.asarray([-2, 2], f32),
-                   'backward_flow_range': np.asarray([-2, 2], f32)},
+                   'depth_range': depth_range,
+                   'forward_flow_range': forward_range,
+                   'backward_flow_range': backward_range},
       'instances': instances,
       'camera': {'focal_length': f32(35), 'sensor_width': f32(32),
                  'field_of_view': f32(0.85),
@@ -326,9 +363,9 @@ def movi_scene(rng: np.random.Generator, num_frames: int, height: int,
           'contact_normal': np.asarray([0, 0, 1], f32)}]},
       'video': video,
       'segmentations': ids[..., None],
-      'forward_flow': rng.integers(0, 65535, (s, h, w, 2)).astype(u16),
-      'backward_flow': rng.integers(0, 65535, (s, h, w, 2)).astype(u16),
-      'depth': rng.integers(0, 65535, (s, h, w, 1)).astype(u16),
+      'forward_flow': forward,
+      'backward_flow': backward,
+      'depth': depth,
       'normal': rng.integers(0, 65535, (s, h, w, 3)).astype(u16),
       'object_coordinates': rng.integers(0, 65535, (s, h, w, 3)).astype(u16),
   }
@@ -363,9 +400,10 @@ def _with_ragged(serialized: bytes, example: dict[str, Any]) -> bytes:
 def write_movi(folder: Path, *, name: str = 'movi_a',
                shard_lengths: dict[str, list[int]] | None = None,
                num_frames: int = 8, size: int = 32, seed: int = 0,
-               instances: tuple[int, int] = (3, 5)
+               instances: tuple[int, int] = (3, 5), flow_depth: bool = True
                ) -> dict[str, list[dict[str, Any]]]:
-  """Writes a MOVi-A-layout TFDS folder; returns its examples per split.
+  """Writes a MOVi-A-layout TFDS folder; returns its examples per split
+  (``flow_depth=False``: without flows and depth, and their ranges).
 
   ``folder`` gets ``<name>-<split>.tfrecord-XXXXX-of-YYYYY`` shards of
   serialized tf.train.Example protos (TFDS's example serializer, the
@@ -376,7 +414,7 @@ def write_movi(folder: Path, *, name: str = 'movi_a',
   from tensorflow_datasets.core import example_serializer  # pylint: disable=g-import-not-at-top
   shard_lengths = shard_lengths or {'train': [3, 2], 'validation': [2]}
   folder.mkdir(parents=True, exist_ok=True)
-  features = movi_a_features(num_frames, size, size)
+  features = movi_a_features(num_frames, size, size, flow_depth=flow_depth)
   # TFDS 4.9's serializer reaches for TensorFlow on ragged features (the
   # per-instance bboxes / bbox_frames); those two are added by hand, in its
   # layout: <key>/ragged_flat_values + <key>/ragged_row_lengths_0.
@@ -398,6 +436,9 @@ def write_movi(folder: Path, *, name: str = 'movi_a',
                              int(rng.integers(instances[0],
                                               instances[1] + 1)),
                              name=str(counter))
+        if not flow_depth:
+          example['metadata'] = dict(example['metadata'])
+          _drop_flow_depth(example)
         counter += 1
         examples[split].append(example)
         encoded = features.encode_example(encode_movi_images(example))

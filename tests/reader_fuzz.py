@@ -294,6 +294,20 @@ def _check_movi_item(item: dict[str, Any]) -> str | None:
     return f'segmentations {item["segmentations"].shape}'
   if not isinstance(item['video_name'], str):
     return f'video_name {type(item["video_name"]).__name__}'
+  # Flows and depth: uint16 frames of the video's size, a finite ordered
+  # range each (what the reader decodes them with).
+  for name, channels in (('forward_flow', 2), ('backward_flow', 2),
+                         ('depth', 1)):
+    if name not in item:
+      return f'no {name}'
+    values, value_range = item[name], item[f'{name}_range']
+    if values.dtype != np.uint16 or values.shape != video.shape[:3] + (
+        channels,):
+      return f'{name} {values.dtype} {values.shape}'
+    if (value_range.dtype != np.float32 or value_range.shape != (2,)
+        or not np.all(np.isfinite(value_range))
+        or value_range[0] > value_range[1]):
+      return f'{name}_range {value_range!r}'
   return None
 
 
@@ -325,7 +339,7 @@ class MoviRecords(MoviMetadata):
     key = rng.choice(sorted(features))
     feature = features[key]
     kind = rng.choice(('drop', 'retype', 'empty', 'repeat', 'value',
-                       'png', 'png', 'text'))
+                       'png', 'png', 'text', 'flow'))
     what = f'{kind} {key}'
     if kind == 'drop':
       del features[key]
@@ -351,6 +365,43 @@ class MoviRecords(MoviMetadata):
                                                   -1e38))
       elif feature.bytes_list.value:
         feature.bytes_list.value[0] = b''
+    elif kind == 'flow':  # flows, depth and their ranges
+      key = rng.choice(('forward_flow', 'backward_flow', 'depth',
+                        'metadata/forward_flow_range',
+                        'metadata/backward_flow_range',
+                        'metadata/depth_range'))
+      feature = features[key]
+      if key.endswith('_range'):
+        low, high = list(feature.float_list.value)
+        values = rng.choice(([high, low - 1], [float('nan'), high],
+                             [low, float('inf')], [-1e30, 1e30], [low],
+                             [low, high, high], [-1.0, high]))
+        del feature.float_list.value[:]
+        feature.float_list.value.extend(values)
+        what = f'flow {key} {values}'
+      elif key == 'depth':  # 16-bit PNGs: an 8-bit one, other sizes, damage
+        values = feature.bytes_list.value
+        index = rng.randrange(len(values))
+        if rng.random() < 0.3:
+          import dataset_fixtures  # pylint: disable=g-import-not-at-top
+          values[index] = dataset_fixtures.png_bytes(
+              np.zeros((16, 16, 1), np.uint8))
+          what = f'flow depth[{index}] 8-bit'
+        else:
+          mutation, values[index] = mutate_png(rng, values[index])
+          what = f'flow depth[{index}] {mutation}'
+      else:
+        values = feature.int64_list.value
+        edit = rng.choice(('short', 'long', 'high', 'negative'))
+        if edit == 'short':
+          del values[-rng.choice((1, 2, 16 * 16)):]
+        elif edit == 'long':
+          values.extend([0] * rng.choice((1, 2, 16 * 16)))
+        else:
+          values[rng.randrange(len(values))] = (
+              rng.choice((65536, 2**32 + 5, 2**63 - 1)) if edit == 'high'
+              else rng.choice((-1, -2**63)))
+        what = f'flow {key} {edit}'
     elif kind == 'png':
       frames = [k for k in features if k in ('video', 'segmentations')]
       key = rng.choice(frames)

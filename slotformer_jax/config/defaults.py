@@ -143,6 +143,17 @@ def base_config() -> ml_collections.ConfigDict:
   # Without RGB the frame metrics (PSNR, SSIM, LPIPS) and the frame pictures
   # are skipped; SlotFormer's L_I compares the same targets.
   savi.targets = one_of('savi.targets', targets.DEFAULT, targets.NAMES)
+  # SAVi++'s training augmentation (SAVi's RandomResizedCrop as
+  # savi++_conditional.py sets it): per training clip one crop keeping at
+  # least min_object_covered of the frame (width / height in
+  # aspect_ratio_range, area share in area_range, max_attempts draws, else
+  # the whole frame), resized back to data.resolution; frames, boxes, flow
+  # (rescaled) and depth alike (slotformer_jax/data/augment.py). Off: the
+  # clips as read, bit for bit.
+  savi.random_resized_crop = ml_collections.ConfigDict(dict(
+      enabled=False, min_object_covered=0.75,
+      aspect_ratio_range=(3 / 4, 4 / 3), area_range=(0.08, 1.0),
+      max_attempts=100))
   # The per-frame encoder: a backbone, the soft position embedding, then per
   # position LayerNorm + MLP (mlp_size hidden, None: output_size; then
   # output_size) and, with transformer.num_layers > 0, ReLU(Dense(qkv_size))
@@ -161,8 +172,11 @@ def base_config() -> ml_collections.ConfigDict:
       mlp_size=ml_collections.config_dict.placeholder(int),
       transformer=ml_collections.ConfigDict(dict(
           num_layers=0, num_heads=4, qkv_size=64, mlp_size=1024))))
+  # qkv_size (here and in the predictor): the width of the queries, keys
+  # and values; None: slot_size (SAVi++: 256 on 128-d slots).
   savi.slot_attention = ml_collections.ConfigDict(dict(
-      num_iterations=2, mlp_size=256))
+      num_iterations=2, mlp_size=256,
+      qkv_size=ml_collections.config_dict.placeholder(int)))
   # f_trans. kind: 'transformer' (over one frame's slots), 'transformer_lstm'
   # (+ a per-slot LSTM of lstm_size units and a linear layer back to D) or
   # 'residual_mlp' (LN -> Linear(mlp_size) -> ReLU -> Linear, + residual).
@@ -172,7 +186,8 @@ def base_config() -> ml_collections.ConfigDict:
       kind=one_of('savi.predictor.kind', 'transformer',
                   ('transformer', 'transformer_lstm', 'residual_mlp')),
       num_layers=2, num_heads=4, mlp_size=512,
-      lstm_size=0, pre_norm=True, dropout_rate=0.0))
+      lstm_size=0, pre_norm=True, dropout_rate=0.0,
+      qkv_size=ml_collections.config_dict.placeholder(int)))
   # Head on the initial slots before Slot Attention: 'none', 'linear' or
   # 'mlp' (Linear -> LN -> ReLU -> Linear); it predicts (mean, log-variance):
   # stochastic SAVi samples, deterministic SAVi keeps the mean.

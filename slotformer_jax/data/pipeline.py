@@ -50,6 +50,7 @@ from slotformer_jax.data import workers
 # Seed-sequence tags that keep the random streams of a run independent.
 _TAG_ORDER = 0    # which videos, per epoch
 _TAG_START = 1    # which start frames, per step
+_TAG_TRANSFORM = 2  # a clip's augmentation, per step and global row
 _JOIN_TIMEOUT_S = 30.0
 
 
@@ -178,10 +179,22 @@ def host_rows(batch_size: int, process_index: int) -> slice:
   return slice(process_index * batch_size, (process_index + 1) * batch_size)
 
 
+# A clip's augmentation: (clip, its generator) -> the clip delivered.
+Transform = Callable[[dict[str, np.ndarray], np.random.Generator],
+                     dict[str, np.ndarray]]
+
+
+def transform_rng(seed: int, step: int, row: int) -> np.random.Generator:
+  """The generator of the augmentation of row ``row`` of the global batch
+  of step ``step``: the same whichever host builds the row."""
+  return np.random.default_rng([seed, _TAG_TRANSFORM, 0, step, row])
+
+
 def make_train_batch(source: Source, step: int, *, batch_size: int,
                      clip_length: int, seed: int,
                      fields: Sequence[str] = ('video',), frame_stride: int = 1,
-                     process_index: int = 0, process_count: int = 1
+                     process_index: int = 0, process_count: int = 1,
+                     transform: Transform | None = None
                      ) -> dict[str, np.ndarray]:
   """This host's rows of the global batch of step ``step`` (see
   :func:`train_batches`); ``batch_size`` is per host."""
@@ -212,14 +225,20 @@ def make_train_batch(source: Source, step: int, *, batch_size: int,
     else:
       parts.append(_slice_item(item, fields, int(video), start, clip_length,
                                frame_stride))
-  return _stack(parts, fields)
+  if transform is None:
+    return _stack(parts, fields)
+  first_row = rows.start
+  parts = [transform(part, transform_rng(seed, step, first_row + i))
+           for i, part in enumerate(parts)]
+  return _stack(parts, tuple(parts[0]))
 
 
 def train_batches(source: Source, *, batch_size: int, clip_length: int,
                   seed: int, start_step: int = 0,
                   fields: Sequence[str] = ('video',), frame_stride: int = 1,
                   process_index: int = 0, process_count: int = 1,
-                  prefetch: int = 2, num_workers: int = 0
+                  prefetch: int = 2, num_workers: int = 0,
+                  transform: Transform | None = None
                   ) -> Iterator[dict[str, np.ndarray]]:
   """Infinite random training clips, one batch per global step.
 
@@ -241,6 +260,10 @@ def train_batches(source: Source, *, batch_size: int, clip_length: int,
       the steps s with (s - start_step) % N == w. The stream is the same
       either way. A source that does not pickle falls back to the thread,
       with a warning.
+    transform: applied to every clip with its own generator
+      (`transform_rng`: per seed, step and global row), e.g. SAVi's random
+      resized crop (data/augment.py); the batch holds the fields it
+      returns. None: the clips as read.
 
   Yields:
     ``{field: [B, L, ...]}`` (scalar fields: ``[B]``), dtypes as stored. The
@@ -266,7 +289,7 @@ def train_batches(source: Source, *, batch_size: int, clip_length: int,
       make_train_batch, source, batch_size=batch_size,
       clip_length=clip_length, seed=seed, fields=fields,
       frame_stride=frame_stride, process_index=process_index,
-      process_count=process_count)
+      process_count=process_count, transform=transform)
   if num_workers > 0:
     make_bytes, why = workers.picklable(make)
     if make_bytes is not None:

@@ -253,6 +253,18 @@ class TfdsVideoSource:
     return {key: _as_numpy(value, self._dtypes.get(key))
             for key, value in example.items()}
 
+  def header(self, index: int) -> dict[str, Any]:
+    """The per-video fields of video ``index`` (those without its time
+    axis: names, scalars, per-object arrays, the ranges of stored flows),
+    without its frames (chunked: one record; whole videos: the video)."""
+    index = self._check_index(index)
+    if self._layout is None:
+      time = chunked.time_fields(self.info.features)
+      return {key: value for key, value in self[index].items()
+              if key not in time}
+    return {key: _as_numpy(value, self._dtypes.get(key))
+            for key, value in self._header(index).items()}
+
   def clip(self, index: int, start: int, length: int, stride: int = 1,
            fields: Sequence[str] = ('video',)) -> dict[str, np.ndarray]:
     """Frames ``start, start + stride, ...`` (``length`` of them) of the
@@ -531,6 +543,9 @@ class ChannelOrderSource:
 
   def num_frames(self, index: int) -> int:
     return self.source.num_frames(index)
+
+  def header(self, index: int) -> dict[str, Any]:
+    return self.source.header(index)
 
   def clip(self, index: int, start: int, length: int, stride: int = 1,
            fields: Sequence[str] = ('video',)) -> dict[str, np.ndarray]:

@@ -36,6 +36,7 @@ import numpy as np
 import tensorflow_datasets as tfds
 
 from slotformer_jax.data import chunked
+from slotformer_jax.data import flow_depth
 from slotformer_jax.data import integrity
 from slotformer_jax.data import sources
 from slotformer_jax.data.video_names import read_recorded_names
@@ -88,6 +89,10 @@ class Dataset:
     clip_rules: the ``evaluation.clips`` it offers beyond 'first', by name.
     task_data: {task: ``(data_config, Output) -> None``}: what a task reads
       besides the videos, made by the data stage with them.
+    field_fixes: {served field: ``(dataset, data_config) -> str``}, how
+      to get a field its videos can have but those of ``data_config`` may
+      lack (MOVi's flow: convert again; the OBJ3D-like family's: generate
+      with ``data.with_flow_depth``), named when a run needs it.
   """
 
   names: tuple[str, ...]
@@ -99,6 +104,8 @@ class Dataset:
       default_factory=dict)
   task_data: Mapping[str, Callable[[ml_collections.ConfigDict, Output], Any]
                      ] = dataclasses.field(default_factory=dict)
+  field_fixes: Mapping[str, Callable[[Any, ml_collections.ConfigDict], str]
+                       ] = dataclasses.field(default_factory=dict)
 
   @property
   def frames(self) -> int | None:
@@ -124,6 +131,20 @@ class Dataset:
     """Frames per video known without the data (None: read them)."""
     del data_config
     return None
+
+  def served_fields(self, data_config: ml_collections.ConfigDict
+                    ) -> tuple[str, ...] | None:
+    """The fields ``open`` serves a video with, when known without the
+    data (a generated dataset's, from its parameters); None: read them."""
+    del data_config
+    return None
+
+  def field_fix(self, data_config: ml_collections.ConfigDict, field: str
+                ) -> str | None:
+    """How to get a video field a run needs that the videos of
+    ``data_config`` lack (``field_fixes``); None: it has no such field."""
+    fix = self.field_fixes.get(field)
+    return None if fix is None else fix(self, data_config)
 
   def video_names(self, data_config: ml_collections.ConfigDict, split: str
                   ) -> list[str]:
@@ -332,7 +353,9 @@ class Converted(Dataset):
       integrity.verify_checksums(source.dataset_dir, split)
     except integrity.DamagedDataset as error:
       raise self.damaged(data_config, error) from None
-    return sources.with_channel_order(source, data_config.channel_order)
+    return flow_depth.serve(
+        sources.with_channel_order(source, data_config.channel_order),
+        source.info.features)
 
   def video_names(self, data_config: ml_collections.ConfigDict, split: str
                   ) -> list[str]:
@@ -400,6 +423,8 @@ class Generated(Dataset):
     what: how messages name it ('the synthetic dataset').
     parameters: ``data_config -> parameters`` of the generation (they name
       its folder; ``.num_frames``: frames per video).
+    stored: ``parameters -> FeaturesDict`` of what it stores (None: its
+      ``features``, whatever the parameters).
     folder: ``(parameters, data_dir) -> Path`` where it lives (the folder
       :meth:`open` reads and :attr:`generate` makes).
     generate: ``(parameters, Output) -> folder``: makes it unless it is
@@ -416,6 +441,7 @@ class Generated(Dataset):
   generate: Callable[[Any, Output], Path] | None = None
   split_sizes: Callable[[Any], Mapping[str, int]] | None = None
   checksummed: bool = True
+  stored: Callable[[Any], tfds.features.FeaturesDict] | None = None
 
   def dataset_dir(self, data_config: ml_collections.ConfigDict) -> Path:
     """The folder of the dataset ``data_config`` names."""
@@ -424,6 +450,12 @@ class Generated(Dataset):
 
   def num_frames(self, data_config: ml_collections.ConfigDict) -> int:
     return int(self.parameters(data_config).num_frames)
+
+  def served_fields(self, data_config: ml_collections.ConfigDict
+                    ) -> tuple[str, ...]:
+    features = (self.features() if self.stored is None
+                else self.stored(self.parameters(data_config)))
+    return flow_depth.served_fields(features.keys())
 
   def open(self, data_config: ml_collections.ConfigDict, split: str
            ) -> sources.VideoSource:
@@ -434,8 +466,9 @@ class Generated(Dataset):
         raise ValueError(
             f'{data_config.name} split {split!r} is empty or unknown; splits '
             f'are {tuple(sizes)} with sizes {list(sizes.values())}')
-    return sources.open_generated(self.what, self.dataset_dir(data_config),
-                                  split)
+    source = sources.open_generated(self.what,
+                                    self.dataset_dir(data_config), split)
+    return flow_depth.serve(source, source.info.features)
 
 
 # ----------------------------------------------------------------------------

@@ -24,9 +24,16 @@ reads (T = 24 frames, n = the video's instances, h x w the source size):
   listed in ``instances/bbox_frames`` (where the instance is visible); both
   ragged (``ragged_flat_values`` + ``ragged_row_lengths_0``).
 * ``metadata/num_instances``, ``metadata/video_name``.
+* ``forward_flow``, ``backward_flow``: uint16 [T, h, w, 2] (a Sequence of
+  Tensors, int64 lists in the proto), (delta row, delta column) in pixels
+  of h x w; ``depth``: T 16-bit PNG frames [h, w, 1], the distance from the
+  camera centre; each with its per-video range
+  ``metadata/<name>_range`` float32 (low, high): value = stored / 65535 *
+  (high - low) + low (Kubric's encoding, ``data/flow_depth.py``). Kept when
+  the download has them (every MOVi variant does).
 
-Everything else (depth, flows, normals, object coordinates, camera, events,
-labels) is left out. The records are read without TensorFlow: the framing
+Everything else (normals, object coordinates, camera, events, labels) is
+left out. The records are read without TensorFlow: the framing
 and its CRC32C by ``tfrecord.py``, the Example protos by TFDS's NumPy
 parser (``tfds.core.example_parser.ExampleParserNp``) with tensor specs
 derived from the dataset's own ``features.json`` (read as JSON: TFDS's
@@ -49,6 +56,15 @@ row k - 1 = segmentation id k):
   float32 [T, M, 2] (zeros for padding rows).
 * ``num_instances``: int32, the instances of the video (before any crop to
   M); ``video_name``.
+* ``forward_flow``, ``backward_flow``: uint16 [T, H, W, 2] and ``depth``:
+  uint16 [T, H, W, 1] in MOVi's encoding, each with ``<name>_range``
+  float32 [2] (read back decoded: ``data/flow_depth.py``). Resized, they
+  take the pixels the segmentations take (nearest neighbour: Kubric's own
+  256 -> 128 subsampling of flow and depth, and every pixel's flow and
+  depth stay those of the object its id names, where an interpolation
+  would blend an object's with the background's at its edges); flows are
+  then rescaled, row by H / h, column by W / w (as SAVi's resize and crop
+  ops), and encoded again with their new range; depth keeps its values.
 
 Splits: MOVi's 'train', 'validation' and (C/D/E) 'test' become 'train',
 'val' and 'test'. M = ``--max_objects``, by default the variant's most
@@ -77,6 +93,8 @@ import tensorflow_datasets as tfds
 from google.protobuf.message import DecodeError
 from PIL import Image
 
+from slotformer_jax import targets
+from slotformer_jax.data import flow_depth
 from slotformer_jax.data import media
 from slotformer_jax.data import tfrecord
 from slotformer_jax.datasets import base
@@ -97,7 +115,8 @@ DEFAULT_RESOLUTION = (64, 64)  # the SAVi paper's (SAVi-S)
 MAX_INSTANCES: Mapping[str, int] = {
     'movi_a': 10, 'movi_b': 10, 'movi_c': 10, 'movi_d': 23, 'movi_e': 23,
     'movi_f': 23}
-CONVERTER_VERSION = 1
+# 2: flows and depth kept (folders of version 1 have neither).
+CONVERTER_VERSION = 2
 
 LAYOUT = """\
 <source>/dataset_info.json, <source>/features.json
@@ -119,6 +138,13 @@ _VIDEO_NAME = 'metadata/video_name'
 REQUIRED_FEATURES: tuple[str, ...] = (
     _VIDEO, _SEGMENTATIONS, _POSITIONS, _VELOCITIES, _IMAGE_POSITIONS,
     _BBOXES, _BBOX_FRAMES, _NUM_INSTANCES, _VIDEO_NAME)
+# Flows and depth (the stored names are MOVi's): kept when the download has
+# each with its range, in flow_depth.STORED's encoding.
+FLOW_DEPTH: tuple[str, ...] = tuple(flow_depth.STORED)
+
+
+def _range_key(name: str) -> str:
+  return f'metadata/{flow_depth.range_field(name)}'
 
 
 # ----------------------------------------------------------------------------
@@ -324,6 +350,7 @@ class SourceInfo:
     shard_lengths: {MOVi split: records per shard}.
     leaves: (key, Leaf) of the features the parser is given: the ones read
       and every ragged one (the parser needs a spec for each of those).
+    kept: the flows and depth (FLOW_DEPTH) the download has, kept.
   """
 
   folder: Path
@@ -333,6 +360,7 @@ class SourceInfo:
   resolution: tuple[int, int]
   shard_lengths: Mapping[str, tuple[int, ...]]
   leaves: tuple[tuple[str, Leaf], ...]
+  kept: tuple[str, ...] = ()
 
 
 def layout_error(source: Path, missing: str) -> FileNotFoundError:
@@ -461,13 +489,51 @@ def read_source(source: Path) -> SourceInfo:
         f'takes up to {MAX_SOURCE_FRAMES} frames of up to '
         f'{MAX_SOURCE_SIDE}x{MAX_SOURCE_SIDE})')
   shard_lengths = split_shard_lengths(info, folder / 'dataset_info.json')
+  kept = flow_depth_leaves(leaves, int(num_frames), int(height), int(width),
+                           features_path)
   needed = set(REQUIRED_FEATURES) | {
-      k for k, leaf in leaves.items() if leaf.sequence_rank >= 2}
+      k for k, leaf in leaves.items() if leaf.sequence_rank >= 2} | set(
+          kept) | {_range_key(k) for k in kept}
   return SourceInfo(
       folder=folder, name=name, version=version,
       num_frames=int(num_frames), resolution=(int(height), int(width)),
       shard_lengths=shard_lengths,
-      leaves=tuple(sorted((k, v) for k, v in leaves.items() if k in needed)))
+      leaves=tuple(sorted((k, v) for k, v in leaves.items() if k in needed)),
+      kept=kept)
+
+
+def flow_depth_leaves(leaves: Mapping[str, Leaf], num_frames: int,
+                      height: int, width: int, where: Path
+                      ) -> tuple[str, ...]:
+  """The flows and depth of FLOW_DEPTH the download has (each with its
+  range), checked to be what Kubric's builder declares: flows uint16
+  tensors [T, h, w, 2], depth T uint16 images [h, w, 1], ranges float32 [2].
+
+  Raises:
+    LayoutError: one of them declared otherwise (or without its range).
+  """
+  kept = []
+  for name in FLOW_DEPTH:
+    if name not in leaves:
+      continue
+    leaf, range_leaf = leaves[name], leaves.get(_range_key(name))
+    channels = flow_depth.STORED[name]
+    if name == flow_depth.DEPTH:
+      stated = (leaf.shape, leaf.image_shape, leaf.image_dtype)
+      fine = stated == ((num_frames,), (height, width, channels), 'uint16')
+    else:
+      stated = (leaf.shape, leaf.dtype)
+      fine = stated == ((num_frames, height, width, channels), 'uint16')
+    fine = fine and leaf.sequence_rank == 1
+    if not fine or range_leaf is None or (
+        range_leaf.shape, range_leaf.dtype) != ((2,), 'float32'):
+      raise LayoutError(
+          f'{where}: {name} is declared as {shown(repr(stated), 120)} with '
+          f'range {shown(repr(range_leaf), 120)}; MOVi stores it as '
+          f'{num_frames} uint16 frames of {height}x{width}x{channels} with '
+          f'a float32 (2,) {_range_key(name)}')
+    kept.append(name)
+  return tuple(kept)
 
 
 def available_splits(source: Path) -> tuple[str, ...]:
@@ -531,6 +597,7 @@ class _Plan:
   source_resolution: tuple[int, int]
   resolution: tuple[int, int]
   rows: int
+  kept: tuple[str, ...] = ()
 
 
 def shard_paths(source: SourceInfo, split: str) -> list[Path]:
@@ -628,11 +695,12 @@ def _declared_ints(example: dict[str, Any], leaves: tuple[tuple[str, Leaf],
   return example
 
 
-def _decode_png(data: bytes, shape: Sequence[int | None], where: str
-                ) -> np.ndarray:
+def _decode_png(data: bytes, shape: Sequence[int | None], where: str,
+                dtype: str = 'uint8') -> np.ndarray:
   """One frame; its size is checked from the PNG header before anything is
   decoded (a header may claim 10^6 x 10^6 pixels, a real frame may be far
-  larger than features.json says)."""
+  larger than features.json says), its bit depth after (`dtype`, what
+  features.json declares: 'uint8', or 'uint16' for MOVi's depth)."""
   want = tuple(d for d in shape)
   stated = media.png_size(data[:24])
   if stated is None:
@@ -657,11 +725,23 @@ def _decode_png(data: bytes, shape: Sequence[int | None], where: str
       array = np.asarray(image)
   if array.ndim == 2:
     array = array[..., None]
+  array = _image_values(array, dtype, where)
   if array.shape[:2] != want[:2] or (want[2] is not None
                                      and array.shape[2] < want[2]):
     raise ValueError(f'{where}: a {array.shape} frame, features.json says '
                      f'{want}')
   return array[..., :want[2]] if want[2] is not None else array
+
+
+def _image_values(array: np.ndarray, dtype: str, where: str) -> np.ndarray:
+  """A decoded PNG's values as `dtype`: 8-bit PNGs for uint8; 16-bit ones
+  (PIL: uint16, or int32 in older versions, range-checked) for uint16."""
+  if dtype == 'uint8' and array.dtype == np.uint8:
+    return array
+  if dtype == 'uint16' and array.dtype.kind in 'iu' and array.dtype != np.uint8:
+    return int_in_range(array, 0, 65535, what=where).astype(np.uint16)
+  raise ValueError(f'{where}: a PNG of {array.dtype} values, features.json '
+                   f'says {dtype}')
 
 
 def _frames(example: Mapping[str, Any], key: str, leaf: Leaf, num_frames: int,
@@ -671,7 +751,59 @@ def _frames(example: Mapping[str, Any], key: str, leaf: Leaf, num_frames: int,
     raise ValueError(f'{where}: {key} has {len(encoded)} frames, '
                      f'features.json says {num_frames}')
   return np.stack([_decode_png(bytes(e), leaf.image_shape or (None,) * 3,
-                               f'{where} {key}') for e in encoded])
+                               f'{where} {key}', leaf.image_dtype or 'uint8')
+                   for e in encoded])
+
+
+def _flow_depth(example: Mapping[str, Any], plan: _Plan, where: str
+                ) -> dict[str, np.ndarray]:
+  """{name: uint16 [T, h, w, C], name_range: float32 [2]} of the kept
+  flows and depth of a record, checked (shape, values, range).
+
+  Raises:
+    ValueError: a field missing or not what features.json says.
+  """
+  leaves = dict(plan.leaves)
+  out = {}
+  for name in plan.kept:
+    missing = [k for k in (name, _range_key(name)) if k not in example]
+    if missing:
+      raise ValueError(f'{where}: the Example has no {", ".join(missing)}')
+    channels = flow_depth.STORED[name]
+    if name == flow_depth.DEPTH:
+      values = _frames(example, name, leaves[name], plan.num_frames, where)
+    else:
+      values = np.asarray(example[name])
+    want = (plan.num_frames, *plan.source_resolution, channels)
+    if values.shape != want or values.dtype != np.uint16:
+      raise ValueError(f'{where}: {name} is {values.dtype} {values.shape}, '
+                       f'features.json says uint16 {want}')
+    out[name] = values
+    out[flow_depth.range_field(name)] = flow_depth.check_range(
+        example[_range_key(name)], name, what=where)
+  return out
+
+
+def _resized_flow_depth(fields: Mapping[str, np.ndarray],
+                        resolution: Sequence[int]) -> dict[str, np.ndarray]:
+  """The stored flows and depth of `_flow_depth` at `resolution`: the
+  pixels `media.resize_labels` takes; flows rescaled and encoded again."""
+  out = {}
+  for name in flow_depth.STORED:
+    if name not in fields:
+      continue
+    values = fields[name]
+    value_range = fields[flow_depth.range_field(name)]
+    source = values.shape[1:3]
+    picked = np.moveaxis(media.resize_labels(np.moveaxis(values, -1, 1),
+                                             resolution), 1, -1)
+    if name != flow_depth.DEPTH:
+      scale = (resolution[0] / source[0], resolution[1] / source[1])
+      picked, value_range = flow_depth.encode(flow_depth.rescale_flow(
+          flow_depth.decode(picked, value_range), scale))
+    out[name] = np.ascontiguousarray(picked, np.uint16)
+    out[flow_depth.range_field(name)] = value_range
+  return out
 
 
 def _per_instance(example: Mapping[str, Any], key: str, count: int,
@@ -732,6 +864,7 @@ def convert_record(job: RecordJob, plan: _Plan) -> dict[str, Any]:
       raise ValueError(f'{where}: segmentation id {largest} but only '
                        f'{count} instances')
     video_name = _text(example[_VIDEO_NAME])
+    stored = _flow_depth(example, plan, where)
   except tfrecord.TFRecordError as error:
     raise base.ConversionError(f'{error}: download this file again') from None
   except (Exception, DecodeError) as error:  # pylint: disable=broad-except
@@ -764,7 +897,9 @@ def convert_record(job: RecordJob, plan: _Plan) -> dict[str, Any]:
   if tuple(plan.resolution) != tuple(video.shape[1:3]):
     video = media.resize_frames(video, plan.resolution)
     segmentations = media.resize_labels(segmentations, plan.resolution)
+    stored = _resized_flow_depth(stored, plan.resolution)
   return {
+      **stored,
       'video': video.astype(np.uint8),
       'segmentations': segmentations.astype(np.uint8),
       'boxes': boxes, 'visible': visible,
@@ -784,11 +919,16 @@ def _text(value: Any) -> str:
   return value.decode('utf-8') if isinstance(value, bytes) else str(value)
 
 
-def features(num_frames: int, resolution: Sequence[int], rows: int
-             ) -> tfds.features.FeaturesDict:
+def features(num_frames: int, resolution: Sequence[int], rows: int,
+             kept: Sequence[str] = FLOW_DEPTH) -> tfds.features.FeaturesDict:
   h, w = resolution
   t = num_frames
+  stored = {}
+  for name in kept:
+    stored[name] = base.tensor((t, h, w, flow_depth.STORED[name]), np.uint16)
+    stored[flow_depth.range_field(name)] = base.tensor((2,), np.float32)
   return tfds.features.FeaturesDict({
+      **stored,
       'video': base.tensor((t, h, w, 3), np.uint8),
       'segmentations': base.tensor((t, h, w), np.uint8),
       'boxes': base.tensor((t, rows, 4), np.float32),
@@ -810,11 +950,14 @@ def conversion(options: Options, source: Path) -> base.Conversion:
       'source': {'name': info.name, 'version': info.version,
                  'resolution': list(info.resolution),
                  'num_frames': info.num_frames},
+      'kept': list(info.kept),
       'converter_version': CONVERTER_VERSION}
   plan = _Plan(leaves=info.leaves, num_frames=info.num_frames,
                source_resolution=info.resolution,
-               resolution=options.resolution, rows=rows)
+               resolution=options.resolution, rows=rows, kept=info.kept)
   sh, sw = info.resolution
+  kept = (f' {", ".join(info.kept)} (uint16 + range).' if info.kept
+          else '')
   return base.Conversion(
       name=info.name,
       config_name=base.digest_name(f'r{h}x{w}_t{info.num_frames}_m{rows}',
@@ -822,11 +965,21 @@ def conversion(options: Options, source: Path) -> base.Conversion:
       description=(f'Kubric {info.name} {info.version} ({sh}x{sw} TFDS) at '
                    f'{h}x{w}: video, instance segmentations (0 background, '
                    f'k = instance k - 1, ids above {rows} dropped), boxes, '
-                   'positions, velocities.'),
+                   f'positions, velocities.{kept}'),
       params=params,
       features_fn=functools.partial(features, info.num_frames,
-                                    options.resolution, rows),
+                                    options.resolution, rows, info.kept),
       convert_fn=functools.partial(convert_record, plan=plan))
+
+
+def _convert_again(dataset: base.Converted,
+                   data_config: Any) -> str:
+  return (f'the converted {data_config.name} videos have no flow and depth '
+          '(converted before the converter kept them, version '
+          f'{CONVERTER_VERSION}, or from a download without them): convert '
+          f'the download again, {dataset.conversion_command(data_config)} '
+          '(a folder of its own next to the old one: delete the old one, or '
+          'set data.prepared_config to the new one)')
 
 
 # One name per variant: `data.name='movi_a'` reads what --dataset=movi made of
@@ -839,4 +992,7 @@ DATASET = base.register(base.Converted(
                                MAX_INSTANCES['movi_a']),
     options=Options, discover=discover, conversion=conversion,
     available_splits=available_splits,
-    download='/path/to/{name}/128x128/1.0.0'))
+    download='/path/to/{name}/128x128/1.0.0',
+    field_fixes={field: _convert_again for field in (
+        targets.FLOW.field, targets.DEPTH.field, flow_depth.BACKWARD_FLOW,
+        flow_depth.FORWARD_FLOW)}))

@@ -27,6 +27,16 @@ lengths are metres, time is seconds.
 Object ids: object ``k`` (1-based) in the masks is row ``k - 1`` of every
 per-object array. Static objects come first, the launched sphere is the last
 real object (id ``num_objects``); rows ``num_objects ..`` are padding.
+
+Flow and depth (``data.with_flow_depth=True``; off by default, when the data,
+its folder name and its generation time are what they were): exact, from the
+simulator. Depth is the renderer's depth buffer back-projected through the
+camera, as the distance from the camera centre (MOVi's depth); the flow of a
+pixel of frame t is its surface point moved with its object's rigid motion
+(position and orientation) to frame t - 1 (backward) or t + 1 (forward)
+and projected, minus where it is now; the floor's is zero (the camera is
+static). Stored as MOVi stores them (``data/flow_depth.py``), with the
+objects' ``orientations``.
 """
 
 from __future__ import annotations
@@ -44,8 +54,11 @@ import numpy as np
 import pybullet
 import tensorflow_datasets as tfds
 
+from slotformer_jax import targets
+from slotformer_jax.data import flow_depth
 from slotformer_jax.data import sources
 from slotformer_jax.datasets import base
+from slotformer_jax.data.supersample import downsample_by_label
 from slotformer_jax.data.supersample import downsample_rgb
 from slotformer_jax.data.supersample import downsample_segmentation
 
@@ -83,6 +96,9 @@ class SyntheticConfig:
       pixels, which matters at low resolution).
     distinct_colors: no two objects of a video share a colour (at most
       len(COLORS) objects).
+    with_flow_depth: also store the optical flows, depth and the objects'
+      orientations (the module docstring); part of the folder name only
+      when set, so the default data are those of before the option.
   """
 
   resolution: tuple[int, int] = (64, 64)
@@ -96,6 +112,7 @@ class SyntheticConfig:
   supersample: int = 2
   object_scale: float = 1.0
   distinct_colors: bool = False
+  with_flow_depth: bool = False
 
   def __post_init__(self):
     # Accept lists (e.g. from ml_collections) but store a hashable tuple.
@@ -131,17 +148,27 @@ class SyntheticConfig:
     return {'train': self.num_train, 'val': self.num_val,
             'test': self.num_test}[split]
 
+  def params(self) -> dict[str, Any]:
+    """The parameters as recorded and hashed: ``with_flow_depth`` only when
+    set (the folder and metadata of the default data are those of before
+    the option)."""
+    params = dataclasses.asdict(self)
+    if not self.with_flow_depth:
+      del params['with_flow_depth']
+    return params
+
   @property
   def slug(self) -> str:
     """A readable, unique folder name for these parameters (+ code version)."""
     h, w = self.resolution
     payload = json.dumps(
-        {**dataclasses.asdict(self), 'generator_version': GENERATOR_VERSION},
+        {**self.params(), 'generator_version': GENERATOR_VERSION},
         sort_keys=True)
     digest = hashlib.sha256(payload.encode()).hexdigest()[:8]
+    flow = '_fd' if self.with_flow_depth else ''
     return (f'r{h}x{w}_t{self.num_frames}_o{self.min_objects}-{self.max_objects}'
             f'_s{self.seed}_n{self.num_train}-{self.num_val}-{self.num_test}'
-            f'_aa{self.supersample}_{digest}')
+            f'_aa{self.supersample}{flow}_{digest}')
 
 
 
@@ -430,7 +457,17 @@ def render_frame(client: int, view: list[float], projection: list[float],
     segmentation: [height, width], ``lut[body id + 1]`` of the pixels
       (pybullet's background is -1), downsampled.
   """
-  _, _, rgba, _, seg = pybullet.getCameraImage(
+  rgb, seg, _ = _render(client, view, projection, height, width, ss, lut)
+  return rgb, seg
+
+
+def _render(client: int, view: list[float], projection: list[float],
+            height: int, width: int, ss: int, lut: np.ndarray
+            ) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+  """`render_frame`'s (rgb, segmentation) and the samples they come from:
+  {'ids': lut ids [height * ss, width * ss], 'depth_buffer': float64 of
+  the same size, in [0, 1]}."""
+  _, _, rgba, depth, seg = pybullet.getCameraImage(
       width * ss, height * ss, viewMatrix=view, projectionMatrix=projection,
       lightDirection=LIGHT_DIRECTION, lightColor=[1.0, 1.0, 1.0],
       shadow=0, lightAmbientCoeff=LIGHT_AMBIENT,
@@ -438,8 +475,88 @@ def render_frame(client: int, view: list[float], projection: list[float],
       renderer=pybullet.ER_TINY_RENDERER, physicsClientId=client)
   rgb = np.asarray(rgba, np.uint8).reshape(height * ss, width * ss, 4)
   seg = lut[np.asarray(seg, np.int64).reshape(height * ss, width * ss) + 1]
+  samples = {'ids': seg, 'depth_buffer': np.asarray(
+      depth, np.float64).reshape(height * ss, width * ss)}
   return (downsample_rgb(rgb[..., :3], ss),
-          downsample_segmentation(seg, ss))
+          downsample_segmentation(seg, ss), samples)
+
+
+# TinyRenderer samples pixel (i, j) of a frame at its lower left corner, row
+# i + 1 and column j in coordinates where pixel i spans [i, i + 1) (measured:
+# the floor's pixels back-project onto the floor to 1e-7 so, and to 0.07-0.14
+# units off at the pixel's centre or upper corner;
+# tests/datasets/test_synthetic.py checks it).
+SAMPLE_OFFSET = (1.0, 0.0)
+
+
+@dataclasses.dataclass(frozen=True)
+class Camera:
+  """The renderer's camera as matrices: world points <-> frame pixels.
+
+  Attributes:
+    matrix: float64 [4, 4], projection @ view (OpenGL clip coordinates).
+    height, width: the frame (H, W) whose pixels `project` counts in.
+  """
+
+  matrix: np.ndarray
+  height: int
+  width: int
+
+  @classmethod
+  def of_frames(cls, height: int, width: int) -> 'Camera':
+    view, projection = _camera_matrices(height, width)
+    matrix = (np.asarray(projection, np.float64).reshape(4, 4).T
+              @ np.asarray(view, np.float64).reshape(4, 4).T)
+    return cls(matrix=matrix, height=height, width=width)
+
+  def project(self, points: np.ndarray) -> np.ndarray:
+    """World points [..., 3] -> (row, column) [..., 2] in pixels of the
+    frame (pixel i spans [i, i + 1))."""
+    points = np.asarray(points, np.float64)
+    clip = points @ self.matrix[:3, :3].T + self.matrix[:3, 3]
+    w = points @ self.matrix[3, :3] + self.matrix[3, 3]
+    ndc_x, ndc_y = clip[..., 0] / w, clip[..., 1] / w
+    return np.stack([(1.0 - ndc_y) * 0.5 * self.height,
+                     (ndc_x + 1.0) * 0.5 * self.width], axis=-1)
+
+  def back_project(self, depth_buffer: np.ndarray) -> np.ndarray:
+    """A rendered depth buffer [h, w] in [0, 1] (any multiple of the
+    frame) -> the world point each pixel samples, float64 [h, w, 3]."""
+    h, w = depth_buffer.shape
+    rows = (np.arange(h)[:, None] + SAMPLE_OFFSET[0]) / h
+    cols = (np.arange(w)[None, :] + SAMPLE_OFFSET[1]) / w
+    ndc = np.stack(np.broadcast_arrays(
+        cols * 2.0 - 1.0, 1.0 - rows * 2.0, depth_buffer * 2.0 - 1.0,
+        np.ones_like(depth_buffer)), axis=-1)
+    world = ndc @ np.linalg.inv(self.matrix).T
+    return world[..., :3] / world[..., 3:]
+
+
+def rigid_flow(points: np.ndarray, ids: np.ndarray,
+               poses: tuple[np.ndarray, np.ndarray],
+               other: tuple[np.ndarray, np.ndarray], camera: Camera
+               ) -> np.ndarray:
+  """Optical flow of the samples of one frame to another: float64 [h, w, 2]
+  (delta row, delta column) in pixels of the camera's frame.
+
+  Args:
+    points: world points [h, w, 3] the samples see.
+    ids: [h, w] 0 for the static floor (no flow), k for object k.
+    poses, other: (positions [N, 3], rotation matrices [N, 3, 3]) of the
+      objects in this frame and the other one (row k - 1: object k).
+    camera: projects both.
+  """
+  flow = np.zeros(points.shape[:2] + (2,), np.float64)
+  here = camera.project(points)
+  for k in np.unique(ids):
+    if k == 0:
+      continue
+    mask = ids == k
+    position, rotation = poses[0][k - 1], poses[1][k - 1]
+    local = (points[mask] - position) @ rotation  # R^T (p - x), row-wise
+    moved = local @ other[1][k - 1].T + other[0][k - 1]
+    flow[mask] = camera.project(moved) - here[mask]
+  return flow
 
 
 def simulate_and_render(scene: Scene, config: SyntheticConfig
@@ -492,16 +609,22 @@ def simulate_and_render(scene: Scene, config: SyntheticConfig
     for k, body in enumerate(bodies, start=1):
       lut[body + 1] = k
     view, projection = _camera_matrices(height, width)
-    frames, segs = [], []
+    frames, segs, samples = [], [], []
     positions = np.zeros((config.num_frames, num_slots, 3), np.float32)
+    # Exact poses (float64) for the flows: positions and quaternions.
+    poses = np.zeros((config.num_frames, n, 7), np.float64)
     for t in range(config.num_frames):
-      rgb, seg = render_frame(client, view, projection, height, width, ss,
-                              lut)
+      rgb, seg, sample = _render(client, view, projection, height, width, ss,
+                                 lut)
       frames.append(rgb)
       segs.append(seg)
+      if config.with_flow_depth:
+        samples.append(sample)
       for k, body in enumerate(bodies):
-        positions[t, k] = pybullet.getBasePositionAndOrientation(
-            body, physicsClientId=client)[0]
+        position, orientation = pybullet.getBasePositionAndOrientation(
+            body, physicsClientId=client)
+        positions[t, k] = position
+        poses[t, k] = (*position, *orientation)
       if t + 1 < config.num_frames:
         for _ in range(SUBSTEPS_PER_FRAME):
           pybullet.stepSimulation(physicsClientId=client)
@@ -515,7 +638,7 @@ def simulate_and_render(scene: Scene, config: SyntheticConfig
     out[:n] = values
     return out
 
-  return {
+  example = {
       'video': np.stack(frames),
       'segmentations': segmentations,
       'boxes': boxes,
@@ -526,6 +649,71 @@ def simulate_and_render(scene: Scene, config: SyntheticConfig
       'colors': pad(scene.colors),
       'sizes': pad(scene.sizes),
   }
+  if config.with_flow_depth:
+    example.update(flows_and_depth(samples, segmentations, poses, config))
+  return example
+
+
+def flows_and_depth(samples: Sequence[dict[str, np.ndarray]],
+                    segmentations: np.ndarray, poses: np.ndarray,
+                    config: SyntheticConfig) -> dict[str, np.ndarray]:
+  """The stored flows and depth of a video (data/flow_depth.py's encoding)
+  and its objects' orientations, from the rendered samples of each frame
+  and the objects' poses.
+
+  Each is computed per sample (supersampled), then a pixel takes the mean
+  of its samples that show the surface its mask shows (the vote of
+  `downsample_segmentation`; `downsample_by_label`), so depth and flow at
+  an object's edge are the object's or the floor's, as its id says.
+
+  Args:
+    samples: per frame {'ids', 'depth_buffer'} of `_render`.
+    segmentations: uint8 [T, H, W], the voted ids.
+    poses: float64 [T, N, 7] position and quaternion (x, y, z, w) of each
+      object (row k - 1: object k).
+    config: the generation parameters (resolution, supersample, rows).
+
+  Returns:
+    forward_flow, backward_flow: uint16 [T, H, W, 2]; depth: uint16 [T, H,
+    W, 1]; each with its '<name>_range' float32 [2]; orientations: float32
+    [T, O, 4] (x, y, z, w), zeros for padding rows.
+  """
+  height, width = config.resolution
+  ss = config.supersample
+  camera = Camera.of_frames(height, width)
+  eye = np.asarray(CAMERA_EYE, np.float64)
+  num_frames, n = poses.shape[:2]
+  rotations = np.asarray([
+      [np.asarray(pybullet.getMatrixFromQuaternion(q[3:]), np.float64
+                  ).reshape(3, 3) for q in frame] for frame in poses]
+                         ).reshape(num_frames, n, 3, 3)
+  pose = [(poses[t, :, :3], rotations[t]) for t in range(num_frames)]
+  distance, forward, backward = [], [], []
+  for t, sample in enumerate(samples):
+    points = camera.back_project(sample['depth_buffer'])
+    ids = sample['ids']
+    voted = segmentations[t]
+    still = np.zeros(ids.shape + (2,))
+
+    def down(values, ids=ids, voted=voted):
+      return downsample_by_label(values, ids, voted, ss)
+
+    distance.append(down(np.linalg.norm(points - eye, axis=-1)[..., None]))
+    forward.append(down(still if t + 1 == num_frames else rigid_flow(
+        points, ids, pose[t], pose[t + 1], camera)))
+    backward.append(down(still if t == 0 else rigid_flow(
+        points, ids, pose[t], pose[t - 1], camera)))
+  out = {}
+  for name, values in ((flow_depth.FORWARD_FLOW, forward),
+                       (flow_depth.BACKWARD_FLOW, backward),
+                       (flow_depth.DEPTH, distance)):
+    out[name], out[flow_depth.range_field(name)] = flow_depth.encode(
+        np.stack(values))
+  orientations = np.zeros((num_frames, config.max_objects_total, 4),
+                          np.float32)
+  orientations[:, :n] = poses[..., 3:]
+  out['orientations'] = orientations
+  return out
 
 
 def generate_video(config: SyntheticConfig, split: str, index: int
@@ -556,7 +744,14 @@ def features(g: SyntheticConfig) -> tfds.features.FeaturesDict:
   h, w = g.resolution
   t, o = g.num_frames, g.max_objects_total
   tensor = base.tensor
+  stored = {}
+  if g.with_flow_depth:
+    for name, channels in flow_depth.STORED.items():
+      stored[name] = tensor((t, h, w, channels), np.uint16)
+      stored[flow_depth.range_field(name)] = tensor((2,), np.float32)
+    stored['orientations'] = tensor((t, o, 4), np.float32)
   return tfds.features.FeaturesDict({
+      **stored,
       'video': tensor((t, h, w, 3), np.uint8),
       'segmentations': tensor((t, h, w), np.uint8),
       'boxes': tensor((t, o, 4), np.float32),
@@ -588,9 +783,15 @@ def generate(config: SyntheticConfig, out: base.Output) -> Path:
       path, name=NAME, features=features(config), description=DESCRIPTION,
       split_sizes={s: config.num_videos(s) for s in splits},
       make=functools.partial(generate_video, config),
-      metadata={'generation': json.loads(json.dumps(
-          dataclasses.asdict(config)))},
+      metadata={'generation': json.loads(json.dumps(config.params()))},
       lock=f'the synthetic dataset {path}')
+
+
+def _generate_them(dataset: base.Generated, data_config: Any) -> str:
+  del dataset
+  return ('the OBJ3D-like videos hold flow and depth only when generated '
+          f'with them: set data.with_flow_depth=True (configs/synthetic.py'
+          f':flow and :flow_tiny do; data.name={data_config.name!r})')
 
 
 DATASET = base.register(base.Generated(
@@ -598,4 +799,8 @@ DATASET = base.register(base.Generated(
     features=functools.partial(features, SyntheticConfig()),
     what='the synthetic dataset', parameters=config_from_data_config,
     folder=dataset_dir, generate=generate,
-    split_sizes=lambda config: {s: config.num_videos(s) for s in SPLITS}))
+    split_sizes=lambda config: {s: config.num_videos(s) for s in SPLITS},
+    stored=features,
+    field_fixes={field: _generate_them for field in (
+        targets.FLOW.field, targets.DEPTH.field, flow_depth.BACKWARD_FLOW,
+        flow_depth.FORWARD_FLOW)}))

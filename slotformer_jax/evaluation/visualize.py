@@ -10,7 +10,10 @@ Written by `--mode=render` under `<workdir>/render/`, for any slot model:
   slots, the decoded prediction afterwards) -- with SlotFormer's predicted
   segmentation; and, for decoders with per-slot reconstructions (SAVi), each
   SlotFormer slot's reconstruction weighted by its alpha mask. A red border
-  marks predicted (rollout) frames, a green one observed frames.
+  marks predicted (rollout) frames, a green one observed frames. A SAVi
+  reconstructing flow or depth (`savi.targets`) gets a row per method and
+  target instead: flow in SAVi's colours, depth as a grey map on one scale
+  per video, its range in the label (targets.picture).
 * `per_step.png`: every per-step rollout metric of `eval/metrics.json`
   against the rollout step, methods overlaid (the paper's per-step figure).
 * `attention_<i>.png` (decoders with per-slot reconstructions): the paper's
@@ -35,6 +38,7 @@ from PIL import Image
 from PIL import ImageDraw
 
 from slotformer_jax import inference
+from slotformer_jax import targets as targets_lib
 from slotformer_jax.config.sections import SLOTFORMER
 from slotformer_jax.evaluation import evaluate
 from slotformer_jax.files import read_json
@@ -120,6 +124,8 @@ def make_renderer(dynamics_modules: dict[str, Any], slot_model: Any, *,
           lambda frame: slot_model.decode(slot_params, frame),
           time_major(whole)))
       out[name] = decoded.recon
+      if decoded.targets:  # flow / depth composites [B, T, H, W, C]
+        out[f'{name} targets'] = decoded.targets
       if name == SLOTFORMER:
         out['slotformer_masks'] = decoded.alpha_masks[..., 0]
         if decoded.rgb is not None:
@@ -216,7 +222,9 @@ def render(render_config: ml_collections.ConfigDict,
   """
   if jax.process_index() != 0:
     return []
-  if not slot_model.decodes_pixels:
+  other_targets = [t for t in getattr(slot_model, 'targets', ())
+                   if t != targets_lib.RGB]
+  if not slot_model.decodes_pixels and not other_targets:
     logger.info('render skipped: %s decodes no pixels', slot_model.label)
     return []
   dynamics_names = tuple(dynamics)
@@ -262,10 +270,13 @@ def render(render_config: ml_collections.ConfigDict,
     truth = videos[v].astype(np.float32) / 255.0
     rows = {'truth': truth,
             f'{label} masks': mask_overlay(truth, out['observed_masks'])}
-    for method in methods:
-      rows[labels[method]] = out[method]
-    rows['SlotFormer masks'] = mask_overlay(out[SLOTFORMER],
-                                            out['slotformer_masks'])
+    if out[SLOTFORMER] is not None:
+      for method in methods:
+        rows[labels[method]] = out[method]
+    rows.update(target_rows(other_targets, out, methods, labels))
+    rows['SlotFormer masks'] = mask_overlay(
+        truth if out[SLOTFORMER] is None else out[SLOTFORMER],
+        out['slotformer_masks'])
     if 'slot_views' in out:
       for n in range(out['slot_views'].shape[1]):
         rows[f'slot {n}'] = out['slot_views'][:, n]
@@ -309,6 +320,26 @@ def render(render_config: ml_collections.ConfigDict,
 
 
 _LABEL_WIDTH = 92
+
+
+def target_rows(targets: list[Any], out: dict[str, Any], methods: list[str],
+                labels: dict[str, str]) -> dict[str, np.ndarray]:
+  """{row label: float RGB [T, H, W, 3] in [0, 1]}: every method's decoded
+  flow / depth of one video (`out`: the renderer's, batch dim removed).
+  Depth: one grey scale for all methods, the range of the first method's
+  (SlotFormer's) depth over the video, written under the labels."""
+  rows = {}
+  for target in targets:
+    decoded = {m: np.asarray(out[f'{m} targets'][target.name])
+               for m in methods}
+    value_range = (targets_lib.depth_range(decoded[methods[0]])
+                   if target.channels == 1 else None)
+    scale = ('' if value_range is None  # on a line of its own
+             else f'\n{value_range[0]:.2g}..{value_range[1]:.2g}')
+    for method in methods:
+      rows[f'{labels[method]} {target.label}{scale}'] = targets_lib.picture(
+          target, decoded[method], value_range)
+  return rows
 
 
 def write_strip(path: str, rows: dict[str, np.ndarray], burn_in: int,

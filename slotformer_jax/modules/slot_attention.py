@@ -40,6 +40,8 @@ class SlotAttention(nn.Module):
   Attributes:
     num_iterations: attention rounds per call (2 in SlotFormer's SAVi).
     mlp_size: hidden size of the residual MLP after the GRU.
+    qkv_size: width of the queries, keys and values, and so of the updates
+      the GRU reads; None: the slot size (SAVi++: 256 on 128-d slots).
     epsilon: see `inverted_attention_weights`.
     layer_norm_epsilon: 1e-6 (flax) or 1e-5 (PyTorch, the official models).
     return_attention: also return the last iteration's slot competition
@@ -48,6 +50,7 @@ class SlotAttention(nn.Module):
 
   num_iterations: int = 2
   mlp_size: int = 256
+  qkv_size: int | None = None
   epsilon: float = 1e-6
   layer_norm_epsilon: float = 1e-6
   return_attention: bool = False
@@ -57,6 +60,7 @@ class SlotAttention(nn.Module):
     """slots [B, N, D], inputs [B, M, C] -> updated slots [B, N, D]
     (and the attention [B, N, M] when `return_attention`)."""
     slot_size = slots.shape[-1]
+    qkv_size = self.qkv_size or slot_size
     layer_norm = lambda **kw: nn.LayerNorm(epsilon=self.layer_norm_epsilon,
                                            **kw)
     # Per-input LayerNorm and projections on a [B*M, C] view (the same
@@ -64,13 +68,13 @@ class SlotAttention(nn.Module):
     # `CNNEncoder`).
     batch, num_inputs, _ = inputs.shape
     flat = layer_norm(name='norm_inputs')(inputs.reshape(batch * num_inputs, -1))
-    keys = nn.Dense(slot_size, use_bias=False, name='key')(flat).reshape(
-        batch, num_inputs, slot_size)
-    values = nn.Dense(slot_size, use_bias=False, name='value')(flat).reshape(
-        batch, num_inputs, slot_size)
+    keys = nn.Dense(qkv_size, use_bias=False, name='key')(flat).reshape(
+        batch, num_inputs, qkv_size)
+    values = nn.Dense(qkv_size, use_bias=False, name='value')(flat).reshape(
+        batch, num_inputs, qkv_size)
 
     norm_slots = layer_norm(name='norm_slots')
-    to_query = nn.Dense(slot_size, use_bias=False, name='query')
+    to_query = nn.Dense(qkv_size, use_bias=False, name='query')
     gru = nn.GRUCell(slot_size, name='gru')
     mlp = nn.Sequential([
         layer_norm(),

@@ -87,6 +87,8 @@ class TransformerBlock(nn.Module):
     layer_norm_epsilon: 1e-6 (flax) or 1e-5 (PyTorch, the official models).
     kernels: the attention's form, 'auto' (explicit on CPU, fused on GPU /
       TPU), 'cpu' or 'accelerator' (see the module docstring).
+    qkv_size: width of the queries, keys and values (all heads together);
+      None: the input's D (SAVi++'s predictor: 256 on 128-d slots).
   """
 
   num_heads: int
@@ -95,6 +97,7 @@ class TransformerBlock(nn.Module):
   pre_norm: bool = True
   layer_norm_epsilon: float = 1e-6
   kernels: str = platform.AUTO
+  qkv_size: int | None = None
 
   @nn.compact
   def __call__(self, x: jax.Array, mask: jax.Array | None = None, *,
@@ -102,7 +105,8 @@ class TransformerBlock(nn.Module):
     """x [B, L, D]; mask: optional bool [B, 1, L, L], True = may attend."""
     dim = x.shape[-1]
     attention = nn.MultiHeadDotProductAttention(
-        num_heads=self.num_heads, dropout_rate=self.dropout_rate,
+        num_heads=self.num_heads, qkv_features=self.qkv_size,
+        dropout_rate=self.dropout_rate,
         attention_fn=functools.partial(attention_by_platform,
                                        kernels=self.kernels),
         name='attention')
@@ -140,6 +144,7 @@ class TransformerEncoder(nn.Module):
   pre_norm: bool = True
   layer_norm_epsilon: float = 1e-6
   kernels: str = platform.AUTO
+  qkv_size: int | None = None  # TransformerBlock's
 
   @nn.compact
   def __call__(self, x: jax.Array, mask: jax.Array | None = None, *,
@@ -150,5 +155,5 @@ class TransformerEncoder(nn.Module):
           num_heads=self.num_heads, mlp_size=self.mlp_size,
           dropout_rate=self.dropout_rate, pre_norm=self.pre_norm,
           layer_norm_epsilon=self.layer_norm_epsilon, kernels=self.kernels,
-          name=f'block_{i}')(x, mask, deterministic=deterministic)
+          qkv_size=self.qkv_size, name=f'block_{i}')(x, mask, deterministic=deterministic)
     return x

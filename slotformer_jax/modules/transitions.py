@@ -50,7 +50,7 @@ class SlotTransition(nn.Module):
 
   Attributes:
     num_layers, num_heads, mlp_size, pre_norm, dropout_rate,
-      layer_norm_epsilon: the Transformer.
+      layer_norm_epsilon, qkv_size: the Transformer (qkv_size None: D).
     lstm_size: hidden size of the per-slot LSTM; 0 disables it.
   """
 
@@ -61,6 +61,7 @@ class SlotTransition(nn.Module):
   lstm_size: int = 0
   dropout_rate: float = 0.0
   layer_norm_epsilon: float = 1e-6
+  qkv_size: int | None = None
 
   def initial_state(self, slots: jax.Array) -> TransitionState:
     """The first frame's state: zero LSTM carry, or () without the LSTM."""
@@ -74,7 +75,7 @@ class SlotTransition(nn.Module):
         num_layers=self.num_layers, num_heads=self.num_heads,
         mlp_size=self.mlp_size, pre_norm=self.pre_norm,
         dropout_rate=self.dropout_rate,
-        layer_norm_epsilon=self.layer_norm_epsilon,
+        layer_norm_epsilon=self.layer_norm_epsilon, qkv_size=self.qkv_size,
         name='transformer')(slots, deterministic=deterministic)
     if not self.lstm_size:
       return x, ()
@@ -120,10 +121,12 @@ class ResidualMLPTransition(nn.Module):
 
 def build_predictor(kind: str, *, num_layers: int, num_heads: int,
                     mlp_size: int, lstm_size: int, pre_norm: bool,
-                    dropout_rate: float, layer_norm_epsilon: float
+                    dropout_rate: float, layer_norm_epsilon: float,
+                    qkv_size: int | None = None
                     ) -> SlotTransition | ResidualMLPTransition:
   """The f_trans module of `kind` (one of PREDICTORS); `residual_mlp` uses
-  only mlp_size, pre_norm and layer_norm_epsilon."""
+  only mlp_size, pre_norm and layer_norm_epsilon; qkv_size None: the slot
+  size."""
   if kind == RESIDUAL_MLP:
     return ResidualMLPTransition(mlp_size=mlp_size, pre_norm=pre_norm,
                                  layer_norm_epsilon=layer_norm_epsilon)
@@ -137,4 +140,4 @@ def build_predictor(kind: str, *, num_layers: int, num_heads: int,
   return SlotTransition(
       num_layers=num_layers, num_heads=num_heads, mlp_size=mlp_size,
       pre_norm=pre_norm, lstm_size=lstm_size, dropout_rate=dropout_rate,
-      layer_norm_epsilon=layer_norm_epsilon)
+      layer_norm_epsilon=layer_norm_epsilon, qkv_size=qkv_size)

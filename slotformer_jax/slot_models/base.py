@@ -91,6 +91,8 @@ class Part:
       batches), e.g. the dVAE's temperature schedule; None: as they are.
     images: (params, host batch) -> {name: labelled uint8 picture} for
       TensorBoard, or None.
+    transform: (clip of `batch_fields`, generator) -> the clip trained on
+      (SAVi's random resized crop; `pipeline.train_batches`), or None.
   """
 
   name: str
@@ -111,6 +113,8 @@ class Part:
                          Iterator[dict[str, np.ndarray]]] | None = None
   images: Callable[[Any, dict[str, np.ndarray]],
                    dict[str, np.ndarray]] | None = None
+  transform: Callable[[dict[str, np.ndarray], np.random.Generator],
+                      dict[str, np.ndarray]] | None = None
 
   @property
   def mode(self) -> str:

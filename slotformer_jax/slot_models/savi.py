@@ -30,8 +30,11 @@ import jax.numpy as jnp
 import ml_collections
 import numpy as np
 
+from slotformer_jax import datasets
 from slotformer_jax import losses
 from slotformer_jax import targets as targets_lib
+from slotformer_jax.data import augment
+from slotformer_jax.data import flow_depth
 from slotformer_jax.errors import ConfigError
 from slotformer_jax.frames import frames_to_model
 from slotformer_jax.frames import labelled_grid
@@ -72,7 +75,8 @@ NAME = 'savi'
 # value their absence stands for (identity.ADDED_FIELDS) they are left out
 # of the run identity and model_config.json, which stay what they were.
 _ADDED = ('targets', 'encoder.kind', 'encoder.mlp_size',
-          'encoder.transformer')
+          'encoder.transformer', 'random_resized_crop',
+          'slot_attention.qkv_size', 'predictor.qkv_size')
 
 
 def target_names(savi: ml_collections.ConfigDict) -> tuple[str, ...]:
@@ -155,13 +159,15 @@ def build_savi(savi: ml_collections.ConfigDict,
       frame_step=FrameStep(
           corrector=SlotAttention(savi.slot_attention.num_iterations,
                                   savi.slot_attention.mlp_size,
+                                  qkv_size=savi.slot_attention.get('qkv_size'),
                                   layer_norm_epsilon=epsilon),
           predictor=build_predictor(
               predictor.kind, num_layers=predictor.num_layers,
               num_heads=predictor.num_heads, mlp_size=predictor.mlp_size,
               lstm_size=predictor.lstm_size, pre_norm=predictor.pre_norm,
               dropout_rate=predictor.dropout_rate,
-              layer_norm_epsilon=epsilon),
+              layer_norm_epsilon=epsilon,
+              qkv_size=predictor.get('qkv_size')),
           posterior_head=posterior_head),
       decoder=build_decoder(savi.decoder, resolution, target_names(savi)))
 
@@ -268,9 +274,13 @@ class Savi(SlotModel):
   def parts(self) -> tuple[Part, ...]:
     savi, config = self.section, self.config
     # The frames feed the encoder whatever the targets; the other targets'
-    # fields are what the loss compares with.
-    target_fields = tuple(t.field for t in self.targets
-                          if t != targets_lib.RGB)
+    # fields are what the loss compares with. A cropped clip reads the
+    # backward flow in pixels, rescaled with the crop, and gets `flow` after
+    # (`_cropped`).
+    crop = augment.from_config(savi.get('random_resized_crop'))
+    target_fields = tuple(
+        flow_depth.BACKWARD_FLOW if crop and t == targets_lib.FLOW
+        else t.field for t in self.targets if t != targets_lib.RGB)
     clip = np.zeros((1, savi.clip_length, *self.resolution, 3), np.float32)
     # The shapes of the conditional initialiser do not depend on the number
     # of box rows.
@@ -290,13 +300,32 @@ class Savi(SlotModel):
             config.seed, config.data.to_dict(), NAME,
             _without_added_defaults(savi)),
         init=savi.init,
-        images=_training_images(self.model, self.targets)),)
+        images=_training_images(self.model, self.targets),
+        transform=None if crop is None else functools.partial(
+            _cropped, crop=crop)),)
+
+  def _missing_fields(self, fields: list[str], videos: str) -> str:
+    """The line of target fields the videos lack, with the fix the dataset
+    knows (MOVi: convert again; the OBJ3D-like family: generate them)."""
+    data = self.config.data
+    names = target_names(self.section)
+    dataset = datasets.DATASETS.get(data.name)
+    fixes = [] if dataset is None else [
+        dataset.field_fix(data, field) for field in fields]
+    line = (f'savi.targets={names!r} reconstructs '
+            f'{", ".join(map(repr, fields))}, but {videos} of '
+            f'data.name={data.name!r} have no such field')
+    if fixes and all(fixes):
+      return f'{line}: {"; ".join(dict.fromkeys(fixes))}'
+    return (f'{line} (slotformer_jax/targets.py says what each must hold); '
+            "use --config.savi.targets='(\"rgb\",)' or data that has them")
 
   def check_config(self, stages: frozenset[str]) -> list[str]:
-    """At least one target; the encoder Transformer's width a multiple of
-    its heads; the frame size the decoder can produce (known from the
-    config alone; found at the first training step otherwise, after making
-    the data)."""
+    """At least one target, in the videos when the dataset knows their
+    fields without the data (a generated one); the crop's settings; the
+    encoder Transformer's width a multiple of its heads; the frame size the
+    decoder can produce (known from the config alone; found at the first
+    training step otherwise, after making the data)."""
     del stages
     problems = []
     names = target_names(self.section)
@@ -304,12 +333,34 @@ class Savi(SlotModel):
       problems.append(
           "savi.targets=() names no target; e.g. --config.savi.targets="
           "'(\"rgb\",)' or '(\"flow\", \"depth\")'")
+    dataset = datasets.DATASETS.get(self.config.data.name)
+    served = None
+    if dataset is not None and names:
+      try:
+        served = dataset.served_fields(self.config.data)
+      except (ValueError, TypeError):
+        served = None  # bad generation parameters: the data checks say so
+    if served is not None:
+      missing = [targets_lib.TARGETS[name].field for name in names
+                 if name in targets_lib.TARGETS
+                 and targets_lib.TARGETS[name].field not in served]
+      if missing:
+        problems.append(self._missing_fields(missing, 'the videos'))
+    problems += augment.config_problems(self.section.get(
+        'random_resized_crop'), 'savi.random_resized_crop')
     transformer = self.section.encoder.get('transformer')
     if (transformer is not None and transformer.num_layers > 0
         and transformer.qkv_size % transformer.num_heads):
       problems.append(
           f'savi.encoder.transformer.qkv_size={transformer.qkv_size} must be '
           f'a multiple of its num_heads={transformer.num_heads}')
+    predictor = self.section.predictor
+    qkv_size = predictor.get('qkv_size')
+    if (qkv_size and predictor.kind != 'residual_mlp'
+        and qkv_size % predictor.num_heads):
+      problems.append(
+          f'savi.predictor.qkv_size={qkv_size} must be a multiple of its '
+          f'num_heads={predictor.num_heads}')
     resolution, decoder = self.resolution, self.section.decoder
     sizes = decoder_resolutions(decoder.broadcast_resolution,
                                 len(decoder.features))
@@ -330,15 +381,9 @@ class Savi(SlotModel):
     if not len(source):
       return
     item = source[0]
-    missing = [t for t in self.targets if t.field not in item]
+    missing = [t.field for t in self.targets if t.field not in item]
     if missing:
-      names = target_names(self.section)
-      raise ConfigError(
-          f'savi.targets={names!r} reconstructs '
-          f'{", ".join(repr(t.field) for t in missing)}, but the {split} '
-          f'videos of data.name={self.config.data.name!r} have no such '
-          'field (slotformer_jax/targets.py says what each must hold); '
-          "use --config.savi.targets='(\"rgb\",)' or data that has them")
+      raise ConfigError(self._missing_fields(missing, f'the {split} videos'))
     if not is_conditional(self.section):
       return
     option = f'savi.initial_slots={self.section.initial_slots!r}'
@@ -393,6 +438,13 @@ class Savi(SlotModel):
 
   def image_decoder(self, params: Any) -> tuple[Any, Any]:
     return self.decoder, params[NAME]['decoder']
+
+
+def _cropped(clip: dict[str, np.ndarray], rng: np.random.Generator, *,
+             crop: augment.RandomResizedCrop) -> dict[str, np.ndarray]:
+  """A training clip through SAVi++'s random resized crop, then with its
+  backward flow as the targets' `flow` (data/augment.py)."""
+  return flow_depth.to_contract(crop(clip, rng))
 
 
 def _training_images(model: SAVi, targets: tuple[targets_lib.Target, ...]):

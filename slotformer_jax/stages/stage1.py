@@ -103,7 +103,7 @@ def part_stage(part: Part, directory: str, mesh: Mesh, source: Any, *,
         source, batch_size=local_batch_size, clip_length=part.clip_length,
         seed=seed, start_step=start_step, fields=part.batch_fields,
         process_index=jax.process_index(), process_count=jax.process_count(),
-        num_workers=reader_workers)
+        num_workers=reader_workers, transform=part.transform)
     return (part.with_batches(stream, start_step)
             if part.with_batches is not None else stream)
 

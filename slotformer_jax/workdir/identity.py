@@ -89,6 +89,14 @@ ADDED_FIELDS: dict[str, Any] = {
     'savi.encoder.mlp_size': None,
     'savi.encoder.transformer': {'num_layers': 0, 'num_heads': 4,
                                  'qkv_size': 64, 'mlp_size': 1024},
+    # SAVi++'s qkv width of the corrector and predictor; None: the slot size.
+    'savi.slot_attention.qkv_size': None,
+    'savi.predictor.qkv_size': None,
+    # SAVi++'s random resized crop, off (issue 51): the clips as read.
+    'savi.random_resized_crop': {
+        'enabled': False, 'min_object_covered': 0.75,
+        'aspect_ratio_range': [3 / 4, 4 / 3], 'area_range': [0.08, 1.0],
+        'max_attempts': 100},
 }
 
 

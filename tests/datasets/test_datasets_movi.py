@@ -2,6 +2,7 @@
 back, damaged downloads, and the whole pipeline on it (configs/movi.py)."""
 
 import json
+import re
 import os
 import subprocess
 import sys
@@ -13,6 +14,7 @@ import tensorflow_datasets as tfds
 
 import dataset_fixtures as fx
 from slotformer_jax import datasets
+from slotformer_jax import targets
 from slotformer_jax.data import media
 from slotformer_jax.datasets import movi
 from slotformer_jax.data import prepare
@@ -87,6 +89,105 @@ def test_fields_round_trip(converted):
         boxes, frames = fx.boxes_from_ids(item['segmentations'], k)
         np.testing.assert_allclose(item['boxes'][frames, k - 1], boxes,
                                    atol=1e-6)
+
+
+def _kubric_decoded(stored, value_range):
+  """Kubric's decoding (challenges/movi/movi_a.py's docstring)."""
+  low, high = value_range
+  return stored / 65535 * (high - low) + low
+
+
+def test_flow_and_depth_are_kept_and_served_decoded(converted):
+  """Stored in MOVi's encoding at the source size (the uint16 values and
+  ranges as they came), served decoded: backward / forward flow in pixels,
+  `flow` = flow_to_rgb(backward flow), `depth` = log(1 + distance), as
+  targets.py's contract says; the fixture's flows are those of its moving
+  squares."""
+  data_dir, examples = converted
+  source = _source(data_dir, 'train')
+  for item, example in zip(source, examples['train']):
+    meta = example['metadata']
+    for name in ('backward_flow', 'forward_flow'):
+      want = _kubric_decoded(example[name], meta[f'{name}_range'])
+      assert item[name].dtype == np.float32
+      np.testing.assert_allclose(item[name], want, atol=1e-4)
+    np.testing.assert_allclose(item['flow'], targets.flow_to_rgb(
+        item['backward_flow']), atol=1e-6)
+    distance = _kubric_decoded(example['depth'], meta['depth_range'])
+    np.testing.assert_allclose(item['depth'], np.log1p(distance), atol=1e-5)
+    assert item['flow'].shape == (T, SIZE, SIZE, 3)
+    assert item['depth'].shape == (T, SIZE, SIZE, 1)
+    assert not any(k.endswith('_range') for k in item)
+    # A square moving by (dy, dx): backward flow (-dy, -dx) on its pixels
+    # from frame 1 on (quantised to 1 / 65535 of the range).
+    ids = item['segmentations']
+    for k in range(1, len(example['instances']) + 1):
+      pixels = ids[1:] == k
+      if pixels.any():
+        flow = item['backward_flow'][1:][pixels]
+        np.testing.assert_allclose(flow, flow[:1].repeat(len(flow), 0),
+                                   atol=1e-3)
+    assert np.abs(item['backward_flow'][0]).max() < 1e-3  # frame 0: none
+
+
+def test_clips_of_flow_and_depth_are_cut_as_the_frames(converted):
+  data_dir, _ = converted
+  source = _source(data_dir, 'train')
+  item = source[1]
+  fields = ('video', 'flow', 'depth', 'backward_flow', 'boxes')
+  clip = source.clip(1, 2, 3, 2, fields)
+  assert tuple(clip) == fields
+  for field in fields:
+    np.testing.assert_array_equal(clip[field], item[field][2:7:2])
+
+
+def test_resized_flow_is_rescaled_and_depth_kept(converted):
+  """--resolution=16 of 32x32 MOVi: flow and depth take the pixels the
+  segmentations take; flow vectors are halved (row by 16 / 32, column by
+  16 / 32), depth values kept."""
+  data_dir, _ = converted
+  small, full = _source(data_dir, 'train', (16, 16)), _source(data_dir,
+                                                              'train')
+  item, reference = small[1], full[1]
+
+  def picked(values):
+    return np.moveaxis(media.resize_labels(np.moveaxis(values, -1, 1),
+                                           (16, 16)), 1, -1)
+
+  for name in ('backward_flow', 'forward_flow'):
+    np.testing.assert_allclose(item[name], picked(reference[name]) * 0.5,
+                               atol=2e-4)
+  np.testing.assert_allclose(item['depth'], picked(reference['depth']),
+                             atol=1e-6)
+  np.testing.assert_allclose(item['flow'], targets.flow_to_rgb(
+      item['backward_flow']), atol=1e-6)
+
+
+def test_a_folder_without_flow_reads_and_a_flow_run_is_told_to_convert(
+    tmp_path):
+  """A folder converted without flow and depth (before converter version
+  2, or from a download without them) reads as before; a run whose SAVi
+  reconstructs flow is one line naming the conversion command."""
+  from slotformer_jax.errors import ConfigError  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.slot_models.savi import Savi  # pylint: disable=g-import-not-at-top
+  from pipeline_helpers import load_config  # pylint: disable=g-import-not-at-top
+  folder = tmp_path / 'movi_a' / '1.0.0'
+  fx.write_movi(folder, shard_lengths={'train': [1]}, num_frames=T,
+                size=16, seed=1, flow_depth=False)
+  assert _convert(folder, tmp_path / 'data', '--resolution=16') == 0
+  source = _source(tmp_path / 'data', 'train', (16, 16))
+  item = source[0]
+  assert 'flow' not in item and 'depth' not in item
+  assert item['video'].shape == (T, 16, 16, 3)
+  config = load_config('movi', 'fixture')
+  config.data.data_dir = str(tmp_path / 'data')
+  config.savi.targets = ('flow', 'depth')
+  with pytest.raises(ConfigError) as raised:
+    Savi(config).check_data(source, 'train')
+  message = str(raised.value)
+  assert '\n' not in message
+  assert 'convert the download again' in message, message
+  assert '--dataset=movi' in message and 'prepared_config' in message
 
 
 def test_the_fixture_is_movi_shaped(movi_download):
@@ -319,3 +420,43 @@ def test_pipeline_trains_and_evaluates_on_movi(converted, tmp_path):
     assert len(per_step) == T - 2 and all(v is not None for v in per_step)
   assert -1 <= metrics['savi']['fg_ari'] <= 1
   assert any(p.name.endswith('.gif') for p in (workdir / 'render').iterdir())
+
+
+@pytest.mark.slow
+def test_savi_plus_plus_trains_and_evaluates_on_movi(converted, tmp_path):
+  """`configs/movi.py:savipp_fixture` on the converted fixture with its flow
+  and depth: SAVi++ (ResNet-34 + Transformer encoder, conditional on the
+  boxes, the random resized crop, flow + depth targets), extraction,
+  SlotFormer with L_I on flow + depth, evaluation, rendering, explorer."""
+  data_dir, _ = converted
+  workdir = tmp_path / 'run'
+  env = dict(os.environ, PYTHONPATH=str(ROOT), JAX_PLATFORMS='cpu',
+             SLOTFORMER_DATA_DIR=str(tmp_path / 'cache'))
+  env.pop('XLA_FLAGS', None)  # one device: the fixture's batches are 2
+  result = subprocess.run(
+      [sys.executable, '-m', 'slotformer_jax.main',
+       f'--config={ROOT / "configs" / "movi.py"}:savipp_fixture',
+       f'--workdir={workdir}', f'--config.data.data_dir={data_dir}'],
+      cwd=str(tmp_path), env=env, capture_output=True, text=True,
+      timeout=900)
+  assert result.returncode == 0, result.stderr[-3000:]
+  log = result.stderr
+  for stage in ('train_savi', 'extract_slots', 'train_slotformer', 'evaluate',
+                'render', 'explore'):
+    assert f'{stage} took' in log, stage
+  # One loss per target in both stages (SAVi's recon, SlotFormer's L_I).
+  for term in ('recon_loss_flow', 'recon_loss_depth', 'image_loss_flow',
+               'image_loss_depth'):
+    assert re.search(rf'{term}=[0-9.]+', log), term
+  metrics = json.loads((workdir / 'eval' / 'metrics.json').read_text())
+  assert metrics['protocol']['split'] == 'val'
+  assert metrics['savi']['num_videos'] == 2
+  assert -1 <= metrics['savi']['fg_ari'] <= 1
+  assert 'psnr' not in metrics['savi']  # SAVi++ decodes no frames
+  # Its pictures show every method's flow and depth (no frames decoded).
+  render = workdir / 'render'
+  assert (render / 'rollout_000.png').exists()
+  assert (render / 'rollout_000.gif').exists()
+  for name in ('fg_ari', 'fg_miou', 'ar'):
+    per_step = metrics['rollout']['slotformer'][name]['per_step']
+    assert len(per_step) == T - 2 and all(v is not None for v in per_step)

@@ -246,6 +246,108 @@ def test_an_integer_of_a_record_out_of_range_is_one_line(
                      (tmp_path / 'data').rglob('*'))
 
 
+# Flows and depth (issue 51): every way a download can get them wrong is one
+# line, before anything is written.
+
+
+def _sequence_tensor(tree, key):
+  return _features(tree)[key]['sequence']['feature']['tensor']
+
+
+@pytest.mark.parametrize('edit, needle', [
+    # Shape: three flow channels where MOVi has (delta row, delta column).
+    (lambda t: _sequence_tensor(t, 'backward_flow').update(
+        shape={'dimensions': ['16', '16', '3']}), 'backward_flow is declared '
+     "as ((3, 16, 16, 3), 'uint16')"),
+    # Dtype: a float32 flow, an 8-bit depth.
+    (lambda t: _sequence_tensor(t, 'forward_flow').update(dtype='float32'),
+     "forward_flow is declared as ((3, 16, 16, 2), 'float32')"),
+    (lambda t: _features(t)['depth']['sequence']['feature']['image'].update(
+        dtype='uint8'), "depth is declared as ((3,), (16, 16, 1), 'uint8')"),
+    # A range of another shape, or none.
+    (lambda t: _features(t)['metadata']['featuresDict']['features'][
+        'depth_range']['tensor'].update(shape={'dimensions': ['3']}),
+     'MOVi stores it as 3 uint16 frames of 16x16x1 with a float32 (2,) '
+     'metadata/depth_range'),
+    (lambda t: _features(t)['metadata']['featuresDict']['features'].pop(
+        'backward_flow_range') and None, 'with range None'),
+])
+def test_flow_and_depth_declared_otherwise_are_one_line(
+    movi_download, tmp_path, capsys, edit, needle):
+  source = _copy(movi_download, tmp_path)
+  _edit_json(source / 'features.json', edit)
+  assert _convert(source, tmp_path / 'data') == 1
+  line = _one_error_line(capsys)
+  assert needle in line, line
+  assert not (tmp_path / 'data' / 'movi_a').exists()
+
+
+def _flow_values(key, edit):
+  def rewrite(features):
+    values = features[key].int64_list.value
+    edit(values)
+  return rewrite
+
+
+def _range(key, values):
+  def rewrite(features):
+    field = features[f'metadata/{key}'].float_list.value
+    del field[:]
+    field.extend(values)
+  return rewrite
+
+
+def _depth_frame(frame):
+  def rewrite(features):
+    features['depth'].bytes_list.value[1] = frame(
+        features['depth'].bytes_list.value[1])
+  return rewrite
+
+
+@pytest.mark.parametrize('edit, needle', [
+    # Size: a value short, or a frame's worth too many.
+    (_flow_values('backward_flow', lambda v: v.pop()), 'backward_flow'),
+    (_flow_values('forward_flow', lambda v: v.extend([0] * 512)),
+     'forward_flow'),
+    # Range of a uint16: 65536 and -1 are refused before any cast.
+    (_flow_values('backward_flow', lambda v: v.__setitem__(5, 65536)),
+     'backward_flow holds 65536, outside [0, 65535]'),
+    (_flow_values('forward_flow', lambda v: v.__setitem__(0, -1)),
+     'forward_flow holds -1, outside [0, 65535]'),
+    # The stored ranges: reversed, NaN, infinite, negative depth, too long.
+    (_range('backward_flow_range', [3.0, -3.0]),
+     'backward_flow_range is [3, -3], not a range'),
+    (_range('forward_flow_range', [float('nan'), 1.0]),
+     'forward_flow_range is [nan, 1], not a range'),
+    (_range('backward_flow_range', [-1.0, float('inf')]),
+     'backward_flow_range is [-1, inf], not a range'),
+    (_range('depth_range', [-2.0, 9.0]),
+     'depth_range is [-2, 9], not a range 0 <= low'),
+    (_range('depth_range', [1.0, 2.0, 3.0]), 'depth_range'),
+    # Depth frames: 8-bit where MOVi has 16, another size.
+    (_depth_frame(lambda _: fx.png_bytes(np.zeros((16, 16, 1), np.uint8))),
+     'a PNG of uint8 values, features.json says uint16'),
+    (_depth_frame(lambda data: _png_claiming(data, 32, 16)),
+     'a 16x32 frame (its PNG header), features.json says 16x16'),
+])
+def test_flow_and_depth_of_a_record_are_checked_in_one_line(
+    movi_download, tmp_path, capsys, edit, needle):
+  """A record whose flows or depth have the wrong size, values outside
+  uint16, a range that is not one, or depth frames of another bit depth
+  or size: one line naming the record; no shard is finished, no dataset
+  written."""
+  source = _copy(movi_download, tmp_path)
+  _rewrite_record(source, edit)
+  assert _convert(source, tmp_path / 'data') == 1
+  line = _one_error_line(capsys)
+  assert 'record 0' in line and needle in line, line
+  assert 'download this file again' in line
+  written = [p.name for p in (tmp_path / 'data').rglob('*') if p.is_file()]
+  assert 'dataset_info.json' not in written
+  assert not [n for n in written
+              if 'array_record' in n and not n.endswith('.tmp')], written
+
+
 # --------------------------------------------------------------------------
 # CLEVRER questions and vocabularies
 # --------------------------------------------------------------------------

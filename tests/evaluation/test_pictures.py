@@ -164,3 +164,33 @@ def test_decoding_is_announced_only_when_frames_are_generated(
   assert ('render: M generates' in caplog.text) == expected
   if expected:
     assert '640 sequential passes on CPU -- minutes per video' in caplog.text
+
+
+def test_target_rows_draw_flow_in_colour_and_depth_on_one_labelled_scale():
+  """A SAVi reconstructing flow and depth: one row per method and target;
+  depth on the first method's scale for every method, its range in the
+  label; flow [-1, 1] -> [0, 1] colours."""
+  from slotformer_jax import targets as targets_lib  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.evaluation import visualize  # pylint: disable=g-import-not-at-top
+  rng = np.random.default_rng(0)
+  shape = (3, 4, 4)
+  out = {f'{m} targets': {
+      'flow': rng.uniform(-1, 1, shape + (3,)).astype(np.float32),
+      'depth': rng.uniform(low, low + 1, shape + (1,)).astype(np.float32)}
+         for m, low in (('slotformer', 1.0), ('copy_last', 3.0))}
+  labels = {'slotformer': 'SlotFormer', 'copy_last': 'copy-last'}
+  rows = visualize.target_rows(targets_lib.of(('flow', 'depth')), out,
+                               ['slotformer', 'copy_last'], labels)
+  low, high = targets_lib.depth_range(out['slotformer targets']['depth'])
+  scale = f'\n{low:.2g}..{high:.2g}'
+  flow, depth = targets_lib.TARGETS['flow'], targets_lib.TARGETS['depth']
+  assert list(rows) == [
+      f'SlotFormer {flow.label}', f'copy-last {flow.label}',
+      f'SlotFormer {depth.label}{scale}', f'copy-last {depth.label}{scale}']
+  for picture in rows.values():
+    assert picture.shape == shape + (3,)
+    assert 0.0 <= picture.min() and picture.max() <= 1.0
+  np.testing.assert_allclose(rows[f'SlotFormer {flow.label}'],
+                             (out['slotformer targets']['flow'] + 1) / 2)
+  # copy-last's depth lies above SlotFormer's range: white on that scale.
+  assert np.all(rows[f'copy-last {depth.label}{scale}'] == 1.0)

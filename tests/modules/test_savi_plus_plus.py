@@ -184,5 +184,37 @@ def test_parameter_counts_of_the_docs_table():
       'encoder': 83_744, 'initializer': 34_176, 'corrector': 189_888,
       'predictor': 132_480, 'decoder': 513_156}
   assert counts.our_parts('SAVi++') == {
-      'encoder': 21_975_744, 'initializer': 34_176, 'corrector': 198_144,
-      'predictor': 329_856, 'decoder': 513_221}
+      'encoder': 21_975_744, 'initializer': 34_176, 'corrector': 280_064,
+      'predictor': 395_776, 'decoder': 513_221}
+
+
+def test_qkv_size_widens_attention_and_none_keeps_the_tree():
+  """SAVi++'s 256-wide corrector and predictor on 128-d slots: the
+  projections (and the GRU's input) take qkv_size; None is the slot size,
+  the parameter tree and values of before."""
+  from slotformer_jax.modules.slot_attention import SlotAttention  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.modules.transitions import SlotTransition  # pylint: disable=g-import-not-at-top
+  slots = jnp.ones((2, 3, 128))
+  inputs = jax.random.normal(jax.random.key(0), (2, 5, 32))
+  key = jax.random.key(1)
+  wide = SlotAttention(1, 256, qkv_size=256)
+  params = wide.init(key, slots, inputs)['params']
+  assert params['key']['kernel'].shape == (32, 256)
+  assert params['query']['kernel'].shape == (128, 256)
+  assert params['gru']['ir']['kernel'].shape == (256, 128)
+  assert wide.apply({'params': params}, slots, inputs).shape == slots.shape
+  default, same = SlotAttention(1, 256), SlotAttention(1, 256, qkv_size=128)
+  p_default = default.init(key, slots, inputs)
+  p_same = same.init(key, slots, inputs)
+  assert jax.tree_util.tree_all(jax.tree_util.tree_map(
+      lambda a, b: a.shape == b.shape and bool(jnp.all(a == b)),
+      p_default, p_same))
+  np.testing.assert_array_equal(default.apply(p_default, slots, inputs),
+                                same.apply(p_same, slots, inputs))
+  predictor = SlotTransition(num_layers=1, num_heads=4, mlp_size=64,
+                             qkv_size=256)
+  params = predictor.init(key, slots)['params']
+  attention = params['transformer']['block_0']['attention']
+  assert attention['query']['kernel'].shape == (128, 4, 64)
+  assert attention['out']['kernel'].shape == (4, 64, 128)
+  assert predictor.apply({'params': params}, slots)[0].shape == slots.shape

@@ -50,6 +50,13 @@ def _source(config, fields, length, num_videos=4):
                                 config.dvae.vocab_size).token_grid
       item['tokens'] = rng.integers(0, 8, (length, grid[0] * grid[1]),
                                     dtype=np.uint16)
+    for name, channels in (('flow', 3), ('depth', 1)):
+      if name in fields:  # targets.py's contract: float32 [T, H, W, C]
+        item[name] = rng.uniform(0, 1, (length, height, width, channels)
+                                 ).astype(np.float32)
+    if 'boxes' in fields:
+      item['boxes'] = rng.uniform(0, 1, (length, fields['boxes'], 4)
+                                  ).astype(np.float32)
     if 'slots' in fields:
       num_slots, slot_size = fields['slots']
       item['slots'] = rng.normal(size=(length, num_slots, slot_size)).astype(
@@ -60,7 +67,7 @@ def _source(config, fields, length, num_videos=4):
 
 @pytest.mark.parametrize('variant,step', [
     ('tiny', 'savi'), ('tiny', 'slotformer'), ('steve_tiny', 'dvae'),
-    ('steve_tiny', 'steve')])
+    ('steve_tiny', 'steve'), ('flow_tiny', 'savi')])
 def test_batch_spec_is_what_the_stage_yields(variant, step, tmp_path):
   """The benchmark's abstract batch has the shapes and dtypes of the batch
   the real stage's data stream yields (else it compiles another program)."""
@@ -68,10 +75,15 @@ def test_batch_spec_is_what_the_stage_yields(variant, step, tmp_path):
   config = load_config('synthetic', variant)
   mesh = sharding.make_mesh()
   length = 12
+  fields = {}
+  if variant == 'flow_tiny':  # SAVi++'s targets, conditional on the boxes
+    config.savi.initial_slots = 'boxes'
+    fields = {'flow': 3, 'depth': 1, 'boxes': config.data.max_instances}
   slot_model = slot_models.get(config)
   if step in ('savi', 'dvae'):
     stage = stage1.part_stage(slot_model.part(step), '/unused', mesh,
-                              _source(config, {}, length), seed=config.seed)
+                              _source(config, fields, length),
+                              seed=config.seed)
   elif step == 'steve':
     stage = stage1.part_stage(slot_model.part(step), '/unused', mesh,
                               _source(config, {'tokens': 1}, length),
