@@ -151,5 +151,5 @@ def test_every_variant_passes_the_checks_of_its_whole_run(variant):
   assert config_checks.check_field_shapes(config) == []
   assert slot_models.get(config).check_config(frozenset()) == []
   run = Run.create(config, '/nonexistent/run')
-  run.check(stages.selected_stages(run, 'all'), num_devices=1,
-            num_processes=1)
+  stages.check(run, stages.selected_stages(run, 'all'), num_devices=1,
+               num_processes=1)

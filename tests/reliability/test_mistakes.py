@@ -186,6 +186,8 @@ def test_an_unknown_variant_lists_the_known_ones(path):
   message = str(error.value)
   assert '\n' not in message and os.path.basename(path) in message
   known = [v for v in _variants(path) if v]
+  if os.path.basename(path) == 'movi.py':  # words joined: it lists the words
+    known = [w for v in known for w in v.split('_')]
   if known:
     assert 'no_such_variant' in message
     for variant in known:
