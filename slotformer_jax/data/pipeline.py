@@ -6,17 +6,13 @@ or extracted slots ``{'slots': float32 [T, N, D], ...}``); 0-d entries
 (per-video scalars such as ``num_objects``) are passed through unsliced.
 Videos may have different lengths.
 
-* :func:`train_batches`: an infinite stream of random clips; the global
-  batch of step ``s`` is a pure function of ``(seed, s, global batch size)``
-  and the data, so a run resumed at ``start_step=k`` sees exactly the
-  batches an uninterrupted run sees from step ``k``, and the split of the
-  global batch over hosts does not change it. Batches are built in a
-  background thread, or in ``num_workers`` worker processes
-  (``data.reader_workers``; data/workers.py) that yield the same stream.
-* :func:`eval_batches`: every video of the host's shard once, in order, in
-  fixed-shape batches padded at the end and marked by a ``mask``.
-* :func:`host_batches`: the same plan as indices only (for loops that read
-  videos of different lengths themselves, e.g. slot extraction).
+* :func:`train_batches`: random clips; step ``s``'s global batch is a pure
+  function of ``(seed, s, global batch size)`` and the data (a resumed run
+  sees the same batches), built in a thread or in worker processes
+  (``data.reader_workers``; data/workers.py) that yield the same stream;
+* :func:`eval_batches`: every video of the host's shard once, in padded
+  fixed-shape batches marked by a ``mask``; :func:`host_batches`: that
+  plan as indices only.
 
 Multi-host (batch sizes are per host, ``B``; the global batch is ``P * B``):
 

@@ -1,80 +1,21 @@
 """Kubric's MOVi (MOVi-A ... MOVi-F, TFDS): the datasets (one name per
 variant, one converter), their layout and conversion.
 
-Published layout: a TFDS version folder, as on Kubric's public bucket
-(``gs://kubric-public/tfds/movi_a/128x128/1.0.0``; 256x256 too)::
+Source: a TFDS version folder as on Kubric's public bucket
+(``dataset_info.json``, ``features.json``, ``movi_<x>-<split>.tfrecord-*``),
+read without TensorFlow (``data/tfrecord.py``, TFDS's NumPy Example parser
+with specs from the download's ``features.json``, PIL for the PNGs).
 
-    <source>/
-      dataset_info.json    # name ('movi_a'), splits and their shard lengths
-      features.json        # the feature tree (Kubric's challenges/movi/movi_*.py)
-      movi_a-train.tfrecord-00000-of-NNNNN ...        # ~9,750 videos
-      movi_a-validation.tfrecord-00000-of-NNNNN ...   #    250
-      movi_a-test.tfrecord-...   # MOVi-C/D/E only: held-out objects
-
-Every record is a serialized ``tf.train.Example``. What this converter
-reads (T = 24 frames, n = the video's instances, h x w the source size):
-
-* ``video``: T PNG frames (a ``tfds.features.Video``), RGB uint8.
-* ``segmentations``: T PNG frames uint8 [h, w, 1]: 0 = background, k =
-  instance k - 1.
-* ``instances/positions``, ``velocities``: float32 [n, T, 3], world
-  coordinates; ``instances/image_positions``: float32 [n, T, 2] in [0, 1].
-* ``instances/bboxes``: per instance the boxes (ymin, xmin, ymax, xmax),
-  normalised with pixel edges (Kubric's ``compute_bboxes``), of the frames
-  listed in ``instances/bbox_frames`` (where the instance is visible); both
-  ragged (``ragged_flat_values`` + ``ragged_row_lengths_0``).
-* ``metadata/num_instances``, ``metadata/video_name``.
-* ``forward_flow``, ``backward_flow``: uint16 [T, h, w, 2] (a Sequence of
-  Tensors, int64 lists in the proto), (delta row, delta column) in pixels
-  of h x w; ``depth``: T 16-bit PNG frames [h, w, 1], the distance from the
-  camera centre; each with its per-video range
-  ``metadata/<name>_range`` float32 (low, high): value = stored / 65535 *
-  (high - low) + low (Kubric's encoding, ``data/flow_depth.py``). Kept when
-  the download has them (every MOVi variant does).
-
-Everything else (normals, object coordinates, camera, events, labels) is
-left out. The records are read without TensorFlow: the framing
-and its CRC32C by ``tfrecord.py``, the Example protos by TFDS's NumPy
-parser (``tfds.core.example_parser.ExampleParserNp``) with tensor specs
-derived from the dataset's own ``features.json`` (read as JSON: TFDS's
-``Video`` connector cannot be built without TensorFlow), the PNGs by PIL.
-
-Stored item (one per record, records in shard order; M rows for instances,
-row k - 1 = segmentation id k):
-
-* ``video``: uint8 [T, H, W, 3], resized with PIL's antialiased bilinear
-  filter when H x W is not the source size (SAVi resizes with TF's bilinear).
-* ``segmentations``: uint8 [T, H, W], the MOVi ids, resized by nearest
-  neighbour (Kubric's own subsampling picks the same pixels at factors of 2);
-  ids above M become background, as SAVi's ``sparse_to_dense_annotation``.
-* ``boxes``: float32 [T, M, 4] MOVi's boxes (normalised, so resolution-free;
-  (0, 0, 0, 0) where the instance is not visible, SAVi's padding);
-  ``visible``: bool [T, M] (the frame is in the instance's bbox_frames). The
-  layout of CLEVRER's converted boxes, which AR reads (evaluation.ar_gt_boxes
-  = 'object_masks').
-* ``positions``, ``velocities``: float32 [T, M, 3]; ``image_positions``:
-  float32 [T, M, 2] (zeros for padding rows).
-* ``num_instances``: int32, the instances of the video (before any crop to
-  M); ``video_name``.
-* ``forward_flow``, ``backward_flow``: uint16 [T, H, W, 2] and ``depth``:
-  uint16 [T, H, W, 1] in MOVi's encoding, each with ``<name>_range``
-  float32 [2] (read back decoded: ``data/flow_depth.py``). Resized, they
-  take the pixels the segmentations take (nearest neighbour: Kubric's own
-  256 -> 128 subsampling of flow and depth, and every pixel's flow and
-  depth stay those of the object its id names, where an interpolation
-  would blend an object's with the background's at its edges); flows are
-  then rescaled, row by H / h, column by W / w (as SAVi's resize and crop
-  ops), and encoded again with their new range; depth keeps its values.
-
-Splits: MOVi's 'train', 'validation' and (C/D/E) 'test' become 'train',
-'val' and 'test'. M = ``--max_objects``, by default the variant's most
-instances per video (10 for MOVi-A/B/C, 23 for D/E/F, as SAVi's configs).
-
-A damaged download stops the conversion with one line naming the file: a
-shard missing from the list in dataset_info.json, a truncated shard or a
-failed length checksum (found before anything is converted), a failed data
-checksum or an unreadable Example / PNG in a record (found when it is
-converted; re-running after fixing the file resumes).
+Stored item (one per record, M rows for instances, row k - 1 = segmentation
+id k): ``video`` uint8 [T, H, W, 3], ``segmentations`` uint8 [T, H, W],
+``boxes`` float32 [T, M, 4] + ``visible`` bool [T, M] (CLEVRER's layout,
+which AR reads), ``positions`` / ``velocities`` [T, M, 3],
+``image_positions`` [T, M, 2], ``num_instances``, ``video_name``; and when
+the download has them, ``forward_flow`` / ``backward_flow`` uint16
+[T, H, W, 2] and ``depth`` uint16 [T, H, W, 1] in Kubric's encoding with
+their ``<name>_range`` (decoded on reading: ``data/flow_depth.py``).
+Splits: 'train', 'validation' -> 'val', 'test' (C/D/E). What is read, how
+it is resized and what a damaged download gives: docs/datasets.md, "MOVi".
 """
 
 from __future__ import annotations

@@ -3,40 +3,19 @@
 OBJ3D (G-SWM; SlotFormer appendix "Dataset Details") shows CLEVR-like scenes:
 3 to 5 static objects, then a sphere launched from the front of the scene that
 collides with them; the objects are large and all visible in the first frame.
-This module reproduces that recipe so the whole training stack can be run and
-tested without downloading anything:
+This module reproduces that recipe so the whole stack runs without a
+download: `sample_scene` draws a scene, `simulate_and_render` runs it in
+pybullet and renders it with the TinyRenderer, `generate_video` is
+deterministic per (seed, split, index), and `generate` writes the splits
+into a folder named by every parameter (`SyntheticConfig`). The CLEVRER-like
+and contact datasets reuse SHAPES / COLORS / SIZES.
 
-* :func:`sample_scene` draws a scene (shapes, colours, sizes, placement, launch)
-  from a ``np.random.Generator``;
-* :func:`simulate_and_render` runs it through pybullet (a real rigid-body
-  engine, DIRECT mode, fixed time step and substeps) and renders every frame
-  with pybullet's CPU TinyRenderer, returning RGB, instance masks, boxes, ...;
-* :func:`generate_video` ties the two together, deterministically per
-  ``(seed, split, index)``;
-* :func:`generate` writes the three splits (:func:`features`) once as a
-  chunked ``array_record`` TFDS folder (``data/chunked.py``) into a cache
-  folder whose name encodes every generation parameter
-  (:class:`SyntheticConfig`), if needed (the data stage runs it, under a
-  lock); ``data.name='synthetic'``. The stored ``shapes`` / ``colors`` /
-  ``sizes`` ids index SHAPES / COLORS / SIZES (the CLEVRER-like and contact
-  datasets reuse its objects, hence these names).
-
-Coordinates: world x points right, y away from the camera (into the scene), z up;
-lengths are metres, time is seconds.
-
-Object ids: object ``k`` (1-based) in the masks is row ``k - 1`` of every
-per-object array. Static objects come first, the launched sphere is the last
-real object (id ``num_objects``); rows ``num_objects ..`` are padding.
-
-Flow and depth (``data.with_flow_depth=True``; off by default, when the data,
-its folder name and its generation time are what they were): exact, from the
-simulator. Depth is the renderer's depth buffer back-projected through the
-camera, as the distance from the camera centre (MOVi's depth); the flow of a
-pixel of frame t is its surface point moved with its object's rigid motion
-(position and orientation) to frame t - 1 (backward) or t + 1 (forward)
-and projected, minus where it is now; the floor's is zero (the camera is
-static). Stored as MOVi stores them (``data/flow_depth.py``), with the
-objects' ``orientations``.
+Coordinates: world x right, y away from the camera, z up; metres, seconds.
+Object k (1-based) in the masks is row k - 1 of every per-object array;
+the launched sphere is the last real object; later rows are padding.
+`data.with_flow_depth=True` adds exact depth and optical flow from the
+simulator (off by default: the data and folder are those of before;
+docs/datasets.md, "Optical flow and depth").
 """
 
 from __future__ import annotations
