@@ -22,7 +22,6 @@ import numpy as np
 from PIL import Image
 from PIL import ImageDraw
 
-from slotformer_jax.datasets import synthetic_phyre as phyre_like_data
 from slotformer_jax.modules import readouts
 from slotformer_jax.tasks import planning
 from slotformer_jax.tasks import readout as readout_lib
@@ -48,7 +47,7 @@ def task_splits(data: ml_collections.ConfigDict,
                 ) -> dict[str, list[phyre_world.Task]]:
   """'train', 'dev' (`readout.dev_share` of the training tasks) and 'test'
   tasks of the embedded tasks of the `data` section."""
-  generation = phyre_like_data.config_from_data_config(data)
+  generation = phyre_world.config_from_data_config(data)
   splits = phyre_world.split_tasks(generation)
   rng = np.random.default_rng([generation.seed, 19, generation.fold])
   train = list(splits['train'])
@@ -83,7 +82,7 @@ def candidate_scores(model, params, task_features, num_candidates):
 
 def write_ranking_picture(path: str, task: phyre_world.Task,
                           scores: np.ndarray, outcomes: np.ndarray,
-                          generation: phyre_like_data.PhyreLikeConfig,
+                          generation: phyre_world.PhyreLikeConfig,
                           top: int = 5) -> None:
   """The ``top`` best-scored valid candidates of a task, one row each: the
   simulated rollout (every other frame) with its score and outcome."""
