@@ -158,8 +158,8 @@ def get_config(variant: str = 'a'):
     raise ValueError(
         f'unknown MOVi variant {variant!r}; words joined by "_": a MOVi '
         f'letter ({", ".join(MAX_INSTANCES)}), a SAVi model '
-        f'({", ".join(MODELS)}), "uncond", "fixture" (e.g. "a", '
-        '"savipp", "savim_c_uncond")')
+        f'({", ".join(MODELS)}), "uncond", "fixture"; e.g. '
+        f'{", ".join(VARIANTS)}')
   model = models[0] if models else None
   fixture = 'fixture' in words
   letter = letters[0] if letters else (
