@@ -141,6 +141,12 @@ def fingerprint(fields: dict[str, Any]) -> str:
                         ).hexdigest()[:16]
 
 
+# Added fields whose absence from an old workdir matches any new value (the
+# seed count and the task were told by other fields then); for every other
+# field the absence stands for its ADDED_FIELDS value, None included.
+_ABSENT_MATCHES_ANY = frozenset({'seeds', 'task'})
+
+
 def flat_differences(old: Any, new: Any, prefix: str = '') -> list[str]:
   """['savi.learning_rate: 0.0002 -> 0.001', ...] between nested dicts (a
   field of `ADDED_FIELDS` absent from `old` at its old value is none)."""
@@ -149,7 +155,7 @@ def flat_differences(old: Any, new: Any, prefix: str = '') -> list[str]:
     for key in sorted(set(old) | set(new)):
       name = f'{prefix}.{key}' if prefix else key
       if key not in old:
-        if name in ADDED_FIELDS and (ADDED_FIELDS[name] is None
+        if name in ADDED_FIELDS and (name in _ABSENT_MATCHES_ANY
                                      or plain(new[key]) == ADDED_FIELDS[name]):
           continue
         out.append(f'{name}: (absent) -> {new[key]!r}')

@@ -279,6 +279,19 @@ def test_a_workdir_from_before_an_added_field_stays_usable(tmp_path):
     accept(config, workdir)
 
 
+def test_an_added_field_whose_old_value_is_none_is_still_compared():
+  """A workdir from before `qkv_size` existed had the slot size (None):
+  another width set now is a change, not a match."""
+  old = {'savi': {'slot_attention': {'num_iterations': 1}}}
+  same = {'savi': {'slot_attention': {'num_iterations': 1, 'qkv_size': None}}}
+  wider = {'savi': {'slot_attention': {'num_iterations': 1, 'qkv_size': 256}}}
+  assert identity_lib.flat_differences(old, same) == []
+  assert identity_lib.flat_differences(old, wider) == [
+      'savi.slot_attention.qkv_size: (absent) -> 256']
+  # The task was told by another field then: any value matches.
+  assert identity_lib.flat_differences({}, {'task': 'vqa'}) == []
+
+
 def test_run_open_reads_an_added_field_as_its_old_value(tmp_path):
   """`Run.open` of a workdir whose config.json predates fields gives them
   the values their absence stands for, so code reading them works."""
