@@ -41,7 +41,6 @@ from __future__ import annotations
 import argparse
 import io
 import json
-import os
 import resource
 import subprocess
 import sys
@@ -50,7 +49,6 @@ import time
 import zipfile
 from pathlib import Path
 
-import numpy as np
 
 _MIB = 1 << 20
 P = 2**61 - 1  # ints that differ by a multiple of it hash alike

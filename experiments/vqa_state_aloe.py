@@ -39,7 +39,6 @@ import dataclasses
 import functools
 import importlib.util
 import json
-import os
 import re
 import time
 from collections.abc import Mapping, Sequence

@@ -32,7 +32,7 @@ import numpy as np
 import optax
 
 from slotformer_jax.data.pipeline import host_rows
-from slotformer_jax.data.vqa import DESCRIPTIVE, QUESTION_TYPES
+from slotformer_jax.data.vqa import QUESTION_TYPES
 from slotformer_jax.data.vqa import EncodedQuestion
 from slotformer_jax.modules.aloe import Aloe
 
