@@ -1,35 +1,18 @@
 """Optical flow and depth: how datasets store them, and how a source serves
 them as the slot models' targets (`slotformer_jax/targets.py`'s contract).
 
-Stored (Kubric's MOVi encoding, which the MOVi converter keeps and the
-embedded OBJ3D-like generator writes with ``data.with_flow_depth``)::
+Stored in Kubric's MOVi encoding: ``forward_flow`` / ``backward_flow``
+uint16 [T, H, W, 2] and ``depth`` uint16 [T, H, W, 1], each with its
+per-video ``<name>_range`` float32 [2]; value = stored / 65535 *
+(high - low) + low. Flows are (delta row, delta column) in pixels; depth
+is the distance from the camera centre.
 
-    forward_flow, backward_flow   uint16 [T, H, W, 2]  + <name>_range float32 [2]
-    depth                         uint16 [T, H, W, 1]  + depth_range  float32 [2]
-
-    value = stored / 65535 * (high - low) + low     (high, low = the range)
-
-Flows are (delta row, delta column) in pixels of the stored H x W: the
-backward flow of a pixel of frame t points to where its surface point was in
-frame t - 1 (zero in frame 0), the forward flow to where it is in frame
-t + 1 (zero in the last frame). Depth is the distance from the camera centre
-in scene units (not the z-buffer's distance to the camera plane). The
-ranges are per video. Two bytes per value keep a converted or generated
-folder small (float32 would double it) and lose about half a step,
-(high - low) / 131070.
-
-Served (:func:`serve`, which ``Dataset.open`` applies to a folder storing
-them): the stored fields decoded, the ranges consumed::
-
-    flow           float32 [T, H, W, 3] in [-1, 1]: targets.flow_to_rgb of the
-                   backward flow (at the stored resolution)
-    depth          float32 [T, H, W, 1] >= 0: targets.log_plus_depth
-    backward_flow  float32 [T, H, W, 2], pixels   (what an augmentation
-    forward_flow   float32 [T, H, W, 2], pixels    rescales; data/augment.py)
-
-so every reader of a video source (SAVi's batches, SlotFormer's L_I, the
-pictures) gets `flow` and `depth` as the targets need them, cut into clips
-like the frames. Decoding happens at read time, per clip.
+Served (:func:`serve`, applied by ``Dataset.open`` to a folder storing
+them, per clip at read time): ``flow`` float32 [T, H, W, 3] in [-1, 1]
+(`targets.flow_to_rgb` of the backward flow), ``depth`` float32
+[T, H, W, 1] (`targets.log_plus_depth`), and both flows decoded in pixels
+(what data/augment.py rescales). The conventions in full:
+docs/datasets.md, "Optical flow and depth".
 """
 
 from __future__ import annotations
