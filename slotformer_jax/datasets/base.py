@@ -194,6 +194,10 @@ class ConversionOptions:
                        tuple(int(r) for r in self.resolution))
     if len(self.resolution) != 2 or min(self.resolution) < 8:
       raise ValueError(f'resolution must be (H, W) >= 8, got {self.resolution}')
+    # A dataset whose length comes from the download (MOVi) has no option.
+    num_frames = getattr(self, 'num_frames', None)
+    if num_frames is not None and num_frames < 1:
+      raise ValueError(f'num_frames must be >= 1, got {num_frames}')
 
   @property
   def params(self) -> dict[str, Any]:

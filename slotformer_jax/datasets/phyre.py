@@ -71,11 +71,6 @@ class Options(base.ConversionOptions):
   num_frames: int = 15
   version = CONVERTER_VERSION
 
-  def __post_init__(self):
-    super().__post_init__()
-    if self.num_frames < 1:
-      raise ValueError(f'num_frames must be >= 1, got {self.num_frames}')
-
 
 @dataclasses.dataclass(frozen=True)
 class RolloutJob:

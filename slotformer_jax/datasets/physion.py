@@ -126,8 +126,6 @@ class Options(base.ConversionOptions):
 
   def __post_init__(self):
     super().__post_init__()
-    if self.num_frames < 1:
-      raise ValueError(f'num_frames must be >= 1, got {self.num_frames}')
     if not 0.0 <= self.val_fraction < 1.0:
       raise ValueError(f'val_fraction must be in [0, 1), got '
                        f'{self.val_fraction}')
