@@ -20,6 +20,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 import dataclasses
+from typing import Any
 
 import numpy as np
 
@@ -68,6 +69,13 @@ def of(names: Sequence[str] | None) -> tuple[Target, ...]:
     raise ValueError(f'targets must be a non-empty selection of {NAMES}, '
                      f'each once, got {names!r}')
   return tuple(TARGETS[n] for n in names)
+
+
+def besides_frames(slot_model: Any) -> list[Target]:
+  """The targets other than the frames a slot model reconstructs (a SAVi's
+  flow / depth; none for the others), the ones pictures draw in rows of
+  their own."""
+  return [t for t in getattr(slot_model, 'targets', ()) if t != RGB]
 
 
 def channels(names: Sequence[str] | None) -> tuple[tuple[str, int], ...]:

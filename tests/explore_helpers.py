@@ -17,9 +17,12 @@ from slotformer_jax.slot_models.savi import Savi
 NUM_VIDEOS = 2
 
 
-def micro_explorer(data_dir):
-  """(config, slot model, Explorer, its arguments)."""
+def micro_explorer(data_dir, targets=None):
+  """(config, slot model, Explorer, its arguments); `targets`: the SAVi's
+  (`savi.targets`; default its frames)."""
   config = micro_config('savi', data_dir)
+  if targets is not None:
+    config.savi.targets = targets
   # A residual SlotFormer starts as copy-last, where freezing a slot
   # changes nothing: the explorer is tested on one that moves the slots.
   config.slotformer.residual = False

@@ -33,6 +33,7 @@ import numpy as np
 from PIL import Image
 
 from slotformer_jax import inference
+from slotformer_jax import targets as targets_lib
 from slotformer_jax.config.sections import DYNAMICS_MODELS
 from slotformer_jax.config.sections import SLOTFORMER
 from slotformer_jax.evaluation import evaluate
@@ -93,6 +94,25 @@ def counterfactual_rollouts(params: Any, burn_in_slots: jax.Array, *,
   return whole.reshape(videos, rows, *whole.shape[1:]), presence
 
 
+def primary_target(slot_model: Any) -> targets_lib.Target:
+  """What the page draws a method's rollout as: the frames, or the first
+  target of a slot model reconstructing no frames (SAVi with flow/depth)."""
+  if slot_model.decodes_pixels:
+    return targets_lib.RGB
+  return getattr(slot_model, 'targets', (targets_lib.RGB,))[0]
+
+
+def _shown(slot_model: Any, decoded: Any) -> tuple[jax.Array, dict[str,
+                                                                     Any]]:
+  """(the primary target's values, {name: values} of its other targets)
+  of one `Decoded`."""
+  first = primary_target(slot_model)
+  others = dict(decoded.targets or {})
+  primary = (decoded.recon if first == targets_lib.RGB
+             else others.pop(first.name))
+  return primary, others
+
+
 class Explorer:
   """Jitted (dynamics_params, slot_params, slots [V, T, N, D], video uint8
   [V, T, H, W, 3], segmentation int [V, T, H, W] or None) -> the arrays of
@@ -144,34 +164,46 @@ class Explorer:
                                              rows_presence),
         jnp.moveaxis(everything, 2, 0))
     move = lambda x: jnp.moveaxis(x, 0, 2)  # -> [V, rows, T, ...]
-    recon = move(decoded.recon)
+    # What the page draws first: the frames, or (a SAVi reconstructing no
+    # frames) its first target; the other targets as rows of their own.
+    primary, besides = _shown(self.slot_model, decoded)
+    pictures = move(primary)
     alpha = move(decoded.alpha_masks)[..., 0]  # [V, rows, T, N, H, W]
     num_cf = 1 + 2 * num_slots
     method_rows = [0, *range(num_cf, num_cf + len(others))]
     out = {
-        'methods': {name: recon[:, row] for name, row in
+        'methods': {name: pictures[:, row] for name, row in
                     zip(names, method_rows)},
         'slotformer_masks': alpha[:, 0],
-        'counterfactual': recon[:, 1:num_cf],  # [V, 2N, T, H, W, 3]
+        'counterfactual': pictures[:, 1:num_cf],  # [V, 2N, T, H, W, C]
         'counterfactual_masks': alpha[:, 1:num_cf],
+        'targets': {target: {name: move(values)[:, row] for name, row in
+                             zip(names, method_rows)}
+                    for target, values in besides.items()},
     }
     if decoded.rgb is not None:
       out['slot_rgb'] = move(decoded.rgb)[:, 0]  # [V, T, N, H, W, 3]
     out['observed_masks'], _, _ = self.slot_model.observe(
         slot_params, slots, video, None)
-    frames = video.astype(jnp.float32) / 255.0
+    frames = (None if decoded.recon is None
+              else video.astype(jnp.float32) / 255.0)
     out['video_metrics'] = {
-        name: self._rollout_metrics(recon[:, row], alpha[:, row], frames,
+        name: self._rollout_metrics(pictures[:, row], alpha[:, row], frames,
                                     segmentation)
         for name, row in zip(names, method_rows)}
     return out
 
   def _rollout_metrics(self, recon, alpha, frames, segmentation):
-    """{metric: [V, rollout]} of one method's predicted frames."""
+    """{metric: [V, rollout]} of one method's rollout: PSNR and SSIM of
+    its frames (when it decodes frames: `frames` not None), FG-ARI of its
+    masks (when the data has them)."""
     burn_in = self.burn_in
-    recon, alpha, frames = (x[:, burn_in:] for x in (recon, alpha, frames))
-    out = {'psnr': metrics_lib.psnr(recon, frames),
-           'ssim': metrics_lib.ssim(recon, frames)}
+    recon, alpha = recon[:, burn_in:], alpha[:, burn_in:]
+    out = {}
+    if frames is not None:
+      frames = frames[:, burn_in:]
+      out = {'psnr': metrics_lib.psnr(recon, frames),
+             'ssim': metrics_lib.ssim(recon, frames)}
     if segmentation is not None:
       pred = metrics_lib.segmentation_from_alpha_masks(
           alpha, bg_threshold=self.background_threshold)
@@ -218,6 +250,20 @@ def _diff_view(intervened: np.ndarray, factual: np.ndarray) -> np.ndarray:
   return np.repeat(np.clip(diff * DIFF_GAIN, 0.0, 1.0), 3, axis=-1)
 
 
+def _value_range(target: targets_lib.Target, values: np.ndarray
+                 ) -> tuple[float, float] | None:
+  """Depth's grey scale (low, high) from `values`; None for colour
+  targets."""
+  return targets_lib.depth_range(values) if target.channels == 1 else None
+
+
+def _scaled(text: str, value_range: tuple[float, float] | None) -> str:
+  """A row label, with depth's scale (low..high) when it has one."""
+  if value_range is None:
+    return text
+  return f'{text} {value_range[0]:.2g}..{value_range[1]:.2g}'
+
+
 def run_curves(path: str, identity: dict[str, Any], labels: dict[str, str]
                ) -> tuple[dict[str, Any] | None, str]:
   """({metric: {method label: per-step values}}, note) of the evaluation's
@@ -230,34 +276,70 @@ def page_data(out: dict[str, Any], videos: np.ndarray, indices: list[int],
               *, slot_model: Any, title: str, burn_in: int, rollout: int,
               split: str, explore_config: ml_collections.ConfigDict,
               identity: dict[str, Any], curves: dict[str, Any] | None,
-              curves_note: str, seconds: float) -> dict[str, Any]:
-  """The page's JSON: every frame as strip data URIs, curves, identity."""
+              curves_note: str, seconds: float,
+              truth_targets: dict[str, np.ndarray] | None = None
+              ) -> dict[str, Any]:
+  """The page's JSON: every frame as strip data URIs, curves, identity.
+
+  A slot model reconstructing flow / depth (`savi.targets`) is drawn as
+  render/ draws it: flow in SAVi's colours, depth as a grey map with its
+  range in the label; `truth_targets` ({name: [V, T, H, W, C]}, the data's
+  flow / depth where it has them) adds their rows and sets depth's scale.
+  """
   label = slot_model.label
   num_slots = out['slotformer_masks'].shape[2]
+  truth_targets = truth_targets or {}
   # jax returns dicts sorted by key: the page's order is the table's.
   methods = [name for name in (*DYNAMICS_MODELS, 'copy_last')
              if name in out['methods']]
   labels = visualize.method_labels(slot_model)
+  first = primary_target(slot_model)
+  besides = [targets_lib.TARGETS[name] for name in out.get('targets', {})]
   palette = ['#%02x%02x%02x' % tuple(int(c * 255 + 0.5) for c in colour)
              for colour in _PALETTE]
+  shown = (first, *besides)
+  # A method's decoded values of a target: [V, T, H, W, C].
+  decoded = lambda target, method: (
+      out['methods'] if target == first
+      else out['targets'][target.name])[method]
   entries = []
   for v, index in enumerate(indices):
     truth = videos[v].astype(np.float32) / 255.0
-    factual = out['methods'][SLOTFORMER][v]
-    rows = [('truth', 'truth', truth),
-            ('observed_masks', f'{label} masks',
-             frames_lib.mask_overlay(truth, out['observed_masks'][v])),
-            (SLOTFORMER, labels[SLOTFORMER], factual),
-            ('slotformer_masks', 'SlotFormer masks',
-             frames_lib.mask_overlay(factual, out['slotformer_masks'][v]))]
-    rows += [(name, labels[name], out['methods'][name][v])
-             for name in methods if name != SLOTFORMER]
+    # Depth on one grey scale per video: the data's, else SlotFormer's.
+    ranges = {target.name: _value_range(
+        target, truth_targets[target.name][v] if target.name in truth_targets
+        else decoded(target, SLOTFORMER)[v]) for target in shown}
+    draw = lambda target, values: (
+        np.asarray(values) if target == targets_lib.RGB
+        else targets_lib.picture(target, values, ranges[target.name]))
+    # Row labels: 'SlotFormer' (frames), 'SlotFormer flow', 'depth 2.1..3.1'.
+    named = lambda target, text: _scaled(
+        text if target == targets_lib.RGB else f'{text} {target.label}',
+        ranges[target.name])
+    factual = draw(first, decoded(first, SLOTFORMER)[v])
+    rows = [('truth', 'truth', truth)]
+    rows += [(f'truth/{target.name}', _scaled(target.label,
+                                              ranges[target.name]),
+              draw(target, truth_targets[target.name][v]))
+             for target in shown if target.name in truth_targets]
+    rows.append(('observed_masks', f'{label} masks',
+                 frames_lib.mask_overlay(truth, out['observed_masks'][v])))
+    for name in methods:
+      rows += [(name if target == first else f'{name}/{target.name}',
+                named(target, labels[name]),
+                factual if (target, name) == (first, SLOTFORMER)
+                else draw(target, decoded(target, name)[v]))
+               for target in shown]
+      if name == SLOTFORMER:
+        rows.append(('slotformer_masks', 'SlotFormer masks',
+                     frames_lib.mask_overlay(factual,
+                                             out['slotformer_masks'][v])))
     slots = []
     for k in range(num_slots):
       alpha = out['slotformer_masks'][v, :, k]
       if 'slot_rgb' in out:
         rgb = out['slot_rgb'][v, :, k]
-      else:  # STEVE: its generated frame where the slot's mask is
+      else:  # STEVE, flow / depth: the whole picture where the slot's mask is
         rgb = factual
       view = rgb * alpha[..., None] + (1.0 - alpha[..., None])
       slots.append({'view': _strip(view),
@@ -265,7 +347,8 @@ def page_data(out: dict[str, Any], videos: np.ndarray, indices: list[int],
     counterfactual = {}
     for i, kind in enumerate(INTERVENTIONS):
       kind_rows = slice(i * num_slots, (i + 1) * num_slots)
-      frames = out['counterfactual'][v, kind_rows]
+      frames = [draw(first, values)
+                for values in out['counterfactual'][v, kind_rows]]
       masks = out['counterfactual_masks'][v, kind_rows]
       counterfactual[kind] = [
           {'frames': _strip(frames[k]),
@@ -297,6 +380,8 @@ def page_data(out: dict[str, Any], videos: np.ndarray, indices: list[int],
       'reference': {'label': slot_model.reference_label,
                     'colour': slot_model.colour},
       'slot_views': ('decoded reconstruction x alpha' if 'slot_rgb' in out
+                     else f'decoded {first.label} x alpha'
+                     if first != targets_lib.RGB
                      else 'generated frame x attention mask'),
       'burn_in': burn_in,
       'rollout': rollout,
@@ -377,7 +462,8 @@ def explore(explore_config: ml_collections.ConfigDict,
   """
   if jax.process_index() != 0:
     return None
-  if not slot_model.decodes_pixels:
+  besides = targets_lib.besides_frames(slot_model)
+  if not slot_model.decodes_pixels and not besides:
     logger.info('explore skipped: %s decodes no pixels', slot_model.label)
     return None
   start = time.perf_counter()
@@ -385,12 +471,20 @@ def explore(explore_config: ml_collections.ConfigDict,
   rollout = eval_config.rollout_steps
   stride = dynamics_config.frame_stride
   split = eval_config.split
-  try:
-    source = open_slots(('video', evaluate.SEGMENTATION_FIELD))
-    if len(source):
-      source[0]
-  except KeyError:  # no ground-truth masks: frame metrics only
-    source = open_slots(('video',))
+  # The data's masks (FG-ARI) and flow / depth (their rows), where it has
+  # them.
+  fields = ['video', evaluate.SEGMENTATION_FIELD,
+            *(target.field for target in besides)]
+  while True:
+    source = open_slots(tuple(fields))
+    try:
+      if len(source):
+        source[0]
+      break
+    except KeyError as error:
+      if error.args[0] not in fields[1:]:
+        raise
+      fields.remove(error.args[0])
   count = min(explore_config.num_videos, len(source))
   if not count:
     logger.warning('explore: the %s split has no videos; no page written',
@@ -404,6 +498,8 @@ def explore(explore_config: ml_collections.ConfigDict,
   slots, videos = take('slots'), take('video')
   segmentation = (take(evaluate.SEGMENTATION_FIELD)
                   if evaluate.SEGMENTATION_FIELD in items[0] else None)
+  truth_targets = {target.name: take(target.field) for target in besides
+                   if target.field in items[0]}
   if slots.shape[1] < burn_in + rollout:
     raise ValueError(
         f'exploring needs {frames_needed} frames per video, the videos have '
@@ -435,7 +531,8 @@ def explore(explore_config: ml_collections.ConfigDict,
   data = page_data(out, videos, indices, slot_model=slot_model, title=title,
                    burn_in=burn_in, rollout=rollout, split=split,
                    explore_config=explore_config, identity=identity,
-                   curves=curves, curves_note=note, seconds=computed)
+                   curves=curves, curves_note=note, seconds=computed,
+                   truth_targets=truth_targets)
   path = write_outputs(directory, data, identity, indices)
   print(f'wrote {path} ({count} videos x {2 * data["num_slots"]} '
         f'counterfactual rollouts, computed in {computed:.1f} s, page in '

@@ -222,8 +222,7 @@ def render(render_config: ml_collections.ConfigDict,
   """
   if jax.process_index() != 0:
     return []
-  other_targets = [t for t in getattr(slot_model, 'targets', ())
-                   if t != targets_lib.RGB]
+  other_targets = targets_lib.besides_frames(slot_model)
   if not slot_model.decodes_pixels and not other_targets:
     logger.info('render skipped: %s decodes no pixels', slot_model.label)
     return []
@@ -240,6 +239,11 @@ def render(render_config: ml_collections.ConfigDict,
   items = [source[i] for i in range(count)]
   slots = np.stack([item['slots'][:frames_needed:stride] for item in items])
   videos = np.stack([item['video'][:frames_needed:stride] for item in items])
+  # The data's flow / depth where the source serves them (their rows).
+  truth_targets = {
+      target.name: np.stack([item[target.field][:frames_needed:stride]
+                             for item in items])
+      for target in other_targets if target.field in items[0]}
   if slots.shape[1] < burn_in + rollout:
     raise ValueError(
         f'rendering needs {frames_needed} frames per video, the videos have '
@@ -273,7 +277,9 @@ def render(render_config: ml_collections.ConfigDict,
     if out[SLOTFORMER] is not None:
       for method in methods:
         rows[labels[method]] = out[method]
-    rows.update(target_rows(other_targets, out, methods, labels))
+    rows.update(target_rows(
+        other_targets, out, methods, labels,
+        {name: values[v] for name, values in truth_targets.items()}))
     rows['SlotFormer masks'] = mask_overlay(
         truth if out[SLOTFORMER] is None else out[SLOTFORMER],
         out['slotformer_masks'])
@@ -323,19 +329,28 @@ _LABEL_WIDTH = 92
 
 
 def target_rows(targets: list[Any], out: dict[str, Any], methods: list[str],
-                labels: dict[str, str]) -> dict[str, np.ndarray]:
-  """{row label: float RGB [T, H, W, 3] in [0, 1]}: every method's decoded
-  flow / depth of one video (`out`: the renderer's, batch dim removed).
-  Depth: one grey scale for all methods, the range of the first method's
-  (SlotFormer's) depth over the video, written under the labels."""
+                labels: dict[str, str],
+                truth: dict[str, np.ndarray] | None = None
+                ) -> dict[str, np.ndarray]:
+  """{row label: float RGB [T, H, W, 3] in [0, 1]}: the data's flow / depth
+  of one video where `truth` ({name: [T, H, W, C]}) has it, then every
+  method's decoded one (`out`: the renderer's, batch dim removed). Depth:
+  one grey scale for all rows, the range of the data's depth over the video
+  (without it, of the first method's, SlotFormer's), written under the
+  labels."""
+  truth = truth or {}
   rows = {}
   for target in targets:
     decoded = {m: np.asarray(out[f'{m} targets'][target.name])
                for m in methods}
-    value_range = (targets_lib.depth_range(decoded[methods[0]])
+    value_range = (targets_lib.depth_range(
+        truth.get(target.name, decoded[methods[0]]))
                    if target.channels == 1 else None)
     scale = ('' if value_range is None  # on a line of its own
              else f'\n{value_range[0]:.2g}..{value_range[1]:.2g}')
+    if target.name in truth:
+      rows[f'{target.label}{scale}'] = targets_lib.picture(
+          target, truth[target.name], value_range)
     for method in methods:
       rows[f'{labels[method]} {target.label}{scale}'] = targets_lib.picture(
           target, decoded[method], value_range)

@@ -23,6 +23,7 @@ import os
 from typing import Any
 
 from slotformer_jax import dynamics as dynamics_lib
+from slotformer_jax import targets as targets_lib
 from slotformer_jax.config.sections import SLOTFORMER
 from slotformer_jax.config.sections import trained_dynamics
 from slotformer_jax.errors import UserError
@@ -186,7 +187,9 @@ def _render(run: Run, trained: Evaluated) -> list[str]:
       run.dynamics_section(SLOTFORMER), slot_model=run.slot_model,
       slot_params=trained.stage1.params, dynamics=trained.dynamics,
       identity=trained.identity,
-      source=run.slots(run.config.evaluation.split, ('video',)),
+      source=run.slots(run.config.evaluation.split, (
+          'video', *(target.field for target
+                     in targets_lib.besides_frames(run.slot_model)))),
       metrics_path=os.path.join(run.paths.eval, 'metrics.json'),
       output_dir=run.paths.render)
 

@@ -1,7 +1,9 @@
 """The run explorer's interventions: removing a slot from the decoder and
 from SlotFormer's context, freezing one, and the batched jitted rollout."""
 
+import base64
 import errno
+import io
 import json
 import os
 
@@ -9,11 +11,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from PIL import Image
 
 from explore_helpers import NUM_VIDEOS
 from explore_helpers import micro_explorer
 from pipeline_helpers import micro_config
+from slotformer_jax import frames as frames_lib
 from slotformer_jax import inference
+from slotformer_jax import targets
 from slotformer_jax.errors import UserError
 from slotformer_jax.evaluation import explore
 from slotformer_jax.modules.decoders import SpatialBroadcastDecoder
@@ -200,6 +205,78 @@ def test_explorer_is_jitted_once_per_shape_and_matches_the_rollouts(tmp_path):
     metrics = out['video_metrics'][method]
     assert metrics['psnr'].shape == metrics['fg_ari'].shape == (NUM_VIDEOS,
                                                                  rollout)
+
+
+def _strip_pixels(uri):
+  """A page strip's data URI -> uint8 [H, T * W, 3]."""
+  data = base64.b64decode(uri.split(',', 1)[1])
+  return np.asarray(Image.open(io.BytesIO(data)).convert('RGB'))
+
+
+def test_a_savi_of_flow_and_depth_is_explored_as_its_targets(tmp_path):
+  """A SAVi reconstructing flow + depth (no frames) gets a page: every
+  method's flow (the primary picture: rollouts, slots, counterfactuals) and
+  depth on the data's labelled grey scale, the data's flow and depth above,
+  FG-ARI curves but no PSNR / SSIM of frames it does not decode."""
+  config, slot_model, explorer, args = micro_explorer(
+      tmp_path, targets=('flow', 'depth'))
+  dynamics_params, slot_params, slots, video, segmentation = args
+  out = jax.device_get(explorer(*args))
+  burn_in, rollout = config.slotformer.burn_in, config.evaluation.rollout_steps
+  height, width = config.data.resolution
+  num_slots = slot_model.slot_shape[0]
+  frames = burn_in + rollout
+  future = inference.rollout_slots(dynamics_params['slotformer'],
+                                   slots[:, :burn_in],
+                                   model=explorer.slotformer,
+                                   num_steps=rollout)
+  whole = jnp.concatenate([slots[:, :burn_in], future], axis=1)
+  decoded = slot_model.decode(slot_params, whole)
+  np.testing.assert_allclose(out['methods']['slotformer'],
+                             decoded.targets['flow'], atol=1e-5)
+  np.testing.assert_allclose(out['targets']['depth']['slotformer'],
+                             decoded.targets['depth'], atol=1e-5)
+  assert out['counterfactual'].shape == (NUM_VIDEOS, 2 * num_slots, frames,
+                                         height, width, 3)
+  assert set(out['video_metrics']['slotformer']) == {'fg_ari'}
+
+  rng = np.random.default_rng(1)
+  truth = {'flow': rng.uniform(-1, 1, (NUM_VIDEOS, frames, height, width,
+                                       3)).astype(np.float32),
+           'depth': rng.uniform(2.0, 3.0, (NUM_VIDEOS, frames, height, width,
+                                           1)).astype(np.float32)}
+  data = explore.page_data(
+      out, video, list(range(NUM_VIDEOS)), slot_model=slot_model,
+      title='flow and depth', burn_in=burn_in, rollout=rollout,
+      split=config.evaluation.split, explore_config=config.explore,
+      identity={}, curves=None, curves_note='', seconds=0.0,
+      truth_targets=truth)
+  low, high = (f'{x:.2g}' for x in targets.depth_range(truth['depth'][0]))
+  scale = f'{low}..{high}'
+  rows = data['videos'][0]['rows']
+  assert [r['label'] for r in rows] == [
+      'truth', 'flow', f'depth {scale}', 'SAVi masks', 'SlotFormer flow',
+      f'SlotFormer depth {scale}', 'SlotFormer masks', 'Slot-LSTM flow',
+      f'Slot-LSTM depth {scale}', 'copy-last flow', f'copy-last depth {scale}']
+  assert data['slot_views'] == 'decoded flow x alpha'
+  assert set(data['videos'][0]['curves']) == {'fg_ari'}
+  by_key = {r['key']: _strip_pixels(r['strip']) for r in rows}
+  # The data's depth on its own range: black at its nearest, white at its
+  # farthest; its flow in SAVi's colours.
+  depth = by_key['truth/depth']
+  assert depth.shape == (height, frames * width, 3)
+  assert depth.min() == 0 and depth.max() == 255
+  expected_flow = frames_lib.to_uint8(targets.picture(
+      targets.FLOW, np.concatenate(list(truth['flow'][0]), axis=1)))
+  np.testing.assert_array_equal(by_key['truth/flow'], expected_flow)
+  # The counterfactual rollouts are drawn as flow too.
+  removed = data['videos'][0]['counterfactual']['remove'][0]
+  expected = frames_lib.to_uint8(targets.picture(
+      targets.FLOW, np.concatenate(list(out['counterfactual'][0, 0]),
+                                   axis=1)))
+  np.testing.assert_array_equal(_strip_pixels(removed['frames']), expected)
+  explore.write_page(str(tmp_path), data)
+  assert 'SlotFormer depth' in (tmp_path / 'index.html').read_text()
 
 
 def test_explore_settings_never_make_a_workdir_stale(tmp_path):

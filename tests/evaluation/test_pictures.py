@@ -194,3 +194,21 @@ def test_target_rows_draw_flow_in_colour_and_depth_on_one_labelled_scale():
                              (out['slotformer targets']['flow'] + 1) / 2)
   # copy-last's depth lies above SlotFormer's range: white on that scale.
   assert np.all(rows[f'copy-last {depth.label}{scale}'] == 1.0)
+
+  # With the data's flow and depth: their rows first, depth on the data's
+  # scale for every row.
+  truth = {'flow': rng.uniform(-1, 1, shape + (3,)).astype(np.float32),
+           'depth': rng.uniform(2.0, 4.0, shape + (1,)).astype(np.float32)}
+  rows = visualize.target_rows(targets_lib.of(('flow', 'depth')), out,
+                               ['slotformer', 'copy_last'], labels, truth)
+  low, high = targets_lib.depth_range(truth['depth'])
+  scale = f'\n{low:.2g}..{high:.2g}'
+  assert list(rows) == [
+      flow.label, f'SlotFormer {flow.label}', f'copy-last {flow.label}',
+      f'{depth.label}{scale}', f'SlotFormer {depth.label}{scale}',
+      f'copy-last {depth.label}{scale}']
+  np.testing.assert_allclose(rows[flow.label], (truth['flow'] + 1) / 2)
+  grey = rows[f'{depth.label}{scale}']
+  assert grey.min() == 0.0 and grey.max() == 1.0
+  # SlotFormer's depth (1..2) lies below the data's range: black.
+  assert np.all(rows[f'SlotFormer {depth.label}{scale}'] == 0.0)
