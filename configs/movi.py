@@ -55,8 +55,6 @@ the SAVi config files:
   (`tfds_name`), `targets = {"flow": 3, "depth": 1}` with
   `transform_depth(transform='log_plus')`.
 What differs from SAVi (docs/savi_plus_plus.md has the parameter counts):
-* this project's Slot Attention keeps its residual MLP (256; SAVi's MOVi
-  configs set no `corrector.mlp_size`): +66,176 parameters;
 * its position embeddings project 4 coordinates, SAVi's 2;
 * SAVi++'s `decoder.early_fusion=True` (mix the slots' decoder features by
   their masks, then read out) is a memory saving that equals late fusion
@@ -138,6 +136,7 @@ SAVI_FIELDS = {
         'model.encoder.output_transform.mlp_size',
     'savi.slot_attention.num_iterations': 'model.corrector.num_iterations',
     'savi.slot_attention.qkv_size': 'model.corrector.qkv_size',
+    'savi.slot_attention.mlp_size': 'model.corrector.mlp_size (unset: none)',
     'savi.predictor.num_heads': 'model.predictor.num_heads',
     'savi.predictor.qkv_size': 'model.predictor.qkv_size',
     'savi.predictor.mlp_size': 'model.predictor.mlp_size',
@@ -227,6 +226,7 @@ def _savi_s(config) -> None:
   savi.encoder.mlp_size = 64
   savi.slot_attention.num_iterations = 1
   savi.slot_attention.qkv_size = 128
+  savi.slot_attention.mlp_size = None  # SAVi's SlotAttention: no MLP
   savi.predictor.kind = 'transformer'
   savi.predictor.num_layers = 1
   savi.predictor.num_heads = 4

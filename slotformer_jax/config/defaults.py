@@ -173,7 +173,8 @@ def base_config() -> ml_collections.ConfigDict:
       transformer=ml_collections.ConfigDict(dict(
           num_layers=0, num_heads=4, qkv_size=64, mlp_size=1024))))
   # qkv_size (here and in the predictor): the width of the queries, keys
-  # and values; None: slot_size (SAVi++: 256 on 128-d slots).
+  # and values; None: slot_size (SAVi++: 256 on 128-d slots). mlp_size: the
+  # residual MLP after the GRU; None: none (SAVi's MOVi configs).
   savi.slot_attention = ml_collections.ConfigDict(dict(
       num_iterations=2, mlp_size=256,
       qkv_size=ml_collections.config_dict.placeholder(int)))

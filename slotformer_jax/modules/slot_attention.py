@@ -39,7 +39,8 @@ class SlotAttention(nn.Module):
 
   Attributes:
     num_iterations: attention rounds per call (2 in SlotFormer's SAVi).
-    mlp_size: hidden size of the residual MLP after the GRU.
+    mlp_size: hidden size of the residual MLP after the GRU; None: no MLP
+      (SAVi's MOVi configs set none; SlotFormer's SAVi has one).
     qkv_size: width of the queries, keys and values, and so of the updates
       the GRU reads; None: the slot size (SAVi++: 256 on 128-d slots).
     epsilon: see `inverted_attention_weights`.
@@ -49,7 +50,7 @@ class SlotAttention(nn.Module):
   """
 
   num_iterations: int = 2
-  mlp_size: int = 256
+  mlp_size: int | None = 256
   qkv_size: int | None = None
   epsilon: float = 1e-6
   layer_norm_epsilon: float = 1e-6
@@ -76,7 +77,7 @@ class SlotAttention(nn.Module):
     norm_slots = layer_norm(name='norm_slots')
     to_query = nn.Dense(qkv_size, use_bias=False, name='query')
     gru = nn.GRUCell(slot_size, name='gru')
-    mlp = nn.Sequential([
+    mlp = None if self.mlp_size is None else nn.Sequential([
         layer_norm(),
         nn.Dense(self.mlp_size),
         nn.relu,
@@ -92,7 +93,8 @@ class SlotAttention(nn.Module):
       self.sow('intermediates', 'attention', competition)
       updates = jnp.einsum('bnm,bmd->bnd', weights, values)
       slots, _ = gru(slots, updates)
-      slots = slots + mlp(slots)
+      if mlp is not None:
+        slots = slots + mlp(slots)
     if self.return_attention:
       return slots, competition
     return slots

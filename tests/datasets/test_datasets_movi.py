@@ -460,3 +460,8 @@ def test_savi_plus_plus_trains_and_evaluates_on_movi(converted, tmp_path):
   for name in ('fg_ari', 'fg_miou', 'ar'):
     per_step = metrics['rollout']['slotformer'][name]['per_step']
     assert len(per_step) == T - 2 and all(v is not None for v in per_step)
+  # So does the explorer, the data's flow and depth above them.
+  page = (workdir / 'explore' / 'index.html').read_text()
+  for row in ('"flow"', '"depth ', '"SlotFormer flow"', '"SlotFormer depth ',
+              '"copy-last flow"', 'decoded flow x alpha'):
+    assert row in page, row

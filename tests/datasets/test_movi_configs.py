@@ -34,6 +34,7 @@ COMMON = {
     'savi.slot_size': 128,                        # initializer.embedding_transform.output_size
     'savi.encoder.mlp_size': 64,                  # pos_emb.output_transform.hidden_size
     'savi.slot_attention.num_iterations': 1,      # corrector.num_iterations
+    'savi.slot_attention.mlp_size': None,         # corrector: no mlp_size, no MLP
     'savi.predictor.kind': 'transformer',         # predictor: TransformerBlock
     'savi.predictor.num_layers': 1,
     'savi.predictor.num_heads': 4,                # predictor.num_heads

@@ -63,13 +63,14 @@ SHIPPED = {
         'steve': 'a8adea6dd10b1dc9', 'dvae': 'defa1a448ee1deac'},
     # configs/movi.py follows SAVi's configs since issue 51: conditional
     # (the box MLP, no learned slots: A and D share a tree) and SAVi-S's
-    # position MLP (64 hidden, 32 out); no MOVi checkpoint existed. The
-    # unconditional fixture is the fixture of before.
-    ('movi', 'a'): {'savi': '7554f6cf11fe28ff'},
-    ('movi', 'd'): {'savi': '7554f6cf11fe28ff'},
+    # position MLP (64 hidden, 32 out), and a corrector without Slot
+    # Attention's MLP (SAVi's `mlp_size` unset); no MOVi checkpoint existed.
+    # The unconditional fixture is the fixture of before.
+    ('movi', 'a'): {'savi': 'd37836aac6aed7f5'},
+    ('movi', 'd'): {'savi': 'd37836aac6aed7f5'},
     ('movi', 'fixture'): {'savi': '72e3b856d88d436c'},
     ('movi', 'fixture_uncond'): {'savi': 'a9ebc59b8f4a1a73'},
-    ('movi', 'savipp'): {'savi': '4f5653614775c06e'},
+    ('movi', 'savipp'): {'savi': '0b632f9955ce246b'},
 }
 
 # synthetic:tiny with the `config.savi` fields of choices no shipped config

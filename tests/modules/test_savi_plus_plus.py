@@ -181,11 +181,41 @@ def test_parameter_counts_of_the_docs_table():
   for model in ('SAVi-S', 'SAVi++'):
     assert counts.savi_parts_by_hand(model) == counts.SAVI_MEASURED[model]
   assert counts.our_parts('SAVi-S') == {
-      'encoder': 83_744, 'initializer': 34_176, 'corrector': 189_888,
+      'encoder': 83_744, 'initializer': 34_176, 'corrector': 123_712,
       'predictor': 132_480, 'decoder': 513_156}
   assert counts.our_parts('SAVi++') == {
-      'encoder': 21_975_744, 'initializer': 34_176, 'corrector': 280_064,
+      'encoder': 21_975_744, 'initializer': 34_176, 'corrector': 213_888,
       'predictor': 395_776, 'decoder': 513_221}
+  # The corrector is SAVi's to the parameter (no MLP, as SAVi's configs).
+  for model in ('SAVi-S', 'SAVi++'):
+    assert (counts.our_parts(model)['corrector']
+            == counts.SAVI_MEASURED[model]['corrector'][0])
+
+
+def test_slot_attention_without_an_mlp():
+  """mlp_size=None (SAVi's MOVi configs): no residual MLP; the update is
+  the GRU's, the rest of the tree and its values those of the module with
+  an MLP."""
+  from slotformer_jax.modules.slot_attention import SlotAttention  # pylint: disable=g-import-not-at-top
+  slots = jax.random.normal(jax.random.key(2), (2, 3, 16))
+  inputs = jax.random.normal(jax.random.key(0), (2, 5, 8))
+  key = jax.random.key(1)
+  with_mlp = SlotAttention(1, 32).init(key, slots, inputs)['params']
+  without = SlotAttention(1, None).init(key, slots, inputs)['params']
+  # The MLP's layers (LN, hidden, out) are named in the module's scope.
+  mlp = {'LayerNorm_0', 'Dense_0', 'Dense_1'}
+  assert set(with_mlp) - set(without) == mlp
+  assert set(without) == set(with_mlp) - mlp
+  np.testing.assert_array_equal(without['gru']['ir']['kernel'],
+                                with_mlp['gru']['ir']['kernel'])
+  # With the MLP's last layer zeroed, both compute the same slots.
+  zeroed = dict(with_mlp)
+  zeroed['Dense_1'] = jax.tree_util.tree_map(jnp.zeros_like,
+                                             zeroed['Dense_1'])
+  np.testing.assert_allclose(
+      SlotAttention(1, None).apply({'params': without}, slots, inputs),
+      SlotAttention(1, 32).apply({'params': zeroed}, slots, inputs),
+      atol=1e-6)
 
 
 def test_qkv_size_widens_attention_and_none_keeps_the_tree():
