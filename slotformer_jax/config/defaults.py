@@ -176,7 +176,8 @@ def base_config() -> ml_collections.ConfigDict:
   # and values; None: slot_size (SAVi++: 256 on 128-d slots). mlp_size: the
   # residual MLP after the GRU; None: none (SAVi's MOVi configs).
   savi.slot_attention = ml_collections.ConfigDict(dict(
-      num_iterations=2, mlp_size=256,
+      num_iterations=2,
+      mlp_size=ml_collections.FieldReference(256, field_type=int),
       qkv_size=ml_collections.config_dict.placeholder(int)))
   # f_trans. kind: 'transformer' (over one frame's slots), 'transformer_lstm'
   # (+ a per-slot LSTM of lstm_size units and a linear layer back to D) or

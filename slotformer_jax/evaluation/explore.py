@@ -294,7 +294,9 @@ def page_data(out: dict[str, Any], videos: np.ndarray, indices: list[int],
              if name in out['methods']]
   labels = visualize.method_labels(slot_model)
   first = primary_target(slot_model)
-  besides = [targets_lib.TARGETS[name] for name in out.get('targets', {})]
+  # In the config's order (jax returns dicts sorted by key).
+  besides = [target for target in targets_lib.besides_frames(slot_model)
+             if target.name in out.get('targets', {})]
   palette = ['#%02x%02x%02x' % tuple(int(c * 255 + 0.5) for c in colour)
              for colour in _PALETTE]
   shown = (first, *besides)
