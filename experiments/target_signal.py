@@ -32,7 +32,6 @@ colour picture in [-1, 1], depth as log(1 + d)):
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import json
 import os
 
@@ -40,16 +39,9 @@ import numpy as np
 
 from slotformer_jax import datasets
 from slotformer_jax import targets
+from slotformer_jax.config.checks import load_config_file
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-
-
-def _config(path: str):
-  file, _, variant = path.partition(':')
-  spec = importlib.util.spec_from_file_location('config', file)
-  module = importlib.util.module_from_spec(spec)
-  spec.loader.exec_module(module)
-  return module.get_config(variant)
 
 
 def signal(values: np.ndarray, objects: np.ndarray) -> dict[str, float]:
@@ -78,7 +70,7 @@ def main() -> None:
   parser.add_argument('--videos', type=int, default=40)
   parser.add_argument('--json', default='')
   args = parser.parse_args()
-  config = _config(args.config)
+  config = load_config_file(args.config)
   source = datasets.get_video_source(config.data, args.split)
   items = [source[i] for i in range(min(args.videos, len(source)))]
   objects = np.stack([item['segmentations'] for item in items]) > 0

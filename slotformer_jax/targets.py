@@ -127,6 +127,22 @@ def depth_range(depth: np.ndarray) -> tuple[float, float]:
   return low, max(high, low + 1e-6)
 
 
+def grey_scale(target: Target, values: np.ndarray
+               ) -> tuple[float, float] | None:
+  """The scale a target is drawn on: depth's `depth_range` of `values`;
+  None for the colour targets (frames, flow)."""
+  return depth_range(values) if target.channels == 1 else None
+
+
+def labelled(text: str, value_range: tuple[float, float] | None,
+             separator: str = ' ') -> str:
+  """A row label with a grey scale's range ('depth 2.1..3.1') when it has
+  one."""
+  if value_range is None:
+    return text
+  return f'{text}{separator}{value_range[0]:.2g}..{value_range[1]:.2g}'
+
+
 def picture(target: Target, values: np.ndarray,
             value_range: tuple[float, float] | None = None) -> np.ndarray:
   """A target's values in its data range -> float32 RGB [..., H, W, 3] in
@@ -149,12 +165,9 @@ def picture_rows(targets: Sequence[Target], truth: Mapping[str, np.ndarray],
   for target in targets:
     if target.name == RGB.name:
       continue
-    value_range = None
-    label = target.label
-    if target.channels == 1:
-      source = truth.get(target.name, decoded[target.name])
-      value_range = depth_range(source)
-      label = f'{label} {value_range[0]:.2g}..{value_range[1]:.2g}'
+    value_range = grey_scale(
+        target, truth.get(target.name, decoded[target.name]))
+    label = labelled(target.label, value_range)
     if target.name in truth:
       rows[label] = picture(target, truth[target.name], value_range)
     rows[f'{target.label} recon.'] = picture(target, decoded[target.name],

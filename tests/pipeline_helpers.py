@@ -11,17 +11,30 @@ from slotformer_jax.workdir.paths import Paths
 from slotformer_jax.workdir.settings import accept_config
 from slotformer_jax.stages import data as data_stage
 
-CONFIGS = os.path.join(os.path.dirname(__file__), '..', 'configs')
+ROOT = os.path.join(os.path.dirname(__file__), '..')
+CONFIGS = os.path.join(ROOT, 'configs')
 SLOT_MODELS = ('savi', 'steve')
+
+
+def _load(folder, name):
+  """<repository>/<folder>/<name>.py as a module (configs and experiments
+  are scripts, not a package)."""
+  spec = importlib.util.spec_from_file_location(
+      name, os.path.join(ROOT, folder, f'{name}.py'))
+  module = importlib.util.module_from_spec(spec)
+  spec.loader.exec_module(module)
+  return module
 
 
 def load_config(name, variant=''):
   """configs/<name>.py's get_config(variant)."""
-  spec = importlib.util.spec_from_file_location(
-      name, os.path.join(CONFIGS, f'{name}.py'))
-  module = importlib.util.module_from_spec(spec)
-  spec.loader.exec_module(module)
+  module = _load('configs', name)
   return module.get_config(variant) if variant else module.get_config()
+
+
+def load_experiment(name):
+  """experiments/<name>.py as a module."""
+  return _load('experiments', name)
 
 
 def micro_config(slot_model, data_dir):

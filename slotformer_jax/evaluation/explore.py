@@ -177,9 +177,10 @@ class Explorer:
         'slotformer_masks': alpha[:, 0],
         'counterfactual': pictures[:, 1:num_cf],  # [V, 2N, T, H, W, C]
         'counterfactual_masks': alpha[:, 1:num_cf],
-        'targets': {target: {name: move(values)[:, row] for name, row in
+        'targets': {target: {name: values[:, row] for name, row in
                              zip(names, method_rows)}
-                    for target, values in besides.items()},
+                    for target, values in jax.tree.map(move,
+                                                       besides).items()},
     }
     if decoded.rgb is not None:
       out['slot_rgb'] = move(decoded.rgb)[:, 0]  # [V, T, N, H, W, 3]
@@ -250,20 +251,6 @@ def _diff_view(intervened: np.ndarray, factual: np.ndarray) -> np.ndarray:
   return np.repeat(np.clip(diff * DIFF_GAIN, 0.0, 1.0), 3, axis=-1)
 
 
-def _value_range(target: targets_lib.Target, values: np.ndarray
-                 ) -> tuple[float, float] | None:
-  """Depth's grey scale (low, high) from `values`; None for colour
-  targets."""
-  return targets_lib.depth_range(values) if target.channels == 1 else None
-
-
-def _scaled(text: str, value_range: tuple[float, float] | None) -> str:
-  """A row label, with depth's scale (low..high) when it has one."""
-  if value_range is None:
-    return text
-  return f'{text} {value_range[0]:.2g}..{value_range[1]:.2g}'
-
-
 def run_curves(path: str, identity: dict[str, Any], labels: dict[str, str]
                ) -> tuple[dict[str, Any] | None, str]:
   """({metric: {method label: per-step values}}, note) of the evaluation's
@@ -308,20 +295,20 @@ def page_data(out: dict[str, Any], videos: np.ndarray, indices: list[int],
   for v, index in enumerate(indices):
     truth = videos[v].astype(np.float32) / 255.0
     # Depth on one grey scale per video: the data's, else SlotFormer's.
-    ranges = {target.name: _value_range(
+    ranges = {target.name: targets_lib.grey_scale(
         target, truth_targets[target.name][v] if target.name in truth_targets
         else decoded(target, SLOTFORMER)[v]) for target in shown}
     draw = lambda target, values: (
         np.asarray(values) if target == targets_lib.RGB
         else targets_lib.picture(target, values, ranges[target.name]))
     # Row labels: 'SlotFormer' (frames), 'SlotFormer flow', 'depth 2.1..3.1'.
-    named = lambda target, text: _scaled(
+    named = lambda target, text: targets_lib.labelled(
         text if target == targets_lib.RGB else f'{text} {target.label}',
         ranges[target.name])
     factual = draw(first, decoded(first, SLOTFORMER)[v])
     rows = [('truth', 'truth', truth)]
-    rows += [(f'truth/{target.name}', _scaled(target.label,
-                                              ranges[target.name]),
+    rows += [(f'truth/{target.name}', targets_lib.labelled(
+        target.label, ranges[target.name]),
               draw(target, truth_targets[target.name][v]))
              for target in shown if target.name in truth_targets]
     rows.append(('observed_masks', f'{label} masks',

@@ -343,11 +343,9 @@ def target_rows(targets: list[Any], out: dict[str, Any], methods: list[str],
   for target in targets:
     decoded = {m: np.asarray(out[f'{m} targets'][target.name])
                for m in methods}
-    value_range = (targets_lib.depth_range(
-        truth.get(target.name, decoded[methods[0]]))
-                   if target.channels == 1 else None)
-    scale = ('' if value_range is None  # on a line of its own
-             else f'\n{value_range[0]:.2g}..{value_range[1]:.2g}')
+    value_range = targets_lib.grey_scale(
+        target, truth.get(target.name, decoded[methods[0]]))
+    scale = targets_lib.labelled('', value_range, '\n')  # a line of its own
     if target.name in truth:
       rows[f'{target.label}{scale}'] = targets_lib.picture(
           target, truth[target.name], value_range)

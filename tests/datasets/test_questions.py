@@ -394,14 +394,8 @@ def test_official_vocabulary_conventions():
 
 
 def test_synthetic_vqa_config_fits_every_template():
-  import importlib.util  # pylint: disable=g-import-not-at-top
-  import os  # pylint: disable=g-import-not-at-top
-  spec = importlib.util.spec_from_file_location(
-      'synthetic_vqa', os.path.join(os.path.dirname(__file__), '..', '..',
-                                    'configs', 'synthetic_vqa.py'))
-  module = importlib.util.module_from_spec(spec)
-  spec.loader.exec_module(module)
-  config = module.get_config()
+  from pipeline_helpers import load_config  # pylint: disable=g-import-not-at-top
+  config = load_config('synthetic_vqa')
   question, choice = qg.max_lengths()
   assert question == 17 and choice == 10  # the explanatory template
   assert config.vqa.max_question_len >= question

@@ -2,20 +2,14 @@
 
 from __future__ import annotations
 
-import importlib.util
-import os
-
 import numpy as np
 import pytest
 
+from pipeline_helpers import load_experiment
+
 
 def _probe():
-  spec = importlib.util.spec_from_file_location(
-      'target_signal', os.path.join(os.path.dirname(__file__), '..', '..',
-                                    'experiments', 'target_signal.py'))
-  module = importlib.util.module_from_spec(spec)
-  spec.loader.exec_module(module)
-  return module
+  return load_experiment('target_signal')
 
 
 def test_signal_by_hand():

@@ -2,19 +2,13 @@
 
 from __future__ import annotations
 
-import importlib.util
-import os
-
 import numpy as np
+
+from pipeline_helpers import load_experiment
 
 
 def _probe():
-  spec = importlib.util.spec_from_file_location(
-      'vqa_pair_probe', os.path.join(os.path.dirname(__file__), '..', '..',
-                                     'experiments', 'vqa_pair_probe.py'))
-  module = importlib.util.module_from_spec(spec)
-  spec.loader.exec_module(module)
-  return module
+  return load_experiment('vqa_pair_probe')
 
 
 def test_object_slots_pick_the_slot_most_on_each_object():

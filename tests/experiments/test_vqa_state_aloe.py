@@ -2,23 +2,16 @@
 
 from __future__ import annotations
 
-import importlib.util
-import os
-
 import numpy as np
 import pytest
 
+from pipeline_helpers import load_experiment
 from slotformer_jax.data import vqa as vqa_data
 from slotformer_jax.datasets.synthetic import COLORS, SHAPES
 
 
 def _bench():
-  spec = importlib.util.spec_from_file_location(
-      'vqa_state_aloe', os.path.join(os.path.dirname(__file__), '..', '..',
-                                     'experiments', 'vqa_state_aloe.py'))
-  module = importlib.util.module_from_spec(spec)
-  spec.loader.exec_module(module)
-  return module
+  return load_experiment('vqa_state_aloe')
 
 
 OBJECTS = [{'color': 'red', 'shape': 'cube', 'size': 'small'},
