@@ -26,7 +26,9 @@ PACKAGE = pathlib.Path(__file__).resolve().parent.parent / 'slotformer_jax'
 FLOORS = (
     # plumbing every floor may use
     ('slotformer_jax', 'slotformer_jax.errors', 'slotformer_jax.files',
-     'slotformer_jax.frames', 'slotformer_jax.targets'),
+     'slotformer_jax.frames', 'slotformer_jax.targets',
+     # the package's import sets XLA's flags before jax starts (no jax)
+     'slotformer_jax.runtime.xla_flags'),
     # run bookkeeping: paths, identities, settings, locks (plain files)
     ('slotformer_jax.workdir',),
     # run-time pieces shared by training, evaluation and the tasks

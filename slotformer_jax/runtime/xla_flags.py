@@ -1,24 +1,26 @@
-"""XLA:CPU flags that make this project's programs faster, set safely.
+"""XLA:CPU flags for this project's programs: one for speed, one crash fence.
 
 XLA reads ``$XLA_FLAGS`` once, when jax initialises its backends, and aborts
-the whole process on a flag it does not know. So the entry points that own
-the process (``slotformer_jax.main``, ``benchmarks/``, the tests' conftest)
-call ``apply_fast_cpu_flags()`` before the first jax computation, and it:
+the whole process on a flag it does not know. So ``import slotformer_jax``
+(and the entry points that own the process: ``main``, ``benchmarks/``, the
+tests' conftest) calls ``apply_fast_cpu_flags()`` before the first jax
+computation, and it:
 
 * leaves every flag the user already put in ``$XLA_FLAGS`` alone (a flag of
   the same name there wins, whatever its value);
-* adds a flag only after a throw-away subprocess started jax with it and ran
-  a computation (the result is cached per jaxlib version, so the probe costs
+* adds a flag only after a throw-away subprocess started jax with it and
+  ran a computation (the result is cached per jaxlib version, so the probe costs
   ~1 s once per install, not per run);
-* does nothing when ``$SLOTFORMER_XLA_CPU_FLAGS=0`` or the backends are
-  already initialised (too late: the flags would be ignored for this process).
+* does nothing when the backends are already initialised (too late: the
+  flags would be ignored for this process; on CPU it says so).
 
-Why the flag: with jaxlib 0.10 XLA:CPU hands convolutions to the YNNPACK
-fusion, whose kernel-gradient path is ~6x slower than the classic
-convolution emitter on the SAVi decoder's layers (see docs/performance.md).
-Disabling the fusion for individual convolutions changes which kernels run,
-not the math: ``tests/reliability/test_xla_flags.py`` checks outputs and gradients of a
-SAVi step agree with the default path within float tolerance.
+The flags, both YNNPACK fusion types of jaxlib 0.10's XLA:CPU turned off:
+``individual_convolution`` for speed (its kernel-gradient path is ~6x slower
+than the classic emitter on the SAVi decoder; ``$SLOTFORMER_XLA_CPU_FLAGS=0``
+keeps it on), and ``reduce`` as a crash fence, kept whatever that switch says:
+jaxlib 0.10.2's YNN reduce fusion segfaults on AVX2-only CPUs for some
+rank-7 reductions (the SAVi decoder's vmapped gradient reaches one).
+docs/performance.md has the reproduction, the machines and the cost.
 """
 
 from __future__ import annotations
@@ -36,11 +38,19 @@ from slotformer_jax.files import write_json_atomic
 
 logger = logging.getLogger(__name__)
 
-# The flags, each a complete `--name=value` string.
+# The flags, each a complete `--name=value` string. Several values of a
+# list flag (XLA's '+'/'-' form) are joined into one flag: see `_merged`.
+# For speed only: `SWITCH_ENV` turns these off.
 FAST_CPU_FLAGS: tuple[str, ...] = (
     '--xla_cpu_experimental_ynn_fusion_type=-individual_convolution',
 )
-# '0' / 'false' / 'no' / 'off' disables adding any flag.
+# Crash fences, applied whatever `SWITCH_ENV` says (the user's own flag of
+# the same name still wins). Remove one when a jaxlib that fixes it is
+# pinned: tests/reliability/test_xla_crash_fence.py runs the reproduction.
+CRASH_FENCE_FLAGS: tuple[str, ...] = (
+    '--xla_cpu_experimental_ynn_fusion_type=-reduce',
+)
+# '0' / 'false' / 'no' / 'off' disables adding the speed flags.
 SWITCH_ENV = 'SLOTFORMER_XLA_CPU_FLAGS'
 # Where probe results are kept (default: ~/.cache/slotformer_jax).
 CACHE_ENV = 'SLOTFORMER_DATA_DIR'
@@ -138,24 +148,47 @@ def _backends_initialised() -> bool:
     return False
 
 
+def _merged(flags: tuple[str, ...]) -> list[str]:
+  """Joins flags of the same name into one, values comma-separated, in order:
+  ('--a=-x', '--a=-y') -> ['--a=-x,-y'] (XLA keeps only the last of two)."""
+  values: dict[str, list[str]] = {}
+  for flag in flags:
+    values.setdefault(flag_name(flag), []).append(flag.split('=', 1)[1])
+  return [f'--{name}={",".join(parts)}' for name, parts in values.items()]
+
+
+def _cpu_backend() -> bool:
+  try:
+    import jax  # pylint: disable=g-import-not-at-top
+    return jax.default_backend() == 'cpu'
+  except Exception:  # pylint: disable=broad-except
+    return False
+
+
 def apply_fast_cpu_flags(flags: tuple[str, ...] = FAST_CPU_FLAGS,
-                         environ=None) -> list[str]:
-  """Appends the supported `flags` the user did not set to $XLA_FLAGS.
+                         environ=None,
+                         fences: tuple[str, ...] = CRASH_FENCE_FLAGS,
+                         ) -> list[str]:
+  """Appends the supported `fences` + `flags` the user did not set to
+  $XLA_FLAGS (`flags` only unless `SWITCH_ENV` disables them).
 
   Call it before the first jax computation. Returns the flags added (empty
-  when disabled, too late, already set by the user, or unsupported).
+  when too late, already set, or unsupported).
   """
   environ = os.environ if environ is None else environ
-  if _disabled(environ):
-    return []
-  if _backends_initialised():
-    logger.warning('XLA flags not applied: jax has already started its '
-                   'backends; call apply_fast_cpu_flags() earlier.')
-    return []
+  wanted = _merged(tuple(fences) + (() if _disabled(environ) else tuple(flags)))
   current = environ.get('XLA_FLAGS', '')
   user_names = _names_in(current)
-  added = [f for f in flags
-           if flag_name(f) not in user_names and supported(f, environ)]
+  wanted = [f for f in wanted if flag_name(f) not in user_names]
+  if not wanted:
+    return []
+  if _backends_initialised():
+    if _cpu_backend():
+      logger.warning('XLA:CPU flags not applied (%s): jax had already started '
+                     'its backends; import slotformer_jax before running jax.',
+                     ' '.join(wanted))
+    return []
+  added = [f for f in wanted if supported(f, environ)]
   if added:
     environ['XLA_FLAGS'] = ' '.join([current, *added]).strip()
   return added

@@ -145,17 +145,24 @@ def test_flags_are_appended_to_the_users_flags(monkeypatch):
   monkeypatch.setattr(xla_flags, 'supported', lambda f, env: True)
   monkeypatch.setattr(xla_flags, '_backends_initialised', lambda: False)
   env = {'XLA_FLAGS': '--xla_force_host_platform_device_count=4'}
-  added = xla_flags.apply_fast_cpu_flags(('--xla_a=1', '--xla_b=x'), environ=env)
-  assert added == ['--xla_a=1', '--xla_b=x']
-  assert env['XLA_FLAGS'] == '--xla_force_host_platform_device_count=4 --xla_a=1 --xla_b=x'
+  added = xla_flags.apply_fast_cpu_flags(('--xla_a=1', '--xla_b=x'), environ=env,
+                                         fences=('--xla_b=y', '--xla_c=z'))
+  # Fences first; one flag per name.
+  assert added == ['--xla_b=y,x', '--xla_c=z', '--xla_a=1']
+  assert env['XLA_FLAGS'] == ('--xla_force_host_platform_device_count=4 '
+                              '--xla_b=y,x --xla_c=z --xla_a=1')
 
 
-def test_switch_disables(monkeypatch):
+def test_switch_disables_the_speed_flags_not_the_fences(monkeypatch):
   monkeypatch.setattr(xla_flags, 'supported', lambda f, env: True)
   monkeypatch.setattr(xla_flags, '_backends_initialised', lambda: False)
   env = {xla_flags.SWITCH_ENV: '0'}
-  assert xla_flags.apply_fast_cpu_flags(('--xla_a=1',), environ=env) == []
+  assert xla_flags.apply_fast_cpu_flags(('--xla_a=1',), environ=env,
+                                        fences=()) == []
   assert 'XLA_FLAGS' not in env
+  assert xla_flags.apply_fast_cpu_flags(
+      ('--xla_a=1',), environ=env, fences=('--xla_f=-x',)) == ['--xla_f=-x']
+  assert env['XLA_FLAGS'] == '--xla_f=-x'
 
 
 def test_unsupported_flag_is_probed_cached_and_skipped(monkeypatch, tmp_path):
@@ -163,13 +170,13 @@ def test_unsupported_flag_is_probed_cached_and_skipped(monkeypatch, tmp_path):
   env = {xla_flags.CACHE_ENV: str(tmp_path)}
   bogus = '--xla_slotformer_no_such_flag=1'
   # A real subprocess: XLA aborts on the unknown flag there, not here.
-  assert xla_flags.apply_fast_cpu_flags((bogus,), environ=env) == []
+  assert xla_flags.apply_fast_cpu_flags((bogus,), environ=env, fences=()) == []
   assert 'XLA_FLAGS' not in env
   cache = json.loads((tmp_path / 'xla_flag_probes.json').read_text())
   assert [v for k, v in cache.items() if k.endswith(bogus)] == [False]
   # Cached: no second probe.
   monkeypatch.setattr(xla_flags, 'probe_flag', lambda f: pytest.fail('re-probed'))
-  assert xla_flags.apply_fast_cpu_flags((bogus,), environ=env) == []
+  assert xla_flags.apply_fast_cpu_flags((bogus,), environ=env, fences=()) == []
 
 
 def test_too_late_once_backends_started(monkeypatch):
