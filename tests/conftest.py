@@ -106,3 +106,39 @@ def pytest_collection_modifyitems(items):
   for item in items:
     if item.nodeid.split('tests/', 1)[-1] in SLOW_VARIANTS:
       item.add_marker(pytest.mark.slow)
+
+
+def _cpu() -> tuple[str, set[str]]:
+  """(model name, feature flags) from /proc/cpuinfo; ('unknown', set()) elsewhere."""
+  model, features = 'unknown', set()
+  try:
+    with open('/proc/cpuinfo') as f:
+      for line in f:
+        key, _, value = line.partition(':')
+        if key.strip() == 'model name' and model == 'unknown':
+          model = value.strip()
+        elif key.strip() == 'flags' and not features:
+          features = set(value.split())
+  except OSError:
+    pass
+  return model, features
+
+
+def pytest_report_header(config):
+  """The CPU family and XLA's flags head every run's log: XLA:CPU picks its
+  kernels by the CPU's vector width, and jaxlib 0.10.2 crashed on AVX2-only
+  CPUs where AVX-512 ones ran (runtime/xla_flags.py's crash fence). Nothing
+  else in the suite depends on which of the two it gets."""
+  del config
+  model, features = _cpu()
+  width = ('AVX-512' if 'avx512f' in features else
+           'AVX2 only' if 'avx2' in features else 'no AVX2')
+  return [f'cpu: {model} ({width}, {os.cpu_count()} cores); '
+          f'XLA_FLAGS={os.environ.get("XLA_FLAGS", "")}']
+
+
+def pytest_xdist_auto_num_workers(config):
+  """`-n auto` (setup.cfg): one worker per core, at most 4 (each holds jax
+  and its compiled programs, ~2 GB); the compile cache on disk is shared."""
+  del config
+  return min(os.cpu_count() or 1, 4)

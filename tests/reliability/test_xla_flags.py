@@ -87,9 +87,12 @@ np.savez(sys.argv[1], **out)
 
 
 def _run_both(fast_flags, tmp_path, case):
-  """Outputs of `case` without and with the flags (two processes at once)."""
+  """Outputs of `case` without and with the flags (two processes at once),
+  both with the crash fences (an AVX2-only CPU crashes without them)."""
+  fences = tuple(xla_flags.CRASH_FENCE_FLAGS)
   runs = []
-  for name, value in (('plain', ''), ('fast', ' '.join(fast_flags))):
+  for name, value in (('plain', ' '.join(xla_flags._merged(fences))),  # pylint: disable=protected-access
+                      ('fast', ' '.join(xla_flags._merged(fences + tuple(fast_flags))))):  # pylint: disable=protected-access
     env = dict(os.environ, XLA_FLAGS=value, JAX_PLATFORMS='cpu',
                PYTHONPATH=REPO, **{xla_flags.SWITCH_ENV: '0'})
     path = str(tmp_path / f'{name}.npz')
