@@ -41,6 +41,7 @@ from slotformer_jax.runtime import sharding
 from slotformer_jax.runtime.checkpoint import Checkpointer
 from slotformer_jax.runtime.checkpoint import CheckpointSaveError
 from slotformer_jax.runtime.checkpoint import abstract_like
+from slotformer_jax.runtime.in_flight import StepsInFlight
 from slotformer_jax.runtime.preemption import Preemption
 from slotformer_jax.train import optim
 from slotformer_jax.train.metrics_writer import Line
@@ -192,13 +193,20 @@ def train(stage: Stage, program: Program) -> Any:
   batches = sharding.prefetch_to_device(
       program.batches(start_step), mesh, size=DEVICE_PREFETCH,
       sharding=program.batch_sharding)
-  with _Finishing(name, checkpointer, batches), \
+  in_flight = StepsInFlight()
+  # Preemption first: a signal while the last step is saved, logged or the
+  # reader closed is still noted, and stops the run once it is saved.
+  with Preemption(num_steps, config.stop_check_every,
+                  name=name) as preemption, \
+       _Finishing(name, checkpointer, batches), \
        MetricsWriter(name, stage.directory, stage.logging,
-                     start_step=start_step, num_steps=num_steps) as writer, \
-       Preemption(num_steps, config.stop_check_every) as preemption:
+                     start_step=start_step, num_steps=num_steps) as writer:
     for step in range(start_step, num_steps):
       host_batch, batch = next(batches)
       state, metrics = program.update(state, batch, frozen_params)
+      # A signal is then acted on with at most MAX_STEPS_AHEAD updates
+      # left to compute, not every update the host had queued.
+      in_flight.dispatched(metrics)
       writer.advance()
       done = step + 1
       stop = preemption.stops_after(done)
