@@ -83,6 +83,11 @@ def chain(slot_model: SlotModel, paths: Paths, steps: dict[str, int],
     expected = parent_of(slot_model, part, identities, steps)
     if part.parent is not None and identity.get('parent') != expected:
       parent_label = slot_model.stage_labels[part.parent]
+      lost = identity_lib.lost_steps(identity.get('parent'), expected)
+      if lost is not None:
+        raise UserError(identity_lib.lost_steps_advice(
+            parent_label, f'{part.label} in {paths.model(part.name)}',
+            lost, command(paths.stage1, f'train_{lost[0]}')) + '.')
       raise UserError(
           f'{part.label} in {paths.model(part.name)} was trained with '
           f'{parent_label} {identity.get("parent")}, the current '
@@ -179,6 +184,11 @@ def check_slots_current(paths: Paths, split: str, expected: dict[str, Any],
   if not (meta and meta.get('complete')):
     raise MissingInputError(f'no complete slots in {directory}; extract them: '
                             f'{rebuild}')
+  lost = identity_lib.lost_steps(meta.get('parent'), expected)
+  if lost is not None and meta.get('fields') == fields:
+    raise UserError(identity_lib.lost_steps_advice(
+        what, f'the slots in {directory}', lost,
+        command(paths.stage1, f'train_{lost[0]}')) + '.')
   if meta.get('parent') != expected or meta.get('fields') != fields:
     raise UserError(
         f'the slots in {directory} are stale: made by {what} '

@@ -139,6 +139,11 @@ def check_derived_current(run: Run, derived: Derived, split: str,
     raise MissingInputError(
         f'no complete {source_label} {derived.name} in {directory}; compute '
         f'them: {rebuild}')
+  lost = identity_lib.lost_steps(meta.get('parent'), parent)
+  if lost is not None:
+    raise UserError(identity_lib.lost_steps_advice(
+        source_label, f'the {derived.name} in {directory}', lost,
+        command(run.paths.stage1, f'train_{lost[0]}')) + '.')
   if meta.get('parent') != parent:
     raise UserError(
         f'the {derived.name} in {directory} are stale: made by '

@@ -213,7 +213,9 @@ def train(stage: Stage, program: Program) -> Any:
       log = done % config.log_every == 0 or done == num_steps
       save = done % config.checkpoint_every == 0 or done == num_steps or stop
       if log or save:  # checked before anything is saved
-        lines = program.lines(sharding.to_host(metrics), done, checkpointer)
+        lines = _lines_after(program, metrics, done, checkpointer,
+                             resumed_from=start_step if resuming else None)
+        resuming = False  # one check has passed since the resume
       if log:
         writer.write(done, lines, float(schedule(step)))
       if stage.images is not None and writer.wants_images(done):
@@ -262,6 +264,25 @@ def jit_update(stage: Stage, mesh: Mesh,
       in_shardings=(replicated, sharding.batch_sharding(mesh), replicated),
       out_shardings=(replicated, replicated),
       donate_argnums=(0,))
+
+
+def _lines_after(program: Program, metrics: dict[str, jax.Array], done: int,
+                 checkpointer: Checkpointer, resumed_from: int | None
+                 ) -> Sequence[Line]:
+  """`program.lines` of update `done`; a divergence at the first check
+  after resuming from step `resumed_from` names that checkpoint as a
+  suspect (a step restored unchecked, or damaged, diverges at once)."""
+  try:
+    return program.lines(sharding.to_host(metrics), done, checkpointer)
+  except Diverged as error:
+    if resumed_from is None:
+      raise
+    raise Diverged(
+        f'{error} It came right after resuming from step {resumed_from}, '
+        'so that checkpoint is a suspect too: move '
+        f'{os.path.join(checkpointer.directory, str(resumed_from))} out of '
+        'the folder and re-run to resume from the step before it.'
+    ) from None
 
 
 def _checked_lines(name: str, metrics: dict[str, np.ndarray], step: int,

@@ -11,7 +11,9 @@ own loop in seconds; two processes agreeing on the step: the slow test in
 test_multiprocess.py.
 """
 
+import dataclasses
 import glob
+import itertools
 import json
 import logging
 import os
@@ -440,3 +442,62 @@ def test_a_step_that_cannot_be_set_aside_is_named_and_skipped(
   message = str(raised.value)
   assert '\n' not in message and 'Make the folder writable' in message
   assert _listing(checkpoints) == ['2', '4']
+
+
+def test_slots_of_a_lost_newer_step_name_the_retraining_not_extraction(
+    tmp_path):
+  """Issue 61, case 3: with SAVi's newest step damaged, evaluation said
+  the slots were stale and to re-extract them, which rewrote good slots
+  from the older step; retraining the lost steps is what restores it."""
+  from slotformer_jax.slot_models import chain as chain_lib  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.workdir.paths import Paths  # pylint: disable=g-import-not-at-top
+  paths = Paths.of(str(tmp_path / 'run'))
+  directory = paths.slots('test')
+  os.makedirs(directory)
+  fields = {'chunk_length': 8}
+  with open(os.path.join(directory, 'meta.json'), 'w') as f:
+    json.dump({'complete': True, 'fields': fields,
+               'parent': {'savi_run_id': 'r1', 'savi_step': 30}}, f)
+  with pytest.raises(UserError) as raised:
+    chain_lib.check_slots_current(
+        paths, 'test', {'savi_run_id': 'r1', 'savi_step': 20}, fields, 'SAVi')
+  message = str(raised.value)
+  assert '\n' not in message and 'extract_slots' not in message, message
+  assert 'made by SAVi step 30' in message
+  assert 'newest intact checkpoint is step 20' in message
+  assert f'--workdir={paths.stage1} --mode=train_savi' in message
+  # Slots of another SAVi run are stale: re-extracting them is right.
+  with pytest.raises(UserError, match='are stale.*--mode=extract_slots'):
+    chain_lib.check_slots_current(
+        paths, 'test', {'savi_run_id': 'r2', 'savi_step': 30}, fields, 'SAVi')
+
+
+def _nan_from(stage, step):
+  plain = stage.batches
+
+  def batches(start_step):
+    for k, batch in zip(itertools.count(start_step), plain(start_step)):
+      yield {'x': batch['x'] * np.nan} if k >= step else batch
+  return dataclasses.replace(stage, batches=batches)
+
+
+def test_a_divergence_right_after_a_resume_names_the_restored_step(tmp_path):
+  """Issue 61, case 3: the advice blamed the learning rate only, when the
+  restored checkpoint was a damaged one."""
+  from linear_stage import linear_stage as make  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.train.trainer import Diverged  # pylint: disable=g-import-not-at-top
+  _train(tmp_path / 'linear', steps=4, every=2)
+  stage = _nan_from(make(tmp_path / 'linear', num_train_steps=6,
+                         checkpoint_every=2), 4)
+  with pytest.raises(Diverged) as raised:
+    fit(stage, mesh=_mesh(), seed=0)
+  message = str(raised.value)
+  assert '\n' not in message
+  assert 'right after resuming from step 4' in message
+  assert os.path.join(str(tmp_path / 'linear' / 'checkpoints'), '4') in message
+  # Diverging later, or without a resume, is the plain line.
+  fresh = _nan_from(make(tmp_path / 'fresh', num_train_steps=6,
+                         checkpoint_every=2), 3)
+  with pytest.raises(Diverged) as raised:
+    fit(fresh, mesh=_mesh(), seed=0)
+  assert 'resuming' not in str(raised.value)
