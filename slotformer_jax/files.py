@@ -284,7 +284,11 @@ def read_untrusted_json(path: str | os.PathLike[str], *, what: str,
     if size > max_bytes:
       raise UntrustedFileError(f'{what} {path} holds {size} bytes, more '
                                f'than the {max_bytes} such a file may have')
-    data = f.read(max_bytes + 1)
+    # read(n) allocates n bytes at once: the file's size, not the limit.
+    data = f.read(size + 1)
+  if len(data) > max_bytes:
+    raise UntrustedFileError(f'{what} {path} grew beyond {max_bytes} bytes '
+                             'while it was read')
   try:
     text = data.decode('utf-8')
   except UnicodeDecodeError as error:

@@ -6,8 +6,9 @@ Both are read as the untrusted files they are (a shared run folder, a
 disk fault, someone's hand): a regular file only (a FIFO or a device is
 refused without waiting; no link), at most `MAX_DIGEST_BYTES` and three
 levels deep, every number range-checked, every listed name confined to the
-step and a regular file there. Anything else is a phrase saying why the
-step is damaged, never an exception: the caller sets the step aside.
+step and a regular file there, every file of the step listed. Anything
+else is a phrase saying why the step is damaged, never an exception: the
+caller sets the step aside.
 """
 
 from __future__ import annotations
@@ -155,6 +156,19 @@ def record_digests_since(directory: str, step: int) -> None:
                       {'format': _SINCE_FORMAT, 'since_step': int(step)})
 
 
+def _unlisted(step_directory: str, listed: set[str]) -> str | None:
+  """A file of the step that its digest does not list (one its digest was
+  edited to leave unchecked), or None."""
+  for root, folders, names in os.walk(step_directory):
+    folders.sort()
+    for name in sorted(names):
+      relative = os.path.relpath(os.path.join(root, name), step_directory)
+      relative = relative.replace(os.sep, '/')
+      if relative != DIGEST_FILE and relative not in listed:
+        return relative
+  return None
+
+
 def damage_of(step_directory: str, *, required: bool = False) -> str | None:
   """Why a step's files are not what was saved (one phrase), or None: they
   match its sha256.json, or it has none and none is `required` (a step
@@ -168,6 +182,9 @@ def damage_of(step_directory: str, *, required: bool = False) -> str | None:
             'so its bytes cannot be checked')
   except _Unreadable as why:
     return f'its {DIGEST_FILE} is unreadable: it {why}'
+  unlisted = _unlisted(step_directory, {name for name, _, _ in expected})
+  if unlisted is not None:
+    return f'{shown(unlisted, 120)} is not in its {DIGEST_FILE}'
   # Sizes first: a truncated file is found without hashing the rest.
   files = []
   for name, size, sha256 in expected:

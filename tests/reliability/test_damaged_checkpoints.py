@@ -501,3 +501,15 @@ def test_a_divergence_right_after_a_resume_names_the_restored_step(tmp_path):
   with pytest.raises(Diverged) as raised:
     fit(fresh, mesh=_mesh(), seed=0)
   assert 'resuming' not in str(raised.value)
+
+
+def test_a_file_the_digest_does_not_list_is_damage(copied):
+  """An entry deleted from sha256.json would leave its file unchecked."""
+  directory, _ = copied
+  step = directory / 'checkpoints' / '4'
+  digest = _digest_of(step)
+  name = sorted(digest['files'])[0]
+  del digest['files'][name]
+  _write(step / checkpoint_lib.DIGEST_FILE, digest)
+  reason = checkpoint_lib.damage_of(str(step))
+  assert reason == f'{name} is not in its sha256.json', reason
