@@ -24,6 +24,7 @@ import jax
 from slotformer_jax import datasets
 from slotformer_jax.config import checks as config_checks
 from slotformer_jax.errors import CommandLineError
+from slotformer_jax.errors import ConfigError
 from slotformer_jax.run import Run
 from slotformer_jax.stages import data
 from slotformer_jax.stages import dynamics
@@ -106,6 +107,10 @@ def check(run: Run, stages: Sequence[str], *, num_devices: int | None = None,
       task_splits=(task.reads(config) if set(stages) & set(task.stages)
                    and not task.problems(config) else ()),
       video_length=video_length)
+  if set(stages) & set(task.stages) and not task.problems(config):
+    problems = task.input_problems(run, stages)
+    if problems:
+      raise ConfigError('; '.join(problems))
 
 
 def _not_a_stage(run: Run, mode: str, table: dict[str, StageFn]) -> str:
