@@ -203,6 +203,9 @@ def train(stage: Stage, program: Program) -> Any:
                      start_step=start_step, num_steps=num_steps) as writer:
     for step in range(start_step, num_steps):
       host_batch, batch = next(batches)
+      if step == start_step:  # otherwise minutes without a line on a CPU
+        logger.info('%s: compiling the update step (the first step takes '
+                    'longer)', name)
       state, metrics = program.update(state, batch, frozen_params)
       # A signal is then acted on with at most MAX_STEPS_AHEAD updates
       # left to compute, not every update the host had queued.

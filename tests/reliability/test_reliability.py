@@ -777,3 +777,15 @@ def test_every_unset_field_can_be_set_on_the_command_line(name, monkeypatch):
     for part in field.split('.'):
       value = value[part]
     assert value is not None, field
+
+
+def test_a_stage_says_it_compiles_before_its_first_step(tmp_path, caplog):
+  """Issue 61, case 9: the first steps of every training stage compiled
+  for 1 to 2 minutes with no line."""
+  mesh = Mesh(np.asarray(jax.devices()[:1]), ('data',))
+  with caplog.at_level(logging.INFO, logger='slotformer_jax.train.trainer'):
+    fit(linear_stage(tmp_path / 'linear', num_train_steps=2), mesh=mesh,
+        seed=0)
+  lines = [r.getMessage() for r in caplog.records]
+  assert 'linear: compiling the update step (the first step takes longer)' in (
+      lines), lines
