@@ -220,6 +220,21 @@ def check_foreign_stage1(slot_model: SlotModel, paths: Paths, mesh: Mesh,
           'run never trains there. Finish it with its own run: '
           f'python -m slotformer_jax.main --config=<its config> '
           f'--workdir={paths.stage1}')
+  missing = [split for split in splits
+             if not (read_meta(paths.slots(split)) or {}).get('complete')]
+  if missing:
+    # That run's own extract_slots would not make them (its config's
+    # extraction.splits lacks them): name what this run can read instead.
+    kept = tuple(split for split in splits if split not in missing)
+    raise MissingInputError(
+        f'stage1_workdir={paths.stage1} has no complete slots of '
+        f'{", ".join(missing)}; this run reads extraction.splits='
+        f'{tuple(splits)} and never extracts there. '
+        + (f'Read the splits it has: --config.extraction.splits="{kept}", '
+           'or e' if kept else 'E')
+        + f'xtract {", ".join(missing)} with that run\'s own config: '
+        f'{command(paths.stage1, "extract_slots")} --config.extraction.'
+        f'splits="{tuple(splits)}" --allow_config_change')
   for split in splits:
     check_slots_current(paths, split, loaded.slots_parent, slots_fields,
                         slot_model.label)

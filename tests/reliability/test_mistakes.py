@@ -783,3 +783,23 @@ def test_a_long_error_line_keeps_its_reason():
   assert line.endswith("No space left on device [os_error_code='28']")
   assert len(line) < 330 and 'second line' not in line
   assert errors.brief(KeyError('k')) == "KeyError: 'k'"
+
+
+def test_video_prediction_on_a_physion_contact_run_names_the_way(tmp_path):
+  """Issue 61, case 9: on a Physion contact run, `--mode=explore` pointed
+  to configs/synthetic.py only, and the missing val slots of the contact
+  run were to be extracted with the contact config, which extracts no val
+  (rc 0). Now the line names the Physion video-prediction config reading
+  this run's stage 1, and a run reading it names the splits it has."""
+  from slotformer_jax import stages  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.errors import CommandLineError  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.run import Run  # pylint: disable=g-import-not-at-top
+  run = Run.create(config_checks.load_config_file(
+      os.path.join(CONFIGS, 'physion_contact.py')), '/nonexistent/run')
+  with pytest.raises(CommandLineError) as error:
+    stages.selected_stages(run, 'explore')
+  line = str(error.value)
+  assert '\n' not in line
+  assert ('on this run\'s data and stage 1: a new --workdir with '
+          '--config=configs/physion.py --config.stage1_workdir=/nonexistent/'
+          'run.') in line, line

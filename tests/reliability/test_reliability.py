@@ -129,6 +129,30 @@ def test_foreign_stage1_with_other_settings_is_refused_untouched(
   assert _snapshot(other) == before
 
 
+def test_a_foreign_stage1_without_a_split_names_the_splits_it_has(
+    trained, tmp_path):
+  """Issue 61, case 9: a run reading a Physion contact run's stage 1 was
+  told `no complete slots in <contact run>/slots/val; extract them: ...
+  --mode=extract_slots`, which with the contact config extracts no val
+  (rc 0). What works, reading the splits it has, is named now."""
+  config, other = trained
+  copy = str(tmp_path / 'contact')
+  shutil.copytree(other, copy)
+  splits = tuple(config.extraction.splits)
+  lacking = splits[-1]
+  shutil.rmtree(Paths.of(copy).slots(lacking))
+  config = _config(config.data.data_dir)
+  config.stage1_workdir = copy
+  with pytest.raises(UserError) as error:
+    run_stage(config, str(tmp_path / 'prediction'), sharding.make_mesh(),
+              'train_savi')
+  message = str(error.value)
+  assert '\n' not in message
+  assert f'has no complete slots of {lacking}' in message, message
+  assert (f'--config.extraction.splits="{splits[:-1]}"') in message
+  assert '--allow_config_change' in message
+
+
 @pytest.mark.slow  # trains SlotFormer (~35 s on 2 busy cores)
 def test_foreign_stage1_is_used_without_writing_there(trained, tmp_path):
   _, other = trained
