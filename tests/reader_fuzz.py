@@ -10,7 +10,8 @@ features.json of a MOVi download), movi_records (the Example protos and PNG
 frames of its records), questions and vocabulary (CLEVRER's question and
 vocabulary files), phyre (meta.json, rollouts.jsonl, the rollout strips),
 physion_lists (Physion's official split lists), metrics (eval/metrics.json
-as the explorer page reads it), digests (a checkpoint step's sha256.json). One JSON line per case:
+as the explorer page reads it), digests (a checkpoint step's sha256.json).
+One JSON line per case:
 
   {"case": 3, "what": "type features.json .../dtype -> 'x'",
    "outcome": "read" | "refused", "type": ..., "message": ...,

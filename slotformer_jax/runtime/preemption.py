@@ -8,9 +8,9 @@ step: one small all-gather (`processes.agreed_signal`) agrees on it every
 `every - 1` updates late; one noted after the last check (during the last
 save) stops the run once that save is done. The trainer keeps at most
 `in_flight.MAX_STEPS_AHEAD` updates queued on the devices, so the save
-that follows a signal waits for at most that many more. Not orbax's preemption sync: that relies on jax's
-own SIGTERM handler, which ours replaces (`processes.initialize` turns it
-off).
+that follows a signal waits for at most that many more. Not orbax's
+preemption sync: that relies on jax's own SIGTERM handler, which ours
+replaces (`processes.initialize` turns it off).
 """
 
 from __future__ import annotations

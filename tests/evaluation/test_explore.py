@@ -433,7 +433,8 @@ def test_names_from_the_metrics_file_reach_the_page_neutralised(tmp_path):
   data = json.loads(blob)
   assert not _acting_characters(data), _acting_characters(data)
   assert not {c for c in page if c in '\u202e\u2067\u200f\x1b'}
-  assert data['run_curves_note'].endswith('mean over 8 test\\u202e videos videos')
+  assert data['run_curves_note'].endswith(
+      'mean over 8 test\\u202e videos videos')
   assert set(data['run_curves']) == {'ps\\x1bnr', 'psnr'}
   assert 'copy\\u2067last' in data['run_curves']['psnr']
   assert data['title'] == 'run \\u202etitle'
