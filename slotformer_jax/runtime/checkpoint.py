@@ -147,8 +147,9 @@ class Checkpointer:
         write_digest(step_directory)
     except OSError as error:
       logger.warning('checkpoint step %d in %s: its %s could not be written '
-                     '(%s); it will restore unchecked', step, self.directory,
-                     DIGEST_FILE, brief(error))
+                     '(%s); a restore will not take it as intact (it uses '
+                     'the step before)', step, self.directory, DIGEST_FILE,
+                     brief(error))
 
   def _join_digester(self) -> None:
     if self._digester is not None:
