@@ -22,8 +22,9 @@ in the input (the point of their limits), so the times scale by 1 / f.
                   to 16 MiB
   movi_record     one MOVi record of 24 frames of MAX_SOURCE_SIDE^2 (its
                   time is linear in the frames, up to MAX_SOURCE_FRAMES)
-  questions       a CLEVRER question file of MAX_QUESTION_FILE_BYTES of
-                  one-word descriptive questions
+  questions       CLEVRER question files of MAX_QUESTION_FILE_BYTES:
+                  scenes of one-word descriptive questions, scenes without
+                  questions, and `[{},{},...]`
   vocabulary      a vocabulary of MAX_VOCABULARY words (64 MiB at most)
   phyre_index     a PHYRE rollouts.jsonl of MAX_INDEX_BYTES, one short line
                   per rollout
@@ -190,30 +191,49 @@ def read_movi_record(path: str) -> str:
 
 
 def write_questions(folder: Path, fraction: float) -> list[tuple[str, str]]:
+  """Three question files of MAX_QUESTION_FILE_BYTES: scenes of 1,000
+  one-word descriptive questions; scenes without questions (the smallest
+  scene, so the most objects per byte); `[{},{},...]` (51 bytes of memory
+  per byte when the whole file was parsed first; now refused at scene 0)."""
   from slotformer_jax.data import vqa  # pylint: disable=g-import-not-at-top
   limit = int(vqa.MAX_QUESTION_FILE_BYTES * fraction)
   question = ('{"question_id":0,"question_type":"descriptive",'
               '"question":"a","answer":"b"}')
-  head = '[{"scene_index":0,"video_filename":"video_00000.mp4","questions":['
-  count = (limit - len(head) - 4) // (len(question) + 1)
-  path = folder / 'questions' / 'train.json'
-  path.parent.mkdir(parents=True)
-  with open(path, 'w') as f:
-    f.write(head)
-    block = ','.join([question] * 10_000)
-    written = 0
-    while written + 10_000 <= count:
-      f.write(('' if not written else ',') + block)
-      written += 10_000
-    f.write(']}]')
-  return [(f'questions ({written} questions, '
-           f'{path.stat().st_size // _MIB} MiB)', str(folder))]
+  many = ('{"scene_index":0,"video_filename":"video_00000.mp4","questions":['
+          + ','.join([question] * 1000) + ']}')
+  empty = '{"scene_index":0,"video_filename":"v","questions":[]}'
+  cases = []
+  for name, scene, per_question in (('questions', many, 1000),
+                                    ('questions_empty', empty, 0),
+                                    ('questions_objects', '{}', 0)):
+    count = (limit - 2) // (len(scene) + 1)
+    path = folder / name / 'questions' / 'train.json'
+    path.parent.mkdir(parents=True)
+    with open(path, 'w') as f:
+      f.write('[')
+      block = ','.join([scene] * max(1, min(count, (8 << 20) // len(scene))))
+      per_block = block.count(scene[:20]) if scene != '{}' else (
+          block.count('{}'))
+      written = 0
+      while written + per_block <= count:
+        f.write(('' if not written else ',') + block)
+        written += per_block
+      f.write(']')
+    what = (f'{written * per_question} questions in {written} scenes'
+            if per_question else f'{written} scenes')
+    cases.append((f'{name} ({what}, {path.stat().st_size // _MIB} MiB)',
+                  str(folder / name)))
+  return cases
 
 
 def read_questions(path: str) -> str:
   from slotformer_jax.data import vqa  # pylint: disable=g-import-not-at-top
-  scenes = vqa.read_clevrer_questions(path, 'train')
-  return f'read {sum(len(s["questions"]) for s in scenes)} questions'
+  try:
+    scenes = vqa.read_clevrer_questions(path, 'train')
+  except vqa.QuestionFileError as error:
+    return f'refused: {str(error)[-90:]}'
+  return (f'read {sum(len(s["questions"]) for s in scenes)} questions, '
+          f'{len(scenes)} scenes')
 
 
 def write_vocabulary(folder: Path, fraction: float) -> list[tuple[str, str]]:

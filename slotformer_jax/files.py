@@ -20,7 +20,8 @@ import json
 import os
 import pathlib
 import secrets
-from typing import Any, Iterator
+import stat
+from typing import Any, BinaryIO, Iterator
 
 import numpy as np
 
@@ -206,6 +207,47 @@ def int_in_range(value: Any, low: int, high: int, *, what: str) -> Any:
   return value
 
 
+def _kind(mode: int) -> str:
+  """What a non-regular file is, in a word or two."""
+  for test, name in ((stat.S_ISDIR, 'a folder'), (stat.S_ISFIFO, 'a FIFO'),
+                     (stat.S_ISCHR, 'a character device'),
+                     (stat.S_ISBLK, 'a block device'),
+                     (stat.S_ISSOCK, 'a socket'), (stat.S_ISLNK, 'a link')):
+    if test(mode):
+      return name
+  return 'not a regular file'
+
+
+def open_regular(path: str | os.PathLike[str], *, what: str,
+                 follow_links: bool = True) -> BinaryIO:
+  """`open(path, 'rb')` of a file from outside that must be a regular file:
+  a FIFO (whose open and read block until a writer comes), a device
+  (/dev/zero never ends) or a socket is refused without waiting, and with
+  `follow_links=False` a symbolic link is too.
+
+  Raises:
+    UntrustedFileError: one line naming `what`, the file and its kind; a
+      missing file stays FileNotFoundError.
+  """
+  path = os.fspath(path)
+  flags = os.O_RDONLY | os.O_NONBLOCK | getattr(os, 'O_CLOEXEC', 0)
+  if not follow_links:
+    flags |= os.O_NOFOLLOW
+  try:
+    fd = os.open(path, flags)
+  except OSError as error:
+    if not follow_links and os.path.islink(path):
+      raise UntrustedFileError(f'{what} {shown(path)} is a link, not a '
+                               'regular file') from None
+    raise error
+  mode = os.fstat(fd).st_mode
+  if not stat.S_ISREG(mode):
+    os.close(fd)
+    raise UntrustedFileError(f'{what} {shown(path)} is {_kind(mode)}, not a '
+                             'regular file')
+  return os.fdopen(fd, 'rb')
+
+
 def depth_of(value: Any) -> int:
   """Nesting of lists and dicts in `value` (a scalar: 0), without
   recursion (the value may come from a hostile file)."""
@@ -228,20 +270,25 @@ def read_untrusted_json(path: str | os.PathLike[str], *, what: str,
                         ) -> Any:
   """A JSON file from outside, read with limits: at most `max_bytes` (the
   parse is linear in it, so this bounds the time too), strict UTF-8, at most
-  `max_depth` levels of lists and dicts. The caller still checks every
-  field's type.
+  `max_depth` levels of lists and dicts; a regular file only
+  (`open_regular`: a FIFO or a device is refused, never waited on). The
+  caller still checks every field's type.
 
   Raises:
     UntrustedFileError: one line naming the file (`what` says which) and
       the problem; a missing file stays FileNotFoundError.
   """
   path = os.fspath(path)
-  size = os.path.getsize(path)
-  if size > max_bytes:
-    raise UntrustedFileError(f'{what} {path} holds {size} bytes, more than '
-                             f'the {max_bytes} such a file may have')
-  with open(path, 'rb') as f:
-    data = f.read(max_bytes + 1)
+  with open_regular(path, what=what) as f:
+    size = os.fstat(f.fileno()).st_size
+    if size > max_bytes:
+      raise UntrustedFileError(f'{what} {path} holds {size} bytes, more '
+                               f'than the {max_bytes} such a file may have')
+    # read(n) allocates n bytes at once: the file's size, not the limit.
+    data = f.read(size + 1)
+  if len(data) > max_bytes:
+    raise UntrustedFileError(f'{what} {path} grew beyond {max_bytes} bytes '
+                             'while it was read')
   try:
     text = data.decode('utf-8')
   except UnicodeDecodeError as error:

@@ -3,6 +3,7 @@
 
 import itertools
 
+import jax
 import jax.numpy as jnp
 import ml_collections
 import numpy as np
@@ -10,9 +11,12 @@ import numpy as np
 from slotformer_jax.train.trainer import Stage
 
 
-def linear_stage(directory, *, tensorboard=False, **config_changes) -> Stage:
+def linear_stage(directory, *, tensorboard=False, device_work=0,
+                 **config_changes) -> Stage:
   """Fits w [3] to the step number (batch 'x': float32 [4, 3]); every
-  trainer field set, `config_changes` on top; TensorBoard when asked."""
+  trainer field set, `config_changes` on top; TensorBoard when asked;
+  `device_work` 256 x 256 matrix products per update (a slow device step,
+  the loss unchanged)."""
   config = ml_collections.ConfigDict(dict(
       num_train_steps=3, learning_rate=1e-2, warmup_fraction=0.0,
       grad_clip=0.0, min_lr_fraction=0.0,
@@ -22,7 +26,13 @@ def linear_stage(directory, *, tensorboard=False, **config_changes) -> Stage:
 
   def loss_fn(params, batch, frozen_params, rng):
     del frozen_params, rng
-    return jnp.mean(jnp.square(params['w'] - batch['x'])), {}
+    loss = jnp.mean(jnp.square(params['w'] - batch['x']))
+    if device_work:
+      work = jax.lax.fori_loop(
+          0, device_work, lambda i, m: jnp.tanh(m @ m),
+          jnp.full((256, 256), 1e-3, jnp.float32) + loss * 1e-9)
+      loss = loss + 0.0 * jnp.sum(work)
+    return loss, {}
 
   def batches(start_step):
     for step in itertools.count(start_step):

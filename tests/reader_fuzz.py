@@ -10,7 +10,8 @@ features.json of a MOVi download), movi_records (the Example protos and PNG
 frames of its records), questions and vocabulary (CLEVRER's question and
 vocabulary files), phyre (meta.json, rollouts.jsonl, the rollout strips),
 physion_lists (Physion's official split lists), metrics (eval/metrics.json
-as the explorer page reads it). One JSON line per case:
+as the explorer page reads it), digests (a checkpoint step's sha256.json).
+One JSON line per case:
 
   {"case": 3, "what": "type features.json .../dtype -> 'x'",
    "outcome": "read" | "refused", "type": ..., "message": ...,
@@ -625,10 +626,73 @@ class Metrics(Reader):
     return None
 
 
+class Damaged(Exception):
+  """damage_of gave its verdict: the step is damaged (its way of refusing)."""
+
+
+class Digests(Reader):
+  """`<step>/sha256.json` of a checkpoint step (a shared run folder, a disk
+  fault): `damage_of` must name the damage in one line, never raise or
+  block, and call a step intact only when every file of it is listed with
+  its true size and hash. Besides the JSON mutations: the digest or a
+  listed file replaced by a FIFO, a link (to /dev/zero, out of the step) or
+  a folder."""
+
+  refusals = (Damaged,)
+
+  def __init__(self, folder: Path):
+    super().__init__(folder)
+    from slotformer_jax.runtime import checkpoint_digest  # pylint: disable=g-import-not-at-top
+    self.digest_lib = checkpoint_digest
+    self.base = folder / 'base'
+    data = random.Random(0)
+    for name in ('_CHECKPOINT_METADATA', 'default/_METADATA',
+                 'default/ocdbt.process_0/d/0a1b'):
+      path = self.base / name
+      path.parent.mkdir(parents=True, exist_ok=True)
+      path.write_bytes(bytes(data.randrange(256) for _ in range(64)))
+    checkpoint_digest.write_digest(str(self.base))
+    self.digest = json.loads(
+        (self.base / checkpoint_digest.DIGEST_FILE).read_text())
+
+  def mutate(self, rng, case):
+    shutil.copytree(self.base, case)
+    digest = case / self.digest_lib.DIGEST_FILE
+    if rng.random() < 0.15:
+      listed = case / rng.choice(sorted(self.digest['files']))
+      target = rng.choice([digest, listed])
+      kind = rng.choice(['fifo', 'zero', 'outside', 'folder'])
+      os.remove(target)
+      if kind == 'fifo':
+        os.mkfifo(target)
+      elif kind == 'zero':
+        os.symlink('/dev/zero', target)
+      elif kind == 'outside':
+        os.symlink(self.base / self.digest_lib.DIGEST_FILE, target)
+      else:
+        target.mkdir()
+      return f'{target.name}: special {kind}'
+    what, text = mutate_json(rng, self.digest)
+    digest.write_text(text)
+    return what
+
+  def read(self, case):
+    reason = self.digest_lib.damage_of(str(case), required=True)
+    if reason is not None:
+      if not isinstance(reason, str) or '\n' in reason:
+        return f'reason {reason!r}'
+      raise Damaged(reason)
+    # Intact: then it lists every file with its true size and hash.
+    digest = json.loads((case / self.digest_lib.DIGEST_FILE).read_text())
+    if digest.get('files') != self.digest['files']:
+      return 'called intact, but it lists other files, sizes or hashes'
+    return None
+
+
 READERS: dict[str, type[Reader]] = {
     'movi_metadata': MoviMetadata, 'movi_records': MoviRecords,
     'questions': Questions, 'vocabulary': Vocabulary, 'phyre': Phyre,
-    'physion_lists': PhysionLists, 'metrics': Metrics}
+    'physion_lists': PhysionLists, 'metrics': Metrics, 'digests': Digests}
 
 
 # ----------------------------------------------------------------------------

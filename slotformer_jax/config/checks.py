@@ -391,7 +391,13 @@ def validate(config: ml_collections.ConfigDict, stages: Sequence[str], *,
     positive('explore', ('num_videos', 'fps', 'scale'))
 
   problems.extend(choice_problems(config))
+  targets = (config.savi.get('targets') if 'savi' in config else None)
+  if isinstance(targets, (tuple, list)) and not targets:
+    problems.append("savi.targets names no target; give one or more, e.g. "
+                    "('rgb',)")
   problems.extend(seeds_problems(config, stages, task_seeded))
+  if stages & {'train_vqa', 'evaluate_vqa'} and 'vqa' in config:
+    problems.extend(_aloe_seed_problems(config))
   problems.extend(check_field_kinds(config))
   problems.extend(check_field_shapes(config))
   problems[:] = list(dict.fromkeys(problems))  # the same line from two checks
@@ -454,6 +460,17 @@ def choice_problems(config: ml_collections.ConfigDict,
   return problems
 
 
+# The largest seed: jax's PRNG keys of 32-bit ints (2**32 is the key of 0,
+# silently), an int32 array of the seeds of a several-seed run, and a
+# dynamics model drawing with its chain's seed + 1.
+MAX_SEED = 2**31 - 2
+
+
+def _is_seed(value: Any) -> bool:
+  return (isinstance(value, int) and not isinstance(value, bool)
+          and 0 <= value <= MAX_SEED)
+
+
 def seeds_problems(config: ml_collections.ConfigDict,
                    stages: Sequence[str],
                    task_seeded: Sequence[str] = ()) -> list[str]:
@@ -462,13 +479,16 @@ def seeds_problems(config: ml_collections.ConfigDict,
   not take several seeds yet (or the setting that keeps them from it)."""
   seeds = config.seeds
   problems = []
+  if not _is_seed(config.seed):
+    problems.append(f'seed must be an integer in [0, {MAX_SEED}] (what a '
+                    f'jax PRNG key holds), got {config.seed!r}')
   if seeds is not None:
     if not isinstance(seeds, (tuple, list)) or not seeds:
       problems.append(f'seeds must be a non-empty tuple of ints, e.g. '
                       f'(0, 1, 2), got {seeds!r}')
-    elif not all(isinstance(s, int) and not isinstance(s, bool)
-                 and s >= 0 for s in seeds):
-      problems.append(f'seeds must be ints >= 0, got {tuple(seeds)!r}')
+    elif not all(_is_seed(s) for s in seeds):
+      problems.append(f'seeds must be integers in [0, {MAX_SEED}] (what a '
+                      f'jax PRNG key holds), got {tuple(seeds)!r}')
     elif len(set(seeds)) != len(seeds):
       duplicates = sorted({s for s in seeds if list(seeds).count(s) > 1})
       problems.append(f'seeds must be distinct, got {tuple(seeds)!r} '
@@ -492,6 +512,23 @@ def seeds_problems(config: ml_collections.ConfigDict,
         'yet (their per-seed inputs and outputs are not built): run them '
         'with one seed (--config.seed=<s>, no --config.seeds)')
   return problems
+
+
+def _aloe_seed_problems(config: ml_collections.ConfigDict) -> list[str]:
+  """Aloe draws with run seed * 1000 + vqa.seed (`stages.vqa.aloe_seed`):
+  a seed too, so in range, and vqa.seed below 1000 keeps runs apart."""
+  value = config.vqa.get('seed')
+  if not (isinstance(value, int) and not isinstance(value, bool)
+          and 0 <= value < 1000):
+    return [f'vqa.seed must be an integer in [0, 999], got {value!r}']
+  runs = config.seeds if isinstance(config.seeds, (tuple, list)) else (
+      config.seed,)
+  largest = max((s for s in runs if _is_seed(s)), default=0)
+  if largest * 1000 + value > MAX_SEED:
+    return [f'seed {largest} is too large for Aloe, which draws with seed '
+            f'* 1000 + vqa.seed (at most {MAX_SEED}): give seeds up to '
+            f'{(MAX_SEED - value) // 1000}']
+  return []
 
 
 def _check_vqa_batches(vqa: ml_collections.ConfigDict, problems: list[str],

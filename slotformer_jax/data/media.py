@@ -26,6 +26,7 @@ import numpy as np
 from PIL import Image
 
 from slotformer_jax.errors import shown
+from slotformer_jax.files import open_regular
 from slotformer_jax.files import UntrustedFileError
 from slotformer_jax.files import read_untrusted_json
 
@@ -111,36 +112,46 @@ def read_image(path: Path, *, max_pixels: int = MAX_IMAGE_PIXELS
   decoding.
 
   Raises:
-    SkipVideo('unreadable_frame'): missing, truncated, too large or not an
-      image.
+    SkipVideo('unreadable_frame'): missing, truncated, too large, not an
+      image, or not a regular file (a FIFO, a device).
   """
   try:
-    with open(path, 'rb') as f:
+    # A regular file only: a FIFO would block the read, a link to
+    # /dev/zero never end it.
+    with open_regular(path, what='frame') as f:
       stated = png_size(f.read(24))
-    if stated is not None and stated[0] * stated[1] > max_pixels:
-      raise SkipVideo('unreadable_frame', f'{path}: its PNG header says '
-                      f'{stated[0]}x{stated[1]} pixels, more than the '
-                      f'{max_pixels} a frame may have')
-    with warnings.catch_warnings():
-      warnings.simplefilter('error', Image.DecompressionBombWarning)
-      with Image.open(path) as image:
-        width, height = image.size
-        if width * height > max_pixels:
-          raise SkipVideo('unreadable_frame', f'{path}: its header says '
-                          f'{width}x{height} pixels, more than the '
-                          f'{max_pixels} a frame may have')
-        # convert('RGB') drops an alpha channel without compositing, like
-        # the official OBJ3D loader; load() forces the full decode here, so
-        # a truncated file fails now rather than later.
-        image.load()
-        return np.asarray(image.convert('RGB'))
+      if stated is not None and stated[0] * stated[1] > max_pixels:
+        raise SkipVideo('unreadable_frame', f'{path}: its PNG header says '
+                        f'{stated[0]}x{stated[1]} pixels, more than the '
+                        f'{max_pixels} a frame may have')
+      f.seek(0)
+      return _decoded(f, path, max_pixels)
   except SkipVideo:
     raise
+  except UntrustedFileError as error:
+    raise SkipVideo('unreadable_frame', str(error)) from None
   except Exception as error:  # pylint: disable=broad-except
     # OSError, SyntaxError, PIL's bomb errors, anything a crafted file makes
     # a decoder raise: this video is skipped, naming the file.
     raise SkipVideo('unreadable_frame',
                     f'{path}: {shown(str(error), 200)}') from None
+
+
+def _decoded(f, path: Path, max_pixels: int) -> np.ndarray:
+  """uint8 [h, w, 3] of the open image file `f` (`read_image`)."""
+  with warnings.catch_warnings():
+    warnings.simplefilter('error', Image.DecompressionBombWarning)
+    with Image.open(f) as image:
+      width, height = image.size
+      if width * height > max_pixels:
+        raise SkipVideo('unreadable_frame', f'{path}: its header says '
+                        f'{width}x{height} pixels, more than the '
+                        f'{max_pixels} a frame may have')
+      # convert('RGB') drops an alpha channel without compositing, like the
+      # official OBJ3D loader; load() forces the full decode here, so a
+      # truncated file fails now rather than later.
+      image.load()
+      return np.asarray(image.convert('RGB'))
 
 
 def load_json(path: Path, what: str) -> Any:

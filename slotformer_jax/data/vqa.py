@@ -25,12 +25,14 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import sys
 from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from slotformer_jax.data import json_array
 from slotformer_jax.errors import ConfigError
 from slotformer_jax.errors import MissingInputError
 from slotformer_jax.errors import shown
@@ -50,8 +52,11 @@ CLEVRER_ANSWERS: tuple[str, ...] = (
     'cylinder', 'gray', 'green', 'metal', 'no', 'purple', 'red', 'rubber',
     'sphere', 'yellow', 'yes')
 # Limits of a question file from elsewhere (CLEVRER's train.json is about
-# 40 MB; its scenes nest 4 levels deep) and of one text in it.
-MAX_QUESTION_FILE_BYTES = 1 << 30
+# 40 MB; its scenes nest 4 levels deep, one scene's questions take a few
+# kB), of one scene in it, and of one text. Memory at the limits:
+# docs/reliability.md (the reader limits table).
+MAX_QUESTION_FILE_BYTES = 256 << 20
+MAX_SCENE_CHARS = 4 << 20
 MAX_QUESTION_FILE_DEPTH = 8
 MAX_TEXT_CHARS = 2000
 MAX_VOCABULARY = 1_000_000
@@ -329,9 +334,8 @@ def _check_fields(entry: Any, fields: Mapping[str, str],
 
 def check_scenes(scenes: Any, path: str | os.PathLike[str]
                  ) -> list[dict[str, Any]]:
-  """`scenes` (a question file as read) if it has CLEVRER's layout: every
-  field present and of its type, question types and choice answers from
-  their sets. The rest of this module relies on it.
+  """`scenes` (a question file as read) if it has CLEVRER's layout
+  (`checked_scene`), each scene with only the fields this module reads.
 
   Raises:
     QuestionFileError: the first problem, naming the file, the scene and
@@ -339,33 +343,73 @@ def check_scenes(scenes: Any, path: str | os.PathLike[str]
   """
   if not isinstance(scenes, list):
     raise QuestionFileError(f'{path} {_problem(scenes, "list")} of scenes')
-  for i, scene in enumerate(scenes):
-    where = f'{path}: scene {i}'
-    _check_fields(scene, {'scene_index': 'int', 'video_filename': 'text',
-                          'questions': 'list'}, {}, where)
-    for j, q in enumerate(scene['questions']):
-      question = f'{where} question {j}'
-      _check_fields(q, {'question_id': 'int', 'question_type': 'text',
-                        'question': 'text'}, {'template': 'text'}, question)
-      if q['question_type'] not in QUESTION_TYPES:
+  return [checked_scene(scene, i, path) for i, scene in enumerate(scenes)]
+
+
+# The fields this module reads; the others (CLEVRER's `program`,
+# `question_subtype`) are not kept: they would cost memory for nothing.
+_SCENE_FIELDS = ('scene_index', 'video_filename', 'questions')
+_QUESTION_FIELDS = ('question_id', 'question_type', 'question', 'template',
+                    'answer', 'choices')
+_CHOICE_FIELDS = ('choice_id', 'choice', 'answer')
+
+
+def checked_scene(scene: Any, i: int, path: str | os.PathLike[str]
+                  ) -> dict[str, Any]:
+  """Scene `i` of a question file if it has CLEVRER's layout: every field
+  present and of its type, question types and choice answers from their
+  sets; a copy with only the fields this module reads (its repeated words
+  shared). The rest of this module relies on it.
+
+  Raises:
+    QuestionFileError: the first problem, naming the file, the scene and
+      the question.
+  """
+  where = f'{path}: scene {i}'
+  _check_fields(scene, {'scene_index': 'int', 'video_filename': 'text',
+                        'questions': 'list'}, {}, where)
+  for j, q in enumerate(scene['questions']):
+    question = f'{where} question {j}'
+    _check_fields(q, {'question_id': 'int', 'question_type': 'text',
+                      'question': 'text'}, {'template': 'text'}, question)
+    if q['question_type'] not in QUESTION_TYPES:
+      raise QuestionFileError(
+          f"{question}: the question type '{shown(q['question_type'], 40)}'"
+          f' is not one of {", ".join(QUESTION_TYPES)}')
+    if q['question_type'] == 'descriptive':
+      _check_fields(q, {}, {'answer': 'text'}, question)
+      continue
+    _check_fields(q, {'choices': 'list'}, {}, question)
+    if not q['choices']:
+      raise QuestionFileError(f'{question} has no choices')
+    for k, choice in enumerate(q['choices']):
+      where_choice = f'{question} choice {k}'
+      _check_fields(choice, {'choice_id': 'int', 'choice': 'text'},
+                    {'answer': 'text'}, where_choice)
+      if choice.get('answer', 'correct') not in _CHOICE_LABELS:
         raise QuestionFileError(
-            f"{question}: the question type '{shown(q['question_type'], 40)}'"
-            f' is not one of {", ".join(QUESTION_TYPES)}')
-      if q['question_type'] == 'descriptive':
-        _check_fields(q, {}, {'answer': 'text'}, question)
-        continue
-      _check_fields(q, {'choices': 'list'}, {}, question)
-      if not q['choices']:
-        raise QuestionFileError(f'{question} has no choices')
-      for k, choice in enumerate(q['choices']):
-        where_choice = f'{question} choice {k}'
-        _check_fields(choice, {'choice_id': 'int', 'choice': 'text'},
-                      {'answer': 'text'}, where_choice)
-        if choice.get('answer', 'correct') not in _CHOICE_LABELS:
-          raise QuestionFileError(
-              f"{where_choice}: the answer '{shown(choice['answer'], 40)}' "
-              "is not 'correct' or 'wrong'")
-  return scenes
+            f"{where_choice}: the answer '{shown(choice['answer'], 40)}' "
+            "is not 'correct' or 'wrong'")
+  return {**_kept(scene, _SCENE_FIELDS), 'questions': [
+      _kept(q, _QUESTION_FIELDS) for q in scene['questions']]}
+
+
+def _kept(entry: dict[str, Any], fields: Sequence[str]) -> dict[str, Any]:
+  """`entry` with only `fields` (those it has); words shared (interned),
+  choices kept the same way."""
+  kept = {}
+  for key in fields:
+    if key not in entry:
+      continue
+    value = entry[key]
+    if key in ('question_type', 'answer', 'template'):
+      value = sys.intern(value)
+    elif key == 'choices':
+      value = [_kept(c, _CHOICE_FIELDS) for c in value]
+    elif key == 'questions':
+      continue  # the caller's
+    kept[key] = value
+  return kept
 
 
 def read_clevrer_questions(data_root: str | os.PathLike[str], split: str
@@ -383,11 +427,16 @@ def read_clevrer_questions(data_root: str | os.PathLike[str], split: str
         f'{path} not found: CLEVRER keeps its questions in '
         '<data_root>/questions/{train,validation,test}.json (set '
         'vqa.questions_root to the folder holding questions/)')
+  # Scene by scene (`json_array`): each is checked and kept small before
+  # the next is parsed, so memory stays near the file's size.
   try:
-    scenes = read_untrusted_json(path, what='question file',
-                                 max_bytes=MAX_QUESTION_FILE_BYTES,
-                                 max_depth=MAX_QUESTION_FILE_DEPTH)
+    text = json_array.read_text(path, what='question file',
+                                max_bytes=MAX_QUESTION_FILE_BYTES)
+    return [checked_scene(scene, i, path) for i, scene in enumerate(
+        json_array.elements(text, where=f'question file {path}',
+                            items='scenes',
+                            max_element_chars=MAX_SCENE_CHARS,
+                            max_depth=MAX_QUESTION_FILE_DEPTH - 1))]
   except UntrustedFileError as error:
     raise QuestionFileError(f'{error}. Restore it from the CLEVRER '
                             'download.') from None
-  return check_scenes(scenes, path)

@@ -100,6 +100,21 @@ class Joined:
     """The row of a kept question's video."""
     return self.rows[name_key(video_filename)]
 
+  def problem(self, split: str, limit: float, scoring: bool) -> str | None:
+    """The one line that stops the VQA stage, or None: no question has its
+    video; or, when `scoring`, more than `limit` (vqa.
+    max_missing_video_fraction) of them have none."""
+    if self.total and not self.questions:
+      return (f'VQA {self.report(split)}: no question is left; convert the '
+              f'{split} videos the questions are about')
+    if scoring and self.missing_fraction > limit:
+      return (f'VQA {self.report(split)}; that is more than vqa.'
+              f'max_missing_video_fraction={limit}, so the score would not '
+              f'be the split\'s. Convert the whole {split} split, or pass '
+              '--config.vqa.max_missing_video_fraction=1 to score the '
+              'questions that have a video')
+    return None
+
   def report(self, split: str) -> str:
     """One line: what was left out and why."""
     examples = ', '.join(self.missing_videos[:3])
@@ -135,6 +150,27 @@ def split_video_names(data_config: ml_collections.ConfigDict, split: str
     MissingInputError: the dataset is not there.
   """
   return datasets.get(data_config.name).video_names(data_config, split)
+
+
+@dataclasses.dataclass(frozen=True)
+class _Asked:
+  """A question as `join_videos` sees it: the video it is about."""
+  video_filename: str
+
+
+def coverage(config: ml_collections.ConfigDict, split: str) -> Joined:
+  """Which questions of the split's file have their video in the converted
+  split, without encoding them (no vocabulary): what can be checked before
+  any training once the data is there (`Joined.questions` then holds the
+  video names of the kept questions, not encoded questions).
+
+  Raises:
+    MissingInputError / UserError: no question file, or no converted data.
+  """
+  scenes = vqa_data.read_clevrer_questions(questions_root(config), split)
+  asked = [_Asked(scene['video_filename']) for scene in scenes
+           for _ in scene['questions']]
+  return join_videos(asked, split_video_names(config.data, split))
 
 
 def joined_questions(config: ml_collections.ConfigDict, split: str,

@@ -25,6 +25,8 @@ OBJ3D has no masks or boxes.
 
 from __future__ import annotations
 
+import os
+
 import dataclasses
 import functools
 from pathlib import Path
@@ -104,7 +106,9 @@ def convert_video(job: VideoJob, options: Options) -> dict[str, object]:
   frames = []
   for number in range(1, options.num_frames + 1):
     path = job.folder / FRAME_TEMPLATE.format(number)
-    if not path.is_file():
+    # What exists but is no regular file (a FIFO, a link to /dev/zero) is
+    # named as such by read_image, not called missing.
+    if not os.path.lexists(path):
       available = len(list(job.folder.glob(FRAME_TEMPLATE.format('*'))))
       raise media.SkipVideo(
           'truncated_video',

@@ -38,6 +38,7 @@ from slotformer_jax.config.sections import DYNAMICS_MODELS
 from slotformer_jax.config.sections import SLOTFORMER
 from slotformer_jax.evaluation import evaluate
 from slotformer_jax.evaluation import explore_page
+from slotformer_jax.evaluation import page_text
 from slotformer_jax.evaluation import metrics_file
 from slotformer_jax.evaluation import metrics as metrics_lib
 from slotformer_jax.evaluation import visualize
@@ -390,7 +391,10 @@ def page_data(out: dict[str, Any], videos: np.ndarray, indices: list[int],
 
 
 def write_page(directory: str, data: dict[str, Any]) -> str:
-  """index.html with `data` embedded; returns its path."""
+  """index.html with `data` embedded; returns its path. Every text of
+  `data` is shown as text (`page_text.page_safe`: no bidi override or
+  control character acts on the page)."""
+  data = page_text.page_safe(data)
   blob = json.dumps(data, separators=(',', ':'))
   # Inside <script>, '</script' would close the element early and '<!--'
   # change how the rest is parsed: no '<', '>' or '&' is left raw (they only

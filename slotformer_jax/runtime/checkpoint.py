@@ -12,17 +12,20 @@ again) and resumes from the newest intact step; a read-only restore
 (evaluation, extraction) skips it. With several processes, process 0 checks
 and every process restores the step it chose.
 
-A step without sha256.json (saved before digests were written, or killed in
-the moment between orbax finishing it and its digest) restores as before:
-nothing is recorded retroactively, since a digest taken now would bless
-whatever bytes are there, and a read-only workdir must not be written.
-Orbax's own read errors still skip such a step.
+Before its first save, process 0 writes `digests.json` beside the steps:
+the first step saved with a digest. A step from then on without
+sha256.json (the process killed between orbax finishing it and its digest)
+is not intact and is set aside as a damaged one is. A step from before
+(a folder saved before digests existed) restores as before: nothing is
+recorded retroactively, since a digest taken now would bless whatever bytes
+are there, and a read-only workdir must not be written. Orbax's own read
+errors still skip such a step. The digest files are read as untrusted
+(`checkpoint_digest`). A step that cannot be renamed (a read-only folder)
+is named in the warning and skipped.
 """
 
 from __future__ import annotations
 
-import hashlib
-import json
 import logging
 import os
 import threading
@@ -37,11 +40,12 @@ from slotformer_jax.errors import brief
 from slotformer_jax.errors import ConfigError
 from slotformer_jax.errors import MissingInputError
 from slotformer_jax.errors import UserError
-from slotformer_jax.errors import shown
-from slotformer_jax.files import confined
-from slotformer_jax.files import OutsideFolderError
-from slotformer_jax.files import write_json_atomic
 from slotformer_jax.runtime import processes
+from slotformer_jax.runtime.checkpoint_digest import damage_of
+from slotformer_jax.runtime.checkpoint_digest import DIGEST_FILE
+from slotformer_jax.runtime.checkpoint_digest import digests_since
+from slotformer_jax.runtime.checkpoint_digest import record_digests_since
+from slotformer_jax.runtime.checkpoint_digest import write_digest
 
 logger = logging.getLogger(__name__)
 
@@ -54,76 +58,7 @@ class DamagedCheckpointError(UserError):
   """Every checkpoint step there is holds other bytes than were saved."""
 
 
-DIGEST_FILE = 'sha256.json'
-_DIGEST_FORMAT = 'slotformer_jax checkpoint digest'
 _DAMAGED = '.damaged-'  # a step set aside: '30.damaged-20250102T030405'
-
-
-def _sha256(f) -> str:
-  """Hex SHA-256 of an open binary file (hashlib.file_digest is 3.11+)."""
-  digest = hashlib.sha256()
-  while chunk := f.read(1 << 20):
-    digest.update(chunk)
-  return digest.hexdigest()
-
-
-def write_digest(step_directory: str) -> None:
-  """Records the size and SHA-256 of every file of a finished step."""
-  listed = {}
-  for root, folders, names in os.walk(step_directory):
-    folders.sort()
-    for name in sorted(names):
-      path = os.path.join(root, name)
-      relative = os.path.relpath(path, step_directory)
-      if relative == DIGEST_FILE or not os.path.isfile(path):
-        continue
-      with open(path, 'rb') as f:
-        listed[relative.replace(os.sep, '/')] = {
-            'bytes': os.fstat(f.fileno()).st_size,
-            'sha256': _sha256(f)}
-  write_json_atomic(os.path.join(step_directory, DIGEST_FILE),
-                    {'format': _DIGEST_FORMAT, 'version': 1, 'files': listed})
-
-
-def damage_of(step_directory: str) -> str | None:
-  """Why a step's files are not what was saved (one phrase), or None: they
-  match its sha256.json, or it has none (a step saved before digests)."""
-  path = os.path.join(step_directory, DIGEST_FILE)
-  if not os.path.lexists(path):
-    return None
-  try:
-    with open(path, 'rb') as f:
-      digest = json.loads(f.read(64 << 20))
-    listed = digest['files']
-    if digest.get('format') != _DIGEST_FORMAT or not isinstance(listed, dict):
-      raise ValueError('not a digest')
-    expected = [(name, int(entry['bytes']), str(entry['sha256']))
-                for name, entry in listed.items()]
-  except (OSError, ValueError, TypeError, KeyError, AttributeError):
-    return f'its {DIGEST_FILE} is unreadable'
-  # Sizes first: a truncated file is found without hashing the rest.
-  files = []
-  for name, size, sha256 in expected:
-    try:
-      file = confined(step_directory, name, what='a file of sha256.json',
-                      nested=True)
-      actual = os.path.getsize(file)
-    except OutsideFolderError:
-      return f'its {DIGEST_FILE} is unreadable'
-    except OSError:
-      return f'{shown(name, 120)} is missing'
-    if actual != size:
-      return f'{shown(name, 120)} holds {actual} bytes, {size} were saved'
-    files.append((name, file, sha256))
-  for name, file, sha256 in files:
-    try:
-      with open(file, 'rb') as f:
-        actual = _sha256(f)
-    except OSError as error:
-      return f'{shown(name, 120)} cannot be read ({brief(error)})'
-    if actual != sha256:
-      return f'{shown(name, 120)} holds other bytes than were saved'
-  return None
 
 
 def set_aside(directory: str, step: int) -> str:
@@ -175,6 +110,10 @@ class Checkpointer:
     """
     try:
       self._join_digester()
+      if jax.process_index() == 0:
+        # Before the step exists: a step of this folder without a digest
+        # from now on was cut short before its digest, and is not intact.
+        record_digests_since(self.directory, step)
       saved = self._manager.save(step, args=ocp.args.StandardSave(state),
                                  force=force)
       self._manager.check_for_errors()
@@ -208,8 +147,9 @@ class Checkpointer:
         write_digest(step_directory)
     except OSError as error:
       logger.warning('checkpoint step %d in %s: its %s could not be written '
-                     '(%s); it will restore unchecked', step, self.directory,
-                     DIGEST_FILE, brief(error))
+                     '(%s); a restore will not take it as intact (it uses '
+                     'the step before)', step, self.directory, DIGEST_FILE,
+                     brief(error))
 
   def _join_digester(self) -> None:
     if self._digester is not None:
@@ -239,8 +179,10 @@ class Checkpointer:
     # Process 0 checks the digests; every process goes by its verdict.
     reasons = {}
     if jax.process_index() == 0:
+      since = digests_since(self.directory)
       for candidate in candidates:
-        reason = damage_of(os.path.join(self.directory, str(candidate)))
+        reason = damage_of(os.path.join(self.directory, str(candidate)),
+                           required=candidate >= since)
         if reason is not None:
           reasons[candidate] = reason
     damaged = self._agreed([int(c in reasons) for c in candidates])
@@ -272,16 +214,20 @@ class Checkpointer:
                  if c in set_aside_names]
         unreadable = (f'step(s) {[c for c, _ in failures]} could not be read '
                       f'({brief(failures[0][1])})'
-                      + (f', set aside as {", ".join(aside)}' if aside else '')
+                      + (f', {", ".join(aside)}' if aside else '')
                       + '; ' if failures else '')
         logger.warning('%s: in %s, %s%susing the newest intact checkpoint, '
                        'step %d', what, self.directory,
                        f'{damage}; ' if damage else '', unreadable, chosen)
       return restored, chosen
     if not failures:
+      stuck = any(n.startswith('not ') for n in set_aside_names.values())
       raise DamagedCheckpointError(
           f'{what}: no intact checkpoint in {self.directory}: {damage}. '
-          + ('Re-run the same command: it trains from step 0 (or put back '
+          + ('Make the folder writable (or move the damaged steps out of '
+             'it) and re-run the same command: it trains from step 0.'
+             if stuck else
+             'Re-run the same command: it trains from step 0 (or put back '
              'an intact copy of the step first).' if not self.read_only
              else 'Re-run the training stage'
              + (f' ({train_command})' if train_command else '')
@@ -297,14 +243,21 @@ class Checkpointer:
         'folder to retrain.') from None
 
   def _set_aside_unusable(self, steps: list[int]) -> dict[int, str]:
-    """{step: new name} of `steps` renamed by process 0 (writable only);
-    every process then sees the folder without them."""
+    """{step: new name, or why it could not be renamed} of `steps`, renamed
+    by process 0 (writable only); every process then sees the folder
+    without them. A folder that cannot be renamed in (read-only, no
+    permission) keeps the step: the restore goes on with an older one."""
     if self.read_only or not steps:
       return {}
     names = {}
     if jax.process_index() == 0:
       for step in steps:
-        names[step] = set_aside(self.directory, step)
+        try:
+          names[step] = 'set aside as ' + set_aside(self.directory, step)
+        except OSError as error:
+          why = error.strerror or brief(error)
+          names[step] = (f'not set aside ({why}): move it out of the folder '
+                         'before this step is saved again')
     self._agreed([0])  # the renames are done before anyone lists
     self._manager.reload()
     return names
@@ -314,7 +267,7 @@ class Checkpointer:
     """'step 30 is damaged (...), set aside as 30.damaged-...' for each."""
     notes = []
     for step, reason in sorted(reasons.items(), reverse=True):
-      aside = (f', set aside as {names[step]}' if step in names else '')
+      aside = f', {names[step]}' if step in names else ''
       notes.append(f'step {step} is damaged ({reason}){aside}')
     return '; '.join(notes)
 

@@ -5,9 +5,12 @@ raises `Preempted`; the rerun resumes from it.
 With several processes a signal to any of them stops all after the same
 step: one small all-gather (`processes.agreed_signal`) agrees on it every
 `every` updates and after the last, so a signal is acted on at most
-`every - 1` updates late. Not orbax's preemption sync: that relies on jax's
-own SIGTERM handler, which ours replaces (`processes.initialize` turns it
-off).
+`every - 1` updates late; one noted after the last check (during the last
+save) stops the run once that save is done. The trainer keeps at most
+`in_flight.MAX_STEPS_AHEAD` updates queued on the devices, so the save
+that follows a signal waits for at most that many more. Not orbax's
+preemption sync: that relies on jax's own SIGTERM handler, which ours
+replaces (`processes.initialize` turns it off).
 """
 
 from __future__ import annotations
@@ -84,22 +87,38 @@ def stop_signal(flag: StopSignals, done: int, num_steps: int,
 
 
 class Preemption:
-  """The stop signals of one training loop of `num_steps` updates, agreed
-  every `every` updates (`stop_signal`); a context manager."""
+  """The stop signals of one training loop `name` of `num_steps` updates,
+  agreed every `every` updates (`stop_signal`); a context manager.
 
-  def __init__(self, num_steps: int, every: int = 1):
+  A signal noted after the loop's last check (while its last step is saved
+  or logged, or its reader closed) is not dropped: leaving the block
+  normally then raises `Preempted` (its last step is saved by then), so the
+  run stops instead of going on to the next stage.
+  """
+
+  def __init__(self, num_steps: int, every: int = 1, name: str = 'training'):
     self.num_steps = num_steps
     self.every = every
+    self.name = name
     self._flag = StopSignals()
     self._signal = 0
     self._signalled: list[int] = []
+    self._acted = False
 
   def __enter__(self) -> Preemption:
     self._flag.__enter__()
     return self
 
-  def __exit__(self, *exc) -> None:
-    self._flag.__exit__(*exc)
+  def __exit__(self, kind, error, traceback) -> None:
+    self._flag.__exit__(kind, error, traceback)
+    if kind is not None or self._acted:
+      return
+    # Every process leaves the loop after the same last step: one more
+    # agreement (several processes), on the signals noted since.
+    self._signal, self._signalled = stop_signal(self._flag, self.num_steps,
+                                                self.num_steps)
+    if self._signal:
+      raise self.stopped(self.name, self.num_steps, last=True)
 
   def stops_after(self, done: int) -> bool:
     """Whether to save and stop after update `done`."""
@@ -107,11 +126,14 @@ class Preemption:
                                                 self.num_steps, self.every)
     return self._signal != 0
 
-  def stopped(self, name: str, done: int) -> Preempted:
-    """The error to raise once update `done` of `name` is saved."""
+  def stopped(self, name: str, done: int, last: bool = False) -> Preempted:
+    """The error to raise once update `done` of `name` is saved (`last`:
+    its last update, the signal came while it was saved)."""
+    self._acted = True
     by = signal.Signals(self._signal).name
     if jax.process_count() > 1:
       by += ' to process ' + ', '.join(map(str, self._signalled))
-    return Preempted(f'{name}: stopped by {by} after step {done}; its '
+    after = f'its last step, {done}' if last else f'step {done}'
+    return Preempted(f'{name}: stopped by {by} after {after}; its '
                      'checkpoint is saved. Re-run the same command to '
                      'resume.', self._signal)

@@ -83,6 +83,11 @@ def chain(slot_model: SlotModel, paths: Paths, steps: dict[str, int],
     expected = parent_of(slot_model, part, identities, steps)
     if part.parent is not None and identity.get('parent') != expected:
       parent_label = slot_model.stage_labels[part.parent]
+      lost = identity_lib.lost_steps(identity.get('parent'), expected)
+      if lost is not None:
+        raise UserError(identity_lib.lost_steps_advice(
+            parent_label, f'{part.label} in {paths.model(part.name)}',
+            lost, command(paths.stage1, f'train_{lost[0]}')) + '.')
       raise UserError(
           f'{part.label} in {paths.model(part.name)} was trained with '
           f'{parent_label} {identity.get("parent")}, the current '
@@ -179,6 +184,11 @@ def check_slots_current(paths: Paths, split: str, expected: dict[str, Any],
   if not (meta and meta.get('complete')):
     raise MissingInputError(f'no complete slots in {directory}; extract them: '
                             f'{rebuild}')
+  lost = identity_lib.lost_steps(meta.get('parent'), expected)
+  if lost is not None and meta.get('fields') == fields:
+    raise UserError(identity_lib.lost_steps_advice(
+        what, f'the slots in {directory}', lost,
+        command(paths.stage1, f'train_{lost[0]}')) + '.')
   if meta.get('parent') != expected or meta.get('fields') != fields:
     raise UserError(
         f'the slots in {directory} are stale: made by {what} '
@@ -210,6 +220,21 @@ def check_foreign_stage1(slot_model: SlotModel, paths: Paths, mesh: Mesh,
           'run never trains there. Finish it with its own run: '
           f'python -m slotformer_jax.main --config=<its config> '
           f'--workdir={paths.stage1}')
+  missing = [split for split in splits
+             if not (read_meta(paths.slots(split)) or {}).get('complete')]
+  if missing:
+    # That run's own extract_slots would not make them (its config's
+    # extraction.splits lacks them): name what this run can read instead.
+    kept = tuple(split for split in splits if split not in missing)
+    raise MissingInputError(
+        f'stage1_workdir={paths.stage1} has no complete slots of '
+        f'{", ".join(missing)}; this run reads extraction.splits='
+        f'{tuple(splits)} and never extracts there. '
+        + (f'Read the splits it has: --config.extraction.splits="{kept}", '
+           'or e' if kept else 'E')
+        + f'xtract {", ".join(missing)} with that run\'s own config: '
+        f'{command(paths.stage1, "extract_slots")} --config.extraction.'
+        f'splits="{tuple(splits)}" --allow_config_change')
   for split in splits:
     check_slots_current(paths, split, loaded.slots_parent, slots_fields,
                         slot_model.label)

@@ -15,6 +15,7 @@ Every stage function is `(run: Run) -> None | results` (run.py).
 from __future__ import annotations
 
 import importlib
+import os
 import pkgutil
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -24,6 +25,7 @@ import jax
 from slotformer_jax import datasets
 from slotformer_jax.config import checks as config_checks
 from slotformer_jax.errors import CommandLineError
+from slotformer_jax.errors import ConfigError
 from slotformer_jax.run import Run
 from slotformer_jax.stages import data
 from slotformer_jax.stages import dynamics
@@ -106,6 +108,25 @@ def check(run: Run, stages: Sequence[str], *, num_devices: int | None = None,
       task_splits=(task.reads(config) if set(stages) & set(task.stages)
                    and not task.problems(config) else ()),
       video_length=video_length)
+  if set(stages) & set(task.stages) and not task.problems(config):
+    problems = task.input_problems(run, stages)
+    if problems:
+      raise ConfigError('; '.join(problems))
+
+
+# The shipped configs (a source checkout; absent from an installed wheel).
+_CONFIGS = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(
+    os.path.abspath(__file__)))), 'configs')
+
+
+def _is_video_prediction(path: str) -> bool:
+  """Whether the config file `path` exists and sets no task."""
+  if not os.path.isfile(path):
+    return False
+  try:
+    return config_checks.load_config_file(path).get('task') is None
+  except Exception:  # pylint: disable=broad-except
+    return False  # a hint only: never an error of its own
 
 
 def _not_a_stage(run: Run, mode: str, table: dict[str, StageFn]) -> str:
@@ -117,4 +138,12 @@ def _not_a_stage(run: Run, mode: str, table: dict[str, StageFn]) -> str:
   if owners:
     line += (f'. --mode={mode} belongs to ' + ' or '.join(
         task.config for task in owners))
+  if any(task.name is None for task in owners):
+    # Video prediction on this run's dataset and stage 1, not the
+    # synthetic config's.
+    own = os.path.join(_CONFIGS, f'{run.config.data.name}.py')
+    if run.task is not None and _is_video_prediction(own):
+      line += (f'; on this run\'s data and stage 1: a new --workdir with '
+               f'--config=configs/{run.config.data.name}.py '
+               f'--config.stage1_workdir={run.paths.root}')
   return line + '.'

@@ -13,15 +13,19 @@ seed (stochastic SAVi's samples) as a one-seed run draws with config.seed.
 from __future__ import annotations
 
 import logging
+from typing import Any
 
 import jax
 
 from slotformer_jax import inference
 from slotformer_jax.data.slots import SlotWriter
 from slotformer_jax.data.slots import read_meta
+from slotformer_jax.errors import UserError
 from slotformer_jax.run import Run
 from slotformer_jax.runtime import sharding
 from slotformer_jax.stages.stage1 import uses_foreign_stage1
+from slotformer_jax.workdir import identity as identity_lib
+from slotformer_jax.workdir.paths import command
 
 logger = logging.getLogger(__name__)
 
@@ -65,6 +69,8 @@ def _extract(run: Run) -> None:
                   slot_model.label, parent, _of_seed(run))
       continue
     if meta and meta.get('complete'):
+      _refuse_lost_steps(run, directory, meta.get('parent'), parent,
+                         slot_model.label)
       logger.info('slots of %s are stale (from %s, now %s %s): '
                   're-extracting', split, meta.get('parent'),
                   slot_model.label, parent)
@@ -84,3 +90,20 @@ def _of_seed(run: Run) -> str:
   """' (seed s)' for a seed view, '' for a one-seed run (its messages)."""
   return '' if run.seed_index is None else f' (seed {run.seed})'
 
+
+def _refuse_lost_steps(run: Run, directory: str, made_from: Any,
+                       parent: dict[str, Any], label: str) -> None:
+  """Slots made by a newer step of the same slot-model run than the one
+  restored now are good (its newer checkpoints were lost): they are not
+  overwritten from the older step; the line names the retraining.
+
+  Raises:
+    UserError: `identity.lost_steps` found such a step.
+  """
+  lost = identity_lib.lost_steps(made_from, parent)
+  if lost is not None:
+    raise UserError(
+        identity_lib.lost_steps_advice(
+            label, f'the slots in {directory}', lost,
+            command(run.paths.stage1, f'train_{lost[0]}'))
+        + f' (delete {directory} to extract from step {lost[1]} instead).')

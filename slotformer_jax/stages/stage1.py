@@ -139,6 +139,11 @@ def check_derived_current(run: Run, derived: Derived, split: str,
     raise MissingInputError(
         f'no complete {source_label} {derived.name} in {directory}; compute '
         f'them: {rebuild}')
+  lost = identity_lib.lost_steps(meta.get('parent'), parent)
+  if lost is not None:
+    raise UserError(identity_lib.lost_steps_advice(
+        source_label, f'the {derived.name} in {directory}', lost,
+        command(run.paths.stage1, f'train_{lost[0]}')) + '.')
   if meta.get('parent') != parent:
     raise UserError(
         f'the {derived.name} in {directory} are stale: made by '
@@ -225,6 +230,15 @@ def _derive(run: Run, derived: Derived, encode: Any) -> None:
       logger.info('%s of %s already computed (%s %s)%s', derived.name, split,
                   source_part.label, parent, of_seed)
       continue
+    lost = (identity_lib.lost_steps(meta.get('parent'), parent)
+            if meta and meta.get('complete') else None)
+    if lost is not None:  # good ones: the model's newer steps were lost
+      raise UserError(
+          identity_lib.lost_steps_advice(
+              source_part.label, f'the {derived.name} in {directory}', lost,
+              command(run.paths.stage1, f'train_{lost[0]}'))
+          + f' (delete {directory} to compute them from step {lost[1]} '
+          'instead).')
     if meta and meta.get('complete'):
       logger.info('%s of %s are stale (from %s %s, now %s): recomputing%s',
                   derived.name, split, source_part.label, meta.get('parent'),

@@ -47,6 +47,10 @@ class Task:
       open besides the extracted ones; the data stage makes and checks
       them, and each must be a split of the dataset whose slots are
       extracted (config/checks.py).
+    input_problems: (run, stages) -> one line per problem of its inputs
+      that is known before any work when the data is there already (VQA:
+      questions about videos the converted split lacks); run by
+      `stages.check`, so that nothing is trained first.
   """
 
   name: str | None
@@ -57,6 +61,8 @@ class Task:
   defaults: Callable[[], ml_collections.ConfigDict] | None = None
   reads: Callable[[ml_collections.ConfigDict],
                   tuple[tuple[str, str], ...]] = _no_splits
+  input_problems: Callable[[Any, Sequence[str]], list[str]] = (
+      lambda run, stages: [])
 
   def problems(self, config: ml_collections.ConfigDict) -> list[str]:
     """One line if the config lacks the task's section."""

@@ -18,6 +18,7 @@ import functools
 import json
 import logging
 import os
+from collections.abc import Sequence
 from typing import Any
 
 import jax
@@ -169,18 +170,31 @@ def questions_with_videos(run: Run, split: str, vocab: vqa_data.Vocabulary,
         'question')
   if joined.num_missing:
     logger.warning('VQA %s', joined.report(split))
-  if not joined.questions:
-    raise UserError(f'VQA {joined.report(split)}: no question is left; '
-                    f'convert the {split} videos the questions are about')
-  limit = vqa.max_missing_video_fraction
-  if scoring and joined.missing_fraction > limit:
-    raise UserError(
-        f'VQA {joined.report(split)}; that is more than vqa.'
-        f'max_missing_video_fraction={limit}, so the score would not be the '
-        f'split\'s. Convert the whole {split} split, or pass --config.vqa.'
-        'max_missing_video_fraction=1 to score the questions that have a '
-        'video')
+  problem = joined.problem(split, vqa.max_missing_video_fraction, scoring)
+  if problem:
+    raise UserError(problem)
   return joined
+
+
+def missing_video_problems(run: Run, stages: Sequence[str]) -> list[str]:
+  """Before any work (`stages.check`): the question-to-video check of the
+  splits `stages` read, where the converted data is there already (the
+  converter knew which videos it skipped): the same line the VQA stage
+  would stop with after stage 1 and the dynamics model are trained. Data or
+  questions not there yet: nothing here (the stage that reads them says)."""
+  vqa = run.config.vqa
+  splits = ([('train', False)] if 'train_vqa' in stages else []) + (
+      [(vqa.eval_split, True)] if 'evaluate_vqa' in stages else [])
+  problems = []
+  for split, scoring in splits:
+    try:
+      joined = vqa_questions.coverage(run.config, split)
+    except (UserError, OSError):
+      continue
+    problem = joined.problem(split, vqa.max_missing_video_fraction, scoring)
+    if problem:
+      problems.append(problem)
+  return problems
 
 
 def question_batches(run: Run, split: str, joined: vqa_questions.Joined
@@ -474,4 +488,5 @@ TASK = register(Task(
             'evaluate_vqa': evaluate_vqa},
     seeded=('vqa_slots', 'train_vqa', 'evaluate_vqa'),
     section='vqa', defaults=defaults.vqa_config,
-    reads=lambda config: (('vqa.eval_split', config.vqa.eval_split),)))
+    reads=lambda config: (('vqa.eval_split', config.vqa.eval_split),),
+    input_problems=missing_video_problems))

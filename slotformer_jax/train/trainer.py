@@ -41,6 +41,7 @@ from slotformer_jax.runtime import sharding
 from slotformer_jax.runtime.checkpoint import Checkpointer
 from slotformer_jax.runtime.checkpoint import CheckpointSaveError
 from slotformer_jax.runtime.checkpoint import abstract_like
+from slotformer_jax.runtime.in_flight import StepsInFlight
 from slotformer_jax.runtime.preemption import Preemption
 from slotformer_jax.train import optim
 from slotformer_jax.train.metrics_writer import Line
@@ -192,20 +193,32 @@ def train(stage: Stage, program: Program) -> Any:
   batches = sharding.prefetch_to_device(
       program.batches(start_step), mesh, size=DEVICE_PREFETCH,
       sharding=program.batch_sharding)
-  with _Finishing(name, checkpointer, batches), \
+  in_flight = StepsInFlight()
+  # Preemption first: a signal while the last step is saved, logged or the
+  # reader closed is still noted, and stops the run once it is saved.
+  with Preemption(num_steps, config.stop_check_every,
+                  name=name) as preemption, \
+       _Finishing(name, checkpointer, batches), \
        MetricsWriter(name, stage.directory, stage.logging,
-                     start_step=start_step, num_steps=num_steps) as writer, \
-       Preemption(num_steps, config.stop_check_every) as preemption:
+                     start_step=start_step, num_steps=num_steps) as writer:
     for step in range(start_step, num_steps):
       host_batch, batch = next(batches)
+      if step == start_step:  # otherwise minutes without a line on a CPU
+        logger.info('%s: compiling the update step (the first step takes '
+                    'longer)', name)
       state, metrics = program.update(state, batch, frozen_params)
+      # A signal is then acted on with at most MAX_STEPS_AHEAD updates
+      # left to compute, not every update the host had queued.
+      in_flight.dispatched(metrics)
       writer.advance()
       done = step + 1
       stop = preemption.stops_after(done)
       log = done % config.log_every == 0 or done == num_steps
       save = done % config.checkpoint_every == 0 or done == num_steps or stop
       if log or save:  # checked before anything is saved
-        lines = program.lines(sharding.to_host(metrics), done, checkpointer)
+        lines = _lines_after(program, metrics, done, checkpointer,
+                             resumed_from=start_step if resuming else None)
+        resuming = False  # one check has passed since the resume
       if log:
         writer.write(done, lines, float(schedule(step)))
       if stage.images is not None and writer.wants_images(done):
@@ -254,6 +267,25 @@ def jit_update(stage: Stage, mesh: Mesh,
       in_shardings=(replicated, sharding.batch_sharding(mesh), replicated),
       out_shardings=(replicated, replicated),
       donate_argnums=(0,))
+
+
+def _lines_after(program: Program, metrics: dict[str, jax.Array], done: int,
+                 checkpointer: Checkpointer, resumed_from: int | None
+                 ) -> Sequence[Line]:
+  """`program.lines` of update `done`; a divergence at the first check
+  after resuming from step `resumed_from` names that checkpoint as a
+  suspect (a step restored unchecked, or damaged, diverges at once)."""
+  try:
+    return program.lines(sharding.to_host(metrics), done, checkpointer)
+  except Diverged as error:
+    if resumed_from is None:
+      raise
+    raise Diverged(
+        f'{error} It came right after resuming from step {resumed_from}, '
+        'so that checkpoint is a suspect too: move '
+        f'{os.path.join(checkpointer.directory, str(resumed_from))} out of '
+        'the folder and re-run to resume from the step before it.'
+    ) from None
 
 
 def _checked_lines(name: str, metrics: dict[str, np.ndarray], step: int,

@@ -220,6 +220,38 @@ def checked_identity(directory: str, fields: dict[str, Any], what: str,
   return identity
 
 
+def lost_steps(made_from: Any, current: dict[str, Any]
+               ) -> tuple[str, int, int] | None:
+  """(model name, its current step, the newer step `made_from` records)
+  when something was made from a newer step of the same training run of a
+  model than the one restored now (`parent_of` records both): that model's
+  newer checkpoints were lost (damaged, set aside); retraining them
+  reproduces them, so what was made from them is good. None otherwise."""
+  if not isinstance(made_from, dict):
+    return None
+  for key, step in current.items():
+    name = key[:-len('_step')] if key.endswith('_step') else None
+    recorded = made_from.get(key)
+    if (name and made_from.get(f'{name}_run_id') is not None
+        and made_from.get(f'{name}_run_id') == current.get(f'{name}_run_id')
+        and isinstance(recorded, int) and isinstance(step, int)
+        and recorded > step):
+      return name, step, recorded
+  return None
+
+
+def lost_steps_advice(what: str, made: str, lost: tuple[str, int, int],
+                      train_command: str) -> str:
+  """The line for `lost_steps`: retrain the lost steps (never remake what
+  `made` names from the older step)."""
+  _, step, newer = lost
+  return (f'{made} were made by {what} step {newer}, but its newest intact '
+          f'checkpoint is step {step} (the newer ones are damaged or '
+          f'missing). Retrain the lost steps: {train_command} (it resumes '
+          f'from step {step} and reproduces step {newer} bit for bit); '
+          f'{made} then match again, keep them')
+
+
 def parent_of(identity: dict[str, Any], step: int,
               name: str) -> dict[str, Any]:
   """What is made from the model `name` ('savi', 'dvae', 'steve') of

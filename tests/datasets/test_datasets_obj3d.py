@@ -319,3 +319,38 @@ def test_obj3d_config_runs_the_pipeline_on_converted_data(converted, tmp_path):
     assert item['video'].shape == (KEEP, RES, RES, 3)
   run_stage(config, workdir, mesh, 'train_slotformer')
   assert os.listdir(os.path.join(workdir, 'slotformer', 'checkpoints'))
+
+
+@pytest.mark.parametrize('kind', ['fifo', 'dev_zero'])
+def test_a_frame_that_is_no_regular_file_is_named_not_missing(
+    tmp_path, kind):
+  """Issue 61, case 10: a FIFO frame, or a link to /dev/zero, skipped the
+  video as 'test_1.png is missing (8 frames, 8 needed)'; reading either
+  must not block or run forever (the alarm fails the test instead)."""
+  import signal  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.data import media  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.datasets import obj3d  # pylint: disable=g-import-not-at-top
+  write_video(tmp_path / '7', 7)
+  frame = tmp_path / '7' / 'test_1.png'
+  os.remove(frame)
+  if kind == 'fifo':
+    os.mkfifo(frame)
+  else:
+    os.symlink('/dev/zero', frame)
+
+  def fire(signum, stack):
+    raise TimeoutError('blocked on a frame that is no regular file')
+  previous = signal.signal(signal.SIGALRM, fire)
+  signal.alarm(20)
+  try:
+    with pytest.raises(media.SkipVideo) as skipped:
+      obj3d.convert_video(
+          obj3d.VideoJob(key='7', folder=tmp_path / '7'),
+          obj3d.Options(resolution=(RES, RES), num_frames=KEEP))
+  finally:
+    signal.alarm(0)
+    signal.signal(signal.SIGALRM, previous)
+  message = str(skipped.value)
+  assert 'missing' not in message, message
+  assert ('is a FIFO, not a regular file' if kind == 'fifo'
+          else 'is a character device, not a regular file') in message

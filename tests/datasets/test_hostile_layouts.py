@@ -669,3 +669,69 @@ def test_a_physion_label_that_is_no_0_1_true_false_is_one_line(tmp_path,
   path.write_text(f'stimulus,ground truth outcome\nname_img,{label}\n')
   with pytest.raises(ValueError, match='is not True/False'):
     physion.read_labels(path)
+
+
+def _traced_read(root):
+  """(scenes or the error, peak bytes traced while reading)."""
+  tracemalloc.start()
+  try:
+    try:
+      result = vqa.read_clevrer_questions(root, 'train')
+    except vqa.QuestionFileError as error:
+      result = error
+    return result, tracemalloc.get_traced_memory()[1]
+  finally:
+    tracemalloc.stop()
+
+
+def _question_file(root, scene, size):
+  path = root / 'questions' / 'train.json'
+  path.parent.mkdir(parents=True)
+  count = size // (len(scene) + 1)
+  path.write_text('[' + ','.join([scene] * count) + ']')
+  return path.stat().st_size
+
+
+def test_a_question_file_of_empty_objects_is_refused_in_little_memory(
+    tmp_path):
+  """Issue 61, case 7: `[{},{},...]` cost ~51 bytes of memory per byte of
+  file (the whole file was parsed before any scene was checked; 48 MiB ->
+  2.38 GiB): scene by scene, it is refused at scene 0."""
+  size = _question_file(tmp_path, "{}", 1 << 20)
+  result, peak = _traced_read(tmp_path)
+  assert isinstance(result, vqa.QuestionFileError)
+  assert "scene 0 has no 'scene_index'" in str(result)
+  assert peak < 3 * size, (peak, size)  # the bytes and the text, no more
+
+
+def test_valid_question_files_cost_a_few_bytes_of_memory_per_byte(tmp_path):
+  """The most objects per byte a valid file can have (scenes without
+  questions; questions of one word): what is kept stays within 8 bytes of
+  memory per byte of file (docs/reliability.md: measured at the limit)."""
+  question = ('{"question_id":0,"question_type":"descriptive",'
+              '"question":"a","answer":"b"}')
+  for name, scene in (
+      ('empty', '{"scene_index":0,"video_filename":"v","questions":[]}'),
+      ('questions', '{"scene_index":0,"video_filename":"v","questions":['
+       + ','.join([question] * 100) + ']}')):
+    root = tmp_path / name
+    size = _question_file(root, scene, 512 << 10)
+    scenes, peak = _traced_read(root)
+    assert isinstance(scenes, list) and scenes, scenes
+    assert peak < 8 * size, (name, peak / size)
+    print(name, f"{peak / size:.2f} bytes traced per byte of file")
+
+
+def test_a_scene_longer_than_its_limit_is_one_line(tmp_path, monkeypatch):
+  monkeypatch.setattr(vqa, 'MAX_SCENE_CHARS', 4096)
+  question = ('{"question_id":0,"question_type":"descriptive",'
+              '"question":"a","answer":"b"}')
+  path = tmp_path / 'questions' / 'train.json'
+  path.parent.mkdir(parents=True)
+  path.write_text('[{"scene_index":0,"video_filename":"v","questions":['
+                  + ','.join([question] * 100) + ']}]')
+  with pytest.raises(vqa.QuestionFileError) as raised:
+    vqa.read_clevrer_questions(tmp_path, 'train')
+  message = str(raised.value)
+  assert 'element 0 is not valid within its first 4096 characters' in message
+  assert '\n' not in message

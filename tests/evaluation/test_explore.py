@@ -387,3 +387,54 @@ def test_a_full_disk_while_writing_the_page_is_one_line(tmp_path,
   assert '\n' not in message and 'No space left on device' in message
   assert 're-run --mode=explore' in message
   assert sorted(os.listdir(directory)) == []
+
+
+def _acting_characters(value):
+  """The characters of every text and key of `value` that a page would act
+  on (bidi overrides and other format characters, controls but newline)."""
+  import unicodedata  # pylint: disable=g-import-not-at-top
+  texts = []
+  stack = [value]
+  while stack:
+    node = stack.pop()
+    if isinstance(node, str):
+      texts.append(node)
+    elif isinstance(node, dict):
+      texts.extend(k for k in node if isinstance(k, str))
+      stack.extend(node.values())
+    elif isinstance(node, list):
+      stack.extend(node)
+  return {c for t in texts for c in t
+          if c != '\n' and unicodedata.category(c) in ('Cc', 'Cf', 'Zl', 'Zp')}
+
+
+def test_names_from_the_metrics_file_reach_the_page_neutralised(tmp_path):
+  """Issue 61, case 8: a split named 'test\u202e videos' showed as 'mean
+  over 8 tesoediv test' (the override reversed the text on screen), and ESC
+  reached the page's text nodes too."""
+  identity = {'slotformer': {'run_id': 'a', 'step': 4}}
+  os.makedirs(tmp_path / 'eval')
+  with open(tmp_path / 'eval' / 'metrics.json', 'w') as f:
+    json.dump({'identity': identity,
+               'protocol': {'num_videos': 8, 'split': 'test\u202e videos'},
+               'rollout': {'slotformer': {'ps\x1bnr': {'per_step': [1.5]}},
+                           'copy\u2067last': {'psnr': {'per_step': [2.0]}}}},
+              f)
+  curves, note = explore.run_curves(
+      str(tmp_path / 'eval' / 'metrics.json'), identity,
+      {'slotformer': 'SlotFormer'})
+  assert curves and '\u202e' in note  # what the file holds reaches the page
+  path = explore.write_page(str(tmp_path), {
+      'title': 'run \u202etitle', 'run_curves': curves,
+      'run_curves_note': note, 'identity': {'slot\x1b[2J': 'a\u200fb'}})
+  with open(path, encoding='utf-8') as f:
+    page = f.read()
+  blob = page.split('type="application/json">', 1)[1].split('</script>', 1)[0]
+  data = json.loads(blob)
+  assert not _acting_characters(data), _acting_characters(data)
+  assert not {c for c in page if c in '\u202e\u2067\u200f\x1b'}
+  assert data['run_curves_note'].endswith(
+      'mean over 8 test\\u202e videos videos')
+  assert set(data['run_curves']) == {'ps\\x1bnr', 'psnr'}
+  assert 'copy\\u2067last' in data['run_curves']['psnr']
+  assert data['title'] == 'run \\u202etitle'

@@ -354,6 +354,62 @@ def test_the_wrong_resolution_on_the_command_line_is_one_line(tmp_path):
   assert not os.path.exists(tmp_path / 'data' / 'synthetic_obj3d')
 
 
+@pytest.mark.parametrize('field, value, expected', [
+    ('seed', -1, 'seed must be an integer in [0, 2147483646] (what a jax '
+     'PRNG key holds), got -1'),
+    # 2**40 ran the whole pipeline as seed 0 (a jax key holds 32 bits).
+    ('seed', 2**40, 'seed must be an integer in [0, 2147483646]'),
+    ('seed', 2**31 - 1, 'seed must be an integer in [0, 2147483646]'),
+    ('seeds', (0, 2**31), 'seeds must be integers in [0, 2147483646]'),
+    ('savi.targets', (), "savi.targets names no target; give one or more, "
+     "e.g. ('rgb',)"),
+])
+def test_config_numbers_beyond_what_the_code_holds_are_one_line(
+    tmp_path, field, value, expected):
+  """Issue 61: these passed the checks, made the data and wrote
+  config.json, then ended in `OverflowError ... out of bounds for int32`,
+  `ValueError: expected non-negative integer` or a 35-line traceback."""
+  config = pipeline_helpers.load_config('synthetic', 'tiny')
+  config.data.data_dir = str(tmp_path / 'data')
+  *sections, name = field.split('.')
+  node = config
+  for section in sections:
+    node = node[section]
+  with node.ignore_type():
+    node[name] = value
+  with pytest.raises(UserError) as error:
+    check(config, ('prepare_data', 'train_savi'), num_devices=1)
+  assert expected in str(error.value), str(error.value)
+  assert '\n' not in str(error.value)
+  assert not os.path.exists(tmp_path / 'data')
+
+
+def test_the_largest_seed_passes_and_aloe_s_seed_is_checked():
+  config = pipeline_helpers.load_config('synthetic', 'tiny')
+  config.seed = 2**31 - 2
+  check(config, ('train_savi',), num_devices=1)
+  config = pipeline_helpers.load_config('synthetic_vqa')
+  config.seed = 3_000_000
+  with pytest.raises(UserError, match='seed 3000000 is too large for Aloe'):
+    check(config, ('train_vqa',), num_devices=1)
+  config.seed, config.vqa.seed = 0, 1000
+  with pytest.raises(UserError, match=r'vqa.seed must be an integer in '
+                     r'\[0, 999\], got 1000'):
+    check(config, ('train_vqa',), num_devices=1)
+
+
+def test_a_seed_out_of_range_on_the_command_line_writes_nothing(tmp_path):
+  """The issue's command: one line, status 1, no data, no config.json."""
+  result = _main(f'--config={SYNTHETIC}:tiny',
+                 "--config.seeds=(0, 2147483648)",
+                 f'--workdir={tmp_path / "run"}', cwd=str(tmp_path))
+  line = _one_error_line(result)
+  assert result.returncode == 1, result.stderr
+  assert 'seeds must be integers in [0, 2147483646]' in line
+  assert not os.path.exists(tmp_path / 'run' / 'config.json')
+  assert not os.path.exists(tmp_path / 'data' / 'synthetic_obj3d')
+
+
 @pytest.mark.parametrize('open_size, choice_size, expected', [
     (0, 8, None), (8, 0, None),  # one kind of question is not drawn
     (0, 0, 'vqa.open_batch_size and vqa.choice_batch_size are both 0'),
@@ -727,3 +783,23 @@ def test_a_long_error_line_keeps_its_reason():
   assert line.endswith("No space left on device [os_error_code='28']")
   assert len(line) < 330 and 'second line' not in line
   assert errors.brief(KeyError('k')) == "KeyError: 'k'"
+
+
+def test_video_prediction_on_a_physion_contact_run_names_the_way(tmp_path):
+  """Issue 61, case 9: on a Physion contact run, `--mode=explore` pointed
+  to configs/synthetic.py only, and the missing val slots of the contact
+  run were to be extracted with the contact config, which extracts no val
+  (rc 0). Now the line names the Physion video-prediction config reading
+  this run's stage 1, and a run reading it names the splits it has."""
+  from slotformer_jax import stages  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.errors import CommandLineError  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.run import Run  # pylint: disable=g-import-not-at-top
+  run = Run.create(config_checks.load_config_file(
+      os.path.join(CONFIGS, 'physion_contact.py')), '/nonexistent/run')
+  with pytest.raises(CommandLineError) as error:
+    stages.selected_stages(run, 'explore')
+  line = str(error.value)
+  assert '\n' not in line
+  assert ('on this run\'s data and stage 1: a new --workdir with '
+          '--config=configs/physion.py --config.stage1_workdir=/nonexistent/'
+          'run.') in line, line

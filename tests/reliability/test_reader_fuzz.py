@@ -24,7 +24,7 @@ ROOT = os.path.dirname(TESTS)
 # 2-core machine, besides the child's imports).
 CASES = {'movi_metadata': 150, 'movi_records': 150, 'questions': 300,
          'vocabulary': 300, 'phyre': 150, 'physion_lists': 300,
-         'metrics': 300}
+         'metrics': 300, 'digests': 300}
 SECONDS_PER_CASE = 5
 
 

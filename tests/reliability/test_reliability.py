@@ -129,6 +129,30 @@ def test_foreign_stage1_with_other_settings_is_refused_untouched(
   assert _snapshot(other) == before
 
 
+def test_a_foreign_stage1_without_a_split_names_the_splits_it_has(
+    trained, tmp_path):
+  """Issue 61, case 9: a run reading a Physion contact run's stage 1 was
+  told `no complete slots in <contact run>/slots/val; extract them: ...
+  --mode=extract_slots`, which with the contact config extracts no val
+  (rc 0). What works, reading the splits it has, is named now."""
+  config, other = trained
+  copy = str(tmp_path / 'contact')
+  shutil.copytree(other, copy)
+  splits = tuple(config.extraction.splits)
+  lacking = splits[-1]
+  shutil.rmtree(Paths.of(copy).slots(lacking))
+  config = _config(config.data.data_dir)
+  config.stage1_workdir = copy
+  with pytest.raises(UserError) as error:
+    run_stage(config, str(tmp_path / 'prediction'), sharding.make_mesh(),
+              'train_savi')
+  message = str(error.value)
+  assert '\n' not in message
+  assert f'has no complete slots of {lacking}' in message, message
+  assert (f'--config.extraction.splits="{splits[:-1]}"') in message
+  assert '--allow_config_change' in message
+
+
 @pytest.mark.slow  # trains SlotFormer (~35 s on 2 busy cores)
 def test_foreign_stage1_is_used_without_writing_there(trained, tmp_path):
   _, other = trained
@@ -558,6 +582,67 @@ def test_a_signal_in_training_saves_that_step(tmp_path, signum):
   ).all_steps() == [4]
 
 
+def test_a_signal_during_the_last_save_stops_the_run_once_it_is_saved(
+    tmp_path, monkeypatch):
+  """Issue 61, case 5: a SIGTERM after a stage's last stop check (during
+  its final save or log) was forgotten when the handlers were put back,
+  and the run went on through the next stages."""
+  mesh = Mesh(np.asarray(jax.devices()[:1]), ('data',))
+  directory = tmp_path / 'linear'
+  save = checkpoint_lib.Checkpointer.save
+
+  def save_then_signal(self, step, state, **kwargs):
+    save(self, step, state, **kwargs)
+    if step == 4:  # the last one: its stop check is behind
+      os.kill(os.getpid(), signal.SIGTERM)
+  monkeypatch.setattr(checkpoint_lib.Checkpointer, 'save', save_then_signal)
+  with _handlers({signal.SIGINT: _before_int, signal.SIGTERM: _before_term}):
+    with pytest.raises(Preempted, match='stopped by SIGTERM after its last '
+                       'step, 4; its checkpoint is saved') as error:
+      fit(linear_stage(directory, num_train_steps=4, checkpoint_every=2),
+          mesh=mesh, seed=0)
+    assert signal.getsignal(signal.SIGTERM) is _before_term
+  assert error.value.signal == signal.SIGTERM
+  assert checkpoint_lib.Checkpointer(
+      str(directory / 'checkpoints'), read_only=True).all_steps() == [2, 4]
+  # The rerun finds the stage trained.
+  monkeypatch.setattr(checkpoint_lib.Checkpointer, 'save', save)
+  assert int(fit(linear_stage(directory, num_train_steps=4,
+                              checkpoint_every=2), mesh=mesh,
+                 seed=0).step) == 4
+
+
+def test_a_signal_between_host_syncs_leaves_few_updates_to_compute(tmp_path):
+  """Issue 61, case 5: with no host sync between logs, the host queued
+  update after update; a SIGTERM near step 20 stopped after step 51, ~40 s
+  late. Now at most MAX_STEPS_AHEAD updates are queued beyond the finished
+  ones when the signal is noted, and the stop is after that very step."""
+  from slotformer_jax.runtime import in_flight  # pylint: disable=g-import-not-at-top
+  mesh = Mesh(np.asarray(jax.devices()[:1]), ('data',))
+  outputs = {}
+  queued_at_signal = []
+
+  def after_update(done, params, metrics):
+    del params
+    outputs[done] = metrics
+    if done == 12:
+      queued_at_signal.append(sum(not m['loss'].is_ready()
+                                  for m in outputs.values()))
+      os.kill(os.getpid(), signal.SIGTERM)
+  stage = dataclasses.replace(
+      linear_stage(tmp_path / 'linear', num_train_steps=40, log_every=1000,
+                   checkpoint_every=1000, device_work=60),
+      after_update=after_update)
+  with _handlers({signal.SIGINT: _before_int, signal.SIGTERM: _before_term}):
+    # Sent after step 12's stop check: acted on after the next update.
+    with pytest.raises(Preempted, match='after step 13;'):
+      fit(stage, mesh=mesh, seed=0)
+  assert queued_at_signal[0] <= in_flight.MAX_STEPS_AHEAD, queued_at_signal
+  assert checkpoint_lib.Checkpointer(
+      str(tmp_path / 'linear' / 'checkpoints'), read_only=True
+  ).all_steps() == [13]
+
+
 def _before_int(signum, frame):
   raise AssertionError('the handler from before training was called')
 
@@ -716,3 +801,15 @@ def test_every_unset_field_can_be_set_on_the_command_line(name, monkeypatch):
     for part in field.split('.'):
       value = value[part]
     assert value is not None, field
+
+
+def test_a_stage_says_it_compiles_before_its_first_step(tmp_path, caplog):
+  """Issue 61, case 9: the first steps of every training stage compiled
+  for 1 to 2 minutes with no line."""
+  mesh = Mesh(np.asarray(jax.devices()[:1]), ('data',))
+  with caplog.at_level(logging.INFO, logger='slotformer_jax.train.trainer'):
+    fit(linear_stage(tmp_path / 'linear', num_train_steps=2), mesh=mesh,
+        seed=0)
+  lines = [r.getMessage() for r in caplog.records]
+  assert 'linear: compiling the update step (the first step takes longer)' in (
+      lines), lines

@@ -396,8 +396,14 @@ def _config(**fields):
 @pytest.mark.parametrize('seeds,needle', [
     ((), 'seeds must be a non-empty tuple of ints'),
     ((0, 1, 1), 'seeds must be distinct, got (0, 1, 1) (1 repeated)'),
-    ((0, 1.5), 'seeds must be ints >= 0, got (0, 1.5)'),
-    ((0, '1'), "seeds must be ints >= 0, got (0, '1')"),
+    ((0, 1.5), 'seeds must be integers in [0, 2147483646] (what a jax '
+     'PRNG key holds), got (0, 1.5)'),
+    ((0, '1'), "seeds must be integers in [0, 2147483646] (what a jax "
+     "PRNG key holds), got (0, '1')"),
+    # Issue 61: these passed, made the data, then ended in a traceback.
+    ((0, 2**31), 'seeds must be integers in [0, 2147483646]'),
+    ((0, 2**31 - 1), 'seeds must be integers in [0, 2147483646]'),
+    ((-1, 0), 'seeds must be integers in [0, 2147483646]'),
 ])
 def test_bad_config_seeds_are_one_line(seeds, needle):
   problems = task_lib.seeds_problems(_config(seeds=seeds), ('train_savi',))
