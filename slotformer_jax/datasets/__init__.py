@@ -90,7 +90,8 @@ def config_problems(config: Any) -> list[str]:
   if name not in DATASETS:
     return [str(unknown(name))]
   dataset = DATASETS[name]
-  problems = [clips_problem(name, config.evaluation.clips)]
+  problems = [clips_problem(name, config.evaluation.clips),
+              *dataset.config_problems(config.data)]
   if isinstance(dataset, Generated):
     try:
       dataset.parameters(config.data)
