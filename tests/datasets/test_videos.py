@@ -1,0 +1,259 @@
+"""A folder of your own videos (datasets/videos.py): fixtures written here
+with imageio (mp4, gif) and Pillow (a folder of png frames), next to the bad
+files a real folder holds; converted by the data stage from
+`config.data.source`, read back, and the tiny pipeline run on them."""
+
+import json
+import logging
+import os
+import warnings
+
+import imageio.v2 as imageio
+import numpy as np
+import pytest
+from PIL import Image
+
+from pipeline_helpers import check
+from pipeline_helpers import load_config
+from pipeline_helpers import prepare_data
+from pipeline_helpers import run_stages
+from slotformer_jax import datasets
+from slotformer_jax.data import media
+from slotformer_jax.datasets import videos
+from slotformer_jax.errors import ConfigError
+from slotformer_jax.errors import UserError
+from slotformer_jax.runtime import sharding
+
+# The fixtures are written through imageio-ffmpeg, whose subprocess runs a
+# preexec_fn (JAX warns of os.fork); the reader does not (checked below).
+pytestmark = pytest.mark.filterwarnings('ignore:os.fork')
+RESOLUTION = (16, 16)
+NUM_FRAMES = 8
+
+
+def moving_square(num_frames, height, width, seed):
+  """uint8 [T, H, W, 3]: a red square crossing a gray floor."""
+  rng = np.random.default_rng(seed)
+  frames = np.full((num_frames, height, width, 3), 90, np.uint8)
+  side = max(2, min(height, width) // 4)
+  y = int(rng.integers(0, height - side))
+  for t in range(num_frames):
+    x = (t * 2 + int(rng.integers(0, 3))) % (width - side)
+    frames[t, y:y + side, x:x + side] = (220, 50, 40)
+  return frames
+
+
+def write_mp4(path, frames):
+  imageio.mimwrite(path, frames, fps=10, macro_block_size=1)
+
+
+def write_pngs(folder, frames):
+  os.makedirs(folder, exist_ok=True)
+  for index, frame in enumerate(frames):
+    Image.fromarray(frame).save(os.path.join(folder, f'frame_{index + 1}.png'))
+
+
+def write_folder(root):
+  """train/ val/ test/ of good videos, and bad files in train/. Returns the
+  png frames of test/seq (at the stored resolution)."""
+  train, val, test = (os.path.join(root, s) for s in videos.SPLITS)
+  for folder in (train, val, test):
+    os.makedirs(folder)
+  for index in range(3):
+    write_mp4(os.path.join(train, f'clip_{index}.mp4'),
+              moving_square(12, 24, 32, index))
+  imageio.mimwrite(os.path.join(train, 'loop.gif'),
+                   moving_square(10, 20, 20, 7), duration=0.1)
+  write_pngs(os.path.join(train, 'frames'), moving_square(9, 16, 16, 8))
+  write_mp4(os.path.join(val, 'v.mp4'), moving_square(10, 16, 16, 9))
+  imageio.mimwrite(os.path.join(val, 'w.gif'), moving_square(10, 16, 16, 10),
+                   duration=0.1)
+  seq = moving_square(NUM_FRAMES, 16, 16, 11)
+  write_pngs(os.path.join(test, 'seq'), seq)
+  write_mp4(os.path.join(test, 't.mp4'), moving_square(8, 32, 16, 12))
+  # What a real folder holds besides: one line each, never a crash.
+  open(os.path.join(train, 'empty.mp4'), 'wb').close()
+  with open(os.path.join(train, 'notes.mp4'), 'w') as f:
+    f.write('not a video\n')
+  with open(os.path.join(train, 'clip_0.mp4'), 'rb') as f:
+    data = f.read()
+  with open(os.path.join(train, 'truncated.mp4'), 'wb') as f:
+    f.write(data[:len(data) // 2])
+  write_mp4(os.path.join(train, 'one_frame.mp4'), moving_square(1, 16, 16, 0))
+  write_mp4(os.path.join(train, 'short.mp4'), moving_square(5, 16, 16, 0))
+  os.symlink('/etc/hostname', os.path.join(train, 'outside.mp4'))
+  os.symlink('self.mp4', os.path.join(train, 'self.mp4'))
+  os.symlink('..', os.path.join(train, 'up'))
+  write_mp4(os.path.join(train, 'bell\x07\x1b[2J.mp4'),
+            moving_square(4, 16, 16, 0))
+  return seq
+
+
+SKIPPED = {'empty.mp4': 'empty_file', 'notes.mp4': 'unreadable_video',
+           'truncated.mp4': 'unreadable_video', 'one_frame.mp4': 'too_short',
+           'short.mp4': 'too_short', 'outside.mp4': 'outside_source',
+           'self.mp4': 'broken_symlink', 'up': 'symlinked_folder',
+           'bell\\x07\\x1b[2J.mp4': 'too_short'}
+
+
+def videos_config(source, data_dir):
+  """configs/videos.py:tiny at 16x16, a few steps per stage."""
+  config = load_config('videos', 'tiny')
+  config.data.source = str(source)
+  config.data.data_dir = str(data_dir)
+  config.data.num_workers = 1
+  config.data.resolution = RESOLUTION
+  config.data.num_frames = NUM_FRAMES
+  config.data.frame_stride = 1
+  config.data.max_skip_fraction = 0.9
+  config.savi.decoder.features = (8, 8)
+  config.savi.encoder.features = (8, 8)
+  config.savi.encoder.strides = (1, 1)
+  config.savi.num_slots = 3
+  config.savi.clip_length = 2
+  config.savi.batch_size = 4
+  config.savi.num_train_steps = config.slotformer.num_train_steps = 2
+  config.savi.log_every = config.savi.checkpoint_every = 2
+  config.slotformer.log_every = config.slotformer.checkpoint_every = 2
+  config.slotformer.batch_size = 4
+  config.extraction.batch_size = 4
+  config.evaluation.batch_size = 4
+  config.evaluation.metrics = ('psnr', 'ssim')
+  config.evaluation.savi_metrics = True
+  config.render.num_videos = 1
+  config.explore.num_videos = 1
+  return config
+
+
+@pytest.fixture(scope='module')
+def converted(tmp_path_factory):
+  """(config, png frames of test/seq, log lines of the conversion)."""
+  root = tmp_path_factory.mktemp('videos')
+  seq = write_folder(root / 'source')
+  config = videos_config(root / 'source', root / 'data')
+  handler = _Lines()
+  logging.getLogger().addHandler(handler)
+  try:
+    prepare_data(config)
+  finally:
+    logging.getLogger().removeHandler(handler)
+  return config, seq, handler.lines
+
+
+def name_of(example):
+  name = np.asarray(example['video_name']).item()
+  return name.decode() if isinstance(name, bytes) else name
+
+
+class _Lines(logging.Handler):
+
+  def __init__(self):
+    super().__init__(logging.INFO)
+    self.lines = []
+
+  def emit(self, record):
+    self.lines.append(record.getMessage())
+
+
+def test_conversion_keeps_the_good_videos_and_names_each_bad_one(converted):
+  config, _, lines = converted
+  dataset = datasets.get('videos')
+  folder = dataset.dataset_dir(config.data)
+  with open(folder / 'conversion_report.json') as f:
+    report = json.load(f)
+  assert report['num_examples'] == {'train': 5, 'val': 2, 'test': 2}
+  assert {s['key'].split('/', 1)[1]: s['reason']
+          for s in report['skipped']} == SKIPPED
+  skipped = [line for line in lines if line.startswith('Skipped ')]
+  assert len(skipped) == len(SKIPPED)
+  # Names are escaped where they are shown: no byte a terminal acts on.
+  assert not any(ch in line for line in skipped for ch in '\x07\x1b\n')
+  source = dataset.open(config.data, 'train')
+  names = sorted(name_of(source[i]) for i in range(len(source)))
+  assert names == ['train/clip_0.mp4', 'train/clip_1.mp4', 'train/clip_2.mp4',
+                   'train/frames', 'train/loop.gif']
+  assert source[0]['video'].shape == (NUM_FRAMES, *RESOLUTION, 3)
+
+
+def test_png_frames_are_stored_bit_for_bit(converted):
+  config, seq, _ = converted
+  source = datasets.get('videos').open(config.data, 'test')
+  stored = {name_of(source[i]): source[i]['video']
+            for i in range(len(source))}
+  np.testing.assert_array_equal(stored['test/seq'], seq)
+  # The mp4 went through a lossy codec: close, not equal.
+  assert stored['test/t.mp4'].shape == (NUM_FRAMES, *RESOLUTION, 3)
+
+
+def test_a_second_data_stage_converts_nothing(converted, caplog):
+  config, _, _ = converted
+  with caplog.at_level(logging.INFO):
+    prepare_data(config)
+  assert not any('Converting' in r.getMessage() for r in caplog.records)
+
+
+def test_hashed_splits_do_not_move_when_videos_are_added(tmp_path):
+  options = videos.Options(resolution=RESOLUTION, num_frames=2,
+                           val_fraction=0.25, test_fraction=0.25)
+  for index in range(12):
+    write_pngs(tmp_path / f'clip_{index}', moving_square(2, 16, 16, index))
+  before = {split: [job.key for job in videos.discover(tmp_path, split,
+                                                       options)]
+            for split in videos.SPLITS}
+  for index in range(12, 40):
+    write_pngs(tmp_path / f'clip_{index}', moving_square(2, 16, 16, index))
+  videos._all_videos.cache_clear()  # pylint: disable=protected-access
+  after = {split: [job.key for job in videos.discover(tmp_path, split,
+                                                      options)]
+           for split in videos.SPLITS}
+  for split in videos.SPLITS:
+    assert set(before[split]) <= set(after[split])
+  assert sum(map(len, after.values())) == 40
+  assert all(after.values())
+
+
+def test_fit_crops_or_pads_keeping_the_aspect_ratio():
+  frame = np.zeros((8, 16, 3), np.uint8)
+  frame[:, :4] = 255  # a white left quarter
+  cropped = videos.fit_frame(frame, (8, 8), 'crop')
+  padded = videos.fit_frame(frame, (8, 8), 'pad')
+  assert cropped.shape == padded.shape == (8, 8, 3)
+  assert cropped[:, 0].min() == 0  # the white quarter was cut away
+  np.testing.assert_array_equal(padded[:2], 0)  # black bars above ...
+  np.testing.assert_array_equal(padded[-2:], 0)  # ... and below
+  assert padded[3:5, 0].min() > 200  # the white quarter kept
+
+
+def test_a_long_video_decodes_only_the_frames_kept(tmp_path):
+  path = tmp_path / 'long.mp4'
+  write_mp4(path, moving_square(60, 64, 64, 0))
+  options = videos.Options(resolution=(16, 16), num_frames=5, frame_stride=3)
+  with warnings.catch_warnings():
+    warnings.simplefilter('error', RuntimeWarning)  # os.fork under JAX
+    frames = videos.read_video(path, options)
+  assert frames.shape == (5, 16, 16, 3)
+  with pytest.raises(media.SkipVideo, match='too_slow'):
+    videos.decode_file(path, options, timeout_s=0.0)
+
+
+def test_the_config_names_a_missing_source_in_one_line(tmp_path):
+  config = videos_config(tmp_path / 'nowhere', tmp_path / 'data')
+  with pytest.raises(ConfigError, match='is not a folder'):
+    check(config, ('prepare_data',))
+  config.data.source = None
+  with pytest.raises(ConfigError, match='--config.data.source=/my/videos'):
+    check(config, ('prepare_data',))
+  config.data.source = str(tmp_path)
+  with pytest.raises(UserError, match='no video file'):
+    prepare_data(config)
+
+
+def test_the_tiny_pipeline_runs_on_the_folder(converted, tmp_path, caplog):
+  config, _, _ = converted
+  with caplog.at_level(logging.INFO):
+    out = run_stages(config, tmp_path / 'run', sharding.make_mesh())
+  metrics = out['evaluate']
+  assert 'psnr' in json.dumps(metrics) and 'fg_ari' not in json.dumps(
+      metrics['rollout'] if 'rollout' in metrics else metrics)
+  assert any('no ground-truth masks' in r.getMessage()
+             for r in caplog.records)
