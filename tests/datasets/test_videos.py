@@ -13,15 +13,21 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from pipeline_helpers import accept
 from pipeline_helpers import check
 from pipeline_helpers import load_config
 from pipeline_helpers import prepare_data
 from pipeline_helpers import run_stages
+from pipeline_helpers import slots_of
+from slotformer_jax import api
 from slotformer_jax import datasets
+from slotformer_jax import inference
+from slotformer_jax import predict
 from slotformer_jax.data import media
 from slotformer_jax.datasets import videos
 from slotformer_jax.errors import ConfigError
 from slotformer_jax.errors import UserError
+from slotformer_jax.run import Run
 from slotformer_jax.runtime import sharding
 
 # The fixtures are written through imageio-ffmpeg, whose subprocess runs a
@@ -131,12 +137,8 @@ def converted(tmp_path_factory):
   root = tmp_path_factory.mktemp('videos')
   seq = write_folder(root / 'source')
   config = videos_config(root / 'source', root / 'data')
-  handler = _Lines()
-  logging.getLogger().addHandler(handler)
-  try:
+  with _Lines() as handler:
     prepare_data(config)
-  finally:
-    logging.getLogger().removeHandler(handler)
   return config, seq, handler.lines
 
 
@@ -146,6 +148,7 @@ def name_of(example):
 
 
 class _Lines(logging.Handler):
+  """The messages logged at INFO and above while it is entered."""
 
   def __init__(self):
     super().__init__(logging.INFO)
@@ -153,6 +156,18 @@ class _Lines(logging.Handler):
 
   def emit(self, record):
     self.lines.append(record.getMessage())
+
+  def __enter__(self):
+    root = logging.getLogger()
+    self._level = root.level
+    root.setLevel(logging.INFO)
+    root.addHandler(self)
+    return self
+
+  def __exit__(self, *exc):
+    root = logging.getLogger()
+    root.removeHandler(self)
+    root.setLevel(self._level)
 
 
 def test_conversion_keeps_the_good_videos_and_names_each_bad_one(converted):
@@ -248,12 +263,90 @@ def test_the_config_names_a_missing_source_in_one_line(tmp_path):
     prepare_data(config)
 
 
-def test_the_tiny_pipeline_runs_on_the_folder(converted, tmp_path, caplog):
+@pytest.fixture(scope='module')
+def trained(converted, tmp_path_factory):
+  """(config, workdir, what each stage returned, log lines): the tiny
+  pipeline on the converted folder, once for the tests below."""
   config, _, _ = converted
-  with caplog.at_level(logging.INFO):
-    out = run_stages(config, tmp_path / 'run', sharding.make_mesh())
-  metrics = out['evaluate']
-  assert 'psnr' in json.dumps(metrics) and 'fg_ari' not in json.dumps(
-      metrics['rollout'] if 'rollout' in metrics else metrics)
-  assert any('no ground-truth masks' in r.getMessage()
-             for r in caplog.records)
+  workdir = tmp_path_factory.mktemp('run') / 'run'
+  accept(config, workdir)  # config.json, as main writes it
+  with _Lines() as handler:
+    out = run_stages(config, workdir, sharding.make_mesh())
+  return config, workdir, out, handler.lines
+
+
+def test_the_tiny_pipeline_runs_on_the_folder(trained):
+  _, workdir, out, lines = trained
+  metrics = json.dumps(out['evaluate'])
+  assert 'psnr' in metrics and 'ssim' in metrics and 'fg_ari' not in metrics
+  assert 'copy_last' in metrics
+  assert sum('no ground-truth masks' in line for line in lines) == 1
+  assert (workdir / 'explore').is_dir() or any(
+      'explore' in str(p) for p in workdir.rglob('*.html'))
+
+
+def test_the_api_gives_the_stages_slots_and_rollouts(trained):
+  config, workdir, _, _ = trained
+  model = api.WorldModel.load(workdir)
+  assert model.expected.resolution == RESOLUTION
+  run = Run.create(config, str(workdir), sharding.make_mesh())
+  stage_slots = slots_of(config, workdir, 'test')
+  videos_ = run.videos('test')
+  dynamics = run.dynamics('slotformer')
+  burn_in = config.slotformer.burn_in
+  for index in range(len(videos_)):
+    frames = videos_[index]['video']
+    slots = model.encode(frames)
+    np.testing.assert_allclose(slots, stage_slots[index]['slots'],
+                               atol=2e-5, rtol=1e-5)
+    rollout = model.rollout(slots[:burn_in], 3)
+    expected = inference.rollout_slots(
+        dynamics.params, stage_slots[index]['slots'][None, :burn_in],
+        model=dynamics.module, num_steps=3)[0]
+    np.testing.assert_allclose(rollout, expected, atol=2e-5, rtol=1e-5)
+    decoded = model.decode(rollout)
+    assert decoded.frames.shape == (3, *RESOLUTION, 3)
+    assert decoded.frames.dtype == np.uint8
+    assert decoded.masks.shape == (3, config.savi.num_slots, *RESOLUTION)
+    np.testing.assert_allclose(decoded.masks.sum(1), 1, atol=1e-5)
+
+
+def test_the_api_resizes_with_a_notice_or_refuses(trained, caplog):
+  _, workdir, _, _ = trained
+  big = moving_square(4, 32, 48, 0)
+  with caplog.at_level(logging.WARNING):
+    slots = api.WorldModel.load(workdir).encode(big)
+  assert slots.shape[0] == 4
+  assert sum('resized' in r.getMessage() for r in caplog.records) == 1
+  with pytest.raises(UserError, match='frames are 48x32, the model reads'):
+    api.WorldModel.load(workdir, on_mismatch='refuse').encode(big)
+  with pytest.raises(UserError, match='uint8'):
+    api.WorldModel.load(workdir).encode(big.astype(np.float32))
+
+
+def test_predict_draws_a_clip_that_is_not_in_the_folder(trained, tmp_path,
+                                                       capsys):
+  _, workdir, _, _ = trained
+  clip = tmp_path / 'new clip.mp4'
+  write_mp4(clip, moving_square(10, 40, 40, 99))
+  out = tmp_path / 'out'
+  assert predict.main([f'--workdir={workdir}', f'--video={clip}',
+                       f'--out={out}', '--rollout=4']) == 0
+  assert sorted(p.name for p in out.iterdir()) == [
+      'prediction.gif', 'prediction.png', 'slots.npz']
+  strip = np.asarray(Image.open(out / 'prediction.png'))
+  assert strip.ndim == 3 and strip.shape[1] > strip.shape[0]
+  with Image.open(out / 'prediction.gif') as gif:
+    assert gif.n_frames == 2 + 4
+  with np.load(out / 'slots.npz') as saved:
+    assert saved['predicted'].shape[0] == 4
+  # A clip shorter than the burn-in, a file that is no video: one line.
+  short = tmp_path / 'short.gif'
+  imageio.mimwrite(short, moving_square(1, 16, 16, 0), duration=0.1)
+  for bad in (short, tmp_path / 'nothing.mp4'):
+    capsys.readouterr()
+    assert predict.main([f'--workdir={workdir}', f'--video={bad}',
+                         f'--out={tmp_path / "bad"}']) == 1
+    err = capsys.readouterr().err
+    assert err.startswith('error: ') and err.count('\n') == 1, err
+  assert not (tmp_path / 'bad').exists()
