@@ -56,6 +56,8 @@ def get_config(variant: str = ''):
   savi.num_slots = 7
   use_cpu_demo_savi(config)
   savi.clip_length = 3
+  # One more doubling of the 8x8 grid per layer after the first: 64x64.
+  savi.decoder.features = (32, 32, 32, 32)
   savi.num_train_steps = 5000
   savi.log_every = 50
   savi.checkpoint_every = 500
@@ -86,6 +88,7 @@ def get_config(variant: str = ''):
 
   if variant == 'tiny':
     data.resolution = (32, 32)
+    savi.decoder.features = (32, 32, 32)
     data.num_frames = 8
     savi.num_train_steps = 20
     dyn.burn_in, dyn.rollout = 2, 2
