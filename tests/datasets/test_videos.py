@@ -24,6 +24,7 @@ from slotformer_jax import datasets
 from slotformer_jax import inference
 from slotformer_jax import predict
 from slotformer_jax.data import media
+from slotformer_jax.datasets import base
 from slotformer_jax.datasets import videos
 from slotformer_jax.errors import ConfigError
 from slotformer_jax.errors import UserError
@@ -225,6 +226,26 @@ def test_hashed_splits_do_not_move_when_videos_are_added(tmp_path):
     assert set(before[split]) <= set(after[split])
   assert sum(map(len, after.values())) == 40
   assert all(after.values())
+
+
+def test_a_split_with_no_video_is_one_line_that_names_the_fix(tmp_path):
+  write_pngs(tmp_path / 'train' / 'a', moving_square(2, 16, 16, 0))
+  options = videos.Options(resolution=RESOLUTION, num_frames=2)
+  assert [job.key for job in videos.discover(tmp_path, 'train', options)
+          ] == ['train/a']
+  with pytest.raises(base.ConversionError, match='add videos to val/'):
+    videos.discover(tmp_path, 'val', options)
+
+
+def test_a_frame_claiming_a_huge_size_is_refused_before_decoding(tmp_path):
+  write_pngs(tmp_path / 'seq', moving_square(2, 16, 16, 0))
+  path = tmp_path / 'seq' / 'frame_2.png'
+  data = bytearray(path.read_bytes())
+  data[16:24] = (10_000).to_bytes(4, 'big') * 2  # IHDR width, height
+  path.write_bytes(bytes(data))
+  options = videos.Options(resolution=RESOLUTION, num_frames=2)
+  with pytest.raises(media.SkipVideo, match='10000x10000 pixels'):
+    videos.read_video(tmp_path / 'seq', options)
 
 
 def test_fit_crops_or_pads_keeping_the_aspect_ratio():
