@@ -15,7 +15,11 @@ end of the clip, at most 100). Writes into ``--out`` (nothing elsewhere):
   observed and predicted;
 * ``prediction.gif``: the same rows frame by frame, each labelled
   'observed' or 'predicted';
-* ``slots.npz``: the observed and predicted slots and the masks.
+* ``slots.npz``: the observed and predicted slots and the masks;
+* ``explore/index.html`` (unless ``--no-explore``): the explorer page of the
+  clip (docs/explore.md): the rollout slot by slot and its remove / freeze
+  counterfactuals, from the model's own burn-in; written when the clip
+  holds the real frames of the whole rollout.
 
 The clip is read as the model's training videos were (resolution, crop or
 pad, frame stride: ``WorldModel.expected``); any file or folder the folder
@@ -29,6 +33,7 @@ import os
 import sys
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -57,6 +62,11 @@ def build_parser() -> argparse.ArgumentParser:
   parser.add_argument('--on_mismatch', default='resize',
                       choices=('resize', 'refuse'),
                       help='frames of another size than the model\'s')
+  parser.add_argument('--explore', action=argparse.BooleanOptionalAction,
+                      default=True,
+                      help='also write explore/index.html: the rollout slot '
+                      'by slot and its remove / freeze counterfactuals '
+                      '(needs the real frames of the rollout in the clip)')
   parser.add_argument('--scale', type=int, default=2,
                       help='pixels per frame pixel in the pictures')
   return parser
@@ -119,7 +129,61 @@ def predict(args: argparse.Namespace) -> dict[str, Path]:
   write_atomic(paths['gif'], _encoded_gif(pictures))
   with open(paths['slots'], 'wb') as f:
     np.savez(f, observed=observed, predicted=predicted, masks=masks)
+  frames_needed = burn_in + steps * stride
+  if not args.explore:
+    return paths
+  if len(clip) < frames_needed:
+    print(f'explore: no page: the page compares the rollout with the real '
+          f'frames, and the clip has {len(clip)} of the {frames_needed} '
+          'needed (lower --rollout)', file=sys.stderr)
+    return paths
+  # The page starts where the model's own burn-in does.
+  page = _explore(model, clip[burn_in - needed:frames_needed], steps, out,
+                  f'{printable(args.video.name)}: '
+                  f'{model.run.slot_model.label} + SlotFormer')
+  if page is not None:
+    paths['explore'] = Path(page)
   return paths
+
+
+class _OneClip:
+  """The clip and its slots as the explorer reads a split's slots: one
+  video, a missing field a KeyError."""
+
+  def __init__(self, item: dict[str, np.ndarray], fields: Sequence[str]):
+    self.item, self.fields = item, ('slots', *fields)
+
+  def __len__(self) -> int:
+    return 1
+
+  def __getitem__(self, index: int) -> dict[str, np.ndarray]:
+    del index
+    return {field: self.item[field] for field in self.fields}
+
+
+def _explore(model: Any, clip: np.ndarray, steps: int, out: Path,
+             title: str) -> str | None:
+  """The explorer page of the clip (evaluation/explore.py: rollouts slot
+  by slot, remove / freeze counterfactuals) in ``out/explore/``."""
+  from slotformer_jax.evaluation import evaluate  # pylint: disable=g-import-not-at-top
+  from slotformer_jax.evaluation import explore  # pylint: disable=g-import-not-at-top
+  run = model.run
+  config = run.config
+  eval_config = config.evaluation.copy_and_resolve_references()
+  eval_config.rollout_steps = steps
+  explore_config = config.explore.copy_and_resolve_references()
+  explore_config.num_videos = 1
+  dynamics_config = run.dynamics_section('slotformer')
+  item = {'slots': model.encode(clip), 'video': clip}
+  return explore.explore(
+      explore_config, eval_config, dynamics_config,
+      slot_model=run.slot_model, slot_params=run.stage1.params,
+      dynamics={'slotformer': run.dynamics('slotformer')},
+      identity={'workdir': str(run.paths.root), 'clip': title},
+      open_slots=lambda fields: _OneClip(item, fields),
+      num_true=evaluate.num_true_ids(config.data.max_instances),
+      metrics_path=str(out / 'no_metrics.json'),
+      output_dir=str(out / 'explore'), title=title)
 
 
 def _marked(row: np.ndarray, burn_in: int) -> np.ndarray:

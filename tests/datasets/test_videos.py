@@ -356,7 +356,9 @@ def test_predict_draws_a_clip_that_is_not_in_the_folder(trained, tmp_path,
   assert predict.main([f'--workdir={workdir}', f'--video={clip}',
                        f'--out={out}', '--rollout=4']) == 0
   assert sorted(p.name for p in out.iterdir()) == [
-      'prediction.gif', 'prediction.png', 'slots.npz']
+      'explore', 'prediction.gif', 'prediction.png', 'slots.npz']
+  page = (out / 'explore' / 'index.html').read_text()
+  assert 'new clip.mp4' in page and 'freeze' in page
   strip = np.asarray(Image.open(out / 'prediction.png'))
   assert strip.ndim == 3 and strip.shape[1] > strip.shape[0]
   with Image.open(out / 'prediction.gif') as gif:
