@@ -142,7 +142,6 @@ def _frame_files(folder: Path) -> list[Path]:
   return [folder / name for name in sorted(names, key=media.natural_key)]
 
 
-@functools.lru_cache(maxsize=8)
 def _all_videos(root: Path) -> tuple[VideoJob, ...]:
   """Every video under ``root`` (resolved), in path order; symlinked folders
   are listed (to be refused), never entered."""
@@ -157,7 +156,7 @@ def _all_videos(root: Path) -> tuple[VideoJob, ...]:
         jobs.append(VideoJob(shown((relative / name).as_posix(), 1000),
                              here / name, 'folder_link', root))
     if relative.parts and any(os.path.splitext(f)[1].lower() in FRAME_SUFFIXES
-                              for f in filenames):
+                              and not f.startswith('.') for f in filenames):
       jobs.append(VideoJob(shown(relative.as_posix(), 1000), here, 'frames',
                            root))
     for name in sorted(filenames, key=media.natural_key):
@@ -348,8 +347,10 @@ def decode_frames(folder: Path, options: Options, *, name: str = ''
   Raises:
     media.SkipVideo('unreadable_frame'): a frame cannot be read (named).
   """
-  del name
   files = _frame_files(folder)[::options.frame_stride][:options.num_frames]
+  if not files:
+    raise media.SkipVideo('unreadable_video', f'{name or shown(folder)}: no '
+                          'png or jpg frame')
   return np.stack([fit_frame(media.read_image(path), options.resolution,
                              options.fit) for path in files])
 
@@ -369,7 +370,14 @@ def _refused(job: VideoJob) -> media.SkipVideo | None:
     if not target.is_relative_to(job.root):
       return media.SkipVideo('outside_source', f'{job.key}: a symlink out of '
                              'the source folder')
-  elif job.kind != 'frames' and job.path.stat().st_size == 0:
+  elif job.kind == 'frames':
+    for path in _frame_files(job.path):
+      target = Path(os.path.realpath(path))
+      if path.is_symlink() and not target.is_relative_to(job.root):
+        return media.SkipVideo('outside_source', f'{job.key}: frame '
+                               f'{shown(path.name)} is a symlink out of the '
+                               'source folder')
+  elif job.path.stat().st_size == 0:
     return media.SkipVideo('empty_file', f'{job.key}: an empty file')
   return None
 

@@ -218,7 +218,6 @@ def test_hashed_splits_do_not_move_when_videos_are_added(tmp_path):
             for split in videos.SPLITS}
   for index in range(12, 40):
     write_pngs(tmp_path / f'clip_{index}', moving_square(2, 16, 16, index))
-  videos._all_videos.cache_clear()  # pylint: disable=protected-access
   after = {split: [job.key for job in videos.discover(tmp_path, split,
                                                       options)]
            for split in videos.SPLITS}
@@ -235,6 +234,23 @@ def test_a_split_with_no_video_is_one_line_that_names_the_fix(tmp_path):
           ] == ['train/a']
   with pytest.raises(base.ConversionError, match='add videos to val/'):
     videos.discover(tmp_path, 'val', options)
+
+
+def test_frames_out_of_the_source_or_none_at_all_are_skipped(tmp_path):
+  source = tmp_path / 'source'
+  write_pngs(tmp_path / 'elsewhere', moving_square(2, 16, 16, 0))
+  os.makedirs(source / 'linked')
+  os.symlink(tmp_path / 'elsewhere' / 'frame_1.png',
+             source / 'linked' / 'frame_1.png')
+  os.makedirs(source / 'hidden')
+  write_pngs(source / 'hidden', moving_square(1, 16, 16, 0))
+  os.rename(source / 'hidden' / 'frame_1.png', source / 'hidden' / '.f.png')
+  options = videos.Options(resolution=RESOLUTION, num_frames=1,
+                           val_fraction=0, test_fraction=0)
+  jobs = videos.discover(source, 'train', options)
+  assert [job.key for job in jobs] == ['linked']  # a hidden frame: no video
+  with pytest.raises(media.SkipVideo, match='outside_source'):
+    videos.convert_video(jobs[0], options)
 
 
 def test_a_frame_claiming_a_huge_size_is_refused_before_decoding(tmp_path):
