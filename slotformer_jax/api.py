@@ -174,9 +174,11 @@ class WorldModel:
   # ---- the model -------------------------------------------------------------
 
   def encode(self, frames: np.ndarray) -> np.ndarray:
-    """uint8 [T, H, W, 3] -> slots float32 [T, N, D]: the slot model over
-    the frames in chunks of ``extraction.chunk_length`` carrying its state,
-    as slot extraction does."""
+    """uint8 [T, H, W, 3] (channels in ``expected.channel_order``, as
+    ``read_video`` gives them) -> slots float32 [T, N, D]: the slot model
+    over the frames in chunks of ``extraction.chunk_length`` carrying its
+    state, as slot extraction does (a stochastic SAVi draws with the keys
+    of the extraction's first batch)."""
     frames = self.frames_as_expected(frames)
     length, chunk = len(frames), self._chunk_length
     num_chunks = -(-length // chunk)

@@ -264,7 +264,7 @@ def decode_file(path: Path, options: Options, *, name: str = '',
 
   Raises:
     media.SkipVideo: 'unreadable_video' (ffmpeg decodes no frame: names its
-      first error line), 'too_slow' (more than ``timeout_s``).
+      last error line), 'too_slow' (more than ``timeout_s``).
   """
   import imageio_ffmpeg  # pylint: disable=g-import-not-at-top
   name = name or shown(path)

@@ -276,6 +276,18 @@ def test_fit_crops_or_pads_keeping_the_aspect_ratio():
   assert padded[3:5, 0].min() > 200  # the white quarter kept
 
 
+def test_ffmpeg_pads_or_crops_a_wide_video(tmp_path):
+  path = tmp_path / 'wide.mp4'
+  write_mp4(path, moving_square(3, 24, 32, 0))  # gray floor, 4:3
+  pad = videos.read_video(path, videos.Options(
+      resolution=(16, 16), num_frames=3, fit='pad'))
+  crop = videos.read_video(path, videos.Options(
+      resolution=(16, 16), num_frames=3, fit='crop'))
+  assert pad.shape == crop.shape == (3, 16, 16, 3)
+  assert pad[:, :2].max() < 5 and pad[:, -2:].max() < 5  # black bars
+  assert crop[:, :2].min() > 40  # the floor, no bar
+
+
 def test_a_long_video_decodes_only_the_frames_kept(tmp_path):
   path = tmp_path / 'long.mp4'
   write_mp4(path, moving_square(60, 64, 64, 0))
