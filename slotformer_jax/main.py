@@ -308,6 +308,9 @@ def run_main(argv: list[str] | None = None) -> None:
   """The entry point: anticipated errors become one line and a non-zero
   exit; unexpected ones keep their traceback."""
   argv = sys.argv if argv is None else argv
+  # A shipped config by its name from any folder (`pip install .`).
+  argv = [f'--config={config_checks.shipped_config(arg[len("--config="):])}'
+          if arg.startswith('--config=') else arg for arg in argv]
   try:
     # The config file and the --config.* names, before absl's tracebacks.
     problem = config_checks.check_overrides(argv[1:])

@@ -54,10 +54,13 @@ FLOORS = (
     ('slotformer_jax.evaluation', 'slotformer_jax.tasks'),
     # one run: config, paths, mesh, slot model, loaded models
     ('slotformer_jax.run',),
+    # a trained model as one Python object (frames in, slots and frames out)
+    ('slotformer_jax.api',),
     ('slotformer_jax.stages',),
     ('slotformer_jax.official',),
     # the entry points: the pipeline, the official-weights converter
-    ('slotformer_jax.main', 'slotformer_jax.official.convert'),
+    ('slotformer_jax.main', 'slotformer_jax.official.convert',
+     'slotformer_jax.predict'),
 )
 TRAINING = ('slotformer_jax.train', 'slotformer_jax.losses',
             'slotformer_jax.stages')
@@ -94,6 +97,10 @@ BOUNDARIES = (
      'the downstream tasks are pure: no training code'),
     ('slotformer_jax.workdir', 'slotformer_jax.train',
      'run bookkeeping knows no training'),
+    ('slotformer_jax.api', 'slotformer_jax.train',
+     'the Python API loads trained models without training code'),
+    ('slotformer_jax.api', 'slotformer_jax.stages',
+     'the Python API computes what the stages compute, not through them'),
 )
 
 

@@ -44,6 +44,30 @@ class ConfigFileError(ConfigError):
   variant the file does not have): a mistake of the command line."""
 
 
+# The configs the package ships (setup.py installs configs/ as this
+# package): `--config=configs/<name>.py` finds them from any folder.
+SHIPPED_CONFIGS = 'slotformer_jax.configs'
+
+
+def shipped_config(spec: str) -> str:
+  """A --config value as a file: itself when it exists, else the shipped
+  config of its name (`configs/synthetic.py:tiny` after a `pip install .`,
+  run from any folder); unchanged when there is none."""
+  path, colon, argument = spec.partition(':')
+  if (not path.endswith('.py') or os.path.isfile(os.path.expanduser(path))
+      or os.path.basename(os.path.dirname(path)) not in ('', 'configs')):
+    return spec
+  try:
+    found = importlib.util.find_spec(SHIPPED_CONFIGS)
+  except ImportError:
+    found = None
+  for folder in (found.submodule_search_locations or ()) if found else ():
+    candidate = os.path.join(folder, os.path.basename(path))
+    if os.path.isfile(candidate):
+      return candidate + colon + argument
+  return spec
+
+
 def load_config_file(spec: str) -> ml_collections.ConfigDict:
   """'configs/synthetic.py:tiny' -> its get_config('tiny') (as absl does).
 
@@ -52,7 +76,7 @@ def load_config_file(spec: str) -> ml_collections.ConfigDict:
   file does not take), ConfigError for the file's (a syntax error, a
   get_config that raises).
   """
-  path, colon, argument = spec.partition(':')
+  path, colon, argument = shipped_config(spec).partition(':')
   expanded = os.path.expanduser(path)
   if not path:
     raise ConfigFileError('--config is empty; give a config file, e.g. '

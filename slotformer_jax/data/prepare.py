@@ -45,7 +45,9 @@ except KeyboardInterrupt:  # Ctrl-C while the libraries import
 _OPTION_FLAGS: dict[str, str] = {
     'resolution': 'resolution', 'num_frames': 'num_frames',
     'max_objects': 'max_objects', 'masks': 'masks',
-    'val_fraction': 'val_fraction', 'split_files': 'split_files'}
+    'val_fraction': 'val_fraction', 'split_files': 'split_files',
+    'test_fraction': 'test_fraction', 'frame_stride': 'frame_stride',
+    'fit': 'fit'}
 
 
 def parse_resolution(text: str) -> tuple[int, int]:
@@ -105,6 +107,14 @@ def build_parser() -> argparse.ArgumentParser:
   parser.add_argument('--val_fraction', type=float, default=None,
                       help='physion: share of Training / Readout videos in '
                       'the *_val splits (0.05)')
+  parser.add_argument('--test_fraction', type=float, default=None,
+                      help='videos: share of a folder without split '
+                      'folders hashed into test (0.1; --val_fraction: val)')
+  parser.add_argument('--frame_stride', type=int, default=None,
+                      help='videos: keep every n-th frame (1)')
+  parser.add_argument('--fit', choices=('crop', 'pad'), default=None,
+                      help='videos: fill the frame and cut the centre '
+                      '(crop) or show it whole between black bars (pad)')
   parser.add_argument('--split_files', default=None,
                       help='physion: folder with the official split lists '
                       '(training_train.json, ...)')

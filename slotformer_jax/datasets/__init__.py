@@ -34,7 +34,11 @@ from slotformer_jax.datasets.base import get
 from slotformer_jax.datasets.base import register
 from slotformer_jax.datasets.base import unknown
 from slotformer_jax.errors import ConfigError
+from slotformer_jax.quiet import import_quietly
 
+# pybullet (the embedded datasets' simulator) prints its build time when
+# first imported: imported here first, with that line dropped (quiet.py).
+import_quietly('pybullet')
 # Each module registers its dataset at import (tests/test_layout.py counts
 # these imports as edges of the import graph).
 for _module in pkgutil.iter_modules(__path__):
@@ -90,7 +94,8 @@ def config_problems(config: Any) -> list[str]:
   if name not in DATASETS:
     return [str(unknown(name))]
   dataset = DATASETS[name]
-  problems = [clips_problem(name, config.evaluation.clips)]
+  problems = [clips_problem(name, config.evaluation.clips),
+              *dataset.config_problems(config.data)]
   if isinstance(dataset, Generated):
     try:
       dataset.parameters(config.data)

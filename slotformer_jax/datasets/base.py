@@ -139,6 +139,13 @@ class Dataset:
     del data_config
     return None
 
+  def config_problems(self, data_config: ml_collections.ConfigDict
+                      ) -> list[str]:
+    """The problems of ``config.data`` that it knows, one line each,
+    before any work (a generated dataset's are its parameters')."""
+    del data_config
+    return []
+
   def field_fix(self, data_config: ml_collections.ConfigDict, field: str
                 ) -> str | None:
     """How to get a video field a run needs that the videos of
@@ -305,6 +312,19 @@ class Converted(Dataset):
         description=self.describe(options), params=options.params,
         features_fn=functools.partial(self.stored, options),
         convert_fn=functools.partial(self.convert, options=options))
+
+  def source_of(self, data_config: ml_collections.ConfigDict
+                ) -> Path | None:
+    """The download the data stage converts itself, from ``config.data``
+    (a folder of videos: ``data.source``); None: converted by the prepare
+    command only."""
+    del data_config
+    return None
+
+  def options_of(self, data_config: ml_collections.ConfigDict
+                 ) -> ConversionOptions:
+    """The conversion options of ``config.data`` (with ``source_of``)."""
+    raise NotImplementedError
 
   # -- reading ---------------------------------------------------------------
 

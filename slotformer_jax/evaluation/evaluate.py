@@ -529,6 +529,10 @@ def evaluate(eval_config: ml_collections.ConfigDict,
   fields = video_fields(eval_config)
   if with_segmentation:
     _check_has_segmentations(source, names)
+  elif videos is not None and len(videos) and (
+      SEGMENTATION_FIELD not in videos[0]):
+    logger.info('the videos have no ground-truth masks: %s left out (frame '
+                'metrics only)', ', '.join(OBJECT_METRICS))
   num_videos = min(len(source), eval_config.num_videos or len(source))
   source = evaluation_clips(
       eval_config.clips, source, ('slots',) + fields, num_videos,

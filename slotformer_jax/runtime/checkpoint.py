@@ -26,10 +26,12 @@ is named in the warning and skipped.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import threading
 import time
+from collections.abc import Iterator
 from typing import Any, Callable
 
 import jax
@@ -81,6 +83,24 @@ def abstract_like(tree: Any, sharding: Sharding) -> Any:
       tree)
 
 
+class _ReadOnlyNotice(logging.Filter):
+  """Drops orbax's 'Given directory is read only' warning."""
+
+  def filter(self, record: logging.LogRecord) -> bool:
+    return not record.getMessage().startswith('Given directory is read only')
+
+
+@contextlib.contextmanager
+def _without_read_only_notice() -> Iterator[None]:
+  absl_logger = logging.getLogger('absl')
+  notice = _ReadOnlyNotice()
+  absl_logger.addFilter(notice)
+  try:
+    yield
+  finally:
+    absl_logger.removeFilter(notice)
+
+
 class Checkpointer:
   """Checkpoints of one stage under `directory` (absolute or relative)."""
 
@@ -88,11 +108,16 @@ class Checkpointer:
                read_only: bool = False):
     self.directory = os.path.abspath(directory)
     self.read_only = read_only
-    self._manager = ocp.CheckpointManager(
-        self.directory,
-        options=ocp.CheckpointManagerOptions(
-            max_to_keep=max_to_keep, create=not read_only,
-            read_only=read_only))
+    # Read-only: the options orbax would otherwise reset with a warning
+    # each, and its notice that the folder is read only (what was asked)
+    # dropped: loading a trained model prints nothing.
+    with _without_read_only_notice():
+      self._manager = ocp.CheckpointManager(
+          self.directory,
+          options=ocp.CheckpointManagerOptions(
+              max_to_keep=None if read_only else max_to_keep,
+              save_interval_steps=0 if read_only else 1,
+              create=not read_only, read_only=read_only))
     # The thread that writes the digest of the step being saved.
     self._digester: threading.Thread | None = None
 

@@ -11,7 +11,8 @@ generated again; a damaged converted dataset is refused with one line
 naming the conversion command; a converted folder from before
 ``video_names.json`` gets it from its conversion's progress files. A
 converted dataset that is not there is left to the stage that reads it,
-which names the conversion command.
+which names the conversion command, unless ``config.data`` names its
+download (a folder of videos, ``data.source``): that is converted here.
 """
 
 from __future__ import annotations
@@ -24,11 +25,15 @@ import ml_collections
 
 from slotformer_jax import datasets
 from slotformer_jax.data import integrity
+from slotformer_jax.data.sources import resolve_data_dir
 from slotformer_jax.data.video_names import NAMES_FILE
 from slotformer_jax.data.write import convert as writer
 from slotformer_jax.data.write import generate
 from slotformer_jax.data.write.records import record_checksums
+from slotformer_jax.datasets.base import ConversionError
 from slotformer_jax.errors import MissingInputError
+from slotformer_jax.errors import UserError
+from slotformer_jax.errors import shown
 from slotformer_jax.run import Run
 from slotformer_jax.stages import task as task_lib
 
@@ -92,9 +97,43 @@ def _check_generated(dataset: datasets.Generated,
       folder = generate.make_dataset(dataset, data_config)
 
 
+def convert_source(dataset: datasets.Converted,
+                   data_config: ml_collections.ConfigDict,
+                   source: Path) -> writer.ConversionResult:
+  """Converts the download ``config.data`` names (a folder of videos:
+  ``data.source``) into its folder unless it is there: every split, with
+  the prepare command's machinery (resumable, parallel, skipped videos
+  reported one line each).
+
+  Raises:
+    UserError: the source is not a folder, holds no video for a split, or
+      too many of its videos cannot be read (one line, or the lines of the
+      skipped videos).
+  """
+  if not source.is_dir():
+    raise MissingInputError(f'data.source={shown(source)} is not a folder')
+  try:
+    options = dataset.options_of(data_config)
+    spec = dataset.spec(options, source)
+    jobs = {split: dataset.discover(source, split, options)
+            for split in dataset.splits}
+    result = writer.convert(
+        spec, jobs, resolve_data_dir(data_config.data_dir),
+        num_workers=data_config.num_workers,
+        max_skip_fraction=data_config.get('max_skip_fraction', 0.05))
+  except (FileNotFoundError, ValueError, ConversionError) as error:
+    raise UserError(f'data.source: {error}') from None
+  if result.videos_processed:
+    logger.info('%s', writer.summary(result))
+  return result
+
+
 def _check_converted(dataset: datasets.Converted,
                      data_config: ml_collections.ConfigDict,
                      splits: Sequence[str] | None) -> None:
+  source = dataset.source_of(data_config)
+  if source is not None:
+    convert_source(dataset, data_config, source)
   try:
     folder = dataset.dataset_dir(data_config)
   except MissingInputError:

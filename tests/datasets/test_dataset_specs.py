@@ -10,7 +10,7 @@ from slotformer_jax.data import prepare
 from slotformer_jax.errors import ConfigError
 
 CONVERTED = ('clevrer', 'movi_a', 'movi_b', 'movi_c', 'movi_d', 'movi_e',
-             'movi_f', 'obj3d', 'phyre', 'physion')
+             'movi_f', 'obj3d', 'phyre', 'physion', 'videos')
 GENERATED = ('clevrer_like', 'synthetic', 'synthetic_contact',
              'synthetic_phyre')
 
@@ -56,5 +56,6 @@ def test_the_facts_the_registries_used_to_repeat():
   # The prepare CLI's --dataset choices come from the registry.
   choices = next(a for a in prepare.build_parser()._actions  # pylint: disable=protected-access
                  if a.dest == 'dataset').choices
-  assert sorted(choices) == ['clevrer', 'movi', 'obj3d', 'phyre', 'physion']
+  assert sorted(choices) == ['clevrer', 'movi', 'obj3d', 'phyre', 'physion',
+                             'videos']
   assert datasets.get('synthetic_phyre').task_data.keys() == {'planning'}
