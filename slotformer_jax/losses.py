@@ -19,6 +19,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
+import flax.linen as nn
 import jax
 import jax.numpy as jnp
 import optax
@@ -28,8 +29,6 @@ from slotformer_jax.frames import frames_to_model
 from slotformer_jax.modules.decoders import SpatialBroadcastDecoder
 from slotformer_jax.modules.dvae import DVAE
 from slotformer_jax.modules.savi import SAVi
-from slotformer_jax.modules.slot_lstm import SlotLSTM
-from slotformer_jax.modules.slotformer import SlotFormer
 from slotformer_jax.modules.steve import STEVE
 
 Batch = dict[str, jax.Array]
@@ -122,7 +121,7 @@ def savi_loss(params: Any, batch: Batch, frozen_params: Any, rng: jax.Array,
 
 
 def slotformer_loss(params: Any, batch: Batch, decoder_params: Any,
-                    rng: jax.Array, *, model: SlotFormer | SlotLSTM,
+                    rng: jax.Array, *, model: nn.Module,
                     decoder: SpatialBroadcastDecoder | None, rollout: int,
                     image_loss_weight: float, teacher_forcing: bool,
                     to_model: Callable[[jax.Array], jax.Array] = (

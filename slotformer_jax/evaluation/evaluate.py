@@ -5,7 +5,7 @@ roll the dynamics model out for `rollout_steps` frames, decode the predicted
 slots with the frozen slot model and compare every decoded frame and its
 slot masks with the ground truth; metrics per rollout step, averaged over
 videos per step, then over steps. Methods: the dynamics models
-(`slotformer`, `slot_lstm`), `copy_last` (no dynamics) and
+(every trained one of the registry: `slotformer`, `slot_lstm`, ...), `copy_last` (no dynamics) and
 `<slot model>_reconstruction` (the slot model's own slots of the future
 decoded: a reference, not a prediction); also the slot model's own
 segmentation of the videos. docs/evaluation.md says what each number is.
@@ -37,8 +37,7 @@ from slotformer_jax import datasets
 from slotformer_jax import inference
 from slotformer_jax.config.defaults import FRAME_METRICS
 from slotformer_jax.config.defaults import OBJECT_METRICS
-from slotformer_jax.config.sections import SLOT_LSTM
-from slotformer_jax.config.sections import SLOTFORMER
+from slotformer_jax.config.sections import DYNAMICS
 from slotformer_jax.data import pipeline
 from slotformer_jax.data.pipeline import ClipSource
 from slotformer_jax.errors import ConfigError
@@ -413,14 +412,11 @@ def _padded_time_slice(x: np.ndarray, start: int, length: int) -> np.ndarray:
   return piece
 
 
-_METHOD_ORDER = (SLOTFORMER, SLOT_LSTM, 'copy_last')
-
-
 def _method_rank(method: str) -> tuple[int, str]:
-  """Table order: the models, the baselines, then the reference."""
-  order = _METHOD_ORDER.index(method) if method in _METHOD_ORDER else len(
-      _METHOD_ORDER)
-  return order, method
+  """Table order: the dynamics models as registered, copy-last, then the
+  reference."""
+  order = (*DYNAMICS, 'copy_last')
+  return (order.index(method) if method in order else len(order)), method
 
 
 class _StepAverager:
@@ -501,8 +497,9 @@ def evaluate(eval_config: ml_collections.ConfigDict,
 
   Args:
     eval_config: the `evaluation` section.
-    dynamics_config: SlotFormer's section (its burn_in and frame_stride set
-      the protocol for every dynamics model).
+    dynamics_config: the first trained dynamics model's section
+      (`sections.primary_dynamics`: its burn_in and frame_stride set the
+      protocol for every dynamics model).
     slot_model, slot_params: the trained slot model (see `SlotDecoder`).
     slot_steps: its stage-1 checkpoint steps ({'savi': 4500}).
     dynamics: {name: object with `module`, `params`, `step`} of every

@@ -34,8 +34,8 @@ from PIL import Image
 
 from slotformer_jax import inference
 from slotformer_jax import targets as targets_lib
-from slotformer_jax.config.sections import DYNAMICS_MODELS
-from slotformer_jax.config.sections import SLOTFORMER
+from slotformer_jax.config.sections import DYNAMICS
+from slotformer_jax.dynamics import base as dynamics_base
 from slotformer_jax.evaluation import evaluate
 from slotformer_jax.evaluation import explore_page
 from slotformer_jax.evaluation import metrics_file
@@ -123,10 +123,13 @@ class Explorer:
                background_threshold: float | None):
     self.slot_model = slot_model
     self.dynamics_names = tuple(dynamics_modules)
-    self.slotformer = dynamics_modules[SLOTFORMER]
+    # The model the interventions act on (SlotFormer): the first that
+    # takes them; the others are rolled out as they are.
+    self.primary = dynamics_base.intervened(dynamics_modules)
+    self.intervened = dynamics_modules[self.primary]
     self.baselines = {name: module
                       for name, module in dynamics_modules.items()
-                      if name != SLOTFORMER}
+                      if name != self.primary}
     self.burn_in = burn_in
     self.rollout = rollout
     self.num_true = num_true
@@ -146,12 +149,12 @@ class Explorer:
     history = slots[:, :burn_in]
     num_slots = slots.shape[2]
     counterfactual, presence = counterfactual_rollouts(
-        dynamics_params[SLOTFORMER], history, model=self.slotformer,
+        dynamics_params[self.primary], history, model=self.intervened,
         num_steps=self.rollout)
     # The other methods' factual rollouts join the batch (always present).
     others = inference.rollouts(dynamics_params, self.baselines, history,
                                 self.rollout)
-    names = [SLOTFORMER, *others]
+    names = [self.primary, *others]
     other_slots = jnp.stack(
         [jnp.concatenate([history, others[name]], axis=1) for name in others],
         axis=1)
@@ -277,8 +280,11 @@ def page_data(out: dict[str, Any], videos: np.ndarray, indices: list[int],
   num_slots = out['slotformer_masks'].shape[2]
   truth_targets = truth_targets or {}
   # jax returns dicts sorted by key: the page's order is the table's.
-  methods = [name for name in (*DYNAMICS_MODELS, 'copy_last')
+  methods = [name for name in (*DYNAMICS, 'copy_last')
              if name in out['methods']]
+  # The model the interventions act on (SlotFormer), drawn first.
+  primary = dynamics_base.intervened(
+      [name for name in methods if name in DYNAMICS])
   labels = visualize.method_labels(slot_model)
   first = primary_target(slot_model)
   # In the config's order (jax returns dicts sorted by key).
@@ -297,7 +303,7 @@ def page_data(out: dict[str, Any], videos: np.ndarray, indices: list[int],
     # Depth on one grey scale per video: the data's, else SlotFormer's.
     ranges = {target.name: targets_lib.grey_scale(
         target, truth_targets[target.name][v] if target.name in truth_targets
-        else decoded(target, SLOTFORMER)[v]) for target in shown}
+        else decoded(target, primary)[v]) for target in shown}
     draw = lambda target, values: (
         np.asarray(values) if target == targets_lib.RGB
         else targets_lib.picture(target, values, ranges[target.name]))
@@ -305,7 +311,7 @@ def page_data(out: dict[str, Any], videos: np.ndarray, indices: list[int],
     named = lambda target, text: targets_lib.labelled(
         text if target == targets_lib.RGB else f'{text} {target.label}',
         ranges[target.name])
-    factual = draw(first, decoded(first, SLOTFORMER)[v])
+    factual = draw(first, decoded(first, primary)[v])
     rows = [('truth', 'truth', truth)]
     rows += [(f'truth/{target.name}', targets_lib.labelled(
         target.label, ranges[target.name]),
@@ -316,11 +322,11 @@ def page_data(out: dict[str, Any], videos: np.ndarray, indices: list[int],
     for name in methods:
       rows += [(name if target == first else f'{name}/{target.name}',
                 named(target, labels[name]),
-                factual if (target, name) == (first, SLOTFORMER)
+                factual if (target, name) == (first, primary)
                 else draw(target, decoded(target, name)[v]))
                for target in shown]
-      if name == SLOTFORMER:
-        rows.append(('slotformer_masks', 'SlotFormer masks',
+      if name == primary:
+        rows.append(('slotformer_masks', f'{labels[primary]} masks',
                      frames_lib.mask_overlay(factual,
                                              out['slotformer_masks'][v])))
     slots = []
@@ -350,7 +356,7 @@ def page_data(out: dict[str, Any], videos: np.ndarray, indices: list[int],
                           metrics_file.clean(per_video[method][name][v])
                       for method in methods}
                for name in VIDEO_METRICS
-               if name in per_video[SLOTFORMER]}
+               if name in per_video[primary]}
     entries.append({
         'index': int(index),
         'rows': [{'key': key, 'label': row_label, 'strip': _strip(frames)}
@@ -372,6 +378,12 @@ def page_data(out: dict[str, Any], videos: np.ndarray, indices: list[int],
                      else f'decoded {first.label} x alpha'
                      if first != targets_lib.RGB
                      else 'generated frame x attention mask'),
+      # The model the interventions act on, and every curve's colour.
+      'primary': {'key': primary, 'label': labels[primary]},
+      'method_colours': {
+          labels[name]: colour
+          for name, colour in visualize.method_colours(slot_model).items()
+          if name in labels},
       'burn_in': burn_in,
       'rollout': rollout,
       'num_slots': num_slots,

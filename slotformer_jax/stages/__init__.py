@@ -23,6 +23,8 @@ import jax
 
 from slotformer_jax import datasets
 from slotformer_jax.config import checks as config_checks
+from slotformer_jax.config.sections import dynamics_stages
+from slotformer_jax.config.sections import trained_dynamics
 from slotformer_jax.errors import CommandLineError
 from slotformer_jax.run import Run
 from slotformer_jax.stages import data
@@ -40,18 +42,19 @@ for _module in pkgutil.iter_modules(__path__):
 
 # Reading never writes: the data are made here, before every other stage.
 DATA: dict[str, StageFn] = {'prepare_data': data.prepare_data}
-STAGE2: dict[str, StageFn] = {
-    'extract_slots': extract.extract_slots,
-    'train_slotformer': dynamics.train_slotformer,
-    'train_slot_lstm': dynamics.train_slot_lstm,
-}
+
+
+def stage2() -> dict[str, StageFn]:
+  """Slot extraction, then every registered dynamics model's training."""
+  return {'extract_slots': extract.extract_slots,
+          **dynamics.stage_functions()}
 
 
 def stage_table(run: Run) -> dict[str, StageFn]:
   """The stages `run` can execute, in the order `--mode=all` runs them."""
   table = dict(DATA)
   table.update(stage1.stage_functions(run))
-  table.update(STAGE2)
+  table.update(stage2())
   table.update(task_lib.get(run.task).stages)
   return table
 
@@ -61,9 +64,10 @@ def selected_stages(run: Run, mode: str) -> tuple[str, ...]:
   first, whatever the mode."""
   table = stage_table(run)
   if mode == 'all':
-    # The Slot-LSTM baseline only when the config asks for it.
-    return tuple(m for m in table
-                 if m != 'train_slot_lstm' or run.config.slot_lstm.train)
+    # The dynamics models the config trains (a baseline only when asked).
+    untrained = set(dynamics_stages()) - {
+        f'train_{name}' for name in trained_dynamics(run.config)}
+    return tuple(m for m in table if m not in untrained)
   if mode not in table:
     raise CommandLineError(_not_a_stage(run, mode, table))
   return tuple(dict.fromkeys([*DATA, mode]))

@@ -1,4 +1,5 @@
-"""Stage 2: SlotFormer (or the Slot-LSTM baseline) on the extracted slots.
+"""Stage 2: every registered dynamics model (SlotFormer, the Slot-LSTM
+baseline, ...: dynamics/) on the extracted slots.
 
 The same stage for every slot model: L = L_S + lambda * L_I, where L_I
 decodes the predicted slots through the slot model's frozen pixel decoder
@@ -16,6 +17,7 @@ one checkpoint in `slotformer/`.
 from __future__ import annotations
 
 import functools
+from collections.abc import Callable
 from typing import Any
 
 import jax
@@ -24,8 +26,6 @@ import ml_collections
 
 from slotformer_jax import dynamics as dynamics_lib
 from slotformer_jax import losses
-from slotformer_jax.config.sections import SLOT_LSTM
-from slotformer_jax.config.sections import SLOTFORMER
 from slotformer_jax.data import pipeline
 from slotformer_jax.errors import ConfigError
 from slotformer_jax.modules import initializers
@@ -161,10 +161,9 @@ def seed_stage(view: Run, name: str, stream_seed: int
   return stage, parent
 
 
-def train_slotformer(run: Run) -> None:
-  train_dynamics(run, SLOTFORMER)
-
-
-def train_slot_lstm(run: Run) -> None:
-  """The Slot-LSTM baseline, with SlotFormer's data, losses and schedule."""
-  train_dynamics(run, SLOT_LSTM)
+def stage_functions() -> dict[str, Callable[[Run], None]]:
+  """{`train_<name>`: its training stage} of every registered dynamics
+  model, in registration order."""
+  return {f'train_{model.name}': functools.partial(train_dynamics,
+                                                   name=model.name)
+          for model in dynamics_lib.registered()}
