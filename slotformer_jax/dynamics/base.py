@@ -17,6 +17,7 @@ from typing import Any
 import flax.linen as nn
 import ml_collections
 
+from slotformer_jax import losses
 from slotformer_jax.config import defaults as defaults_lib
 from slotformer_jax.config import sections
 
@@ -38,9 +39,6 @@ class DynamicsModel:
       the explorer intervenes on and whose masks the pictures show.
     shaping_fields: the section's fields that shape its parameters
       (model_config.json: a model trained with others is refused).
-    loss_terms: the loss terms (`losses.LOSS_TERMS`) of its training, in
-      order; each weighted by its section's `<term>_weight` when the term
-      has a weight.
   """
 
   name: str = ''
@@ -49,7 +47,6 @@ class DynamicsModel:
   inherits: str | None = None
   interventions: bool = False
   shaping_fields: tuple[str, ...] = ()
-  loss_terms: tuple[str, ...] = ('slot_loss', 'image_loss')
 
   def build(self, section: ml_collections.ConfigDict) -> nn.Module:
     """Its linen module from its resolved section
@@ -61,6 +58,13 @@ class DynamicsModel:
     `config/defaults.py:base_config`; a model from elsewhere overrides
     this and its config file sets `config.<name> = model.defaults()`."""
     return defaults_lib.base_config()[self.name]
+
+  def loss_terms(self, section: ml_collections.ConfigDict
+                 ) -> dict[str, float]:
+    """{term: weight} of its training loss (`losses.LOSS_TERMS`): every
+    registered term its resolved section weights (`<term>_weight`), L_S
+    always; SlotFormer's L_S + image_loss_weight * L_I."""
+    return losses.loss_weights(section)
 
   def trained(self, config: ml_collections.ConfigDict) -> bool:
     """Whether a run of `config` trains and compares it: its section's

@@ -40,24 +40,33 @@ from slotformer_jax.train import steps
 from slotformer_jax.train.trainer import Stage
 
 
-def image_loss_decoder(section: ml_collections.ConfigDict, name: str,
+def decoded_terms(weights: dict[str, float]) -> dict[str, float]:
+  """The terms of `weights` that are on and decode the predicted slots
+  with the slot model's frozen decoder (L_I)."""
+  return {name: weight for name, weight in weights.items()
+          if weight > 0 and losses.LOSS_TERMS[name].needs_decoder}
+
+
+def image_loss_decoder(weights: dict[str, float], name: str,
                        slot_model: SlotModel, slot_params: Any
                        ) -> tuple[Any, Any]:
-  """(decoder, its frozen params) of L_I, or (None, None) without L_I.
+  """(decoder, its frozen params) of the terms that decode (L_I), or
+  (None, None) when none is on.
 
   Raises:
-    ConfigError: L_I is on but the slot model has no pixel decoder.
+    ConfigError: such a term is on but the slot model has no pixel decoder.
   """
-  weight = section.image_loss_weight
-  if weight <= 0:
+  decoded = decoded_terms(weights)
+  if not decoded:
     return None, None
   image_decoder = slot_model.image_decoder(slot_params)
   if image_decoder is None:
+    term, weight = next(iter(decoded.items()))
     raise ConfigError(
-        f'L_I needs a differentiable pixel decoder, which '
+        f'{losses.LOSS_TERMS[term].label} needs a differentiable pixel decoder, which '
         f'{slot_model.label} does not have (the paper trains SlotFormer on '
         f'{slot_model.label} slots without it); set --config.{name}.'
-        f'image_loss_weight=0 (got {weight})')
+        f'{losses.weight_field(term)}=0 (got {weight})')
   return image_decoder
 
 
@@ -72,8 +81,12 @@ def dynamics_stage(section: ml_collections.ConfigDict, name: str,
   on; only its `batches` read it). `slot_params`: the slot model's, for the
   frozen decoder of L_I."""
   rollout = section.rollout
-  decoder, decoder_params = image_loss_decoder(section, name, slot_model,
+  weights = dynamics_lib.get(name).loss_terms(section)
+  decoder, decoder_params = image_loss_decoder(weights, name, slot_model,
                                                slot_params)
+  if decoder is None:  # no decoder: the terms that need one are off
+    weights = {term: 0.0 if term in decoded_terms(weights) else weight
+               for term, weight in weights.items()}
   video_fields = slot_model.image_loss_fields if decoder is not None else ()
   model = dynamics_lib.build(section, name)
   example = dynamics_lib.example(section, slot_model.slot_shape)
@@ -96,8 +109,7 @@ def dynamics_stage(section: ml_collections.ConfigDict, name: str,
       config=section,
       loss_fn=precision.with_compute_dtype(functools.partial(
           losses.slotformer_loss, model=model, decoder=decoder,
-          rollout=rollout, to_model=slot_model.to_model,
-          image_loss_weight=section.image_loss_weight if decoder else 0.0,
+          rollout=rollout, to_model=slot_model.to_model, weights=weights,
           teacher_forcing=section.teacher_forcing), compute_dtype),
       init_params=lambda rng: initializers.initialize(
           steps.init_params(model, rng, *example),
@@ -148,9 +160,9 @@ def seed_stage(view: Run, name: str, stream_seed: int
                                      view.slots_fields, slot_model.label)
   # L_I (`image_loss_decoder`) reads the videos, and compares the rollout
   # frames only: the burn-in frames are not read.
+  decodes = decoded_terms(dynamics_lib.get(name).loss_terms(section))
   source = view.slots('train',
-                      slot_model.image_loss_fields
-                      if section.image_loss_weight > 0 else (),
+                      slot_model.image_loss_fields if decodes else (),
                       video_from=section.burn_in)
   stage = dynamics_stage(section, name, view.paths.dynamics(name),
                          view.mesh, slot_model, loaded.params, source,
