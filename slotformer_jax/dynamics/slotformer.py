@@ -9,12 +9,15 @@ import ml_collections
 from slotformer_jax.dynamics import base
 from slotformer_jax.modules.slotformer import SlotFormer
 
+# Its registered name (the official weights' converters read it).
+NAME = 'slotformer'
+
 
 @base.register
 class SlotFormerModel(base.DynamicsModel):
   """`config.slotformer`; always trained."""
 
-  name = 'slotformer'
+  name = NAME
   label = 'SlotFormer'
   colour = '#1f77b4'
   interventions = True

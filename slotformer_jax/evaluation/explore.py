@@ -18,6 +18,7 @@ uint8 [V, T, H, W, 3], segmentation int [V, T, H, W].
 from __future__ import annotations
 
 import base64
+import dataclasses
 import html
 import io
 import json
@@ -40,6 +41,7 @@ from slotformer_jax.evaluation import evaluate
 from slotformer_jax.evaluation import explore_page
 from slotformer_jax.evaluation import metrics_file
 from slotformer_jax.evaluation import metrics as metrics_lib
+from slotformer_jax.evaluation import rollout_metrics
 from slotformer_jax.evaluation import visualize
 from slotformer_jax import frames as frames_lib
 from slotformer_jax.errors import UserError
@@ -52,8 +54,6 @@ logger = logging.getLogger(__name__)
 INTERVENTIONS = ('remove', 'freeze')
 # |intervention - factual| is small next to the frames' range: shown x4.
 DIFF_GAIN = 4.0
-# The per-video curves of the page (object metrics when the data has masks).
-VIDEO_METRICS = ('psnr', 'ssim', 'fg_ari')
 # render/'s colours, labels and conversion: the page matches its pictures.
 # pylint: disable=protected-access
 _PALETTE = frames_lib.SLOT_COLOURS
@@ -198,26 +198,51 @@ class Explorer:
     return out
 
   def _rollout_metrics(self, recon, alpha, frames, segmentation):
-    """{metric: [V, rollout]} of one method's rollout: PSNR and SSIM of
-    its frames (when it decodes frames: `frames` not None), FG-ARI of its
-    masks (when the data has them)."""
+    """{metric: [V, rollout]} of one method's rollout: every registered
+    metric drawn per video (`Metric.per_video`: PSNR, SSIM, FG-ARI, ...)
+    that it can be scored on: of its frames when it decodes frames
+    (`frames` not None), of its masks when the data has them; NaN where a
+    value is not valid."""
     burn_in = self.burn_in
     recon, alpha = recon[:, burn_in:], alpha[:, burn_in:]
+    videos, steps = alpha.shape[:2]
+    flat = lambda x: None if x is None else x.reshape(-1, *x.shape[2:])
+    available = {rollout_metrics.FRAMES: frames is not None,
+                 rollout_metrics.MASKS: segmentation is not None}
+    names = [name for name, metric in rollout_metrics.METRICS.items()
+             if metric.per_video and available[metric.needs]]
+    if not names:
+      return {}
+    pred_ids = true_ids = table = None
+    if rollout_metrics.needing(names, rollout_metrics.MASKS):
+      pred_ids = metrics_lib.segmentation_from_alpha_masks(
+          flat(alpha), bg_threshold=self.background_threshold)
+      true_ids = flat(segmentation[:, burn_in:]).astype(jnp.int32)
+      # One clustering per frame, as the evaluation's per-step metrics.
+      table = metrics_lib.contingency_table(
+          true_ids[:, None], pred_ids[:, None], self.num_true,
+          alpha.shape[-3])
+    step = rollout_metrics.Step(
+        decoded=_Decoded(recon=flat(recon), alpha_masks=flat(alpha)[..., None]),
+        frames=(flat(frames[:, burn_in:]) if frames is not None
+                else flat(recon)),
+        true_ids=true_ids, pred_ids=pred_ids, table=table, gt_boxes=None,
+        num_true=self.num_true, num_slots=alpha.shape[-3])
     out = {}
-    if frames is not None:
-      frames = frames[:, burn_in:]
-      out = {'psnr': metrics_lib.psnr(recon, frames),
-             'ssim': metrics_lib.ssim(recon, frames)}
-    if segmentation is not None:
-      pred = metrics_lib.segmentation_from_alpha_masks(
-          alpha, bg_threshold=self.background_threshold)
-      true = segmentation[:, burn_in:].astype(jnp.int32)
-      # One clustering per frame, as the evaluation's per-step FG-ARI.
-      score = metrics_lib.adjusted_rand_index(
-          true[..., None, :, :], pred[..., None, :, :], self.num_true,
-          alpha.shape[-3], ignore_background=True)
-      out['fg_ari'] = jnp.where(score.valid, score.value, jnp.nan)
+    for name in names:
+      scored = rollout_metrics.get(name).fn(step)
+      if scored is not None:
+        value, valid = scored
+        out[name] = jnp.where(valid, value, jnp.nan).reshape(videos, steps)
     return out
+
+
+@dataclasses.dataclass(frozen=True)
+class _Decoded:
+  """A method's decoded rollout as the metrics read it."""
+
+  recon: jax.Array | None
+  alpha_masks: jax.Array
 
 
 # --------------------------------------------------------------------------
@@ -355,7 +380,7 @@ def page_data(out: dict[str, Any], videos: np.ndarray, indices: list[int],
     metrics = {name: {labels[method]:
                           metrics_file.clean(per_video[method][name][v])
                       for method in methods}
-               for name in VIDEO_METRICS
+               for name in rollout_metrics.METRICS
                if name in per_video[primary]}
     entries.append({
         'index': int(index),
@@ -384,6 +409,8 @@ def page_data(out: dict[str, Any], videos: np.ndarray, indices: list[int],
           labels[name]: colour
           for name, colour in visualize.method_colours(slot_model).items()
           if name in labels},
+      # Every metric's label (the registry's: curves of any metric).
+      'metric_labels': rollout_metrics.labels(),
       'burn_in': burn_in,
       'rollout': rollout,
       'num_slots': num_slots,

@@ -83,8 +83,7 @@ const SPARE_COLOURS = ['#9467bd', '#8c564b', '#e377c2', '#17becf'];
 function lookup(table, key) { return Object.prototype.hasOwnProperty.call(table, key) ? table[key] : undefined; }
 function colour(name, j) { return lookup(METHOD_COLOURS, name) || SPARE_COLOURS[j % SPARE_COLOURS.length]; }
 const KIND_TEXT = {remove: 'removed', freeze: 'frozen'};
-const METRIC_NAMES = {psnr: 'PSNR (dB)', ssim: 'SSIM', lpips: 'LPIPS', ari: 'ARI', fg_ari: 'FG-ARI',
-                      fg_miou: 'FG-mIoU', ar: 'AR'};
+const METRIC_NAMES = D.metric_labels;
 
 function el(tag, attrs, children) {
   const node = document.createElement(tag);

@@ -40,7 +40,7 @@ from PIL import ImageDraw
 from slotformer_jax import inference
 from slotformer_jax import targets as targets_lib
 from slotformer_jax.dynamics import base as dynamics_base
-from slotformer_jax.evaluation import evaluate
+from slotformer_jax.evaluation import rollout_metrics
 from slotformer_jax.files import read_json
 from slotformer_jax.files import write_atomic
 from slotformer_jax.files import write_json_atomic
@@ -498,8 +498,8 @@ def write_per_step_figure(metrics_path: str, directory: str,
                    metrics_path, metrics.get('identity'), identity)
     return None
   rollout = metrics['rollout']
-  names = [n for n in (*evaluate.FRAME_METRICS, *evaluate.OBJECT_METRICS)
-           if any(n in per_metric for per_metric in rollout.values())]
+  names = rollout_metrics.ordered(
+      n for per_metric in rollout.values() for n in per_metric)
   columns = min(3, len(names))
   rows = -(-len(names) // columns)
   figure, axes = plt.subplots(rows, columns,
@@ -517,7 +517,7 @@ def write_per_step_figure(metrics_path: str, directory: str,
                 label=labels.get(method, method),
                 color=(colours or {}).get(method),
                 linestyle='--' if method == reference_method else '-')
-    axis.set_title(name.upper().replace('_', '-'))
+    axis.set_title(rollout_metrics.get(name).label)
     axis.set_xlabel('rollout step')
     axis.grid(alpha=0.3)
   axes[0][0].legend(fontsize=7)
