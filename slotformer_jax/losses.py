@@ -173,10 +173,12 @@ LOSS_TERMS: dict[str, LossTerm] = {}
 LOSS_SUFFIX = '_loss'
 
 
+TermFn = Callable[[Rollout], tuple[jax.Array, Metrics]]
+
+
 def register_loss(name: str, label: str, *, weighted: bool = True,
                   needs_decoder: bool = False
-                  ) -> Callable[[Callable[[Rollout], tuple[jax.Array, Metrics]]],
-                                Callable[[Rollout], tuple[jax.Array, Metrics]]]:
+                  ) -> Callable[[TermFn], TermFn]:
   """Registers a dynamics loss term `name` (a decorator of its function)."""
   if not name.endswith(LOSS_SUFFIX):
     raise ValueError(f'a loss term\'s name ends in {LOSS_SUFFIX!r}: {name!r}')

@@ -412,17 +412,20 @@ def validate(config: ml_collections.ConfigDict, stages: Sequence[str], *,
 # readouts of every task (contact, planning on either layout) and Aloe
 # (task model s on chain s).
 SEEDED_STAGES = ('train_savi', 'train_dvae')
-# Stage 2: extraction, then every registered dynamics model's training.
+# The slot model's stages after its first part; extraction and the
+# dynamics models' training follow (`seeded_stages`).
 SEEDED_CHAINS = {'savi': (), 'steve': ('tokenize_frames', 'train_steve')}
 # Stages that do no training or extraction of their own with the seeds.
 _SEED_FREE_STAGES = ('prepare_data',)
 
 
-def seeded_stages(slot_model: str, task_seeded: Sequence[str] = ()
-                  ) -> tuple[str, ...]:
+def seeded_stages(slot_model: str, task_seeded: Sequence[str] = (),
+                  dynamics: Sequence[str] = ()) -> tuple[str, ...]:
   """The stages that take several seeds with `slot_model`, whose task's
-  seeded stages are `task_seeded` (`Task.seeded`; they follow the chain)."""
-  chain = (SEEDED_CHAINS[slot_model] + ('extract_slots', *dynamics_stages())
+  seeded stages are `task_seeded` (`Task.seeded`; they follow the chain),
+  with the training stages `dynamics` of the dynamics models
+  (`sections.dynamics_stages`)."""
+  chain = (SEEDED_CHAINS[slot_model] + ('extract_slots', *dynamics)
            if slot_model in SEEDED_CHAINS else ())
   return SEEDED_STAGES + chain + (tuple(task_seeded) if chain else ())
 
@@ -482,7 +485,8 @@ def seeds_problems(config: ml_collections.ConfigDict,
                     f'{config.seed_axis!r}')
   if problems or seeds is None or len(seeds) < 2:
     return problems
-  seeded = seeded_stages(config.slot_model, task_seeded)
+  seeded = seeded_stages(config.slot_model, task_seeded,
+                         dynamics_stages(config))
   refused = sorted(s for s in stages
                    if s not in seeded + _SEED_FREE_STAGES)
   if refused:
@@ -541,7 +545,7 @@ def _check_splits(config: ml_collections.ConfigDict,
 
 def _check_lengths(config, stages, dynamics, problems, video_length) -> None:
   train_length = video_length('train') if stages & {
-      'train_savi', *dynamics_stages()} else None
+      'train_savi', *dynamics_stages(config)} else None
   if train_length is not None:
     if 'train_savi' in stages and config.savi.clip_length > train_length:
       problems.append(f'savi.clip_length={config.savi.clip_length} is longer '

@@ -83,6 +83,8 @@ def primary_dynamics(config: ml_collections.ConfigDict) -> str:
   return trained_dynamics(config)[0]
 
 
-def dynamics_stages() -> tuple[str, ...]:
-  """The training stage of every registered dynamics model."""
-  return tuple(f'train_{name}' for name in DYNAMICS)
+def dynamics_stages(config: ml_collections.ConfigDict) -> tuple[str, ...]:
+  """The training stage of every registered dynamics model whose section
+  `config` has (a model registered by other code, e.g. a test, is no stage
+  of a config without its section)."""
+  return tuple(f'train_{name}' for name in DYNAMICS if name in config)

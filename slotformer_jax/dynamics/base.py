@@ -68,8 +68,9 @@ class DynamicsModel:
 
   def trained(self, config: ml_collections.ConfigDict) -> bool:
     """Whether a run of `config` trains and compares it: its section's
-    `train` (Slot-LSTM's; the first model of all overrides this)."""
-    return bool(config[self.name].train)
+    `train` (Slot-LSTM's; the first model of all overrides this); a config
+    without its section does not."""
+    return self.name in config and bool(config[self.name].train)
 
 
 def register(cls: type[DynamicsModel]) -> type[DynamicsModel]:

@@ -3,9 +3,10 @@
 Protocol (the paper's): observe the slots of the first `burn_in` frames,
 roll the dynamics model out for `rollout_steps` frames, decode the predicted
 slots with the frozen slot model and compare every decoded frame and its
-slot masks with the ground truth; metrics per rollout step, averaged over
-videos per step, then over steps. Methods: the dynamics models
-(every trained one of the registry: `slotformer`, `slot_lstm`, ...), `copy_last` (no dynamics) and
+slot masks with the ground truth; metrics (`rollout_metrics`, registered by
+name) per rollout step, averaged over videos per step, then over steps.
+Methods: the dynamics models (every trained one of the registry:
+`slotformer`, `slot_lstm`, ...), `copy_last` (no dynamics) and
 `<slot model>_reconstruction` (the slot model's own slots of the future
 decoded: a reference, not a prediction); also the slot model's own
 segmentation of the videos. docs/evaluation.md says what each number is.

@@ -36,6 +36,7 @@ from PIL import Image
 from slotformer_jax import inference
 from slotformer_jax import targets as targets_lib
 from slotformer_jax.config.sections import DYNAMICS
+from slotformer_jax.config import defaults
 from slotformer_jax.dynamics import base as dynamics_base
 from slotformer_jax.evaluation import evaluate
 from slotformer_jax.evaluation import explore_page
@@ -120,8 +121,11 @@ class Explorer:
 
   def __init__(self, dynamics_modules: dict[str, Any], slot_model: Any, *,
                burn_in: int, rollout: int, num_true: int,
-               background_threshold: float | None):
+               background_threshold: float | None,
+               metrics: tuple[str, ...] = defaults.ROLLOUT_METRICS):
     self.slot_model = slot_model
+    # The per-video curves: the metrics of these drawn per video.
+    self.metrics = tuple(metrics)
     self.dynamics_names = tuple(dynamics_modules)
     # The model the interventions act on (SlotFormer): the first that
     # takes them; the others are rolled out as they are.
@@ -198,9 +202,9 @@ class Explorer:
     return out
 
   def _rollout_metrics(self, recon, alpha, frames, segmentation):
-    """{metric: [V, rollout]} of one method's rollout: every registered
-    metric drawn per video (`Metric.per_video`: PSNR, SSIM, FG-ARI, ...)
-    that it can be scored on: of its frames when it decodes frames
+    """{metric: [V, rollout]} of one method's rollout: every metric of
+    `self.metrics` drawn per video (`Metric.per_video`: PSNR, SSIM,
+    FG-ARI, ...) that it can be scored on: of its frames when it decodes frames
     (`frames` not None), of its masks when the data has them; NaN where a
     value is not valid."""
     burn_in = self.burn_in
@@ -210,7 +214,8 @@ class Explorer:
     available = {rollout_metrics.FRAMES: frames is not None,
                  rollout_metrics.MASKS: segmentation is not None}
     names = [name for name, metric in rollout_metrics.METRICS.items()
-             if metric.per_video and available[metric.needs]]
+             if name in self.metrics and metric.per_video
+             and available[metric.needs]]
     if not names:
       return {}
     pred_ids = true_ids = table = None
@@ -537,7 +542,8 @@ def explore(explore_config: ml_collections.ConfigDict,
   explorer = Explorer(
       {name: model.module for name, model in dynamics.items()}, slot_model,
       burn_in=burn_in, rollout=rollout, num_true=num_true,
-      background_threshold=eval_config.background_threshold)
+      background_threshold=eval_config.background_threshold,
+      metrics=tuple(eval_config.metrics))
   num_rows = 1 + 2 * slots.shape[2] + len(dynamics) - 1
   progress.announce_decoding(
       'explore', slot_model, count * num_rows * (burn_in + rollout),

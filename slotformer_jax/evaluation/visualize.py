@@ -480,7 +480,8 @@ def write_per_step_figure(metrics_path: str, directory: str,
                           ) -> str | None:
   """`<directory>/per_step.png` from the evaluation's `metrics_path`: one
   panel per metric, value against rollout step, methods overlaid (named by
-  `labels`, in `colours` where given, the reference method dashed). None (and a log line) when the
+  `labels`, in `colours` where given, the reference method dashed). None
+  (and a log line) when the
   evaluation has not been run, or (given `identity`, what the other
   pictures were made from) was made from other models."""
   if not os.path.exists(metrics_path):

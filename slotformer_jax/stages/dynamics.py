@@ -26,6 +26,7 @@ import ml_collections
 
 from slotformer_jax import dynamics as dynamics_lib
 from slotformer_jax import losses
+from slotformer_jax.config.sections import dynamics_stages
 from slotformer_jax.data import pipeline
 from slotformer_jax.errors import ConfigError
 from slotformer_jax.modules import initializers
@@ -63,7 +64,8 @@ def image_loss_decoder(weights: dict[str, float], name: str,
   if image_decoder is None:
     term, weight = next(iter(decoded.items()))
     raise ConfigError(
-        f'{losses.LOSS_TERMS[term].label} needs a differentiable pixel decoder, which '
+        f'{losses.LOSS_TERMS[term].label} needs a differentiable pixel '
+        f'decoder, which '
         f'{slot_model.label} does not have (the paper trains SlotFormer on '
         f'{slot_model.label} slots without it); set --config.{name}.'
         f'{losses.weight_field(term)}=0 (got {weight})')
@@ -173,9 +175,10 @@ def seed_stage(view: Run, name: str, stream_seed: int
   return stage, parent
 
 
-def stage_functions() -> dict[str, Callable[[Run], None]]:
+def stage_functions(config: ml_collections.ConfigDict
+                    ) -> dict[str, Callable[[Run], None]]:
   """{`train_<name>`: its training stage} of every registered dynamics
-  model, in registration order."""
-  return {f'train_{model.name}': functools.partial(train_dynamics,
-                                                   name=model.name)
-          for model in dynamics_lib.registered()}
+  model that `config` has a section of, in registration order."""
+  return {stage: functools.partial(train_dynamics,
+                                   name=stage[len('train_'):])
+          for stage in dynamics_stages(config)}
