@@ -28,7 +28,10 @@ def one_of(field: str, default: Any, values: Sequence[Any]) -> Any:
   chosen = default if isinstance(default, tuple) else (default,)
   if not set(chosen) <= set(values):
     raise ValueError(f'{field}: default {default!r} is not among {values}')
-  CHOICES[field] = values
+  # Values registered by other code (a metric: evaluation/rollout_metrics.py)
+  # stay when a later base_config() declares the field again.
+  CHOICES[field] = values + tuple(value for value in CHOICES.get(field, ())
+                                  if value not in values)
   return default
 
 

@@ -113,7 +113,8 @@ def get(name: str) -> Metric:
 
 def ordered(names: Any) -> list[str]:
   """The registered metrics among `names`, in registration order."""
-  return [name for name in METRICS if name in set(names)]
+  names = set(names)
+  return [name for name in METRICS if name in names]
 
 
 def needing(names: Any, what: str) -> tuple[str, ...]:
