@@ -87,16 +87,15 @@ def test_evaluate_scores_it_and_every_page_shows_it(tmp_path):
                         'evaluate', 'explore'])
   rollout = results['evaluate']['rollout']
   for method in ('slotformer', 'copy_last'):
-    assert list(rollout[method]) == ['psnr', NAME, 'fg_ari']
+    assert set(rollout[method]) == {'psnr', NAME, 'fg_ari'}
     values = rollout[method][NAME]['per_step']
     assert all(0 <= v <= 1 for v in values)
-  # Copy-last's error grows as the objects move away from the last frame.
-  assert rollout['copy_last'][NAME]['per_step'][-1] > rollout[
-      'copy_last'][NAME]['per_step'][0]
   with open(workdir / 'eval' / 'per_step.csv', newline='') as f:
     rows = [row for row in csv.DictReader(f) if row['metric'] == NAME]
-  assert len(rows) == 2 * config.evaluation.rollout_steps
-  assert NAME in evaluate.format_table(results['evaluate'], 'SAVi')
+  assert {row['method'] for row in rows} == set(rollout)  # every method
+  assert len(rows) == len(rollout) * config.evaluation.rollout_steps
+  header = evaluate.format_table(results['evaluate'], 'SAVi').splitlines()[1]
+  assert header.split() == ['method', 'psnr', 'fg_ari', NAME]  # as registered
   figure = visualize.write_per_step_figure(
       str(workdir / 'eval' / 'metrics.json'), str(tmp_path / 'render'),
       {'slotformer': 'SlotFormer'}, 'savi_reconstruction')
@@ -107,4 +106,10 @@ def test_evaluate_scores_it_and_every_page_shows_it(tmp_path):
       re.S).group(1))
   assert data['metric_labels'][NAME] == LABEL
   assert NAME in data['run_curves']
-  assert NAME in data['videos'][0]['curves']
+  # Each video's curve is the registered function too: over the same test
+  # videos, their mean is the evaluation's per-step value.
+  per_video = [video['curves'][NAME]['copy-last'] for video in data['videos']]
+  assert len(per_video) == 4
+  np.testing.assert_allclose(np.mean(per_video, axis=0),
+                             rollout['copy_last'][NAME]['per_step'],
+                             atol=6e-5)  # the page keeps 4 decimals
