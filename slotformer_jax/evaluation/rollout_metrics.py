@@ -99,7 +99,9 @@ def register_metric(name: str, label: str, *, higher_is_better: bool,
   def decorate(fn):
     METRICS[name] = Metric(name, label, higher_is_better, needs, fn,
                            per_video and on_host is None, on_host)
-    choices = defaults.CHOICES['evaluation.metrics']
+    # Before any base_config() declared the field: its built-in values.
+    choices = defaults.CHOICES.get('evaluation.metrics',
+                                   defaults.ROLLOUT_METRICS)
     if name not in choices:
       defaults.CHOICES['evaluation.metrics'] = choices + (name,)
     return fn
