@@ -81,14 +81,12 @@ def dynamics_stage(section: ml_collections.ConfigDict, name: str,
   """Dynamics model `name`'s training stage (settings `section`) on
   `source` (the slots of the 'train' split, with their videos when L_I is
   on; only its `batches` read it). `slot_params`: the slot model's, for the
-  frozen decoder of L_I."""
+  frozen decoder of L_I. Its loss: the model's registered terms with their
+  weights (`DynamicsModel.loss_terms`; a term at weight <= 0 is off)."""
   rollout = section.rollout
   weights = dynamics_lib.get(name).loss_terms(section)
   decoder, decoder_params = image_loss_decoder(weights, name, slot_model,
                                                slot_params)
-  if decoder is None:  # no decoder: the terms that need one are off
-    weights = {term: 0.0 if term in decoded_terms(weights) else weight
-               for term, weight in weights.items()}
   video_fields = slot_model.image_loss_fields if decoder is not None else ()
   model = dynamics_lib.build(section, name)
   example = dynamics_lib.example(section, slot_model.slot_shape)
