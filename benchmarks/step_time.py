@@ -251,7 +251,8 @@ def slotformer_case(dtype, batch_size, image_loss_weight, config=None):
                                 jnp.asarray(batch['slots'][:1, 0]))['params']
   loss_fn = precision.with_compute_dtype(functools.partial(
       losses.slotformer_loss, model=model, decoder=decoder,
-      rollout=dyn.rollout, image_loss_weight=image_loss_weight,
+      rollout=dyn.rollout,
+      weights={'slot_loss': 1.0, 'image_loss': image_loss_weight},
       teacher_forcing=False), dtype)
   return train_step_runner(loss_fn, params, batch, decoder_params, dyn)
 

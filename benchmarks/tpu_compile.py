@@ -112,9 +112,9 @@ from slotformer_jax import files  # noqa: E402
 from slotformer_jax.stages import task as task_lib
 from slotformer_jax import slot_models  # noqa: E402
 from slotformer_jax import dynamics as dynamics_lib  # noqa: E402
-from slotformer_jax.config.sections import SLOTFORMER  # noqa: E402
 from slotformer_jax.data import vqa as vqa_data  # noqa: E402
 from slotformer_jax.evaluation import evaluate  # noqa: E402
+from slotformer_jax.evaluation import rollout_metrics  # noqa: E402
 from slotformer_jax.run import Run  # noqa: E402
 from slotformer_jax.slot_models import chain  # noqa: E402
 from slotformer_jax.stages import dynamics  # noqa: E402
@@ -134,6 +134,8 @@ from slotformer_jax.runtime import sharding  # noqa: E402
 from slotformer_jax.train import trainer  # noqa: E402
 from slotformer_jax.train.state import TrainState  # noqa: E402
 from tpu_chips import CHIPS  # noqa: E402  (the spec-sheet peaks)
+
+SLOTFORMER = 'slotformer'  # the dynamics model's registered name
 
 GiB = 2**30
 
@@ -393,7 +395,8 @@ def step_program(config, step: str, mesh: Mesh,
   batch = _place(batch_spec(config, step, batch_of(config, step)), batched)
   if step == 'eval_rollout':
     names = tuple(name for name in config.evaluation.metrics
-                  if name != 'lpips' and name not in evaluate.OBJECT_METRICS)
+                  if rollout_metrics.get(name).needs == rollout_metrics.FRAMES
+                  and name != 'lpips')
     run = evaluate.make_rollout_evaluator(
         config.evaluation, mesh, names, None,
         {SLOTFORMER: dynamics_lib.build(config.slotformer, SLOTFORMER)},

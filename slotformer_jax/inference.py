@@ -22,6 +22,7 @@ import logging
 import math
 from typing import Any
 
+import flax.linen as nn
 import jax
 from jax.experimental import multihost_utils
 from jax.sharding import Mesh
@@ -29,8 +30,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from slotformer_jax.data import pipeline
-from slotformer_jax.modules.slot_lstm import SlotLSTM
-from slotformer_jax.modules.slotformer import SlotFormer
 from slotformer_jax.runtime import progress
 from slotformer_jax.runtime import sharding
 from slotformer_jax.runtime.checkpoint import restore_fields
@@ -41,12 +40,13 @@ logger = logging.getLogger(__name__)
 
 
 def rollout_slots(params: Any, burn_in_slots: jax.Array, *,
-                  model: SlotFormer | SlotLSTM,
+                  model: nn.Module,
                   num_steps: int, **interventions: jax.Array) -> jax.Array:
   """[B, burn_in, N, D] -> [B, num_steps, N, D] (deterministic).
 
-  `interventions`: SlotFormer's `slot_presence` / `frozen` ([B, N] bool,
-  the counterfactual rollouts of the explorer).
+  `model`: a dynamics model's module (dynamics/base.py);
+  `interventions`: `slot_presence` / `frozen` ([B, N] bool, the
+  counterfactual rollouts of the explorer) for a model that takes them.
   """
   return model.apply({'params': params}, burn_in_slots, num_steps,
                      **interventions)

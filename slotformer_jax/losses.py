@@ -3,9 +3,11 @@
 * SAVi: frame reconstruction MSE (+ kl_weight * KL for stochastic SAVi);
   with other targets (`config.savi.targets`: SAVi's flow, depth) one MSE
   per target (`reconstruction_loss`).
-* SlotFormer / Slot-LSTM: L = L_S + lambda * L_I (slot MSE + image MSE of
-  the frames -- or the slot model's other targets -- decoded by the frozen
-  SAVi decoder).
+* the dynamics models (SlotFormer, Slot-LSTM, ...): a sum of registered
+  terms (`register_loss`), each weighted by its config entry
+  `<term>_weight`: L = L_S + lambda * L_I (slot MSE + image MSE of the
+  frames -- or the slot model's other targets -- decoded by the frozen SAVi
+  decoder) with `image_loss_weight` = lambda.
 * STEVE's dVAE: pixel MSE of the relaxed-code reconstruction; STEVE: the
   cross-entropy of its token decoder against the frozen dVAE's tokens.
 
@@ -17,8 +19,10 @@ rng) -> (loss, metrics)`.
 from __future__ import annotations
 
 from collections.abc import Callable
+import dataclasses
 from typing import Any
 
+import flax.linen as nn
 import jax
 import jax.numpy as jnp
 import optax
@@ -28,8 +32,6 @@ from slotformer_jax.frames import frames_to_model
 from slotformer_jax.modules.decoders import SpatialBroadcastDecoder
 from slotformer_jax.modules.dvae import DVAE
 from slotformer_jax.modules.savi import SAVi
-from slotformer_jax.modules.slot_lstm import SlotLSTM
-from slotformer_jax.modules.slotformer import SlotFormer
 from slotformer_jax.modules.steve import STEVE
 
 Batch = dict[str, jax.Array]
@@ -121,25 +123,130 @@ def savi_loss(params: Any, batch: Batch, frozen_params: Any, rng: jax.Array,
   return loss, {**metrics, 'kl': kl}
 
 
+@dataclasses.dataclass(frozen=True)
+class Rollout:
+  """What a loss term of a dynamics model reads (`LossTerm.fn`).
+
+  predicted / target_slots: [B, rollout, N, D], the model's own rollout and
+  the extracted slots of those frames; batch: the training batch ('slots'
+  [B, burn_in + rollout, N, D], and the slot model's `image_loss_fields`
+  when a term that needs the decoder is on); decoder, decoder_params: the
+  slot model's frozen pixel decoder (None without such a term); to_model:
+  uint8 frames -> the decoder's pixel range.
+  """
+
+  predicted: jax.Array
+  target_slots: jax.Array
+  batch: Batch
+  rollout: int
+  decoder: Any = None
+  decoder_params: Any = None
+  to_model: Callable[[jax.Array], jax.Array] = frames_to_model
+
+
+@dataclasses.dataclass(frozen=True)
+class LossTerm:
+  """One term of a dynamics model's loss, registered by name.
+
+  Attributes:
+    name: its metric in the training log and, when `weighted`, its config
+      entry: the dynamics section's `<name>_weight` (a section without the
+      field does not train with it; 0 turns it off).
+    fn: (Rollout) -> (value, metrics) (metrics include {name: value}).
+    label: how messages name it ('L_I').
+    weighted: False: always in the loss, at weight 1 (L_S, the objective).
+    needs_decoder: it decodes the predicted slots with the slot model's
+      frozen pixel decoder and reads the batch's video fields (L_I).
+  """
+
+  name: str
+  fn: Callable[[Rollout], tuple[jax.Array, Metrics]]
+  label: str
+  weighted: bool = True
+  needs_decoder: bool = False
+
+
+# {name: term}, in registration order (the order they are summed in).
+LOSS_TERMS: dict[str, LossTerm] = {}
+# The suffix of every term's name: its weight field ends in `_loss_weight`
+# (workdir/identity.py reads an absent one as 0: the term was not there).
+LOSS_SUFFIX = '_loss'
+
+
+TermFn = Callable[[Rollout], tuple[jax.Array, Metrics]]
+
+
+def register_loss(name: str, label: str, *, weighted: bool = True,
+                  needs_decoder: bool = False
+                  ) -> Callable[[TermFn], TermFn]:
+  """Registers a dynamics loss term `name` (a decorator of its function)."""
+  if not name.endswith(LOSS_SUFFIX):
+    raise ValueError(f'a loss term\'s name ends in {LOSS_SUFFIX!r}: {name!r}')
+
+  def decorate(fn):
+    LOSS_TERMS[name] = LossTerm(name, fn, label, weighted=weighted,
+                                needs_decoder=needs_decoder)
+    return fn
+
+  return decorate
+
+
+def weight_field(name: str) -> str:
+  """The config entry of loss term `name`'s weight."""
+  return f'{name}_weight'
+
+
+def loss_weights(section: Any) -> dict[str, float]:
+  """{term: weight} of a dynamics section: every unweighted term at 1 and
+  every weighted term whose `<term>_weight` the section sets (0 included:
+  the term is off), in registration order."""
+  return {name: (float(section[weight_field(name)]) if term.weighted
+                 else 1.0)
+          for name, term in LOSS_TERMS.items()
+          if not term.weighted or weight_field(name) in section}
+
+
+@register_loss('slot_loss', 'L_S', weighted=False)
+def slot_loss(rollout: Rollout) -> tuple[jax.Array, Metrics]:
+  """L_S: the MSE between predicted and extracted slots."""
+  value = jnp.mean(jnp.square(rollout.predicted - rollout.target_slots))
+  return value, {'slot_loss': value}
+
+
+@register_loss('image_loss', 'L_I', needs_decoder=True)
+def image_loss(rollout: Rollout) -> tuple[jax.Array, Metrics]:
+  """L_I: the MSE between the frames decoded from the predicted slots by
+  the *frozen* decoder and the real frames, in the slot model's pixel
+  range (`to_model`); a decoder of other targets (SAVi's flow, depth) is
+  compared with their batch fields, as `savi_loss` does (metrics
+  'image_loss_<target>' too)."""
+  batch, steps = rollout.batch, rollout.rollout
+  frames = (rollout.to_model(batch['video'][:, -steps:]) if 'video' in batch
+            else None)
+  decoded = rollout.decoder.apply(
+      {'params': jax.lax.stop_gradient(rollout.decoder_params)},
+      rollout.predicted)
+  reconstructions = reconstructions_of(decoded)
+  return reconstruction_loss(
+      reconstructions, _truths(batch, reconstructions, frames, steps),
+      'image_loss')
+
+
 def slotformer_loss(params: Any, batch: Batch, decoder_params: Any,
-                    rng: jax.Array, *, model: SlotFormer | SlotLSTM,
+                    rng: jax.Array, *, model: nn.Module,
                     decoder: SpatialBroadcastDecoder | None, rollout: int,
-                    image_loss_weight: float, teacher_forcing: bool,
+                    weights: dict[str, float], teacher_forcing: bool,
                     to_model: Callable[[jax.Array], jax.Array] = (
                         frames_to_model)) -> tuple[jax.Array, Metrics]:
-  """L = L_S + lambda * L_I on the model's own rollout.
+  """A dynamics model's loss on its own rollout: the registered terms of
+  `weights` ({term: weight}, `loss_weights`; SlotFormer's L_S + lambda *
+  L_I), a term at weight 0 left out.
 
   batch['slots']: float32 [B, burn_in + rollout, N, D];
   batch['video']: uint8 [B, T, H, W, 3] whose last `rollout` frames are the
   rollout's (T = rollout: the training stream reads only those; T =
-  burn_in + rollout also works; needed when lambda > 0). L_S is the MSE between predicted and extracted slots, L_I
-  the MSE between frames decoded from the predicted slots by the *frozen*
-  SAVi decoder and the real frames (both averaged over every element, as the
-  official implementation), in the pixel range of the slot model
-  (`to_model`: uint8 frames -> the decoder's range). A decoder of other
-  targets (SAVi's flow, depth) is compared with their batch fields (the
-  slot model's `image_loss_fields`, same frames) as `savi_loss` does
-  (`reconstruction_loss`; metrics 'image_loss_<target>' too).
+  burn_in + rollout also works; needed by L_I). Both MSEs are averaged over
+  every element, as the official implementation.
   """
   burn_in = model.burn_in
   history = batch['slots'][:, :burn_in]
@@ -148,20 +255,18 @@ def slotformer_loss(params: Any, batch: Batch, decoder_params: Any,
       {'params': params}, history, rollout,
       teacher_slots=target_slots if teacher_forcing else None,
       deterministic=False, rngs={'dropout': rng})
-  slot_loss = jnp.mean(jnp.square(predicted - target_slots))
-  metrics = {'slot_loss': slot_loss}
-  loss = slot_loss
-  if image_loss_weight > 0:
-    frames = (to_model(batch['video'][:, -rollout:]) if 'video' in batch
-              else None)
-    decoded = decoder.apply({'params': jax.lax.stop_gradient(decoder_params)},
-                            predicted)
-    reconstructions = reconstructions_of(decoded)
-    image_loss, image_metrics = reconstruction_loss(
-        reconstructions, _truths(batch, reconstructions, frames, rollout),
-        'image_loss')
-    metrics.update(image_metrics)
-    loss = loss + image_loss_weight * image_loss
+  inputs = Rollout(predicted=predicted, target_slots=target_slots,
+                   batch=batch, rollout=rollout, decoder=decoder,
+                   decoder_params=decoder_params, to_model=to_model)
+  loss, metrics = None, {}
+  for name, weight in weights.items():
+    term = LOSS_TERMS[name]
+    if weight <= 0:
+      continue
+    value, term_metrics = term.fn(inputs)
+    metrics.update(term_metrics)
+    weighted = value if not term.weighted else weight * value
+    loss = weighted if loss is None else loss + weighted
   return loss, metrics
 
 

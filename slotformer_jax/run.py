@@ -33,7 +33,7 @@ import ml_collections
 from slotformer_jax import dynamics as dynamics_lib
 from slotformer_jax import slot_models
 from slotformer_jax.config import checks as config_checks
-from slotformer_jax.config.sections import SLOT_LSTM
+from slotformer_jax.config.sections import DYNAMICS
 from slotformer_jax.config.sections import dynamics_section
 from slotformer_jax.config.sections import several_seeds
 from slotformer_jax import datasets
@@ -112,8 +112,9 @@ class Run:
     # stands for (identity.ADDED_FIELDS), so the code reads every field.
     for name, value in identity_lib.ADDED_FIELDS.items():
       *sections, field = name.split('.')
-      if sections[:1] == [SLOT_LSTM]:
-        continue  # overrides only: a field it lacks is SlotFormer's
+      if sections[:1] and sections[0] in DYNAMICS and DYNAMICS[
+          sections[0]].inherits is not None:
+        continue  # overrides only: a field it lacks is the inherited one's
       section = settings
       for key in sections:
         section = section.get(key) if isinstance(section, dict) else None
@@ -236,7 +237,7 @@ class Run:
     return self._loaded['stage1']
 
   def dynamics(self, name: str) -> dynamics_lib.Loaded:
-    """Trained dynamics model `name` ('slotformer', 'slot_lstm')."""
+    """Trained dynamics model `name` (registered: dynamics/base.py)."""
     key = f'dynamics/{name}'
     if key not in self._loaded:
       self._loaded[key] = dynamics_lib.load(

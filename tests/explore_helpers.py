@@ -8,11 +8,12 @@ import numpy as np
 
 from pipeline_helpers import micro_config
 from slotformer_jax import dynamics
-from slotformer_jax.config.sections import SLOT_LSTM
-from slotformer_jax.config.sections import SLOTFORMER
 from slotformer_jax.config.sections import dynamics_section
 from slotformer_jax.evaluation import explore
 from slotformer_jax.slot_models.savi import Savi
+
+SLOTFORMER = 'slotformer'  # the dynamics models' registered names
+SLOT_LSTM = 'slot_lstm'
 
 NUM_VIDEOS = 2
 

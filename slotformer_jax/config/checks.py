@@ -22,8 +22,10 @@ import ml_collections
 
 from slotformer_jax.config import defaults
 from slotformer_jax.config.defaults import CHOICES
-from slotformer_jax.config.sections import DYNAMICS_MODELS
+from slotformer_jax.config.sections import DYNAMICS
 from slotformer_jax.config.sections import dynamics_section
+from slotformer_jax.config.sections import dynamics_stages
+from slotformer_jax.config.sections import primary_dynamics
 from slotformer_jax.config.sections import trained_dynamics
 from slotformer_jax.errors import ConfigError
 
@@ -374,7 +376,7 @@ def validate(config: ml_collections.ConfigDict, stages: Sequence[str], *,
   # fields are checked by their kinds.
   for stage in sorted(stages):
     section = stage[len('train_'):]
-    if (stage.startswith('train_') and section not in DYNAMICS_MODELS
+    if (stage.startswith('train_') and section not in DYNAMICS
         and isinstance(config.get(section), ml_collections.ConfigDict)
         and 'num_train_steps' in config[section]):
       if section == 'vqa':  # one batch per kind of question
@@ -440,18 +442,21 @@ def validate(config: ml_collections.ConfigDict, stages: Sequence[str], *,
 # readouts of every task (contact, planning on either layout) and Aloe
 # (task model s on chain s).
 SEEDED_STAGES = ('train_savi', 'train_dvae')
-_STAGE2 = ('extract_slots', 'train_slotformer', 'train_slot_lstm')
-SEEDED_CHAINS = {'savi': _STAGE2,
-                 'steve': ('tokenize_frames', 'train_steve', *_STAGE2)}
+# The slot model's stages after its first part; extraction and the
+# dynamics models' training follow (`seeded_stages`).
+SEEDED_CHAINS = {'savi': (), 'steve': ('tokenize_frames', 'train_steve')}
 # Stages that do no training or extraction of their own with the seeds.
 _SEED_FREE_STAGES = ('prepare_data',)
 
 
-def seeded_stages(slot_model: str, task_seeded: Sequence[str] = ()
-                  ) -> tuple[str, ...]:
+def seeded_stages(slot_model: str, task_seeded: Sequence[str] = (),
+                  dynamics: Sequence[str] = ()) -> tuple[str, ...]:
   """The stages that take several seeds with `slot_model`, whose task's
-  seeded stages are `task_seeded` (`Task.seeded`; they follow the chain)."""
-  chain = SEEDED_CHAINS.get(slot_model, ())
+  seeded stages are `task_seeded` (`Task.seeded`; they follow the chain),
+  with the training stages `dynamics` of the dynamics models
+  (`sections.dynamics_stages`)."""
+  chain = (SEEDED_CHAINS[slot_model] + ('extract_slots', *dynamics)
+           if slot_model in SEEDED_CHAINS else ())
   return SEEDED_STAGES + chain + (tuple(task_seeded) if chain else ())
 
 
@@ -524,7 +529,8 @@ def seeds_problems(config: ml_collections.ConfigDict,
                     f'{config.seed_axis!r}')
   if problems or seeds is None or len(seeds) < 2:
     return problems
-  seeded = seeded_stages(config.slot_model, task_seeded)
+  seeded = seeded_stages(config.slot_model, task_seeded,
+                         dynamics_stages(config))
   refused = sorted(s for s in stages
                    if s not in seeded + _SEED_FREE_STAGES)
   if refused:
@@ -600,7 +606,7 @@ def _check_splits(config: ml_collections.ConfigDict,
 
 def _check_lengths(config, stages, dynamics, problems, video_length) -> None:
   train_length = video_length('train') if stages & {
-      'train_savi', 'train_slotformer', 'train_slot_lstm'} else None
+      'train_savi', *dynamics_stages(config)} else None
   if train_length is not None:
     if 'train_savi' in stages and config.savi.clip_length > train_length:
       problems.append(f'savi.clip_length={config.savi.clip_length} is longer '
@@ -615,7 +621,7 @@ def _check_lengths(config, stages, dynamics, problems, video_length) -> None:
             f'videos have {train_length}')
   if stages & {'evaluate', 'render', 'explore'}:
     length = video_length(config.evaluation.split)
-    section = config.slotformer
+    section = dynamics_section(config, primary_dynamics(config))
     needed = ((section.burn_in + config.evaluation.rollout_steps - 1)
               * section.frame_stride + 1)
     if length is not None and needed > length:

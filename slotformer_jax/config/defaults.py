@@ -28,13 +28,17 @@ def one_of(field: str, default: Any, values: Sequence[Any]) -> Any:
   chosen = default if isinstance(default, tuple) else (default,)
   if not set(chosen) <= set(values):
     raise ValueError(f'{field}: default {default!r} is not among {values}')
-  CHOICES[field] = values
+  # Values registered by other code (a metric: evaluation/rollout_metrics.py)
+  # stay when a later base_config() declares the field again.
+  CHOICES[field] = values + tuple(value for value in CHOICES.get(field, ())
+                                  if value not in values)
   return default
 
 
-# The rollout metrics (evaluation/metrics.py): of the frames, of the objects.
-FRAME_METRICS = ('psnr', 'ssim', 'lpips')
-OBJECT_METRICS = ('ari', 'fg_ari', 'fg_miou', 'ar')
+# The rollout metrics evaluated by default: the built-in ones, registered
+# with their labels in evaluation/rollout_metrics.py (a metric registered
+# from elsewhere adds itself to the values `evaluation.metrics` takes).
+ROLLOUT_METRICS = ('psnr', 'ssim', 'lpips', 'ari', 'fg_ari', 'fg_miou', 'ar')
 
 
 def base_config() -> ml_collections.ConfigDict:
@@ -340,8 +344,7 @@ def base_config() -> ml_collections.ConfigDict:
   ev.clips = 'first'
   ev.chunk_length = 16  # frames per call in SAVi's whole-video evaluation
   ev.metrics = one_of(
-      'evaluation.metrics', FRAME_METRICS + OBJECT_METRICS,
-      FRAME_METRICS + OBJECT_METRICS)
+      'evaluation.metrics', ROLLOUT_METRICS, ROLLOUT_METRICS)
   # None: a plain argmax over the alpha masks gives the predicted segments.
   # 0.5 reproduces the official post-processing (pixels where every alpha is
   # below it go to the weakest slot, taken as background).

@@ -3,9 +3,10 @@
 Protocol (the paper's): observe the slots of the first `burn_in` frames,
 roll the dynamics model out for `rollout_steps` frames, decode the predicted
 slots with the frozen slot model and compare every decoded frame and its
-slot masks with the ground truth; metrics per rollout step, averaged over
-videos per step, then over steps. Methods: the dynamics models
-(`slotformer`, `slot_lstm`), `copy_last` (no dynamics) and
+slot masks with the ground truth; metrics (`rollout_metrics`, registered by
+name) per rollout step, averaged over videos per step, then over steps.
+Methods: the dynamics models (every trained one of the registry:
+`slotformer`, `slot_lstm`, ...), `copy_last` (no dynamics) and
 `<slot model>_reconstruction` (the slot model's own slots of the future
 decoded: a reference, not a prediction); also the slot model's own
 segmentation of the videos. docs/evaluation.md says what each number is.
@@ -35,14 +36,12 @@ import numpy as np
 
 from slotformer_jax import datasets
 from slotformer_jax import inference
-from slotformer_jax.config.defaults import FRAME_METRICS
-from slotformer_jax.config.defaults import OBJECT_METRICS
-from slotformer_jax.config.sections import SLOT_LSTM
-from slotformer_jax.config.sections import SLOTFORMER
+from slotformer_jax.config.sections import DYNAMICS
 from slotformer_jax.data import pipeline
 from slotformer_jax.data.pipeline import ClipSource
 from slotformer_jax.errors import ConfigError
 from slotformer_jax.evaluation import metrics as metrics_lib
+from slotformer_jax.evaluation import rollout_metrics
 from slotformer_jax.files import atomic_text
 from slotformer_jax.files import write_json_atomic
 from slotformer_jax.frames import frames_to_model
@@ -108,51 +107,28 @@ def _frame_step_metrics(decoded, frames: jax.Array, segmentation: jax.Array,
   per-object boxes ('boxes' [B, M, 4], 'visible' [B, M]).
   lpips_target: `lpips_fn.features(frames)`, computed once for all methods
   (None: LPIPS computes the frames' features itself).
-  Returns {name: (value [B], valid [B])}, and for 'fg_miou' the IoU
-  matrix [B, C-1, K] with 'present' [B, C-1] (matched on the host).
+  Returns {name: (value [B], valid [B])} of the registered metrics of
+  `names` (`rollout_metrics`); a metric with an `on_host` step returns
+  what that step reads (FG-mIoU: the IoU matrix [B, C-1, K] with 'present'
+  [B, C-1], matched on the host).
   """
-  out = {}
-  ones = jnp.ones(frames.shape[0], bool)
-  if 'psnr' in names:
-    out['psnr'] = (metrics_lib.psnr(decoded.recon, frames), ones)
-  if 'ssim' in names:
-    out['ssim'] = (metrics_lib.ssim(decoded.recon, frames), ones)
-  if 'lpips' in names and lpips_fn is not None:
-    if lpips_target is None:
-      out['lpips'] = (lpips_fn(decoded.recon, frames), ones)
-    else:
-      out['lpips'] = (lpips_fn.distance_to_features(decoded.recon,
-                                                    lpips_target), ones)
-  object_names = [n for n in names if n in OBJECT_METRICS]
-  if not object_names:
-    return out
-  pred_ids = predicted_segmentation(decoded,
-                                    bg_threshold=background_threshold)
-  true_ids = segmentation.astype(jnp.int32)
-  table = metrics_lib.contingency_table(
-      true_ids[:, None], pred_ids[:, None], num_true, num_slots)
-  if 'ari' in names:
-    out['ari'] = tuple(metrics_lib.ari_from_contingency(table))
-  if 'fg_ari' in names:
-    out['fg_ari'] = tuple(
-        metrics_lib.ari_from_contingency(table, ignore_background=True))
-  if 'fg_miou' in names:
-    out['fg_miou'] = metrics_lib.fg_iou_matrix(
+  masks = rollout_metrics.needing(names, rollout_metrics.MASKS)
+  pred_ids = true_ids = table = None
+  if masks:
+    pred_ids = predicted_segmentation(decoded,
+                                      bg_threshold=background_threshold)
+    true_ids = segmentation.astype(jnp.int32)
+    table = metrics_lib.contingency_table(
         true_ids[:, None], pred_ids[:, None], num_true, num_slots)
-  if 'ar' in names:
-    if gt_boxes is None:
-      boxes, valid = metrics_lib.segmentation_to_boxes(true_ids, num_true)
-      # Row 0 of the ground truth is the background, not an object.
-      boxes, valid = boxes[:, 1:], valid[:, 1:]
-    else:
-      # Row k - 1 is id k, so the greedy matching visits the same order.
-      boxes, valid = metrics_lib.boxes_from_normalized(
-          gt_boxes['boxes'], gt_boxes['visible'],
-          height=frames.shape[-3], width=frames.shape[-2])
-    pred_boxes, pred_valid = metrics_lib.segmentation_to_boxes(
-        pred_ids, num_slots)
-    out['ar'] = tuple(metrics_lib.average_recall(
-        boxes, valid, pred_boxes, pred_valid))
+  step = rollout_metrics.Step(
+      decoded=decoded, frames=frames, true_ids=true_ids, pred_ids=pred_ids,
+      table=table, gt_boxes=gt_boxes, num_true=num_true, num_slots=num_slots,
+      lpips_fn=lpips_fn, lpips_target=lpips_target)
+  out = {}
+  for name in rollout_metrics.ordered(names):
+    scored = rollout_metrics.get(name).fn(step)
+    if scored is not None:
+      out[name] = scored
   return out
 
 
@@ -192,7 +168,8 @@ def make_rollout_evaluator(eval_config: ml_collections.ConfigDict, mesh: Mesh,
       num_true=num_true, num_slots=slot_model.slot_shape[0],
       lpips_fn=lpips_fn,
       background_threshold=eval_config.background_threshold)
-  needs_segmentation = any(name in OBJECT_METRICS for name in names)
+  needs_segmentation = bool(rollout_metrics.needing(
+      names, rollout_metrics.MASKS))
   boxes_from_dataset = uses_dataset_boxes(eval_config, names)
   # bfloat16: rollouts and decoding compute in it, metrics in float32.
   in_compute_dtype = functools.partial(precision.with_compute_dtype,
@@ -413,14 +390,11 @@ def _padded_time_slice(x: np.ndarray, start: int, length: int) -> np.ndarray:
   return piece
 
 
-_METHOD_ORDER = (SLOTFORMER, SLOT_LSTM, 'copy_last')
-
-
 def _method_rank(method: str) -> tuple[int, str]:
-  """Table order: the models, the baselines, then the reference."""
-  order = _METHOD_ORDER.index(method) if method in _METHOD_ORDER else len(
-      _METHOD_ORDER)
-  return order, method
+  """Table order: the dynamics models as registered, copy-last, then the
+  reference."""
+  order = (*DYNAMICS, 'copy_last')
+  return (order.index(method) if method in order else len(order)), method
 
 
 class _StepAverager:
@@ -470,7 +444,7 @@ def video_fields(eval_config: ml_collections.ConfigDict) -> tuple[str, ...]:
   """The video fields the metrics of `eval_config` read besides the slots."""
   names = tuple(eval_config.metrics)
   fields = ('video',)
-  if any(name in OBJECT_METRICS for name in names):
+  if rollout_metrics.needing(names, rollout_metrics.MASKS):
     fields += (SEGMENTATION_FIELD,)
   if uses_dataset_boxes(eval_config, names):
     fields += BOX_FIELDS
@@ -484,8 +458,9 @@ def scored_metrics(names: tuple[str, ...], slot_model: SlotDecoder
   if slot_model.decodes_pixels:
     return names, {}
   why = f'{slot_model.label} decodes no pixels'
-  return (tuple(n for n in names if n not in FRAME_METRICS),
-          {n: why for n in names if n in FRAME_METRICS})
+  frames = rollout_metrics.needing(names, rollout_metrics.FRAMES)
+  return (tuple(n for n in names if n not in frames),
+          {n: why for n in frames})
 
 
 def evaluate(eval_config: ml_collections.ConfigDict,
@@ -501,8 +476,9 @@ def evaluate(eval_config: ml_collections.ConfigDict,
 
   Args:
     eval_config: the `evaluation` section.
-    dynamics_config: SlotFormer's section (its burn_in and frame_stride set
-      the protocol for every dynamics model).
+    dynamics_config: the first trained dynamics model's section
+      (`sections.primary_dynamics`: its burn_in and frame_stride set the
+      protocol for every dynamics model).
     slot_model, slot_params: the trained slot model (see `SlotDecoder`).
     slot_steps: its stage-1 checkpoint steps ({'savi': 4500}).
     dynamics: {name: object with `module`, `params`, `step`} of every
@@ -520,7 +496,8 @@ def evaluate(eval_config: ml_collections.ConfigDict,
   if skipped:
     logger.info('%s skipped: %s', ', '.join(skipped),
                 next(iter(skipped.values())))
-  with_segmentation = any(name in OBJECT_METRICS for name in names)
+  with_segmentation = bool(rollout_metrics.needing(
+      names, rollout_metrics.MASKS))
   lpips_fn = _lpips_or_none(names)
   dynamics_params = {name: model.params for name, model in dynamics.items()}
   burn_in = dynamics_config.burn_in
@@ -580,10 +557,9 @@ def evaluate(eval_config: ml_collections.ConfigDict,
         sharding.to_global_batch({'mask': mask}, mesh))['mask']
     for method, per_metric in out.items():
       for name, (values, valid) in per_metric.items():
-        if name == 'fg_miou':
-          score = metrics_lib.hungarian_mean_iou(
-              values, valid, absent_ids=eval_config.miou_absent_ids)
-          values, valid = score.value, score.valid
+        on_host = rollout_metrics.get(name).on_host
+        if on_host is not None:  # e.g. FG-mIoU's Hungarian matching
+          values, valid = on_host(values, valid, eval_config)
         averager.add(method, name, np.asarray(values),
                      np.asarray(valid) & mask[None, :])
   rollout_results = averager.results()
@@ -657,8 +633,9 @@ def _check_has_segmentations(source: Any, names: tuple[str, ...]) -> None:
   try:
     source[0]
   except KeyError:
-    asked = [name for name in names if name in OBJECT_METRICS]
-    frame_only = ','.join(name for name in names if name in FRAME_METRICS)
+    asked = list(rollout_metrics.needing(names, rollout_metrics.MASKS))
+    frame_only = ','.join(rollout_metrics.needing(names,
+                                                  rollout_metrics.FRAMES))
     raise ConfigError(
         f'evaluation.metrics asks for {asked}, which need ground-truth '
         f"'{SEGMENTATION_FIELD}', but this dataset has none. Evaluate frame "
@@ -682,8 +659,8 @@ def format_table(results: dict[str, Any], label: str) -> str:
   """A method x metric table of the step-averaged rollout metrics; `label`
   names the slot model ('SAVi')."""
   rollout = results['rollout']
-  names = [n for n in (*FRAME_METRICS, *OBJECT_METRICS)
-           if any(n in m for m in rollout.values())]
+  names = rollout_metrics.ordered(
+      n for m in rollout.values() for n in m)
   protocol = results['protocol']
   lines = [f'Rollout of {protocol["rollout_steps"]} steps after '
            f'{protocol["burn_in"]} burn-in frames, {protocol["num_videos"]} '

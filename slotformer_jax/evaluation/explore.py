@@ -18,6 +18,7 @@ uint8 [V, T, H, W, 3], segmentation int [V, T, H, W].
 from __future__ import annotations
 
 import base64
+import dataclasses
 import html
 import io
 import json
@@ -34,13 +35,15 @@ from PIL import Image
 
 from slotformer_jax import inference
 from slotformer_jax import targets as targets_lib
-from slotformer_jax.config.sections import DYNAMICS_MODELS
-from slotformer_jax.config.sections import SLOTFORMER
+from slotformer_jax.config.sections import DYNAMICS
+from slotformer_jax.config import defaults
+from slotformer_jax.dynamics import base as dynamics_base
 from slotformer_jax.evaluation import evaluate
 from slotformer_jax.evaluation import explore_page
 from slotformer_jax.evaluation import page_text
 from slotformer_jax.evaluation import metrics_file
 from slotformer_jax.evaluation import metrics as metrics_lib
+from slotformer_jax.evaluation import rollout_metrics
 from slotformer_jax.evaluation import visualize
 from slotformer_jax import frames as frames_lib
 from slotformer_jax.errors import UserError
@@ -53,8 +56,6 @@ logger = logging.getLogger(__name__)
 INTERVENTIONS = ('remove', 'freeze')
 # |intervention - factual| is small next to the frames' range: shown x4.
 DIFF_GAIN = 4.0
-# The per-video curves of the page (object metrics when the data has masks).
-VIDEO_METRICS = ('psnr', 'ssim', 'fg_ari')
 # render/'s colours, labels and conversion: the page matches its pictures.
 # pylint: disable=protected-access
 _PALETTE = frames_lib.SLOT_COLOURS
@@ -121,13 +122,19 @@ class Explorer:
 
   def __init__(self, dynamics_modules: dict[str, Any], slot_model: Any, *,
                burn_in: int, rollout: int, num_true: int,
-               background_threshold: float | None):
+               background_threshold: float | None,
+               metrics: tuple[str, ...] = defaults.ROLLOUT_METRICS):
     self.slot_model = slot_model
+    # The per-video curves: the metrics of these drawn per video.
+    self.metrics = tuple(metrics)
     self.dynamics_names = tuple(dynamics_modules)
-    self.slotformer = dynamics_modules[SLOTFORMER]
+    # The model the interventions act on (SlotFormer): the first that
+    # takes them; the others are rolled out as they are.
+    self.primary = dynamics_base.intervened(dynamics_modules)
+    self.intervened = dynamics_modules[self.primary]
     self.baselines = {name: module
                       for name, module in dynamics_modules.items()
-                      if name != SLOTFORMER}
+                      if name != self.primary}
     self.burn_in = burn_in
     self.rollout = rollout
     self.num_true = num_true
@@ -147,12 +154,12 @@ class Explorer:
     history = slots[:, :burn_in]
     num_slots = slots.shape[2]
     counterfactual, presence = counterfactual_rollouts(
-        dynamics_params[SLOTFORMER], history, model=self.slotformer,
+        dynamics_params[self.primary], history, model=self.intervened,
         num_steps=self.rollout)
     # The other methods' factual rollouts join the batch (always present).
     others = inference.rollouts(dynamics_params, self.baselines, history,
                                 self.rollout)
-    names = [SLOTFORMER, *others]
+    names = [self.primary, *others]
     other_slots = jnp.stack(
         [jnp.concatenate([history, others[name]], axis=1) for name in others],
         axis=1)
@@ -196,26 +203,52 @@ class Explorer:
     return out
 
   def _rollout_metrics(self, recon, alpha, frames, segmentation):
-    """{metric: [V, rollout]} of one method's rollout: PSNR and SSIM of
-    its frames (when it decodes frames: `frames` not None), FG-ARI of its
-    masks (when the data has them)."""
+    """{metric: [V, rollout]} of one method's rollout: every metric of
+    `self.metrics` drawn per video (`Metric.per_video`: PSNR, SSIM,
+    FG-ARI, ...) that it can be scored on: of its frames when it decodes frames
+    (`frames` not None), of its masks when the data has them; NaN where a
+    value is not valid."""
     burn_in = self.burn_in
     recon, alpha = recon[:, burn_in:], alpha[:, burn_in:]
+    videos, steps = alpha.shape[:2]
+    flat = lambda x: None if x is None else x.reshape(-1, *x.shape[2:])
+    available = {rollout_metrics.FRAMES: frames is not None,
+                 rollout_metrics.MASKS: segmentation is not None}
+    names = [name for name, metric in rollout_metrics.METRICS.items()
+             if name in self.metrics and metric.per_video
+             and available[metric.needs]]
+    if not names:
+      return {}
+    pred_ids = true_ids = table = None
+    if rollout_metrics.needing(names, rollout_metrics.MASKS):
+      pred_ids = metrics_lib.segmentation_from_alpha_masks(
+          flat(alpha), bg_threshold=self.background_threshold)
+      true_ids = flat(segmentation[:, burn_in:]).astype(jnp.int32)
+      # One clustering per frame, as the evaluation's per-step metrics.
+      table = metrics_lib.contingency_table(
+          true_ids[:, None], pred_ids[:, None], self.num_true,
+          alpha.shape[-3])
+    step = rollout_metrics.Step(
+        decoded=_Decoded(recon=flat(recon), alpha_masks=flat(alpha)[..., None]),
+        frames=(flat(frames[:, burn_in:]) if frames is not None
+                else flat(recon)),
+        true_ids=true_ids, pred_ids=pred_ids, table=table, gt_boxes=None,
+        num_true=self.num_true, num_slots=alpha.shape[-3])
     out = {}
-    if frames is not None:
-      frames = frames[:, burn_in:]
-      out = {'psnr': metrics_lib.psnr(recon, frames),
-             'ssim': metrics_lib.ssim(recon, frames)}
-    if segmentation is not None:
-      pred = metrics_lib.segmentation_from_alpha_masks(
-          alpha, bg_threshold=self.background_threshold)
-      true = segmentation[:, burn_in:].astype(jnp.int32)
-      # One clustering per frame, as the evaluation's per-step FG-ARI.
-      score = metrics_lib.adjusted_rand_index(
-          true[..., None, :, :], pred[..., None, :, :], self.num_true,
-          alpha.shape[-3], ignore_background=True)
-      out['fg_ari'] = jnp.where(score.valid, score.value, jnp.nan)
+    for name in names:
+      scored = rollout_metrics.get(name).fn(step)
+      if scored is not None:
+        value, valid = scored
+        out[name] = jnp.where(valid, value, jnp.nan).reshape(videos, steps)
     return out
+
+
+@dataclasses.dataclass(frozen=True)
+class _Decoded:
+  """A method's decoded rollout as the metrics read it."""
+
+  recon: jax.Array | None
+  alpha_masks: jax.Array
 
 
 # --------------------------------------------------------------------------
@@ -278,8 +311,11 @@ def page_data(out: dict[str, Any], videos: np.ndarray, indices: list[int],
   num_slots = out['slotformer_masks'].shape[2]
   truth_targets = truth_targets or {}
   # jax returns dicts sorted by key: the page's order is the table's.
-  methods = [name for name in (*DYNAMICS_MODELS, 'copy_last')
+  methods = [name for name in (*DYNAMICS, 'copy_last')
              if name in out['methods']]
+  # The model the interventions act on (SlotFormer), drawn first.
+  primary = dynamics_base.intervened(
+      [name for name in methods if name in DYNAMICS])
   labels = visualize.method_labels(slot_model)
   first = primary_target(slot_model)
   # In the config's order (jax returns dicts sorted by key).
@@ -298,7 +334,7 @@ def page_data(out: dict[str, Any], videos: np.ndarray, indices: list[int],
     # Depth on one grey scale per video: the data's, else SlotFormer's.
     ranges = {target.name: targets_lib.grey_scale(
         target, truth_targets[target.name][v] if target.name in truth_targets
-        else decoded(target, SLOTFORMER)[v]) for target in shown}
+        else decoded(target, primary)[v]) for target in shown}
     draw = lambda target, values: (
         np.asarray(values) if target == targets_lib.RGB
         else targets_lib.picture(target, values, ranges[target.name]))
@@ -306,7 +342,7 @@ def page_data(out: dict[str, Any], videos: np.ndarray, indices: list[int],
     named = lambda target, text: targets_lib.labelled(
         text if target == targets_lib.RGB else f'{text} {target.label}',
         ranges[target.name])
-    factual = draw(first, decoded(first, SLOTFORMER)[v])
+    factual = draw(first, decoded(first, primary)[v])
     rows = [('truth', 'truth', truth)]
     rows += [(f'truth/{target.name}', targets_lib.labelled(
         target.label, ranges[target.name]),
@@ -317,11 +353,11 @@ def page_data(out: dict[str, Any], videos: np.ndarray, indices: list[int],
     for name in methods:
       rows += [(name if target == first else f'{name}/{target.name}',
                 named(target, labels[name]),
-                factual if (target, name) == (first, SLOTFORMER)
+                factual if (target, name) == (first, primary)
                 else draw(target, decoded(target, name)[v]))
                for target in shown]
-      if name == SLOTFORMER:
-        rows.append(('slotformer_masks', 'SlotFormer masks',
+      if name == primary:
+        rows.append(('slotformer_masks', f'{labels[primary]} masks',
                      frames_lib.mask_overlay(factual,
                                              out['slotformer_masks'][v])))
     slots = []
@@ -350,8 +386,8 @@ def page_data(out: dict[str, Any], videos: np.ndarray, indices: list[int],
     metrics = {name: {labels[method]:
                           metrics_file.clean(per_video[method][name][v])
                       for method in methods}
-               for name in VIDEO_METRICS
-               if name in per_video[SLOTFORMER]}
+               for name in rollout_metrics.METRICS
+               if name in per_video[primary]}
     entries.append({
         'index': int(index),
         'rows': [{'key': key, 'label': row_label, 'strip': _strip(frames)}
@@ -373,6 +409,14 @@ def page_data(out: dict[str, Any], videos: np.ndarray, indices: list[int],
                      else f'decoded {first.label} x alpha'
                      if first != targets_lib.RGB
                      else 'generated frame x attention mask'),
+      # The model the interventions act on, and every curve's colour.
+      'primary': {'key': primary, 'label': labels[primary]},
+      'method_colours': {
+          labels[name]: colour
+          for name, colour in visualize.method_colours(slot_model).items()
+          if name in labels},
+      # Every metric's label (the registry's: curves of any metric).
+      'metric_labels': rollout_metrics.labels(),
       'burn_in': burn_in,
       'rollout': rollout,
       'num_slots': num_slots,
@@ -502,7 +546,8 @@ def explore(explore_config: ml_collections.ConfigDict,
   explorer = Explorer(
       {name: model.module for name, model in dynamics.items()}, slot_model,
       burn_in=burn_in, rollout=rollout, num_true=num_true,
-      background_threshold=eval_config.background_threshold)
+      background_threshold=eval_config.background_threshold,
+      metrics=tuple(eval_config.metrics))
   num_rows = 1 + 2 * slots.shape[2] + len(dynamics) - 1
   progress.announce_decoding(
       'explore', slot_model, count * num_rows * (burn_in + rollout),

@@ -55,7 +55,7 @@ footer pre { font-size: 11px; white-space: pre-wrap; margin: 4px 0; }
 </div>
 <h2>Rollouts</h2>
 <div class="row" id="rollouts"></div>
-<h2>SlotFormer's slots <span class="note">(click a slot for its counterfactual rollouts)</span></h2>
+<h2><span id="primary-slots"></span> <span class="note">(click a slot for its counterfactual rollouts)</span></h2>
 <div class="row" id="slots"></div>
 <h2>Counterfactual</h2>
 <div class="bar" id="kinds"></div>
@@ -76,16 +76,14 @@ const state = {video: 0, frame: 0, playing: true, slot: 0, kind: 'remove'};
 let tiles = [];  // [canvas, image]
 const images = new Map();
 // One colour per method in every chart (dashed: the slot model's own reconstruction).
-const METHOD_COLOURS = {'SlotFormer': '#1f77b4', 'Slot-LSTM': '#2ca02c', 'copy-last': '#ff7f0e',
-                        [D.reference.label]: D.reference.colour};
+const METHOD_COLOURS = {...D.method_colours, [D.reference.label]: D.reference.colour};
 const SPARE_COLOURS = ['#9467bd', '#8c564b', '#e377c2', '#17becf'];
 // Names come from eval/metrics.json (a run folder someone shares): looked
 // up as own keys only ('constructor' is no colour), shown as text only.
 function lookup(table, key) { return Object.prototype.hasOwnProperty.call(table, key) ? table[key] : undefined; }
 function colour(name, j) { return lookup(METHOD_COLOURS, name) || SPARE_COLOURS[j % SPARE_COLOURS.length]; }
 const KIND_TEXT = {remove: 'removed', freeze: 'frozen'};
-const METRIC_NAMES = {psnr: 'PSNR (dB)', ssim: 'SSIM', lpips: 'LPIPS', ari: 'ARI', fg_ari: 'FG-ARI',
-                      fg_miou: 'FG-mIoU', ar: 'AR'};
+const METRIC_NAMES = D.metric_labels;
 
 function el(tag, attrs, children) {
   const node = document.createElement(tag);
@@ -165,19 +163,19 @@ function buildSlots() {
 function buildCounterfactual() {
   const v = video(), k = state.slot, kind = state.kind;
   const cf = v.counterfactual[kind][k];
-  const factual = v.rows.find(r => r.key === 'slotformer');
+  const factual = v.rows.find(r => r.key === D.primary.key);
   const panel = document.getElementById('counterfactual');
   panel.dataset.slot = String(k);
   panel.dataset.kind = kind;
   const what = `slot ${k} ${KIND_TEXT[kind]}`;
   document.getElementById('cf-tiles').replaceChildren(
-      tile('SlotFormer (factual)', factual.strip, 'factual'),
+      tile(`${D.primary.label} (factual)`, factual.strip, 'factual'),
       tile('factual masks', v.factual_masks, 'factual_masks'),
       tile(what, cf.frames, `${kind}/${k}`),
       tile(`${what}: masks`, cf.masks, `${kind}/${k}/masks`),
       tile(`|difference| x${D.diff_gain}`, cf.diff, `${kind}/${k}/diff`));
   const how = kind === 'remove'
-      ? `slot ${k} deleted from every burn-in frame: masked out of SlotFormer's attention and dropped from the decoder's softmax over slots`
+      ? `slot ${k} deleted from every burn-in frame: masked out of ${D.primary.label}'s attention and dropped from the decoder's softmax over slots`
       : `slot ${k} held at its last observed value while the others are predicted`;
   document.getElementById('cf-note').textContent =
       `${how}. Largest per-pixel difference from the factual rollout: ${cf.max_diff}.`;
@@ -267,6 +265,7 @@ function selectVideo(i) {
 
 function setup() {
   document.title = D.title;
+  document.getElementById('primary-slots').textContent = `${D.primary.label}'s slots`;
   document.getElementById('title').textContent = D.title;
   document.getElementById('subtitle').textContent =
       `${D.videos.length} ${D.split} videos, ${D.burn_in} observed frames (green) then ${D.rollout} predicted (red); ` +

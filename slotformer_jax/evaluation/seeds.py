@@ -20,8 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from slotformer_jax.config.defaults import FRAME_METRICS
-from slotformer_jax.config.defaults import OBJECT_METRICS
+from slotformer_jax.evaluation import rollout_metrics
 from slotformer_jax.files import write_json_atomic
 
 STD = ('population standard deviation over the seeds in the mean (numpy '
@@ -151,8 +150,7 @@ def format_table(summary: dict[str, Any], label: str) -> str:
   if not summary['evaluated']:
     return f'No seed evaluated ({excluded}).'
   rollout = summary['rollout']
-  names = [n for n in (*FRAME_METRICS, *OBJECT_METRICS)
-           if any(n in m for m in rollout.values())]
+  names = rollout_metrics.ordered(n for m in rollout.values() for n in m)
   protocol = summary['protocol']
   lines = [f'Rollout of {protocol["rollout_steps"]} steps after '
            f'{protocol["burn_in"]} burn-in frames, {protocol["num_videos"]} '

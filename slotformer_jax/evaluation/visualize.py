@@ -39,8 +39,8 @@ from PIL import ImageDraw
 
 from slotformer_jax import inference
 from slotformer_jax import targets as targets_lib
-from slotformer_jax.config.sections import SLOTFORMER
-from slotformer_jax.evaluation import evaluate
+from slotformer_jax.dynamics import base as dynamics_base
+from slotformer_jax.evaluation import rollout_metrics
 from slotformer_jax.files import read_json
 from slotformer_jax.files import write_atomic
 from slotformer_jax.files import write_json_atomic
@@ -86,14 +86,24 @@ def compose_frame(columns: list[np.ndarray], labels: list[str], *,
   return np.asarray(canvas)
 
 
-_METHOD_LABELS = {'slotformer': 'SlotFormer', 'copy_last': 'copy-last',
-                  'slot_lstm': 'Slot-LSTM'}
+# Copy-last's colour in every curve (the dynamics models': their own).
+COPY_LAST_COLOUR = '#ff7f0e'
+
+
+def method_colours(slot_model: Any) -> dict[str, str]:
+  """Every method's colour, by name, in every curve (per_step.png, the
+  explorer): the dynamics models' (registry), copy-last's, the reference's."""
+  return {**{model.name: model.colour for model in dynamics_base.registered()},
+          'copy_last': COPY_LAST_COLOUR,
+          slot_model.reference_method: slot_model.colour}
 
 
 def method_labels(slot_model: Any) -> dict[str, str]:
-  """How pictures name each method, the slot model's reference included
-  ('savi_reconstruction': 'SAVi recon.')."""
-  return {**_METHOD_LABELS,
+  """How pictures name each method: every registered dynamics model's
+  label, copy-last, and the slot model's reference ('savi_reconstruction':
+  'SAVi recon.')."""
+  return {**{model.name: model.label for model in dynamics_base.registered()},
+          'copy_last': 'copy-last',
           slot_model.reference_method: slot_model.reference_label}
 
 
@@ -110,6 +120,7 @@ def make_renderer(dynamics_modules: dict[str, Any], slot_model: Any, *,
   [B, T, N, H, W, 3] (SlotFormer's slots on white).
   """
   dynamics = dict(dynamics_modules)
+  with_masks = dynamics_base.intervened(dynamics)
 
   @jax.jit
   def render(dynamics_params, slot_params, slots, video):
@@ -126,7 +137,7 @@ def make_renderer(dynamics_modules: dict[str, Any], slot_model: Any, *,
       out[name] = decoded.recon
       if decoded.targets:  # flow / depth composites [B, T, H, W, C]
         out[f'{name} targets'] = decoded.targets
-      if name == SLOTFORMER:
+      if name == with_masks:
         out['slotformer_masks'] = decoded.alpha_masks[..., 0]
         if decoded.rgb is not None:
           # Each slot's content where it is visible: rgb * alpha (+ white).
@@ -255,8 +266,10 @@ def render(render_config: ml_collections.ConfigDict,
   # them (STEVE) would generate frames only to be thrown away.
   has_slot_views = jax.eval_shape(
       lambda: slot_model.decode(slot_params, slots[:1, :1])).rgb is not None
+  # The model the masks, slot views and attention are drawn of (SlotFormer).
+  primary = dynamics_base.intervened(dynamics)
   attention_renderer = (make_attention_renderer(
-      dynamics[SLOTFORMER].module, slot_model) if has_slot_views else None)
+      dynamics[primary].module, slot_model) if has_slot_views else None)
   methods = [*dynamics_names, 'copy_last']
   progress.announce_decoding(
       'render', slot_model, count * (burn_in + rollout) * len(methods),
@@ -274,14 +287,14 @@ def render(render_config: ml_collections.ConfigDict,
     truth = videos[v].astype(np.float32) / 255.0
     rows = {'truth': truth,
             f'{label} masks': mask_overlay(truth, out['observed_masks'])}
-    if out[SLOTFORMER] is not None:
+    if out[primary] is not None:
       for method in methods:
         rows[labels[method]] = out[method]
     rows.update(target_rows(
         other_targets, out, methods, labels,
         {name: values[v] for name, values in truth_targets.items()}))
-    rows['SlotFormer masks'] = mask_overlay(
-        truth if out[SLOTFORMER] is None else out[SLOTFORMER],
+    rows[f'{labels[primary]} masks'] = mask_overlay(
+        truth if out[primary] is None else out[primary],
         out['slotformer_masks'])
     if 'slot_views' in out:
       for n in range(out['slot_views'].shape[1]):
@@ -306,7 +319,7 @@ def render(render_config: ml_collections.ConfigDict,
     written += [gif_path, png_path]
     if attention_renderer is not None:
       attention = jax.tree.map(lambda x: x[0], jax.device_get(
-          attention_renderer(dynamics_params[SLOTFORMER], slot_params,
+          attention_renderer(dynamics_params[primary], slot_params,
                              slots[v:v + 1, :burn_in])))
       attention_path = os.path.join(directory, f'attention_{v:03d}.png')
       _write_attention_figure(attention_path, videos[v, :burn_in + 1],
@@ -315,7 +328,8 @@ def render(render_config: ml_collections.ConfigDict,
                               f'{eval_config.split} video {v}')
       written.append(attention_path)
   curves = write_per_step_figure(metrics_path, directory, labels,
-                                 slot_model.reference_method, identity)
+                                 slot_model.reference_method, identity,
+                                 method_colours(slot_model))
   if curves:
     written.append(curves)
   write_json_atomic(os.path.join(directory, 'identity.json'),
@@ -461,11 +475,13 @@ def write_png(path: str, image: np.ndarray) -> None:
 
 def write_per_step_figure(metrics_path: str, directory: str,
                           labels: dict[str, str], reference_method: str,
-                          identity: dict[str, Any] | None = None
+                          identity: dict[str, Any] | None = None,
+                          colours: dict[str, str] | None = None
                           ) -> str | None:
   """`<directory>/per_step.png` from the evaluation's `metrics_path`: one
   panel per metric, value against rollout step, methods overlaid (named by
-  `labels`, the reference method dashed). None (and a log line) when the
+  `labels`, in `colours` where given, the reference method dashed). None
+  (and a log line) when the
   evaluation has not been run, or (given `identity`, what the other
   pictures were made from) was made from other models."""
   if not os.path.exists(metrics_path):
@@ -483,8 +499,8 @@ def write_per_step_figure(metrics_path: str, directory: str,
                    metrics_path, metrics.get('identity'), identity)
     return None
   rollout = metrics['rollout']
-  names = [n for n in (*evaluate.FRAME_METRICS, *evaluate.OBJECT_METRICS)
-           if any(n in per_metric for per_metric in rollout.values())]
+  names = rollout_metrics.ordered(
+      n for per_metric in rollout.values() for n in per_metric)
   columns = min(3, len(names))
   rows = -(-len(names) // columns)
   figure, axes = plt.subplots(rows, columns,
@@ -500,8 +516,9 @@ def write_per_step_figure(metrics_path: str, directory: str,
                 for v in per_metric[name]['per_step']]
       axis.plot(np.arange(1, len(values) + 1), values,
                 label=labels.get(method, method),
+                color=(colours or {}).get(method),
                 linestyle='--' if method == reference_method else '-')
-    axis.set_title(name.upper().replace('_', '-'))
+    axis.set_title(rollout_metrics.get(name).label)
     axis.set_xlabel('rollout step')
     axis.grid(alpha=0.3)
   axes[0][0].legend(fontsize=7)

@@ -22,7 +22,7 @@ import jax.numpy as jnp
 import ml_collections
 import numpy as np
 
-from slotformer_jax.config.sections import SLOTFORMER
+from slotformer_jax.dynamics.slotformer import NAME as SLOTFORMER
 from slotformer_jax.errors import shown
 from slotformer_jax.modules import slotformer as slotformer_module
 from slotformer_jax.official import layers

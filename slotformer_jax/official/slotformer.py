@@ -12,7 +12,7 @@ import ml_collections
 import numpy as np
 
 from slotformer_jax import dynamics
-from slotformer_jax.config.sections import SLOTFORMER
+from slotformer_jax.dynamics.slotformer import NAME as SLOTFORMER
 from slotformer_jax.slot_models.savi import build_decoder
 from slotformer_jax.official import common
 from slotformer_jax.official.common import Converted

@@ -4,7 +4,8 @@ check before the first of them.
 A run is the data stage (`prepare_data`: every `--mode` runs it first, so
 the stages after it find their data made and checked), stage 1 (the slot
 model's own parts, `stages/stage1.py`), slot extraction, stage 2
-(SlotFormer; the Slot-LSTM baseline when the config trains it), then the
+(every dynamics model the config trains: SlotFormer, the Slot-LSTM
+baseline when asked, ...: dynamics/), then the
 stages of its task (`config.task`, `stages/task.py`): video prediction's
 evaluation and pictures, or a downstream task's. `--mode=all` runs them in
 table order; `--mode=<stage>` runs the data stage, then that one.
@@ -24,6 +25,8 @@ import jax
 
 from slotformer_jax import datasets
 from slotformer_jax.config import checks as config_checks
+from slotformer_jax.config.sections import dynamics_stages
+from slotformer_jax.config.sections import trained_dynamics
 from slotformer_jax.errors import CommandLineError
 from slotformer_jax.errors import ConfigError
 from slotformer_jax.run import Run
@@ -42,18 +45,19 @@ for _module in pkgutil.iter_modules(__path__):
 
 # Reading never writes: the data are made here, before every other stage.
 DATA: dict[str, StageFn] = {'prepare_data': data.prepare_data}
-STAGE2: dict[str, StageFn] = {
-    'extract_slots': extract.extract_slots,
-    'train_slotformer': dynamics.train_slotformer,
-    'train_slot_lstm': dynamics.train_slot_lstm,
-}
+
+
+def stage2(run: Run) -> dict[str, StageFn]:
+  """Slot extraction, then every dynamics model's training."""
+  return {'extract_slots': extract.extract_slots,
+          **dynamics.stage_functions(run.config)}
 
 
 def stage_table(run: Run) -> dict[str, StageFn]:
   """The stages `run` can execute, in the order `--mode=all` runs them."""
   table = dict(DATA)
   table.update(stage1.stage_functions(run))
-  table.update(STAGE2)
+  table.update(stage2(run))
   table.update(task_lib.get(run.task).stages)
   return table
 
@@ -63,9 +67,10 @@ def selected_stages(run: Run, mode: str) -> tuple[str, ...]:
   first, whatever the mode."""
   table = stage_table(run)
   if mode == 'all':
-    # The Slot-LSTM baseline only when the config asks for it.
-    return tuple(m for m in table
-                 if m != 'train_slot_lstm' or run.config.slot_lstm.train)
+    # The dynamics models the config trains (a baseline only when asked).
+    untrained = set(dynamics_stages(run.config)) - {
+        f'train_{name}' for name in trained_dynamics(run.config)}
+    return tuple(m for m in table if m not in untrained)
   if mode not in table:
     raise CommandLineError(_not_a_stage(run, mode, table))
   return tuple(dict.fromkeys([*DATA, mode]))

@@ -28,7 +28,7 @@ import numpy as np
 
 from slotformer_jax import inference
 from slotformer_jax.config import defaults
-from slotformer_jax.config.sections import SLOTFORMER
+from slotformer_jax.config.sections import primary_dynamics
 from slotformer_jax.data import video_names
 from slotformer_jax.data.slots import SlotSource
 from slotformer_jax.errors import ConfigError
@@ -113,10 +113,10 @@ def rollout_fn(run: Run):
   """observed slots [V, O, N, D], steps -> SlotFormer's rollout [V, K, N, D]
   at the slots' frame rate (interleaved when SlotFormer was trained on
   every ``slotformer.frame_stride``-th frame)."""
-  slotformer = run.dynamics(SLOTFORMER)
+  slotformer = run.dynamics(primary_dynamics(run.config))
   logger.info('rollouts from SlotFormer step %d', slotformer.step)
   batch = run.config.readout.rollout_batch_size
-  section = run.dynamics_section(SLOTFORMER)
+  section = run.dynamics_section(primary_dynamics(run.config))
 
   def predict(context: np.ndarray, num_steps: int) -> np.ndarray:
     roll = jax.jit(functools.partial(inference.rollout_slots,

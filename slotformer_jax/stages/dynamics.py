@@ -1,4 +1,5 @@
-"""Stage 2: SlotFormer (or the Slot-LSTM baseline) on the extracted slots.
+"""Stage 2: every registered dynamics model (SlotFormer, the Slot-LSTM
+baseline, ...: dynamics/) on the extracted slots.
 
 The same stage for every slot model: L = L_S + lambda * L_I, where L_I
 decodes the predicted slots through the slot model's frozen pixel decoder
@@ -16,6 +17,7 @@ one checkpoint in `slotformer/`.
 from __future__ import annotations
 
 import functools
+from collections.abc import Callable
 from typing import Any
 
 import jax
@@ -24,8 +26,7 @@ import ml_collections
 
 from slotformer_jax import dynamics as dynamics_lib
 from slotformer_jax import losses
-from slotformer_jax.config.sections import SLOT_LSTM
-from slotformer_jax.config.sections import SLOTFORMER
+from slotformer_jax.config.sections import dynamics_stages
 from slotformer_jax.data import pipeline
 from slotformer_jax.errors import ConfigError
 from slotformer_jax.modules import initializers
@@ -40,24 +41,34 @@ from slotformer_jax.train import steps
 from slotformer_jax.train.trainer import Stage
 
 
-def image_loss_decoder(section: ml_collections.ConfigDict, name: str,
+def decoded_terms(weights: dict[str, float]) -> dict[str, float]:
+  """The terms of `weights` that are on and decode the predicted slots
+  with the slot model's frozen decoder (L_I)."""
+  return {name: weight for name, weight in weights.items()
+          if weight > 0 and losses.LOSS_TERMS[name].needs_decoder}
+
+
+def image_loss_decoder(weights: dict[str, float], name: str,
                        slot_model: SlotModel, slot_params: Any
                        ) -> tuple[Any, Any]:
-  """(decoder, its frozen params) of L_I, or (None, None) without L_I.
+  """(decoder, its frozen params) of the terms that decode (L_I), or
+  (None, None) when none is on.
 
   Raises:
-    ConfigError: L_I is on but the slot model has no pixel decoder.
+    ConfigError: such a term is on but the slot model has no pixel decoder.
   """
-  weight = section.image_loss_weight
-  if weight <= 0:
+  decoded = decoded_terms(weights)
+  if not decoded:
     return None, None
   image_decoder = slot_model.image_decoder(slot_params)
   if image_decoder is None:
+    term, weight = next(iter(decoded.items()))
     raise ConfigError(
-        f'L_I needs a differentiable pixel decoder, which '
+        f'{losses.LOSS_TERMS[term].label} needs a differentiable pixel '
+        f'decoder, which '
         f'{slot_model.label} does not have (the paper trains SlotFormer on '
         f'{slot_model.label} slots without it); set --config.{name}.'
-        f'image_loss_weight=0 (got {weight})')
+        f'{losses.weight_field(term)}=0 (got {weight})')
   return image_decoder
 
 
@@ -70,9 +81,11 @@ def dynamics_stage(section: ml_collections.ConfigDict, name: str,
   """Dynamics model `name`'s training stage (settings `section`) on
   `source` (the slots of the 'train' split, with their videos when L_I is
   on; only its `batches` read it). `slot_params`: the slot model's, for the
-  frozen decoder of L_I."""
+  frozen decoder of L_I. Its loss: the model's registered terms with their
+  weights (`DynamicsModel.loss_terms`; a term at weight <= 0 is off)."""
   rollout = section.rollout
-  decoder, decoder_params = image_loss_decoder(section, name, slot_model,
+  weights = dynamics_lib.get(name).loss_terms(section)
+  decoder, decoder_params = image_loss_decoder(weights, name, slot_model,
                                                slot_params)
   video_fields = slot_model.image_loss_fields if decoder is not None else ()
   model = dynamics_lib.build(section, name)
@@ -96,8 +109,7 @@ def dynamics_stage(section: ml_collections.ConfigDict, name: str,
       config=section,
       loss_fn=precision.with_compute_dtype(functools.partial(
           losses.slotformer_loss, model=model, decoder=decoder,
-          rollout=rollout, to_model=slot_model.to_model,
-          image_loss_weight=section.image_loss_weight if decoder else 0.0,
+          rollout=rollout, to_model=slot_model.to_model, weights=weights,
           teacher_forcing=section.teacher_forcing), compute_dtype),
       init_params=lambda rng: initializers.initialize(
           steps.init_params(model, rng, *example),
@@ -148,9 +160,9 @@ def seed_stage(view: Run, name: str, stream_seed: int
                                      view.slots_fields, slot_model.label)
   # L_I (`image_loss_decoder`) reads the videos, and compares the rollout
   # frames only: the burn-in frames are not read.
+  decodes = decoded_terms(dynamics_lib.get(name).loss_terms(section))
   source = view.slots('train',
-                      slot_model.image_loss_fields
-                      if section.image_loss_weight > 0 else (),
+                      slot_model.image_loss_fields if decodes else (),
                       video_from=section.burn_in)
   stage = dynamics_stage(section, name, view.paths.dynamics(name),
                          view.mesh, slot_model, loaded.params, source,
@@ -161,10 +173,10 @@ def seed_stage(view: Run, name: str, stream_seed: int
   return stage, parent
 
 
-def train_slotformer(run: Run) -> None:
-  train_dynamics(run, SLOTFORMER)
-
-
-def train_slot_lstm(run: Run) -> None:
-  """The Slot-LSTM baseline, with SlotFormer's data, losses and schedule."""
-  train_dynamics(run, SLOT_LSTM)
+def stage_functions(config: ml_collections.ConfigDict
+                    ) -> dict[str, Callable[[Run], None]]:
+  """{`train_<name>`: its training stage} of every registered dynamics
+  model that `config` has a section of, in registration order."""
+  return {stage: functools.partial(train_dynamics,
+                                   name=stage[len('train_'):])
+          for stage in dynamics_stages(config)}

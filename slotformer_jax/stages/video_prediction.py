@@ -24,7 +24,8 @@ from typing import Any
 
 from slotformer_jax import dynamics as dynamics_lib
 from slotformer_jax import targets as targets_lib
-from slotformer_jax.config.sections import SLOTFORMER
+from slotformer_jax.dynamics.base import intervened
+from slotformer_jax.config.sections import primary_dynamics
 from slotformer_jax.config.sections import trained_dynamics
 from slotformer_jax.errors import UserError
 from slotformer_jax.evaluation import evaluate as evaluate_lib
@@ -157,11 +158,17 @@ def evaluate(run: Run) -> dict[str, Any]:
   return summary
 
 
+def _protocol(run: Run) -> Any:
+  """The section whose burn-in and frame stride every method is evaluated,
+  drawn and explored with: the first trained dynamics model's."""
+  return run.dynamics_section(primary_dynamics(run.config))
+
+
 def _evaluate(run: Run, trained: Evaluated) -> dict[str, Any]:
   """The evaluation of one seed (a one-seed run or a seed view)."""
   split = run.config.evaluation.split
   return evaluate_lib.evaluate(
-      run.config.evaluation, run.dynamics_section(SLOTFORMER), run.mesh,
+      run.config.evaluation, _protocol(run), run.mesh,
       slot_model=run.slot_model, slot_params=trained.stage1.params,
       slot_steps=trained.stage1.steps, dynamics=trained.dynamics,
       identity=trained.identity,
@@ -184,7 +191,7 @@ def render(run: Run) -> list[str]:
 def _render(run: Run, trained: Evaluated) -> list[str]:
   return visualize.render(
       run.config.render, run.config.evaluation,
-      run.dynamics_section(SLOTFORMER), slot_model=run.slot_model,
+      _protocol(run), slot_model=run.slot_model,
       slot_params=trained.stage1.params, dynamics=trained.dynamics,
       identity=trained.identity,
       source=run.slots(run.config.evaluation.split, (
@@ -206,7 +213,7 @@ def explore(run: Run) -> str | list[str | None] | None:
 def _explore(run: Run, trained: Evaluated) -> str | None:
   return explore_lib.explore(
       run.config.explore, run.config.evaluation,
-      run.dynamics_section(SLOTFORMER), slot_model=run.slot_model,
+      _protocol(run), slot_model=run.slot_model,
       slot_params=trained.stage1.params, dynamics=trained.dynamics,
       identity=trained.identity,
       open_slots=lambda fields: run.slots(run.config.evaluation.split,
@@ -214,7 +221,8 @@ def _explore(run: Run, trained: Evaluated) -> str | None:
       num_true=evaluate_lib.num_true_ids(run.config.data.max_instances),
       metrics_path=os.path.join(run.paths.eval, 'metrics.json'),
       output_dir=run.paths.explore,
-      title=f'{run.config.data.name}: {run.slot_model.label} + SlotFormer')
+      title=(f'{run.config.data.name}: {run.slot_model.label} + '
+             f'{dynamics_lib.label(intervened(trained.dynamics))}'))
 
 
 # Video prediction is the task of a config without one (config.task None).

@@ -29,7 +29,7 @@ import tqdm
 
 from slotformer_jax import inference
 from slotformer_jax.config import defaults
-from slotformer_jax.config.sections import SLOTFORMER
+from slotformer_jax.config.sections import primary_dynamics
 from slotformer_jax.data import vqa as vqa_data
 from slotformer_jax.data import vqa_questions
 from slotformer_jax.data.slots import SlotSource
@@ -86,8 +86,8 @@ def _vqa_slots(run: Run) -> None:
   """`vqa_slots` of one chain."""
   config = run.config
   vqa = config.vqa
-  dynamics = run.dynamics_section(SLOTFORMER)
-  trained = run.dynamics(SLOTFORMER)
+  dynamics = run.dynamics_section(primary_dynamics(run.config))
+  trained = run.dynamics(primary_dynamics(run.config))
   params, step, model = trained.params, trained.step, trained.module
   meta_path = os.path.join(run.paths.vqa_slots, 'meta.json')
   meta = {'slotformer_step': step, 'video_length': vqa.video_length,

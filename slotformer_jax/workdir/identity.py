@@ -145,6 +145,20 @@ def fingerprint(fields: dict[str, Any]) -> str:
 # seed count and the task were told by other fields then); for every other
 # field the absence stands for its ADDED_FIELDS value, None included.
 _ABSENT_MATCHES_ANY = frozenset({'seeds', 'task'})
+# A dynamics loss term's weight (`losses.register_loss`: its config entry
+# `<term>_loss_weight`) absent from an old workdir stands for 0: the term was
+# not in its loss. A new term needs no ADDED_FIELDS line.
+LOSS_WEIGHT_SUFFIX = '_loss_weight'
+
+
+def absent_value(name: str) -> tuple[bool, Any]:
+  """(whether the dotted field `name` was added after workdirs were made,
+  the value its absence stands for)."""
+  if name in ADDED_FIELDS:
+    return True, ADDED_FIELDS[name]
+  if name.endswith(LOSS_WEIGHT_SUFFIX):
+    return True, 0.0
+  return False, None
 
 
 def flat_differences(old: Any, new: Any, prefix: str = '') -> list[str]:
@@ -155,8 +169,9 @@ def flat_differences(old: Any, new: Any, prefix: str = '') -> list[str]:
     for key in sorted(set(old) | set(new)):
       name = f'{prefix}.{key}' if prefix else key
       if key not in old:
-        if name in ADDED_FIELDS and (name in _ABSENT_MATCHES_ANY
-                                     or plain(new[key]) == ADDED_FIELDS[name]):
+        added, value = absent_value(name)
+        if added and (name in _ABSENT_MATCHES_ANY
+                      or plain(new[key]) == value):
           continue
         out.append(f'{name}: (absent) -> {new[key]!r}')
       elif key not in new:

@@ -182,7 +182,7 @@ def test_explorer_is_jitted_once_per_shape_and_matches_the_rollouts(tmp_path):
   # The factual row is the evaluation's rollout, decoded.
   future = inference.rollout_slots(dynamics_params['slotformer'],
                                    slots[:, :burn_in],
-                                   model=explorer.slotformer,
+                                   model=explorer.intervened,
                                    num_steps=rollout)
   whole = jnp.concatenate([slots[:, :burn_in], future], axis=1)
   np.testing.assert_allclose(out['methods']['slotformer'],
@@ -228,7 +228,7 @@ def test_a_savi_of_flow_and_depth_is_explored_as_its_targets(tmp_path):
   frames = burn_in + rollout
   future = inference.rollout_slots(dynamics_params['slotformer'],
                                    slots[:, :burn_in],
-                                   model=explorer.slotformer,
+                                   model=explorer.intervened,
                                    num_steps=rollout)
   whole = jnp.concatenate([slots[:, :burn_in], future], axis=1)
   decoded = slot_model.decode(slot_params, whole)

@@ -12,12 +12,13 @@ import pytest
 
 from slotformer_jax import dynamics as dynamics_lib
 from slotformer_jax import slot_models
-from slotformer_jax.config.sections import SLOTFORMER
 from slotformer_jax.evaluation import evaluate
 from slotformer_jax.runtime import sharding
 from slotformer_jax.stages import dynamics
 from slotformer_jax.stages import stage1
 from tests.pipeline_helpers import load_config
+
+SLOTFORMER = 'slotformer'  # the dynamics model's registered name
 
 
 def _inputs(config):

@@ -174,7 +174,9 @@ def test_rgb_image_loss_is_the_one_before_targets():
   rng = jax.random.key(4)
   loss, metrics = losses.slotformer_loss(
       params, batch, decoder_params, rng, model=model, decoder=decoder,
-      rollout=2, image_loss_weight=0.5, teacher_forcing=False)
+      rollout=2,
+      weights={'slot_loss': 1.0, 'image_loss': 0.5},
+      teacher_forcing=False)
   predicted = model.apply({'params': params}, batch['slots'][:, :2], 2,
                           deterministic=False, rngs={'dropout': rng})
   slot_loss = jnp.mean(jnp.square(predicted - batch['slots'][:, 2:]))
@@ -261,7 +263,7 @@ def test_image_loss_with_several_targets():
   rng = jax.random.key(4)
   loss_fn = functools.partial(
       losses.slotformer_loss, model=model, decoder=decoder, rollout=2,
-      image_loss_weight=1.0, teacher_forcing=False)
+      weights={'slot_loss': 1.0, 'image_loss': 1.0}, teacher_forcing=False)
   loss, metrics = loss_fn(params, batch, decoder_params, rng)
   assert set(metrics) == {'slot_loss', 'image_loss', 'image_loss_rgb',
                           'image_loss_flow', 'image_loss_depth'}
@@ -293,7 +295,9 @@ def test_image_loss_with_several_targets():
   del batch['video']
   _, metrics = losses.slotformer_loss(
       params, batch, decoder_params, rng, model=model, decoder=decoder,
-      rollout=2, image_loss_weight=1.0, teacher_forcing=False)
+      rollout=2,
+      weights={'slot_loss': 1.0, 'image_loss': 1.0},
+      teacher_forcing=False)
   assert set(metrics) == {'slot_loss', 'image_loss', 'image_loss_flow',
                           'image_loss_depth'}
 

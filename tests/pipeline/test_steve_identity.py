@@ -26,7 +26,8 @@ from slotformer_jax.workdir.paths import Paths
 from slotformer_jax.config.sections import dynamics_section
 from slotformer_jax import dynamics as dynamics_lib
 from slotformer_jax.workdir import identity as identity_lib
-from slotformer_jax.config.sections import SLOTFORMER
+
+SLOTFORMER = 'slotformer'  # the dynamics model's registered name
 
 DVAE_STEP, STEVE_STEP = 4, 6
 

@@ -63,7 +63,7 @@ def _slotformer_setup():
   decoder_params = _decoder().init(jax.random.key(1), jnp.zeros((1, 3, 16)))
   loss_fn = functools.partial(
       losses.slotformer_loss, model=model, decoder=_decoder(), rollout=2,
-      image_loss_weight=1.0, teacher_forcing=False)
+      weights={'slot_loss': 1.0, 'image_loss': 1.0}, teacher_forcing=False)
   batch = {'slots': np.random.default_rng(2).normal(
       size=(4, 4, 3, 16)).astype(np.float32), 'video': _video(4, 4)}
   return params, loss_fn, batch, decoder_params['params']
@@ -209,7 +209,7 @@ def _slotformer_stage(directory, num_steps, source, decoder_params,
       config=_stage_config(num_steps),
       loss_fn=functools.partial(
           losses.slotformer_loss, model=model, decoder=_decoder(), rollout=2,
-          image_loss_weight=1.0, teacher_forcing=False),
+          weights={'slot_loss': 1.0, 'image_loss': 1.0}, teacher_forcing=False),
       init_params=lambda rng: steps.init_params(
           model, rng, jnp.zeros((1, 2, 3, 16)), 2),
       batches=batches, frozen_params=decoder_params)

@@ -24,7 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from slotformer_jax import inference
-from slotformer_jax.config.sections import SLOTFORMER
+from slotformer_jax.config.sections import primary_dynamics
 from slotformer_jax.data.sources import resolve_data_dir
 from slotformer_jax.datasets import synthetic_phyre as phyre_like_data
 from slotformer_jax.errors import ConfigError
@@ -47,7 +47,7 @@ class SlotFeatures:
 
   def __init__(self, run: Run):
     self._resolution = tuple(run.config.data.resolution)
-    if run.dynamics_section(SLOTFORMER).burn_in != 1:
+    if run.dynamics_section(primary_dynamics(run.config)).burn_in != 1:
       raise ConfigError('planning observes the first frame only: set '
                         'slotformer.burn_in = 1')
     slot_model = run.slot_model
@@ -56,7 +56,7 @@ class SlotFeatures:
           'planning observes rendered first frames without boxes: it needs '
           'an unconditional slot model (savi.initial_slots=learned)')
     slot_params = run.stage1.params
-    trained = run.dynamics(SLOTFORMER)
+    trained = run.dynamics(primary_dynamics(run.config))
     dynamics_params, slotformer = trained.params, trained.module
     logger.info('planning with SlotFormer step %d', trained.step)
     num_steps = run.config.readout.rollout_steps

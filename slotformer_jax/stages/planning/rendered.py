@@ -18,7 +18,7 @@ import jax
 import numpy as np
 
 from slotformer_jax import inference
-from slotformer_jax.config.sections import SLOTFORMER
+from slotformer_jax.config.sections import primary_dynamics
 from slotformer_jax.data.slots import SlotSource
 from slotformer_jax.errors import ConfigError
 from slotformer_jax.files import write_atomic
@@ -63,13 +63,13 @@ def rollout_features(run: Run, first_slots: np.ndarray) -> np.ndarray:
   """float32 [V, S, N, D]: [first-frame slots, SlotFormer's rollout] at
   ``readout.selected_steps`` (S of them)."""
   steps = phyre_rendered.selected_steps(run.config.readout)
-  if run.dynamics_section(SLOTFORMER).burn_in != 1:
+  if run.dynamics_section(primary_dynamics(run.config)).burn_in != 1:
     raise ConfigError('planning observes the first frame only: set '
                       'slotformer.burn_in = 1')
   num_steps = max(steps)
   if num_steps == 0:
     return first_slots[:, None]
-  trained = run.dynamics(SLOTFORMER)
+  trained = run.dynamics(primary_dynamics(run.config))
   logger.info('PHYRE rollouts from SlotFormer step %d', trained.step)
   params = trained.params
   roll = jax.jit(lambda p, s: inference.rollout_slots(

@@ -1,6 +1,7 @@
-"""The dynamics models of stage 2 (SlotFormer, the Slot-LSTM baseline) as the
-pipeline uses them: built from their config section, the fields that shape
-them, and their trained parameters loaded from a workdir.
+"""The dynamics models of stage 2 as the pipeline uses them: registered by
+name (`base.py`, one file each: `slotformer.py`, `slot_lstm.py`), built
+from their config section, the fields that shape them, and their trained
+parameters loaded from a workdir.
 
 A dynamics model reads slots [B, T, N, D] and rolls them out; it knows
 nothing of the slot model but its slot shape (N, D).
@@ -12,6 +13,7 @@ from collections.abc import Callable
 import dataclasses
 from typing import Any
 
+import flax.linen as nn
 import jax
 from jax.sharding import Mesh
 import jax.numpy as jnp
@@ -20,44 +22,38 @@ import numpy as np
 
 from slotformer_jax import inference
 from slotformer_jax import targets as targets_lib
-from slotformer_jax.config.sections import SLOT_LSTM
-from slotformer_jax.config.sections import SLOTFORMER
+from slotformer_jax.dynamics import base
+# The built-in models register themselves, SlotFormer first (Slot-LSTM
+# inherits its section).
+from slotformer_jax.dynamics import slotformer  # pylint: disable=unused-import
+from slotformer_jax.dynamics import slot_lstm  # pylint: disable=unused-import
+from slotformer_jax.dynamics.base import DynamicsModel
+from slotformer_jax.dynamics.base import get
+from slotformer_jax.dynamics.base import label
+from slotformer_jax.dynamics.base import register
+from slotformer_jax.dynamics.base import registered
 from slotformer_jax.frames import labelled_grid
 from slotformer_jax.frames import to_uint8
-from slotformer_jax.modules.slot_lstm import SlotLSTM
-from slotformer_jax.modules.slotformer import SlotFormer
 from slotformer_jax.workdir import identity as identity_lib
 from slotformer_jax.workdir.paths import Paths
 from slotformer_jax.workdir.paths import command
 
-DynamicsModel = SlotFormer | SlotLSTM
+__all__ = ['DynamicsModel', 'Loaded', 'build', 'example', 'get',
+           'identity_fields', 'label', 'load', 'model_fields', 'param_shapes',
+           'register', 'registered', 'rollout_images']
 
 
-def build(section: ml_collections.ConfigDict, name: str) -> DynamicsModel:
-  """Dynamics model `name` from its resolved section
+def build(section: ml_collections.ConfigDict, name: str) -> nn.Module:
+  """Dynamics model `name`'s module from its resolved section
   (`config.sections.dynamics_section`)."""
-  shared = dict(
-      burn_in=section.burn_in, embed_dim=section.embed_dim,
-      num_layers=section.num_layers, num_heads=section.num_heads,
-      mlp_size=section.mlp_ratio * section.embed_dim,
-      dropout_rate=section.dropout_rate, residual=section.residual)
-  if name == SLOTFORMER:
-    return SlotFormer(positional_encoding=section.positional_encoding,
-                      max_context=section.max_context,
-                      layer_norm_epsilon=section.layer_norm_epsilon, **shared)
-  if name == SLOT_LSTM:
-    return SlotLSTM(**shared)
-  raise ValueError(f'unknown dynamics model {name!r}')
+  return get(name).build(section)
 
 
 def model_fields(section: ml_collections.ConfigDict,
                  name: str) -> dict[str, Any]:
   """The settings that determine the model's parameters (model_config.json)."""
-  keys = ['burn_in', 'embed_dim', 'num_layers', 'num_heads', 'mlp_ratio',
-          'residual']
-  if name == SLOTFORMER:
-    keys += ['positional_encoding', 'max_context', 'layer_norm_epsilon']
-  return identity_lib.plain({key: section[key] for key in keys})
+  return identity_lib.plain({key: section[key]
+                             for key in get(name).shaping_fields})
 
 
 def identity_fields(seed: int, section: ml_collections.ConfigDict,
@@ -89,7 +85,7 @@ class Loaded:
   """A trained dynamics model of a workdir.
 
   Attributes:
-    name: 'slotformer' or 'slot_lstm'.
+    name: the dynamics model's (`base.DynamicsModel.name`).
     module: the linen module (apply with {'params': params}).
     params: its newest parameters (replicated over the mesh).
     step: the step they were saved at.
@@ -99,7 +95,7 @@ class Loaded:
   """
 
   name: str
-  module: DynamicsModel
+  module: nn.Module
   params: Any
   step: int
   diverged_at: int = 0
@@ -136,7 +132,7 @@ def load(paths: Paths, mesh: Mesh, name: str,
                 step=step, diverged_at=diverged_at)
 
 
-def rollout_images(slot_model: Any, slot_params: Any, model: DynamicsModel,
+def rollout_images(slot_model: Any, slot_params: Any, model: nn.Module,
                    burn_in: int, rollout: int, name: str
                    ) -> Callable[[Any, dict[str, Any]], dict[str, Any]] | None:
   """The training stage's TensorBoard pictures, (params, batch) -> {'rollout':
