@@ -509,7 +509,8 @@ def evaluate(eval_config: ml_collections.ConfigDict,
   elif videos is not None and len(videos) and (
       SEGMENTATION_FIELD not in videos[0]):
     logger.info('the videos have no ground-truth masks: %s left out (frame '
-                'metrics only)', ', '.join(OBJECT_METRICS))
+                'metrics only)', ', '.join(rollout_metrics.needing(
+                    tuple(rollout_metrics.labels()), rollout_metrics.MASKS)))
   num_videos = min(len(source), eval_config.num_videos or len(source))
   source = evaluation_clips(
       eval_config.clips, source, ('slots',) + fields, num_videos,
