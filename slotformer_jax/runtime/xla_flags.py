@@ -52,8 +52,11 @@ CRASH_FENCE_FLAGS: tuple[str, ...] = (
 )
 # '0' / 'false' / 'no' / 'off' disables adding the speed flags.
 SWITCH_ENV = 'SLOTFORMER_XLA_CPU_FLAGS'
-# Where probe results are kept (default: ~/.cache/slotformer_jax).
-CACHE_ENV = 'SLOTFORMER_DATA_DIR'
+# Where probe results are kept: $XDG_CACHE_HOME/slotformer_jax (default
+# ~/.cache/slotformer_jax). A fact of the install, not of a run's data
+# folder: `import slotformer_jax` probes before any command is checked, and a
+# command refused for a mistake writes nothing into its folders.
+CACHE_ENV = 'XDG_CACHE_HOME'
 
 _PROBE_PROGRAM = (
     'import jax, jax.numpy as jnp\n'
@@ -88,8 +91,8 @@ def _jaxlib_version() -> str:
 
 
 def _cache_path(environ) -> Path:
-  root = environ.get(CACHE_ENV) or '~/.cache/slotformer_jax'
-  return Path(root).expanduser() / 'xla_flag_probes.json'
+  root = environ.get(CACHE_ENV) or '~/.cache'
+  return Path(root).expanduser() / 'slotformer_jax' / 'xla_flag_probes.json'
 
 
 def _read_cache(path: Path) -> dict[str, bool]:

@@ -592,8 +592,7 @@ def test_processes_started_differently_stop_before_work(tmp_path, differs,
     _assert_clean(run.log(i))
   # Before any work: no settings recorded, no data, no stage.
   assert sorted(os.listdir(workdir)) == ['.processes'], os.listdir(workdir)
-  data = tmp_path / 'data'  # only the XLA flag probe that main starts with
-  assert not data.exists() or os.listdir(data) == ['xla_flag_probes.json']
+  assert not (tmp_path / 'data').exists()
   print(f'both processes stopped {took:.1f} s after they were started')
 
 

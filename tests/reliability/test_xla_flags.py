@@ -175,7 +175,8 @@ def test_unsupported_flag_is_probed_cached_and_skipped(monkeypatch, tmp_path):
   # A real subprocess: XLA aborts on the unknown flag there, not here.
   assert xla_flags.apply_fast_cpu_flags((bogus,), environ=env, fences=()) == []
   assert 'XLA_FLAGS' not in env
-  cache = json.loads((tmp_path / 'xla_flag_probes.json').read_text())
+  cache = json.loads(
+      (tmp_path / 'slotformer_jax' / 'xla_flag_probes.json').read_text())
   assert [v for k, v in cache.items() if k.endswith(bogus)] == [False]
   # Cached: no second probe.
   monkeypatch.setattr(xla_flags, 'probe_flag', lambda f: pytest.fail('re-probed'))
