@@ -124,17 +124,26 @@ def _cpu() -> tuple[str, set[str]]:
   return model, features
 
 
-def pytest_report_header(config):
-  """The CPU family and XLA's flags head every run's log: XLA:CPU picks its
-  kernels by the CPU's vector width, and jaxlib 0.10.2 crashed on AVX2-only
-  CPUs where AVX-512 ones ran (runtime/xla_flags.py's crash fence). Nothing
-  else in the suite depends on which of the two it gets."""
-  del config
+def _machine_line() -> str:
   model, features = _cpu()
   width = ('AVX-512' if 'avx512f' in features else
            'AVX2 only' if 'avx2' in features else 'no AVX2')
-  return [f'cpu: {model} ({width}, {os.cpu_count()} cores); '
-          f'XLA_FLAGS={os.environ.get("XLA_FLAGS", "")}']
+  return (f'cpu: {model} ({width}, {os.cpu_count()} cores); '
+          f'XLA_FLAGS={os.environ.get("XLA_FLAGS", "")}')
+
+
+def pytest_report_header(config):
+  """The CPU family and XLA's flags in every run's log (the header, and the
+  summary, which `-q` keeps): XLA:CPU picks its kernels by the CPU's vector
+  width, and jaxlib 0.10.2 crashed on AVX2-only CPUs where AVX-512 ones ran
+  (runtime/xla_flags.py's crash fence). Nothing else in the suite depends
+  on which of the two it gets."""
+  del config
+  return [_machine_line()]
+
+
+def pytest_terminal_summary(terminalreporter):
+  terminalreporter.write_line(_machine_line())
 
 
 def pytest_xdist_auto_num_workers(config):
