@@ -265,6 +265,31 @@ def depth_of(value: Any) -> int:
   return deepest
 
 
+def read_untrusted_text(path: str | os.PathLike[str], *, what: str,
+                        max_bytes: int) -> str:
+  """The UTF-8 text of a regular file of at most `max_bytes`, read in one
+  allocation of the file's size (not the limit).
+
+  Raises:
+    UntrustedFileError: larger, not UTF-8, not a regular file.
+  """
+  path = os.fspath(path)
+  with open_regular(path, what=what) as f:
+    size = os.fstat(f.fileno()).st_size
+    if size > max_bytes:
+      raise UntrustedFileError(f'{what} {path} holds {size} bytes, more '
+                               f'than the {max_bytes} such a file may have')
+    data = f.read(size + 1)
+  if len(data) > max_bytes:
+    raise UntrustedFileError(f'{what} {path} grew beyond {max_bytes} bytes '
+                             'while it was read')
+  try:
+    return data.decode('utf-8')
+  except UnicodeDecodeError as error:
+    raise UntrustedFileError(
+        f'{what} {path} is not UTF-8 text (byte {error.start})') from None
+
+
 def read_untrusted_json(path: str | os.PathLike[str], *, what: str,
                         max_bytes: int = 64 << 20, max_depth: int = 32
                         ) -> Any:
@@ -279,21 +304,7 @@ def read_untrusted_json(path: str | os.PathLike[str], *, what: str,
       the problem; a missing file stays FileNotFoundError.
   """
   path = os.fspath(path)
-  with open_regular(path, what=what) as f:
-    size = os.fstat(f.fileno()).st_size
-    if size > max_bytes:
-      raise UntrustedFileError(f'{what} {path} holds {size} bytes, more '
-                               f'than the {max_bytes} such a file may have')
-    # read(n) allocates n bytes at once: the file's size, not the limit.
-    data = f.read(size + 1)
-  if len(data) > max_bytes:
-    raise UntrustedFileError(f'{what} {path} grew beyond {max_bytes} bytes '
-                             'while it was read')
-  try:
-    text = data.decode('utf-8')
-  except UnicodeDecodeError as error:
-    raise UntrustedFileError(
-        f'{what} {path} is not UTF-8 text (byte {error.start})') from None
+  text = read_untrusted_text(path, what=what, max_bytes=max_bytes)
   try:
     value = json.loads(text)
   except json.JSONDecodeError as error:

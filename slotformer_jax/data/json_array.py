@@ -14,42 +14,15 @@ text), and what the caller keeps.
 from __future__ import annotations
 
 import json
-import os
 import re
 from typing import Any, Iterator
 
 from slotformer_jax.files import depth_of
-from slotformer_jax.files import open_regular
 from slotformer_jax.files import UntrustedFileError
 
 _SPACE = re.compile(r'[ \t\n\r]*')
 _FIRST_WINDOW = 1 << 10
 _DECODER = json.JSONDecoder()
-
-
-def read_text(path: str | os.PathLike[str], *, what: str,
-              max_bytes: int) -> str:
-  """The UTF-8 text of a regular file of at most `max_bytes`.
-
-  Raises:
-    UntrustedFileError: larger, not UTF-8, not a regular file.
-  """
-  path = os.fspath(path)
-  with open_regular(path, what=what) as f:
-    size = os.fstat(f.fileno()).st_size
-    if size > max_bytes:
-      raise UntrustedFileError(f'{what} {path} holds {size} bytes, more '
-                               f'than the {max_bytes} such a file may have')
-    # read(n) allocates n bytes at once: the file's size, not the limit.
-    data = f.read(size + 1)
-  if len(data) > max_bytes:
-    raise UntrustedFileError(f'{what} {path} grew beyond {max_bytes} bytes '
-                             'while it was read')
-  try:
-    return data.decode('utf-8')
-  except UnicodeDecodeError as error:
-    raise UntrustedFileError(
-        f'{what} {path} is not UTF-8 text (byte {error.start})') from None
 
 
 def elements(text: str, *, where: str, max_element_chars: int,

@@ -38,6 +38,7 @@ from slotformer_jax.errors import MissingInputError
 from slotformer_jax.errors import shown
 from slotformer_jax.files import UntrustedFileError
 from slotformer_jax.files import read_untrusted_json
+from slotformer_jax.files import read_untrusted_text
 
 PAD = 'PAD'
 QUESTION_TYPES: tuple[str, ...] = (
@@ -430,7 +431,7 @@ def read_clevrer_questions(data_root: str | os.PathLike[str], split: str
   # Scene by scene (`json_array`): each is checked and kept small before
   # the next is parsed, so memory stays near the file's size.
   try:
-    text = json_array.read_text(path, what='question file',
+    text = read_untrusted_text(path, what='question file',
                                 max_bytes=MAX_QUESTION_FILE_BYTES)
     return [checked_scene(scene, i, path) for i, scene in enumerate(
         json_array.elements(text, where=f'question file {path}',

@@ -1,34 +1,14 @@
 """A folder of your own videos: the dataset, its layout and its conversion.
 
-Layout (any tree under ``--source`` / ``config.data.source``)::
-
-    <source>/
-      clip.mp4  walk/b.webm  c.mov  d.avi  e.mkv  f.gif   # one video per file
-      seq_1/0001.png 0002.png ...                         # a folder of
-      seq_2/frame_1.jpg frame_2.jpg ...                   # numbered frames
-      [train/ val/ test/]                                 # optional splits
-
-A video is a file of a known suffix (``VIDEO_SUFFIXES``: decoded by the
-ffmpeg that ``imageio-ffmpeg`` ships; GIFs by Pillow) or a folder holding
-png / jpg files (its frames, in natural order: ``2.png`` before ``10.png``).
-When ``train/``, ``val/`` or ``test/`` is there the splits are those folders
-(videos elsewhere are left out); otherwise each video's split is drawn from
-a hash of its path relative to the source (``split_of``), so adding videos
-never moves an old one to another split.
-
-Each video keeps ``num_frames`` frames, every ``frame_stride``-th from its
-first (longer videos are cut, shorter ones skipped as 'too_short'), each
-resized to ``resolution`` keeping its aspect ratio: ``fit='crop'`` fills the
-frame and cuts the centre, ``'pad'`` shows it whole between black bars.
-Decoding streams: ffmpeg scales each frame before it reaches Python and
-stops after the last frame kept, so an hour-long or 4096x4096 video costs
-the memory of the frames kept. A file that cannot be used (empty, not a
-video, truncated before enough frames, a symlink leading out of the source
-or nowhere, a symlinked folder) is skipped with one line naming it, its name
-escaped.
-
-Stored item: ``video`` uint8 [num_frames, H, W, 3] RGB; ``video_name`` the
-path relative to the source (escaped). No masks, boxes or labels.
+A video is a file of a known suffix (``VIDEO_SUFFIXES``: ffmpeg from
+``imageio-ffmpeg``, GIFs by Pillow) or a folder of numbered png / jpg frames,
+anywhere under ``config.data.source``. Splits are ``train/``, ``val/``,
+``test/`` when present, else a stable hash of each relative path
+(``split_of``). Each keeps ``num_frames`` frames, every ``frame_stride``-th,
+cropped or padded to ``resolution``, decoded as a stream; unusable files are
+skipped, one escaped line each. Stored: ``video`` uint8 [num_frames, H, W, 3]
+RGB and ``video_name``; no masks. The layout in full: docs/datasets.md,
+"Your own videos".
 """
 
 from __future__ import annotations
