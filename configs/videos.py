@@ -18,6 +18,10 @@ own videos"):
 * data.num_frames 24 frames kept per video, every data.frame_stride = 2nd
   (30 fps -> 15): shorter videos are skipped. An object should move a few
   pixels between kept frames, not across the frame.
+* data.fps 0: the files' own rates. Videos of mixed rates: set it (e.g. 15)
+  and data.frame_stride = 1; each file is resampled to it first, then every
+  frame_stride-th frame kept. Folders of frames have no rate: skipped when
+  it is set.
 * savi.num_slots 7: the most objects in a frame, plus one for the
   background, plus one spare.
 * savi.clip_length 3 frames per SAVi training clip; slotformer.burn_in 6 +
@@ -43,6 +47,8 @@ def get_config(variant: str = ''):
   data.resolution = (64, 64)
   data.num_frames = 24
   data.frame_stride = 2
+  # Resample to this rate before the stride (0: each file's own rate).
+  data.fps = 0.0
   data.fit = 'crop'
   data.val_fraction = 0.1
   data.test_fraction = 0.1

@@ -10,9 +10,10 @@ and frames out, as the pipeline's stages compute them::
                                                   # .masks [10, N, H, W]
 
 What the model expects (``WorldModel.expected``) is read from the workdir's
-``config.json``: RGB uint8 frames of ``data.resolution``, every
-``data.frame_stride``-th frame of a file (a folder-of-videos run), and
-SlotFormer's burn-in and stride. Frames of another size are resized the way
+``config.json``: RGB uint8 frames of ``data.resolution``, a file resampled
+to ``data.fps`` and then every ``data.frame_stride``-th frame kept (a
+folder-of-videos run), and SlotFormer's burn-in and stride. ``read_video``
+reads a file that way; frames given to ``encode`` are taken as they are. Frames of another size are resized the way
 the folder dataset stores them (``data.fit``: crop or pad), with one logged
 notice, or refused in one line (``on_mismatch='refuse'``).
 
@@ -53,7 +54,8 @@ class Expected:
   Attributes:
     resolution: (H, W) of its frames.
     channel_order: 'rgb' (or 'bgr': an official CLEVRER model).
-    frame_stride: every n-th frame of a video file was kept (1: all).
+    fps: video files were resampled to this rate first (0: their own).
+    frame_stride: then every n-th frame was kept (1: all).
     fit: how frames of another aspect ratio are resized ('crop', 'pad').
     burn_in: slots SlotFormer reads before it predicts.
     rollout_stride: frames between two slots SlotFormer reads or predicts.
@@ -62,6 +64,7 @@ class Expected:
 
   resolution: tuple[int, int]
   channel_order: str
+  fps: float
   frame_stride: int
   fit: str
   burn_in: int
@@ -98,6 +101,7 @@ class WorldModel:
     self.expected = Expected(
         resolution=tuple(config.data.resolution),
         channel_order=config.data.channel_order,
+        fps=float(config.data.get('fps') or 0),
         frame_stride=int(config.data.get('frame_stride', 1)),
         fit=config.data.get('fit', 'crop'), burn_in=int(section.burn_in),
         rollout_stride=int(section.frame_stride))
@@ -131,16 +135,18 @@ class WorldModel:
   def read_video(self, path: str | os.PathLike[str],
                  max_frames: int | None = None) -> np.ndarray:
     """uint8 [T, H, W, 3]: a video file, GIF or folder of frames as the
-    model expects it (its resolution, fit and frame stride; at most
-    ``max_frames``, default 1000).
+    model expects it (its resolution, fit, frame rate and frame stride; at
+    most ``max_frames``, default 1000).
 
     Raises:
-      UserError: it cannot be decoded (one line naming it).
+      UserError: it cannot be decoded, or a folder of frames (no frame
+        rate) for a model trained at a set ``fps`` (one line naming it).
     """
     expected = self.expected
     options = video_files.Options(
         resolution=expected.resolution, num_frames=max_frames or 1000,
-        frame_stride=expected.frame_stride, fit=expected.fit)
+        fps=expected.fps, frame_stride=expected.frame_stride,
+        fit=expected.fit)
     try:
       frames = video_files.read_video(Path(path), options)
     except media.SkipVideo as error:

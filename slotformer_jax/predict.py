@@ -22,8 +22,9 @@ end of the clip, at most 100). Writes into ``--out`` (nothing elsewhere):
   holds the real frames of the whole rollout.
 
 The clip is read as the model's training videos were (resolution, crop or
-pad, frame stride: ``WorldModel.expected``); any file or folder the folder
-dataset reads (``datasets/videos.py``). Problems are one line and exit 1.
+pad, frame rate, frame stride: ``WorldModel.expected``); any file or folder
+the folder dataset reads (``datasets/videos.py``; a folder of frames has no
+rate: refused for a model trained at a set ``data.fps``). Problems are one line and exit 1.
 """
 
 from __future__ import annotations

@@ -208,6 +208,10 @@ _FIELD_KINDS = (
     (r'^vqa\.(open|choice)_batch_size$', 'int', 0, None, 'an integer >= 0'),
     # SAVi's encoder has no Transformer with 0 layers (the default).
     (r'^transformer\.num_layers$', 'int', 0, None, 'an integer >= 0'),
+    # A folder of videos resampled to this rate (datasets/videos.py states
+    # the same rule); before the int rule that `render.fps` follows.
+    (r'^data\.fps$', 'float', 0.0, 1000.0,
+     "a frame rate in [0, 1000] (0: the file's own)"),
     (r'batch_size$|_every$|^num_(slots|layers|heads|iterations|train_steps|'
      r'frames|candidates)$|^(slot|mlp|hidden|vocab|output|head|word|qkv)_size$|'
      r'^(embed_dim|d_model|kernel_size|chunk_length|clip_length|burn_in|'

@@ -47,7 +47,7 @@ _OPTION_FLAGS: dict[str, str] = {
     'max_objects': 'max_objects', 'masks': 'masks',
     'val_fraction': 'val_fraction', 'split_files': 'split_files',
     'test_fraction': 'test_fraction', 'frame_stride': 'frame_stride',
-    'fit': 'fit'}
+    'fps': 'fps', 'fit': 'fit'}
 
 
 def parse_resolution(text: str) -> tuple[int, int]:
@@ -111,7 +111,10 @@ def build_parser() -> argparse.ArgumentParser:
                       help='videos: share of a folder without split '
                       'folders hashed into test (0.1; --val_fraction: val)')
   parser.add_argument('--frame_stride', type=int, default=None,
-                      help='videos: keep every n-th frame (1)')
+                      help='videos: keep every n-th frame (1), after --fps')
+  parser.add_argument('--fps', type=float, default=None,
+                      help='videos: resample each file to this frame rate '
+                      'first (0: its own rate)')
   parser.add_argument('--fit', choices=('crop', 'pad'), default=None,
                       help='videos: fill the frame and cut the centre '
                       '(crop) or show it whole between black bars (pad)')

@@ -4,8 +4,10 @@ A video is a file of a known suffix (``VIDEO_SUFFIXES``: ffmpeg from
 ``imageio-ffmpeg``, GIFs by Pillow) or a folder of numbered png / jpg frames,
 anywhere under ``config.data.source``. Splits are ``train/``, ``val/``,
 ``test/`` when present, else a stable hash of each relative path
-(``split_of``). Each keeps ``num_frames`` frames, every ``frame_stride``-th,
-cropped or padded to ``resolution``, decoded as a stream; unusable files are
+(``split_of``). Each is resampled to ``fps`` frames per second (0: the
+file's own rate), then keeps ``num_frames`` frames, every
+``frame_stride``-th, cropped or padded to ``resolution``, decoded as a
+stream; unusable files are
 skipped, one escaped line each. Stored: ``video`` uint8 [num_frames, H, W, 3]
 RGB and ``video_name``; no masks. The layout in full: docs/datasets.md,
 "Your own videos".
@@ -16,10 +18,13 @@ from __future__ import annotations
 import dataclasses
 import functools
 import hashlib
+import math
 import os
 import subprocess
 import tempfile
 import threading
+from collections.abc import Iterable
+from collections.abc import Iterator
 from pathlib import Path
 
 import ml_collections
@@ -42,6 +47,13 @@ FRAME_SUFFIXES = ('.png', '.jpg', '.jpeg')
 FITS = ('crop', 'pad')
 # Seconds ffmpeg may take for one video before it is skipped ('too_slow').
 DECODE_TIMEOUT_S = 300.0
+# The highest data.fps (config/checks.py states the same rule).
+MAX_FPS = 1000.0
+FPS_RULE = "a frame rate in [0, 1000] (0: the file's own)"
+# A GIF frame shorter than this (ms; often 0: no duration) plays for
+# GIF_DEFAULT_MS, as browsers and ffmpeg's GIF reader play it.
+GIF_MIN_MS = 20
+GIF_DEFAULT_MS = 100
 CONVERTER_VERSION = 1
 
 LAYOUT = """\
@@ -58,7 +70,9 @@ class Options(base.ConversionOptions):
   Attributes:
     resolution: (H, W) of the stored frames.
     num_frames: frames kept per video (after the stride).
-    frame_stride: keep every n-th frame of the file (2 halves 30 fps).
+    fps: resample each video to this many frames per second first (0: the
+      file's own rate; a folder of frames has none and is skipped).
+    frame_stride: then keep every n-th frame (2 halves 30 fps).
     fit: 'crop' (fill the frame, cut the centre) or 'pad' (black bars).
     val_fraction, test_fraction: shares of the videos hashed into val and
       test when the source has no split folders.
@@ -66,6 +80,7 @@ class Options(base.ConversionOptions):
 
   resolution: tuple[int, int] = (64, 64)
   num_frames: int = 32
+  fps: float = 0.0
   frame_stride: int = 1
   fit: str = 'crop'
   val_fraction: float = 0.1
@@ -74,6 +89,11 @@ class Options(base.ConversionOptions):
 
   def __post_init__(self):
     super().__post_init__()
+    fps = self.fps
+    if (not isinstance(fps, (int, float)) or isinstance(fps, bool)
+        or not 0 <= fps <= MAX_FPS):
+      raise ValueError(f'fps must be {FPS_RULE}, got {fps!r}')
+    object.__setattr__(self, 'fps', float(fps))
     if self.frame_stride < 1:
       raise ValueError(f'frame_stride must be >= 1, got {self.frame_stride}')
     if self.fit not in FITS:
@@ -83,6 +103,13 @@ class Options(base.ConversionOptions):
       raise ValueError('val_fraction and test_fraction must be >= 0 with a '
                        f'sum below 1, got {self.val_fraction} and '
                        f'{self.test_fraction}')
+
+  @property
+  def params(self) -> dict[str, object]:
+    params = super().params
+    if not self.fps:  # the folders converted before fps existed stay found
+      del params['fps']
+    return params
 
 
 @dataclasses.dataclass(frozen=True)
@@ -211,6 +238,8 @@ def fit_frame(frame: np.ndarray, resolution: tuple[int, int], fit: str
 def _ffmpeg_filter(options: Options) -> str:
   height, width = options.resolution
   steps = []
+  if options.fps:  # resampled first: the frame shown at each 1/fps step
+    steps.append(f'fps={options.fps:.12g}')
   if options.frame_stride > 1:
     steps.append(f'select=not(mod(n\\,{options.frame_stride}))')
   if options.fit == 'crop':
@@ -286,8 +315,37 @@ def decode_file(path: Path, options: Options, *, name: str = '',
   return np.stack(frames)
 
 
+def at_rate(frames: Iterable[tuple[np.ndarray, float]], fps: float
+            ) -> Iterator[np.ndarray]:
+  """The frame shown at each 1/``fps`` step of (frame, duration in ms)
+  pairs, as ffmpeg's ``fps`` filter picks it: frame i, starting at t_i,
+  falls on step round(t_i * fps) (halves up), and each step shows the last
+  frame that fell on it or before; as many steps as round(total * fps),
+  at least one."""
+  elapsed, step, previous = 0.0, 0, None
+  for frame, duration_ms in frames:
+    slot = math.floor(elapsed * fps / 1000 + 0.5)
+    while previous is not None and step < slot:
+      yield previous
+      step += 1
+    previous, elapsed = frame, elapsed + duration_ms
+  if previous is None:
+    return
+  for _ in range(step, max(math.floor(elapsed * fps / 1000 + 0.5), 1)):
+    yield previous
+
+
+def _gif_frames(image: Image.Image) -> Iterator[tuple[np.ndarray, float]]:
+  """(RGB frame, duration in ms) of each frame of a GIF, one at a time."""
+  for frame in ImageSequence.Iterator(image):
+    duration = frame.info.get('duration') or 0
+    yield (np.asarray(frame.convert('RGB')),
+           duration if duration >= GIF_MIN_MS else GIF_DEFAULT_MS)
+
+
 def decode_gif(path: Path, options: Options, *, name: str = '') -> np.ndarray:
-  """uint8 [<= num_frames, H, W, 3] of a GIF, one frame decoded at a time.
+  """uint8 [<= num_frames, H, W, 3] of a GIF, one frame decoded at a time
+  (resampled to ``options.fps`` by its frame durations: ``at_rate``).
 
   Raises:
     media.SkipVideo('unreadable_video'): not a GIF Pillow can decode, or
@@ -302,11 +360,13 @@ def decode_gif(path: Path, options: Options, *, name: str = '') -> np.ndarray:
         raise media.SkipVideo('unreadable_video', f'{name}: {width}x{height}'
                               ' pixels per frame is more than '
                               f'{media.MAX_IMAGE_PIXELS}')
-      for index, frame in enumerate(ImageSequence.Iterator(image)):
+      stream = _gif_frames(image)
+      shown_frames = (at_rate(stream, options.fps) if options.fps
+                      else (frame for frame, _ in stream))
+      for index, frame in enumerate(shown_frames):
         if index % options.frame_stride:
           continue
-        frames.append(fit_frame(np.asarray(frame.convert('RGB')),
-                                options.resolution, options.fit))
+        frames.append(fit_frame(frame, options.resolution, options.fit))
         if len(frames) == options.num_frames:
           break
   except media.SkipVideo:
@@ -325,8 +385,14 @@ def decode_frames(folder: Path, options: Options, *, name: str = ''
   """uint8 [<= num_frames, H, W, 3] of a folder of numbered frames.
 
   Raises:
-    media.SkipVideo('unreadable_frame'): a frame cannot be read (named).
+    media.SkipVideo: 'unknown_rate' (``options.fps`` set: frames have no
+      rate), 'unreadable_frame' (a frame cannot be read: named).
   """
+  if options.fps:
+    raise media.SkipVideo('unknown_rate', f'{name or shown(folder)}: a '
+                          'folder of frames has no frame rate to resample '
+                          f'to fps {options.fps:g}: data.fps=0 reads it '
+                          '(data.frame_stride thins it)')
   files = _frame_files(folder)[::options.frame_stride][:options.num_frames]
   if not files:
     raise media.SkipVideo('unreadable_video', f'{name or shown(folder)}: no '
@@ -389,8 +455,9 @@ def convert_video(job: VideoJob, options: Options) -> dict[str, object]:
     raise refused
   video = read_video(job.path, options, job.key)
   if len(video) < options.num_frames:
+    rate = f'fps {options.fps:g}, ' if options.fps else ''
     raise media.SkipVideo(
-        'too_short', f'{job.key}: {len(video)} frames (frame_stride '
+        'too_short', f'{job.key}: {len(video)} frames ({rate}frame_stride '
         f'{options.frame_stride}), {options.num_frames} needed '
         '(data.num_frames)')
   return {'video': video, 'video_name': job.key}
@@ -405,7 +472,8 @@ def features(options: Options) -> tfds.features.FeaturesDict:
 
 
 def describe(options: Options) -> str:
-  return (f'A folder of videos: {options.num_frames} frames (every '
+  rate = f'{options.fps:g} fps, ' if options.fps else ''
+  return (f'A folder of videos: {options.num_frames} frames ({rate}every '
           f'{options.frame_stride}) at {options.resolution[0]}x'
           f'{options.resolution[1]}, {options.fit}, RGB.')
 
@@ -429,6 +497,8 @@ def options_of(data_config: ml_collections.ConfigDict) -> Options:
   fields = {f.name for f in dataclasses.fields(Options)}
   values = {k: data_config[k] for k in fields if k in data_config}
   values['resolution'] = tuple(values.get('resolution', (64, 64)))
+  if values.get('fps') is None:  # an unset placeholder: the file's own rate
+    values.pop('fps', None)
   return Options(**values)
 
 

@@ -3,6 +3,7 @@ with imageio (mp4, gif) and Pillow (a folder of png frames), next to the bad
 files a real folder holds; converted by the data stage from
 `config.data.source`, read back, and the tiny pipeline run on them."""
 
+import dataclasses
 import json
 import logging
 import os
@@ -52,6 +53,17 @@ def moving_square(num_frames, height, width, seed):
 
 def write_mp4(path, frames):
   imageio.mimwrite(path, frames, fps=10, macro_block_size=1)
+
+
+def numbered_frames(count):
+  """uint8 [count, 16, 16, 3]: frame i gray at 12 * i, told apart after a
+  lossy codec by ``frame_numbers``."""
+  return np.stack([np.full((16, 16, 3), 12 * i, np.uint8)
+                   for i in range(count)])
+
+
+def frame_numbers(frames):
+  return [int(round(float(frame.mean()) / 12)) for frame in frames]
 
 
 def write_pngs(folder, frames):
@@ -300,6 +312,62 @@ def test_a_long_video_decodes_only_the_frames_kept(tmp_path):
     videos.decode_file(path, options, timeout_s=0.0)
 
 
+def test_fps_resamples_an_mp4_and_a_gif_alike_before_the_stride(tmp_path):
+  frames = numbered_frames(20)
+  imageio.mimwrite(tmp_path / 'a.mp4', frames, fps=20, macro_block_size=1)
+  Image.fromarray(frames[0]).save(
+      tmp_path / 'a.gif', save_all=True, duration=50,  # ms: 20 fps
+      append_images=[Image.fromarray(frame) for frame in frames[1:]])
+  expected = {(0, 1): list(range(20)), (10, 1): list(range(0, 20, 2)),
+              (10, 2): list(range(0, 20, 4)),
+              # ffmpeg's fps filter: the last frame starting before each
+              # step's midpoint.
+              (7, 1): [1, 4, 7, 9, 12, 15, 18]}
+  for (fps, stride), numbers in expected.items():
+    options = videos.Options(resolution=(16, 16), num_frames=100, fps=fps,
+                             frame_stride=stride)
+    for name in ('a.mp4', 'a.gif'):
+      got = videos.read_video(tmp_path / name, options)
+      assert frame_numbers(got) == numbers, (name, fps, stride)
+  # num_frames still bounds the frames decoded.
+  assert len(videos.read_video(tmp_path / 'a.mp4', videos.Options(
+      resolution=(16, 16), num_frames=3, fps=40))) == 3
+
+
+def test_a_gif_without_durations_plays_at_10_fps(tmp_path):
+  frames = numbered_frames(10)
+  Image.fromarray(frames[0]).save(
+      tmp_path / 'a.gif', save_all=True,
+      append_images=[Image.fromarray(frame) for frame in frames[1:]])
+  got = videos.read_video(tmp_path / 'a.gif', videos.Options(
+      resolution=(16, 16), num_frames=100, fps=5))
+  assert frame_numbers(got) == [0, 2, 4, 6, 8]
+
+
+def test_a_folder_of_frames_has_no_rate_to_resample(tmp_path):
+  write_pngs(tmp_path / 'seq', numbered_frames(4))
+  with pytest.raises(media.SkipVideo, match='unknown_rate: .*data.fps=0'):
+    videos.read_video(tmp_path / 'seq', videos.Options(
+        resolution=(16, 16), num_frames=2, fps=10))
+
+
+def test_data_fps_is_checked_before_any_work(tmp_path):
+  config = videos_config(tmp_path, tmp_path / 'data')
+  for good in (0, 12.5):
+    config.data.fps = good
+    check(config, ('prepare_data',))
+  for bad in (-1, 5000, float('nan')):
+    config.data.fps = bad
+    with pytest.raises(ConfigError) as error:
+      check(config, ('prepare_data',))
+    message = str(error.value)
+    assert message.count('data.fps must be a frame rate in [0, 1000]') == 1
+    assert '\n' not in message
+  assert videos.Options(fps=10).params != videos.Options().params
+  # A folder converted before fps existed keeps its name.
+  assert 'fps' not in videos.Options().params
+
+
 def test_the_config_names_a_missing_source_in_one_line(tmp_path):
   config = videos_config(tmp_path / 'nowhere', tmp_path / 'data')
   with pytest.raises(ConfigError, match='is not a folder'):
@@ -338,6 +406,7 @@ def test_the_api_gives_the_stages_slots_and_rollouts(trained):
   config, workdir, _, _ = trained
   model = api.WorldModel.load(workdir)
   assert model.expected.resolution == RESOLUTION
+  assert model.expected.fps == config.data.fps == 0
   run = Run.create(config, str(workdir), sharding.make_mesh())
   stage_slots = slots_of(config, workdir, 'test')
   videos_ = run.videos('test')
@@ -373,6 +442,19 @@ def test_the_api_resizes_with_a_notice_or_refuses(trained, caplog):
     api.WorldModel.load(workdir, on_mismatch='refuse').encode(big)
   with pytest.raises(UserError, match='uint8'):
     api.WorldModel.load(workdir).encode(big.astype(np.float32))
+
+
+def test_the_api_reads_a_file_at_the_models_frame_rate(trained, tmp_path):
+  _, workdir, _, _ = trained
+  model = api.WorldModel.load(workdir)
+  # As a model trained with data.fps=10 and data.frame_stride=1 reads.
+  model.expected = dataclasses.replace(model.expected, fps=10.0)
+  clip = tmp_path / 'clip.mp4'
+  imageio.mimwrite(clip, numbered_frames(20), fps=20, macro_block_size=1)
+  assert frame_numbers(model.read_video(clip)) == list(range(0, 20, 2))
+  write_pngs(tmp_path / 'seq', numbered_frames(4))
+  with pytest.raises(UserError, match='no frame rate'):
+    model.read_video(tmp_path / 'seq')
 
 
 def test_predict_draws_a_clip_that_is_not_in_the_folder(trained, tmp_path,
