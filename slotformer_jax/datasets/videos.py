@@ -20,6 +20,7 @@ import functools
 import hashlib
 import math
 import os
+import re
 import subprocess
 import tempfile
 import threading
@@ -252,6 +253,12 @@ def _ffmpeg_filter(options: Options) -> str:
   return ','.join(steps)
 
 
+# ffmpeg 6+: 'no decoder found for: none'; older: 'Decoder (codec none) not
+# found for input stream'.
+_NO_DECODER = re.compile(r'no decoder found|decoder \(codec .*\) not found',
+                         re.IGNORECASE)
+
+
 class _Deadline(threading.Timer):
   """A Timer that records whether it fired."""
 
@@ -272,7 +279,8 @@ def decode_file(path: Path, options: Options, *, name: str = '',
   after the last one.
 
   Raises:
-    media.SkipVideo: 'unreadable_video' (ffmpeg decodes no frame: names its
+    media.SkipVideo: 'unsupported_codec' (ffmpeg has no decoder for its
+      video stream), 'unreadable_video' (ffmpeg decodes no frame: names its
       last error line), 'too_slow' (more than ``timeout_s``).
   """
   import imageio_ffmpeg  # pylint: disable=g-import-not-at-top
@@ -310,6 +318,12 @@ def decode_file(path: Path, options: Options, *, name: str = '',
     if not frames:
       errors.seek(0)
       lines = errors.read(4000).decode('utf-8', 'replace').strip().splitlines()
+      codec = [line for line in lines if _NO_DECODER.search(line)]
+      if codec:  # ffmpeg's last line is then 'Error opening output files'
+        line = re.sub(r'^\[[^]]*\]\s*', '', codec[0])  # '[vist#0:0 @ 0x..]'
+        raise media.SkipVideo('unsupported_codec', f'{name}: ffmpeg has no '
+                              'decoder for its video stream '
+                              f'({shown(line, 200)})')
       raise media.SkipVideo('unreadable_video', f'{name}: ' + shown(
           lines[-1] if lines else 'no frame could be decoded', 200))
   return np.stack(frames)

@@ -7,6 +7,7 @@ import dataclasses
 import json
 import logging
 import os
+import time
 import warnings
 
 import imageio.v2 as imageio
@@ -55,6 +56,16 @@ def write_mp4(path, frames):
   imageio.mimwrite(path, frames, fps=10, macro_block_size=1)
 
 
+def write_unknown_codec(path):
+  """An mp4 whose H.264 stream is tagged with a codec no one knows."""
+  write_mp4(path, moving_square(8, 16, 16, 0))
+  data = path.read_bytes() if hasattr(path, 'read_bytes') else open(
+      path, 'rb').read()
+  assert b'avc1' in data
+  with open(path, 'wb') as f:
+    f.write(data.replace(b'avc1', b'zzzz'))
+
+
 def numbered_frames(count):
   """uint8 [count, 16, 16, 3]: frame i gray at 12 * i, told apart after a
   lossy codec by ``frame_numbers``."""
@@ -100,6 +111,7 @@ def write_folder(root):
     f.write(data[:len(data) // 2])
   write_mp4(os.path.join(train, 'one_frame.mp4'), moving_square(1, 16, 16, 0))
   write_mp4(os.path.join(train, 'short.mp4'), moving_square(5, 16, 16, 0))
+  write_unknown_codec(os.path.join(train, 'codec.mp4'))
   os.symlink('/etc/hostname', os.path.join(train, 'outside.mp4'))
   os.symlink('self.mp4', os.path.join(train, 'self.mp4'))
   os.symlink('..', os.path.join(train, 'up'))
@@ -110,7 +122,8 @@ def write_folder(root):
 
 SKIPPED = {'empty.mp4': 'empty_file', 'notes.mp4': 'unreadable_video',
            'truncated.mp4': 'unreadable_video', 'one_frame.mp4': 'too_short',
-           'short.mp4': 'too_short', 'outside.mp4': 'outside_source',
+           'short.mp4': 'too_short', 'codec.mp4': 'unsupported_codec',
+           'outside.mp4': 'outside_source',
            'self.mp4': 'broken_symlink', 'up': 'symlinked_folder',
            'bell\\x07\\x1b[2J.mp4': 'too_short'}
 
@@ -310,6 +323,19 @@ def test_a_long_video_decodes_only_the_frames_kept(tmp_path):
   assert frames.shape == (5, 16, 16, 3)
   with pytest.raises(media.SkipVideo, match='too_slow'):
     videos.decode_file(path, options, timeout_s=0.0)
+
+
+def test_a_codec_ffmpeg_cannot_decode_is_one_line_at_once(tmp_path):
+  path = tmp_path / 'codec\x1b.mp4'
+  write_unknown_codec(path)
+  start = time.monotonic()
+  with pytest.raises(media.SkipVideo) as error:
+    videos.read_video(path, videos.Options(resolution=RESOLUTION))
+  assert time.monotonic() - start < 10
+  assert error.value.reason == 'unsupported_codec'
+  assert 'no decoder' in error.value.message, error.value.message
+  assert '\\x1b' in error.value.message
+  assert not any(ch in error.value.message for ch in '\x1b\n')
 
 
 def test_fps_resamples_an_mp4_and_a_gif_alike_before_the_stride(tmp_path):
