@@ -13,9 +13,10 @@ What the model expects (``WorldModel.expected``) is read from the workdir's
 ``config.json``: RGB uint8 frames of ``data.resolution``, a file resampled
 to ``data.fps`` and then every ``data.frame_stride``-th frame kept (a
 folder-of-videos run), and SlotFormer's burn-in and stride. ``read_video``
-reads a file that way; frames given to ``encode`` are taken as they are. Frames of another size are resized the way
-the folder dataset stores them (``data.fit``: crop or pad), with one logged
-notice, or refused in one line (``on_mismatch='refuse'``).
+reads a file that way; frames given to ``encode`` are taken as they are.
+Frames of another size are resized the way the folder dataset stores them
+(``data.fit``: crop or pad), with one logged notice, or refused in one line
+(``on_mismatch='refuse'``).
 
 Each function is jitted once per input shape, on one device of any backend.
 Nothing here imports training code (tests/test_layout.py).

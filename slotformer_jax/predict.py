@@ -24,7 +24,8 @@ end of the clip, at most 100). Writes into ``--out`` (nothing elsewhere):
 The clip is read as the model's training videos were (resolution, crop or
 pad, frame rate, frame stride: ``WorldModel.expected``); any file or folder
 the folder dataset reads (``datasets/videos.py``; a folder of frames has no
-rate: refused for a model trained at a set ``data.fps``). Problems are one line and exit 1.
+rate: refused for a model trained at a set ``data.fps``). Problems are one
+line and exit 1.
 """
 
 from __future__ import annotations
