@@ -205,6 +205,7 @@ def encode_videos(source: pipeline.Source, encode_chunk: ChunkFn, *,
   plan = list(pipeline.host_batches(len(source), batch_size, process_index,
                                     process_count,
                                     multiple_of=len(mesh.local_devices)))
+  progress.compiling(desc, 'chunk')
   for batch_index, (indices, valid) in enumerate(progress.bar(
       plan, desc=desc, unit='batch')):
     items = [source[int(i)] for i in indices]
@@ -221,12 +222,18 @@ def encode_videos(source: pipeline.Source, encode_chunk: ChunkFn, *,
       carry = sharding.to_global_batch(
           {field: np.stack([np.asarray(item[field][0]) for item in items])
            for field in conditioning_fields}, mesh)
+    # A long video is one unit of the bar: its chunks say more.
+    steps = progress.Steps(f'{desc} batch {batch_index + 1}/{len(plan)}',
+                           num_chunks, 'chunks')
     for chunk in range(num_chunks):
       frames = padded[:, chunk * chunk_length:(chunk + 1) * chunk_length]
       out, carry = encode_chunk(
           batch_index, chunk,
           sharding.to_global_batch({'video': frames}, mesh)['video'], carry)
       chunks.append(out)
+      if chunk:  # the one before is done (one chunk stays in flight)
+        jax.block_until_ready(chunks[-2])
+        steps.reached(chunk)
     gathered = sharding.gather_to_host({
         'out': jnp.concatenate(chunks, axis=1),
         **sharding.to_global_batch(

@@ -206,7 +206,8 @@ def make_rollout_evaluator(eval_config: ml_collections.ConfigDict, mesh: Mesh,
     def one_step(inputs):
       """All methods at one rollout step: the ground-truth frames' LPIPS
       features are computed once and shared by every method."""
-      slots_by_method, frame, seg, gt_boxes = inputs
+      index, (slots_by_method, frame, seg, gt_boxes) = inputs
+      progress.tick(index)
       frame = model_to_unit(frames_to_model(frame))
       target = lpips_fn.features(frame) if with_lpips else None
       score = lambda decoded: step_metrics(decoded, frame, seg, gt_boxes,
@@ -217,10 +218,10 @@ def make_rollout_evaluator(eval_config: ml_collections.ConfigDict, mesh: Mesh,
       return out
 
     # lax.map keeps one step's decoded frames in memory at a time.
-    return jax.lax.map(one_step, (
+    return jax.lax.map(one_step, (jnp.arange(frames.shape[1]), (
         {method: time_major(slots) for method, slots in predictions.items()},
         time_major(frames), time_major(segmentation),
-        jax.tree.map(time_major, boxes)))
+        jax.tree.map(time_major, boxes))))
 
   replicated = sharding.replicated_sharding(mesh)
   return jax.jit(evaluate_batch,
@@ -323,13 +324,18 @@ def evaluate_slot_model(eval_config: ml_collections.ConfigDict,
   psnr_sum, fg_ari_sum, fg_ari_count, num_valid_frames = 0.0, 0.0, 0, 0
   num_videos = 0
   has_psnr = False
-  for batch in progress.bar(
+  what = f'evaluate {slot_model.label}'
+  num_batches = pipeline.num_eval_batches(source, **batch_args)
+  progress.compiling(what, 'chunk')
+  for batch_number, batch in enumerate(progress.bar(
       pipeline.eval_batches(source, num_frames=num_frames, **batch_args),
-      desc=f'evaluate {slot_model.label}', unit='batch',
-      total=pipeline.num_eval_batches(source, **batch_args)):
+      desc=what, unit='batch', total=num_batches)):
     mask = sharding.gather_to_host(
         sharding.to_global_batch({'mask': batch['mask']}, mesh))['mask']
     totals, carry = {}, None
+    # A split in one batch is one unit of the bar: its chunks say more.
+    chunks = progress.Steps(f'{what} batch {batch_number + 1}/{num_batches}',
+                            math.ceil(num_frames / chunk), 'chunks')
     for start in range(0, num_frames, chunk):
       pieces = {field: _padded_time_slice(batch[field], start, chunk)
                 for field in fields}
@@ -353,6 +359,7 @@ def evaluate_slot_model(eval_config: ml_collections.ConfigDict,
         miou_frames += list(np.asarray(score.value)[np.asarray(score.valid)])
       for key, value in out.items():
         totals[key] = totals.get(key, 0) + value
+      chunks.advance()
     if 'psnr_sum' in totals:
       has_psnr = True
       psnr_sum += float(totals['psnr_sum'][mask].sum())
@@ -544,16 +551,22 @@ def evaluate(eval_config: ml_collections.ConfigDict,
       len(source) * rollout * (len(dynamics) + 2),
       f'--config.evaluation.num_videos (now {eval_config.num_videos}) or '
       '--config.evaluation.rollout_steps')
-  for batch in progress.bar(
+  num_batches = pipeline.num_eval_batches(source, **shared)
+  progress.compiling('evaluate rollouts', 'batch')
+  for batch_number, batch in enumerate(progress.bar(
       pipeline.eval_batches(source, num_frames=needed, **shared),
-      desc='evaluate rollouts', unit='batch',
-      total=pipeline.num_eval_batches(source, **shared)):
+      desc='evaluate rollouts', unit='batch', total=num_batches)):
     mask = batch.pop('mask')
     batch.pop('index')
     for field in batch:
       batch[field] = batch[field][:, ::stride]
-    out = sharding.gather_to_host(evaluator(
-        dynamics_params, slot_params, sharding.to_global_batch(batch, mesh)))
+    # The rollout steps of one batch (a split in one batch: the only unit).
+    with progress.ticking(progress.Steps(
+        f'evaluate rollouts batch {batch_number + 1}/{num_batches}', rollout,
+        'rollout steps')):
+      out = sharding.gather_to_host(evaluator(
+          dynamics_params, slot_params,
+          sharding.to_global_batch(batch, mesh)))
     mask = sharding.gather_to_host(
         sharding.to_global_batch({'mask': mask}, mesh))['mask']
     for method, per_metric in out.items():

@@ -166,11 +166,15 @@ class Explorer:
     everything = jnp.concatenate([counterfactual, other_slots], axis=1)
     rows_presence = jnp.concatenate(
         [presence, jnp.ones((len(others), num_slots), bool)])
-    # One frame of every row at a time: [T, V, rows, N, D].
+    # One frame of every row at a time: [T, V, rows, N, D]; each frame
+    # ticks the progress (minutes a video with STEVE on a CPU).
+    def decode_frame(inputs):
+      index, frame = inputs
+      progress.tick(index)
+      return self.slot_model.decode(slot_params, frame, rows_presence)
+    time_major = jnp.moveaxis(everything, 2, 0)
     decoded = jax.lax.map(
-        lambda frame: self.slot_model.decode(slot_params, frame,
-                                             rows_presence),
-        jnp.moveaxis(everything, 2, 0))
+        decode_frame, (jnp.arange(time_major.shape[0]), time_major))
     move = lambda x: jnp.moveaxis(x, 0, 2)  # -> [V, rows, T, ...]
     # What the page draws first: the frames, or (a SAVi reconstructing no
     # frames) its first target; the other targets as rows of their own.
@@ -554,12 +558,16 @@ def explore(explore_config: ml_collections.ConfigDict,
       f'--config.explore.num_videos (now {explore_config.num_videos}) or '
       '--config.evaluation.rollout_steps')
   slot_params = jax.device_get(slot_params)
-  # One video at a time: the bar's rate tells how long the rest takes.
-  per_video = [jax.device_get(explorer(
-      dynamics_params, slot_params, slots[v:v + 1], videos[v:v + 1],
-      None if segmentation is None else segmentation[v:v + 1]))
-               for v in progress.bar(range(count), desc='explore',
-                                     unit='video')]
+  # One video at a time: the bar's rate tells how long the rest takes; the
+  # frames decoded inside one video are lines of their own.
+  progress.compiling('explore', 'video')
+  per_video = []
+  for v in progress.bar(range(count), desc='explore', unit='video'):
+    with progress.ticking(progress.Steps(
+        f'explore video {v + 1}/{count}', burn_in + rollout, 'frames')):
+      per_video.append(jax.device_get(explorer(
+          dynamics_params, slot_params, slots[v:v + 1], videos[v:v + 1],
+          None if segmentation is None else segmentation[v:v + 1])))
   out = jax.tree.map(lambda *parts: np.concatenate(parts), *per_video)
   computed = time.perf_counter() - start
   curves, note = run_curves(metrics_path, identity,

@@ -3,7 +3,7 @@
 Saves are asynchronous; a run killed mid-save leaves only a temporary folder
 that orbax ignores, so the next run resumes from the last complete step.
 
-Once orbax has finished a step, process 0 writes `<step>/sha256.json`: the
+Once orbax has committed a step, process 0 writes `<step>/sha256.json`: the
 size and SHA-256 of every file of the step. A restore checks it first, so a
 step whose bytes differ from what was saved (a disk fault, a truncated or
 overwritten file) is never loaded: training sets it aside as
@@ -146,6 +146,8 @@ class Checkpointer:
         self._digester = threading.Thread(
             target=self._digest_when_finished, args=(step,),
             name=f'checkpoint digest {step}', daemon=True)
+        # A watchdog ending this process (a peer lost) waits for it first.
+        processes.before_exit(self._digest_before_exit)
         self._digester.start()
     except Exception as error:  # pylint: disable=broad-except
       # Async: the failure may be this save's or an earlier one's.
@@ -160,14 +162,19 @@ class Checkpointer:
     return steps[-1] if steps else 'none'
 
   def _digest_when_finished(self, step: int) -> None:
-    """(A thread of process 0.) Once orbax has finished `step`, records its
-    digest; a failed save is reported by the next save or wait instead."""
-    try:
-      self._manager.wait_until_finished()
-    except Exception:  # pylint: disable=broad-except
-      return
+    """(A thread of process 0.) Once orbax has committed `step` (renamed its
+    temporary folder to `<step>`), records its digest. Not after
+    `wait_until_finished`: after the commit orbax still waits for every
+    process at a barrier, which a process killed just then never reaches,
+    and the step would stay without a digest (damaged). A failed save
+    leaves no folder; the next save or wait reports it."""
     step_directory = os.path.join(self.directory, str(step))
     try:
+      # Saving ends (the barrier passed) only after the commit: a folder
+      # absent then never comes.
+      while (not os.path.isdir(step_directory)
+             and self._manager.is_saving_in_progress()):
+        time.sleep(0.02)
       if os.path.isdir(step_directory):
         write_digest(step_directory)
     except OSError as error:
@@ -175,6 +182,15 @@ class Checkpointer:
                      '(%s); a restore will not take it as intact (it uses '
                      'the step before)', step, self.directory, DIGEST_FILE,
                      brief(error))
+    finally:
+      processes.not_before_exit(self._digest_before_exit)
+
+  def _digest_before_exit(self, seconds: float) -> None:
+    """(`processes.before_exit` hook.) Up to `seconds` for the digest in
+    flight: the survivor of a lost peer must not end before it."""
+    digester = self._digester
+    if digester is not None:
+      digester.join(seconds)
 
   def _join_digester(self) -> None:
     if self._digester is not None:

@@ -14,7 +14,8 @@ stop, and noticing a lost one.
   early for any reason (Ctrl-C, an error, outside training too) `leave`s: it
   writes why, and the others stop with one line naming it and the reason.
   Process 0 runs jax's coordination service, whose end aborts the others:
-  it always leaves last.
+  it always leaves last. Before it ends, the `before_exit` hooks run
+  (bounded): the digest of a checkpoint committed just before is written.
 
 The start (a bounded wait for every process, and their agreement on what
 they run) is `startup.py`.
@@ -26,6 +27,7 @@ import os
 import sys
 import threading
 import time
+from collections.abc import Callable
 
 import jax
 import numpy as np
@@ -37,6 +39,40 @@ from slotformer_jax.errors import shown
 # Exit statuses that end a process as planned (done, SIGINT, SIGTERM).
 CLEAN_EXITS = (0, 128 + 2, 128 + 15)
 LOST_PROCESS_EXIT = 1
+
+# What the watchdog's exit (`os._exit`, no atexit) runs first, each hook
+# given the seconds left of `EXIT_GRACE_SECONDS` in all: the digest of a
+# checkpoint orbax has committed (checkpoint.py registers it while one is
+# in flight). A registry, not an import: checkpoint.py imports this module.
+EXIT_GRACE_SECONDS = 5.0
+_before_exit: list[Callable[[float], None]] = []
+
+
+def before_exit(hook: Callable[[float], None]) -> None:
+  """Runs `hook(seconds_left)` before the watchdog ends the process."""
+  _before_exit.append(hook)
+
+
+def not_before_exit(hook: Callable[[float], None]) -> None:
+  """Undoes `before_exit(hook)` (nothing if it was not registered)."""
+  try:
+    _before_exit.remove(hook)
+  except ValueError:
+    pass
+
+
+def _run_before_exit(seconds: float) -> None:
+  """Every registered hook, within `seconds` in all; errors ignored (the
+  process is ending for another reason, already said)."""
+  deadline = time.monotonic() + seconds
+  for hook in list(_before_exit):
+    left = deadline - time.monotonic()
+    if left <= 0:
+      return
+    try:
+      hook(left)
+    except Exception:  # pylint: disable=broad-except
+      pass
 
 
 def check_flags(coordinator_address: str | None, num_processes: int | None,
@@ -215,7 +251,11 @@ class PeerWatchdog:
     in a collective with a lost process, and jax's exit handlers would wait
     for it (then abort). Process 0 first waits (up to `timeout`) for the
     others to end: it holds jax's coordination service, and its end aborts
-    every process still connected, with a stack dump."""
+    every process still connected, with a stack dump. Before either, the
+    `before_exit` hooks (up to `EXIT_GRACE_SECONDS`): a checkpoint committed
+    just before a peer died keeps its digest, so the rerun can resume from
+    it."""
+    _run_before_exit(EXIT_GRACE_SECONDS)
     if self.process_id == 0:
       self._wait_for_peers_to_end()
     sys.stdout.flush()

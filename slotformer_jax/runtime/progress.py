@@ -7,11 +7,19 @@ number of tokens) decoder passes, so a few videos of rollout pictures are
 minutes of work on a CPU. The stages that decode (evaluation, render, the
 explorer, the contact pictures) call `announce_decoding` before they start
 and show a bar whose rate and time left come from the work already done.
+
+A bar whose one unit takes minutes (one video of the explorer, a split that
+is one batch) would sit at 0/1: `Steps` says the sub-steps inside it (the
+chunks of a batch, the frames a jitted loop decodes: `tick` inside the
+jitted body), at most one line every `STEP_LINE_SECONDS`. `compiling`
+says, before a program's first call, why the first unit takes longer.
 """
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import time
 from typing import Any, Iterable, Iterator, TypeVar
 
 import jax
@@ -20,6 +28,10 @@ import tqdm
 logger = logging.getLogger(__name__)
 
 T = TypeVar('T')
+
+# Seconds between two lines of one unit's sub-steps: minutes of work say
+# where they are; a unit done sooner says nothing.
+STEP_LINE_SECONDS = 30.0
 
 
 def bar(items: Iterable[T], *, desc: str, total: int | None = None,
@@ -47,3 +59,71 @@ def announce_decoding(what: str, slot_model: Any, num_frames: int,
       'a frame; %d frames = %d sequential passes on %s%s. Shorten with %s.',
       what, slot_model.label, steps, num_frames, steps * num_frames,
       platform.upper(), slow, shorten)
+
+
+def compiling(what: str, first: str) -> None:
+  """One log line before `what`'s first call compiles its program (minutes
+  on a CPU without a line otherwise); `first`: what takes longer."""
+  if jax.process_index() == 0:
+    logger.info('%s: compiling (the first %s takes longer)', what, first)
+
+
+class Steps:
+  """The sub-steps of one long unit, e.g. the chunks of a batch of videos:
+  '<what>: <done>/<total> <unit> (<s> s each, ~<s> s left)' on the lead
+  host, at most one line every `STEP_LINE_SECONDS`."""
+
+  def __init__(self, what: str, total: int, unit: str = 'step'):
+    self.what, self.total, self.unit = what, total, unit
+    self.done = 0
+    self._started = self._said = time.monotonic()
+
+  def reached(self, done: int) -> None:
+    """`done` sub-steps are finished (a count that goes back is ignored:
+    the devices of a sharded loop each report the same step)."""
+    if done <= self.done:
+      return
+    self.done = min(done, self.total)
+    now = time.monotonic()
+    if now - self._said < STEP_LINE_SECONDS or jax.process_index() != 0:
+      return
+    self._said = now
+    each = (now - self._started) / self.done
+    logger.info('%s: %d/%d %s (%.1f s each, ~%.0f s left)', self.what,
+                self.done, self.total, self.unit, each,
+                each * (self.total - self.done))
+
+  def advance(self) -> None:
+    self.reached(self.done + 1)
+
+
+# The `Steps` that `tick`s inside a jitted call count (`ticking`).
+_ticking: Steps | None = None
+
+
+@contextlib.contextmanager
+def ticking(steps: Steps) -> Iterator[Steps]:
+  """Within it, `tick(i)` in a jitted program's loop body reports to
+  `steps` that i steps are done when the device reaches step i."""
+  global _ticking  # pylint: disable=global-statement
+  before, _ticking = _ticking, steps
+  try:
+    yield steps
+  finally:
+    _ticking = before
+
+
+def _reached(index: Any) -> None:
+  steps = _ticking
+  if steps is not None:
+    steps.reached(int(index))
+
+
+def tick(index: jax.Array) -> None:
+  """(Traced, at the start of a loop body.) Loop step `index` (0-based)
+  starts: `index` steps are done, counted by the `ticking` Steps, if any,
+  on the host. On CPU only, where one unit takes minutes: on an accelerator
+  a host callback in the loop would be a round trip per step, and the
+  compiled program stays the one without it."""
+  if jax.default_backend() == 'cpu':
+    jax.debug.callback(_reached, index)

@@ -17,6 +17,8 @@ import itertools
 import json
 import logging
 import os
+import threading
+import time
 
 import jax
 from jax.sharding import Mesh
@@ -534,3 +536,95 @@ def test_extraction_keeps_slots_of_a_lost_newer_step(tmp_path):
   extract._refuse_lost_steps(  # pylint: disable=protected-access
       run, 'slots/train', {'savi_run_id': 'old', 'savi_step': 20},
       {'savi_run_id': 'r', 'savi_step': 10}, 'SAVi')
+
+
+# --------------------------------------------------------------------------
+# A peer killed right after a save: the survivor's watchdog exit keeps the
+# committed step's digest (issue 61; two real processes: the slow
+# test_multiprocess.py::test_sigkill_of_one_process_stops_the_other_...).
+# --------------------------------------------------------------------------
+
+
+def _digested(step_directory, seconds):
+  deadline = time.monotonic() + seconds
+  path = os.path.join(step_directory, checkpoint_lib.DIGEST_FILE)
+  while not os.path.exists(path) and time.monotonic() < deadline:
+    time.sleep(0.02)
+  return os.path.exists(path)
+
+
+def test_a_committed_step_is_digested_while_orbax_still_waits(tmp_path,
+                                                              monkeypatch):
+  """After its commit orbax waits for every process at a barrier, which a
+  killed one never reaches; the digest is written without waiting for it
+  (before: the digest thread waited in `wait_until_finished` forever)."""
+  checkpointer = checkpoint_lib.Checkpointer(str(tmp_path / 'checkpoints'))
+  barrier = threading.Event()
+  real_wait = checkpointer._manager.wait_until_finished  # pylint: disable=protected-access
+
+  def stuck_at_the_barrier():
+    barrier.wait(60)
+    real_wait()
+  monkeypatch.setattr(checkpointer._manager, 'wait_until_finished',  # pylint: disable=protected-access
+                      stuck_at_the_barrier)
+  monkeypatch.setattr(checkpointer._manager, 'is_saving_in_progress',  # pylint: disable=protected-access
+                      lambda: not barrier.is_set())
+  try:
+    checkpointer.save(1, {'x': np.arange(4.0)})
+    assert _digested(str(tmp_path / 'checkpoints' / '1'), 20)
+  finally:
+    barrier.set()
+    checkpointer.close()
+  assert checkpoint_lib.damage_of(str(tmp_path / 'checkpoints' / '1'),
+                                  required=True) is None
+
+
+def test_the_watchdog_exit_waits_for_the_digest_in_flight(tmp_path,
+                                                          monkeypatch):
+  """A slow digest (a loaded host, a large step) is written before the
+  watchdog's `os._exit` (before: the exit came first, and the rerun found
+  the committed step undigested, damaged: 'it trains from step 0')."""
+  real_write = checkpoint_lib.write_digest
+
+  def slow_write(step_directory):
+    time.sleep(1.0)
+    real_write(step_directory)
+  monkeypatch.setattr(checkpoint_lib, 'write_digest', slow_write)
+  exits = []
+  monkeypatch.setattr(processes.os, '_exit', exits.append)
+  checkpointer = checkpoint_lib.Checkpointer(str(tmp_path / 'checkpoints'))
+  step = str(tmp_path / 'checkpoints' / '1')
+  try:
+    checkpointer.save(1, {'x': np.arange(4.0)})
+    os.makedirs(tmp_path / 'processes')
+    watchdog = processes.PeerWatchdog(str(tmp_path / 'processes'), 1, 2,
+                                      timeout=1.0)
+    watchdog.leave(1, 'a peer is lost')  # os._exit recorded, not done
+    assert exits == [1]
+    assert os.path.exists(os.path.join(step, checkpoint_lib.DIGEST_FILE))
+  finally:
+    checkpointer.close()
+  assert processes._before_exit == []  # pylint: disable=protected-access
+
+
+def test_the_exit_hooks_are_bounded(monkeypatch):
+  """A hook that never returns delays the exit by `EXIT_GRACE_SECONDS` at
+  most (a save cut short by the lost peer is never committed)."""
+  monkeypatch.setattr(processes, 'EXIT_GRACE_SECONDS', 0.3)
+  forever = threading.Event()
+  calls = []
+
+  def stuck(seconds):
+    calls.append(seconds)
+    forever.wait(seconds)
+  processes.before_exit(stuck)
+  processes.before_exit(stuck)
+  try:
+    started = time.monotonic()
+    processes._run_before_exit(processes.EXIT_GRACE_SECONDS)  # pylint: disable=protected-access
+    took = time.monotonic() - started
+  finally:
+    processes.not_before_exit(stuck)
+    processes.not_before_exit(stuck)
+  assert took < 1.0, took
+  assert len(calls) == 1 and calls[0] <= 0.3  # the second: no time left
