@@ -33,12 +33,24 @@ host_memory.keep_freed_memory()
 
 import tempfile  # noqa: E402
 
+# The suite compiles far more than it runs: XLA's backend at its lowest
+# optimisation level (jax's own switch: LLVM -O0, no expensive passes; the
+# HLO passes and fusions, YNNPACK's included, are those of a user's run)
+# takes ~20-30 % less compile time (docs/performance.md, "The test suite's
+# wall time"). JAX_DISABLE_MOST_OPTIMIZATIONS=0 runs the suite as users
+# compile; tests/reliability/test_xla_crash_fence.py always does.
+os.environ.setdefault('JAX_DISABLE_MOST_OPTIMIZATIONS', '1')
+# Several tests compile the same small programs (e.g. a training run and its
+# resumed copy); XLA's persistent cache turns the repeats into lookups. In
+# the environment too, so the `main` processes tests start share it (their
+# default is a cache in each test's own data folder, always cold).
+_CACHE = os.path.join(tempfile.gettempdir(), 'slotformer_jax_test_xla_cache')
+os.environ.setdefault('JAX_COMPILATION_CACHE_DIR', _CACHE)
+
 import jax  # noqa: E402
 
-# Several tests compile the same small programs (e.g. a training run and its
-# resumed copy); XLA's persistent cache turns the repeats into lookups.
 jax.config.update('jax_compilation_cache_dir',
-                  os.path.join(tempfile.gettempdir(), 'slotformer_jax_test_xla_cache'))
+                  os.environ['JAX_COMPILATION_CACHE_DIR'])
 jax.config.update('jax_persistent_cache_min_compile_time_secs', 0.5)
 jax.config.update('jax_persistent_cache_min_entry_size_bytes', 0)
 
@@ -129,7 +141,9 @@ def _machine_line() -> str:
   width = ('AVX-512' if 'avx512f' in features else
            'AVX2 only' if 'avx2' in features else 'no AVX2')
   return (f'cpu: {model} ({width}, {os.cpu_count()} cores); '
-          f'XLA_FLAGS={os.environ.get("XLA_FLAGS", "")}')
+          f'XLA_FLAGS={os.environ.get("XLA_FLAGS", "")}; '
+          'JAX_DISABLE_MOST_OPTIMIZATIONS='
+          f'{os.environ.get("JAX_DISABLE_MOST_OPTIMIZATIONS", "")}')
 
 
 def pytest_report_header(config):
