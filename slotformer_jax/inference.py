@@ -77,12 +77,44 @@ def rollouts(dynamics_params: dict[str, Any], dynamics: dict[str, Any],
 # --------------------------------------------------------------------------
 
 
+# Shapes already traced, by (module, input shapes): every stage that loads a
+# model asks again (extraction, training, evaluation, render, explore), and
+# tracing a model's init costs ~0.5 s even at test sizes.
+_SHAPES_CACHE: dict[Any, Any] = {}
+_SHAPES_CACHE_SIZE = 64
+
+
+def _shape_key(value: Any) -> Any:
+  """Arrays as (shape, dtype); containers item by item; others as they are."""
+  if isinstance(value, (np.ndarray, jax.Array, jax.ShapeDtypeStruct)):
+    return ('array', tuple(value.shape), str(value.dtype))
+  if isinstance(value, (tuple, list)):
+    return (type(value).__name__, tuple(_shape_key(v) for v in value))
+  if isinstance(value, dict):
+    return ('dict', tuple(sorted((k, _shape_key(v)) for k, v in value.items())))
+  return value
+
+
 def param_shapes(module, *args, **kwargs) -> Any:
-  """The parameter shapes of `module` for example inputs (no compute)."""
-  rngs = {name: jax.random.key(0)
-          for name in ('params', 'sample', 'dropout', 'gumbel')}
-  return jax.eval_shape(
-      lambda: module.init(rngs, *args, **kwargs)['params'])
+  """The parameter shapes of `module` for example inputs (no compute;
+  remembered per module and input shapes: linen modules compare by their
+  fields)."""
+  try:
+    key = (module, _shape_key(args), _shape_key(kwargs),
+           jax.config.jax_enable_x64)
+    shapes = _SHAPES_CACHE.get(key)
+  except TypeError:  # a field or input that cannot be hashed: not kept
+    key, shapes = None, None
+  if shapes is None:
+    rngs = {name: jax.random.key(0)
+            for name in ('params', 'sample', 'dropout', 'gumbel')}
+    shapes = jax.eval_shape(
+        lambda: module.init(rngs, *args, **kwargs)['params'])
+    if key is not None:
+      if len(_SHAPES_CACHE) >= _SHAPES_CACHE_SIZE:
+        _SHAPES_CACHE.pop(next(iter(_SHAPES_CACHE)))
+      _SHAPES_CACHE[key] = shapes
+  return shapes
 
 
 def restore(directory: str, shapes: Any, mesh: Mesh, *, what: str,
