@@ -98,7 +98,7 @@ def _frame_step_metrics(decoded, frames: jax.Array, segmentation: jax.Array,
                         *, names: tuple[str, ...], num_true: int,
                         num_slots: int, lpips_fn: Callable | None,
                         background_threshold: float | None,
-                        lpips_target: Any = None, lpips_pred: Any = None):
+                        lpips_target: Any = None):
   """Metrics of one rollout step for a batch.
 
   decoded: DecodedSlots with leading [B] (recon in [0, 1]);
@@ -106,8 +106,7 @@ def _frame_step_metrics(decoded, frames: jax.Array, segmentation: jax.Array,
   gt_boxes: None (AR's ground-truth boxes from the id map) or the dataset's
   per-object boxes ('boxes' [B, M, 4], 'visible' [B, M]).
   lpips_target: `lpips_fn.features(frames)`, computed once for all methods
-  (None: LPIPS computes the frames' features itself); lpips_pred: those of
-  `decoded.recon` (None: LPIPS computes them).
+  (None: LPIPS computes the frames' features itself).
   Returns {name: (value [B], valid [B])} of the registered metrics of
   `names` (`rollout_metrics`); a metric with an `on_host` step returns
   what that step reads (FG-mIoU: the IoU matrix [B, C-1, K] with 'present'
@@ -124,7 +123,7 @@ def _frame_step_metrics(decoded, frames: jax.Array, segmentation: jax.Array,
   step = rollout_metrics.Step(
       decoded=decoded, frames=frames, true_ids=true_ids, pred_ids=pred_ids,
       table=table, gt_boxes=gt_boxes, num_true=num_true, num_slots=num_slots,
-      lpips_fn=lpips_fn, lpips_target=lpips_target, lpips_pred=lpips_pred)
+      lpips_fn=lpips_fn, lpips_target=lpips_target)
   out = {}
   for name in rollout_metrics.ordered(names):
     scored = rollout_metrics.get(name).fn(step)
@@ -205,38 +204,18 @@ def make_rollout_evaluator(eval_config: ml_collections.ConfigDict, mesh: Mesh,
     with_lpips = hasattr(lpips_fn, 'features') and 'lpips' in names
 
     def one_step(inputs):
-      """All methods at one rollout step, decoded and scored as one batch of
-      B x M rows (video-major: row b * M + m is method m on video b, so each
-      device keeps its own videos): the decoder and every metric are traced
-      and compiled once, not once per method; LPIPS's network once for the
-      real and every method's frames together."""
+      """All methods at one rollout step: the ground-truth frames' LPIPS
+      features are computed once and shared by every method."""
       index, (slots_by_method, frame, seg, gt_boxes) = inputs
       progress.tick(index)
       frame = model_to_unit(frames_to_model(frame))
-      methods = [*slots_by_method, 'copy_last']
-      per_video = lambda x: jnp.repeat(x, len(methods), axis=0)
-      by_video = lambda x, k: x.reshape((-1, k) + x.shape[1:])
-      predicted = jnp.stack(list(slots_by_method.values()), axis=1)
-      decoded = jax.tree.map(
-          lambda x, last: jnp.concatenate(
-              [by_video(x, len(slots_by_method)), last[:, None]],
-              axis=1).reshape((-1,) + x.shape[1:]),
-          decode(predicted.reshape((-1,) + predicted.shape[2:])), copied)
-      target = pred = None
-      if with_lpips:  # [B, 1 + M] frames: the real one, then each method's
-        both = jnp.concatenate(
-            [frame[:, None], by_video(decoded.recon, len(methods))], axis=1)
-        features = jax.tree.map(lambda x: by_video(x, 1 + len(methods)),
-                                lpips_fn.features(both))
-        target = jax.tree.map(lambda x: per_video(x[:, 0]), features)
-        pred = jax.tree.map(
-            lambda x: x[:, 1:].reshape((-1,) + x.shape[2:]), features)
-      scores = step_metrics(decoded, per_video(frame), per_video(seg),
-                            jax.tree.map(per_video, gt_boxes),
-                            lpips_target=target, lpips_pred=pred)
-      return {method: jax.tree.map(lambda x, m=m: by_video(
-          x, len(methods))[:, m], scores)
-              for m, method in enumerate(methods)}
+      target = lpips_fn.features(frame) if with_lpips else None
+      score = lambda decoded: step_metrics(decoded, frame, seg, gt_boxes,
+                                           lpips_target=target)
+      out = {method: score(decode(slots))
+             for method, slots in slots_by_method.items()}
+      out['copy_last'] = score(copied)
+      return out
 
     # lax.map keeps one step's decoded frames in memory at a time.
     return jax.lax.map(one_step, (jnp.arange(frames.shape[1]), (

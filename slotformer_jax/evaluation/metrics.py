@@ -332,26 +332,17 @@ def lpips_vgg_features(params: Any, frames: ArrayLike) -> LpipsFeatures:
 
 
 @jax.jit
-def lpips_vgg_distance_between_features(params: Any, pred: LpipsFeatures,
-                                        target: LpipsFeatures) -> Array:
-  """LPIPS-VGG between two sets of features (``lpips_vgg_features`` of the
-  same number of frames). Returns float32 ``[frames]``."""
-  distance = 0.0
-  for i, (p, t) in enumerate(zip(pred.layers, target.layers)):
-    weight = params[f"NetLinLayer_{i}"]["Conv_0"]["kernel"][0, 0, :, 0]
-    # The linear head (1x1 conv, no bias) then the spatial mean.
-    distance = distance + jnp.mean(jnp.square(p - t) @ weight, axis=(1, 2))
-  return distance
-
-
-@jax.jit
 def lpips_vgg_distance_to_features(params: Any, pred: ArrayLike,
                                    target: LpipsFeatures) -> Array:
   """LPIPS-VGG between frames ``pred [..., H, W, 3]`` in [0, 1] and frames
   whose features are ``target`` (from ``lpips_vgg_features``, same number of
   frames). Returns float32 ``[...]``."""
-  distance = lpips_vgg_distance_between_features(
-      params, lpips_vgg_features(params, pred), target)
+  pred_features = lpips_vgg_features(params, pred)
+  distance = 0.0
+  for i, (p, t) in enumerate(zip(pred_features.layers, target.layers)):
+    weight = params[f"NetLinLayer_{i}"]["Conv_0"]["kernel"][0, 0, :, 0]
+    # The linear head (1x1 conv, no bias) then the spatial mean.
+    distance = distance + jnp.mean(jnp.square(p - t) @ weight, axis=(1, 2))
   return distance.reshape(jnp.shape(pred)[:-3])
 
 
@@ -361,9 +352,7 @@ class LpipsVgg:
   ``lpips(pred, target)``: distances ``[...]`` between frames ``[..., H, W,
   3]`` in [0, 1]. ``lpips.features(target)`` then
   ``lpips.distance_to_features(pred, features)``: the same distances, with
-  the target's VGG features computed once for several predictions;
-  ``lpips.distance_between_features`` when both sides' features are known
-  (one VGG pass over predictions and targets together).
+  the target's VGG features computed once for several predictions.
   """
 
   def __init__(self, params: Any):
@@ -379,10 +368,6 @@ class LpipsVgg:
   def distance_to_features(self, pred: ArrayLike,
                            target: LpipsFeatures) -> Array:
     return lpips_vgg_distance_to_features(self.params, pred, target)
-
-  def distance_between_features(self, pred: LpipsFeatures,
-                                target: LpipsFeatures) -> Array:
-    return lpips_vgg_distance_between_features(self.params, pred, target)
 
 
 def make_lpips_vgg() -> LpipsVgg:

@@ -41,7 +41,6 @@ class Step:
   gt_boxes: None, or the dataset's boxes ('boxes' [B, M, 4], 'visible').
   num_true, num_slots: the ids C of the ground truth and K of the slots.
   lpips_fn, lpips_target: LPIPS and the real frames' features (or None).
-  lpips_pred: the decoded frames' features (or None: LPIPS computes them).
   """
 
   decoded: Any
@@ -54,7 +53,6 @@ class Step:
   num_slots: int
   lpips_fn: Callable | None = None
   lpips_target: Any = None
-  lpips_pred: Any = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -152,10 +150,6 @@ def lpips(step: Step):
     return None
   if step.lpips_target is None:
     return step.lpips_fn(step.decoded.recon, step.frames), _everywhere(step)
-  if step.lpips_pred is not None:
-    return (step.lpips_fn.distance_between_features(step.lpips_pred,
-                                                    step.lpips_target),
-            _everywhere(step))
   return (step.lpips_fn.distance_to_features(step.decoded.recon,
                                              step.lpips_target),
           _everywhere(step))

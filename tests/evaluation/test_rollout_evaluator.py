@@ -1,6 +1,7 @@
-"""The rollout evaluator scores every method in one batch (evaluate.py
-`make_rollout_evaluator`): each method's numbers must be the ones it gets
-when decoded and scored alone, on 4 devices (the batch split over them)."""
+"""The rollout evaluator (evaluate.py `make_rollout_evaluator`) scores every
+method in one program, sharing the real frames' LPIPS features and decoding
+copy-last once: each method's numbers must be the ones it gets when decoded
+and scored alone, on 4 devices (the batch split over them)."""
 
 import dataclasses
 
