@@ -33,13 +33,11 @@ host_memory.keep_freed_memory()
 
 import tempfile  # noqa: E402
 
-# The suite compiles far more than it runs: XLA's backend at its lowest
-# optimisation level (jax's own switch: LLVM -O0, no expensive passes; the
-# HLO passes and fusions, YNNPACK's included, are those of a user's run)
-# takes ~20-30 % less compile time (docs/performance.md, "The test suite's
-# wall time"). JAX_DISABLE_MOST_OPTIMIZATIONS=0 runs the suite as users
-# compile; tests/reliability/test_xla_crash_fence.py always does.
-os.environ.setdefault('JAX_DISABLE_MOST_OPTIMIZATIONS', '1')
+# The suite compiles far more than it runs: cheaper than users' runs
+# (compile_level.py; JAX_DISABLE_MOST_OPTIMIZATIONS=0 runs it as users
+# compile; tests/reliability/test_xla_crash_fence.py always does).
+import compile_level  # noqa: E402
+compile_level.apply()
 # Several tests compile the same small programs (e.g. a training run and its
 # resumed copy); XLA's persistent cache turns the repeats into lookups. In
 # the environment too, so the `main` processes tests start share it (their

@@ -15,6 +15,8 @@ import sys
 
 from slotformer_jax.runtime import xla_flags
 
+import compile_level
+
 REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 # The smallest program found that crashes (docs/performance.md): a product
@@ -39,11 +41,15 @@ def _without_ynn_flags(flags: str) -> str:
   return ' '.join(f for f in flags.split() if xla_flags.flag_name(f) != name)
 
 
+def _users_flags() -> str:
+  return compile_level.as_users_compile(os.environ)['XLA_FLAGS']
+
+
 def _run(mode: str, **env):
-  # Compiled as a user's run compiles it (the suite's conftest lowers XLA's
-  # backend optimisation for speed).
-  env = dict(os.environ, JAX_PLATFORMS='cpu', PYTHONPATH=REPO,
-             JAX_DISABLE_MOST_OPTIMIZATIONS='0', **env)
+  # Compiled as a user's run compiles it (the suite compiles cheaper:
+  # tests/compile_level.py).
+  env = dict(compile_level.as_users_compile(os.environ), JAX_PLATFORMS='cpu',
+             PYTHONPATH=REPO, **env)
   return subprocess.run([sys.executable, '-c', REPRODUCTION, mode], env=env,
                         cwd=REPO, capture_output=True, text=True, timeout=300,
                         check=False)
@@ -51,7 +57,7 @@ def _run(mode: str, **env):
 
 def test_the_reproduction_runs_with_the_packages_flags():
   result = _run('package',
-                XLA_FLAGS=_without_ynn_flags(os.environ.get('XLA_FLAGS', '')))
+                XLA_FLAGS=_without_ynn_flags(_users_flags()))
   assert result.returncode == 0, (result.returncode, result.stderr[-2000:])
   assert result.stdout.startswith('ok')
   fence = xla_flags.CRASH_FENCE_FLAGS[0].split('=', 1)[1]
@@ -62,7 +68,7 @@ def test_the_reproduction_runs_with_the_packages_flags():
 
 def test_the_fence_holds_with_the_speed_flags_switched_off():
   result = _run('package', **{
-      'XLA_FLAGS': _without_ynn_flags(os.environ.get('XLA_FLAGS', '')),
+      'XLA_FLAGS': _without_ynn_flags(_users_flags()),
       xla_flags.SWITCH_ENV: '0'})
   assert result.returncode == 0, (result.returncode, result.stderr[-2000:])
   assert '-reduce' in result.stdout and 'individual_convolution' not in (

@@ -139,9 +139,17 @@ def test_fit_keeps_the_readout_protocol(tmp_path):
                              rtol=1e-5)
   np.testing.assert_allclose(log['scores'], expected_log['scores'],
                              rtol=1e-4, atol=1e-6)
-  jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-4,
-                                                       atol=1e-6),
-               params, expected)
+  # The attention's key bias adds the same logit to every key, which softmax
+  # ignores: its gradient is zero but for rounding, and Adam scales that
+  # noise up to a step, so its values follow the compiler's rounding (they
+  # differ at 1e-5 between XLA:CPU's two emitters). Every other leaf agrees.
+  def compare(path, a, b):
+    if jax.tree_util.keystr(path).endswith("['attention']['key']['bias']"):
+      return
+    np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6,
+                               err_msg=jax.tree_util.keystr(path))
+
+  jax.tree_util.tree_map_with_path(compare, params, expected)
 
 
 def test_fit_trains_with_the_heads_dropout(tmp_path):
