@@ -408,7 +408,8 @@ def step_program(config, step: str, mesh: Mesh,
     dynamics_params = {SLOTFORMER: _place(dynamics_lib.param_shapes(
         config.slotformer, SLOTFORMER, slot_model.slot_shape), replicated)}
     return run, (dynamics_params,
-                 _place(slot_param_shapes(slot_model), replicated), batch)
+                 _place(slot_param_shapes(slot_model), replicated), batch,
+                 None)
   stage = train_stage(config, step, mesh)
   optimizer, _ = optim.make_optimizer(stage.config)
   update = trainer.jit_update(stage, mesh, optimizer, config.seed)

@@ -144,11 +144,11 @@ def uses_dataset_boxes(eval_config: ml_collections.ConfigDict,
 
 def make_rollout_evaluator(eval_config: ml_collections.ConfigDict, mesh: Mesh,
                            names: tuple[str, ...],
-                           lpips_fn: Callable | None,
+                           lpips: metrics_lib.LpipsVgg | None,
                            dynamics_modules: dict[str, Any],
                            slot_model: SlotDecoder, *, burn_in: int,
                            num_true: int, compute_dtype: str):
-  """Jitted (dynamics_params, slot_params, batch) -> per-step metrics.
+  """Jitted (dynamics_params, slot_params, batch, lpips_params) -> metrics.
 
   eval_config: the `evaluation` section (rollout_steps, background
   threshold, AR's boxes); dynamics_modules: {name: module} of the dynamics
@@ -156,6 +156,9 @@ def make_rollout_evaluator(eval_config: ml_collections.ConfigDict, mesh: Mesh,
   (`num_true_ids`).
   dynamics_params: {name: params} for every name in `dynamics_modules`;
   slot_params: the slot model's (`slot_model.decode` takes them).
+  lpips_params: `lpips.params` (None without LPIPS). The VGG's weights are
+  an argument: closed over, they would be baked into the program as
+  constants (59 MB; slower to compile, and in every compile-cache entry).
   batch: 'slots' [B, burn_in + R, N, D], 'video' uint8 [B, burn_in + R, H,
   W, 3] and, when an object metric is asked for, 'segmentations' [B,
   burn_in + R, H, W]. Returns {method: {name: (value [R, B], valid [R, B])}}
@@ -163,11 +166,6 @@ def make_rollout_evaluator(eval_config: ml_collections.ConfigDict, mesh: Mesh,
   """
   models_by_name = dict(dynamics_modules)
   rollout = eval_config.rollout_steps
-  step_metrics = functools.partial(
-      _frame_step_metrics, names=names,
-      num_true=num_true, num_slots=slot_model.slot_shape[0],
-      lpips_fn=lpips_fn,
-      background_threshold=eval_config.background_threshold)
   needs_segmentation = bool(rollout_metrics.needing(
       names, rollout_metrics.MASKS))
   boxes_from_dataset = uses_dataset_boxes(eval_config, names)
@@ -176,7 +174,13 @@ def make_rollout_evaluator(eval_config: ml_collections.ConfigDict, mesh: Mesh,
                                        compute_dtype=compute_dtype)
   reference = slot_model.reference_method
 
-  def evaluate_batch(dynamics_params, slot_params, batch):
+  def evaluate_batch(dynamics_params, slot_params, batch, lpips_params):
+    lpips_fn = None if lpips is None else metrics_lib.LpipsVgg(lpips_params)
+    step_metrics = functools.partial(
+        _frame_step_metrics, names=names,
+        num_true=num_true, num_slots=slot_model.slot_shape[0],
+        lpips_fn=lpips_fn,
+        background_threshold=eval_config.background_threshold)
     history = batch['slots'][:, :burn_in]
     predictions = {
         name: in_compute_dtype(functools.partial(
@@ -201,7 +205,7 @@ def make_rollout_evaluator(eval_config: ml_collections.ConfigDict, mesh: Mesh,
     decode = lambda slots: decode_in_dtype(slot_params, slots)
     # Copy-last predicts the same slots at every step: decode them once.
     copied = decode(inference.copy_last_rollout(history, 1)[:, 0])
-    with_lpips = hasattr(lpips_fn, 'features') and 'lpips' in names
+    with_lpips = lpips_fn is not None and 'lpips' in names
 
     def one_step(inputs):
       """All methods at one rollout step: the ground-truth frames' LPIPS
@@ -226,7 +230,7 @@ def make_rollout_evaluator(eval_config: ml_collections.ConfigDict, mesh: Mesh,
   replicated = sharding.replicated_sharding(mesh)
   return jax.jit(evaluate_batch,
                  in_shardings=(replicated, replicated,
-                               sharding.batch_sharding(mesh)))
+                               sharding.batch_sharding(mesh), replicated))
 
 
 def make_quality_evaluator(num_true: int, mesh: Mesh,
@@ -436,7 +440,7 @@ class _StepAverager:
     return out
 
 
-def _lpips_or_none(names: tuple[str, ...]) -> Callable | None:
+def _lpips_or_none(names: tuple[str, ...]) -> metrics_lib.LpipsVgg | None:
   if 'lpips' not in names:
     return None
   try:
@@ -541,6 +545,7 @@ def evaluate(eval_config: ml_collections.ConfigDict,
 
   # Rollouts.
   rollout_started = time.time()
+  lpips_params = None if lpips_fn is None else lpips_fn.params
   evaluator = make_rollout_evaluator(
       eval_config, mesh, names, lpips_fn,
       {name: model.module for name, model in dynamics.items()}, slot_model,
@@ -566,7 +571,7 @@ def evaluate(eval_config: ml_collections.ConfigDict,
         'rollout steps')):
       out = sharding.gather_to_host(evaluator(
           dynamics_params, slot_params,
-          sharding.to_global_batch(batch, mesh)))
+          sharding.to_global_batch(batch, mesh), lpips_params))
     mask = sharding.gather_to_host(
         sharding.to_global_batch({'mask': mask}, mesh))['mask']
     for method, per_metric in out.items():

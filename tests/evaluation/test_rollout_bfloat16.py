@@ -51,15 +51,15 @@ def test_bfloat16_rollout_evaluation_decodes_in_bfloat16():
     config.compute_dtype = dtype
     mesh, slot_model, dynamics_params, slot_params, batch = _inputs(config)
     run = evaluate.make_rollout_evaluator(
-        config.evaluation, mesh, ('psnr', 'mse'), None,
+        config.evaluation, mesh, ('psnr',), None,
         {SLOTFORMER: dynamics_lib.build(config.slotformer, SLOTFORMER)},
         slot_model, burn_in=config.slotformer.burn_in,
         num_true=config.data.max_instances + 1,
         compute_dtype=config.compute_dtype)
     jaxprs[dtype] = str(jax.make_jaxpr(run)(dynamics_params, slot_params,
-                                            batch))
+                                            batch, None))
     results[dtype] = jax.tree.map(np.asarray, run(dynamics_params,
-                                                  slot_params, batch))
+                                                  slot_params, batch, None))
   def conv_dtypes(jaxpr):
     """The result dtype of every convolution in a jaxpr's text."""
     return [line.split('=')[0].split(':')[1].split('[')[0]

@@ -79,7 +79,7 @@ def test_each_method_scores_as_it_does_alone():
   run = evaluate.make_rollout_evaluator(
       eval_config, mesh, NAMES, lpips, modules, slot_model, burn_in=BURN_IN,
       num_true=num_true, compute_dtype='float32')
-  got = jax.device_get(run(dynamics_params, slot_params, batch))
+  got = jax.device_get(run(dynamics_params, slot_params, batch, lpips.params))
 
   history = batch['slots'][:, :BURN_IN]
   slots = {name: np.asarray(modules[name].apply(
