@@ -112,7 +112,6 @@ import dm_pix
 import jax
 import jax.numpy as jnp
 import numpy as np
-from scipy.optimize import linear_sum_assignment
 
 Array = jax.Array
 ArrayLike = jax.typing.ArrayLike
@@ -587,6 +586,8 @@ def hungarian_mean_iou(iou: ArrayLike, present: ArrayLike, *,
                      f"got {absent_ids!r}")
   iou = np.asarray(iou, np.float64)
   present = np.asarray(present, bool)
+  # Imported here: scipy.optimize adds ~0.4 s to every command's start.
+  from scipy.optimize import linear_sum_assignment  # pylint: disable=g-import-not-at-top
   batch_shape = iou.shape[:-2]
   flat_iou = iou.reshape((-1,) + iou.shape[-2:])
   flat_present = present.reshape((-1, present.shape[-1]))
