@@ -83,22 +83,53 @@ def abstract_like(tree: Any, sharding: Sharding) -> Any:
       tree)
 
 
-class _ReadOnlyNotice(logging.Filter):
-  """Drops orbax's 'Given directory is read only' warning."""
+class _OrbaxNotice(logging.Filter):
+  """Drops orbax's warnings that begin with `prefix`."""
+
+  def __init__(self, prefix: str):
+    super().__init__()
+    self.prefix = prefix
 
   def filter(self, record: logging.LogRecord) -> bool:
-    return not record.getMessage().startswith('Given directory is read only')
+    return not record.getMessage().startswith(self.prefix)
 
 
 @contextlib.contextmanager
-def _without_read_only_notice() -> Iterator[None]:
+def _without_orbax_notice(prefix: str) -> Iterator[None]:
   absl_logger = logging.getLogger('absl')
-  notice = _ReadOnlyNotice()
+  notice = _OrbaxNotice(prefix)
   absl_logger.addFilter(notice)
   try:
     yield
   finally:
     absl_logger.removeFilter(notice)
+
+
+# orbax saves a replicated array in slices, one per device ("replica
+# parallel"). For a slice under 1 MiB the split costs more than it saves (a
+# device op and a write per slice): a micro SAVi's save on 4 devices took
+# 1.5 s for its ~180 arrays (docs/performance.md, "The test suite's wall
+# time"). Arrays whose slices would be smaller are written whole by one
+# replica, as orbax writes every array on GPUs; larger ones still split.
+# orbax's handler registry is per process: set once, here, unless someone
+# registered a handler of their own.
+MIN_REPLICA_SLICE_BYTES = 1 << 20
+
+
+def _save_small_arrays_whole() -> None:
+  current = ocp.type_handlers.get_type_handler(jax.Array)
+  if type(current) is not ocp.type_handlers.ArrayHandler:  # pylint: disable=unidiomatic-typecheck
+    return
+  # pylint: disable=protected-access
+  handler = ocp.type_handlers.ArrayHandler(
+      array_metadata_store=current._array_metadata_store,
+      use_replica_parallel=current._use_replica_parallel,
+      min_slice_bytes_for_replica_parallel=MIN_REPLICA_SLICE_BYTES)
+  with _without_orbax_notice('Type handler registry type'):
+    ocp.type_handlers.register_type_handler(jax.Array, handler, override=True)
+
+
+_save_small_arrays_whole()
 
 
 class Checkpointer:
@@ -111,7 +142,7 @@ class Checkpointer:
     # Read-only: the options orbax would otherwise reset with a warning
     # each, and its notice that the folder is read only (what was asked)
     # dropped: loading a trained model prints nothing.
-    with _without_read_only_notice():
+    with _without_orbax_notice('Given directory is read only'):
       self._manager = ocp.CheckpointManager(
           self.directory,
           options=ocp.CheckpointManagerOptions(

@@ -630,3 +630,30 @@ def test_the_exit_hooks_are_bounded(monkeypatch):
     processes.not_before_exit(stuck)
   assert took < 1.0, took
   assert len(calls) == 1 and calls[0] <= 0.3  # the second: no time left
+
+
+def test_small_replicated_arrays_are_saved_whole_and_large_ones_split(
+    tmp_path):
+  """orbax's replica-parallel saving is kept for arrays whose per-device
+  slice reaches MIN_REPLICA_SLICE_BYTES; smaller ones are written whole (the
+  handler `import slotformer_jax` registers). Both come back as saved."""
+  import orbax.checkpoint as ocp  # pylint: disable=g-import-not-at-top
+  handler = ocp.type_handlers.get_type_handler(jax.Array)
+  assert (handler._min_slice_bytes_for_replica_parallel  # pylint: disable=protected-access
+          == checkpoint_lib.MIN_REPLICA_SLICE_BYTES)
+  mesh = Mesh(np.asarray(jax.devices()[:4]), ('data',))
+  replicated = sharding.replicated_sharding(mesh)
+  rng = np.random.default_rng(0)
+  # 4 MiB split over 4 devices: 1 MiB slices, split; 4 KiB: written whole.
+  state = {'large': rng.normal(size=(1024, 1024)).astype(np.float32),
+           'small': rng.normal(size=(32, 32)).astype(np.float32)}
+  placed = jax.device_put(state, replicated)
+  checkpointer = checkpoint_lib.Checkpointer(str(tmp_path / 'ckpt'))
+  checkpointer.save(1, placed)
+  checkpointer.wait_until_finished()
+  abstract = jax.tree.map(lambda x: jax.ShapeDtypeStruct(
+      x.shape, x.dtype, sharding=replicated), placed)
+  restored = checkpointer.restore(abstract, step=1)
+  for name, value in state.items():
+    np.testing.assert_array_equal(np.asarray(restored[name]), value)
+  checkpointer.close()
