@@ -398,7 +398,7 @@ def step_program(config, step: str, mesh: Mesh,
                   if rollout_metrics.get(name).needs == rollout_metrics.FRAMES
                   and name != 'lpips')
     run = evaluate.make_rollout_evaluator(
-        config.evaluation, mesh, names, None,
+        config.evaluation, mesh, names,
         {SLOTFORMER: dynamics_lib.build(config.slotformer, SLOTFORMER)},
         slot_model, burn_in=config.slotformer.burn_in,
         num_true=evaluate.num_true_ids(config.data.max_instances),

@@ -144,7 +144,6 @@ def uses_dataset_boxes(eval_config: ml_collections.ConfigDict,
 
 def make_rollout_evaluator(eval_config: ml_collections.ConfigDict, mesh: Mesh,
                            names: tuple[str, ...],
-                           lpips: metrics_lib.LpipsVgg | None,
                            dynamics_modules: dict[str, Any],
                            slot_model: SlotDecoder, *, burn_in: int,
                            num_true: int, compute_dtype: str):
@@ -156,9 +155,10 @@ def make_rollout_evaluator(eval_config: ml_collections.ConfigDict, mesh: Mesh,
   (`num_true_ids`).
   dynamics_params: {name: params} for every name in `dynamics_modules`;
   slot_params: the slot model's (`slot_model.decode` takes them).
-  lpips_params: `lpips.params` (None without LPIPS). The VGG's weights are
-  an argument: closed over, they would be baked into the program as
-  constants (59 MB; slower to compile, and in every compile-cache entry).
+  lpips_params: `metrics_lib.LpipsVgg.params` (None: LPIPS is not scored).
+  The VGG's weights are an argument: closed over, they would be baked into
+  the program as constants (59 MB; slower to compile, and in every
+  compile-cache entry).
   batch: 'slots' [B, burn_in + R, N, D], 'video' uint8 [B, burn_in + R, H,
   W, 3] and, when an object metric is asked for, 'segmentations' [B,
   burn_in + R, H, W]. Returns {method: {name: (value [R, B], valid [R, B])}}
@@ -175,7 +175,8 @@ def make_rollout_evaluator(eval_config: ml_collections.ConfigDict, mesh: Mesh,
   reference = slot_model.reference_method
 
   def evaluate_batch(dynamics_params, slot_params, batch, lpips_params):
-    lpips_fn = None if lpips is None else metrics_lib.LpipsVgg(lpips_params)
+    lpips_fn = (None if lpips_params is None
+                else metrics_lib.LpipsVgg(lpips_params))
     step_metrics = functools.partial(
         _frame_step_metrics, names=names,
         num_true=num_true, num_slots=slot_model.slot_shape[0],
@@ -547,7 +548,7 @@ def evaluate(eval_config: ml_collections.ConfigDict,
   rollout_started = time.time()
   lpips_params = None if lpips_fn is None else lpips_fn.params
   evaluator = make_rollout_evaluator(
-      eval_config, mesh, names, lpips_fn,
+      eval_config, mesh, names,
       {name: model.module for name, model in dynamics.items()}, slot_model,
       burn_in=burn_in, num_true=num_true, compute_dtype=compute_dtype)
   averager = _StepAverager()

@@ -51,7 +51,7 @@ def test_bfloat16_rollout_evaluation_decodes_in_bfloat16():
     config.compute_dtype = dtype
     mesh, slot_model, dynamics_params, slot_params, batch = _inputs(config)
     run = evaluate.make_rollout_evaluator(
-        config.evaluation, mesh, ('psnr',), None,
+        config.evaluation, mesh, ('psnr',),
         {SLOTFORMER: dynamics_lib.build(config.slotformer, SLOTFORMER)},
         slot_model, burn_in=config.slotformer.burn_in,
         num_true=config.data.max_instances + 1,

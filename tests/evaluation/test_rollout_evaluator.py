@@ -77,7 +77,7 @@ def test_each_method_scores_as_it_does_alone():
   lpips = metrics_lib.make_lpips_vgg()
   num_true = evaluate.num_true_ids(2)
   run = evaluate.make_rollout_evaluator(
-      eval_config, mesh, NAMES, lpips, modules, slot_model, burn_in=BURN_IN,
+      eval_config, mesh, NAMES, modules, slot_model, burn_in=BURN_IN,
       num_true=num_true, compute_dtype='float32')
   got = jax.device_get(run(dynamics_params, slot_params, batch, lpips.params))
 
