@@ -36,6 +36,7 @@ import jax.numpy as jnp
 from slotformer_jax.modules.decoders import DecodedSlots
 from slotformer_jax.modules.slot_attention import SlotAttention
 from slotformer_jax.modules.stochastic_savi import GaussianSlotSampler
+from slotformer_jax.modules.time_loop import scan_with_shared_params
 
 # (initial slots of the next frame [B, N, D], the predictor's state: an LSTM
 # carry or ()).
@@ -125,9 +126,8 @@ def encode_frames(model: nn.Module, video: jax.Array,
   features = features.reshape(batch, time, *features.shape[1:])
   if carry is None:
     carry = model.initial_carry(batch, boxes)
-  scan = nn.scan(
-      lambda step, c, x: step(c, x, deterministic=deterministic),
-      variable_broadcast='params',
+  scan = scan_with_shared_params(
+      lambda step, c, x: step(c, x, deterministic=deterministic), model,
       split_rngs={'params': False, 'sample': True, 'dropout': True},
       in_axes=1, out_axes=1)
   carry, frames = scan(model.frame_step, carry, features)

@@ -17,6 +17,7 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
+from slotformer_jax.modules.time_loop import scan_with_shared_params
 from slotformer_jax.modules.transformer import TransformerEncoder
 
 LSTMState = tuple[jax.Array, jax.Array]
@@ -100,8 +101,8 @@ class SlotLSTM(nn.Module):
       state, prediction = step(state, slots, deterministic=deterministic)
       return state, prediction
 
-    scan_observe = nn.scan(
-        observe, variable_broadcast='params',
+    scan_observe = scan_with_shared_params(
+        observe, self,
         split_rngs={'params': False, 'dropout': True},
         in_axes=1, out_axes=1, length=self.burn_in)
     state, observed_predictions = scan_observe(self.step, state,
@@ -116,8 +117,8 @@ class SlotLSTM(nn.Module):
       state, prediction = step(state, fed, deterministic=deterministic)
       return (state, prediction), prediction
 
-    scan_imagine = nn.scan(
-        imagine, variable_broadcast='params',
+    scan_imagine = scan_with_shared_params(
+        imagine, self,
         split_rngs={'params': False, 'dropout': True},
         in_axes=1, out_axes=1, length=num_steps - 1)
     teacher = None if teacher_slots is None else teacher_slots[:, :-1]

@@ -26,6 +26,7 @@ import jax
 import jax.numpy as jnp
 
 from slotformer_jax.modules import platform
+from slotformer_jax.modules.time_loop import scan_with_shared_params
 from slotformer_jax.modules.transformer import TransformerEncoder
 
 TEMPORAL = 'temporal'
@@ -233,8 +234,8 @@ class SlotFormer(nn.Module):
       num_valid = jnp.minimum(num_valid + 1, self.context_length)
       return (window, num_valid), prediction
 
-    rollout = nn.scan(
-        step, variable_broadcast='params',
+    rollout = scan_with_shared_params(
+        step, self,
         split_rngs={'params': False, 'dropout': True},
         in_axes=1, out_axes=1, length=num_steps)
     _, predictions = rollout(
