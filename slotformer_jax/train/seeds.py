@@ -2,8 +2,8 @@
 the one-model program (`trainer.one_seed`) into a K-seed one.
 
 K TrainStates stacked on a leading axis (`SeedsState`) and one jitted step
-that runs the K one-seed steps (`seeds_train_step`), on a (seed, data) mesh
-when the devices allow (`seed_mesh`), checkpointed and resumed as one state;
+that runs the K one-seed steps (`seeds_train_step`), vmapped on a (seed,
+data) mesh when the devices allow (`seed_mesh`), checkpointed and resumed as one state;
 each seed's divergence is checked, and its metrics logged, on its own line.
 Seed s draws what a one-seed run with seed s draws: its initialisation and
 step RNG. Its data: the stream of one `Stage` every seed shares, or its own
@@ -72,11 +72,11 @@ class Seeds:
     on_divergence: a seed whose loss or parameters become non-finite:
       'stop' the run (nothing non-finite saved), or 'continue' with the
       others (the seed keeps its last finite state and is named once).
-    seed_axis: split the stacked state on a 'seed' mesh axis beside
-      'data' when the devices allow (`seed_mesh`: each process's devices
-      split into K groups, e.g. 4 seeds x 2 data on 8 devices); otherwise,
-      or with False, the seeds are replicated on every device and only the
-      batch is split.
+    seed_axis: split the stacked state of the vmapped loop on a 'seed'
+      mesh axis beside 'data' when the devices allow (`seed_mesh`: each
+      process's devices split into K groups, e.g. 4 seeds x 2 data on 8
+      devices); otherwise, with False, or unrolled, the seeds are
+      replicated on every device and only the batch is split.
     loop: how the program runs the K steps (`seeds_train_step`): 'vmap'
       (one batched step), 'unroll' (the one-seed step written K times into
       the program) or 'auto': 'unroll' on CPU (the one-seed kernels, faster
@@ -120,8 +120,8 @@ class Seeds:
     """'vmap' or 'unroll' for a program on `mesh` (see `loop`). A program
     for an accelerator always batches the seeds unless told 'unroll'.
 
-    On CPU 'auto' unrolls, also with the seeds split on a 'seed' axis:
-    vmapped and split, XLA:CPU (jaxlib 0.10.2) turns the dVAE's 1x1
+    On CPU 'auto' unrolls, also on several devices (the seeds then
+    replicated, `program`): vmapped and split, XLA:CPU (jaxlib 0.10.2) turns the dVAE's 1x1
     output convolution into a grouped convolution it then partitions into
     an invalid one (3 output features for 2 groups: the first step fails),
     and the transposed convolution of SAVi's decoder computes another loss
@@ -169,7 +169,11 @@ def program(stages: Sequence[Stage], mesh: Mesh, seeds: Seeds
   (seed, data) form (`seed_mesh`, with `seeds.seed_axis`)."""
   stage = stages[0]
   count = len(seeds.values)
-  if seeds.seed_axis:
+  loop = seeds.loop_on(mesh)
+  # Only the vmapped loop splits the seeds: the unrolled one indexes seed
+  # k's slice, which split XLA moves between the devices in every step
+  # (docs/seeds.md, "Devices": 3x slower than replicated on 2 CPU devices).
+  if seeds.seed_axis and loop == 'vmap':
     mesh = seed_mesh(mesh, count)
   optimizer, _ = stage.optimizer_and_schedule()
   own_data = len(stages) > 1  # stacked [K, B, ...] batches
@@ -182,7 +186,6 @@ def program(stages: Sequence[Stage], mesh: Mesh, seeds: Seeds
   if own_data and frozen is not None:
     frozen = jax.tree.map(lambda *xs: jnp.stack(xs),
                           *[s.frozen_params for s in stages])
-  loop = seeds.loop_on(mesh)
 
   def init() -> SeedsState:
     return SeedsState.stack([

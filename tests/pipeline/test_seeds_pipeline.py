@@ -1,8 +1,8 @@
 """Several seeds through the SAVi pipeline (config.seeds, docs/seeds.md).
 
-One run of the micro SAVi pipeline with seeds (0, 1) on 2 devices (the 2
-seeds split on a 'seed' mesh axis) is shared by the tests of this module:
-per-seed slots and evaluations, the summary, seed k of the stacked
+One run of the micro SAVi pipeline with seeds (0, 1) on 2 devices (the
+seeds unrolled, as on every CPU, so replicated and the batch split) is
+shared by the tests of this module: per-seed slots and evaluations, the summary, seed k of the stacked
 SlotFormer against the one-seed run on stage-1 seed k's slots, resuming.
 """
 
@@ -50,7 +50,7 @@ def _mesh(devices):
 @pytest.fixture(scope='module')
 def seeded(tmp_path_factory):
   """(config, workdir, {stage: result}) of the micro SAVi pipeline with
-  seeds (0, 1) on 2 devices (2 seeds x 1 data device)."""
+  seeds (0, 1) on 2 devices (seeds replicated, batch split in 2)."""
   root = tmp_path_factory.mktemp('seeds')
   config = micro_config('savi', root / 'data')
   config.seeds = SEEDS

@@ -141,20 +141,26 @@ def _assert_seeds_equal_one_seed_runs(state, one_seed_runs, name, seeds,
     pytest.param('dvae', 4, 'auto', marks=pytest.mark.slow)])
 def test_seed_k_of_k_seeds_is_the_one_seed_run(tmp_path, one_seed_runs,
                                                name, devices, loop):
-  """On 4 devices: 2 seeds x 2 data devices (the 'seed' mesh axis); seed k
-  against the one-seed run on 2 devices, the same split of the batch (only
-  the last seed there, to keep the compiles few: the first is checked on 1
-  device)."""
+  """On 4 devices, vmapped: 2 seeds x 2 data devices (the 'seed' mesh
+  axis), seed k against the one-seed run on 2 devices, the same split of
+  the batch; unrolled ('auto' on CPU): the seeds replicated, the batch
+  split in 4, against the 4-device run (only the last seed there, to keep
+  the compiles few: the first is checked on 1 device)."""
   seeds = Seeds(SEEDS, loop=loop)
   assert seeds.loop_on(_mesh(devices)) == (
       'vmap' if loop == 'vmap' else 'unroll')
   state = _fit(STAGES[name](tmp_path), mesh=_mesh(devices), seeds=seeds)
+  reference_devices = 1
   if devices == 4:
-    assert state.params is not None
     leaf = jax.tree.leaves(state.params)[0]
-    assert leaf.sharding.spec[0] == 'seed'
+    if loop == 'vmap':
+      assert leaf.sharding.spec[0] == 'seed'
+      reference_devices = 2
+    else:
+      assert leaf.sharding.is_fully_replicated
+      reference_devices = 4
   _assert_seeds_equal_one_seed_runs(
-      state, one_seed_runs, name, SEEDS, 1 if devices == 1 else 2,
+      state, one_seed_runs, name, SEEDS, reference_devices,
       checked=None if devices == 1 else (len(SEEDS) - 1,))
   # One log line per seed and step, named.
   lines = [json.loads(line) for line in
