@@ -20,10 +20,12 @@ from __future__ import annotations
 import contextlib
 import logging
 import time
-from typing import Any, Iterable, Iterator, TypeVar
+from typing import TYPE_CHECKING, Any, Iterable, Iterator, TypeVar
 
-import jax
 import tqdm
+
+if TYPE_CHECKING:
+  import jax
 
 logger = logging.getLogger(__name__)
 
@@ -34,12 +36,19 @@ T = TypeVar('T')
 STEP_LINE_SECONDS = 30.0
 
 
+def _process_index() -> int:
+  """jax's process index, imported here: the data writers' worker
+  processes import this module (through the datasets) and need no jax."""
+  import jax  # pylint: disable=g-import-not-at-top
+  return jax.process_index()
+
+
 def bar(items: Iterable[T], *, desc: str, total: int | None = None,
         unit: str = 'it') -> Iterator[T]:
   """`items` with a progress bar (done, rate, time left) on the lead
   host; `total` when `items` has no length."""
   return iter(tqdm.tqdm(items, desc=desc, total=total, unit=unit,
-                        disable=jax.process_index() != 0,
+                        disable=_process_index() != 0,
                         dynamic_ncols=True))
 
 
@@ -50,8 +59,9 @@ def announce_decoding(what: str, slot_model: Any, num_frames: int,
   passes in all, on which platform, and the config fields that make the work
   smaller (`shorten`)."""
   steps = slot_model.decode_steps
-  if steps <= 1 or num_frames <= 0 or jax.process_index() != 0:
+  if steps <= 1 or num_frames <= 0 or _process_index() != 0:
     return
+  import jax  # pylint: disable=g-import-not-at-top
   platform = jax.devices()[0].platform
   slow = ' -- minutes per video' if platform == 'cpu' else ''
   logger.warning(
@@ -64,7 +74,7 @@ def announce_decoding(what: str, slot_model: Any, num_frames: int,
 def compiling(what: str, first: str) -> None:
   """One log line before `what`'s first call compiles its program (minutes
   on a CPU without a line otherwise); `first`: what takes longer."""
-  if jax.process_index() == 0:
+  if _process_index() == 0:
     logger.info('%s: compiling (the first %s takes longer)', what, first)
 
 
@@ -85,7 +95,7 @@ class Steps:
       return
     self.done = min(done, self.total)
     now = time.monotonic()
-    if now - self._said < STEP_LINE_SECONDS or jax.process_index() != 0:
+    if now - self._said < STEP_LINE_SECONDS or _process_index() != 0:
       return
     self._said = now
     each = (now - self._started) / self.done
@@ -125,5 +135,6 @@ def tick(index: jax.Array) -> None:
   on the host. On CPU only, where one unit takes minutes: on an accelerator
   a host callback in the loop would be a round trip per step, and the
   compiled program stays the one without it."""
+  import jax  # pylint: disable=g-import-not-at-top
   if jax.default_backend() == 'cpu':
     jax.debug.callback(_reached, index)
