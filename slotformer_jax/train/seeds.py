@@ -188,9 +188,13 @@ def program(stages: Sequence[Stage], mesh: Mesh, seeds: Seeds
                           *[s.frozen_params for s in stages])
 
   def init() -> SeedsState:
-    return SeedsState.stack([
-        TrainState.create(stage.init_params(jax.random.key(s)), optimizer)
-        for s in seeds.values])
+    # The one-seed initialiser vmapped over the seeds' keys: seed k draws
+    # what the one-seed init with seed k draws (jax's keys draw alike,
+    # batched or not), in one program compiled once, not K times.
+    keys = jax.vmap(jax.random.key)(jnp.asarray(seeds.values, jnp.int32))
+    return SeedsState.stacked(jax.vmap(
+        lambda key: TrainState.create(stage.init_params(key), optimizer))(
+            keys))
 
   update = seeds_update(stage.loss_fn, optimizer, seeds.values, own_data,
                         split=SEED_AXIS in mesh.axis_names,
@@ -235,6 +239,13 @@ class SeedsState(TrainState):
     return cls(step=stacked.step, params=stacked.params,
                opt_state=stacked.opt_state,
                diverged_at=jnp.zeros((len(states),), jnp.int32))
+
+  @classmethod
+  def stacked(cls, state: TrainState) -> SeedsState:
+    """The SeedsState of a TrainState whose leaves are already [K, ...]."""
+    return cls(step=state.step, params=state.params,
+               opt_state=state.opt_state,
+               diverged_at=jnp.zeros(state.step.shape, jnp.int32))
 
   def train_state(self) -> TrainState:
     """The stacked TrainState without `diverged_at`."""

@@ -169,6 +169,22 @@ def test_seed_k_of_k_seeds_is_the_one_seed_run(tmp_path, one_seed_runs,
       (step, seed) for step in range(1, NUM_STEPS + 1) for seed in SEEDS]
 
 
+@pytest.mark.parametrize('name', ['savi', 'slotformer'])
+def test_k_seed_init_is_each_one_seed_init(tmp_path, name):
+  """The K-seed initialiser (one program, vmapped over the seeds' keys)
+  draws seed k's parameters and optimiser state bit for bit as the one-seed
+  initialiser with seed k."""
+  stage = STAGES[name](tmp_path)
+  stacked = jax.device_get(
+      seeds_lib.program([stage], _one_device(), Seeds(SEEDS)).init())
+  np.testing.assert_array_equal(stacked.step, 0)
+  np.testing.assert_array_equal(stacked.diverged_at, 0)
+  for index, seed in enumerate(SEEDS):
+    one = jax.device_get(trainer.one_seed(stage, _one_device(), seed).init())
+    chex.assert_trees_all_equal(stacked.seed(index).params, one.params)
+    chex.assert_trees_all_equal(stacked.seed(index).opt_state, one.opt_state)
+
+
 def test_seed_mesh_shapes():
   mesh = sharding.make_mesh()
   assert dict(seeds_lib.seed_mesh(mesh, 2).shape) == {'seed': 2, 'data': 2}
