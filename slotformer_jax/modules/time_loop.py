@@ -16,8 +16,8 @@ def scan_with_shared_params(body: Callable[..., Any], module: nn.Module,
   Flax traces a scan body a second time to check that broadcast variables
   are loop invariants, which also creates them at init. Outside init the
   parameters are only read inside these loops, so the body is traced once
-  (flax's `check_constancy_invariants=False`): the same program in about
-  half the tracing (docs/performance.md, "The test suite's wall time").
+  (flax's `check_constancy_invariants=False`): the same program, traced in
+  less time (docs/performance.md, "The test suite's wall time").
   """
   return nn.scan(body, variable_broadcast='params',
                  check_constancy_invariants=module.is_initializing(),

@@ -3,8 +3,9 @@ the one-model program (`trainer.one_seed`) into a K-seed one.
 
 K TrainStates stacked on a leading axis (`SeedsState`) and one jitted step
 that runs the K one-seed steps (`seeds_train_step`), vmapped on a (seed,
-data) mesh when the devices allow (`seed_mesh`), checkpointed and resumed as one state;
-each seed's divergence is checked, and its metrics logged, on its own line.
+data) mesh when the devices allow (`seed_mesh`), checkpointed and resumed
+as one state; each seed's divergence is checked, and its metrics logged, on
+its own line.
 Seed s draws what a one-seed run with seed s draws: its initialisation and
 step RNG. Its data: the stream of one `Stage` every seed shares, or its own
 `Stage` (its own data or order, and frozen parameters), stacked [K, ...].
@@ -121,11 +122,12 @@ class Seeds:
     for an accelerator always batches the seeds unless told 'unroll'.
 
     On CPU 'auto' unrolls, also on several devices (the seeds then
-    replicated, `program`): vmapped and split, XLA:CPU (jaxlib 0.10.2) turns the dVAE's 1x1
-    output convolution into a grouped convolution it then partitions into
-    an invalid one (3 output features for 2 groups: the first step fails),
-    and the transposed convolution of SAVi's decoder computes another loss
-    unless its accelerator form is used (`seeds_update`)."""
+    replicated, `program`): vmapped and split, XLA:CPU (jaxlib 0.10.2)
+    turns the dVAE's 1x1 output convolution into a grouped convolution it
+    then partitions into an invalid one (3 output features for 2 groups:
+    the first step fails), and the transposed convolution of SAVi's decoder
+    computes another loss unless its accelerator form is used
+    (`seeds_update`)."""
     if self.loop != 'auto':
       return self.loop
     on_cpu = mesh.devices.flat[0].platform == 'cpu'
@@ -172,7 +174,7 @@ def program(stages: Sequence[Stage], mesh: Mesh, seeds: Seeds
   loop = seeds.loop_on(mesh)
   # Only the vmapped loop splits the seeds: the unrolled one indexes seed
   # k's slice, which split XLA moves between the devices in every step
-  # (docs/seeds.md, "Devices": 3x slower than replicated on 2 CPU devices).
+  # (docs/seeds.md, "Devices").
   if seeds.seed_axis and loop == 'vmap':
     mesh = seed_mesh(mesh, count)
   optimizer, _ = stage.optimizer_and_schedule()

@@ -2,8 +2,9 @@
 
 One run of the micro SAVi pipeline with seeds (0, 1) on 2 devices (the
 seeds unrolled, as on every CPU, so replicated and the batch split) is
-shared by the tests of this module: per-seed slots and evaluations, the summary, seed k of the stacked
-SlotFormer against the one-seed run on stage-1 seed k's slots, resuming.
+shared by the tests of this module: per-seed slots and evaluations, the
+summary, seed k of the stacked SlotFormer against the one-seed run on
+stage-1 seed k's slots, resuming.
 """
 
 import dataclasses
