@@ -167,8 +167,8 @@ def fit(stages: Sequence[Stage], *, mesh: Mesh, seeds: Seeds) -> Any:
 
 def program(stages: Sequence[Stage], mesh: Mesh, seeds: Seeds
             ) -> trainer.Program:
-  """The K-seed program of `stages` (see `fit`) on `mesh`, or on its
-  (seed, data) form (`seed_mesh`, with `seeds.seed_axis`)."""
+  """The K-seed program of `stages` (see `fit`) on `mesh`, or, vmapped,
+  on its (seed, data) form (`seed_mesh`, with `seeds.seed_axis`)."""
   stage = stages[0]
   count = len(seeds.values)
   loop = seeds.loop_on(mesh)
@@ -194,7 +194,7 @@ def program(stages: Sequence[Stage], mesh: Mesh, seeds: Seeds
     # what the one-seed init with seed k draws (jax's keys draw alike,
     # batched or not), in one program compiled once, not K times.
     keys = jax.vmap(jax.random.key)(jnp.asarray(seeds.values, jnp.int32))
-    return SeedsState.stacked(jax.vmap(
+    return SeedsState.from_stacked(jax.vmap(
         lambda key: TrainState.create(stage.init_params(key), optimizer))(
             keys))
 
@@ -236,18 +236,16 @@ class SeedsState(TrainState):
   diverged_at: jax.Array
 
   @classmethod
-  def stack(cls, states: list[TrainState]) -> SeedsState:
-    stacked = jax.tree.map(lambda *xs: jnp.stack(xs), *states)
-    return cls(step=stacked.step, params=stacked.params,
-               opt_state=stacked.opt_state,
-               diverged_at=jnp.zeros((len(states),), jnp.int32))
-
-  @classmethod
-  def stacked(cls, state: TrainState) -> SeedsState:
+  def from_stacked(cls, state: TrainState) -> SeedsState:
     """The SeedsState of a TrainState whose leaves are already [K, ...]."""
     return cls(step=state.step, params=state.params,
                opt_state=state.opt_state,
                diverged_at=jnp.zeros(state.step.shape, jnp.int32))
+
+  @classmethod
+  def stack(cls, states: list[TrainState]) -> SeedsState:
+    return cls.from_stacked(
+        jax.tree.map(lambda *xs: jnp.stack(xs), *states))
 
   def train_state(self) -> TrainState:
     """The stacked TrainState without `diverged_at`."""
