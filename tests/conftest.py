@@ -4,8 +4,16 @@ XLA reads the flag when jax initialises its backends, so it is set here,
 before any test module imports jax.
 """
 
+import gc
 import os
 import signal
+
+# Python's cyclic collector, at its default thresholds, runs a full
+# collection over the test process's large heap (jax's caches of thousands
+# of traced programs) every few seconds while jax traces: 4% of a pipeline
+# file's time. Collected less often here; the collector stays on (memory:
+# docs/performance.md, "The test suite's wall time").
+gc.set_threshold(50_000, 20, 100)
 
 # A test run started as a background job of a script (`cmd &`, nohup)
 # inherits SIGINT ignored, and so would every process a test starts: the

@@ -12,6 +12,7 @@ after the data stage, SAVi, extraction and SlotFormer as any task does.
 
 from __future__ import annotations
 
+import functools
 import itertools
 import json
 import os
@@ -53,12 +54,17 @@ def _features_and_targets(run, split: str) -> tuple[np.ndarray, np.ndarray]:
   videos = run.videos(split)
   trained = run.dynamics('slotformer')
   burn_in = run.dynamics_section('slotformer').burn_in
+  # Jitted once: outside jit, flax's time loop is traced and compiled anew
+  # at every call.
+  rollout_slots = jax.jit(functools.partial(
+      inference.rollout_slots, model=trained.module),
+                          static_argnames='num_steps')
   features, targets = [], []
   for i in range(len(slots)):
     observed = np.asarray(slots[i]['slots'])[None, :burn_in]
     steps = len(slots[i]['slots']) - burn_in
-    rollout = inference.rollout_slots(trained.params, jnp.asarray(observed),
-                                      model=trained.module, num_steps=steps)
+    rollout = rollout_slots(trained.params, jnp.asarray(observed),
+                            num_steps=steps)
     features.append(np.asarray(rollout)[0, -1].mean(axis=0))
     video = videos[i]
     visible = np.asarray(video['visible'][-1], bool)
