@@ -64,7 +64,8 @@ jax.config.update('jax_persistent_cache_min_entry_size_bytes', 0)
 import pytest  # noqa: E402
 
 # Variants whose sibling (named) stays in the default suite: they run with
-# `-m slow`, so that the default suite stays near 15 min on 2 CPU cores.
+# `-m slow`, so that the default suite stays near its 10-minute aim on 2 CPU
+# cores (tests/README.md).
 SLOW_VARIANTS = {
     'pipeline/test_pipeline_end_to_end.py::'
     'test_rerun_resumes_without_recomputing[steve]': '[savi]',

@@ -190,13 +190,17 @@ def program(stages: Sequence[Stage], mesh: Mesh, seeds: Seeds
                           *[s.frozen_params for s in stages])
 
   def init() -> SeedsState:
-    # The one-seed initialiser vmapped over the seeds' keys: seed k draws
-    # what the one-seed init with seed k draws (jax's keys draw alike,
-    # batched or not), in one program compiled once, not K times.
+    # The one-seed initialiser in a loop over the seeds' keys: seed k draws
+    # what the one-seed init with seed k draws, in one program compiled
+    # once, not K times. A loop, not vmap: batched, flax's orthogonal
+    # recurrent kernels (GRU, LSTM) take a batched QR, whose LAPACK kernel
+    # (jaxlib 0.10.2) blocks XLA:CPU's thread pool waiting for work queued
+    # on that same pool; with the program replicated on several CPU devices
+    # every pool thread waited and the init hung (docs/seeds.md).
     keys = jax.vmap(jax.random.key)(jnp.asarray(seeds.values, jnp.int32))
-    return SeedsState.from_stacked(jax.vmap(
-        lambda key: TrainState.create(stage.init_params(key), optimizer))(
-            keys))
+    return SeedsState.from_stacked(jax.lax.map(
+        lambda key: TrainState.create(stage.init_params(key), optimizer),
+        keys))
 
   update = seeds_update(stage.loss_fn, optimizer, seeds.values, own_data,
                         split=SEED_AXIS in mesh.axis_names,
