@@ -8,6 +8,7 @@ import itertools
 import json
 import logging
 import os
+import re
 import signal
 
 import chex
@@ -171,7 +172,7 @@ def test_seed_k_of_k_seeds_is_the_one_seed_run(tmp_path, one_seed_runs,
 
 @pytest.mark.parametrize('name', ['savi', 'slotformer'])
 def test_k_seed_init_is_each_one_seed_init(tmp_path, name):
-  """The K-seed initialiser (one program, vmapped over the seeds' keys)
+  """The K-seed initialiser (one program, a loop over the seeds' keys)
   draws seed k's parameters and optimiser state bit for bit as the one-seed
   initialiser with seed k."""
   stage = STAGES[name](tmp_path)
@@ -183,6 +184,20 @@ def test_k_seed_init_is_each_one_seed_init(tmp_path, name):
     one = jax.device_get(trainer.one_seed(stage, _one_device(), seed).init())
     chex.assert_trees_all_equal(stacked.seed(index).params, one.params)
     chex.assert_trees_all_equal(stacked.seed(index).opt_state, one.opt_state)
+
+
+def test_k_seed_init_takes_no_batched_lapack_call(tmp_path):
+  """The K-seed initialiser, replicated on 4 CPU devices, decomposes each
+  orthogonal recurrent kernel (SAVi's GRU) as one matrix: a batched QR's
+  LAPACK kernel (jaxlib 0.10.2) waits on XLA:CPU's thread pool from a
+  thread of that pool, and four at once hung the init (docs/seeds.md)."""
+  text = seeds_lib.program([_savi(tmp_path)], _mesh(4),
+                           Seeds(SEEDS)).init.lower().as_text()
+  calls = re.findall(r'(lapack_\w+)"?\((%[^)]*)\)[^\n]*: \(tensor<([0-9x]+)x',
+                     text)
+  assert calls, 'no LAPACK call: the test no longer sees the QR'
+  for name, _, shape in calls:
+    assert shape.count('x') == 1, (name, shape)  # one 2-D matrix
 
 
 def test_seed_mesh_shapes():
