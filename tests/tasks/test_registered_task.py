@@ -56,9 +56,9 @@ def _features_and_targets(run, split: str) -> tuple[np.ndarray, np.ndarray]:
   burn_in = run.dynamics_section('slotformer').burn_in
   # Jitted once: outside jit, flax's time loop is traced and compiled anew
   # at every call.
-  rollout_slots = jax.jit(functools.partial(
-      inference.rollout_slots, model=trained.module),
-                          static_argnames='num_steps')
+  rollout_slots = jax.jit(
+      functools.partial(inference.rollout_slots, model=trained.module),
+      static_argnames='num_steps')
   features, targets = [], []
   for i in range(len(slots)):
     observed = np.asarray(slots[i]['slots'])[None, :burn_in]
