@@ -193,10 +193,10 @@ def test_k_seed_init_takes_no_batched_lapack_call(tmp_path):
   thread of that pool, and four at once hung the init (docs/seeds.md)."""
   text = seeds_lib.program([_savi(tmp_path)], _mesh(4),
                            Seeds(SEEDS)).init.lower().as_text()
-  calls = re.findall(r'(lapack_\w+)"?\((%[^)]*)\)[^\n]*: \(tensor<([0-9x]+)x',
+  calls = re.findall(r'(lapack_\w+)"?\(%[^)]*\)[^\n]*: \(tensor<([0-9x]+)x',
                      text)
   assert calls, 'no LAPACK call: the test no longer sees the QR'
-  for name, _, shape in calls:
+  for name, shape in calls:
     assert shape.count('x') == 1, (name, shape)  # one 2-D matrix
 
 
