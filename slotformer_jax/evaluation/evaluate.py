@@ -67,6 +67,7 @@ class SlotDecoder(Protocol):
   slot_shape: tuple[int, int]
   mask_source: str
   decodes_pixels: bool
+  decode_steps: int  # sequential decoder passes per frame
 
   def decode(self, params: Any, slots: jax.Array) -> Any:
     """slots [..., N, D] -> .recon [..., H, W, 3], .alpha_masks [..., N, H,
@@ -212,7 +213,7 @@ def make_rollout_evaluator(eval_config: ml_collections.ConfigDict, mesh: Mesh,
       """All methods at one rollout step: the ground-truth frames' LPIPS
       features are computed once and shared by every method."""
       index, (slots_by_method, frame, seg, gt_boxes) = inputs
-      progress.tick(index)
+      progress.tick(index, slot_model.decode_steps)
       frame = model_to_unit(frames_to_model(frame))
       target = lpips_fn.features(frame) if with_lpips else None
       score = lambda decoded: step_metrics(decoded, frame, seg, gt_boxes,

@@ -170,7 +170,7 @@ class Explorer:
     # ticks the progress (minutes a video with STEVE on a CPU).
     def decode_frame(inputs):
       index, frame = inputs
-      progress.tick(index)
+      progress.tick(index, self.slot_model.decode_steps)
       return self.slot_model.decode(slot_params, frame, rows_presence)
     time_major = jnp.moveaxis(everything, 2, 0)
     decoded = jax.lax.map(

@@ -10,9 +10,10 @@ and show a bar whose rate and time left come from the work already done.
 
 A bar whose one unit takes minutes (one video of the explorer, a split that
 is one batch) would sit at 0/1: `Steps` says the sub-steps inside it (the
-chunks of a batch, the frames a jitted loop decodes: `tick` inside the
-jitted body), at most one line every `STEP_LINE_SECONDS`. `compiling`
-says, before a program's first call, why the first unit takes longer.
+chunks of a batch, the frames a jitted loop decodes token by token:
+`tick` inside the jitted body), at most one line every
+`STEP_LINE_SECONDS`. `compiling` says, before a program's first call, why
+the first unit takes longer.
 """
 
 from __future__ import annotations
@@ -129,12 +130,15 @@ def _reached(index: Any) -> None:
     steps.reached(int(index))
 
 
-def tick(index: jax.Array) -> None:
-  """(Traced, at the start of a loop body.) Loop step `index` (0-based)
-  starts: `index` steps are done, counted by the `ticking` Steps, if any,
-  on the host. On CPU only, where one unit takes minutes: on an accelerator
-  a host callback in the loop would be a round trip per step, and the
-  compiled program stays the one without it."""
+def tick(index: jax.Array, decode_steps: int) -> None:
+  """(Traced, at the start of a loop body that decodes.) Loop step `index`
+  (0-based) starts: `index` steps are done, counted by the `ticking` Steps,
+  if any, on the host. Only where one unit takes minutes: on a CPU, for a
+  slot model whose `decode_steps` (sequential decoder passes per frame) is
+  above 1. Elsewhere the program stays the one without the host callback:
+  jax's persistent compile cache never serves a program with one (its key
+  holds the callback's address in this process), and on an accelerator it
+  would be a round trip per step."""
   import jax  # pylint: disable=g-import-not-at-top
-  if jax.default_backend() == 'cpu':
+  if decode_steps > 1 and jax.default_backend() == 'cpu':
     jax.debug.callback(_reached, index)

@@ -11,6 +11,7 @@ import jax.numpy as jnp
 from jax.sharding import Mesh
 import numpy as np
 
+import explore_helpers
 from explore_helpers import micro_explorer
 from slotformer_jax import inference
 from slotformer_jax.runtime import progress
@@ -40,18 +41,27 @@ def test_sub_steps_say_nothing_before_the_line_interval(caplog,
   assert lines[1].startswith('unit: 3/3 chunks (') and '~0 s left' in lines[1]
 
 
+def _ticking_loop(mesh, decode_steps):
+  """A jitted lax.map whose body ticks, as a decoder of `decode_steps`
+  sequential passes per frame would."""
+  def body(inputs):
+    index, row = inputs
+    progress.tick(index, decode_steps)
+    return row * 2.0
+  return jax.jit(lambda x: jax.lax.map(body, (jnp.arange(x.shape[0]), x)),
+                 in_shardings=sharding.batch_sharding(mesh))
+
+
+def _has_host_callback(lowered) -> bool:
+  return '_callback' in lowered.as_text()
+
+
 def test_a_jitted_sharded_loop_ticks_each_step_once(caplog, monkeypatch):
   """`tick` in a lax.map body on 4 devices: one line per step, in order."""
   caplog.set_level(logging.INFO, logger=progress.__name__)
   monkeypatch.setattr(progress, 'STEP_LINE_SECONDS', 0.0)
   mesh = Mesh(np.asarray(jax.devices()[:4]), ('data',))
-
-  def body(inputs):
-    index, row = inputs
-    progress.tick(index)
-    return row * 2.0
-  loop = jax.jit(lambda x: jax.lax.map(body, (jnp.arange(x.shape[0]), x)),
-                 in_shardings=sharding.batch_sharding(mesh))
+  loop = _ticking_loop(mesh, decode_steps=16)
   x = np.ones((4, 8), np.float32)
   with progress.ticking(progress.Steps('loop', 4, 'steps')):
     jax.block_until_ready(loop(x))
@@ -63,12 +73,27 @@ def test_a_jitted_sharded_loop_ticks_each_step_once(caplog, monkeypatch):
   assert not _lines(caplog, 'loop')
 
 
+def test_a_one_pass_decoder_leaves_the_program_without_callback():
+  """Only a decoder of several passes per frame (STEVE) ticks: a program
+  with a host callback never comes from jax's persistent compile cache, so
+  SAVi's evaluation on a CPU would compile again on every rerun."""
+  mesh = Mesh(np.asarray(jax.devices()[:4]), ('data',))
+  x = np.ones((4, 8), np.float32)
+  assert _has_host_callback(_ticking_loop(mesh, 16).lower(x))
+  assert not _has_host_callback(_ticking_loop(mesh, 1).lower(x))
+
+
 def test_the_explorer_says_the_frames_of_a_video(tmp_path, caplog,
                                                  monkeypatch):
-  """--mode=explore sat at 'explore 0/1' for 21 minutes with STEVE."""
+  """--mode=explore sat at 'explore 0/1' for 21 minutes with STEVE: a slot
+  model that decodes each frame in several passes ticks per frame (the
+  micro SAVi, told it decodes so); the SAVi as it is does not."""
   caplog.set_level(logging.INFO, logger=progress.__name__)
   monkeypatch.setattr(progress, 'STEP_LINE_SECONDS', 0.0)
-  config, _, explorer, args = micro_explorer(tmp_path)
+  config, slot_model, explorer, args = micro_explorer(tmp_path)
+  assert not _has_host_callback(explorer._jitted.lower(*args))  # pylint: disable=protected-access
+  monkeypatch.setattr(type(slot_model), 'decode_steps', 16)
+  explorer = explore_helpers.micro_explorer(tmp_path)[2]
   frames = config.slotformer.burn_in + config.evaluation.rollout_steps
   with progress.ticking(progress.Steps('explore video 1/1', frames,
                                        'frames')):

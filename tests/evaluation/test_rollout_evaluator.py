@@ -44,6 +44,7 @@ class PatternDecoder:
   slot_shape: tuple = (N, D)
   mask_source: str = 'alpha'
   decodes_pixels: bool = True
+  decode_steps: int = 1
 
   def decode(self, params, slots):
     ramp = jnp.linspace(-2, 2, SIZE)
