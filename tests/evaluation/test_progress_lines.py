@@ -11,7 +11,6 @@ import jax.numpy as jnp
 from jax.sharding import Mesh
 import numpy as np
 
-import explore_helpers
 from explore_helpers import micro_explorer
 from slotformer_jax import inference
 from slotformer_jax.runtime import progress
@@ -93,7 +92,7 @@ def test_the_explorer_says_the_frames_of_a_video(tmp_path, caplog,
   config, slot_model, explorer, args = micro_explorer(tmp_path)
   assert not _has_host_callback(explorer._jitted.lower(*args))  # pylint: disable=protected-access
   monkeypatch.setattr(type(slot_model), 'decode_steps', 16)
-  explorer = explore_helpers.micro_explorer(tmp_path)[2]
+  explorer = micro_explorer(tmp_path)[2]  # traced anew, told so
   frames = config.slotformer.burn_in + config.evaluation.rollout_steps
   with progress.ticking(progress.Steps('explore video 1/1', frames,
                                        'frames')):
