@@ -166,8 +166,9 @@ class Explorer:
     everything = jnp.concatenate([counterfactual, other_slots], axis=1)
     rows_presence = jnp.concatenate(
         [presence, jnp.ones((len(others), num_slots), bool)])
-    # One frame of every row at a time: [T, V, rows, N, D]; each frame
-    # ticks the progress (minutes a video with STEVE on a CPU).
+    # One frame of every row at a time: [T, V, rows, N, D]; with a
+    # token-by-token decoder each frame ticks the progress (minutes a video
+    # with STEVE on a CPU).
     def decode_frame(inputs):
       index, frame = inputs
       progress.tick(index, self.slot_model.decode_steps)
