@@ -38,6 +38,7 @@ import numpy as np
 
 _POLL_S = 0.1          # how often a waiting consumer checks the workers
 _JOIN_TIMEOUT_S = 30.0  # a worker finishes at most the batch it is building
+_STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)  # the trainer saves; workers go on
 
 
 class ReaderWorkerError(RuntimeError):
@@ -118,6 +119,9 @@ def _worker_main(index: int, num_workers: int, start_step: int, depth: int,
   type name, first line, traceback)."""
   signal.signal(signal.SIGINT, signal.SIG_IGN)
   signal.signal(signal.SIGTERM, signal.SIG_IGN)
+  # Blocked since `_start` (so a signal during start-up could not kill the
+  # worker); ignored now, so a pending one is dropped.
+  signal.pthread_sigmask(signal.SIG_UNBLOCK, _STOP_SIGNALS)
   blocks: list[shared_memory.SharedMemory | None] = [None] * depth
   free = list(range(depth))
   step = start_step + index
@@ -277,17 +281,26 @@ def _start(process: multiprocessing.process.BaseProcess,
   """Starts `process` without making it import the parent's main module
   (a spawned child re-imports it: the CLI's would import jax, flax and the
   models into every worker, seconds and hundreds of MB each), unless the
-  pickled ``make`` refers to it (a source class defined in a script)."""
+  pickled ``make`` refers to it (a source class defined in a script).
+
+  SIGINT and SIGTERM are blocked in this thread while it starts the child,
+  which inherits the mask through fork and exec: Ctrl-C or a scheduler's
+  SIGTERM to the process group during the child's start-up (its imports,
+  before `_worker_main` ignores them) stays pending instead of killing it.
+  Here a blocked signal goes to another thread, or waits until the mask
+  is restored: it is never lost."""
   main = sys.modules.get('__main__')
-  if main is None or b'__main__' in make_bytes:
-    process.start()
-    return
-  # A module with neither __spec__ nor __file__: nothing to re-import.
-  sys.modules['__main__'] = types.ModuleType('__main__')
+  swap = main is not None and b'__main__' not in make_bytes
+  blocked = signal.pthread_sigmask(signal.SIG_BLOCK, _STOP_SIGNALS)
   try:
+    if swap:
+      # A module with neither __spec__ nor __file__: nothing to re-import.
+      sys.modules['__main__'] = types.ModuleType('__main__')
     process.start()
   finally:
-    sys.modules['__main__'] = main
+    if swap:
+      sys.modules['__main__'] = main
+    signal.pthread_sigmask(signal.SIG_SETMASK, blocked)
 
 
 def _receive(results: mp_connection.Connection,

@@ -210,6 +210,37 @@ def test_workers_ignore_sigint_and_sigterm(timeout):
   it.close()
 
 
+def test_workers_ignore_sigint_and_sigterm_while_they_start(timeout):
+  # The same signals from the first moment: a worker still importing (before
+  # it sets its handlers) must not die of them either.
+  source = CodeSource([9, 12, 10, 7])
+  reference = _stream(source, steps=4)
+  it = pipeline.train_batches(source, batch_size=3, clip_length=4, seed=5,
+                              fields=('video', 'code', 'num'), num_workers=2)
+  done = threading.Event()
+  signalled = set()
+
+  def signal_every_worker():
+    while not done.is_set():
+      for child in multiprocessing.active_children():
+        if child.name.startswith('slotformer-reader-'):
+          os.kill(child.pid, signal.SIGTERM)
+          os.kill(child.pid, signal.SIGINT)
+          signalled.add(child.pid)
+      time.sleep(0.002)
+
+  sender = threading.Thread(target=signal_every_worker, daemon=True)
+  sender.start()
+  try:
+    got = [next(it) for _ in range(4)]
+  finally:
+    done.set()
+    sender.join()
+  assert len(signalled) == 2
+  _assert_same(got, reference)
+  it.close()
+
+
 def test_workers_exit_when_the_consumer_process_dies(tmp_path):
   script = textwrap.dedent(f'''
       import multiprocessing, os, signal, sys
@@ -289,9 +320,11 @@ def test_bad_num_workers():
 
 @pytest.mark.parametrize('value', [-1, -3])
 def test_config_rejects_bad_reader_workers(value):
+  from slotformer_jax import dynamics  # pylint: disable=unused-import
   from slotformer_jax.config import checks
   from slotformer_jax.config import defaults
   from slotformer_jax.errors import ConfigError
+  del dynamics  # imported for its registrations, as main imports it
   config = defaults.base_config()
   config.data.reader_workers = value
   with pytest.raises(ConfigError) as caught:
