@@ -117,8 +117,8 @@ def _worker_main(index: int, num_workers: int, start_step: int, depth: int,
   pipe closes. Messages to the consumer: ('block', slot, name),
   ('batch', step, slot, layout), ('error', step, pickled error or None,
   type name, first line, traceback)."""
-  signal.signal(signal.SIGINT, signal.SIG_IGN)
-  signal.signal(signal.SIGTERM, signal.SIG_IGN)
+  for signum in _STOP_SIGNALS:
+    signal.signal(signum, signal.SIG_IGN)
   # Blocked since `_start` (so a signal during start-up could not kill the
   # worker); ignored now, so a pending one is dropped.
   signal.pthread_sigmask(signal.SIG_UNBLOCK, _STOP_SIGNALS)

@@ -320,11 +320,10 @@ def test_bad_num_workers():
 
 @pytest.mark.parametrize('value', [-1, -3])
 def test_config_rejects_bad_reader_workers(value):
-  from slotformer_jax import dynamics  # pylint: disable=unused-import
+  import slotformer_jax.dynamics  # noqa: F401  registers them, as main does
   from slotformer_jax.config import checks
   from slotformer_jax.config import defaults
   from slotformer_jax.errors import ConfigError
-  del dynamics  # imported for its registrations, as main imports it
   config = defaults.base_config()
   config.data.reader_workers = value
   with pytest.raises(ConfigError) as caught:
